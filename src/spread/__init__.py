@@ -1,0 +1,2 @@
+"""SPREAD platform."""
+__version__ = "0.1.0"

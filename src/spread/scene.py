@@ -1,0 +1,349 @@
+"""The Scene record, its ``.npz`` file format, validation, and a reader for the reference release.
+
+Conventions (DESIGN §3): metres, y-up, floor at y = 0. Object ``i`` is placed by
+``v_world = rotation[i] @ v_local + translation[i]`` where ``v_local`` is a vertex of the asset's
+canonical mesh (centred at its bounding-box centre, y-up), so ``translation[i]`` is the world position
+of the canonical bbox centre and ``rotation[i]`` is world-from-local.
+
+Codes: ``spatial[i, j]`` says "i is <code> of j" with
+0 right of, 1 left of, 2 in front of, 3 behind, 4 above, 5 below, 6 self (the diagonal);
+``physical[i, j]`` is 0 none, 1 "i supports j", 2 contact.
+
+Extra arrays (for example ``source`` on generated scenes, or precomputed shape tokens) are kept in
+``Scene.extras`` and round-trip through the file unchanged.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Iterable, Mapping
+
+import numpy as np
+
+from spread.io import atomic_path
+
+if TYPE_CHECKING:  # pragma: no cover
+    from spread.assets.library import AssetLibrary
+
+SPATIAL_NAMES = ("right of", "left of", "in front of", "behind", "above", "below", "self")
+SPATIAL_RIGHT, SPATIAL_LEFT, SPATIAL_FRONT, SPATIAL_BEHIND, SPATIAL_ABOVE, SPATIAL_BELOW, SPATIAL_SELF = range(7)
+NUM_SPATIAL = 7
+PHYSICAL_NAMES = ("none", "support", "contact")
+PHYSICAL_NONE, PHYSICAL_SUPPORT, PHYSICAL_CONTACT = range(3)
+NUM_PHYSICAL = 3
+
+#: Largest |RᵀR − I| entry accepted for a rotation matrix read from a file.
+ROTATION_TOLERANCE = 1e-3
+
+REQUIRED_KEYS = ("scene_id", "asset_id", "category", "translation", "rotation", "spatial", "physical")
+OPTIONAL_KEYS = ("room",)
+
+
+class SceneFormatError(ValueError):
+    """A scene file or record breaks the contract; the message names the file, the key and the problem."""
+
+    def __init__(self, source: str, key: str | None, problem: str):
+        self.source, self.key, self.problem = source, key, problem
+        where = f"{source}: key '{key}'" if key else source
+        super().__init__(f"{where}: {problem}")
+
+
+@dataclass
+class Scene:
+    """One scene of N objects (no padding). Shapes and units are those of DESIGN §4."""
+
+    scene_id: str
+    asset_id: np.ndarray  # (N,) str
+    category: np.ndarray  # (N,) str
+    translation: np.ndarray  # (N, 3) float32, metres, world bbox-centre
+    rotation: np.ndarray  # (N, 3, 3) float32, world-from-local
+    spatial: np.ndarray  # (N, N) int8
+    physical: np.ndarray  # (N, N) int8
+    room: np.ndarray | None = None  # (2, 3) float32 min, max
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.scene_id = str(self.scene_id)
+        self.asset_id = np.asarray(self.asset_id, dtype=str).reshape(-1)
+        self.category = np.asarray(self.category, dtype=str).reshape(-1)
+        self.translation = np.asarray(self.translation, dtype=np.float32)
+        self.rotation = np.asarray(self.rotation, dtype=np.float32)
+        self.spatial = np.asarray(self.spatial, dtype=np.int8)
+        self.physical = np.asarray(self.physical, dtype=np.int8)
+        if self.room is not None:
+            self.room = np.asarray(self.room, dtype=np.float32)
+
+    @property
+    def num_objects(self) -> int:
+        return int(self.asset_id.shape[0])
+
+    def __len__(self) -> int:
+        return self.num_objects
+
+    def transforms(self) -> np.ndarray:
+        """(N, 4, 4) float64 world-from-local homogeneous transforms."""
+        T = np.tile(np.eye(4), (self.num_objects, 1, 1))
+        T[:, :3, :3] = self.rotation
+        T[:, :3, 3] = self.translation
+        return T
+
+    def support_pairs(self) -> np.ndarray:
+        """(K, 2) int array of (supporter, supported) index pairs from ``physical``."""
+        return np.argwhere(self.physical == PHYSICAL_SUPPORT)
+
+    def with_poses(self, translation: np.ndarray, rotation: np.ndarray, scene_id: str | None = None) -> "Scene":
+        """A copy with new poses and the same graph, ids and extras."""
+        return Scene(
+            scene_id=self.scene_id if scene_id is None else scene_id,
+            asset_id=self.asset_id.copy(), category=self.category.copy(),
+            translation=np.asarray(translation, np.float32).copy(), rotation=np.asarray(rotation, np.float32).copy(),
+            spatial=self.spatial.copy(), physical=self.physical.copy(),
+            room=None if self.room is None else self.room.copy(),
+            extras={k: np.array(v, copy=True) for k, v in self.extras.items()},
+        )
+
+    def validate(self, source: str | None = None, assets: "AssetLibrary | Iterable[str] | None" = None) -> "Scene":
+        validate_scene(self, source=source or f"scene '{self.scene_id}'", assets=assets)
+        return self
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        arrays = {
+            "scene_id": np.asarray(self.scene_id),
+            "asset_id": self.asset_id,
+            "category": self.category,
+            "translation": self.translation,
+            "rotation": self.rotation,
+            "spatial": self.spatial,
+            "physical": self.physical,
+        }
+        if self.room is not None:
+            arrays["room"] = self.room
+        for key, value in self.extras.items():
+            if key in arrays:
+                raise SceneFormatError(f"scene '{self.scene_id}'", key, "extra key shadows a contract key")
+            arrays[key] = np.asarray(value)
+        return arrays
+
+
+def _fail(source: str, key: str | None, problem: str) -> None:
+    raise SceneFormatError(source, key, problem)
+
+
+def validate_scene(scene: Scene, source: str, assets: "AssetLibrary | Iterable[str] | None" = None) -> None:
+    """Check every contract of DESIGN §4; raise :class:`SceneFormatError` naming source, key, problem."""
+    n = scene.num_objects
+    if not scene.scene_id:
+        _fail(source, "scene_id", "empty scene id")
+    if n == 0:
+        _fail(source, "asset_id", "scene has no objects (N = 0)")
+    shapes = {
+        "asset_id": (scene.asset_id, (n,)),
+        "category": (scene.category, (n,)),
+        "translation": (scene.translation, (n, 3)),
+        "rotation": (scene.rotation, (n, 3, 3)),
+        "spatial": (scene.spatial, (n, n)),
+        "physical": (scene.physical, (n, n)),
+    }
+    if scene.room is not None:
+        shapes["room"] = (scene.room, (2, 3))
+    for key, (arr, shape) in shapes.items():
+        if arr.shape != shape:
+            _fail(source, key, f"shape {tuple(arr.shape)} does not match N = {n} (expected {shape})")
+    for key in ("translation", "rotation") + (("room",) if scene.room is not None else ()):
+        arr = getattr(scene, key)
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            idx = np.argwhere(bad)[0].tolist()
+            _fail(source, key, f"non-finite value {arr[tuple(idx)]} at index {idx}")
+    R = scene.rotation.astype(np.float64)
+    ortho_err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(R)
+    worst = int(np.argmax(ortho_err))
+    if ortho_err[worst] > ROTATION_TOLERANCE:
+        _fail(source, "rotation", f"object {worst} is not orthonormal (max |RᵀR − I| = {ortho_err[worst]:.2e})")
+    if (det <= 0).any():
+        i = int(np.argmax(det <= 0))
+        _fail(source, "rotation", f"object {i} has determinant {det[i]:.3f} (a reflection, not a rotation)")
+    if scene.room is not None and (scene.room[1] < scene.room[0]).any():
+        _fail(source, "room", f"max {scene.room[1].tolist()} is below min {scene.room[0].tolist()}")
+    diag = np.eye(n, dtype=bool)
+    sp = scene.spatial
+    if (sp[diag] != SPATIAL_SELF).any():
+        i = int(np.argmax(sp[diag] != SPATIAL_SELF))
+        _fail(source, "spatial", f"diagonal entry ({i},{i}) is {sp[i, i]}, expected {SPATIAL_SELF} (self)")
+    off = sp[~diag]
+    if ((off < 0) | (off >= SPATIAL_SELF)).any():
+        bad = np.argwhere(((sp < 0) | (sp >= SPATIAL_SELF)) & ~diag)[0].tolist()
+        _fail(source, "spatial", f"code {sp[tuple(bad)]} at {bad} out of range 0..5 off the diagonal")
+    ph = scene.physical
+    if ((ph < 0) | (ph >= NUM_PHYSICAL)).any():
+        bad = np.argwhere((ph < 0) | (ph >= NUM_PHYSICAL))[0].tolist()
+        _fail(source, "physical", f"code {ph[tuple(bad)]} at {bad} out of range 0..{NUM_PHYSICAL - 1}")
+    if (ph[diag] != PHYSICAL_NONE).any():
+        i = int(np.argmax(ph[diag] != PHYSICAL_NONE))
+        _fail(source, "physical", f"object {i} has a physical relation with itself")
+    if assets is not None:
+        known = assets if hasattr(assets, "__contains__") else set(assets)
+        for i, aid in enumerate(scene.asset_id):
+            if aid not in known:
+                _fail(source, "asset_id", f"object {i} references unknown asset '{aid}'")
+        records = getattr(assets, "records", None)
+        if records is not None:
+            for i, (aid, cat) in enumerate(zip(scene.asset_id, scene.category)):
+                if records[aid].category != cat:
+                    _fail(source, "category", f"object {i} says '{cat}' but asset '{aid}' is '{records[aid].category}'")
+
+
+def write_scene(scene: Scene, path: str | os.PathLike, validate: bool = True) -> Path:
+    """Write ``scene`` to ``path`` (``.npz``, uncompressed) atomically; returns the path."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise SceneFormatError(str(path), None, "scene files must end in .npz")
+    if validate:
+        validate_scene(scene, source=str(path))
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **scene.to_arrays())
+    return path
+
+
+def read_scene(path: str | os.PathLike, assets: "AssetLibrary | Iterable[str] | None" = None,
+               validate: bool = True) -> Scene:
+    """Read and validate one scene file; errors name the file and key."""
+    path = Path(path)
+    src = str(path)
+    if not path.exists():
+        _fail(src, None, "file does not exist")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as exc:  # zip errors, pickled content, truncated file
+        raise SceneFormatError(src, None, f"not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+    with data:
+        arrays = {k: data[k] for k in data.files}
+    return scene_from_arrays(arrays, source=src, assets=assets, validate=validate)
+
+
+def scene_from_arrays(arrays: Mapping[str, np.ndarray], source: str = "<arrays>",
+                      assets: "AssetLibrary | Iterable[str] | None" = None, validate: bool = True) -> Scene:
+    for key in REQUIRED_KEYS:
+        if key not in arrays:
+            _fail(source, key, "missing required key")
+    for key in ("asset_id", "category", "scene_id"):
+        if arrays[key].dtype.kind not in "US":
+            _fail(source, key, f"expected strings, got dtype {arrays[key].dtype}")
+    for key in ("translation", "rotation") + (("room",) if "room" in arrays else ()):
+        if arrays[key].dtype.kind not in "fiu":
+            _fail(source, key, f"expected numbers, got dtype {arrays[key].dtype}")
+    for key in ("spatial", "physical"):
+        arr = arrays[key]
+        if arr.dtype.kind == "f":
+            if not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr)):
+                _fail(source, key, "codes must be integers")
+        elif arr.dtype.kind not in "iu":
+            _fail(source, key, f"expected integer codes, got dtype {arr.dtype}")
+        if arr.size and (arr.min() < -128 or arr.max() > 127):
+            _fail(source, key, f"code {arr.max() if arr.max() > 127 else arr.min()} out of range")
+    if arrays["scene_id"].shape != ():
+        _fail(source, "scene_id", f"expected a scalar string, got shape {arrays['scene_id'].shape}")
+    scene = Scene(
+        scene_id=str(arrays["scene_id"]),
+        asset_id=arrays["asset_id"], category=arrays["category"],
+        translation=arrays["translation"], rotation=arrays["rotation"],
+        spatial=arrays["spatial"], physical=arrays["physical"],
+        room=arrays.get("room"),
+        extras={k: np.asarray(v) for k, v in arrays.items() if k not in REQUIRED_KEYS + OPTIONAL_KEYS},
+    )
+    if validate:
+        validate_scene(scene, source=source, assets=assets)
+    return scene
+
+
+def list_scene_files(folder: str | os.PathLike) -> list[Path]:
+    """Sorted scene files (``*.npz``) of a folder; raises if the folder does not exist."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: not a folder of scene files")
+    return sorted(p for p in folder.glob("*.npz") if not p.name.startswith("."))
+
+
+# --------------------------------------------------------------------------------------------------
+# Reference release (L-avenir/SPREAD) ``boxes.npz``
+# --------------------------------------------------------------------------------------------------
+
+def read_reference_boxes(path: str | os.PathLike, scene_id: str | None = None,
+                         meshes: Mapping[str, "object"] | None = None) -> Scene:
+    """Convert the reference release's ``boxes.npz`` into a Scene.
+
+    The release places a mesh by ``v_world = R · (v_local − bbox_center) + T``: its local meshes are
+    not bbox-centred, ``T_bbox`` is the world bbox centre and ``bbox_center`` the local one. Our
+    canonical mesh is the release mesh shifted by ``−bbox_center``, so ``translation = T_bbox`` and
+    ``rotation = R_bbox`` carry over unchanged. Index 0 is a placeholder and is dropped; ``relations``
+    triples ``[s, p, o]`` (indices into the N+1 arrays, p: 0 empty, 1 support, 2 contact) become the
+    dense directed ``physical`` matrix; ``regions_bbox`` (N+1, N+1) becomes ``spatial``.
+    ``bbox_center`` and, when present, ``miche_feature``/``xyz``/``normal`` are kept as extras
+    (``reference_bbox_center``, ``shape_tokens``, ``surface_points``, ``surface_normals``).
+    Categories are the asset id with trailing ``_<digits>`` and ``_unpacked`` parts removed.
+    """
+    path = Path(path)
+    src = str(path)
+    try:
+        data = np.load(path, allow_pickle=True)
+    except Exception as exc:
+        raise SceneFormatError(src, None, f"not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+    with data:
+        arrays = {k: data[k] for k in data.files}
+    for key in ("T_bbox", "R_bbox", "obj_names", "regions_bbox"):
+        if key not in arrays:
+            _fail(src, key, "missing required key of the reference boxes.npz layout")
+    T = np.asarray(arrays["T_bbox"], dtype=np.float64)
+    R = np.asarray(arrays["R_bbox"], dtype=np.float64)
+    names = np.asarray(arrays["obj_names"]).astype(str)
+    n1 = names.shape[0]
+    if n1 < 2:
+        _fail(src, "obj_names", f"{n1} entries: needs the placeholder at index 0 and at least one object")
+    for key, arr, shape in (("T_bbox", T, (n1, 3)), ("R_bbox", R, (n1, 3, 3))):
+        if arr.shape != shape:
+            _fail(src, key, f"shape {arr.shape}, expected {shape} (N+1 = {n1} from obj_names)")
+    regions = np.asarray(arrays["regions_bbox"])
+    if regions.shape != (n1, n1):
+        _fail(src, "regions_bbox", f"shape {regions.shape}, expected {(n1, n1)}")
+    n = n1 - 1
+    physical = np.zeros((n, n), dtype=np.int8)
+    relations = np.asarray(arrays.get("relations", np.zeros((0, 3), int)))
+    if relations.size:
+        relations = relations.reshape(-1, 3).astype(np.int64)
+        for s, p, o in relations:
+            if not (0 <= s < n1 and 0 <= o < n1):
+                _fail(src, "relations", f"triple {[int(s), int(p), int(o)]} indexes outside 0..{n1 - 1}")
+            if not (0 <= p < NUM_PHYSICAL):
+                _fail(src, "relations", f"triple {[int(s), int(p), int(o)]} has predicate {p} out of 0..2")
+            if s == 0 or o == 0 or s == o:
+                continue  # the placeholder root and self loops carry no object relation
+            physical[s - 1, o - 1] = p
+    spatial = regions[1:, 1:].astype(np.int8)
+    np.fill_diagonal(spatial, SPATIAL_SELF)
+    extras: dict[str, np.ndarray] = {}
+    if "bbox_center" in arrays:
+        extras["reference_bbox_center"] = np.asarray(arrays["bbox_center"], np.float32)[1:]
+    for ref_key, our_key in (("miche_feature", "shape_tokens"), ("xyz", "surface_points"), ("normal", "surface_normals")):
+        if ref_key in arrays:
+            extras[our_key] = np.asarray(arrays[ref_key], np.float32)[1:]
+    object_names = names[1:]
+    categories = np.array([_reference_category(nm) for nm in object_names])
+    scene = Scene(
+        scene_id=scene_id or path.parent.name or path.stem,
+        asset_id=object_names, category=categories,
+        translation=T[1:], rotation=R[1:], spatial=spatial, physical=physical,
+        extras=extras,
+    )
+    validate_scene(scene, source=src, assets=meshes.keys() if meshes is not None else None)
+    return scene
+
+
+def _reference_category(asset_name: str) -> str:
+    parts = [p for p in asset_name.replace("_unpacked", "").split("_") if p]
+    while len(parts) > 1 and parts[-1].isdigit():
+        parts.pop()
+    return "_".join(parts).lower() if parts else asset_name.lower()

@@ -10,8 +10,9 @@ axis-aligned bounding box (AABB) of its posed mesh:
   :data:`VERTICAL_TOLERANCE` (i's bottom ≥ j's top − 5 mm: above; i's top ≤ j's bottom + 5 mm: below).
 
 Everything is vectorised over all ordered pairs (numpy, or torch when given tensors).
-Physical (support/contact) detection from posed meshes lives in :mod:`spread.relations_physical`
-once implemented there; this module holds the spatial part.
+
+Physical codes (support / contact) come from :func:`physical_codes` below, computed on posed meshes:
+see its docstring for the rule.
 """
 
 from __future__ import annotations
@@ -103,3 +104,147 @@ def posed_aabbs(translation: np.ndarray, rotation: np.ndarray, local_vertices: l
         w = np.asarray(v, np.float64) @ np.asarray(rotation[i], np.float64).T + np.asarray(translation[i], np.float64)
         lo[i], hi[i] = w.min(0), w.max(0)
     return lo, hi
+
+
+# ==================================================================================================
+# Physical relations: support and contact from posed geometry
+# ==================================================================================================
+
+#: A surface sample closer than this (metres) to another object's surface counts as touching it.
+CONTACT_TOLERANCE = 0.003
+#: A sample faces down (can rest on something) when its world normal's y is below this.
+DOWNWARD_NORMAL_Y = -0.3
+#: Fewest touching downward samples for a support relation (guards against grazing contacts).
+MIN_SUPPORT_SAMPLES = 3
+#: Samples per object used for contact detection (a subset of the asset cache's surface samples).
+CONTACT_SAMPLES = 768
+
+
+def part_planes(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Face planes of convex parts in their own frame: unit normals (F, 3), offsets (F,), part start
+    indices (n_parts,). A point p is inside part k iff ``max_f(n_f·p − d_f) ≤ 0`` over its planes.
+    Coplanar triangles are merged, so a box has 6 planes.
+    """
+    normals, offsets, starts = [], [], []
+    count = 0
+    for part in parts:
+        n = np.asarray(part.face_normals, np.float64)
+        d = np.einsum("fk,fk->f", n, np.asarray(part.triangles_center, np.float64))
+        key = np.round(np.concatenate([n, d[:, None]], axis=1), 7)
+        _, keep = np.unique(key, axis=0, return_index=True)
+        keep.sort()
+        starts.append(count)
+        normals.append(n[keep])
+        offsets.append(d[keep])
+        count += len(keep)
+    return np.concatenate(normals), np.concatenate(offsets), np.asarray(starts, np.int64)
+
+
+def signed_distance_to_parts(points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
+                             starts: np.ndarray) -> np.ndarray:
+    """Signed distance proxy (metres, negative inside) of points (P, 3) to a union of convex parts.
+
+    Per part it is the largest plane distance ``max_f(n_f·p − d_f)``: exact for points inside a part
+    and for points outside whose nearest feature is a face; it underestimates the distance to edges
+    and corners by at most a factor √3. That is what contact detection needs (a point within a few
+    millimetres of a face), and it costs one matrix product.
+    """
+    s = points @ normals.T - offsets  # (P, F)
+    per_part = np.maximum.reduceat(s, starts, axis=1)  # (P, n_parts)
+    return per_part.min(axis=1)
+
+
+def posed_planes(planes, rotation: np.ndarray, translation: np.ndarray):
+    """Planes of :func:`part_planes` moved by ``v ↦ R v + t``."""
+    normals, offsets, starts = planes
+    wn = normals @ np.asarray(rotation, np.float64).T
+    return wn, offsets + wn @ np.asarray(translation, np.float64), starts
+
+
+def physical_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, library,
+                   contact_tolerance: float = CONTACT_TOLERANCE, samples: int = CONTACT_SAMPLES):
+    """Support and contact codes (N, N) int8 of a posed scene, plus per-object floor support.
+
+    Rule: object i *supports* j when at least :data:`MIN_SUPPORT_SAMPLES` of j's downward-facing
+    surface samples (world normal y < :data:`DOWNWARD_NORMAL_Y`) lie within ``contact_tolerance`` of
+    i's surface (i's convex parts, :func:`signed_distance_to_parts`, penetration included). When j
+    rests on several objects, the one touching the most samples is its supporter and the others are
+    contacts, so the support graph is a forest. Any other pair with touching samples either way is a
+    *contact* (code 2, both directions). An object is floor-supported when such samples lie within
+    the tolerance of y = 0. Returns ``(codes, floor_supported (N,) bool, support_samples (N, N) int)``.
+    """
+    n = len(asset_ids)
+    translation = np.asarray(translation, np.float64)
+    rotation = np.asarray(rotation, np.float64)
+    pts, nrm, planes = [], [], []
+    lo = np.empty((n, 3))
+    hi = np.empty((n, 3))
+    for i, aid in enumerate(asset_ids):
+        p, q = library.surface_points(aid)
+        step = max(1, len(p) // samples)
+        R, t = rotation[i], translation[i]
+        pts.append(p[::step].astype(np.float64) @ R.T + t)
+        nrm.append(q[::step].astype(np.float64) @ R.T)
+        hv = _hull_vertices(library, aid) @ R.T + t
+        lo[i], hi[i] = hv.min(0), hv.max(0)
+        planes.append(posed_planes(_cached_planes(library, aid), R, t))
+    tol = contact_tolerance
+    near = np.all((lo[:, None, :] <= hi[None, :, :] + tol) & (hi[:, None, :] >= lo[None, :, :] - tol), axis=-1)
+    np.fill_diagonal(near, False)
+    support_samples = np.zeros((n, n), np.int64)
+    touching = np.zeros((n, n), bool)
+    for i, j in zip(*np.nonzero(near)):
+        d = signed_distance_to_parts(pts[j], *planes[i])  # j's samples against i
+        close = d <= tol
+        if close.any():
+            touching[i, j] = True
+            support_samples[i, j] = int(np.count_nonzero(close & (nrm[j][:, 1] < DOWNWARD_NORMAL_Y)))
+    floor_samples = np.array([np.count_nonzero((pts[j][:, 1] <= tol) & (nrm[j][:, 1] < DOWNWARD_NORMAL_Y))
+                              for j in range(n)])
+    floor_supported = floor_samples >= MIN_SUPPORT_SAMPLES
+    codes = np.zeros((n, n), np.int8)
+    contact = touching | touching.T
+    codes[contact] = 2
+    for j in range(n):
+        if floor_supported[j] and floor_samples[j] >= support_samples[:, j].max(initial=0):
+            continue
+        best = int(np.argmax(support_samples[:, j])) if n else 0
+        if support_samples[best, j] >= MIN_SUPPORT_SAMPLES:
+            codes[best, j] = 1
+            if codes[j, best] != 1:
+                codes[j, best] = 0
+    # a pair can't support each other: keep the direction with more touching samples
+    mutual = (codes == 1) & (codes.T == 1)
+    for i, j in zip(*np.nonzero(np.triu(mutual))):
+        lower, upper = (i, j) if support_samples[i, j] >= support_samples[j, i] else (j, i)
+        codes[upper, lower] = 2
+    return codes, floor_supported, support_samples
+
+
+_PLANE_CACHE: dict[tuple[str, str], tuple] = {}
+_HULL_CACHE: dict[tuple[str, str], np.ndarray] = {}
+
+
+def _cached_planes(library, asset_id: str):
+    key = (library[asset_id].content_hash, asset_id)
+    if key not in _PLANE_CACHE:
+        _PLANE_CACHE[key] = part_planes(library.convex_parts(asset_id))
+    return _PLANE_CACHE[key]
+
+
+def _hull_vertices(library, asset_id: str) -> np.ndarray:
+    """Canonical-frame vertices of the mesh's convex hull (same AABB under any rotation, fewer points)."""
+    key = (library[asset_id].content_hash, asset_id)
+    if key not in _HULL_CACHE:
+        _HULL_CACHE[key] = np.asarray(library.mesh(asset_id).convex_hull.vertices, np.float64)
+    return _HULL_CACHE[key]
+
+
+def scene_aabbs(translation: np.ndarray, rotation: np.ndarray, asset_ids, library):
+    """World AABBs (N, 3) min, max of the posed meshes of a scene."""
+    return posed_aabbs(translation, rotation, [_hull_vertices(library, a) for a in asset_ids])
+
+
+def scene_spatial_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, library) -> np.ndarray:
+    """Spatial codes of a posed scene: :func:`spatial_codes` of its posed mesh AABBs."""
+    return spatial_codes(*scene_aabbs(translation, rotation, asset_ids, library))

@@ -1,0 +1,34 @@
+# The README's two commands: `make demo` and `make test`. Both create .venv and install the project.
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export WANDB_MODE ?= offline
+DEMO_DIR ?= demo_out
+
+.PHONY: install demo test test-slow bench clean
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null || { echo "needs $(PYTHON) (pybullet ships wheels for 3.11)"; exit 1; }
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/spread-generate out_dir=$(DEMO_DIR)/data rooms=24 seed=0 renders=6
+	@echo "renders: $(DEMO_DIR)/data/renders/"
+
+test: install
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --durations=15
+
+test-slow: install
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 -m slow
+
+bench: install
+	$(BIN)/python benchmarks/bench_generate.py
+
+clean:
+	rm -rf $(DEMO_DIR) .pytest_cache

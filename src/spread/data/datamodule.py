@@ -1,0 +1,86 @@
+"""``SceneDataModule``: the dataset folder's train/val/test splits as Lightning dataloaders.
+
+The train loader shuffles with a ``torch.Generator`` seeded from ``seed``, so the batch order of a
+run is reproducible. Items carry no randomness of their own (points are fixed per asset), so worker
+count does not change what a batch holds. Worker processes get the datasets either by fork (copied)
+or by pickling (``multiprocessing_context="spawn"``): the dataset then reloads its asset library
+lazily in the worker.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from spread.data.collate import collate_scenes
+from spread.data.dataset import SceneDataset
+from spread.data.points import DEFAULT_NUM_POINTS
+
+SPLITS = ("train", "val", "test")
+
+
+class SceneDataModule(L.LightningDataModule):
+    """Dataloaders over ``<root>/{train,val,test}`` with :func:`collate_scenes` batching."""
+
+    def __init__(self, root: str | os.PathLike, batch_size: int = 8, num_workers: int = 0,
+                 num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, pin_memory: bool = False,
+                 persistent_workers: bool = False, multiprocessing_context: str | None = None):
+        super().__init__()
+        self.root = Path(root)
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.num_points = int(num_points)
+        self.seed = int(seed)
+        self.pin_memory = bool(pin_memory)
+        self.persistent_workers = bool(persistent_workers) and self.num_workers > 0
+        self.multiprocessing_context = multiprocessing_context if self.num_workers > 0 else None
+        self.save_hyperparameters({"root": str(self.root), "batch_size": self.batch_size,
+                                   "num_workers": self.num_workers, "num_points": self.num_points,
+                                   "seed": self.seed, "pin_memory": self.pin_memory})
+        self._library = None
+        self._datasets: dict[str, SceneDataset] = {}
+
+    @property
+    def library(self):
+        if self._library is None:
+            from spread.assets.library import AssetLibrary
+
+            self._library = AssetLibrary.load(self.root / "assets")
+        return self._library
+
+    def dataset(self, split: str) -> SceneDataset:
+        """The split's dataset, built on first use (sharing one asset library)."""
+        if split not in self._datasets:
+            self._datasets[split] = SceneDataset(self.root, split, library=self.library,
+                                                 num_points=self.num_points, seed=self.seed)
+        return self._datasets[split]
+
+    def setup(self, stage: str | None = None) -> None:
+        wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
+        for split in wanted.get(stage, SPLITS) if stage else SPLITS:
+            if (self.root / split).is_dir():
+                self.dataset(split)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        generator = torch.Generator().manual_seed(self.seed) if shuffle else None
+        return DataLoader(
+            self.dataset(split), batch_size=self.batch_size, shuffle=shuffle, generator=generator,
+            num_workers=self.num_workers, collate_fn=collate_scenes, pin_memory=self.pin_memory,
+            persistent_workers=self.persistent_workers, multiprocessing_context=self.multiprocessing_context,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)

@@ -1,0 +1,138 @@
+"""``SceneDataset``: one dataset split's scene files as model-ready tensors.
+
+Dataset folder (DESIGN §4): ``<root>/<split>/*.npz`` scene files, ``<root>/assets`` the asset
+library, ``<root>/stats.json`` the normalisation bounds, ``<root>/manifest.json`` (optional here)
+whose ``categories`` list fixes the category indices. Each item is one scene of N objects:
+
+============== ============== =====================================================================
+key            shape, dtype   meaning
+============== ============== =====================================================================
+x              (N, 9) float32 [normalised world translation (3, in [−1, 1]), rot6d of R (6)]
+spatial        (N, N) int64   spatial codes 0..6 (row i "is … of" column j)
+physical       (N, N) int64   physical codes 0 none, 1 i supports j, 2 contact
+asset_index    (N,) int64     index into ``asset_ids`` (the library's sorted asset ids)
+category_index (N,) int64     index into ``categories``
+points         (N, M, 3) f32  surface samples, canonical (object-local, bbox-centred) frame, metres
+normals        (N, M, 3) f32  their unit normals, same frame
+scene_id       str
+============== ============== =====================================================================
+
+Scene files are validated on read (against the library too), so a broken file fails with an error
+naming the file and key. The dataset pickles without its library (it holds a lock and meshes); a
+worker process that gets a pickled copy reloads the library lazily from its folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from spread.data.points import DEFAULT_NUM_POINTS, asset_points
+from spread.data.rotation import matrix_to_rot6d
+from spread.data.stats import load_stats, normalize_translation
+from spread.scene import Scene, list_scene_files, read_scene
+
+
+def load_manifest_categories(path: Path) -> list[str] | None:
+    """The ``categories`` list of ``manifest.json``, or None when the file or key is absent."""
+    if not path.exists():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    cats = manifest.get("categories") if isinstance(manifest, dict) else None
+    if cats is None:
+        return None
+    if not isinstance(cats, list) or not all(isinstance(c, str) for c in cats) or len(set(cats)) != len(cats):
+        raise ValueError(f"{path}: key 'categories' must be a list of distinct strings")
+    return list(cats)
+
+
+class SceneDataset(torch.utils.data.Dataset):
+    """Scenes of ``<root>/<split>`` encoded as tensors (see the module docstring for the keys)."""
+
+    def __init__(self, root: str | os.PathLike, split: str, library=None,
+                 num_points: int = DEFAULT_NUM_POINTS, seed: int = 0):
+        from spread.assets.library import AssetLibrary
+
+        self.root = Path(root)
+        self.split = split
+        self.num_points = int(num_points)
+        self.seed = int(seed)
+        if self.num_points < 1:
+            raise ValueError(f"num_points must be ≥ 1, got {num_points}")
+        self.files = list_scene_files(self.root / split)
+        if not self.files:
+            raise FileNotFoundError(f"{self.root / split}: no scene files (*.npz)")
+        self.stats = load_stats(self.root / "stats.json")
+        self._library = library if library is not None else AssetLibrary.load(self.root / "assets")
+        self._library_root = Path(self._library.root)
+        self.asset_ids: list[str] = sorted(self._library.records)
+        self.categories: list[str] = (load_manifest_categories(self.root / "manifest.json")
+                                      or list(self._library.categories))
+        self._asset_index = {a: i for i, a in enumerate(self.asset_ids)}
+        self._category_index = {c: i for i, c in enumerate(self.categories)}
+        self._points: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    # ---- pickling: drop the library and the point memo, reload lazily ---------------------------
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_library"] = None
+        state["_points"] = {}
+        return state
+
+    @property
+    def library(self):
+        if self._library is None:
+            from spread.assets.library import AssetLibrary
+
+            self._library = AssetLibrary.load(self._library_root)
+        return self._library
+
+    # ---- items ---------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def read(self, index: int) -> Scene:
+        """The validated Scene record of item ``index``."""
+        return read_scene(self.files[index], assets=self.library)
+
+    def __getitem__(self, index: int) -> dict:
+        return self.encode(self.read(index), source=str(self.files[index]))
+
+    def points_of(self, asset_id: str) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 3) points and normals of an asset, memoised; see :mod:`spread.data.points`."""
+        hit = self._points.get(asset_id)
+        if hit is None:
+            hit = asset_points(self.library, asset_id, self.num_points, self.seed)
+            self._points[asset_id] = hit
+        return hit
+
+    def encode(self, scene: Scene, source: str | None = None) -> dict:
+        """Tensors of one Scene (also used to encode test graphs at sampling time)."""
+        source = source or f"scene '{scene.scene_id}'"
+        for i, aid in enumerate(scene.asset_id):
+            if aid not in self._asset_index:
+                raise ValueError(f"{source}: key 'asset_id': object {i} asset '{aid}' is not in the library")
+        for i, cat in enumerate(scene.category):
+            if cat not in self._category_index:
+                raise ValueError(f"{source}: key 'category': object {i} category '{cat}' is not in the "
+                                 f"dataset's category list ({len(self.categories)} categories)")
+        t = normalize_translation(scene.translation.astype(np.float32), self.stats)
+        x = np.concatenate([t, matrix_to_rot6d(scene.rotation.astype(np.float32))], axis=-1)
+        pts, nrm = zip(*(self.points_of(str(a)) for a in scene.asset_id))
+        return {
+            "x": torch.from_numpy(np.ascontiguousarray(x, np.float32)),
+            "spatial": torch.from_numpy(scene.spatial.astype(np.int64)),
+            "physical": torch.from_numpy(scene.physical.astype(np.int64)),
+            "asset_index": torch.tensor([self._asset_index[a] for a in scene.asset_id], dtype=torch.long),
+            "category_index": torch.tensor([self._category_index[c] for c in scene.category], dtype=torch.long),
+            "points": torch.from_numpy(np.stack(pts)),
+            "normals": torch.from_numpy(np.stack(nrm)),
+            "scene_id": scene.scene_id,
+        }

@@ -1,0 +1,233 @@
+"""Data: 6D rotations, normalisation stats, the dataset, padding/collate, and the datamodule."""
+
+import json
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from spread.assets.builder import box_asset, library_from_specs
+from spread.data import (
+    INDEX_PAD, PHYSICAL_PAD, SPATIAL_PAD, SceneDataset, StatsError, collate_scenes, compute_stats,
+    denormalize_translation, load_stats, matrix_to_rot6d, normalize_translation, rot6d_to_matrix, save_stats,
+)
+from spread.relations import posed_aabbs, spatial_codes
+from spread.scene import Scene, write_scene
+
+M = 64  # points per object in these tests
+CATEGORIES = ["mug", "chair", "dining_table", "lamp"]  # manifest order, deliberately not sorted
+
+
+def _yaw(a):
+    return Rotation.from_rotvec([0.0, a, 0.0]).as_matrix()
+
+
+def _scene(lib, rng, scene_id):
+    """A table with 0–2 mugs on it and 1–2 chairs on the floor; graphs from the posed boxes."""
+    tx, tz = rng.uniform(-1.5, 1.5, 2)
+    ids, t, R = ["table"], [[tx, 0.375, tz]], [_yaw(rng.uniform(0, np.pi))]
+    for _ in range(rng.integers(0, 3)):
+        ids.append("mug"), t.append([tx + rng.uniform(-0.3, 0.3), 0.80, tz + rng.uniform(-0.15, 0.15)])
+        R.append(_yaw(rng.uniform(0, 2 * np.pi)))
+    for _ in range(rng.integers(1, 3)):
+        ids.append("chair"), t.append([rng.uniform(-2.5, 2.5), 0.45, rng.uniform(-2.5, 2.5)])
+        R.append(_yaw(rng.uniform(0, 2 * np.pi)))
+    t, R = np.asarray(t), np.asarray(R)
+    lo, hi = posed_aabbs(t, R, [lib.mesh(a).vertices for a in ids])
+    physical = np.zeros((len(ids),) * 2, np.int8)
+    physical[0, [k for k, a in enumerate(ids) if a == "mug"]] = 1
+    return Scene(scene_id, ids, [lib.records[a].category for a in ids], t, R, spatial_codes(lo, hi), physical,
+                 room=np.array([[-3, 0, -3], [3, 3, 3]]))
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dataset")
+    lib = library_from_specs(root / "assets", [
+        box_asset("table", (1.0, 0.75, 0.6), category="dining_table", role="furniture"),
+        box_asset("mug", (0.08, 0.1, 0.08), category="mug"),
+        box_asset("chair", (0.45, 0.9, 0.45), category="chair", role="furniture"),
+    ])
+    rng = np.random.default_rng(0)
+    scenes = {split: [_scene(lib, rng, f"{split}_{k}") for k in range(n)]
+              for split, n in (("train", 6), ("val", 2), ("test", 3))}
+    for split, items in scenes.items():
+        for s in items:
+            write_scene(s, root / split / f"{s.scene_id}.npz")
+    save_stats(root / "stats.json", compute_stats(scenes["train"]))
+    (root / "manifest.json").write_text(json.dumps({"categories": CATEGORIES}))
+    return root
+
+
+# ---- rotations -------------------------------------------------------------------------------------
+
+def test_rot6d_round_trip_numpy_and_torch_batched():
+    R = Rotation.random(4 * 5, random_state=0).as_matrix().reshape(4, 5, 3, 3)
+    x = matrix_to_rot6d(R)
+    assert x.shape == (4, 5, 6)
+    assert np.allclose(x[..., :3], R[..., :, 0]) and np.allclose(x[..., 3:], R[..., :, 1])
+    assert np.allclose(rot6d_to_matrix(x), R, atol=1e-6)
+    Rt = torch.from_numpy(R)
+    xt = matrix_to_rot6d(Rt)
+    assert torch.allclose(xt, torch.from_numpy(x))
+    assert torch.allclose(rot6d_to_matrix(xt), Rt, atol=1e-6)
+    assert rot6d_to_matrix(xt.float()).dtype == torch.float32
+
+
+def test_gram_schmidt_of_perturbed_input_is_a_rotation():
+    rng = np.random.default_rng(1)
+    x = matrix_to_rot6d(Rotation.random(100, random_state=1).as_matrix()) + rng.normal(0, 0.3, (100, 6))
+    for R in (rot6d_to_matrix(x), rot6d_to_matrix(torch.from_numpy(x)).numpy()):
+        assert np.allclose(np.einsum("nji,njk->nik", R, R), np.eye(3), atol=1e-6)
+        assert np.allclose(np.linalg.det(R), 1.0, atol=1e-6)
+        assert np.allclose(R[:, :, 0], x[:, :3] / np.linalg.norm(x[:, :3], axis=1, keepdims=True))
+
+
+# ---- stats -----------------------------------------------------------------------------------------
+
+def test_normalise_round_trip_and_clipping(root):
+    stats = load_stats(root / "stats.json")
+    lo, hi = np.array(stats["bounds_translations"][:3]), np.array(stats["bounds_translations"][3:])
+    assert stats["num_scenes"] == 6 and sum(stats["object_count_histogram"].values()) == 6
+    t = np.random.default_rng(2).uniform(lo, hi, (7, 3)).astype(np.float32)
+    x = normalize_translation(t, stats)
+    assert x.dtype == np.float32 and (np.abs(x) <= 1 + 1e-6).all()
+    assert np.allclose(denormalize_translation(x, stats), t, atol=1e-5)
+    assert np.allclose(normalize_translation(np.stack([lo, hi]), stats), [[-1] * 3, [1] * 3])
+    assert np.allclose(normalize_translation(hi + 5.0, stats), 1.0), "outside the bounds is clipped"
+    tt = torch.from_numpy(t)
+    assert torch.allclose(normalize_translation(tt, stats), torch.from_numpy(x), atol=1e-6)
+    assert torch.allclose(denormalize_translation(normalize_translation(tt, stats), stats), tt, atol=1e-5)
+
+
+def test_load_stats_errors_name_file_and_key(tmp_path):
+    with pytest.raises(StatsError, match="missing.json"):
+        load_stats(tmp_path / "missing.json")
+    bad = tmp_path / "stats.json"
+    bad.write_text(json.dumps({"bounds_sizes": [0, 0, 0, 1, 1, 1]}))
+    with pytest.raises(StatsError, match=r"stats\.json: key 'bounds_translations' is missing"):
+        load_stats(bad)
+    bad.write_text(json.dumps({"bounds_translations": [0, 0, 0, 1, 0, 1]}))
+    with pytest.raises(StatsError, match="max ≤ min"):
+        load_stats(bad)
+
+
+# ---- dataset ---------------------------------------------------------------------------------------
+
+def test_item_encodes_the_scene(root):
+    ds = SceneDataset(root, "train", num_points=M)
+    scene = ds.read(0)
+    item = ds[0]
+    n = scene.num_objects
+    assert item["scene_id"] == scene.scene_id and item["x"].shape == (n, 9)
+    assert np.allclose(denormalize_translation(item["x"][:, :3].numpy(), ds.stats), scene.translation, atol=1e-5)
+    assert np.allclose(rot6d_to_matrix(item["x"][:, 3:].numpy()), scene.rotation, atol=1e-5)
+    assert item["spatial"].dtype == torch.long and torch.equal(item["spatial"], torch.from_numpy(scene.spatial).long())
+    assert torch.equal(item["physical"], torch.from_numpy(scene.physical).long())
+    assert ds.categories == CATEGORIES, "the manifest's category list wins over the library's"
+    assert [CATEGORIES[i] for i in item["category_index"]] == list(scene.category)
+    assert [ds.asset_ids[i] for i in item["asset_index"]] == list(scene.asset_id)
+    assert ds.asset_ids == ["chair", "mug", "table"]
+    assert item["points"].shape == item["normals"].shape == (n, M, 3)
+    assert torch.allclose(item["normals"].norm(dim=-1), torch.ones(n, M), atol=1e-4)
+
+
+def test_points_are_fixed_per_asset_and_seed(root):
+    ds = SceneDataset(root, "train", num_points=M, seed=0)
+    table_points = [it["points"][0] for it in (ds[k] for k in range(len(ds)))]
+    assert all(torch.equal(p, table_points[0]) for p in table_points), "every scene's table: same points"
+    fresh = SceneDataset(root, "val", num_points=M, seed=0)[0]["points"][0]
+    assert torch.equal(fresh, table_points[0]), "another dataset instance / split: same points"
+    other = SceneDataset(root, "train", num_points=M, seed=1)[0]["points"][0]
+    assert not torch.equal(other, table_points[0])
+    pts, _ = ds.library.surface_points("table")
+    assert (table_points[0].numpy()[:, None, :] == pts[None]).all(-1).any(1).all(), "a subset of the cache"
+
+
+def test_bad_scene_file_fails_with_its_name(root, tmp_path):
+    import shutil
+
+    for name in ("assets", "stats.json"):
+        (shutil.copytree if name == "assets" else shutil.copy)(root / name, tmp_path / name)
+    (tmp_path / "train").mkdir()
+    good = np.load(root / "train" / "train_0.npz")
+    arrays = {k: good[k] for k in good.files}
+    arrays["translation"] = arrays["translation"].copy()
+    arrays["translation"][0, 0] = np.nan
+    np.savez(tmp_path / "train" / "broken.npz", **arrays)
+    ds = SceneDataset(tmp_path, "train", num_points=M)
+    with pytest.raises(ValueError, match=r"broken\.npz: key 'translation'"):
+        ds[0]
+
+
+# ---- collate ---------------------------------------------------------------------------------------
+
+def test_collate_pads_and_matches_unbatched(root):
+    ds = SceneDataset(root, "train", num_points=M)
+    items = [ds[k] for k in range(len(ds))]
+    sizes = [it["x"].shape[0] for it in items]
+    assert len(set(sizes)) > 1, "the fixture must mix scene sizes"
+    batch = collate_scenes(items)
+    B, N = len(items), max(sizes)
+    assert batch["mask"].shape == (B, N) and batch["mask"].dtype == torch.bool
+    assert batch["mask"].sum(1).tolist() == sizes == batch["num_objects"].tolist()
+    assert batch["scene_id"] == [it["scene_id"] for it in items]
+    for b, (it, n) in enumerate(zip(items, sizes)):
+        for key in ("x", "asset_index", "category_index", "points", "normals"):
+            assert torch.equal(batch[key][b, :n], it[key])
+        for key in ("spatial", "physical"):
+            assert torch.equal(batch[key][b, :n, :n], it[key])
+        pad = ~batch["mask"][b]
+        assert (batch["x"][b, pad] == 0).all() and (batch["points"][b, pad] == 0).all()
+        assert (batch["asset_index"][b, pad] == INDEX_PAD).all() and (batch["category_index"][b, pad] == INDEX_PAD).all()
+        assert (batch["spatial"][b, n:, :] == SPATIAL_PAD).all() and (batch["spatial"][b, :, n:] == SPATIAL_PAD).all()
+        assert (batch["physical"][b, n:, :] == PHYSICAL_PAD).all() and (batch["physical"][b, :, n:] == PHYSICAL_PAD).all()
+    assert (SPATIAL_PAD, PHYSICAL_PAD, INDEX_PAD) == (7, 3, -1)
+
+
+# ---- datamodule ------------------------------------------------------------------------------------
+
+def _same_batches(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert x["scene_id"] == y["scene_id"]
+        for key in ("x", "mask", "spatial", "physical", "points", "asset_index"):
+            assert torch.equal(x[key], y[key]), key
+
+
+def test_dataloader_workers_match_single_process(root):
+    from spread.data import SceneDataModule
+
+    loaders = []
+    for workers in (0, 2):
+        dm = SceneDataModule(root, batch_size=4, num_workers=workers, num_points=M, seed=3)
+        dm.setup("fit")
+        loaders.append([list(dm.train_dataloader()), list(dm.val_dataloader())])
+    for split in range(2):
+        _same_batches(loaders[0][split], loaders[1][split])
+    order = [sid for b in loaders[0][0] for sid in b["scene_id"]]
+    assert sorted(order) == [f"train_{k}" for k in range(6)] and order != sorted(order), "train is shuffled"
+    dm = SceneDataModule(root, batch_size=2, num_points=M, seed=3)
+    again = [sid for b in dm.train_dataloader() for sid in b["scene_id"]]
+    assert again == order, "the seeded generator fixes the order"
+    assert len(list(dm.test_dataloader())) == 2
+
+
+def test_dataset_pickles_without_its_library(root):
+    ds = SceneDataset(root, "val", num_points=M)
+    blob = pickle.dumps(ds)
+    clone = pickle.loads(blob)
+    assert clone._library is None and len(blob) < 20_000
+    a, b = ds[1], clone[1]
+    assert all(torch.equal(a[k], b[k]) for k in ("x", "points", "spatial"))
+
+
+def test_import_pulls_no_heavy_optional_modules():
+    code = ("import sys, spread.data; "
+            "print(sorted(m for m in ('pybullet', 'ray', 'wandb', 'lightning') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

@@ -18,6 +18,7 @@ see its docstring for the rule.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -161,8 +162,17 @@ def posed_planes(planes, rotation: np.ndarray, translation: np.ndarray):
     return wn, offsets + wn @ np.asarray(translation, np.float64), starts
 
 
+class PhysicalRelations(NamedTuple):
+    """Result of :func:`physical_codes` (all (N, N) matrices indexed [i, j], i the other object of j)."""
+
+    codes: np.ndarray  # int8 physical codes, [i, j] = 1 when i supports j, 2 contact
+    floor_supported: np.ndarray  # (N,) bool, j rests on the floor
+    support_samples: np.ndarray  # int, j's downward samples touching i
+    min_distance: np.ndarray  # float, smallest signed distance of j's samples to i (metres; <0 penetrates; inf when far)
+
+
 def physical_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, library,
-                   contact_tolerance: float = CONTACT_TOLERANCE, samples: int = CONTACT_SAMPLES):
+                   contact_tolerance: float = CONTACT_TOLERANCE, samples: int = CONTACT_SAMPLES) -> PhysicalRelations:
     """Support and contact codes (N, N) int8 of a posed scene, plus per-object floor support.
 
     Rule: object i *supports* j when at least :data:`MIN_SUPPORT_SAMPLES` of j's downward-facing
@@ -170,8 +180,8 @@ def physical_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, lib
     i's surface (i's convex parts, :func:`signed_distance_to_parts`, penetration included). When j
     rests on several objects, the one touching the most samples is its supporter and the others are
     contacts, so the support graph is a forest. Any other pair with touching samples either way is a
-    *contact* (code 2, both directions). An object is floor-supported when such samples lie within
-    the tolerance of y = 0. Returns ``(codes, floor_supported (N,) bool, support_samples (N, N) int)``.
+    *contact* (code 2, both directions). An object is floor-supported when
+    its lowest point is within the tolerance of y = 0; the floor is then its supporter. Returns a :class:`PhysicalRelations`.
     """
     n = len(asset_ids)
     translation = np.asarray(translation, np.float64)
@@ -193,15 +203,18 @@ def physical_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, lib
     np.fill_diagonal(near, False)
     support_samples = np.zeros((n, n), np.int64)
     touching = np.zeros((n, n), bool)
+    min_distance = np.full((n, n), np.inf)
     for i, j in zip(*np.nonzero(near)):
         d = signed_distance_to_parts(pts[j], *planes[i])  # j's samples against i
+        min_distance[i, j] = d.min()
         close = d <= tol
         if close.any():
             touching[i, j] = True
             support_samples[i, j] = int(np.count_nonzero(close & (nrm[j][:, 1] < DOWNWARD_NORMAL_Y)))
-    floor_samples = np.array([np.count_nonzero((pts[j][:, 1] <= tol) & (nrm[j][:, 1] < DOWNWARD_NORMAL_Y))
-                              for j in range(n)])
-    floor_supported = floor_samples >= MIN_SUPPORT_SAMPLES
+    # the floor is a plane: an object whose lowest point is within the tolerance of y = 0 stands on it
+    # (legs of a sofa are too small for a sample count)
+    floor_supported = lo[:, 1] <= tol
+    floor_samples = np.where(floor_supported, np.iinfo(np.int64).max, 0)
     codes = np.zeros((n, n), np.int8)
     contact = touching | touching.T
     codes[contact] = 2
@@ -218,7 +231,7 @@ def physical_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, lib
     for i, j in zip(*np.nonzero(np.triu(mutual))):
         lower, upper = (i, j) if support_samples[i, j] >= support_samples[j, i] else (j, i)
         codes[upper, lower] = 2
-    return codes, floor_supported, support_samples
+    return PhysicalRelations(codes, floor_supported, support_samples, min_distance)
 
 
 _PLANE_CACHE: dict[tuple[str, str], tuple] = {}

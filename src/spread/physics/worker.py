@@ -1,0 +1,33 @@
+"""One :class:`PhysicsWorld` per worker process (Ray task, multiprocessing pool): created on first use.
+
+The world lives in a thread-local slot tagged with the process id, so a forked child never reuses its
+parent's client and two threads never share one.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from spread.physics.params import PhysicsParams
+
+_local = threading.local()
+
+
+def get_world(params: PhysicsParams | None = None):
+    """This process's (and thread's) :class:`~spread.physics.world.PhysicsWorld`, created on first call.
+
+    With ``params`` different from the current world's, the world is closed and rebuilt with them.
+    """
+    from spread.physics.world import PhysicsWorld
+
+    world = getattr(_local, "world", None)
+    if world is not None and getattr(_local, "pid", None) != os.getpid():
+        world = None  # inherited through fork: that client belongs to the parent
+    if world is not None and params is not None and params != world.params:
+        world.close()
+        world = None
+    if world is None:
+        world = PhysicsWorld(params)
+        _local.world, _local.pid = world, os.getpid()
+    return world

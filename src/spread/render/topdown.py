@@ -2,7 +2,9 @@
 
 Each object's canonical mesh is posed (``v_world = R · v_local + t``), projected to the xz plane and
 rasterised (:mod:`spread.render.raster`). Objects are painted in the order of their world top height
-(max y of the posed mesh; ties keep scene order), so a mug on a table covers the table. Orientation
+(max y of the posed mesh; ties keep scene order) *and* depth-tested per pixel: each pixel shows the
+object whose surface is highest there (a z-buffer over the up-facing triangles), so a mug on a table
+covers the table, and a book on a bed is not hidden by the bed's taller headboard. Orientation
 and the world window are described in :mod:`spread.render.settings`: +x right, +z down the image.
 
 Only the triangles that face up are rasterised when the mesh is a closed, consistently wound volume
@@ -69,19 +71,22 @@ def render_topdown(scene, library, settings: TopDownRenderSettings | None = None
     rank = np.empty(len(posed), np.int64)
     rank[order] = np.arange(len(posed))
 
-    tris, tri_rank, verts, vert_rank = [], [], [], []
+    tris, tri_rank, tri_heights, verts, vert_rank, vert_heights = [], [], [], [], [], []
     for i, p in enumerate(posed):
         keep = p.normal_y > VERTICAL_NORMAL_Y if p.closed else np.abs(p.normal_y) > VERTICAL_NORMAL_Y
         xz = window.to_pixels(p.vertices[:, [0, 2]])
         tris.append(xz[p.faces[keep]])
+        tri_heights.append(p.vertices[p.faces[keep], 1])
         tri_rank.append(np.full(int(keep.sum()), rank[i]))
         verts.append(xz)
+        vert_heights.append(p.vertices[:, 1])
         vert_rank.append(np.full(len(xz), rank[i]))
-    pix, tri = triangle_pixels(np.concatenate(tris), size, size)
+    pix, tri, depth = triangle_pixels(np.concatenate(tris), size, size, np.concatenate(tri_heights))
     vpix, vidx = point_pixels(np.concatenate(verts), size, size)
     labels = paint_labels(np.concatenate([pix, vpix]),
                           np.concatenate([np.concatenate(tri_rank)[tri], np.concatenate(vert_rank)[vidx]]),
-                          size, size)
+                          size, size,
+                          depth=np.concatenate([depth, np.concatenate(vert_heights)[vidx]]))
 
     colours = category_colours(scene.category[order], settings.palette)  # row k = colour of rank k
     drawn = labels >= 0

@@ -1,0 +1,236 @@
+"""Write a dataset folder (DESIGN §4): ``assets/``, ``train/ val/ test/`` scene files, ``stats.json``,
+``manifest.json`` and a few top-down renders.
+
+Deterministic by seed: room ``k`` draws from ``np.random.default_rng([seed, k, attempt])`` and settles
+in a fresh physics client, so its file does not depend on how many processes run or in which order.
+Resumable: rooms whose file exists are not generated again; every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from spread import __version__
+from spread.io import write_json_atomic
+from spread.procgen.room import HullCache, generate_room
+from spread.procgen.rooms import RoomConfig
+from spread.procgen.settle import SettleConfig
+from spread.scene import PHYSICAL_SUPPORT, read_scene, write_scene
+
+GENERATOR_VERSION = "spread-procgen-1"
+SPLITS = ("train", "val", "test")
+
+
+@dataclass
+class DatasetConfig:
+    rooms: int = 200
+    seed: int = 0
+    processes: int = 2
+    #: fraction of rooms in val and test; the rest is train. Assignment is by room index.
+    val_fraction: float = 0.1
+    test_fraction: float = 0.1
+    max_attempts: int = 6
+    renders: int = 8
+    asset_seed: int = 0
+    asset_variants: int = 5
+    asset_categories: list[str] | None = None
+    #: copy an existing library folder instead of building one (same assets for several datasets)
+    assets_from: str | None = None
+    room: RoomConfig = field(default_factory=RoomConfig)
+    settle: SettleConfig = field(default_factory=SettleConfig)
+
+
+def split_of(index: int, config: DatasetConfig) -> str:
+    """Deterministic split by index: in each block of 10 consecutive rooms, the last ones go to test then
+    val (0.1/0.1: indices ending in 9 are test, in 8 val), so even a small dataset has every split."""
+    period = 10
+    k = index % period
+    n_test = int(round(config.test_fraction * period))
+    n_val = int(round(config.val_fraction * period))
+    if k >= period - n_test:
+        return "test"
+    if k >= period - n_test - n_val:
+        return "val"
+    return "train"
+
+
+def scene_id_of(index: int, seed: int) -> str:
+    return f"s{seed}_{index:06d}"
+
+
+# ---- worker side ---------------------------------------------------------------------------------
+
+_WORKER: dict = {}
+
+
+def _init_worker(assets_root: str) -> None:
+    from spread.assets import AssetLibrary
+
+    lib = AssetLibrary.load(assets_root)
+    _WORKER["library"] = lib
+    _WORKER["hulls"] = HullCache(lib)
+
+
+def _make_room(args) -> dict:
+    index, out_dir, config = args
+    lib = _WORKER["library"]
+    split = split_of(index, config)
+    path = Path(out_dir) / split / f"{scene_id_of(index, config.seed)}.npz"
+    started = time.perf_counter()
+    removed: Counter = Counter()
+    for attempt in range(config.max_attempts):
+        rng = np.random.default_rng([config.seed, index, attempt])
+        result = generate_room(scene_id_of(index, config.seed), rng, lib, config.room, config.settle,
+                               hulls=_WORKER["hulls"])
+        removed.update(result.report.removed)
+        if result.scene is not None:
+            result.scene.extras["generator"] = np.asarray(f"{GENERATOR_VERSION} seed={config.seed} "
+                                                          f"index={index} attempt={attempt}")
+            write_scene(result.scene, path)
+            return {"index": index, "split": split, "ok": True, "attempts": attempt + 1,
+                    "seconds": time.perf_counter() - started, "removed": dict(removed),
+                    "placed": result.placed, "kept": result.scene.num_objects}
+    return {"index": index, "split": split, "ok": False, "attempts": config.max_attempts,
+            "seconds": time.perf_counter() - started, "removed": dict(removed)}
+
+
+# ---- driver --------------------------------------------------------------------------------------
+
+def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
+    """Generate (or complete) the dataset folder; returns the manifest written."""
+    from tqdm.auto import tqdm
+
+    from spread.assets.build import build_library
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    if config.assets_from and not (out / "assets" / "index.json").exists():
+        import shutil
+
+        src = Path(config.assets_from)
+        if not (src / "index.json").exists():
+            raise FileNotFoundError(f"assets.from={src}: no asset library there (missing index.json)")
+        shutil.copytree(src, out / "assets", dirs_exist_ok=True)
+    library = build_library(out / "assets", variants=config.asset_variants, seed=config.asset_seed,
+                            categories=config.asset_categories, processes=config.processes, progress=progress)
+    t_assets = time.perf_counter() - t0
+    todo = []
+    for index in range(config.rooms):
+        path = out / split_of(index, config) / f"{scene_id_of(index, config.seed)}.npz"
+        if not path.exists():
+            todo.append((index, str(out), config))
+    results = []
+    t1 = time.perf_counter()
+    if todo:
+        if config.processes > 1:
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(config.processes, initializer=_init_worker, initargs=(str(out / "assets"),)) as pool:
+                for r in tqdm(pool.imap_unordered(_make_room, todo), total=len(todo), disable=not progress,
+                              desc="rooms", unit="room"):
+                    results.append(r)
+        else:
+            _init_worker(str(out / "assets"))
+            for item in tqdm(todo, disable=not progress, desc="rooms", unit="room"):
+                results.append(_make_room(item))
+    t_rooms = time.perf_counter() - t1
+    manifest = write_dataset_files(out, config, library, results, t_assets, t_rooms)
+    if config.renders > 0:
+        write_renders(out, library, config.renders)
+    return manifest
+
+
+def dataset_statistics(scenes) -> dict:
+    """Objects per room histogram, categories, support pairs per room, share of stacked objects."""
+    counts = [s.num_objects for s in scenes]
+    categories = Counter()
+    support_pairs, stacked, small = [], 0, 0
+    for s in scenes:
+        categories.update(s.category.tolist())
+        sup = s.physical == PHYSICAL_SUPPORT
+        support_pairs.append(int(sup.sum()))
+        supported = sup.any(axis=0)
+        # stacked: supported by an object that is itself supported (not standing on the floor)
+        supporter_of = {int(j): int(i) for i, j in np.argwhere(sup)}
+        small += int(supported.sum())
+        stacked += sum(1 for j, i in supporter_of.items() if i in supporter_of)
+    hist = Counter(counts)
+    return {
+        "rooms": len(scenes),
+        "objects": int(sum(counts)),
+        "objects_per_room": {"min": int(min(counts, default=0)), "mean": float(np.mean(counts)) if counts else 0.0,
+                             "max": int(max(counts, default=0)),
+                             "histogram": {str(k): hist[k] for k in sorted(hist)}},
+        "support_pairs_per_room": {"mean": float(np.mean(support_pairs)) if support_pairs else 0.0,
+                                   "max": int(max(support_pairs, default=0))},
+        "supported_objects": small,
+        "share_stacked": float(stacked / small) if small else 0.0,
+        "categories": dict(sorted(categories.items())),
+    }
+
+
+def write_dataset_files(out: Path, config: DatasetConfig, library, results: list[dict], t_assets: float,
+                        t_rooms: float) -> dict:
+    from spread.data.stats import compute_stats, save_stats
+
+    splits = {s: sorted((out / s).glob("*.npz")) if (out / s).exists() else [] for s in SPLITS}
+    scenes = {s: [read_scene(p, assets=library) for p in files] for s, files in splits.items()}
+    train = scenes["train"] or [sc for v in scenes.values() for sc in v]
+    save_stats(out / "stats.json", compute_stats(train))
+    all_scenes = [sc for v in scenes.values() for sc in v]
+    removed = Counter()
+    for r in results:
+        removed.update(r.get("removed", {}))
+    failed = [r["index"] for r in results if not r["ok"]]
+    cfg = asdict(config)
+    manifest = {
+        "generator": GENERATOR_VERSION,
+        "spread_version": __version__,
+        "seed": config.seed,
+        "config": cfg,
+        "counts": {s: len(v) for s, v in scenes.items()},
+        "failed_rooms": failed,
+        "categories": library.categories,
+        "assets": len(library),
+        "statistics": dataset_statistics(all_scenes),
+        "this_run": {
+            "rooms_generated": sum(1 for r in results if r["ok"]),
+            "seconds_assets": round(t_assets, 2),
+            "seconds_rooms": round(t_rooms, 2),
+            "rooms_per_second": round(sum(1 for r in results if r["ok"]) / t_rooms, 3) if t_rooms > 0 and results else None,
+            "mean_attempts": float(np.mean([r["attempts"] for r in results])) if results else None,
+            "objects_removed_by_reason": dict(removed),
+        },
+    }
+    write_json_atomic(out / "manifest.json", manifest)
+    return manifest
+
+
+def write_renders(out: Path, library, n: int) -> list[Path]:
+    from spread.render import render_grid, render_topdown, save_png
+
+    files = sorted((out / "test").glob("*.npz"))[:n] or sorted((out / "train").glob("*.npz"))[:n]
+    images, paths = [], []
+    for f in files:
+        img = render_topdown(read_scene(f), library)
+        p = out / "renders" / f"{f.stem}.png"
+        save_png(img, p)
+        images.append(img)
+        paths.append(p)
+    if images:
+        save_png(render_grid(images, ncols=min(4, len(images))), out / "renders" / "overview.png")
+    return paths
+
+
+def load_manifest(root: str | Path) -> dict:
+    path = Path(root) / "manifest.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no manifest (is {root} a dataset folder made by spread-generate?)")
+    return json.loads(path.read_text())

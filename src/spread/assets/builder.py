@@ -4,20 +4,24 @@ Assets are built from convex parts on purpose: the parts are then the *exact* ph
 shapes (a shelf keeps its gaps; a convex hull or a coarse decomposition would fill them), and the
 visual mesh is their watertight boolean union (manifold3d through trimesh). Both are shifted together
 into the canonical frame (bbox centre at the origin), so mesh and parts agree exactly.
+
+Candidate rest poses are checked for static stability (:mod:`spread.assets.stability`) and the
+unstable ones dropped; an asset with none left is an error. Files are written only when their bytes
+change, so rebuilding an unchanged library keeps every file (and its mtime and cache) as it was.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from spread.assets.library import (
-    AssetLibrary, AssetRecord, RestPose, SupportSurface, file_sha256, save_parts,
-)
-from spread.io import atomic_path
+from spread.assets.library import AssetLibrary, AssetRecord, RestPose, SupportSurface, parts_bytes
+from spread.assets.stability import stable_rest_poses
+from spread.io import write_bytes_atomic
 
 #: Most faces allowed on an asset's visual mesh.
 MAX_FACES = 5000
@@ -45,23 +49,38 @@ class AssetSpec:
 
 
 def union_mesh(parts: Sequence) -> "object":
-    """Watertight boolean union of the parts (manifold3d). Raises if the result is not watertight."""
+    """Watertight boolean union of the parts (manifold3d). Raises if the result is not watertight.
+
+    Vertices are merged when that keeps the mesh watertight; manifold's own output (watertight by
+    construction, but with some coincident vertices) is kept otherwise.
+    """
     import trimesh
 
     if len(parts) == 1:
-        mesh = parts[0].copy()
+        raw = parts[0].copy()
     else:
-        mesh = trimesh.boolean.union(list(parts), engine="manifold")
-    mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+        raw = trimesh.boolean.union(list(parts), engine="manifold")
+    mesh = trimesh.Trimesh(raw.vertices, raw.faces, process=True)
+    if not mesh.is_watertight:
+        mesh = trimesh.Trimesh(raw.vertices, raw.faces, process=False)
+        mesh.remove_unreferenced_vertices()
     if not mesh.is_watertight:
         raise ValueError("union of the convex parts is not watertight")
     return mesh
 
 
+def _write_if_changed(path: Path, data: bytes) -> None:
+    """Write ``data`` atomically unless ``path`` already holds exactly these bytes."""
+    if path.exists() and path.stat().st_size == len(data) and path.read_bytes() == data:
+        return
+    write_bytes_atomic(path, data)
+
+
 def write_asset(root: str | Path, spec: AssetSpec) -> AssetRecord:
     """Write mesh + parts of ``spec`` under the library ``root`` and return its record.
 
-    The index is not touched; the caller collects records and saves the index once.
+    The index is not touched; the caller collects records and saves the index once. Files that
+    already hold the same bytes are left alone.
     """
     import trimesh
 
@@ -81,28 +100,31 @@ def write_asset(root: str | Path, spec: AssetSpec) -> AssetRecord:
             height=s.height - centre[1],
             xz_min=(s.xz_min[0] - centre[0], s.xz_min[1] - centre[2]),
             xz_max=(s.xz_max[0] - centre[0], s.xz_max[1] - centre[2]),
-            clearance=s.clearance,
+            clearance=s.clearance, kind=s.kind,
         )
         for s in spec.support_surfaces
     ]
+    stable = stable_rest_poses(mesh, {n: np.asarray(R, np.float64) for n, R in spec.rest_poses.items()})
+    if not stable:
+        raise ValueError(f"asset '{spec.asset_id}': none of the rest poses {sorted(spec.rest_poses)} is stable")
     rest = []
-    for name, R in spec.rest_poses.items():
-        R = np.asarray(R, np.float64)
+    for name, R in stable.items():
         bottom = -(mesh.vertices @ R.T)[:, 1].min()
         rest.append(RestPose(name=name, rotation=R, bottom_offset=float(bottom),
                              weight=float(spec.rest_weights.get(name, 1.0))))
     mesh_file = f"meshes/{spec.asset_id}.glb"
     parts_file = f"parts/{spec.asset_id}.npz"
-    with atomic_path(root / mesh_file) as tmp:
-        mesh.export(tmp, file_type="glb")
-    save_parts(root / parts_file, parts)
+    mesh_data = mesh.export(file_type="glb")
+    parts_data = parts_bytes(parts)
+    _write_if_changed(root / mesh_file, mesh_data)
+    _write_if_changed(root / parts_file, parts_data)
     volume = float(mesh.volume)
     return AssetRecord(
         asset_id=spec.asset_id, category=spec.category, variant=spec.variant, role=spec.role,
         extents=np.asarray(hi - lo, np.float64), volume=volume, density=float(spec.density),
         mass=volume * float(spec.density), mesh_file=mesh_file, parts_file=parts_file,
         num_parts=len(parts), num_faces=int(len(mesh.faces)),
-        content_hash=file_sha256(root / mesh_file, root / parts_file),
+        content_hash=hashlib.sha256(mesh_data + parts_data).hexdigest(),  # = file_sha256(mesh, parts)
         rest_poses=rest, support_surfaces=surfaces, tags=list(spec.tags),
     )
 

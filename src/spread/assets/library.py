@@ -2,10 +2,12 @@
 
 Layout of a library folder (DESIGN §4)::
 
-    index.json                      {"version", "assets": {asset_id: AssetRecord as dict}}
+    index.json                      {"version", "build", "assets": {asset_id: AssetRecord as dict}}
     meshes/<asset_id>.glb           visual mesh: watertight union of the convex parts
     parts/<asset_id>.npz            the convex parts (exact physics collision shapes)
     cache/<asset_id>.<hash>.npz     surface points + normals, xz hull; rebuilt when the hash changes
+    cache/<asset_id>.<hash>.parts.obj  the parts as one OBJ compound for pybullet (spread.assets.physics)
+    records/<asset_id>.json         per-asset record + spec fingerprint, so a rebuild can resume
 
 Frames and units: every mesh is in the asset's *canonical* frame — metres, y-up, centred at the
 centre of its axis-aligned bounding box (so its bbox is ``[-extents/2, +extents/2]``). A placed object
@@ -48,13 +50,17 @@ class SupportSurface:
 
     ``height`` is the local y of the surface (top face of a table top or shelf board); the usable
     region is the rectangle ``xz_min .. xz_max`` in local x, z; ``clearance`` is the free height above
-    it (the gap to the next shelf board), ``inf`` for an open top.
+    it (the gap to the next shelf board), ``inf`` for an open top. ``kind`` says what the surface is:
+    "top" (table/counter/cabinet top, top of a book or box), "shelf" (a shelf level under another
+    board), "seat" (sofa, chair, stool seat), "bed" (mattress top) or "inside" (the floor of a bowl,
+    tray or basket: a container's inside; a plate's floor is a "top").
     """
 
     height: float
     xz_min: tuple[float, float]
     xz_max: tuple[float, float]
     clearance: float = float("inf")
+    kind: str = "top"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -68,6 +74,7 @@ class SupportSurface:
         return cls(
             height=float(d["height"]), xz_min=tuple(d["xz_min"]), xz_max=tuple(d["xz_max"]),
             clearance=float("inf") if d.get("clearance") is None else float(d["clearance"]),
+            kind=str(d.get("kind", "top")),
         )
 
 
@@ -167,18 +174,35 @@ def file_sha256(*paths: str | os.PathLike) -> str:
 # parts files
 # --------------------------------------------------------------------------------------------------
 
-def save_parts(path: str | os.PathLike, parts: Sequence["object"]) -> None:
-    """Write convex parts (trimesh.Trimesh each) as one npz: concatenated vertices/faces + offsets."""
+def parts_bytes(parts: Sequence["object"]) -> bytes:
+    """Convex parts (trimesh.Trimesh each) as npz bytes: concatenated vertices/faces + counts.
+
+    Byte-identical for identical parts (fixed zip timestamps), so a rebuild keeps the content hash.
+    """
+    import io
+    import zipfile
+
     verts = [np.asarray(p.vertices, np.float64) for p in parts]
     faces = [np.asarray(p.faces, np.int32) for p in parts]
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(
-            fh,
-            vertices=np.concatenate(verts).astype(np.float64),
-            faces=np.concatenate(faces).astype(np.int32),
-            vertex_counts=np.array([len(v) for v in verts], np.int64),
-            face_counts=np.array([len(f) for f in faces], np.int64),
-        )
+    arrays = {
+        "vertices": np.concatenate(verts).astype(np.float64),
+        "faces": np.concatenate(faces).astype(np.int32),
+        "vertex_counts": np.array([len(v) for v in verts], np.int64),
+        "face_counts": np.array([len(f) for f in faces], np.int64),
+    }
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with zf.open(info, "w") as fh:
+                np.lib.format.write_array(fh, arr, allow_pickle=False)
+    return buf.getvalue()
+
+
+def save_parts(path: str | os.PathLike, parts: Sequence["object"]) -> None:
+    """Write convex parts as one npz (see :func:`parts_bytes`), atomically."""
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(parts_bytes(parts))
 
 
 def load_parts(path: str | os.PathLike) -> list["object"]:
@@ -234,11 +258,13 @@ class AssetLibrary:
                 raise ValueError(f"{index}: asset '{aid}' has a bad record ({type(exc).__name__}: {exc})") from exc
         return cls(root, records)
 
-    def save_index(self) -> None:
-        write_json_atomic(self.root / "index.json", {
-            "version": LIBRARY_VERSION,
-            "assets": {aid: rec.to_dict() for aid, rec in sorted(self.records.items())},
-        })
+    def save_index(self, build: dict | None = None) -> None:
+        """Write ``index.json`` atomically; ``build`` (seed, variants, ...) is stored under "build"."""
+        data = {"version": LIBRARY_VERSION}
+        if build is not None:
+            data["build"] = build
+        data["assets"] = {aid: rec.to_dict() for aid, rec in sorted(self.records.items())}
+        write_json_atomic(self.root / "index.json", data)
 
     # ---- lookup ------------------------------------------------------------------------------
     def __contains__(self, asset_id: object) -> bool:

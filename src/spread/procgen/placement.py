@@ -50,11 +50,12 @@ def footprint(hull_vertices: np.ndarray, rotation: np.ndarray, translation: np.n
 
 
 def surface_polygon(xz_min, xz_max, rotation: np.ndarray, translation: np.ndarray, inset: float = 0.0):
-    """World xz polygon of a parent's support rectangle (local xz_min..xz_max), shrunk by ``inset``."""
+    """World xz polygon of a parent's support rectangle (local xz_min..xz_max), shrunk by ``inset``
+    (metres; a negative inset grows it)."""
     from shapely import Polygon
 
     (x0, z0), (x1, z1) = xz_min, xz_max
     corners = np.array([[x0, 0, z0], [x1, 0, z0], [x1, 0, z1], [x0, 0, z1]], float)
     w = corners @ rotation.T + translation
     poly = Polygon(w[:, [0, 2]])
-    return poly.buffer(-inset, join_style="mitre") if inset > 0 else poly
+    return poly.buffer(-inset, join_style="mitre") if inset != 0 else poly

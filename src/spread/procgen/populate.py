@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from spread.assets.queries import INSIDE_OVERHANG
 from spread.procgen.placement import Placement, footprint, surface_polygon, yaw_matrix
 from spread.procgen.rooms import CONTAINER_CONTENTS, FURNITURE_AFFINITY, STACKABLE, RoomConfig
 
@@ -30,6 +31,7 @@ class _Surface:
         self.height = float(placement.translation[1] + placement.rotation[1] @ np.array([0.0, surface.height, 0.0]))
         self.polygon = surface_polygon(surface.xz_min, surface.xz_max, placement.rotation, placement.translation,
                                        inset)
+        self.kind = getattr(surface, "kind", "top")
         self.clearance = surface.clearance
         self.occupied: list = []
 
@@ -138,13 +140,17 @@ def _fill(placements: list[Placement], base: int, library, rng: np.random.Genera
     """Objects on an object: fruit in a bowl, a phone on a book (only on an upright parent)."""
     parent = placements[base]
     rec = library[parent.asset_id]
-    if parent.rest != "upright" or not rec.support_surfaces:
+    rest = next((p for p in rec.rest_poses if p.name == parent.rest), None)
+    # support surfaces are given in the canonical frame: usable only when the rest pose keeps it
+    if rest is None or not np.allclose(rest.rotation, np.eye(3)) or not rec.support_surfaces:
         return
     options = [c for c in CONTAINER_CONTENTS[parent.category] if library.ids_of(c)]
     if not options:
         return
     for k, s in enumerate(rec.support_surfaces):
-        surf = _Surface(base, k, parent, s, 0.003)
+        # inside a bowl or basket, contents may overhang the flat floor onto the sloping walls
+        inset = -INSIDE_OVERHANG if getattr(s, "kind", "top") == "inside" else 0.003
+        surf = _Surface(base, k, parent, s, inset)
         for _ in range(int(rng.integers(1, 4))):
             if len(placements) >= max_objects:
                 return

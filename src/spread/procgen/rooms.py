@@ -51,6 +51,8 @@ ROOM_TYPES: dict[str, RoomType] = {
             FurnitureSlot("coffee_table", (1, 1), "centre"),
             FurnitureSlot("armchair", (0, 2), "any"),
             FurnitureSlot("side_table", (0, 2), "near:sofa"),
+            FurnitureSlot("floor_lamp", (0, 1), "near:sofa"),
+            FurnitureSlot("bench", (0, 1), "wall"),
         ),
     ),
     "bedroom": RoomType(
@@ -60,8 +62,10 @@ ROOM_TYPES: dict[str, RoomType] = {
             FurnitureSlot("nightstand", (1, 2), "near:bed"),
             FurnitureSlot("dresser", (0, 1), "wall"),
             FurnitureSlot("bookcase", (0, 1), "wall"),
+            FurnitureSlot("wardrobe", (0, 1), "wall"),
             FurnitureSlot("desk", (0, 1), "wall"),
             FurnitureSlot("chair", (0, 1), "near:desk"),
+            FurnitureSlot("floor_lamp", (0, 1), "any"),
         ),
     ),
     "office": RoomType(
@@ -83,6 +87,7 @@ ROOM_TYPES: dict[str, RoomType] = {
             FurnitureSlot("dresser", (0, 1), "wall"),
             FurnitureSlot("shelf", (0, 1), "wall"),
             FurnitureSlot("side_table", (0, 1), "wall"),
+            FurnitureSlot("bench", (0, 1), "near:dining_table"),
         ),
         weight=0.6,
     ),
@@ -90,20 +95,26 @@ ROOM_TYPES: dict[str, RoomType] = {
 
 #: Small-object categories that may go on each furniture category's support surfaces.
 FURNITURE_AFFINITY: dict[str, tuple[str, ...]] = {
-    "dining_table": ("plate", "bowl", "cup", "mug", "glass", "bottle", "vase", "candle", "tray", "jar", "can"),
-    "coffee_table": ("book", "remote", "mug", "cup", "vase", "tray", "candle", "laptop", "phone", "bowl", "toy"),
-    "side_table": ("lamp", "book", "phone", "remote", "mug", "candle", "clock", "vase", "plant_pot"),
-    "desk": ("laptop", "book", "mug", "pencil", "phone", "lamp", "box", "keyboard", "speaker", "clock", "cup"),
-    "kitchen_counter": ("pan", "pot", "bowl", "plate", "bottle", "can", "jar", "mug", "cup", "basket", "tray",
-                        "glass"),
-    "shelf": ("book", "box", "vase", "basket", "toy", "clock", "plant_pot", "jar", "candle", "speaker", "bowl"),
-    "bookcase": ("book", "box", "vase", "basket", "toy", "clock", "plant_pot", "candle", "speaker"),
-    "nightstand": ("lamp", "book", "phone", "clock", "candle", "cup", "glass"),
-    "tv_stand": ("speaker", "box", "remote", "toy", "plant_pot", "book", "candle"),
-    "dresser": ("box", "vase", "lamp", "clock", "candle", "basket", "book", "jar"),
+    "dining_table": ("plate", "bowl", "cup", "mug", "glass", "wine_glass", "bottle", "vase", "candle", "tray", "jar",
+                     "can", "basket"),
+    "coffee_table": ("book", "remote", "mug", "cup", "vase", "tray", "candle", "laptop", "phone", "bowl", "toy",
+                     "tissue_box"),
+    "side_table": ("lamp", "book", "phone", "remote", "mug", "candle", "clock", "vase", "plant_pot", "picture_frame"),
+    "desk": ("laptop", "book", "mug", "pencil", "phone", "lamp", "box", "keyboard", "monitor", "speaker", "clock",
+             "cup", "picture_frame"),
+    "kitchen_counter": ("pan", "pot", "kettle", "bowl", "plate", "bottle", "can", "jar", "mug", "cup", "basket", "tray",
+                        "glass", "cutting_board"),
+    "shelf": ("book", "box", "vase", "basket", "toy", "clock", "plant_pot", "jar", "candle", "speaker", "bowl",
+              "picture_frame"),
+    "bookcase": ("book", "box", "vase", "basket", "toy", "clock", "plant_pot", "candle", "speaker", "picture_frame"),
+    "nightstand": ("lamp", "book", "phone", "clock", "candle", "cup", "glass", "tissue_box"),
+    "tv_stand": ("speaker", "box", "remote", "toy", "plant_pot", "book", "candle", "monitor"),
+    "dresser": ("box", "vase", "lamp", "clock", "candle", "basket", "book", "jar", "picture_frame", "tissue_box"),
+    "wardrobe": ("box", "basket"),
     "bed": ("pillow", "book", "toy", "laptop", "phone"),
     "sofa": ("pillow", "remote", "book", "toy", "phone"),
     "armchair": ("pillow", "book", "remote"),
+    "bench": ("pillow", "book", "box", "basket"),
     "chair": ("pillow", "book"),
     "stool": ("book", "box"),
 }
@@ -115,13 +126,14 @@ CONTAINER_CONTENTS: dict[str, tuple[str, ...]] = {
     "tray": ("fruit", "cup", "mug", "glass", "candle", "phone", "remote"),
     "basket": ("fruit", "toy"),
     "plate": ("fruit",),
+    "cutting_board": ("fruit", "bowl"),
     "book": ("phone", "remote", "pencil", "mug", "cup", "candle", "glass"),
     "box": ("toy", "book", "phone", "candle"),
     "laptop": ("phone", "pencil"),
 }
 
 #: Categories whose identical copies stack (same asset, aligned).
-STACKABLE = ("book", "plate", "bowl", "box", "tray")
+STACKABLE = ("book", "plate", "bowl", "box", "tray", "cutting_board")
 
 
 @dataclass

@@ -33,6 +33,7 @@ class TopDownRenderSettings:
     palette: str = DEFAULT_PALETTE
     outline: bool = True  # 1-pixel darker outline on each visible object's boundary
     outline_darken: float = 0.55  # outline colour = fill colour × this
+    floor: tuple[int, int, int] | None = None  # fill the scene's room floor with this RGB (None: background)
 
     def __post_init__(self) -> None:
         if int(self.image_size) < 8:
@@ -51,11 +52,16 @@ class TopDownRenderSettings:
                 raise ValueError(f"bounds must be finite (x_min, z_min, x_max, z_max) with max ≥ min, got {self.bounds}")
             object.__setattr__(self, "bounds", tuple(float(v) for v in b))
         object.__setattr__(self, "background", tuple(int(v) for v in self.background))
+        if self.floor is not None:
+            if len(self.floor) != 3 or not all(0 <= int(v) <= 255 for v in self.floor):
+                raise ValueError(f"floor must be None or an RGB triple of 0..255, got {self.floor}")
+            object.__setattr__(self, "floor", tuple(int(v) for v in self.floor))
         object.__setattr__(self, "image_size", int(self.image_size))
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["background"] = list(self.background)
+        d["floor"] = None if self.floor is None else list(self.floor)
         d["bounds"] = None if self.bounds is None else list(self.bounds)
         d["orientation"] = "orthographic from +y looking down -y; +x right, +z down the image"
         return d
@@ -67,7 +73,14 @@ class TopDownRenderSettings:
             d["bounds"] = tuple(d["bounds"])
         if "background" in d:
             d["background"] = tuple(d["background"])
+        if d.get("floor") is not None:
+            d["floor"] = tuple(d["floor"])
         return cls(**d)
+
+
+#: Settings for people to look at (README, demo, notebooks): the room's floor in light grey.
+#: FID renders use the plain defaults (white background, no floor) per DESIGN §6.
+VIEW_SETTINGS_FLOOR = (232, 228, 220)
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,11 @@ def render_topdown(scene, library, settings: TopDownRenderSettings | None = None
     size = settings.image_size
     image = np.empty((size, size, 3), np.uint8)
     image[:] = np.asarray(settings.background, np.uint8)
+    if settings.floor is not None and scene.room is not None:
+        (c0, r0), (c1, r1) = window.to_pixels(np.asarray(scene.room, np.float64)[:, [0, 2]])
+        rows = slice(max(int(round(r0)), 0), max(int(round(r1)), 0))
+        cols = slice(max(int(round(c0)), 0), max(int(round(c1)), 0))
+        image[rows, cols] = np.asarray(settings.floor, np.uint8)
     if not posed:
         return image
 

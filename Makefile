@@ -22,10 +22,10 @@ demo: install
 	@echo "renders: $(DEMO_DIR)/data/renders/"
 
 test: install
-	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --durations=15
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 test-slow: install
-	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 -m slow
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile -m slow
 
 bench: install
 	$(BIN)/python benchmarks/bench_generate.py

@@ -80,18 +80,21 @@ def test_resimulation_moves_at_least_98_percent_under_1cm(dataset):
 
 
 def test_checks_catch_a_broken_room(dataset):
-    """The checker itself can fail: lift a supported object 5 cm and push one into its neighbour."""
+    """The checker itself can fail: lift a supported object 5 cm; sink an object into a table top."""
     _, _, lib, scenes, _ = dataset
-    scene = max(scenes, key=lambda s: int((s.physical == 1).sum()))
-    i, j = map(int, np.argwhere(scene.physical == 1)[0])
-    broken = scene.with_poses(scene.translation.copy(), scene.rotation)
-    broken.translation[j, 1] += 0.05
-    q = check_room(broken, lib, resimulate=True)
+    pairs = [(s, int(i), int(j)) for s in scenes for i, j in np.argwhere(s.physical == 1)
+             if lib[s.asset_id[i]].role == "furniture" and lib[s.asset_id[j]].extents.min() > 0.03]
+    tables = [p for p in pairs if p[0].category[p[1]] in ("dining_table", "coffee_table", "desk", "kitchen_counter")]
+    scene, i, j = (tables or pairs)[0]
+    lifted = scene.with_poses(scene.translation, scene.rotation)
+    lifted.translation[j, 1] += 0.05
+    q = check_room(lifted, lib, resimulate=True)
     assert q.max_support_distance == pytest.approx(0.05, abs=0.003)
     assert q.resim_moved >= 1
-    sunk = scene.with_poses(scene.translation.copy(), scene.rotation)
-    sunk.translation[j, 1] -= 0.03
-    assert check_room(sunk, lib, resimulate=False).max_penetration > 0.02
+    sunk = scene.with_poses(scene.translation, scene.rotation)
+    sunk.translation[j, 1] -= 0.015
+    depth = check_room(sunk, lib, resimulate=False).max_penetration
+    assert depth == pytest.approx(0.015, abs=0.003) and depth > MAX_PENETRATION
 
 
 def test_same_seed_gives_identical_files_regardless_of_processes(dataset, library_dir, tmp_path):

@@ -89,7 +89,7 @@ def _codes(lib, ids, centres):
 
 
 def test_book_on_table_is_supported(box_library):
-    codes, floor, _ = _codes(box_library, ["table", "book"], [(0, 0.05, 0), (0.1, 0.1 + 0.02, 0)])
+    codes, floor, _, _ = _codes(box_library, ["table", "book"], [(0, 0.05, 0), (0.1, 0.1 + 0.02, 0)])
     assert codes[0, 1] == 1 and codes[1, 0] == 0
     assert floor.tolist() == [True, False]
     assert scene_spatial_codes(np.array([(0, 0.05, 0), (0.1, 0.12, 0)]), np.tile(np.eye(3), (2, 1, 1)),
@@ -97,12 +97,12 @@ def test_book_on_table_is_supported(box_library):
 
 
 def test_floating_book_is_not_supported(box_library):
-    codes, floor, _ = _codes(box_library, ["table", "book"], [(0, 0.05, 0), (0.1, 0.12 + 0.02, 0)])
+    codes, floor, _, _ = _codes(box_library, ["table", "book"], [(0, 0.05, 0), (0.1, 0.12 + 0.02, 0)])
     assert codes.sum() == 0 and floor.tolist() == [True, False]
 
 
 def test_side_by_side_boxes_are_contact_not_support(box_library):
-    codes, floor, _ = _codes(box_library, ["cube", "cube"], [(0, 0.05, 0), (0.1005, 0.05, 0)])
+    codes, floor, _, _ = _codes(box_library, ["cube", "cube"], [(0, 0.05, 0), (0.1005, 0.05, 0)])
     assert codes[0, 1] == 2 and codes[1, 0] == 2
     assert floor.all()
 
@@ -110,6 +110,12 @@ def test_side_by_side_boxes_are_contact_not_support(box_library):
 def test_stack_gives_a_chain_and_one_supporter_each(box_library):
     ids = ["table", "book", "book", "cube"]
     centres = [(0, 0.05, 0), (0, 0.12, 0), (0, 0.16, 0), (0.02, 0.23, 0)]
-    codes, floor, _ = _codes(box_library, ids, centres)
+    codes, floor, _, _ = _codes(box_library, ids, centres)
     assert (codes == 1).sum(axis=0).tolist() == [0, 1, 1, 1]
     assert codes[0, 1] == 1 and codes[1, 2] == 1 and codes[2, 3] == 1
+
+
+def test_penetration_depth_is_reported(box_library):
+    rel = _codes(box_library, ["cube", "cube"], [(0, 0.05, 0), (0.08, 0.05, 0)])  # overlap 2 cm in x
+    assert rel.min_distance[0, 1] == pytest.approx(-0.02, abs=1e-6)
+    assert rel.min_distance[1, 0] == pytest.approx(-0.02, abs=1e-6)

@@ -75,7 +75,8 @@ def outside_distance(mesh, points: np.ndarray) -> np.ndarray:
     (trimesh's own sign is positive inside)."""
     import trimesh
 
-    return -trimesh.proximity.signed_distance(mesh, points)
+    with np.errstate(divide="ignore", invalid="ignore"):  # trimesh's barycentrics on sliver triangles
+        return -trimesh.proximity.signed_distance(mesh, points)
 
 
 def _samples(mesh, n: int, seed: int) -> np.ndarray:

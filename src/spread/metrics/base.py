@@ -1,0 +1,101 @@
+"""What every SPREAD metric shares: a torchmetrics base class with summed states, input checks, seeds.
+
+Every metric is computed in two layers:
+
+* a plain **per-scene function** (``scene_collisions``, ``scene_graph_recall``, ...) that checks the
+  scene, computes the scene's value and its diagnostics and returns a small result record with
+  ``to_dict()`` (one line of ``per_scene.jsonl``); it raises on bad input (see :func:`check_scene`);
+* a :class:`torchmetrics.Metric` that **accumulates** those results into sum states.
+
+Every state is a tensor summed across processes (``dist_reduce_fx="sum"``), so the aggregate is the
+same whether scenes are split over DDP ranks (``sync``), over Ray workers (ship
+``metric.metric_state`` or the per-scene results back and ``merge_state`` / ``update`` on the driver),
+or not split at all. No mean or concatenation states: sums are exact to merge in any order.
+
+The asset library is passed to ``update`` (``metric.update(scenes, library)``), not to the
+constructor: a metric then holds only numbers, so it pickles, deep-copies and travels to Ray workers
+without dragging meshes and locks along. ``update`` also accepts the per-scene result records instead
+of scenes (no library needed), which is how a driver accumulates what workers computed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any, Iterable, Sequence
+
+import torch
+from torchmetrics import Metric
+
+from spread.scene import Scene, validate_scene
+
+
+def check_scene(scene: Scene, library) -> None:
+    """Raise :class:`~spread.scene.SceneFormatError` (a ``ValueError``) naming the scene, key and problem
+    when ``scene`` cannot be measured: no objects, NaN/inf poses, non-rotations, bad codes, or an
+    asset the library does not have (the message names the asset)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"expected a spread.scene.Scene, got {type(scene).__name__}")
+    validate_scene(scene, source=f"scene '{scene.scene_id}'", assets=library)
+
+
+def scene_seed(scene_id: str, base_seed: int = 0) -> int:
+    """A 32-bit seed from the scene id (sha256), so per-scene randomness does not depend on worker order."""
+    digest = hashlib.sha256(f"{int(base_seed)}:{scene_id}".encode("utf-8")).digest()
+    return int.from_bytes(digest[:4], "little")
+
+
+class SceneMetric(Metric):
+    """Base of the SPREAD metrics: sum states, ``update(items, library)`` over scenes or result records.
+
+    Subclasses set ``result_type`` (the per-scene record), implement :meth:`evaluate` (scene → record,
+    the per-scene function) and :meth:`accumulate` (record → states).
+    """
+
+    full_state_update = False
+    is_differentiable = False
+    result_type: type = object
+
+    def _add_sum_state(self, name: str, shape: tuple[int, ...] = (), dtype: torch.dtype = torch.float64) -> None:
+        self.add_state(name, default=torch.zeros(shape, dtype=dtype), dist_reduce_fx="sum")
+
+    def _add(self, name: str, value: Any) -> None:
+        state = getattr(self, name)
+        setattr(self, name, state + torch.as_tensor(value, dtype=state.dtype, device=state.device))
+
+    def evaluate(self, scene: Scene, library):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def accumulate(self, result) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def update(self, items: Sequence[Any] | Any, library=None) -> None:
+        """Add scenes (measured with ``library``) or per-scene result records to the states."""
+        for result in self._results(items, library):
+            self.accumulate(result)
+
+    def _results(self, items, library) -> Iterable:
+        if isinstance(items, (Scene, self.result_type)):
+            items = [items]
+        for item in items:
+            if isinstance(item, self.result_type):
+                yield item
+            elif isinstance(item, Scene):
+                if library is None:
+                    raise ValueError(f"{type(self).__name__}.update: scenes need the asset library "
+                                     f"(update(scenes, library))")
+                yield self.evaluate(item, library)
+            else:
+                raise TypeError(f"{type(self).__name__}.update: expected Scene or {self.result_type.__name__}, "
+                                f"got {type(item).__name__}")
+
+    def merge_state(self, incoming_state) -> None:
+        """Add another metric's (or a ``metric_state`` dict's) sums to this one's, then drop the cached value."""
+        super().merge_state(incoming_state)
+        self._computed = None
+        self._update_count += 1  # merged data counts as an update (no "compute before update" warning)
+
+
+def ratio(numerator: torch.Tensor, denominator: torch.Tensor) -> torch.Tensor:
+    """numerator / denominator as float64, NaN when the denominator is 0 (nothing was measured)."""
+    num, den = numerator.double(), denominator.double()
+    return torch.where(den > 0, num / den.clamp_min(1), torch.full_like(num, float("nan")))

@@ -307,30 +307,26 @@ def test_builder_drops_unstable_poses(tmp_path):
 
 
 def test_rest_poses_hold_in_pybullet(library):
-    """One variant per category, every rest pose: 120 steps of 1/240 s on a y-up floor."""
-    pybullet = pytest.importorskip("pybullet")
+    """One variant per category, every rest pose: 120 steps of 1/240 s on the y-up floor of
+    :class:`spread.physics.PhysicsWorld` (the same bodies the generator and the metrics use)."""
     from scipy.spatial.transform import Rotation
 
-    from spread.assets.physics import add_body, body_pose, y_up_world
+    from spread.physics import PhysicsWorld
+    from spread.scene import Scene
 
-    client = pybullet.connect(pybullet.DIRECT)
-    try:
+    with PhysicsWorld() as world:
         for k, c in enumerate(default_categories()):
             aid = library.ids_of(c)[k % VARIANTS]
             for pose in library[aid].rest_poses:
-                pybullet.resetSimulation(physicsClientId=client)
-                y_up_world(client)
-                start = np.array([0.2, pose.bottom_offset, -0.1])
-                body = add_body(library, aid, start, pose.rotation, client)
-                t0, R0 = body_pose(library, aid, body, client)
+                start = np.array([[0.2, pose.bottom_offset, -0.1]])
+                scene = Scene("pose", [aid], [c], start, pose.rotation[None], [[6]], [[0]])
+                world.load_scene(scene, library)
+                t0, R0 = world.poses()
                 assert np.allclose(t0, start, atol=1e-6)
-                for _ in range(120):
-                    pybullet.stepSimulation(physicsClientId=client)
-                t1, R1 = body_pose(library, aid, body, client)
+                world.step(120)
+                t1, R1 = world.poses()
                 assert np.linalg.norm(t1 - t0) < 0.01, (aid, pose.name)
-                assert Rotation.from_matrix(R1 @ R0.T).magnitude() < 0.05, (aid, pose.name)
-    finally:
-        pybullet.disconnect(client)
+                assert Rotation.from_matrix(R1[0] @ R0[0].T).magnitude() < 0.05, (aid, pose.name)
 
 
 # ------------------------------------------------------------------------------------------------

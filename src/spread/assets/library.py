@@ -6,7 +6,6 @@ Layout of a library folder (DESIGN §4)::
     meshes/<asset_id>.glb           visual mesh: watertight union of the convex parts
     parts/<asset_id>.npz            the convex parts (exact physics collision shapes)
     cache/<asset_id>.<hash>.npz     surface points + normals, xz hull; rebuilt when the hash changes
-    cache/<asset_id>.<hash>.parts.obj  the parts as one OBJ compound for pybullet (spread.assets.physics)
     records/<asset_id>.json         per-asset record + spec fingerprint, so a rebuild can resume
 
 Frames and units: every mesh is in the asset's *canonical* frame — metres, y-up, centred at the

@@ -1,0 +1,100 @@
+"""The graph transformer that predicts the noise ε of every object's 9-D pose (paper §3.3).
+
+Inputs (B scenes, N objects padded, ``mask`` (B, N) marks the real ones):
+
+* ``x_t`` (B, N, 9): noisy states [normalised translation, rot6d]; ``t`` (B,) timesteps;
+* ``edges`` (B, N, N, edge_dim) from :class:`~spread.model.graph_attention.EdgeEncoder`;
+* ``shape_tokens`` (B, N, L, shape_dim): each object's asset tokens, projected by one shared Linear
+  to the width (folded into each block's key/value projection, the same function at less cost);
+* ``geometry_tokens`` (B, G, dim) or None: the scene's perceiver latents (``geometry`` variant).
+
+Node token: ``Linear([Fourier(x_t), sinusoid(object index)])`` — the paper's "fixed sinusoidal
+encodings → Linear"; the index code is the one the perceiver puts on each object's points.
+
+Block (× depth), all pre-norm with AdaLN on the timestep embedding, residual after each sub-layer:
+1. cross-attention of each object to its own shape tokens (real objects only);
+2. cross-attention of every object to the scene's geometry tokens (``geometry`` variant only);
+3. graph attention over the real objects, edge features as logit bias and message term;
+4. GEGLU feed-forward.
+
+Head: AdaLN → Linear → GELU → Linear (zero-initialised, so training starts from ε̂ = 0) → ε̂
+(B, N, 9), zero at padding objects. Padding objects are never keys, so they cannot change the
+output of a real object.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from spread.model.config import ModelConfig
+from spread.model.encodings import TimestepEmbedding, fourier_dim, fourier_features, sinusoidal_embedding
+from spread.model.graph_attention import GraphAttention
+from spread.model.layers import AdaLayerNorm, Attention, FeedForward
+
+STATE_DIM = 9
+
+
+class DenoiserBlock(nn.Module):
+    def __init__(self, cfg: ModelConfig, geometry: bool):
+        super().__init__()
+        dim, cond = cfg.dim, cfg.cond_dim
+        self.norm_shape = AdaLayerNorm(dim, cond)
+        self.shape_attn = Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout)
+        self.norm_geometry = AdaLayerNorm(dim, cond) if geometry else None
+        self.geometry_attn = (Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout)
+                              if geometry else None)
+        self.norm_graph = AdaLayerNorm(dim, cond)
+        self.graph_attn = GraphAttention(dim, cfg.edge_dim, cond, heads=cfg.heads, dim_head=cfg.dim_head,
+                                         dropout=cfg.dropout)
+        self.norm_ff = AdaLayerNorm(dim, cond)
+        self.ff = FeedForward(dim, cfg.ff_mult, cfg.dropout)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor, mask: torch.Tensor, shape_tokens: torch.Tensor,
+                shape_in: nn.Linear, edges: torch.Tensor, geometry: torch.Tensor | None) -> torch.Tensor:
+        """x (B, N, dim); cond (B, cond_dim); shape_tokens (V, L, shape_dim) of the V real objects in
+        ``mask`` order, projected by ``shape_in``; edges (B, N, N, edge_dim); geometry (B, G, dim) or None."""
+        h = self.norm_shape(x, cond)
+        update = torch.zeros_like(x)
+        attended = self.shape_attn(h[mask][:, None, :], shape_tokens, context_proj=shape_in)
+        update[mask] = attended[:, 0].to(update.dtype)
+        x = x + update
+        if self.geometry_attn is not None:
+            x = x + self.geometry_attn(self.norm_geometry(x, cond), geometry)
+        x = x + self.graph_attn(self.norm_graph(x, cond), edges, mask, cond)
+        return x + self.ff(self.norm_ff(x, cond))
+
+
+class GraphDenoiser(nn.Module):
+    """ε̂(x_t, t, graphs, shape tokens[, geometry tokens]) → (B, N, 9) (see the module docstring)."""
+
+    def __init__(self, cfg: ModelConfig, geometry: bool):
+        super().__init__()
+        self.cfg, self.geometry = cfg, geometry
+        self.time = TimestepEmbedding(cfg.cond_dim)
+        self.node_in = nn.Linear(fourier_dim(STATE_DIM, cfg.state_bands) + cfg.index_dim, cfg.dim)
+        self.shape_in = nn.Linear(cfg.shape_dim, cfg.dim)
+        self.blocks = nn.ModuleList(DenoiserBlock(cfg, geometry) for _ in range(cfg.depth))
+        self.norm_out = AdaLayerNorm(cfg.dim, cfg.cond_dim)
+        self.head = nn.Sequential(nn.Linear(cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, STATE_DIM))
+        nn.init.zeros_(self.head[-1].weight)
+        nn.init.zeros_(self.head[-1].bias)
+
+    def embed_nodes(self, x_t: torch.Tensor) -> torch.Tensor:
+        B, N, _ = x_t.shape
+        index = sinusoidal_embedding(torch.arange(N, device=x_t.device), self.cfg.index_dim).expand(B, N, -1)
+        state = fourier_features(x_t, self.cfg.state_bands, self.cfg.state_max_frequency)
+        return self.node_in(torch.cat([state, index.to(state.dtype)], dim=-1))
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor,
+                shape_tokens: torch.Tensor, geometry_tokens: torch.Tensor | None = None) -> torch.Tensor:
+        if self.geometry and geometry_tokens is None:
+            raise ValueError("GraphDenoiser(geometry=True) needs geometry_tokens")
+        mask = mask.bool()
+        cond = self.time(t)
+        x = self.embed_nodes(x_t)
+        shape_tokens = shape_tokens[mask]  # (V, L, shape_dim); projected inside each block's attention
+        for block in self.blocks:
+            x = block(x, cond, mask, shape_tokens, self.shape_in, edges, geometry_tokens)
+        eps = self.head(self.norm_out(x, cond))
+        return eps * mask[..., None]

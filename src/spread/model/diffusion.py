@@ -1,0 +1,143 @@
+"""Noise schedules (diffusers) and the sampler: one training schedule, three interchangeable samplers.
+
+Training (paper supplement, reference §2.4): ``DDPMScheduler(num_train_timesteps=1000,
+beta_schedule="squaredcos_cap_v2", prediction_type="epsilon")``; x_t = ``add_noise(x_0, ε, t)``.
+
+:class:`Sampler` — chosen by config, independent of the model, built from the same training config:
+
+=============== ==================================================================================
+``ddpm``        ancestral DDPM, by default over all 1000 steps (what the release runs)
+``ddim``        ``DDIMScheduler``, ``steps`` steps, ``eta`` (0 = deterministic)
+``dpmsolver++`` ``DPMSolverMultistepScheduler(algorithm_type="dpmsolver++")``, ``steps`` steps
+=============== ==================================================================================
+
+DDIM and DPM-Solver++ use "trailing" timestep spacing (the first step is t = 999, where the model
+was trained on near-pure noise; Lin et al. 2024), and DPM-Solver++ clips λ(t) at −5.1 as diffusers
+recommends for the cosine schedule. Each call builds a fresh scheduler (they are stateful).
+
+The loop (:meth:`Sampler.sample`) works on any ``eps_fn(x_t, t) -> ε̂``; the model's closure
+recomputes the geometry features from x_t at every step. Each step it forms the predicted
+x̂_0 = (x_t − √(1−ᾱ_t) ε̂)/√ᾱ_t, clips it to [−1, 1] (``clip_x0``; all 9 channels live there),
+applies ``x0_hook(x̂_0, ctx)`` if given (guidance plugs in here), turns x̂_0 back into the ε the
+scheduler steps with, then applies ``sample_hook(x_{t−1}, ctx)`` if given. Padding objects are
+held at 0 throughout (initial noise, every ε̂ and every sample are multiplied by the mask), so they
+never influence real ones. Randomness comes only from ``generator``: same seed, same samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import torch
+from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler
+
+TRAIN_SCHEDULER_CONFIG: dict = {
+    "num_train_timesteps": 1000,
+    "beta_schedule": "squaredcos_cap_v2",
+    "prediction_type": "epsilon",
+}
+SAMPLER_KINDS = ("ddpm", "ddim", "dpmsolver++")
+
+
+def training_scheduler(**overrides) -> DDPMScheduler:
+    """The DDPM schedule the model is trained with (ε-prediction, cosine betas, T = 1000)."""
+    return DDPMScheduler(**{**TRAIN_SCHEDULER_CONFIG, **overrides})
+
+
+@dataclass
+class StepContext:
+    """What a hook sees at one sampling step."""
+
+    index: int  # 0 … num_steps − 1
+    num_steps: int
+    timestep: int  # the training timestep t of this step
+    x_t: torch.Tensor  # (B, N, 9) the current noisy state
+    eps: torch.Tensor  # (B, N, 9) the model's ε̂
+    mask: torch.Tensor  # (B, N) bool
+    alpha_bar: float  # ᾱ_t
+
+
+Hook = Callable[[torch.Tensor, StepContext], torch.Tensor]
+
+
+@dataclass
+class Sampler:
+    """A reverse process over the training schedule: ``kind`` ∈ SAMPLER_KINDS, ``steps`` (default
+    1000 for ``ddpm``, 50 otherwise), ``eta`` (DDIM only), ``clip_x0``."""
+
+    kind: str = "ddim"
+    steps: int | None = None
+    eta: float = 0.0
+    clip_x0: bool = True
+
+    def __post_init__(self):
+        if self.kind not in SAMPLER_KINDS:
+            raise ValueError(f"unknown sampler '{self.kind}' (choose from {SAMPLER_KINDS})")
+        if self.steps is None:
+            self.steps = TRAIN_SCHEDULER_CONFIG["num_train_timesteps"] if self.kind == "ddpm" else 50
+        if not 1 <= self.steps <= TRAIN_SCHEDULER_CONFIG["num_train_timesteps"]:
+            raise ValueError(f"sampler steps must be in [1, 1000], got {self.steps}")
+
+    @classmethod
+    def from_config(cls, config: "Sampler | Mapping | str | None") -> "Sampler":
+        """A Sampler, a mapping of its fields, or a short name: "ddpm", "ddim-50", "dpmsolver++-20"."""
+        if config is None:
+            return cls()
+        if isinstance(config, Sampler):
+            return config
+        if isinstance(config, str):
+            kind, _, steps = config.rpartition("-") if config[-1].isdigit() else (config, "", "")
+            return cls(kind=kind, steps=int(steps)) if steps else cls(kind=kind)
+        return cls(**dict(config))
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.steps)
+
+    def scheduler(self):
+        """A fresh diffusers scheduler for this sampler, from the training config."""
+        base = training_scheduler().config
+        if self.kind == "ddpm":  # fewer than 1000 steps: ancestral sampling on a strided schedule
+            return DDPMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
+        if self.kind == "ddim":
+            return DDIMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
+        return DPMSolverMultistepScheduler.from_config(base, algorithm_type="dpmsolver++", timestep_spacing="trailing",
+                                                       lambda_min_clipped=-5.1)
+
+    @torch.no_grad()
+    def sample(self, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
+               generator: torch.Generator | None = None, x0_hook: Hook | None = None,
+               sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding.
+
+        Hooks run with autograd off; a guidance hook that needs gradients enables them itself
+        (``torch.enable_grad()``).
+        """
+        mask = mask.bool()
+        device = mask.device
+        keep = mask[..., None].to(dtype)
+        scheduler = self.scheduler()
+        scheduler.set_timesteps(self.num_steps, device=device)
+        alphas = scheduler.alphas_cumprod.to(device=device, dtype=torch.float64)
+        noise_device = generator.device if generator is not None else device
+        x = torch.randn((*mask.shape, state_dim), generator=generator, device=noise_device, dtype=dtype)
+        x = x.to(device) * keep
+        extra = {"eta": self.eta} if self.kind == "ddim" else {}
+        timesteps = scheduler.timesteps
+        for index, t in enumerate(timesteps):
+            t_batch = torch.full((mask.shape[0],), int(t), device=device, dtype=torch.long)
+            eps = eps_fn(x, t_batch).to(dtype) * keep
+            a = float(alphas[int(t)])
+            ctx = StepContext(index, len(timesteps), int(t), x, eps, mask, a)
+            if self.clip_x0 or x0_hook is not None:
+                x0 = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
+                if self.clip_x0:
+                    x0 = x0.clamp(-1.0, 1.0)
+                if x0_hook is not None:
+                    x0 = x0_hook(x0, ctx)
+                eps = (x - a ** 0.5 * x0) / (1 - a) ** 0.5 * keep
+            x = scheduler.step(eps, t, x, generator=generator, **extra).prev_sample.to(dtype) * keep
+            if sample_hook is not None:
+                x = sample_hook(x, ctx) * keep
+        return x

@@ -1,0 +1,119 @@
+"""``SceneDenoiser``: the whole ε-network of one variant — shape encoder, edge encoder, geometry
+perceiver (``geometry`` only) and graph transformer — over a batch of :mod:`spread.data` tensors.
+
+Sampling calls the network once per step on the same scenes, so what does not depend on the noisy
+state is computed once by :meth:`SceneDenoiser.condition` (shape tokens, edge features) and reused;
+:meth:`SceneDenoiser.forward` then only does the per-step work: in the ``geometry`` variant it
+denormalises the current translations with ``bounds`` (the stats.json bounds, a buffer saved with
+the weights), turns the rot6d into matrices by Gram–Schmidt, recomputes the signed chamfer features
+of the posed points and runs the perceiver, then the graph transformer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
+from spread.model.config import ModelConfig
+from spread.model.denoiser import GraphDenoiser
+from spread.model.geometry import signed_chamfer_features
+from spread.model.graph_attention import EdgeEncoder
+from spread.model.perceiver import GeometryPerceiver
+from spread.model.poses import poses_from_state
+from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
+
+VARIANTS = ("base", "geometry")
+
+
+@dataclass
+class Condition:
+    """Everything the network needs besides (x_t, t); constant through one sampling run."""
+
+    mask: torch.Tensor  # (B, N) bool
+    spatial: torch.Tensor  # (B, N, N) long
+    physical: torch.Tensor  # (B, N, N) long
+    edges: torch.Tensor  # (B, N, N, edge_dim)
+    shape_tokens: torch.Tensor  # (B, N, L, shape_dim)
+    points: torch.Tensor | None = None  # (B, N, M, 3) canonical, geometry variant
+    normals: torch.Tensor | None = None
+
+
+def drop_graphs(spatial: torch.Tensor, physical: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Replace both graphs of the scenes in ``drop`` (B,) bool by the padding codes (the null graph of
+    classifier-free guidance)."""
+    keep = ~drop[:, None, None]
+    return (torch.where(keep, spatial, torch.full_like(spatial, SPATIAL_PAD)),
+            torch.where(keep, physical, torch.full_like(physical, PHYSICAL_PAD)))
+
+
+def build_shape_encoder(cfg: ModelConfig) -> ShapeEncoder:
+    if cfg.shape_encoder == "points":
+        return PointCloudTokenizer(cfg.shape_tokens, cfg.shape_dim, cfg.tokenizer_width, cfg.tokenizer_heads,
+                                   cfg.tokenizer_points, cfg.point_bands, cfg.point_max_frequency)
+    if cfg.shape_encoder == "precomputed":
+        return PrecomputedShapeTokens(cfg.shape_tokens, cfg.shape_dim)
+    raise ValueError(f"unknown shape_encoder '{cfg.shape_encoder}' (choose 'points' or 'precomputed')")
+
+
+class SceneDenoiser(nn.Module):
+    """ε̂(x_t, t | batch) for variant ``base`` or ``geometry``; ``bounds`` = stats.json
+    ``bounds_translations`` (6 floats, metres), needed by ``geometry`` (NaN until set)."""
+
+    def __init__(self, config: ModelConfig, variant: str = "geometry", bounds: Sequence[float] | None = None):
+        super().__init__()
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown variant '{variant}' (choose from {VARIANTS})")
+        self.config, self.variant = config, variant
+        self.shape_encoder = build_shape_encoder(config)
+        self.edge_encoder = EdgeEncoder(config.edge_dim)
+        self.perceiver = None
+        if variant == "geometry":
+            self.perceiver = GeometryPerceiver(
+                config.dim, config.num_latents, config.perceiver_depth, config.perceiver_self_per_cross,
+                config.perceiver_cross_heads, config.perceiver_cross_dim_head, config.heads, config.dim_head,
+                config.ff_mult, config.point_bands, config.point_max_frequency, config.index_dim, config.dropout)
+        self.denoiser = GraphDenoiser(config, geometry=variant == "geometry")
+        self.register_buffer("bounds", torch.full((6,), float("nan")))
+        if bounds is not None:
+            self.set_bounds(bounds)
+
+    def set_bounds(self, bounds: Sequence[float] | torch.Tensor) -> None:
+        b = torch.as_tensor(bounds, dtype=torch.float32).reshape(6)
+        if not torch.isfinite(b).all() or (b[3:] <= b[:3]).any():
+            raise ValueError(f"bounds must be 6 finite numbers [min xyz, max xyz] with max > min, got {b.tolist()}")
+        self.bounds.copy_(b.to(self.bounds.device))
+
+    def condition(self, batch: dict, drop_graph: torch.Tensor | None = None) -> Condition:
+        """Shape tokens and edge features of a batch; ``drop_graph`` (B,) bool nulls those scenes' graphs."""
+        mask = batch["mask"].bool()
+        spatial, physical = batch["spatial"].long(), batch["physical"].long()
+        if drop_graph is not None:
+            spatial, physical = drop_graphs(spatial, physical, drop_graph)
+        geometry = self.perceiver is not None
+        return Condition(mask=mask, spatial=spatial, physical=physical,
+                         edges=self.edge_encoder(spatial, physical), shape_tokens=self.shape_encoder(batch),
+                         points=batch["points"] if geometry else None, normals=batch["normals"] if geometry else None)
+
+    def null_condition(self, cond: Condition) -> Condition:
+        """The same scenes with both graphs dropped (classifier-free guidance's unconditional branch)."""
+        drop = torch.ones(cond.mask.shape[0], dtype=torch.bool, device=cond.mask.device)
+        spatial, physical = drop_graphs(cond.spatial, cond.physical, drop)
+        return replace(cond, spatial=spatial, physical=physical, edges=self.edge_encoder(spatial, physical))
+
+    def geometry_tokens(self, x_t: torch.Tensor, cond: Condition) -> torch.Tensor:
+        """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
+        if not torch.isfinite(self.bounds).all():
+            raise RuntimeError("SceneDenoiser: translation bounds are not set "
+                               "(call set_bounds(stats['bounds_translations']))")
+        translation, rotation = poses_from_state(x_t.float(), self.bounds)
+        features = signed_chamfer_features(cond.points, cond.normals, translation, rotation, cond.mask)
+        return self.perceiver(features.to(x_t.dtype), cond.mask)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
+        """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""
+        geometry = self.geometry_tokens(x_t, cond) if self.perceiver is not None else None
+        return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry)

@@ -1,0 +1,93 @@
+"""Shape tokens: a fixed-size set of L tokens (each ``token_dim`` wide) describing each object's asset.
+
+Two encoders share one interface, ``encoder(batch) -> (B, N, L, token_dim)`` with zeros at padding
+objects; the denoiser projects the tokens to its width with one Linear (paper §3.3: Michelangelo's
+256 × 64 latents "linearly projected to the attention dimension").
+
+* :class:`PointCloudTokenizer` (default): learned from each asset's canonical surface samples
+  (``batch['points']``, ``batch['normals']``, (B, N, M, 3), metres). A function of the asset only —
+  canonical frame, no pose, no timestep — so the tokens are constant through diffusion, like the
+  paper's frozen Michelangelo latents; unlike them, it is trained jointly with the denoiser by the
+  same ε loss (no pretrained encoder is available offline). Architecture (3DShape2VecSet-style):
+  Fourier features of xyz + normal → Linear → L learned queries cross-attend to the points → self-
+  attention → Linear to ``token_dim``. It reads the first ``num_points`` samples of each object (the
+  dataset's per-asset subsets are random, so this is a fixed random subset per asset).
+* :class:`PrecomputedShapeTokens`: tokens computed offline (e.g. the reference's ``miche_feature``,
+  256 × 64) passed in ``batch['shape_tokens']`` (B, N, L, token_dim); returned as they are.
+"""
+
+from __future__ import annotations
+
+import torch
+from einops import repeat
+from torch import nn
+
+from spread.model.encodings import fourier_dim, fourier_features
+from spread.model.layers import Attention, FeedForward
+
+
+class ShapeEncoder(nn.Module):
+    """Interface: ``forward(batch) -> (B, N, num_tokens, token_dim)``, zeros at padding objects."""
+
+    num_tokens: int
+    token_dim: int
+
+    def forward(self, batch: dict) -> torch.Tensor:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class PointCloudTokenizer(ShapeEncoder):
+    """Canonical points + normals of each real object → L tokens (see the module docstring)."""
+
+    def __init__(self, num_tokens: int = 16, token_dim: int = 64, width: int = 128, heads: int = 4,
+                 num_points: int = 512, num_bands: int = 6, max_frequency: float = 32.0):
+        super().__init__()
+        self.num_tokens, self.token_dim, self.num_points = num_tokens, token_dim, num_points
+        self.num_bands, self.max_frequency = num_bands, max_frequency
+        self.embed = nn.Linear(fourier_dim(3, num_bands) + 3, width)
+        self.queries = nn.Parameter(torch.randn(num_tokens, width) * 0.02)
+        self.norm_points = nn.LayerNorm(width)
+        self.cross = Attention(width, heads=heads, dim_head=width // heads)
+        self.norm_self = nn.LayerNorm(width)
+        self.self_attn = Attention(width, heads=heads, dim_head=width // heads)
+        self.norm_ff = nn.LayerNorm(width)
+        self.ff = FeedForward(width, mult=2)
+        self.out = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, token_dim))
+
+    def encode(self, points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """(V, P, 3) points and normals of V objects → (V, L, token_dim)."""
+        feats = torch.cat([fourier_features(points, self.num_bands, self.max_frequency), normals], dim=-1)
+        context = self.norm_points(self.embed(feats))
+        z = repeat(self.queries, "l d -> v l d", v=points.shape[0])
+        z = z + self.cross(z, context)
+        h = self.norm_self(z)
+        z = z + self.self_attn(h)
+        z = z + self.ff(self.norm_ff(z))
+        return self.out(z)
+
+    def forward(self, batch: dict) -> torch.Tensor:
+        mask = batch["mask"]
+        points = batch["points"][:, :, : self.num_points]
+        normals = batch["normals"][:, :, : self.num_points]
+        B, N = mask.shape
+        out = points.new_zeros(B, N, self.num_tokens, self.token_dim)
+        out[mask] = self.encode(points[mask].float(), normals[mask].float()).to(out.dtype)
+        return out
+
+
+class PrecomputedShapeTokens(ShapeEncoder):
+    """``batch['shape_tokens']`` (B, N, L, token_dim), zeroed at padding objects."""
+
+    def __init__(self, num_tokens: int = 256, token_dim: int = 64, key: str = "shape_tokens"):
+        super().__init__()
+        self.num_tokens, self.token_dim, self.key = num_tokens, token_dim, key
+
+    def forward(self, batch: dict) -> torch.Tensor:
+        if self.key not in batch:
+            raise KeyError(f"PrecomputedShapeTokens: the batch has no '{self.key}' (B, N, L, D) tensor")
+        tokens = batch[self.key]
+        expected = (self.num_tokens, self.token_dim)
+        if tuple(tokens.shape[2:]) != expected:
+            raise ValueError(f"PrecomputedShapeTokens: batch['{self.key}'] has tokens {tuple(tokens.shape[2:])}, "
+                             f"expected {expected}")
+        return torch.where(batch["mask"][..., None, None], tokens, 0.0)

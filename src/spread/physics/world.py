@@ -26,7 +26,7 @@ import numpy as np
 
 from spread.physics.contacts import FLOOR, ContactSet, contact_set
 from spread.physics.frames import body_to_scene, scene_to_body
-from spread.physics.params import PhysicsParams
+from spread.physics.params import BULLET_HULL_MARGIN, PhysicsParams
 from spread.physics.shapes import BodyShape, body_parts, mass_frame, write_parts_obj
 
 
@@ -41,12 +41,9 @@ class SettleResult:
     settled: bool
 
 
-def _close_client(pb, client: int, tmpdir: str) -> None:
-    try:
-        if pb.isConnected(physicsClientId=client):
-            pb.disconnect(physicsClientId=client)
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
+def _close_client(pb, client: int) -> None:
+    if pb.isConnected(physicsClientId=client):
+        pb.disconnect(physicsClientId=client)
 
 
 class PhysicsWorld:
@@ -64,8 +61,8 @@ class PhysicsWorld:
         self.client = pybullet.connect(pybullet.DIRECT)
         if self.client < 0:
             raise RuntimeError("pybullet: could not open a DIRECT client")
-        self._tmpdir = tempfile.mkdtemp(prefix="spread-physics-")
-        self._finalizer = weakref.finalize(self, _close_client, pybullet, self.client, self._tmpdir)
+        self._tmpdir: str | None = None  # made only for assets of a read-only library
+        self._finalizer = weakref.finalize(self, _close_client, pybullet, self.client)
         self.shapes_created = 0
         self._shapes: dict[tuple[str, str], BodyShape] = {}
         self._bodies: list[int] = []
@@ -105,7 +102,7 @@ class PhysicsWorld:
         return math.sqrt(self.params.friction)
 
     def close(self) -> None:
-        """Disconnect the client and delete its temporary files (also done at garbage collection)."""
+        """Disconnect the client (also done at garbage collection)."""
         self._finalizer()
 
     def __enter__(self) -> "PhysicsWorld":
@@ -122,9 +119,8 @@ class PhysicsWorld:
         shape = self._shapes.get(key)
         if shape is None:
             com, axes, inertia_per_kg = mass_frame(library.mesh(asset_id))
-            parts = body_parts(library.convex_parts(asset_id), com, axes)
-            path = os.path.join(self._tmpdir, f"shape{self.shapes_created}.obj")
-            write_parts_obj(path, parts)
+            path = self._shape_file(library, asset_id,
+                                    lambda: body_parts(library.convex_parts(asset_id), com, axes))
             flags = self._pb.URDF_INITIALIZE_SAT_FEATURES if self.params.sat_features else 0
             # the file stays until close(): pybullet reads it again for each body's (unused) visual shape
             cid = self._call("createCollisionShape", self._pb.GEOM_MESH, fileName=path, flags=flags)
@@ -133,6 +129,29 @@ class PhysicsWorld:
             self.shapes_created += 1
             shape = self._shapes[key] = BodyShape(cid, com, axes, inertia_per_kg)
         return shape
+
+    def _shape_file(self, library, asset_id: str, make_parts) -> str:
+        """The OBJ compound pybullet loads for an asset: kept in the library's cache folder, keyed by
+        the asset's content hash (written once, shared by every process); in this world's temporary
+        folder when the library is read-only."""
+        record = library[asset_id]
+        name = f"{asset_id}.{record.content_hash[:16]}.physics-{round(BULLET_HULL_MARGIN * 1e6)}um.obj"
+        cached = os.path.join(str(library.root), "cache", name)
+        if os.path.exists(cached):
+            return cached
+        try:
+            os.makedirs(os.path.dirname(cached), exist_ok=True)
+            tmp = f"{cached}.{os.getpid()}.tmp"
+            write_parts_obj(tmp, make_parts())
+            os.replace(tmp, cached)
+            return cached
+        except OSError:
+            if self._tmpdir is None:
+                self._tmpdir = tempfile.mkdtemp(prefix="spread-physics-")
+                weakref.finalize(self, shutil.rmtree, self._tmpdir, True)
+            path = os.path.join(self._tmpdir, f"shape{self.shapes_created}.obj")
+            write_parts_obj(path, make_parts())
+            return path
 
     # ---- scenes ------------------------------------------------------------------------------
     @property

@@ -17,9 +17,9 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# rooms → a few minutes of tiny-model training → sampling → evaluation, printed side by side
 demo: install
-	$(BIN)/spread-generate out_dir=$(DEMO_DIR)/data rooms=24 seed=0 renders=6
-	@echo "renders: $(DEMO_DIR)/data/renders/"
+	$(BIN)/python -m spread.cli.demo --out $(DEMO_DIR)
 
 test: install
 	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15

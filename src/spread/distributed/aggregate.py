@@ -1,0 +1,75 @@
+"""``metrics.json`` values from ``per_scene.jsonl`` records, through the torchmetrics ``merge_state`` path.
+
+Every good record carries its scene's metric states (``record["state"][name]``: the sums one scene adds);
+the driver builds fresh aggregates from the protocol and ``merge_state``s each record into them — the same
+summation DDP's ``sync`` does across ranks — so the result does not depend on how scenes were split over
+workers, nodes or resumed runs. FID: the generated set's features come from the records
+(``fid_features``), the reference set's statistics from states merged in by the caller.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+import torch
+
+from spread.distributed.protocol import METRIC_NAMES, EvalProtocol
+
+
+def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
+    """Aggregates (name → metric) with every good record's per-scene states merged in."""
+    metrics = protocol.metrics()
+    for record in records:
+        if record.get("error"):
+            continue
+        for name in METRIC_NAMES:
+            metric = metrics[name]
+            state = record["state"][name]
+            metric.merge_state({k: torch.as_tensor(state[k], dtype=getattr(metric, k).dtype)
+                                for k in metric.metric_state})
+    return metrics
+
+
+def as_float(value) -> float | None:
+    """A 0-d tensor or number as a float, None for NaN (nothing was measured)."""
+    x = float(value)
+    return None if np.isnan(x) else x
+
+
+def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
+    """The four metrics, the still shares and the counts over deduplicated ``records``."""
+    metrics = merge_records(records, protocol)
+    stability = metrics["stability"].compute()
+    good = [r for r in records if not r.get("error")]
+    return {
+        "col_mesh": as_float(metrics["col_mesh"].compute()),
+        "grecall": as_float(metrics["grecall"].compute()),
+        "asd": as_float(metrics["asd"].compute()),
+        "stability": as_float(stability["stability"]),
+        "still_fraction": as_float(stability["still_fraction"]),
+        "displacement_ok_fraction": as_float(stability["displacement_ok_fraction"]),
+        "rotation_ok_fraction": as_float(stability["rotation_ok_fraction"]),
+        "n_scenes": len(records),
+        "n_evaluated": len(good),
+        "n_failed": len(records) - len(good),
+        "n_objects": int(sum(r["num_objects"] for r in good)),
+        "n_colliding_objects": int(metrics["col_mesh"].colliding_objects),
+        "n_support_pairs": int(metrics["asd"].pairs),
+        "n_graph_pairs": int(metrics["grecall"].pairs),
+    }
+
+
+def fid_values(fid, records: list[dict], status: str, n_reference_files: int) -> dict:
+    """FID fields of ``metrics.json``. ``fid`` is a :class:`~spread.metrics.SceneFID` whose reference
+    states are merged in, or None when no extractor is available (then ``status`` says why)."""
+    good = [r for r in records if not r.get("error")]
+    if fid is None:
+        return {"fid": None, "fid_status": status, "fid_num_generated": len(good),
+                "fid_num_reference": n_reference_files}
+    features = [r["fid_features"] for r in good if r.get("fid_features") is not None]
+    if features:
+        fid.update(features=np.asarray(features, np.float64), real=False)
+    out = fid.compute()
+    return {"fid": out["fid"], "fid_status": out["fid_status"], "fid_feature_model": out["feature_model"],
+            "fid_num_generated": out["num_generated"], "fid_num_reference": out["num_reference"]}

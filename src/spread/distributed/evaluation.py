@@ -1,0 +1,172 @@
+"""One evaluation run (``spread-evaluate``): scene files → ``per_scene.jsonl``, ``metrics.json``, renders.
+
+1. List the scene files of ``scenes`` and the reference split ``reference/<split>``; the asset library
+   is ``reference/assets``.
+2. Resume: read ``out_dir/per_scene.jsonl`` (deduplicated, compacted; :mod:`~spread.distributed.resume`)
+   and schedule only the scenes without a line. ``out_dir/protocol.json`` pins the protocol the lines were
+   measured with; resuming with another protocol is refused (mixed lines would be summed silently).
+3. Fan the rest out as Ray tasks (:func:`~spread.distributed.fanout.fan_out`); the driver appends each
+   record as it arrives and advances the progress bar.
+4. ``metrics.json`` (atomic) is computed from the file's deduplicated lines of this folder's scenes, so a
+   resumed run reports exactly what a single run would. FID reference statistics are computed by Ray
+   tasks too when an extractor is available; otherwise FID is null with the reason.
+5. A few top-down renders of evaluated scenes go to ``out_dir/renders/``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from spread.distributed.aggregate import fid_values, summary_values
+from spread.distributed.fanout import fan_out, run_tasks
+from spread.distributed.protocol import EvalProtocol, versions
+from spread.distributed.resume import dedupe, load_finished
+from spread.distributed.session import RaySettings, ray_session
+from spread.distributed.work import evaluate_chunk, load_fid_extractor, reference_fid_state, scene_key
+from spread.io import append_jsonl, read_jsonl, write_json_atomic
+
+PER_SCENE = "per_scene.jsonl"
+METRICS = "metrics.json"
+PROTOCOL = "protocol.json"
+
+
+@dataclass
+class EvaluationConfig:
+    """scenes: folder of scene files; reference: dataset folder (``assets/`` + ``reference_split/``);
+    out_dir: run folder; chunk_size: scenes per Ray task; resume: keep ``per_scene.jsonl`` lines;
+    retry_failed: on resume, evaluate scenes whose line has an error again; renders: top-down PNGs of
+    the first evaluated scenes; progress: tqdm bar."""
+
+    scenes: str
+    reference: str
+    out_dir: str
+    reference_split: str = "test"
+    chunk_size: int = 4
+    resume: bool = True
+    retry_failed: bool = False
+    renders: int = 8
+    progress: bool = True
+    protocol: EvalProtocol = field(default_factory=EvalProtocol)
+    ray: RaySettings = field(default_factory=RaySettings)
+
+
+@dataclass
+class EvaluationResult:
+    """metrics: the ``metrics.json`` content; records: the deduplicated per-scene lines of this run's
+    scenes; renders: PNG paths written; out_dir."""
+
+    metrics: dict
+    records: list[dict]
+    renders: list[Path]
+    out_dir: Path
+
+
+def check_protocol(out: Path, protocol: EvalProtocol, resume: bool) -> None:
+    """Write ``protocol.json``; refuse to resume lines measured under a different protocol."""
+    path = out / PROTOCOL
+    fingerprint = protocol.fingerprint()
+    if resume and path.exists() and (out / PER_SCENE).exists():
+        before = json.loads(path.read_text())
+        if before != json.loads(json.dumps(fingerprint)):
+            changed = sorted(k for k in set(before) | set(fingerprint) if before.get(k) != fingerprint.get(k))
+            raise ValueError(f"{out}: its {PER_SCENE} was measured with another protocol (changed: {changed}); "
+                             f"use a new out_dir or resume=false")
+    write_json_atomic(path, fingerprint)
+
+
+def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: str):
+    """(SceneFID with the reference states merged in, or None; status; failed reference scenes)."""
+    from spread.metrics import SceneFID
+
+    if not cfg.protocol.fid_enabled:
+        return None, "disabled: fid.enabled is false", []
+    loaded = load_fid_extractor(cfg.protocol)
+    if loaded.extractor is None:
+        return None, loaded.status, []
+    if len(reference_files) < 2:
+        return None, f"unavailable: the reference split has {len(reference_files)} scene files (FID needs ≥ 2)", []
+    fid = SceneFID(cfg.protocol.fid_feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None)
+    fid.fid_status = loaded.status
+    failed = []
+    for part in run_tasks([str(p) for p in reference_files], 16, cfg.ray, reference_fid_state,
+                          (assets, cfg.protocol)):
+        fid.merge_state(part["state"])
+        failed += part["failed"]
+    return fid, loaded.status, failed
+
+
+def write_renders(out: Path, records: list[dict], assets: str, count: int) -> list[Path]:
+    """Top-down PNGs of the first ``count`` evaluated scenes, ``out/renders/<scene_id>.png``."""
+    from spread.distributed.work import worker_library
+    from spread.render import render_topdown, save_png
+    from spread.scene import read_scene
+
+    library = worker_library(assets)
+    paths = []
+    for r in [r for r in records if not r.get("error")][:max(0, count)]:
+        paths.append(save_png(render_topdown(read_scene(r["file"], assets=library), library),
+                              out / "renders" / f"{r['scene_id']}.png"))
+    return paths
+
+
+def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
+    """Evaluate every scene file of ``cfg.scenes`` (module docstring)."""
+    from spread.scene import list_scene_files
+    from tqdm.auto import tqdm
+
+    started = time.perf_counter()
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = list_scene_files(cfg.scenes)
+    keys = [scene_key(f) for f in files]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"{cfg.scenes}: two scene files share a name")
+    assets = str(Path(cfg.reference) / "assets")
+    if not (Path(assets) / "index.json").exists():
+        raise FileNotFoundError(f"reference={cfg.reference}: no asset library at {assets} (missing index.json)")
+    ref_dir = Path(cfg.reference) / cfg.reference_split
+    reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
+    per_scene = out / PER_SCENE
+    check_protocol(out, cfg.protocol, cfg.resume)
+    if not cfg.resume:
+        per_scene.unlink(missing_ok=True)
+    finished = load_finished(per_scene, retry_failed=cfg.retry_failed)
+    todo = [str(f) for f, k in zip(files, keys) if k not in finished]
+    bar = tqdm(total=len(files), initial=len(files) - len(todo), desc="scenes", unit="scene",
+               disable=not cfg.progress)
+
+    def on_record(record: dict) -> None:
+        if record["scene_id"] in finished:  # never twice, whatever happens upstream
+            return
+        finished[record["scene_id"]] = record
+        append_jsonl(per_scene, record)
+        bar.update(1)
+
+    with ray_session(cfg.ray) as cluster:
+        fan = fan_out(todo, cfg.chunk_size, cfg.ray, evaluate_chunk, (assets, cfg.protocol), on_record) if todo \
+            else None
+        fid, fid_status, ref_failed = reference_fid(cfg, reference_files, assets)
+    bar.close()
+
+    wanted = set(keys)
+    records = [r for k, r in dedupe(read_jsonl(per_scene)).items() if k in wanted]
+    records.sort(key=lambda r: r["scene_id"])
+    metrics = summary_values(records, cfg.protocol)
+    metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed)))
+    metrics.update({
+        "failed": [{"scene_id": r["scene_id"], "error": r["error"]} for r in records if r.get("error")],
+        "fid_reference_failed": ref_failed,
+        "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
+        "protocol": cfg.protocol.to_dict(), "versions": versions(),
+        "run": {"evaluated_this_run": len(todo), "resumed": len(files) - len(todo),
+                "tasks": fan.tasks if fan else 0, "split_chunks": fan.split_chunks if fan else 0,
+                "chunk_size": cfg.chunk_size, "seconds": round(time.perf_counter() - started, 3),
+                "ray": {**cluster, "max_retries": cfg.ray.max_retries,
+                        "scheduling_strategy": cfg.ray.scheduling_strategy}},
+    })
+    write_json_atomic(out / METRICS, metrics)
+    renders = write_renders(out, records, assets, cfg.renders)
+    return EvaluationResult(metrics, records, renders, out)

@@ -1,0 +1,116 @@
+"""The evaluation protocol's parameters (DESIGN §6) as one record: what every worker measures with, and what
+``metrics.json`` reports so a number can be traced to how it was measured.
+
+Defaults are the named constants of :mod:`spread.metrics` (thresholds, runs, steps, dt, jitter) and of
+:mod:`spread.physics` (the world's internal step). The same record builds the torchmetrics aggregates on
+the driver and the per-scene states on the workers (:meth:`EvalProtocol.metrics`), so both sides agree.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import platform
+import sys
+from dataclasses import asdict, dataclass
+
+from spread.metrics import (
+    COLLISION_DEPTH_THRESHOLD, FID_RENDER_SETTINGS, STABILITY_DT, STABILITY_JITTER, STABILITY_RUNS,
+    STABILITY_STEPS, STILL_ANGLE, STILL_DISTANCE,
+)
+from spread.metrics.fid import DEFAULT_FEATURE_MODEL
+
+#: Internal Bullet steps per protocol step of :data:`~spread.metrics.STABILITY_DT` (1/60 s): 4 steps of
+#: 1/240 s, the step the room generator verifies its rooms with. Kept although Stability costs ~3.5 s per
+#: 20-object room with it: measured on 100 generated test rooms (benchmarks/RESULTS.md), 1 step of 1/60 s
+#: is 2.6× faster but not converged — 0.5 % of ground-truth objects then drift ≥ 1 cm (worst room 0.91
+#: instead of 0.99) and, worse, falling objects fall less: rooms jittered by 15 cm score 0.94 instead of
+#: 0.89, so the gap between good and bad scenes shrinks by 40 %. Fewer substeps is a config choice
+#: (``protocol.stability_substeps``), recorded in ``metrics.json``, never the default.
+STABILITY_SUBSTEPS = 4
+
+#: Metric names in per-scene states and in ``metrics.json``, in report order.
+METRIC_NAMES = ("col_mesh", "grecall", "asd", "stability")
+
+
+@dataclass(frozen=True)
+class EvalProtocol:
+    """Everything that changes a metric value. Units: metres, seconds, radians.
+
+    collision_threshold: m, a pair collides when deeper than this (Col_mesh).
+    stability_runs / stability_steps: runs per scene, protocol steps per run.
+    stability_dt: s per protocol step; stability_substeps: internal physics steps per protocol step.
+    stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
+    seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker).
+    fid_enabled: compute FID features at all; fid_feature_model: clean-fid model name (or the name of an
+        injected backbone); fid_weights_path: local weights file (None: clean-fid's / CLIP's cache);
+        fid_extractor: ``"module:factory"`` of another backbone (``factory()`` → callable images → features),
+        None for clean-fid's; fid_device: torch device of the extractor.
+    """
+
+    collision_threshold: float = COLLISION_DEPTH_THRESHOLD
+    stability_runs: int = STABILITY_RUNS
+    stability_steps: int = STABILITY_STEPS
+    stability_dt: float = STABILITY_DT
+    stability_substeps: int = STABILITY_SUBSTEPS
+    stability_jitter: float = STABILITY_JITTER
+    seed: int = 0
+    fid_enabled: bool = True
+    fid_feature_model: str = DEFAULT_FEATURE_MODEL
+    fid_weights_path: str | None = None
+    fid_extractor: str | None = None
+    fid_device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.stability_runs < 1 or self.stability_steps < 1 or self.stability_substeps < 1:
+            raise ValueError("stability runs, steps and substeps must be ≥ 1, got "
+                             f"{self.stability_runs}, {self.stability_steps}, {self.stability_substeps}")
+        if not self.stability_dt > 0 or self.stability_jitter < 0 or not self.collision_threshold > 0:
+            raise ValueError("stability_dt and collision_threshold must be > 0 and stability_jitter ≥ 0")
+
+    def physics_params(self):
+        """The :class:`~spread.physics.PhysicsParams` of the Stability world: defaults, with the internal step
+        ``stability_dt / stability_substeps`` seconds."""
+        from spread.physics import PhysicsParams
+
+        return PhysicsParams(time_step=self.stability_dt / self.stability_substeps)
+
+    def metrics(self) -> dict:
+        """Fresh torchmetrics aggregates keyed by :data:`METRIC_NAMES`, configured by this protocol."""
+        from spread.metrics import AverageSupportDistance, GraphRecall, MeshCollisionRate, PhysicsStability
+
+        return {
+            "col_mesh": MeshCollisionRate(self.collision_threshold),
+            "grecall": GraphRecall(),
+            "asd": AverageSupportDistance(),
+            "stability": PhysicsStability(self.stability_runs, self.stability_steps, self.stability_dt,
+                                          self.stability_jitter, base_seed=self.seed),
+        }
+
+    def to_dict(self) -> dict:
+        """The protocol as ``metrics.json`` reports it: these fields plus the fixed constants and settings."""
+        out = asdict(self)
+        out.update({
+            "still_distance": STILL_DISTANCE, "still_angle": STILL_ANGLE,
+            "stability_internal_step": self.stability_dt / self.stability_substeps,
+            "physics": asdict(self.physics_params()),
+            "fid_render": FID_RENDER_SETTINGS.to_dict(),
+        })
+        return out
+
+    def fingerprint(self) -> dict:
+        """The fields that change per-scene values (a resumed run must match them)."""
+        d = asdict(self)
+        d.pop("fid_device")
+        return d
+
+
+def versions() -> dict:
+    """Versions of the packages behind the numbers, and the Python and platform."""
+    out = {"python": sys.version.split()[0], "platform": platform.platform()}
+    for dist in ("spread", "torch", "torchmetrics", "pybullet", "trimesh", "python-fcl", "ray", "numpy",
+                 "clean-fid", "wandb"):
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            out[dist] = None
+    return out

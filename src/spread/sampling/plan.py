@@ -1,0 +1,100 @@
+"""What one sampling run generates: the conditioning graphs, one item per (graph, k), items in batches.
+
+Determinism (DESIGN §3 "same seed, same files"):
+
+* Each item's seed is derived from ``(seed, scene_id, k)`` by SHA-256 (:func:`sample_seed`), so it does
+  not depend on the order of the graphs, on the worker that runs it or on how many there are.
+* The batches are fixed by the graph list alone: graphs are ordered by (object count, scene id) — scenes
+  of similar size share a batch, so little compute goes to padding — and, for each k separately, cut into
+  runs of ``batch_size``. Asking for more samples per graph later adds batches and leaves those of the
+  smaller k unchanged.
+* A batch's noise comes from one ``torch.Generator`` seeded from its items' seeds (:func:`batch_seed`).
+  (The sampler draws the noise of a whole batch from one generator; a sample therefore depends on its
+  batch-mates, which the fixed batching pins down. Re-running a batch — after a crash, on another worker
+  — gives the same files bit for bit on the same device and software.)
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+#: File name of a generated scene: ``<source scene id>_k<sample index>.npz``.
+SAMPLE_NAME = "{graph}_k{k}"
+
+
+def _hash_int(text: str) -> int:
+    """A 63-bit integer from SHA-256 of ``text`` (a valid ``torch.Generator.manual_seed`` value)."""
+    return int.from_bytes(hashlib.sha256(text.encode("utf-8")).digest()[:8], "little") & (2 ** 63 - 1)
+
+
+def sample_seed(seed: int, scene_id: str, k: int) -> int:
+    """The seed of sample ``k`` of graph ``scene_id`` in a run with ``seed``."""
+    return _hash_int(f"spread-sample/{int(seed)}/{scene_id}/{int(k)}")
+
+
+@dataclass(frozen=True)
+class Graph:
+    """A conditioning graph: the source scene's id, file and object count."""
+
+    scene_id: str
+    path: str
+    num_objects: int
+
+
+@dataclass(frozen=True)
+class SampleItem:
+    """Sample ``k`` of ``graph``; ``seed`` = :func:`sample_seed` (seed, graph.scene_id, k)."""
+
+    graph: Graph
+    k: int
+    seed: int
+
+    @property
+    def name(self) -> str:
+        """The generated scene's id and file stem."""
+        return SAMPLE_NAME.format(graph=self.graph.scene_id, k=self.k)
+
+
+@dataclass(frozen=True)
+class BatchPlan:
+    """Items sampled together in one forward batch (one Ray task)."""
+
+    index: int
+    items: tuple[SampleItem, ...]
+
+    @property
+    def seed(self) -> int:
+        return batch_seed(self.items)
+
+    def names(self) -> list[str]:
+        return [item.name for item in self.items]
+
+
+def batch_seed(items) -> int:
+    """The batch generator's seed: a hash of its items' seeds (so of seed, scene ids and ks)."""
+    return _hash_int("spread-batch/" + ",".join(str(item.seed) for item in items))
+
+
+def plan_batches(graphs: list[Graph], samples_per_graph: int, batch_size: int, seed: int) -> list[BatchPlan]:
+    """Every item of the run in batches (module docstring for the order)."""
+    if samples_per_graph < 1 or batch_size < 1:
+        raise ValueError(f"samples_per_graph and batch_size must be ≥ 1, got {samples_per_graph}, {batch_size}")
+    ids = [g.scene_id for g in graphs]
+    if len(set(ids)) != len(ids):
+        raise ValueError("two conditioning graphs share a scene id")
+    ordered = sorted(graphs, key=lambda g: (g.num_objects, g.scene_id))
+    batches: list[BatchPlan] = []
+    for k in range(samples_per_graph):
+        for start in range(0, len(ordered), batch_size):
+            items = tuple(SampleItem(g, k, sample_seed(seed, g.scene_id, k)) for g in ordered[start:start + batch_size])
+            batches.append(BatchPlan(len(batches), items))
+    return batches
+
+
+def missing_items(batch: BatchPlan, scenes_dir: str | Path) -> list[SampleItem]:
+    """Items of ``batch`` whose scene file is not in ``scenes_dir`` yet (files are written atomically, so
+    an existing file is complete)."""
+    scenes_dir = Path(scenes_dir)
+    return [item for item in batch.items if not (scenes_dir / f"{item.name}.npz").exists()]

@@ -1,0 +1,243 @@
+"""One sampling run (``spread-sample``): a checkpoint + a split's graphs → ``out_dir/scenes/*.npz``.
+
+1. Read the split's scene files (validated against the dataset's asset library): the conditioning graphs.
+2. Plan the batches (:mod:`spread.sampling.plan`): per-item seeds from (seed, scene id, k), fixed batches.
+3. Resume: a batch whose files all exist is skipped; a batch missing some is sampled again (same seeds,
+   same batch, so the same scenes) and only its missing files are written. ``out_dir/sampling.json`` pins
+   what the files were made with (checkpoint hash, sampler, seed, batching, ...); resuming into a folder
+   made with other settings is refused (the folder would mix two runs silently). ``resume=false`` deletes
+   the folder's scene files first and samples everything.
+4. Fan out: ``workers`` Ray actors (one model each, ``threads`` CPUs and ``num_gpus_per_worker`` GPUs each),
+   one batch per task, the next batch to whichever actor finishes first; ``workers=0`` samples in this
+   process. Actors that die are restarted and their task retried (``ray.max_retries``).
+5. ``out_dir/renders/``: ground truth | generated, side by side, for the first few samples;
+   ``out_dir/sampling.json``: the settings, counts and timings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from spread.distributed.session import RaySettings, ray_session
+from spread.io import write_json_atomic
+from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches
+
+MANIFEST = "sampling.json"
+
+
+@dataclass
+class SamplingConfig:
+    """ckpt: Lightning checkpoint; data_root/split: dataset folder and the split whose graphs condition;
+    out_dir: run folder; sampler: a Sampler config or short name; samples_per_graph: k; seed; batch_size:
+    samples per forward batch (= per task); workers: Ray actors (0: in this process); device: cpu, cuda
+    or auto; threads: torch threads per worker; resume: skip existing files (false: delete and redo all);
+    renders: side-by-side PNGs; num_gpus_per_worker: GPUs each actor reserves."""
+
+    ckpt: str
+    data_root: str
+    out_dir: str
+    split: str = "test"
+    sampler: dict | str = "ddim-50"
+    samples_per_graph: int = 1
+    seed: int = 0
+    batch_size: int = 16
+    workers: int = 2
+    device: str = "auto"
+    threads: int | None = 1
+    use_ema: bool = True
+    graph_scale: float = 1.0
+    resume: bool = True
+    renders: int = 4
+    progress: bool = True
+    num_gpus_per_worker: float = 0.0
+    ray: RaySettings = field(default_factory=RaySettings)
+
+
+@dataclass
+class SamplingResult:
+    """files: every scene file of the run (in plan order); written: files written by this call."""
+
+    out_dir: Path
+    files: list[Path]
+    written: list[str]
+    manifest: dict
+
+
+def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
+    """The split's scene files as conditioning graphs (each read and validated against the library)."""
+    from spread.assets.library import AssetLibrary
+    from spread.scene import list_scene_files, read_scene
+
+    folder = Path(data_root) / split
+    files = list_scene_files(folder) if folder.is_dir() else []
+    if not files:
+        raise FileNotFoundError(f"{folder}: no scene files to condition on")
+    library = AssetLibrary.load(Path(data_root) / "assets")
+    graphs = []
+    for path in files:
+        scene = read_scene(path, assets=library)
+        graphs.append(Graph(scene.scene_id, str(path), scene.num_objects))
+    return graphs
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def fingerprint(cfg: SamplingConfig, ckpt_hash: str) -> dict:
+    """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files)."""
+    from spread.model import Sampler
+
+    return {"ckpt_sha256": ckpt_hash, "sampler": asdict(Sampler.from_config(cfg.sampler)), "seed": int(cfg.seed),
+            "batch_size": int(cfg.batch_size), "split": cfg.split, "use_ema": bool(cfg.use_ema),
+            "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data_root).resolve())}
+
+
+def check_fingerprint(out: Path, settings: dict, resume: bool) -> None:
+    """Refuse to resume files made with other settings (module docstring, step 3)."""
+    path = out / MANIFEST
+    if not (resume and path.exists() and any((out / "scenes").glob("*.npz"))):
+        return
+    before = json.loads(path.read_text()).get("fingerprint", {})
+    changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+    if changed:
+        raise ValueError(f"{out}: its scenes were sampled with other settings (changed: {changed}); "
+                         f"use a new out_dir or resume=false")
+
+
+def worker_arguments(cfg: SamplingConfig, scenes_dir: Path) -> dict:
+    return {"ckpt": str(cfg.ckpt), "data_root": str(cfg.data_root), "split": cfg.split, "scenes_dir": str(scenes_dir),
+            "sampler": cfg.sampler, "seed": int(cfg.seed), "device": cfg.device, "threads": cfg.threads,
+            "use_ema": cfg.use_ema, "graph_scale": cfg.graph_scale}
+
+
+def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
+    """Sample the batches in this process with one model."""
+    from spread.sampling.worker import SampleWorker
+
+    worker = SampleWorker(**worker_arguments(cfg, scenes_dir))
+    for batch in todo:
+        on_result(worker.run(batch))
+    return {"workers": 1, "mode": "in-process"}
+
+
+def actor_count(cfg: SamplingConfig, batches: int) -> int:
+    """Actors to start: ``workers``, no more than the batches or than the cluster's CPUs/GPUs can hold."""
+    import ray
+
+    total = ray.cluster_resources()
+    n = min(int(cfg.workers), batches)
+    n = min(n, max(1, int(total.get("CPU", 1) // max(1, cfg.threads or 1))))
+    if cfg.num_gpus_per_worker > 0:
+        n = min(n, int(total.get("GPU", 0) // cfg.num_gpus_per_worker))
+        if n < 1:
+            raise RuntimeError(f"ray.num_gpus_per_worker={cfg.num_gpus_per_worker} but the cluster has "
+                               f"{total.get('GPU', 0)} GPUs")
+    return max(1, n)
+
+
+def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
+    """Sample the batches on Ray actors (module docstring, step 4)."""
+    import ray
+
+    from spread.sampling.worker import SampleWorker
+
+    with ray_session(cfg.ray) as cluster:
+        n = actor_count(cfg, len(todo))
+        actor = ray.remote(SampleWorker).options(
+            num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.num_gpus_per_worker,
+            max_restarts=cfg.ray.max_retries, max_task_retries=cfg.ray.max_retries)
+        actors = [actor.remote(**worker_arguments(cfg, scenes_dir)) for _ in range(n)]
+        queue = list(todo)
+        running = {}
+        for a in actors:
+            if queue:
+                running[a.run.remote(queue.pop(0))] = a
+        while running:
+            done, _ = ray.wait(list(running), num_returns=1)
+            a = running.pop(done[0])
+            on_result(ray.get(done[0]))
+            if queue:
+                running[a.run.remote(queue.pop(0))] = a
+        for a in actors:
+            ray.kill(a)
+    return {"workers": n, "mode": "ray", **cluster}
+
+
+def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: int) -> list[Path]:
+    """Ground truth | generated PNGs of the first ``count`` samples, ``out/renders/<name>.png``."""
+    from spread.assets.library import AssetLibrary
+    from spread.render import VIEW_SETTINGS_FLOOR, TopDownRenderSettings, render_before_after, save_png
+    from spread.scene import read_scene
+
+    items = [item for b in batches for item in b.items][:max(0, count)]
+    if not items:
+        return []
+    library = AssetLibrary.load(Path(data_root) / "assets")
+    settings = TopDownRenderSettings(floor=VIEW_SETTINGS_FLOOR)
+    paths = []
+    for item in items:
+        generated = read_scene(out / "scenes" / f"{item.name}.npz", assets=library)
+        truth = read_scene(item.graph.path, assets=library)
+        image = render_before_after(truth, generated, library, settings)
+        paths.append(save_png(image, out / "renders" / f"{item.name}.png"))
+    return paths
+
+
+def run_sampling(cfg: SamplingConfig) -> SamplingResult:
+    """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring)."""
+    from tqdm.auto import tqdm
+
+    started = time.perf_counter()
+    out = Path(cfg.out_dir)
+    scenes_dir = out / "scenes"
+    scenes_dir.mkdir(parents=True, exist_ok=True)
+    if not cfg.resume:  # a fresh run: no file of an earlier run may stay beside the new ones
+        for old in scenes_dir.glob("*.npz"):
+            old.unlink()
+    if not Path(cfg.ckpt).is_file():
+        raise FileNotFoundError(f"ckpt={cfg.ckpt}: no such checkpoint file")
+    graphs = list_graphs(cfg.data_root, cfg.split)
+    batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
+    settings = fingerprint(cfg, file_sha256(cfg.ckpt))
+    check_fingerprint(out, settings, cfg.resume)
+    todo = [b for b in batches if missing_items(b, scenes_dir)]
+    total = sum(len(b.items) for b in batches)
+    pending = sum(len(missing_items(b, scenes_dir)) for b in todo)
+    bar = tqdm(total=total, initial=total - pending, desc="samples", unit="scene", disable=not cfg.progress)
+    written: list[str] = []
+    batch_seconds: list[float] = []
+    repaired = [0]
+
+    def on_result(result: dict) -> None:
+        written.extend(result["written"])
+        repaired[0] += result["repaired_rotations"]
+        batch_seconds.append(result["seconds"])
+        bar.update(len(result["written"]))
+
+    runner = {"workers": 0, "mode": "none"}
+    if todo:
+        runner = (run_on_ray if cfg.workers > 0 else run_in_process)(todo, cfg, scenes_dir, on_result)
+    bar.close()
+    renders = write_renders(out, batches, cfg.data_root, cfg.renders)
+    files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
+    manifest = {
+        "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
+        "graphs": len(graphs), "samples": total, "written_this_run": len(written),
+        "resumed": total - pending, "batches": len(batches), "batches_run": len(todo),
+        "repaired_rotations": repaired[0],
+        "renders": [str(p) for p in renders], "device": cfg.device, "threads": cfg.threads,
+        "seconds": round(time.perf_counter() - started, 3),
+        "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,
+        "runner": runner,
+    }
+    write_json_atomic(out / MANIFEST, manifest)
+    return SamplingResult(out, files, written, manifest)

@@ -1,0 +1,310 @@
+"""spread-evaluate end to end on a small generated split: ground-truth values, bad files, resume, a worker
+killed mid-run, a two-node Ray cluster, and the driver-side pieces (resume compaction, merge_state).
+
+Stability runs are reduced (``protocol.stability_runs=2``) for speed; every other protocol value is the
+default. One module-scoped run of the console script is the reference the other runs are compared with.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spread.io import append_jsonl, read_jsonl
+from spread.scene import Scene, list_scene_files, read_scene, write_scene
+
+ROOMS = 6
+FAST = ["protocol.stability_runs=2", "ray.num_cpus=2", "progress=false", "renders=3"]
+BAD = {"bad_missing_asset": "unknown asset 'no_such_asset_00'", "bad_nan": "non-finite",
+       "bad_empty": "no objects"}
+METRIC_KEYS = ("col_mesh", "grecall", "asd", "stability", "still_fraction", "displacement_ok_fraction",
+               "rotation_ok_fraction", "fid", "fid_status", "n_scenes", "n_objects", "n_failed")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """A dataset folder whose test split holds ROOMS generated rooms (val/train empty)."""
+    from spread.assets.build import build_library
+    from spread.procgen.dataset import DatasetConfig, generate_dataset
+    from spread.procgen.rooms import RoomConfig
+
+    lib = tmp_path_factory.mktemp("evlib") / "assets"
+    build_library(lib, seed=0, processes=2, progress=False)
+    out = tmp_path_factory.mktemp("evdata") / "data"
+    generate_dataset(out, DatasetConfig(rooms=ROOMS, seed=5, processes=2, renders=0, val_fraction=0.0,
+                                        test_fraction=1.0, assets_from=str(lib),
+                                        room=RoomConfig(max_objects=24)), progress=False)
+    assert len(list_scene_files(out / "test")) == ROOMS
+    return out
+
+
+def write_bad_scenes(folder: Path, good: Scene) -> None:
+    """Three files the evaluation must report and skip: a missing asset, a NaN pose, no objects."""
+    missing = good.with_poses(good.translation, good.rotation, scene_id="bad_missing_asset")
+    missing.asset_id = np.array(["no_such_asset_00", *missing.asset_id[1:].tolist()])
+    write_scene(missing, folder / "bad_missing_asset.npz")
+    nan = good.with_poses(good.translation, good.rotation, scene_id="bad_nan")
+    nan.translation[1, 0] = np.nan
+    write_scene(nan, folder / "bad_nan.npz", validate=False)
+    empty = Scene("bad_empty", np.zeros(0, str), np.zeros(0, str), np.zeros((0, 3)), np.zeros((0, 3, 3)),
+                  np.zeros((0, 0)), np.zeros((0, 0)))
+    write_scene(empty, folder / "bad_empty.npz", validate=False)
+
+
+@pytest.fixture(scope="module")
+def scenes_dir(dataset, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("evscenes") / "scenes"
+    shutil.copytree(dataset / "test", folder)
+    write_bad_scenes(folder, read_scene(list_scene_files(folder)[0]))
+    return folder
+
+
+def args(scenes: Path, dataset: Path, out: Path, *extra: str) -> list[str]:
+    return [f"scenes={scenes}", f"reference={dataset}", f"out_dir={out}", *FAST, *extra]
+
+
+@pytest.fixture(scope="module")
+def cli_run(dataset, scenes_dir, tmp_path_factory):
+    """One run of the console script (wandb through the real code path, WANDB_MODE=disabled)."""
+    out = tmp_path_factory.mktemp("evout") / "run"
+    script = Path(sys.executable).parent / "spread-evaluate"
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    proc = subprocess.run([str(script), *args(scenes_dir, dataset, out, "logger=wandb")], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return out, json.loads((out / "metrics.json").read_text()), proc.stdout
+
+
+def run_in_process(*overrides: str):
+    """Compose conf/evaluate.yaml with ``overrides`` and call the Hydra entry (no subprocess)."""
+    from hydra import compose, initialize_config_dir
+
+    from spread.cli import conf_dir
+    from spread.cli.evaluate import main
+
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=list(overrides))
+    main(cfg)
+
+
+def comparable(metrics: dict) -> dict:
+    return {k: v for k, v in metrics.items() if k not in ("run", "versions", "scenes")}
+
+
+def assert_each_scene_once(out: Path, scenes: Path) -> list[dict]:
+    lines = read_jsonl(out / "per_scene.jsonl")
+    ids = [r["scene_id"] for r in lines]
+    assert sorted(ids) == sorted(p.stem for p in list_scene_files(scenes))
+    return lines
+
+
+# ---- the console script on ground truth + bad files ----------------------------------------------
+
+def test_files_and_keys(cli_run):
+    out, metrics, stdout = cli_run
+    for name in ("metrics.json", "per_scene.jsonl", "protocol.json", ".hydra/config.yaml"):
+        assert (out / name).exists(), name
+    assert len(list((out / "renders").glob("*.png"))) == 3
+    for key in METRIC_KEYS:
+        assert key in metrics, key
+    protocol = metrics["protocol"]
+    assert protocol["stability_runs"] == 2 and protocol["stability_steps"] == 100
+    assert protocol["collision_threshold"] == 0.01 and protocol["stability_jitter"] == 5e-4
+    assert protocol["stability_substeps"] == 4 and protocol["fid_render"]["image_size"] == 256
+    assert {"spread", "torch", "pybullet", "trimesh", "ray"} <= set(metrics["versions"])
+    assert "Col_mesh" in stdout
+
+
+def test_ground_truth_split_scores_as_ground_truth(cli_run):
+    metrics = cli_run[1]
+    assert metrics["n_scenes"] == ROOMS + 3 and metrics["n_evaluated"] == ROOMS
+    assert metrics["col_mesh"] == 0.0
+    assert metrics["grecall"] == 1.0
+    assert metrics["asd"] < 1e-3  # metres
+    assert metrics["stability"] >= 0.98
+    assert metrics["n_objects"] > 2 * ROOMS
+
+
+def test_fid_is_null_with_a_reason_offline(cli_run):
+    metrics = cli_run[1]
+    assert metrics["fid"] is None and metrics["fid_status"].startswith("unavailable")
+    assert metrics["fid_num_reference"] == ROOMS
+
+
+def test_bad_files_are_counted_and_listed_with_their_errors(cli_run):
+    out, metrics, _ = cli_run
+    assert metrics["n_failed"] == 3
+    failed = {f["scene_id"]: f["error"] for f in metrics["failed"]}
+    lines = {r["scene_id"]: r for r in read_jsonl(out / "per_scene.jsonl")}
+    for name, text in BAD.items():
+        assert text in failed[name], failed[name]
+        assert text in lines[name]["error"]
+    good = [r for r in lines.values() if not r["error"]]
+    assert len(good) == ROOMS and all(r["state"] and r["seconds"]["stability"] > 0 for r in good)
+
+
+# ---- resume, worker death, cluster ---------------------------------------------------------------
+
+def test_resume_after_a_torn_line_counts_every_scene_once(cli_run, dataset, scenes_dir, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(cli_run[0], out)
+    lines = (out / "per_scene.jsonl").read_text().splitlines(keepends=True)
+    (out / "per_scene.jsonl").write_text("".join(lines[:2]) + lines[2][:57])  # a killed writer's torn line
+    run_in_process(*args(scenes_dir, dataset, out, "logger=none"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["run"]["resumed"] == 2 and metrics["run"]["evaluated_this_run"] == ROOMS + 1
+    assert_each_scene_once(out, scenes_dir)
+    assert comparable(metrics) == comparable(cli_run[1])
+
+
+def test_resume_refuses_lines_of_another_protocol(cli_run, dataset, scenes_dir, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(cli_run[0], out)
+    with pytest.raises(ValueError, match="another protocol"):
+        run_in_process(*args(scenes_dir, dataset, out, "logger=none", "protocol.stability_steps=50"))
+
+
+@pytest.mark.parametrize("max_retries", [3, 0])
+def test_a_worker_killed_mid_run_loses_no_scene(cli_run, dataset, scenes_dir, tmp_path, monkeypatch, max_retries):
+    """A worker exits after its first scene: Ray re-runs the task (max_retries=3), or, with no retries left,
+    the driver splits the failed chunk into one task per scene (max_retries=0)."""
+    from spread.distributed.work import FAULT_MARKER_ENV
+
+    marker = tmp_path / "killed"
+    monkeypatch.setenv(FAULT_MARKER_ENV, str(marker))  # inherited by the Ray workers started below
+    out = tmp_path / "run"
+    run_in_process(*args(scenes_dir, dataset, out, "logger=none", "chunk_size=3", f"ray.max_retries={max_retries}"))
+    assert marker.exists(), "no worker was killed"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["run"]["split_chunks"] == (1 if max_retries == 0 else 0)
+    assert_each_scene_once(out, scenes_dir)
+    assert comparable(metrics) == comparable(cli_run[1])
+
+
+EXTRACTOR_MODULE = '''
+import numpy as np
+
+
+class ColourStats:
+    """Per-channel mean and spread of an image: 6 features (a stand-in backbone for the test)."""
+
+    feature_dim = 6
+
+    def __call__(self, images):
+        x = np.asarray(images, np.float64).reshape(len(images), -1, 3)
+        return np.concatenate([x.mean(1), x.std(1)], 1)
+
+
+def factory():
+    return ColourStats()
+'''
+
+
+def test_fid_with_an_injected_backbone_is_zero_for_the_reference_itself(dataset, tmp_path, monkeypatch):
+    (tmp_path / "evfid.py").write_text(EXTRACTOR_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    out = tmp_path / "run"
+    run_in_process(*args(dataset / "test", dataset, out, "logger=none", "chunk_size=2",
+                         "fid.extractor=evfid:factory", "fid.feature_model=colour_stats"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["fid_status"].startswith("ok") and metrics["fid_feature_model"] == "colour_stats"
+    assert metrics["fid_num_generated"] == metrics["fid_num_reference"] == ROOMS
+    assert metrics["fid"] == pytest.approx(0.0, abs=1e-6)
+    lines = read_jsonl(out / "per_scene.jsonl")
+    assert all(len(r["fid_features"]) == 6 for r in lines)
+
+
+def test_two_node_cluster_runs_chunks_on_both_nodes(cli_run, dataset, tmp_path):
+    import ray
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        out = tmp_path / "run"
+        run_in_process(*args(dataset / "test", dataset, out, "logger=none", "chunk_size=1",
+                             f"ray.address={cluster.address}"))
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+    lines = assert_each_scene_once(out, dataset / "test")
+    assert len({r["node_id"] for r in lines}) == 2
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["run"]["ray"]["nodes"] == 2
+    expected = comparable(cli_run[1])
+    for key in ("col_mesh", "grecall", "asd", "stability", "still_fraction", "n_objects"):
+        assert metrics[key] == expected[key], key
+
+
+# ---- driver-side pieces, no Ray ------------------------------------------------------------------
+
+def test_load_finished_drops_duplicates_and_a_torn_line(tmp_path):
+    from spread.distributed.resume import load_finished
+
+    path = tmp_path / "per_scene.jsonl"
+    for sid in ("a", "b", "a"):
+        append_jsonl(path, {"scene_id": sid, "error": None})
+    append_jsonl(path, {"scene_id": "c", "error": "ValueError: bad"})
+    with open(path, "a") as fh:
+        fh.write('{"scene_id": "d", "err')
+    assert list(load_finished(path)) == ["a", "b", "c"]
+    append_jsonl(path, {"scene_id": "e", "error": None})  # lands on its own line after compaction
+    assert [r["scene_id"] for r in read_jsonl(path)] == ["a", "b", "c", "e"]
+    assert list(load_finished(path, retry_failed=True)) == ["a", "b", "e"]
+
+
+def test_records_merge_to_the_metrics_of_all_scenes_at_once(cli_run, dataset):
+    """merge_state over per-scene states (the driver's path) equals one metric updated with every scene."""
+    from spread.assets import AssetLibrary
+    from spread.distributed.aggregate import merge_records
+    from spread.distributed.protocol import EvalProtocol
+
+    protocol = EvalProtocol(stability_runs=2)
+    records = [r for r in read_jsonl(cli_run[0] / "per_scene.jsonl") if not r["error"]]
+    merged = merge_records(records, protocol)
+    library = AssetLibrary.load(dataset / "assets")
+    scenes = [read_scene(p, assets=library) for p in list_scene_files(dataset / "test")]
+    for name in ("col_mesh", "grecall", "asd"):
+        whole = protocol.metrics()[name]
+        whole.update(scenes, library)
+        assert float(merged[name].compute()) == pytest.approx(float(whole.compute()), abs=1e-12), name
+    assert float(merged["stability"].compute()["stability"]) == cli_run[1]["stability"]
+
+
+def crash_on_boom(paths, tag):
+    """A stand-in evaluation task: kills its worker on the scene named "boom", else one record per path."""
+    if "boom" in paths:
+        os._exit(1)
+    return [{"scene_id": p, "error": None, "tag": tag} for p in paths]
+
+
+def test_a_scene_that_always_kills_its_worker_is_reported_alone(monkeypatch):
+    from spread.distributed.fanout import fan_out
+    from spread.distributed.session import RaySettings, ray_session
+
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    settings = RaySettings(num_cpus=1, max_retries=1)
+    records = []
+    with ray_session(settings):
+        stats = fan_out(["a", "boom", "c", "d"], 3, settings, crash_on_boom, ("x",), records.append)
+    by_id = {r["scene_id"]: r for r in records}
+    assert sorted(by_id) == ["a", "boom", "c", "d"] and len(records) == 4
+    assert "worker failed" in by_id["boom"]["error"]
+    assert all(by_id[k]["error"] is None for k in "acd")
+    assert stats.split_chunks == 1 and stats.tasks == 2 + 3
+
+
+def test_import_pulls_no_heavy_modules():
+    code = ("import sys, spread.distributed, spread.cli.evaluate; "
+            "print([m for m in ('ray', 'wandb', 'pybullet', 'cleanfid') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr

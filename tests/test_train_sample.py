@@ -1,0 +1,328 @@
+"""spread-train and spread-sample: configs compose, fast_dev_run, resume, DDP on CPU, sampling end to end
+(scene-file validation, spread-evaluate), sampler swap by config, determinism and resume of sampling.
+
+One small generated dataset (12 rooms of at most 8 objects: 7 train, 2 val, 3 test) and one checkpoint
+of a shrunken tiny model (a few steps) serve the whole module; torch runs on one thread.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from spread.cli import conf_dir
+from spread.scene import list_scene_files, read_scene
+
+#: The tiny model shrunk further: the tests check plumbing, not learning.
+SMALL_MODEL = ["model.config.depth=1", "model.config.dim=32", "model.config.dim_head=8", "model.config.heads=2",
+               "model.config.edge_dim=16", "model.config.index_dim=8", "model.config.num_latents=4",
+               "model.config.shape_tokens=4", "model.config.shape_dim=16", "model.config.tokenizer_width=16",
+               "model.config.tokenizer_points=32", "model.config.num_points=32", "model.config.cond_dim=32"]
+QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
+FAST_TRAIN = [*QUIET, "logger=csv", "trainer.num_sanity_val_steps=0", "data.batch_size=4"]
+FAST_SAMPLE = ["sampler.steps=4", "progress=false", "renders=2", "batch_size=2", "workers=0"]
+EXPERIMENTS = sorted(p.stem for p in (Path(conf_dir()) / "experiment").glob("*.yaml"))
+SCRIPTS = Path(sys.executable).parent
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def compose(config_name: str, *overrides: str):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+        return hydra_compose(config_name=config_name, overrides=list(overrides))
+
+
+def run_script(name: str, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "1"}
+    proc = subprocess.run([str(SCRIPTS / name), *args], env=env, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
+    return proc
+
+
+def train_in_process(out: Path, *overrides: str) -> dict:
+    from spread.cli.train import train
+
+    cfg = compose("train", f"out_dir={out}", *overrides)
+    return train(cfg, run_dir=out)
+
+
+def sample_in_process(*overrides: str):
+    from spread.cli.sample import sampling_config
+    from spread.sampling import run_sampling
+
+    return run_sampling(sampling_config(compose("sample", *FAST_SAMPLE, *overrides)))
+
+
+# ---- fixtures ------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    from spread.assets.build import build_library
+    from spread.procgen.dataset import DatasetConfig, generate_dataset
+    from spread.procgen.rooms import RoomConfig
+
+    lib = tmp_path_factory.mktemp("tslib") / "assets"
+    build_library(lib, seed=0, processes=2, progress=False)
+    out = tmp_path_factory.mktemp("tsdata") / "data"
+    generate_dataset(out, DatasetConfig(rooms=12, seed=7, processes=2, renders=0, val_fraction=0.2, test_fraction=0.3,
+                                        assets_from=str(lib), room=RoomConfig(max_objects=8)), progress=False)
+    assert len(list_scene_files(out / "test")) == 3
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory) -> Path:
+    """A run folder after 4 training steps (checkpoints/last.ckpt) and a frozen copy, model.ckpt."""
+    out = tmp_path_factory.mktemp("tsrun") / "run"
+    summary = train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.max_time=null",
+                               "trainer.max_steps=4", "trainer.check_val_every_n_epoch=1", *SMALL_MODEL, *FAST_TRAIN)
+    assert summary["global_step"] == 4
+    shutil.copy(out / "checkpoints" / "last.ckpt", out / "model.ckpt")
+    return out
+
+
+@pytest.fixture(scope="module")
+def sampled(dataset, trained, tmp_path_factory) -> Path:
+    """spread-sample through the console script with 2 Ray workers, 2 samples per graph."""
+    out = tmp_path_factory.mktemp("tssample") / "ray"
+    run_script("spread-sample", f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+               "samples_per_graph=2", "seed=3", *[a for a in FAST_SAMPLE if a != "workers=0"], "workers=2",
+               "ray.num_cpus=2")
+    return out
+
+
+# ---- configs ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_composes_and_its_targets_resolve(experiment):
+    from hydra.utils import get_class
+
+    cfg = compose("train", f"experiment={experiment}", "data.root=/nowhere")
+    assert cfg.experiment_name == experiment
+    for node in (cfg.data, cfg.model, cfg.trainer, cfg.checkpoint):
+        get_class(node._target_)
+    assert cfg.data.num_points == cfg.model.config.num_points
+    assert cfg.model.variant in ("base", "geometry") and list(cfg.tags) == [cfg.model.variant]
+    assert str(cfg.out_dir).startswith(f"runs/train/{experiment}/")
+
+
+def test_model_presets_match_model_config_and_groups_compose():
+    from spread.model import ModelConfig
+
+    assert dict(compose("train", "model=tiny").model.config) == ModelConfig.tiny().to_dict()
+    assert dict(compose("train", "model=paper").model.config) == ModelConfig.paper().to_dict()
+    assert compose("train", "experiment=base").model.variant == "base"
+    assert compose("train", "experiment=geometry").model.config.name == "paper"
+    quick = compose("train", "experiment=quick")
+    assert quick.model.config.name == "tiny" and quick.trainer.max_time and quick.trainer.accelerator == "cpu"
+    assert compose("train", "trainer=gpu").trainer.accelerator == "gpu"
+    assert compose("train", "trainer=ddp").trainer.strategy == "ddp"
+    assert compose("train").logger.name == "wandb" and compose("train").logger.project == "spread"
+    assert [compose("train", f"logger={n}").logger.name for n in ("csv", "none")] == ["csv", "none"]
+
+
+def test_quick_model_instantiates_from_config():
+    from hydra.utils import instantiate
+
+    from spread.model.module import SceneDiffusion
+
+    model = instantiate(compose("train", "experiment=quick").model)
+    assert isinstance(model, SceneDiffusion) and model.variant == "geometry" and model.config.name == "tiny"
+    assert model.hparams.lr == 5e-4
+
+
+@pytest.mark.parametrize("choice, kind, steps", [("ddpm", "ddpm", 1000), ("ddim50", "ddim", 50),
+                                                 ("ddim100", "ddim", 100), ("dpmsolver20", "dpmsolver++", 20)])
+def test_sampler_group(choice, kind, steps):
+    from spread.cli.sample import sampling_config
+    from spread.model import Sampler
+
+    cfg = sampling_config(compose("sample", f"sampler={choice}", "ckpt=x", "data.root=y", "out_dir=z"))
+    sampler = Sampler.from_config(cfg.sampler)
+    assert (sampler.kind, sampler.num_steps) == (kind, steps)
+    ddpm_k = sampling_config(compose("sample", "sampler=ddpm", "sampler.steps=100", "ckpt=x", "data.root=y",
+                                     "out_dir=z"))
+    assert Sampler.from_config(ddpm_k.sampler).num_steps == 100
+
+
+# ---- training ---------------------------------------------------------------------------------------
+
+def test_fast_dev_run_with_wandb_logger(dataset, tmp_path):
+    out = tmp_path / "fdr"
+    summary = train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.fast_dev_run=true",
+                               "model.sample_every_n_epochs=1", "model.val_sampler=ddim-2", *SMALL_MODEL, *QUIET,
+                               "logger=wandb")
+    assert summary["global_step"] == 1 and json.loads((out / "metrics.json").read_text()) == summary
+    assert {"train/loss", "val/loss", "val/grecall"} <= set(summary["metrics"])
+    assert all(np.isfinite(v) for v in summary["metrics"].values())
+
+
+@pytest.mark.filterwarnings("ignore:You're resuming from a checkpoint")
+def test_training_resumes_step_optimizer_and_ema(dataset, trained):
+    out = trained
+    first = torch.load(out / "model.ckpt", map_location="cpu", weights_only=False)
+    assert first["global_step"] == 4 and int(first["state_dict"]["ema.num_updates"]) == 4
+    assert list(first["hyper_parameters"]["bounds"]) == json.loads((dataset / "stats.json").read_text())[
+        "bounds_translations"]
+    summary = train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.max_time=null",
+                               "trainer.max_steps=7", "ckpt_path=last", *SMALL_MODEL, *FAST_TRAIN)
+    assert summary["resumed_from"] == str(out / "checkpoints" / "last.ckpt") and summary["global_step"] == 7
+    resumed = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert resumed["global_step"] == 7 and int(resumed["state_dict"]["ema.num_updates"]) == 7
+    adam = resumed["optimizer_states"][0]["state"][0]
+    assert int(adam["step"]) == 7, "AdamW moments continued from the checkpoint (a fresh optimizer would say 3)"
+    first_adam = first["optimizer_states"][0]["state"][0]
+    assert not torch.equal(adam["exp_avg"], first_adam["exp_avg"])
+    assert len(list((out / "csv").glob("version_*/metrics.csv"))) == 2, "a resumed launch keeps the first's CSV"
+    before = (out / "checkpoints" / "last.ckpt").read_bytes()
+    again = train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.max_time=null",
+                             "trainer.max_steps=7", "ckpt_path=last", *SMALL_MODEL, *FAST_TRAIN)
+    assert again["global_step"] == 7
+    assert (out / "checkpoints" / "last.ckpt").read_bytes() == before, "no step taken: checkpoint untouched"
+
+
+def test_ckpt_path_last_starts_fresh_without_a_checkpoint_and_rejects_missing_files(tmp_path):
+    from spread.cli.train import resolve_ckpt_path
+
+    cfg = compose("train", "ckpt_path=last", f"paths.runs_dir={tmp_path}", "experiment_name=x")
+    assert resolve_ckpt_path(cfg, tmp_path / "run") is None
+    older = tmp_path / "train" / "x" / "a" / "checkpoints" / "last.ckpt"
+    older.parent.mkdir(parents=True)
+    older.write_bytes(b"")
+    assert resolve_ckpt_path(cfg, tmp_path / "run") == older
+    with pytest.raises(SystemExit, match="no such checkpoint"):
+        resolve_ckpt_path(compose("train", f"ckpt_path={tmp_path / 'nope.ckpt'}"), tmp_path / "run")
+
+
+def test_train_script_ddp_two_cpu_processes(dataset, tmp_path):
+    """The console script under Lightning DDP: 2 processes, gloo, the run folder shared (~30 s)."""
+    out = tmp_path / "ddp"
+    run_script("spread-train", "experiment=quick", f"data.root={dataset}", f"out_dir={out}", "trainer=ddp",
+               "trainer.accelerator=cpu", "trainer.devices=2", "trainer.max_time=null", "trainer.max_steps=3",
+               "data.batch_size=2", *SMALL_MODEL, *QUIET, "logger=csv")
+    summary = json.loads((out / "metrics.json").read_text())
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert summary["global_step"] == 3 and ckpt["global_step"] == 3
+    assert int(ckpt["state_dict"]["ema.num_updates"]) == 3
+    assert (out / ".hydra" / "config.yaml").exists()
+
+
+# ---- sampling ---------------------------------------------------------------------------------------
+
+def test_sample_plan_seeds_and_batches():
+    from spread.sampling import Graph, plan_batches, sample_seed
+
+    graphs = [Graph(f"g{i}", f"/x/g{i}.npz", n) for i, n in enumerate([5, 3, 9, 3, 7])]
+    assert sample_seed(0, "g1", 0) == sample_seed(0, "g1", 0)
+    assert len({sample_seed(s, g, k) for s in (0, 1) for g in ("g0", "g1") for k in (0, 1)}) == 8
+    plan = plan_batches(graphs, samples_per_graph=2, batch_size=2, seed=0)
+    assert [b.names() for b in plan[:3]] == [["g1_k0", "g3_k0"], ["g0_k0", "g4_k0"], ["g2_k0"]], "by size, per k"
+    assert plan == plan_batches(graphs[::-1], 2, 2, 0), "input order does not matter"
+    assert plan_batches(graphs, 3, 2, 0)[:len(plan)] == plan, "more samples per graph only add batches"
+    assert len({b.seed for b in plan}) == len(plan)
+
+
+def test_degenerate_sampled_rotations_are_repaired():
+    from scipy.spatial.transform import Rotation
+
+    from spread.data import rot6d_to_matrix
+    from spread.sampling.worker import repair_rotations
+
+    good = Rotation.random(3, random_state=0).as_matrix().astype(np.float32)
+    clipped = rot6d_to_matrix(np.array([[1, -1, 1, -1, 1, -1], [1, 1, 1, 1, 1, 1]], np.float32))  # parallel columns
+    fixed, count = repair_rotations(np.concatenate([good, clipped]))
+    assert count == 2 and np.array_equal(fixed[:3], good), "proper rotations are left bit for bit"
+    assert np.allclose(fixed[3:].transpose(0, 2, 1) @ fixed[3:], np.eye(3), atol=1e-5)
+    assert np.allclose(np.linalg.det(fixed[3:]), 1.0, atol=1e-5)
+
+
+def test_sample_script_with_ray_writes_valid_scenes(dataset, sampled):
+    from spread.assets import AssetLibrary
+
+    library = AssetLibrary.load(dataset / "assets")
+    sources = {p.stem: read_scene(p, assets=library) for p in list_scene_files(dataset / "test")}
+    files = list_scene_files(sampled / "scenes")
+    assert sorted(p.stem for p in files) == sorted(f"{s}_k{k}" for s in sources for k in (0, 1))
+    for path in files:
+        scene = read_scene(path, assets=library)  # the library's validation: shapes, rotations, assets
+        src = sources[str(scene.extras["conditioned_on"])]
+        assert scene.scene_id == path.stem
+        for key in ("asset_id", "category", "spatial", "physical", "room"):
+            assert np.array_equal(getattr(scene, key), getattr(src, key)), key
+        assert not np.allclose(scene.translation, src.translation)
+        source = str(scene.extras["source"])
+        k = path.stem.rsplit("_k", 1)[1]
+        assert "model.ckpt" in source and "sampler=ddim-4" in source and "seed=3" in source
+        assert source.endswith(f"graph={src.scene_id} k={k}")
+    manifest = json.loads((sampled / "sampling.json").read_text())
+    assert manifest["runner"]["mode"] == "ray" and manifest["runner"]["workers"] == 2
+    assert manifest["samples"] == 6 and manifest["written_this_run"] == 6
+    assert len(list((sampled / "renders").glob("*.png"))) == 2
+
+
+def test_same_seed_same_files_in_process_as_on_ray(dataset, trained, sampled, tmp_path):
+    out = tmp_path / "local"
+    result = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                               "samples_per_graph=2", "seed=3")
+    assert result.manifest["runner"]["mode"] == "in-process"
+    for path in list_scene_files(sampled / "scenes"):
+        assert (out / "scenes" / path.name).read_bytes() == path.read_bytes(), path.name
+    other = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={tmp_path / 's4'}",
+                              "seed=4")
+    a, b = (read_scene(p / "scenes" / f"{other.files[0].stem}.npz") for p in (out, tmp_path / "s4"))
+    assert not np.allclose(a.translation, b.translation), "another seed, other scenes"
+
+
+def test_resume_skips_done_graphs_and_refuses_other_settings(dataset, trained, tmp_path):
+    out = tmp_path / "resume"
+    args = (f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}", "seed=5")
+    first = sample_in_process(*args)
+    files = sorted(first.files)
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in files}
+    files[1].unlink()
+    again = sample_in_process(*args)
+    assert again.written == [files[1].stem] and again.manifest["resumed"] == len(files) - 1
+    for p in files:
+        assert p.read_bytes() == before[p.name][0], "a resampled batch gives the same scenes"
+        if p != files[1]:
+            assert p.stat().st_mtime_ns == before[p.name][1], "done files are not rewritten"
+    assert sample_in_process(*args).written == []
+    with pytest.raises(ValueError, match="other settings"):
+        sample_in_process(*args[:-1], "seed=6")
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "dpmsolver20"])
+def test_sampler_swap_by_config(dataset, trained, tmp_path, sampler):
+    out = tmp_path / sampler
+    result = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                               f"sampler={sampler}", "renders=0")
+    assert len(result.written) == 3
+    label = {"ddpm": "ddpm-4", "dpmsolver20": "dpmsolver++-4"}[sampler]
+    assert f"sampler={label}" in str(read_scene(result.files[0]).extras["source"])
+
+
+def test_evaluate_accepts_generated_scenes(dataset, sampled, tmp_path):
+    out = tmp_path / "eval"
+    run_script("spread-evaluate", f"scenes={sampled / 'scenes'}", f"reference={dataset}", f"out_dir={out}",
+               "protocol.stability_runs=1", "ray.num_cpus=2", "progress=false", "renders=0", "logger=none",
+               "fid.enabled=false")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_scenes"] == 6 and metrics["n_failed"] == 0
+    assert 0.0 <= metrics["grecall"] <= 1.0 and 0.0 <= metrics["col_mesh"] <= 1.0

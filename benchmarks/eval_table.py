@@ -25,8 +25,8 @@ def row(label: str, m: dict) -> str:
 
 
 def main() -> None:
-    print("| scenes | Col_mesh ↓ | GRecall ↑ | ASD mm ↓ | Stability ↑ | still ↑ | moved < 1 cm ↑ | turned < 0.1 rad ↑ "
-          "| scenes | objects | failed | substeps | s |")
+    print("| scenes | Col_mesh ↓ | GRecall ↑ | ASD mm ↓ | Stability ↑ | still ↑ | moved < 1 cm ↑ "
+          "| turned < 0.1 rad ↑ | scenes | objects | failed | substeps | s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for arg in sys.argv[1:]:
         label, _, folder = arg.partition("=")

@@ -20,11 +20,11 @@ from spread.metrics import (
 from spread.metrics.fid import DEFAULT_FEATURE_MODEL
 
 #: Internal Bullet steps per protocol step of :data:`~spread.metrics.STABILITY_DT` (1/60 s): 4 steps of
-#: 1/240 s, the step the room generator verifies its rooms with. Kept although Stability costs ~3.5 s per
-#: 20-object room with it: measured on 100 generated test rooms (benchmarks/RESULTS.md), 1 step of 1/60 s
-#: is 2.6× faster but not converged — 0.5 % of ground-truth objects then drift ≥ 1 cm (worst room 0.91
-#: instead of 0.99) and, worse, falling objects fall less: rooms jittered by 15 cm score 0.94 instead of
-#: 0.89, so the gap between good and bad scenes shrinks by 40 %. Fewer substeps is a config choice
+#: 1/240 s, the step the room generator verifies its rooms with. Kept although Stability then costs
+#: ~3.1 s per 20-object room: measured on 100 generated test rooms (benchmarks/RESULTS.md), 1 step of
+#: 1/60 s is 3.5× faster but not converged — 0.4 % of ground-truth objects drift ≥ 1 cm (worst room 0.91
+#: instead of 0.99) and, worse, falling objects fall less: rooms jittered by N(0, 15 cm) score 0.94 instead
+#: of 0.89, so the gap between good and bad scenes shrinks by ~40 %. Fewer substeps is a config choice
 #: (``protocol.stability_substeps``), recorded in ``metrics.json``, never the default.
 STABILITY_SUBSTEPS = 4
 

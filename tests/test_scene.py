@@ -133,3 +133,16 @@ def test_reference_reader_rejects_bad_relations(tmp_path):
     )
     with pytest.raises(SceneFormatError, match="'relations'.*predicate 7"):
         read_reference_boxes(path)
+
+
+def test_atomic_writes_get_normal_file_permissions(tmp_path):
+    import os
+
+    from spread.io import write_json_atomic
+
+    umask = os.umask(0o022)
+    try:
+        write_json_atomic(tmp_path / "m.json", {"a": 1})
+        assert (tmp_path / "m.json").stat().st_mode & 0o777 == 0o644
+    finally:
+        os.umask(umask)

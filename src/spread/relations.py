@@ -195,9 +195,9 @@ def physical_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, lib
         R, t = rotation[i], translation[i]
         pts.append(p[::step].astype(np.float64) @ R.T + t)
         nrm.append(q[::step].astype(np.float64) @ R.T)
-        hv = _hull_vertices(library, aid) @ R.T + t
+        hv = hull_vertices(library, aid) @ R.T + t
         lo[i], hi[i] = hv.min(0), hv.max(0)
-        planes.append(posed_planes(_cached_planes(library, aid), R, t))
+        planes.append(posed_planes(asset_planes(library, aid), R, t))
     tol = contact_tolerance
     near = np.all((lo[:, None, :] <= hi[None, :, :] + tol) & (hi[:, None, :] >= lo[None, :, :] - tol), axis=-1)
     np.fill_diagonal(near, False)
@@ -238,14 +238,15 @@ _PLANE_CACHE: dict[tuple[str, str], tuple] = {}
 _HULL_CACHE: dict[tuple[str, str], np.ndarray] = {}
 
 
-def _cached_planes(library, asset_id: str):
+def asset_planes(library, asset_id: str):
+    """Face planes (:func:`part_planes`) of an asset's convex parts, cached per content hash."""
     key = (library[asset_id].content_hash, asset_id)
     if key not in _PLANE_CACHE:
         _PLANE_CACHE[key] = part_planes(library.convex_parts(asset_id))
     return _PLANE_CACHE[key]
 
 
-def _hull_vertices(library, asset_id: str) -> np.ndarray:
+def hull_vertices(library, asset_id: str) -> np.ndarray:
     """Canonical-frame vertices of the mesh's convex hull (same AABB under any rotation, fewer points)."""
     key = (library[asset_id].content_hash, asset_id)
     if key not in _HULL_CACHE:
@@ -255,7 +256,7 @@ def _hull_vertices(library, asset_id: str) -> np.ndarray:
 
 def scene_aabbs(translation: np.ndarray, rotation: np.ndarray, asset_ids, library):
     """World AABBs (N, 3) min, max of the posed meshes of a scene."""
-    return posed_aabbs(translation, rotation, [_hull_vertices(library, a) for a in asset_ids])
+    return posed_aabbs(translation, rotation, [hull_vertices(library, a) for a in asset_ids])
 
 
 def scene_spatial_codes(translation: np.ndarray, rotation: np.ndarray, asset_ids, library) -> np.ndarray:

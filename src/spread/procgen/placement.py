@@ -37,9 +37,6 @@ class Placement:
         local = self.rotation.T @ np.asarray(direction, float)
         return 0.5 * float(np.abs(local) @ self.extents)
 
-    def world_points(self, local: np.ndarray) -> np.ndarray:
-        return local @ self.rotation.T + self.translation
-
 
 def footprint(hull_vertices: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
     """World xz footprint (shapely Polygon) of a posed object from its canonical hull vertices."""

@@ -31,7 +31,6 @@ class _Surface:
         self.height = float(placement.translation[1] + placement.rotation[1] @ np.array([0.0, surface.height, 0.0]))
         self.polygon = surface_polygon(surface.xz_min, surface.xz_max, placement.rotation, placement.translation,
                                        inset)
-        self.kind = getattr(surface, "kind", "top")
         self.clearance = surface.clearance
         self.occupied: list = []
 

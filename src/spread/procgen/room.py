@@ -10,7 +10,7 @@ from spread.procgen.layout import place_furniture
 from spread.procgen.populate import populate
 from spread.procgen.rooms import ROOM_TYPES, RoomConfig
 from spread.procgen.settle import SettleConfig, SettleReport, settle_room
-from spread.relations import scene_spatial_codes
+from spread.relations import hull_vertices, scene_spatial_codes
 from spread.scene import Scene
 
 #: Room height written into ``Scene.room`` (metres); rooms are open boxes, walls carry no objects.
@@ -26,17 +26,15 @@ class RoomResult:
     attempt: int
 
 
-class HullCache(dict):
-    """asset id → canonical convex-hull vertices, filled on first use."""
+class HullCache:
+    """asset id → canonical convex-hull vertices: a view of the one cache in
+    :func:`spread.relations.hull_vertices` bound to a library."""
 
     def __init__(self, library):
-        super().__init__()
         self.library = library
 
-    def __missing__(self, asset_id: str) -> np.ndarray:
-        v = np.asarray(self.library.mesh(asset_id).convex_hull.vertices, np.float64)
-        self[asset_id] = v
-        return v
+    def __getitem__(self, asset_id: str) -> np.ndarray:
+        return hull_vertices(self.library, asset_id)
 
 
 def generate_room(scene_id: str, rng: np.random.Generator, library, room_config: RoomConfig,

@@ -182,7 +182,7 @@ def _find_bad(alive, Ta, Ra, T0, R0, rel, furniture, config, report, library, id
 
 def _snap(T: np.ndarray, R: np.ndarray, rel, ids, library):
     """Move objects vertically, from the floor up, so each touches its supporter exactly."""
-    from spread.relations import _cached_planes, posed_planes, signed_distance_to_parts, DOWNWARD_NORMAL_Y
+    from spread.relations import asset_planes, posed_planes, signed_distance_to_parts, DOWNWARD_NORMAL_Y
 
     T = T.copy()
     n = len(ids)
@@ -209,7 +209,7 @@ def _snap(T: np.ndarray, R: np.ndarray, rel, ids, library):
             gap = world_pts[:, 1].min()
         else:
             i = int(supporter[j])
-            planes = posed_planes(_cached_planes(library, ids[i]), R[i], T[i])
+            planes = posed_planes(asset_planes(library, ids[i]), R[i], T[i])
             d = signed_distance_to_parts(world_pts[down], *planes)
             # the lowest contact: samples over the supporter (within 2 cm) decide the gap
             close = d[d < 0.02]

@@ -21,16 +21,10 @@ import torch
 from spread.cli import conf_dir
 from spread.scene import list_scene_files, read_scene
 
-#: The tiny model shrunk further: the tests check plumbing, not learning.
-SMALL_MODEL = ["model.config.depth=1", "model.config.dim=32", "model.config.dim_head=8", "model.config.heads=2",
-               "model.config.edge_dim=16", "model.config.index_dim=8", "model.config.num_latents=4",
-               "model.config.shape_tokens=4", "model.config.shape_dim=16", "model.config.tokenizer_width=16",
-               "model.config.tokenizer_points=32", "model.config.num_points=32", "model.config.cond_dim=32"]
-QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
-FAST_TRAIN = [*QUIET, "logger=csv", "trainer.num_sanity_val_steps=0", "data.batch_size=4"]
-FAST_SAMPLE = ["sampler.steps=4", "progress=false", "renders=2", "batch_size=2", "workers=0"]
+from helpers import (FAST_SAMPLE, FAST_TRAIN, QUIET, SCRIPTS, SMALL_MODEL, compose, make_dataset, run_script,
+                     sample_in_process, train_in_process)
+
 EXPERIMENTS = sorted(p.stem for p in (Path(conf_dir()) / "experiment").glob("*.yaml"))
-SCRIPTS = Path(sys.executable).parent
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -41,48 +35,11 @@ def one_thread():
     torch.set_num_threads(before)
 
 
-def compose(config_name: str, *overrides: str):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
-        return hydra_compose(config_name=config_name, overrides=list(overrides))
-
-
-def run_script(name: str, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    env = {**os.environ, "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "1"}
-    proc = subprocess.run([str(SCRIPTS / name), *args], env=env, capture_output=True, text=True, timeout=timeout)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
-    return proc
-
-
-def train_in_process(out: Path, *overrides: str) -> dict:
-    from spread.cli.train import train
-
-    cfg = compose("train", f"out_dir={out}", *overrides)
-    return train(cfg, run_dir=out)
-
-
-def sample_in_process(*overrides: str):
-    from spread.cli.sample import sampling_config
-    from spread.sampling import run_sampling
-
-    return run_sampling(sampling_config(compose("sample", *FAST_SAMPLE, *overrides)))
-
-
 # ---- fixtures ------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
-    from spread.assets.build import build_library
-    from spread.procgen.dataset import DatasetConfig, generate_dataset
-    from spread.procgen.rooms import RoomConfig
-
-    lib = tmp_path_factory.mktemp("tslib") / "assets"
-    build_library(lib, seed=0, processes=2, progress=False)
-    out = tmp_path_factory.mktemp("tsdata") / "data"
-    generate_dataset(out, DatasetConfig(rooms=12, seed=7, processes=2, renders=0, val_fraction=0.2, test_fraction=0.3,
-                                        assets_from=str(lib), room=RoomConfig(max_objects=8)), progress=False)
+    out = make_dataset(tmp_path_factory.mktemp("tsdata"))
     assert len(list_scene_files(out / "test")) == 3
     return out
 

@@ -1,0 +1,71 @@
+"""Shared test helpers (import as ``from helpers import ...``; pytest puts tests/ on sys.path).
+
+* ``SMALL_MODEL``: the tiny model shrunk further (tests check plumbing, not learning).
+* ``compose``: a Hydra config of ``conf/`` with overrides; ``run_script``: a console script in a subprocess
+  (wandb disabled) that must succeed.
+* ``make_dataset``: a small generated dataset (its own asset library); ``train_in_process`` /
+  ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a subprocess.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from spread.cli import conf_dir
+
+SMALL_MODEL = ["model.config.depth=1", "model.config.dim=32", "model.config.dim_head=8", "model.config.heads=2",
+               "model.config.edge_dim=16", "model.config.index_dim=8", "model.config.num_latents=4",
+               "model.config.shape_tokens=4", "model.config.shape_dim=16", "model.config.tokenizer_width=16",
+               "model.config.tokenizer_points=32", "model.config.num_points=32", "model.config.cond_dim=32"]
+QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
+FAST_TRAIN = [*QUIET, "logger=csv", "trainer.num_sanity_val_steps=0", "data.batch_size=4"]
+FAST_SAMPLE = ["sampler.steps=4", "progress=false", "renders=2", "batch_size=2", "workers=0"]
+SCRIPTS = Path(sys.executable).parent
+
+
+def compose(config_name: str, *overrides: str):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+        return hydra_compose(config_name=config_name, overrides=list(overrides))
+
+
+def run_script(name: str, *args: str, timeout: int = 600, ok: bool = True) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "1"}
+    proc = subprocess.run([str(SCRIPTS / name), *args], env=env, capture_output=True, text=True, timeout=timeout)
+    if ok:
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
+    return proc
+
+
+def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 8, categories=None) -> Path:
+    """``root/assets`` (the asset library) and ``root/data`` (rooms; 20% val, 30% test); returns ``root/data``."""
+    from spread.assets.build import build_library
+    from spread.procgen.dataset import DatasetConfig, generate_dataset
+    from spread.procgen.rooms import RoomConfig
+
+    lib = root / "assets"
+    build_library(lib, categories=categories, seed=0, processes=2, progress=False)
+    out = root / "data"
+    generate_dataset(out, DatasetConfig(rooms=rooms, seed=seed, processes=2, renders=0, val_fraction=0.2,
+                                        test_fraction=0.3, assets_from=str(lib),
+                                        room=RoomConfig(max_objects=max_objects)), progress=False)
+    return out
+
+
+def train_in_process(out: Path, *overrides: str) -> dict:
+    from spread.cli.train import train
+
+    cfg = compose("train", f"out_dir={out}", *overrides)
+    return train(cfg, run_dir=out)
+
+
+def sample_in_process(*overrides: str):
+    from spread.cli.sample import sampling_config
+    from spread.sampling import run_sampling
+
+    return run_sampling(sampling_config(compose("sample", *FAST_SAMPLE, *overrides)))

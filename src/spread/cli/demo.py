@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> None:
     # a checkpoint that changed (training went on) makes earlier samples and their scores stale
     resume = f"resume={str(file_state(ckpt) == before).lower()}"
     run(script("spread-sample"), f"ckpt={ckpt}", f"data.root={data}", f"out_dir={samples}", "sampler=ddim50",
-        f"seed={args.seed}", "batch_size=4", "progress=false", resume)
+        f"seed={args.seed}", "batch_size=4", "progress=false", "logger=none", resume)
     evaluate = ["logger=none", f"protocol.stability_runs={args.stability_runs}", "progress=false", "renders=4"]
     run(script("spread-evaluate"), f"scenes={data / 'test'}", f"reference={data}", f"out_dir={out / 'eval_truth'}",
         *evaluate)

@@ -13,21 +13,26 @@ from omegaconf import DictConfig, OmegaConf
 from spread.cli import conf_dir
 
 
+def eval_protocol(protocol: DictConfig, fid: DictConfig, seed: int):
+    """The :class:`~spread.distributed.EvalProtocol` of a ``protocol`` and a ``fid`` config node
+    (``conf/protocol``, ``conf/fid``; shared by spread-evaluate and ``spread-sample evaluate=true``)."""
+    from spread.distributed import EvalProtocol
+
+    return EvalProtocol(**OmegaConf.to_container(protocol, resolve=True), seed=int(seed),
+                        fid_enabled=bool(fid.enabled), fid_feature_model=str(fid.feature_model),
+                        fid_weights_path=fid.weights_path, fid_extractor=fid.extractor, fid_device=str(fid.device))
+
+
 def evaluation_config(cfg: DictConfig):
     """The :class:`~spread.distributed.EvaluationConfig` of a composed ``conf/evaluate.yaml``."""
-    from spread.distributed import EvalProtocol, EvaluationConfig, RaySettings
+    from spread.distributed import EvaluationConfig, RaySettings
 
-    protocol = OmegaConf.to_container(cfg.protocol, resolve=True)
-    fid = cfg.fid
     try:
         return EvaluationConfig(
             scenes=str(cfg.scenes), reference=str(cfg.reference), out_dir=str(cfg.out_dir),
             reference_split=str(cfg.reference_split), chunk_size=int(cfg.chunk_size), resume=bool(cfg.resume),
             retry_failed=bool(cfg.retry_failed), renders=int(cfg.renders), progress=bool(cfg.progress),
-            protocol=EvalProtocol(**protocol, seed=int(cfg.seed), fid_enabled=bool(fid.enabled),
-                                  fid_feature_model=str(fid.feature_model),
-                                  fid_weights_path=fid.weights_path, fid_extractor=fid.extractor,
-                                  fid_device=str(fid.device)),
+            protocol=eval_protocol(cfg.protocol, cfg.fid, cfg.seed),
             ray=RaySettings(**OmegaConf.to_container(cfg.ray, resolve=True)),
         )
     except TypeError as exc:  # an unknown key under protocol/ray
@@ -70,7 +75,8 @@ def main(cfg: DictConfig) -> None:
         from spread.distributed.wandb_report import log_evaluation
 
         log_evaluation(result, mode=str(cfg.logger.mode), project=str(cfg.logger.project),
-                       name=cfg.logger.run_name, tags=list(cfg.logger.tags or []))
+                       name=cfg.logger.run_name, tags=list(cfg.logger.tags or []), group=str(cfg.experiment_name),
+                       config=OmegaConf.to_container(cfg, resolve=True))
     elif cfg.logger.name != "none":
         raise SystemExit(f"spread-evaluate: unknown logger '{cfg.logger.name}' (wandb or none)")
     print_summary(result.metrics, result.out_dir)

@@ -43,8 +43,10 @@ def ray_session(settings: RaySettings) -> Iterator[dict]:
     owned = not ray.is_initialized()
     if owned:
         if settings.starts_cluster:
-            ray.init(num_cpus=settings.num_cpus, include_dashboard=False, log_to_driver=settings.log_to_driver,
-                     object_store_memory=settings.object_store_memory)
+            # address="local": always a new private cluster, never one that another process on this machine
+            # started (ray.init() without an address would join the newest one it finds in /tmp/ray)
+            ray.init(address="local", num_cpus=settings.num_cpus, include_dashboard=False,
+                     log_to_driver=settings.log_to_driver, object_store_memory=settings.object_store_memory)
         else:
             ray.init(address=settings.address, log_to_driver=settings.log_to_driver)
     try:

@@ -35,7 +35,8 @@ class SamplingConfig:
     out_dir: run folder; sampler: a Sampler config or short name; samples_per_graph: k; seed; batch_size:
     samples per forward batch (= per task); workers: Ray actors (0: in this process); device: cpu, cuda
     or auto; threads: torch threads per worker; resume: skip existing files (false: delete and redo all);
-    renders: side-by-side PNGs; num_gpus_per_worker: GPUs each actor reserves."""
+    renders: side-by-side PNGs; num_gpus_per_worker: GPUs each actor reserves; guidance: a
+    :class:`~spread.guidance.GuidanceConfig` mapping or mode name (None / ``"none"``: unguided)."""
 
     ckpt: str
     data_root: str
@@ -54,6 +55,7 @@ class SamplingConfig:
     renders: int = 4
     progress: bool = True
     num_gpus_per_worker: float = 0.0
+    guidance: dict | str | None = None
     ray: RaySettings = field(default_factory=RaySettings)
 
 
@@ -92,11 +94,21 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+def guidance_settings(guidance) -> dict | None:
+    """The full guidance config of a run, or None when it samples unguided."""
+    from spread.sampling.worker import active_guidance
+
+    config = active_guidance(guidance)
+    return config.to_dict() if config is not None else None
+
+
 def fingerprint(cfg: SamplingConfig, ckpt_hash: str) -> dict:
-    """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files)."""
+    """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files).
+    Unguided runs carry no ``guidance`` key (so folders sampled before guidance existed still resume)."""
     from spread.model import Sampler
 
-    return {"ckpt_sha256": ckpt_hash, "sampler": asdict(Sampler.from_config(cfg.sampler)), "seed": int(cfg.seed),
+    guidance = guidance_settings(cfg.guidance)
+    return ({"guidance": guidance} if guidance else {}) | {"ckpt_sha256": ckpt_hash, "sampler": asdict(Sampler.from_config(cfg.sampler)), "seed": int(cfg.seed),
             "batch_size": int(cfg.batch_size), "split": cfg.split, "use_ema": bool(cfg.use_ema),
             "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data_root).resolve())}
 
@@ -116,7 +128,7 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> None:
 def worker_arguments(cfg: SamplingConfig, scenes_dir: Path) -> dict:
     return {"ckpt": str(cfg.ckpt), "data_root": str(cfg.data_root), "split": cfg.split, "scenes_dir": str(scenes_dir),
             "sampler": cfg.sampler, "seed": int(cfg.seed), "device": cfg.device, "threads": cfg.threads,
-            "use_ema": cfg.use_ema, "graph_scale": cfg.graph_scale}
+            "use_ema": cfg.use_ema, "graph_scale": cfg.graph_scale, "guidance": guidance_settings(cfg.guidance)}
 
 
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
@@ -216,10 +228,14 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
     written: list[str] = []
     batch_seconds: list[float] = []
     repaired = [0]
+    guidance_totals: dict[str, float] = {}
 
     def on_result(result: dict) -> None:
         written.extend(result["written"])
         repaired[0] += result["repaired_rotations"]
+        for key, value in (result.get("guidance") or {}).items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                guidance_totals[key] = guidance_totals.get(key, 0) + value
         batch_seconds.append(result["seconds"])
         bar.update(len(result["written"]))
 
@@ -234,6 +250,7 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
         "graphs": len(graphs), "samples": total, "written_this_run": len(written),
         "resumed": total - pending, "batches": len(batches), "batches_run": len(todo),
         "repaired_rotations": repaired[0],
+        "guidance": settings.get("guidance"), "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),
         "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,

@@ -40,6 +40,24 @@ def sampler_label(sampler) -> str:
     return f"{sampler.kind}-{sampler.num_steps}" + (f"-eta{sampler.eta:g}" if sampler.eta else "")
 
 
+def active_guidance(guidance):
+    """The :class:`~spread.guidance.GuidanceConfig` of ``guidance`` (a config, mapping or mode name) when it
+    guides; None for ``None``, ``"none"`` or an inactive config (spread.guidance is not even imported)."""
+    mode = guidance if isinstance(guidance, str) or guidance is None else (
+        guidance.get("mode", "none") if isinstance(guidance, dict) else getattr(guidance, "mode", "none"))
+    if mode in (None, "none"):
+        return None
+    from spread.guidance import GuidanceConfig
+
+    config = GuidanceConfig.from_config(guidance)
+    return config if config.active else None
+
+
+def guidance_label(config) -> str:
+    """Short name of an active guidance config: ``refine(c=0.0075,g=0.001,r=0.001)``."""
+    return f"{config.mode}(c={config.collision:g},g={config.gravity:g},r={config.relation:g})"
+
+
 def checkpoint_data_settings(ckpt: dict, model) -> dict:
     """``num_points`` and point ``seed`` the checkpoint was trained with (its data module's hyperparameters;
     the model's ``num_points`` and seed 0 when it was trained without one)."""
@@ -78,11 +96,14 @@ class SampleWorker:
     """Loads ``ckpt`` once; :meth:`run` samples a batch and writes its missing scene files to ``scenes_dir``.
 
     ``sampler``: a :class:`~spread.model.Sampler` or its config; ``threads``: torch intra-op threads (None:
-    leave as is); ``use_ema`` / ``graph_scale``: as in :meth:`SceneDiffusion.sample`.
+    leave as is); ``use_ema`` / ``graph_scale``: as in :meth:`SceneDiffusion.sample`; ``guidance``: a
+    :class:`~spread.guidance.GuidanceConfig` or its mapping (None: unguided), applied to every batch with the
+    batch's meshes and support graph.
     """
 
     def __init__(self, ckpt: str, data_root: str, split: str, scenes_dir: str, sampler, seed: int,
-                 device: str = "cpu", threads: int | None = 1, use_ema: bool = True, graph_scale: float = 1.0):
+                 device: str = "cpu", threads: int | None = 1, use_ema: bool = True, graph_scale: float = 1.0,
+                 guidance=None):
         import torch
 
         from spread.data import SceneDataset
@@ -99,7 +120,10 @@ class SampleWorker:
         self.model = SceneDiffusion.load_from_checkpoint(ckpt, map_location=self.device).eval()
         data = checkpoint_data_settings(checkpoint, self.model)
         self.dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
-        self.provenance = f"ckpt={ckpt} sampler={sampler_label(self.sampler)} seed={int(seed)}"
+        self.guidance = active_guidance(guidance)
+        self.provenance = (f"ckpt={ckpt} sampler={sampler_label(self.sampler)} seed={int(seed)}"
+                           + (f" guidance={guidance_label(self.guidance)}" if self.guidance else ""))
+        self.guidance_stats: dict = {}
         self._sources: dict[str, Scene] = {}
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 
@@ -122,8 +146,16 @@ class SampleWorker:
         encoded = collate_scenes([self.dataset.encode(src, source=item.graph.path)
                                   for src, item in zip(sources, batch.items)])
         generator = torch.Generator().manual_seed(batch.seed)  # CPU noise: the same samples on any device
+        guidance = None
+        if self.guidance is not None:
+            from spread.guidance import SceneGuidance
+
+            guidance = SceneGuidance(self.guidance, self.dataset.library, [list(src.asset_id) for src in sources],
+                                     encoded["physical"].to(self.model.device), encoded["mask"].to(self.model.device),
+                                     self.model.network.bounds)
         poses = self.model.sample(encoded, self.sampler, generator=generator, use_ema=self.use_ema,
-                                  graph_scale=self.graph_scale)
+                                  graph_scale=self.graph_scale, **({"guidance": guidance} if guidance else {}))
+        self.guidance_stats = dict(guidance.stats) if guidance is not None else {}
         translation, rotation = poses.translation.cpu().numpy(), poses.rotation.cpu().numpy()
         scenes = []
         for b, (src, item) in enumerate(zip(sources, batch.items)):
@@ -148,4 +180,4 @@ class SampleWorker:
                     written.append(scene.scene_id)
         return {"index": batch.index, "written": written, "skipped": [n for n in batch.names() if n not in wanted],
                 "repaired_rotations": self.repaired - repaired_before, "seconds": time.perf_counter() - started,
-                "pid": os.getpid()}
+                "guidance": self.guidance_stats if wanted else {}, "pid": os.getpid()}

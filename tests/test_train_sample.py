@@ -283,3 +283,44 @@ def test_evaluate_accepts_generated_scenes(dataset, sampled, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_scenes"] == 6 and metrics["n_failed"] == 0
     assert 0.0 <= metrics["grecall"] <= 1.0 and 0.0 <= metrics["col_mesh"] <= 1.0
+
+
+def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, trained, tmp_path):
+    """``evaluate=true``: one run folder holds the scenes and their metrics (a sweep point); the protocol comes
+    from the shared ``conf/protocol`` group; a second call resumes both (nothing resampled, nothing re-measured)."""
+    out = tmp_path / "sample_eval"
+    args = [f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}", *FAST_SAMPLE, "logger=none",
+            "evaluate=true", "evaluation.protocol.stability_runs=1", "evaluation.fid.enabled=false"]
+    run_script("spread-sample", *args)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_scenes"] == 3 and metrics["n_evaluated"] == 3 and metrics["n_failed"] == 0
+    assert metrics["protocol"]["stability_runs"] == 1
+    lines = (out / "per_scene.jsonl").read_text().splitlines()
+    assert len(lines) == 3
+    again = run_script("spread-sample", *args)
+    assert "0 written now, 3 already there" in again.stdout
+    assert (out / "per_scene.jsonl").read_text().splitlines() == lines
+
+
+def test_sample_rejects_an_unknown_guidance_mode(dataset, trained, tmp_path):
+    proc = run_script("spread-sample", f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}",
+                      f"out_dir={tmp_path / 'bad'}", *FAST_SAMPLE, "logger=none", "guidance.mode=strong", ok=False)
+    assert proc.returncode != 0 and "strong" in proc.stderr
+
+
+def test_guided_sampling_by_config_records_guidance(dataset, trained, tmp_path):
+    """``guidance=refine``: files name the guidance in their source, sampling.json pins the full config and the
+    guidance timings, and the scenes differ from unguided ones of the same seed; ``guidance=none`` keeps the
+    fingerprint of an unguided run (no guidance key)."""
+    args = [f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", "renders=0"]
+    plain = sample_in_process(*args, f"out_dir={tmp_path / 'plain'}", "guidance=none")
+    guided = sample_in_process(*args, f"out_dir={tmp_path / 'guided'}", "guidance=refine",
+                               "guidance.iterations=3", "guidance.collision=0.05")
+    assert "guidance" not in plain.manifest["fingerprint"]
+    assert guided.manifest["fingerprint"]["guidance"]["mode"] == "refine"
+    assert guided.manifest["fingerprint"]["guidance"]["iterations"] == 3
+    assert guided.manifest["guidance_totals"]["iterations"] == 3 * guided.manifest["batches"]
+    assert "guidance=refine(c=0.05," in str(read_scene(guided.files[0]).extras["source"])
+    moved = [np.abs(read_scene(a).translation - read_scene(b).translation).max()
+             for a, b in zip(plain.files, guided.files)]
+    assert max(moved) > 0

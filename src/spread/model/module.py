@@ -55,6 +55,13 @@ def slice_batch(batch: dict, count: int) -> dict:
     return {k: v[:count] for k, v in batch.items()}
 
 
+def _chain(first: Hook | None, second: Hook) -> Hook:
+    """A hook applying ``first`` (when given) then ``second``."""
+    if first is None:
+        return second
+    return lambda x0, ctx: second(first(x0, ctx), ctx)
+
+
 class SceneDiffusion(L.LightningModule):
     def __init__(self, variant: str = "geometry", config: str | dict | ModelConfig = "tiny",
                  bounds: Sequence[float] | None = None, lr: float = 1e-4, weight_decay: float = 1e-4,
@@ -157,8 +164,15 @@ class SceneDiffusion(L.LightningModule):
     @torch.no_grad()
     def sample_states(self, batch: dict, sampler: Sampler | str | dict | None = None,
                       generator: torch.Generator | None = None, x0_hook: Hook | None = None,
-                      sample_hook: Hook | None = None, use_ema: bool = True, graph_scale: float = 1.0) -> torch.Tensor:
-        """Normalised states x̂_0 (B, N, 9) for the batch's scenes (graphs, assets, mask); zero at padding."""
+                      sample_hook: Hook | None = None, use_ema: bool = True, graph_scale: float = 1.0,
+                      guidance=None) -> torch.Tensor:
+        """Normalised states x̂_0 (B, N, 9) for the batch's scenes (graphs, assets, mask); zero at padding.
+
+        ``guidance``: a ``spread.guidance.SceneGuidance`` (duck-typed: ``config.mode``/``config.active``,
+        ``x0_hook``, ``refine``) built for this batch, or None. Mode ``paper`` adds its ``x0_hook`` after
+        any given ``x0_hook`` at every step; ``refine`` runs ``guidance.refine(x, eps_fn)`` after the
+        sampler; ``none`` (or None, or no weight > 0) samples exactly as without it.
+        """
         network = self.ema.module if use_ema else self.network
         was_training = network.training
         network.eval()
@@ -174,16 +188,23 @@ class SceneDiffusion(L.LightningModule):
                 eps_null = network(x_t, t, null)
                 return eps_null + graph_scale * (eps - eps_null)
 
-            return Sampler.from_config(sampler).sample(eps_fn, cond.mask, generator=generator, x0_hook=x0_hook,
-                                                       sample_hook=sample_hook)
+            mode = guidance.config.mode if guidance is not None and guidance.config.active else "none"
+            if mode == "paper":
+                x0_hook = _chain(x0_hook, guidance.x0_hook)
+            x = Sampler.from_config(sampler).sample(eps_fn, cond.mask, generator=generator, x0_hook=x0_hook,
+                                                    sample_hook=sample_hook)
+            if mode == "refine":
+                x = guidance.refine(x, eps_fn)
+            return x
         finally:
             network.train(was_training)
 
     def sample(self, batch: dict, sampler: Sampler | str | dict | None = None, generator: torch.Generator | None = None,
                x0_hook: Hook | None = None, sample_hook: Hook | None = None, use_ema: bool = True,
-               graph_scale: float = 1.0) -> Poses:
-        """Sample poses for the batch's scenes: translation (B, N, 3) metres, rotation (B, N, 3, 3)."""
-        x = self.sample_states(batch, sampler, generator, x0_hook, sample_hook, use_ema, graph_scale)
+               graph_scale: float = 1.0, guidance=None) -> Poses:
+        """Sample poses for the batch's scenes: translation (B, N, 3) metres, rotation (B, N, 3, 3);
+        ``guidance`` as in :meth:`sample_states`."""
+        x = self.sample_states(batch, sampler, generator, x0_hook, sample_hook, use_ema, graph_scale, guidance)
         mask = batch["mask"].to(x.device).bool()
         translation, rotation = poses_from_state(x, self.network.bounds)
         eye = torch.eye(3, device=x.device, dtype=rotation.dtype).expand_as(rotation)

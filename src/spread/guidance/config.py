@@ -1,0 +1,118 @@
+"""``GuidanceConfig``: which guided-sampling mode runs, the three weights and their schedule.
+
+Modes (reference notes §3.1, paper §3.4):
+
+========== ========================================================================================
+``none``   no guidance; sampling is exactly the unguided sampler's
+``paper``  the paper's equation: at every denoising step (from ``start`` on) the predicted x̂_0 takes
+           one step ``x̂_0 ← x̂_0 − Σ_k λ_k ∇G_k(x̂_0)`` before the sampler uses it
+``refine`` the release's behaviour: after sampling, ``iterations`` refinement iterations at t = 0,
+           each a denoising projection with the network then the same gradient step
+========== ========================================================================================
+
+Weights are the paper's λ (``collision`` 7.5e-3, ``gravity`` 1e-3, ``relation`` 1e-3), applied in
+normalised state space (translation in [−1, 1] through the dataset bounds, rot6d) as the release does
+(its λ × lr = 15 × 5e-4, 2 × 5e-4, 2 × 5e-4). Gravity joins only from ``gravity_from`` of the way
+through (fraction of the sampling steps in ``paper`` mode, of the refinement iterations in ``refine``
+mode; the release: the later half of its 100 iterations). Geometry constants are in metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+MODES = ("none", "paper", "refine")
+
+
+@dataclass(frozen=True)
+class GuidanceConfig:
+    """Guided-sampling settings (module docstring). Units: weights are step sizes in normalised
+    state space; ``cone_height``, ``gap``, ``tolerance`` are metres."""
+
+    mode: str = "none"
+    #: λ_C, λ_H, λ_R of the paper.
+    collision: float = 7.5e-3
+    gravity: float = 1e-3
+    relation: float = 1e-3
+    #: ``refine``: refinement iterations at t = 0 after the sampler (release: 100).
+    iterations: int = 100
+    #: ``refine``: the t = 0 denoising projection runs every this many iterations (1 = every one, the
+    #: release; 0 = never: guidance steps only). Each projection is one network call on the batch.
+    denoise_every: int = 1
+    #: ``paper``: guidance applies from step ``ceil(start · steps)`` on (0 = every step, the equation).
+    start: float = 0.0
+    #: Gravity joins from this fraction of the steps / iterations on (release: 0.5).
+    gravity_from: float = 0.5
+    #: ``paper``: gradient steps per guided sampling step.
+    inner_steps: int = 1
+    #: CoDF cone height h (metres; release 0.5).
+    cone_height: float = 0.5
+    #: Gravity: ε, the gap an object keeps above what it rests on (release 5e-4 m).
+    gap: float = 5e-4
+    #: Gravity: θ_H, the tolerated extra gap before an object counts as floating (release 2e-3 m).
+    tolerance: float = 2e-3
+    #: Collision: factor on the upward part of the collision step on the y channel (release 3).
+    up_boost: float = 3.0
+    #: Gravity moves only the y translation (release); False keeps its full gradient.
+    gravity_y_only: bool = True
+    #: Most triangle pairs reported per object pair by the BVH query (bounds the cost when objects
+    #: interpenetrate wholesale, as early predictions of x̂_0 do).
+    max_contacts: int = 2048
+    #: ``refine``: clip the t = 0 projection to [−1, 1] (what the release's scheduler step does).
+    clip: bool = True
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"guidance: key 'mode' is {self.mode!r}, choose from {MODES}")
+        for key in ("collision", "gravity", "relation", "cone_height", "gap", "tolerance", "up_boost"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"guidance: key '{key}' must be a finite number ≥ 0, got {value!r}")
+        if self.cone_height <= 0:
+            raise ValueError(f"guidance: key 'cone_height' must be > 0, got {self.cone_height!r}")
+        for key in ("start", "gravity_from"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+                raise ValueError(f"guidance: key '{key}' must be a fraction in [0, 1], got {value!r}")
+        for key, low in (("iterations", 0), ("denoise_every", 0), ("inner_steps", 1), ("max_contacts", 1)):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"guidance: key '{key}' must be an integer ≥ {low}, got {value!r}")
+
+    @property
+    def active(self) -> bool:
+        """True when sampling is guided at all: a mode other than ``none`` and some weight > 0."""
+        return self.mode != "none" and (self.collision > 0 or self.gravity > 0 or self.relation > 0)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_config(cls, config: "GuidanceConfig | Mapping | str | None") -> "GuidanceConfig":
+        """A GuidanceConfig, a mapping of its fields (a Hydra node too), a mode name, or None (``none``).
+
+        Unknown keys are an error naming them; integral floats (``iterations: 100.0``) are accepted.
+        """
+        if config is None:
+            return cls()
+        if isinstance(config, GuidanceConfig):
+            return config
+        if isinstance(config, str):
+            return cls(mode=config)
+        if not isinstance(config, Mapping):
+            raise TypeError(f"guidance: expected a mode name, a mapping or a GuidanceConfig, "
+                            f"got {type(config).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        values: dict[str, Any] = {}
+        for key, value in dict(config).items():
+            if key not in fields:
+                raise ValueError(f"guidance: unknown key '{key}' (known: {', '.join(fields)})")
+            if fields[key].type == "int" and isinstance(value, float) and value.is_integer():
+                value = int(value)
+            if fields[key].type == "float" and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            values[key] = value
+        return cls(**values)

@@ -1,0 +1,209 @@
+"""``SceneGuidance``: the three guidance terms of a batch of scenes and the two guided-sampling modes.
+
+One guidance step on normalised states x (B, N, 9) (translation in [−1, 1] through ``bounds``, rot6d;
+:func:`spread.model.poses.poses_from_state`) is, as in the release,
+
+    x ← x − (λ_C ∇G_C  +  λ_R ∇G_R  +  [gravity on] λ_H ∇G_H)
+
+with each term summed over scenes (so a scene's step never depends on the rest of its batch), the
+release's two tweaks on by default (config): the upward part of the collision step on the
+normalised-y channel is multiplied by ``up_boost`` (3), and the gravity step is kept on the y channel
+only. Padding objects never move.
+
+``paper`` mode plugs :meth:`SceneGuidance.x0_hook` into the sampler: at sampling step k of K (from
+``ceil(start·K)`` on) the predicted x̂_0 takes ``inner_steps`` steps, gravity from ``ceil(gravity_from·K)``.
+``refine`` mode (:meth:`SceneGuidance.refine`) runs after the sampler: ``iterations`` times, ε̂ =
+eps_fn(x, t = 0), x ← clip((x − √(1−ᾱ_0) ε̂)/√ᾱ_0, ±1) (the denoising projection the release's
+scheduler step takes at t = 0, ᾱ_0 of the training schedule; every ``denoise_every``-th iteration,
+1 = always as the release), then one step, gravity from ``ceil(gravity_from·iterations)``.
+:attr:`SceneGuidance.stats` records where the time went.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Sequence
+
+import torch
+
+from spread.guidance.collision import TriangleCollider, TrianglePairs, collision_loss
+from spread.guidance.config import GuidanceConfig
+from spread.guidance.gravity import gravity_loss, vertical_gaps
+from spread.guidance.meshes import SceneMeshes
+from spread.guidance.relation import relation_loss
+from spread.model.diffusion import StepContext, training_scheduler
+from spread.model.poses import poses_from_state
+
+TERMS = ("collision", "gravity", "relation")
+#: Normalised-y channel of a state (translation x, y, z then rot6d).
+Y_CHANNEL = 1
+
+
+class SceneGuidance:
+    """Guidance for a batch of B scenes padded to N objects.
+
+    config: anything :meth:`GuidanceConfig.from_config` takes. library: the
+    :class:`~spread.assets.AssetLibrary`. asset_ids: per scene, its real objects' asset ids in object
+    order (they fill the True slots of ``mask``). physical: (B, N, N) physical codes (1 = row supports
+    column; padding 3). mask: (B, N) bool. bounds: (6,) translation bounds, metres (stats.json).
+    """
+
+    def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,
+                 mask: torch.Tensor, bounds, detach_cones: bool = True):
+        self.config = GuidanceConfig.from_config(config)
+        self.mask = torch.as_tensor(mask).bool().cpu()
+        if self.mask.dim() != 2:
+            raise ValueError(f"guidance: mask must be (B, N), got {tuple(self.mask.shape)}")
+        B, N = self.mask.shape
+        physical = torch.as_tensor(physical).cpu()
+        if tuple(physical.shape) != (B, N, N):
+            raise ValueError(f"guidance: physical must be (B, N, N) = {(B, N, N)}, got {tuple(physical.shape)}")
+        self.bounds = torch.as_tensor(bounds, dtype=torch.float64).flatten().cpu()
+        lo, hi = self.bounds[:3], self.bounds[3:]
+        if self.bounds.numel() != 6 or not torch.isfinite(self.bounds).all() or (hi <= lo).any():
+            raise ValueError(f"guidance: bounds must be 6 finite numbers [min xyz, max xyz] with max > min, "
+                             f"got {self.bounds.tolist()}")
+        pair = self.mask[:, :, None] & self.mask[:, None, :] & ~torch.eye(N, dtype=torch.bool)
+        self.supports = (physical == 1) & pair
+        self.meshes = SceneMeshes(library, asset_ids, self.mask)
+        self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
+        self.detach_cones = detach_cones
+        self.alpha_bar0 = float(training_scheduler().alphas_cumprod[0])
+        self._on: dict[tuple, dict[str, torch.Tensor]] = {}
+        self.reset_stats()
+
+    # ---- bookkeeping --------------------------------------------------------------------------------
+    def reset_stats(self) -> None:
+        self._stats = {"bvh_s": 0.0, "penalty_s": 0.0, "network_s": 0.0, "steps": 0, "iterations": 0,
+                       "network_calls": 0, "object_pairs": 0, "colliding_pairs": 0, "last_colliding_pairs": 0}
+
+    @property
+    def stats(self) -> dict:
+        """Seconds in BVH detection (``bvh_s``: broad phase + fcl), in the differentiable terms and their
+        gradients (``penalty_s``), in the network during refinement (``network_s``); guidance ``steps``,
+        refinement ``iterations``, ``network_calls``, object pairs given to fcl and triangle pairs found
+        (both summed over steps), and the triangle pairs of the last step."""
+        return dict(self._stats)
+
+    def _graph(self, device: torch.device, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+        key = (str(device), dtype)
+        hit = self._on.get(key)
+        if hit is None:
+            hit = self._on[key] = {"mask": self.mask.to(device), "supports": self.supports.to(device),
+                                   "bounds": self.bounds.to(device, dtype)}
+        return hit
+
+    # ---- terms --------------------------------------------------------------------------------------
+    def _detect(self, translation: torch.Tensor, rotation: torch.Tensor, hull: torch.Tensor) -> TrianglePairs:
+        t0 = time.perf_counter()
+        lo = hull.detach().amin(2).cpu().double().numpy()
+        hi = hull.detach().amax(2).cpu().double().numpy()
+        pairs = self.collider.find(rotation.detach().cpu().double().numpy(),
+                                   translation.detach().cpu().double().numpy(), lo, hi, self.mask.numpy())
+        self._stats["bvh_s"] += time.perf_counter() - t0
+        self._stats["object_pairs"] += pairs.object_pairs
+        self._stats["colliding_pairs"] += len(pairs)
+        self._stats["last_colliding_pairs"] = len(pairs)
+        return pairs
+
+    def _terms(self, x: torch.Tensor, which: Sequence[str]) -> dict[str, torch.Tensor]:
+        """Per-scene values (B,) of the named terms at states x (differentiable when x requires grad)."""
+        g = self._graph(x.device, x.dtype)
+        translation, rotation = poses_from_state(x, g["bounds"])
+        world = self.meshes.pose(translation, rotation)
+        hull = self.meshes.hull_points(world)
+        out = {}
+        if "collision" in which:
+            pairs = self._detect(translation, rotation, hull)
+            t0 = time.perf_counter()
+            out["collision"] = collision_loss(world, self.meshes, pairs, g["supports"], self.config.cone_height,
+                                              self.detach_cones)
+            self._stats["penalty_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if "gravity" in which:
+            gaps = vertical_gaps(world, hull, self.meshes, g["supports"])
+            out["gravity"] = gravity_loss(gaps, g["mask"], self.config.gap, self.config.tolerance)
+        if "relation" in which:
+            out["relation"] = relation_loss(world, hull, self.meshes, g["supports"])
+        self._stats["penalty_s"] += time.perf_counter() - t0
+        return out
+
+    def losses(self, x: torch.Tensor, reduce: bool = True) -> dict[str, torch.Tensor]:
+        """Each term's value at states x (B, N, 9): summed over scenes (``reduce``) or per scene (B,).
+        Differentiable when x requires grad (cones, hulls and hit heights detached; module docs)."""
+        self._check(x)
+        values = self._terms(x, TERMS)
+        return {k: v.sum() if reduce else v for k, v in values.items()}
+
+    def _check(self, x: torch.Tensor) -> None:
+        if x.dim() != 3 or tuple(x.shape[:2]) != tuple(self.mask.shape) or x.shape[-1] != 9:
+            raise ValueError(f"guidance: states must be (B, N, 9) with (B, N) = {tuple(self.mask.shape)}, "
+                             f"got {tuple(x.shape)}")
+
+    # ---- one step -----------------------------------------------------------------------------------
+    def step(self, x: torch.Tensor, gravity: bool = True) -> torch.Tensor:
+        """One guidance step on states x (B, N, 9) (module docstring); returns new states, x untouched."""
+        self._check(x)
+        cfg = self.config
+        weights = {"collision": cfg.collision, "relation": cfg.relation, "gravity": cfg.gravity if gravity else 0.0}
+        which = [k for k in TERMS if weights[k] > 0]
+        if not which:
+            return x
+        with torch.enable_grad():
+            xg = x.detach().clone().requires_grad_(True)
+            values = self._terms(xg, which)
+            t0 = time.perf_counter()
+            update = torch.zeros_like(x)
+            for n, name in enumerate(which):
+                loss = values[name].sum()
+                if not loss.requires_grad:
+                    continue
+                (grad,) = torch.autograd.grad(loss, xg, retain_graph=n < len(which) - 1)
+                if name == "collision" and cfg.up_boost != 1.0:
+                    y = grad[..., Y_CHANNEL]
+                    grad = grad.clone()
+                    grad[..., Y_CHANNEL] = torch.where(y < 0, y * cfg.up_boost, y)
+                if name == "gravity" and cfg.gravity_y_only:
+                    only_y = torch.zeros_like(grad)
+                    only_y[..., Y_CHANNEL] = grad[..., Y_CHANNEL]
+                    grad = only_y
+                update = update + weights[name] * grad
+            self._stats["penalty_s"] += time.perf_counter() - t0
+        self._stats["steps"] += 1
+        keep = self._graph(x.device, x.dtype)["mask"][..., None].to(x.dtype)
+        return (x - torch.nan_to_num(update, nan=0.0, posinf=0.0, neginf=0.0) * keep).detach()
+
+    # ---- the two modes ------------------------------------------------------------------------------
+    def x0_hook(self, x0: torch.Tensor, ctx: StepContext) -> torch.Tensor:
+        """``paper`` mode: guide the predicted x̂_0 of sampling step ``ctx.index`` of ``ctx.num_steps``."""
+        K, k = ctx.num_steps, ctx.index
+        if k < math.ceil(self.config.start * K):
+            return x0
+        gravity = k >= math.ceil(self.config.gravity_from * K)
+        for _ in range(self.config.inner_steps):
+            x0 = self.step(x0, gravity=gravity)
+        return x0
+
+    def refine(self, x: torch.Tensor, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+        """``refine`` mode: ``iterations`` × (t = 0 denoising projection with ``eps_fn``, guidance step)."""
+        self._check(x)
+        n = self.config.iterations
+        keep = self._graph(x.device, x.dtype)["mask"][..., None].to(x.dtype)
+        a = self.alpha_bar0
+        t_zero = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+        first_gravity = math.ceil(self.config.gravity_from * n)
+        every = self.config.denoise_every
+        for it in range(n):
+            if every and it % every == 0:
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    eps = eps_fn(x, t_zero).to(x.dtype) * keep
+                self._stats["network_s"] += time.perf_counter() - t0
+                self._stats["network_calls"] += 1
+                x = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
+                if self.config.clip:
+                    x = x.clamp(-1.0, 1.0)
+            x = self.step(x * keep, gravity=it >= first_gravity)
+            self._stats["iterations"] += 1
+        return x

@@ -1,0 +1,75 @@
+"""Relation (support) guidance G_R: keep a supported object's footprint over its supporter's.
+
+For each support pair (i supports j, ``physical[i, j] == 1``) the supporter's footprint is the convex
+hull of its posed vertices projected on the floor plane (x, z) — computed each call from its posed
+hull vertices with scipy, detached, as the release detaches it. Each vertex α of j (all mesh
+vertices, projected on (x, z)) outside that polygon is at distance s(α, i) from it (metres);
+V_ij is the set of such vertices (s > 1e-6). Paper eq. G_R, per scene:
+
+    G_R = Σ_{(i,j) ∈ E} Σ_{α ∈ V_ij} s(α, i) / (|V_ij| · |E|)
+
+with E the scene's support pairs (the release divides by the pairs with some vertex outside
+instead; the paper's |E| is used here). The gradient reaches j's translation (x, z) and rotation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+#: A vertex counts as outside when it is farther than this from the hull (metres; release 1e-6).
+OUTSIDE = 1e-6
+
+
+def footprint(points_xz: np.ndarray) -> np.ndarray:
+    """Counter-clockwise convex polygon (K, 2) in (x, z) of points (P, 2); their bounding rectangle when
+    they are collinear (a degenerate hull)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return points_xz[ConvexHull(points_xz).vertices]
+    except (QhullError, ValueError):
+        lo, hi = points_xz.min(0), points_xz.max(0)
+        return np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+
+
+def polygon_distance(points: torch.Tensor, polygons: torch.Tensor) -> torch.Tensor:
+    """Distance (S, P) of points (S, P, 2) outside convex CCW polygons (S, K, 2) (0 inside, metres).
+
+    Polygons may be padded by repeating a vertex (a zero-length edge changes nothing)."""
+    q = polygons[:, None, :, :]  # (S, 1, K, 2)
+    e = torch.roll(polygons, -1, dims=1)[:, None] - q  # edges q_k → q_{k+1}
+    d = points[:, :, None, :] - q  # (S, P, K, 2)
+    cross = e[..., 0] * d[..., 1] - e[..., 1] * d[..., 0]
+    inside = (cross >= -1e-9).all(-1)
+    t = ((d * e).sum(-1) / (e * e).sum(-1).clamp_min(1e-18)).clamp(0, 1)
+    off = d - t[..., None] * e
+    dist = (off * off).sum(-1).clamp_min(1e-24).sqrt().amin(-1)
+    return torch.where(inside, torch.zeros_like(dist), dist)
+
+
+def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor) -> torch.Tensor:
+    """G_R per scene (B,) for posed vertices (B, N, V, 3), their hull vertices (B, N, H, 3) and
+    ``supports`` (B, N, N) bool ([b, i, j]: i supports j)."""
+    B = world.shape[0]
+    out = world.new_zeros(B) + 0 * world.sum()
+    pairs = supports.nonzero()
+    if not len(pairs):
+        return out
+    b, i, j = pairs.unbind(1)
+    t = meshes.tensors(world.device, world.dtype)
+    # supporters' footprints (numpy, detached), one per distinct supporter, padded to K by repetition
+    hull_np = hull.detach().cpu().double().numpy()
+    hmask = t["hmask"].cpu().numpy()
+    keys = sorted({(int(bb), int(ii)) for bb, ii in zip(b.tolist(), i.tolist())})
+    polys = {k: footprint(hull_np[k[0], k[1]][hmask[k[0], k[1]]][:, [0, 2]]) for k in keys}
+    K = max(len(p) for p in polys.values())
+    padded = np.stack([np.concatenate([p, np.repeat(p[:1], K - len(p), 0)]) for p in polys.values()])
+    index = {k: n for n, k in enumerate(polys)}
+    rows = torch.tensor([index[(int(bb), int(ii))] for bb, ii in zip(b.tolist(), i.tolist())], device=world.device)
+    polygons = torch.from_numpy(padded).to(world.device, world.dtype)[rows]  # (S, K, 2)
+    s = polygon_distance(world[b, j][..., [0, 2]], polygons)  # (S, V)
+    outside = t["vmask"][b, j] & (s > OUTSIDE)
+    per_pair = (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
+    edges = torch.zeros(B, device=world.device, dtype=world.dtype).index_add_(0, b, torch.ones_like(per_pair))
+    return out.index_add(0, b, per_pair) / edges.clamp_min(1)

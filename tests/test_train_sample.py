@@ -297,9 +297,15 @@ def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, tra
     assert metrics["protocol"]["stability_runs"] == 1
     lines = (out / "per_scene.jsonl").read_text().splitlines()
     assert len(lines) == 3
+    stamp = (out / "metrics.json").stat().st_mtime_ns
+    again = run_script("spread-sample", *args)
+    assert "finished earlier" in again.stdout  # a finished sweep point is skipped whole
+    assert (out / "metrics.json").stat().st_mtime_ns == stamp
+    (out / "metrics.json").unlink()  # interrupted after sampling: scenes resume, the evaluation completes
     again = run_script("spread-sample", *args)
     assert "0 written now, 3 already there" in again.stdout
     assert (out / "per_scene.jsonl").read_text().splitlines() == lines
+    assert json.loads((out / "metrics.json").read_text())["n_evaluated"] == 3
 
 
 def test_sample_rejects_an_unknown_guidance_mode(dataset, trained, tmp_path):

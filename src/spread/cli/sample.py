@@ -89,6 +89,12 @@ def main(cfg: DictConfig) -> None:
 
     if cfg.logger.name not in ("wandb", "none"):
         raise SystemExit(f"spread-sample: unknown logger '{cfg.logger.name}' (wandb or none)")
+    if cfg.evaluate and cfg.resume:  # a finished sweep point: scenes and metrics are there, leave them be
+        from spread.experiments import is_finished_run
+
+        if is_finished_run(cfg.out_dir):
+            print(f"{cfg.out_dir}: finished earlier (metrics.json exists), skipped")
+            return
     result = run_sampling(sampling_config(cfg))
     evaluation = None
     if cfg.evaluate:

@@ -1,0 +1,18 @@
+"""Experiments over the platform's commands: the ablation table and sweep reports (DESIGN §5
+``spread-ablate``, ``spread-report``). Sits between :mod:`spread.cli` and :mod:`spread.distributed`.
+
+| module | job |
+|---|---|
+| :mod:`~spread.experiments.ablation` | the ablation's stages (generate … table), ledger, resume |
+| :mod:`~spread.experiments.runs` | run folders and wandb offline runs → flat records; ``runs`` argument expansion |
+| :mod:`~spread.experiments.report` | records → comparison table (md/csv) and metric-vs-weight plots |
+| :mod:`~spread.experiments.tables` | Markdown / CSV / LaTeX writers, CSV reader (exact round trip) |
+| :mod:`~spread.experiments.plots` | bar plot of the ablation, metric-vs-weight scatter plots (Agg) |
+| :mod:`~spread.experiments.wandb_table` | the ablation table as a wandb Table (offline by default) |
+
+matplotlib, wandb, torch and Ray are imported inside the functions that use them.
+"""
+
+from spread.experiments.ablation import AblationResult, AblationSpec, Commands, run_ablation  # noqa: F401
+from spread.experiments.report import ReportResult, run_report  # noqa: F401
+from spread.experiments.runs import RunError, find_runs, is_finished_run, read_runs  # noqa: F401

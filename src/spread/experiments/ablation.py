@@ -1,0 +1,393 @@
+"""``spread-ablate``: the ablation table (DESIGN §3 variants, §6 protocol) as resumable stages.
+
+The ablation is a sequence of the platform's own commands, run in this process through a
+:class:`Commands` object (``spread.cli.ablate`` wires it to ``spread-generate``, ``-train``, ``-sample`` and
+``-evaluate``'s library functions); each stage is exactly one command with its Hydra overrides, printed as
+the equivalent command line. The stages, under ``out_dir``:
+
+| stage | command | folder | finished when |
+|---|---|---|---|
+| ``data`` (only when ``data.root`` is not given or does not exist) | spread-generate | ``data/`` | ``manifest.json`` |
+| ``train/<v>``, v = base, geometry (unless given) | spread-train | ``train/<v>/`` | ``metrics.json``, ``last.ckpt`` |
+| ``sample/<v>``, v = base, geometry, guidance | spread-sample | ``samples/<v>/`` | ``sampling.json``, all scenes |
+| ``evaluate/<v>`` | spread-evaluate | ``eval/<v>/`` | ``metrics.json`` |
+| ``table`` | — | ``ablation.{md,csv,tex,png}`` (+ wandb table) | the four files |
+
+``guidance`` samples the ``geometry`` checkpoint with guidance; all three rows sample the same split's
+graphs with the same seed and are evaluated with the same protocol (one override list for all).
+
+**Resume.** Every output above is written atomically at the end of its command, so it exists only for a
+finished stage. ``out_dir/ablation.json`` (the ledger) records each finished stage's inputs: its overrides
+and what it was made from (checkpoint hash, the sampling fingerprint, the rows). A re-run skips a stage
+whose outputs exist and whose inputs are unchanged; a stage with missing outputs runs again and continues
+what is there (the commands resume themselves: training from ``last.ckpt``, sampling and evaluation skip
+finished scenes); a sampling or evaluation stage whose inputs changed (e.g. a retrained checkpoint) is
+redone from scratch; a training or data stage whose settings changed is refused (delete its folder).
+A failing stage is reported and blocks only the stages that need it; the table is still written.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+from spread.experiments.tables import METRICS, Column, write_tables
+from spread.io import write_json_atomic
+
+log = logging.getLogger("spread.ablate")
+
+VARIANTS = ("base", "geometry", "guidance")
+#: Row labels, as in the paper's ablation table.
+LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance"}
+#: The checkpoint each row samples.
+CHECKPOINT_OF = {"base": "base", "geometry": "geometry", "guidance": "geometry"}
+LEDGER = "ablation.json"
+TABLE = "ablation"
+
+
+class Commands(Protocol):
+    """The platform's commands, run in-process; each takes the Hydra overrides of its ``conf/<name>.yaml``."""
+
+    def generate(self, overrides: list[str]) -> None: ...
+
+    def train(self, overrides: list[str], run_dir: Path) -> None: ...
+
+    def sample(self, overrides: list[str]) -> None: ...
+
+    def evaluate(self, overrides: list[str]) -> dict: ...
+
+
+class StageError(RuntimeError):
+    """A stage that cannot run as configured; the message names its folder."""
+
+
+@dataclass
+class AblationSpec:
+    """What to run. Override lists are Hydra overrides of the sub-commands' configs (``conf/ablate.yaml``
+    documents each). ``ckpt``: variant → a given checkpoint (no training); ``data_root``: None → generate
+    into ``out_dir/data``."""
+
+    out_dir: Path
+    data_root: Path | None = None
+    split: str = "test"
+    variants: tuple[str, ...] = VARIANTS
+    generate: list[str] = field(default_factory=list)
+    train: list[str] = field(default_factory=list)
+    train_variant: dict[str, list[str]] = field(default_factory=dict)
+    ckpt: dict[str, str | None] = field(default_factory=dict)
+    sample: list[str] = field(default_factory=list)
+    guidance: list[str] = field(default_factory=list)
+    evaluate: list[str] = field(default_factory=list)
+    title: str = ""
+    group: str = ""     # wandb group of every stage's run (``experiment_name=<group>``); "" leaves each command's
+
+    def named(self, overrides: list[str]) -> list[str]:
+        """``overrides`` with the wandb group first (so a list can still set its own)."""
+        return ([f"experiment_name={self.group}"] if self.group else []) + list(overrides)
+
+    def __post_init__(self) -> None:
+        self.out_dir = Path(self.out_dir)
+        unknown = [v for v in self.variants if v not in VARIANTS]
+        if unknown or not self.variants:
+            raise ValueError(f"variants: unknown or none {unknown or list(self.variants)} "
+                             f"(choose from {list(VARIANTS)})")
+        self.variants = tuple(v for v in VARIANTS if v in self.variants)
+        for variant, path in self.ckpt.items():
+            if variant not in ("base", "geometry"):
+                raise ValueError(f"train.ckpt.{variant}: only base and geometry are trained")
+            if path and not Path(path).is_file():
+                raise FileNotFoundError(f"train.ckpt.{variant}={path}: no such checkpoint file")
+
+    @property
+    def dataset(self) -> Path:
+        return Path(self.data_root) if self.data_root else self.out_dir / "data"
+
+
+@dataclass
+class Stage:
+    """One command run. ``inputs``: what its outputs depend on (compared with the ledger); ``derived``: when
+    the inputs changed, redo it from scratch (else refuse); ``complete``: extra check beyond ``outputs``."""
+
+    name: str
+    folder: Path
+    outputs: list[Path]
+    inputs: dict
+    run: Callable[[bool], object]
+    derived: bool = True
+    complete: Callable[[], bool] | None = None
+
+    def finished(self) -> bool:
+        return all(p.exists() for p in self.outputs) and (self.complete is None or self.complete())
+
+
+@dataclass
+class AblationResult:
+    """records: the table's rows; stages: name → "skipped" | "done" | "given" (a given dataset or checkpoint)
+    | "failed" | "blocked"; errors: name → message; tables: format → path (md, csv, tex, png); seconds: wall."""
+
+    records: list[dict]
+    stages: dict[str, str]
+    errors: dict[str, str]
+    tables: dict[str, Path]
+    seconds: float
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+
+class Ledger:
+    """``out_dir/ablation.json``: finished stages with their inputs, seconds and time (atomic writes)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = json.loads(path.read_text()) if path.exists() else {"stages": {}}
+
+    def inputs(self, name: str) -> dict | None:
+        entry = self.data["stages"].get(name)
+        return None if entry is None else entry["inputs"]
+
+    def record(self, name: str, inputs: dict, seconds: float | None) -> None:
+        self.data["stages"][name] = {"inputs": inputs, "seconds": seconds,
+                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        write_json_atomic(self.path, self.data)
+
+
+def normalised(obj) -> dict:
+    """JSON round trip, so ledger entries and fresh inputs compare equal (tuples → lists, paths → str)."""
+    return json.loads(json.dumps(obj, default=str))
+
+
+def changed_keys(before: dict, now: dict) -> list[str]:
+    return sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
+
+
+def run_stage(stage: Stage, ledger: Ledger) -> str:
+    """Skip, continue, redo or refuse the stage (module docstring, *Resume*); returns "skipped" or "done"."""
+    inputs = normalised(stage.inputs)
+    before = ledger.inputs(stage.name)
+    same = before is None or before == inputs
+    if same and stage.finished():
+        if before is None:
+            ledger.record(stage.name, inputs, None)
+        log.info("✓ %s: finished earlier (%s), skipped", stage.name, stage.folder)
+        return "skipped"
+    if not same and not stage.derived:
+        raise StageError(f"{stage.folder}: made with other settings (changed: {changed_keys(before, inputs)}); "
+                         f"delete that folder or use another out_dir")
+    if not same:
+        log.info("▶ %s: inputs changed (%s), redoing it from scratch", stage.name, changed_keys(before, inputs))
+    started = time.perf_counter()
+    stage.run(same)
+    if not stage.finished():
+        missing = [str(p) for p in stage.outputs if not p.exists()] or ["(incomplete outputs)"]
+        raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
+    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3))
+    return "done"
+
+
+def command_line(command: str, overrides: list[str]) -> str:
+    return " ".join([command, *overrides])
+
+
+def sha256(path: Path) -> str:
+    from spread.sampling.run import file_sha256
+
+    return file_sha256(path)
+
+
+def scenes_complete(folder: Path) -> bool:
+    """Every scene ``sampling.json`` counts is on disk."""
+    try:
+        manifest = json.loads((folder / "sampling.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return len(list((folder / "scenes").glob("*.npz"))) >= int(manifest.get("samples", 0))
+
+
+def sampling_inputs(folder: Path) -> dict:
+    """What an evaluation depends on: the sampling fingerprint and the number of samples."""
+    manifest = json.loads((folder / "sampling.json").read_text())
+    return {"fingerprint": manifest.get("fingerprint"), "samples": manifest.get("samples"),
+            "guidance": manifest.get("guidance")}
+
+
+class Ablation:
+    """Builds the stages of an :class:`AblationSpec` and runs them with :class:`Commands`."""
+
+    def __init__(self, spec: AblationSpec, commands: Commands):
+        self.spec = spec
+        self.commands = commands
+        self.out = spec.out_dir
+        self.ledger = Ledger(self.out / LEDGER)
+        self.status: dict[str, str] = {}
+        self.errors: dict[str, str] = {}
+
+    # ---- folders ----
+    def train_dir(self, variant: str) -> Path:
+        return self.out / "train" / variant
+
+    def ckpt(self, trained: str) -> Path:
+        given = self.spec.ckpt.get(trained)
+        return Path(given) if given else self.train_dir(trained) / "checkpoints" / "last.ckpt"
+
+    def sample_dir(self, variant: str) -> Path:
+        return self.out / "samples" / variant
+
+    def eval_dir(self, variant: str) -> Path:
+        return self.out / "eval" / variant
+
+    # ---- stages ----
+    def data_stage(self) -> Stage | None:
+        root = self.spec.dataset
+        if self.spec.data_root and root.exists():
+            if not (root / self.spec.split).is_dir():
+                raise StageError(f"data.root={root}: no '{self.spec.split}' split folder")
+            return None
+        overrides = [*self.spec.generate, f"out_dir={root}"]
+
+        def run(resume: bool) -> None:  # spread-generate resumes by itself (rooms on disk are kept)
+            log.info("  ≙ %s", command_line("spread-generate", overrides))
+            self.commands.generate(overrides)
+
+        return Stage("data", root, [root / "manifest.json"], {"overrides": overrides}, run, derived=False)
+
+    def train_stage(self, trained: str) -> Stage:
+        folder = self.train_dir(trained)
+        last = folder / "checkpoints" / "last.ckpt"
+        overrides = self.spec.named([*self.spec.train, *self.spec.train_variant.get(trained, []),
+                                      f"data.root={self.spec.dataset}", f"out_dir={folder}"])
+
+        def run(resume: bool) -> None:
+            extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
+            log.info("  ≙ %s", command_line("spread-train", overrides + extra))
+            self.commands.train(overrides + extra, folder)
+
+        return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], {"overrides": overrides}, run,
+                     derived=False)
+
+    def sample_stage(self, variant: str) -> Stage:
+        folder, ckpt = self.sample_dir(variant), self.ckpt(CHECKPOINT_OF[variant])
+        overrides = self.spec.named([*self.spec.sample, *(self.spec.guidance if variant == "guidance" else []),
+                                     f"ckpt={ckpt}", f"data.root={self.spec.dataset}", f"data.split={self.spec.split}",
+                                     f"out_dir={folder}"])
+
+        def run(resume: bool) -> None:
+            args = overrides + [f"resume={str(resume).lower()}"]
+            log.info("  ≙ %s", command_line("spread-sample", args))
+            self.commands.sample(args)
+
+        return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
+                     {"overrides": overrides, "ckpt_sha256": sha256(ckpt)}, run,
+                     complete=lambda: scenes_complete(folder))
+
+    def evaluate_stage(self, variant: str) -> Stage:
+        folder, samples = self.eval_dir(variant), self.sample_dir(variant)
+        overrides = self.spec.named([*self.spec.evaluate, f"scenes={samples / 'scenes'}",
+                                     f"reference={self.spec.dataset}", f"reference_split={self.spec.split}",
+                                     f"out_dir={folder}"])
+
+        def run(resume: bool) -> None:
+            args = overrides + [f"resume={str(resume).lower()}"]
+            log.info("  ≙ %s", command_line("spread-evaluate", args))
+            self.commands.evaluate(args)
+
+        return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"],
+                     {"overrides": overrides, "samples": sampling_inputs(samples)}, run)
+
+    # ---- running ----
+    def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:
+        """Build and run one stage unless a stage it needs failed; record the outcome; True when finished."""
+        blocked = [n for n in needs if self.status.get(n) in ("failed", "blocked")]
+        if blocked:
+            self.status[name] = "blocked"
+            self.errors.setdefault(name, f"not run: {', '.join(blocked)} did not finish")
+            return False
+        try:
+            stage = build()
+            if stage is None:
+                self.status[name] = "given"
+                return True
+            log.info("▶ %s → %s", name, stage.folder)
+            self.status[name] = run_stage(stage, self.ledger)
+            return True
+        except KeyboardInterrupt:
+            raise
+        except (Exception, SystemExit) as exc:  # noqa: BLE001 - a failed stage must not lose the other rows
+            message = str(exc) if isinstance(exc, SystemExit) else f"{type(exc).__name__}: {exc}"
+            self.status[name], self.errors[name] = "failed", f"{name}: {message}"
+            log.error("✗ %s failed: %s\n%s", name, message, traceback.format_exc(limit=6))
+        return False
+
+    def rows(self) -> list[dict]:
+        """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed)."""
+        records = []
+        for v in self.spec.variants:
+            path = self.eval_dir(v) / "metrics.json"
+            metrics = json.loads(path.read_text()) if self.status.get(f"evaluate/{v}") in ("done", "skipped") else {}
+            row = {"variant": v, "method": LABELS[v], **{c.key: metrics.get(c.key) for c in METRICS}}
+            row.update({"still_fraction": metrics.get("still_fraction"), "n_scenes": metrics.get("n_scenes"),
+                        "n_objects": metrics.get("n_objects"), "fid_status": metrics.get("fid_status"),
+                        "status": "ok" if metrics else self.errors.get(f"evaluate/{v}", "not run")})
+            records.append(row)
+        return records
+
+    def table_stage(self, records: list[dict], log_table: Callable[[list[dict], Path], None] | None) -> Stage:
+        stem = self.out / TABLE
+        outputs = [stem.with_suffix(s) for s in (".md", ".csv", ".tex", ".png")]
+
+        def run(resume: bool) -> None:
+            write_ablation_table(records, stem, self.spec.title)
+            if log_table is not None:
+                log_table(records, stem.with_suffix(".png"))
+
+        return Stage("table", self.out, outputs, {"rows": records}, run)
+
+    def run(self, log_table: Callable[[list[dict], Path], None] | None = None) -> AblationResult:
+        started = time.perf_counter()
+        self.out.mkdir(parents=True, exist_ok=True)
+        spec = self.spec
+        self.attempt("data", self.data_stage, [])
+        trained = [t for t in ("base", "geometry") if any(CHECKPOINT_OF[v] == t for v in spec.variants)]
+        for t in trained:
+            if spec.ckpt.get(t):
+                self.status[f"train/{t}"] = "given"
+            else:
+                self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
+        for v in spec.variants:
+            self.attempt(f"sample/{v}", lambda v=v: self.sample_stage(v), ["data", f"train/{CHECKPOINT_OF[v]}"])
+        for v in spec.variants:
+            self.attempt(f"evaluate/{v}", lambda v=v: self.evaluate_stage(v), [f"sample/{v}"])
+        records = self.rows()
+        self.attempt("table", lambda: self.table_stage(records, log_table), [])
+        stem = self.out / TABLE
+        tables = {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex", "png")}
+        return AblationResult(records, dict(self.status), dict(self.errors), tables,
+                              round(time.perf_counter() - started, 3))
+
+
+def table_columns() -> list[Column]:
+    return [Column("method", "Method"), *METRICS]
+
+
+def write_ablation_table(records: list[dict], stem: Path, title: str = "") -> dict[str, Path]:
+    """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold) and ``.png`` (bars per metric)."""
+    from spread.experiments.plots import ablation_bars
+
+    caption = title or "Ablation: base, +geometry perceiver, +guidance (same test graphs, seeds and protocol)"
+    paths = write_tables(records, table_columns(), stem, caption=caption, label="tab:ablation",
+                         csv_keys=["variant", "method", *[c.key for c in METRICS], "still_fraction", "n_scenes",
+                                   "n_objects", "fid_status", "status"])
+    ablation_bars(records, METRICS, stem.with_suffix(".png"), label_key="method", title=caption)
+    return {**paths, "png": stem.with_suffix(".png")}
+
+
+def run_ablation(spec: AblationSpec, commands: Commands,
+                 log_table: Callable[[list[dict], Path], None] | None = None) -> AblationResult:
+    """Run (or resume) every stage of ``spec`` (module docstring) and write the table."""
+    return Ablation(spec, commands).run(log_table)

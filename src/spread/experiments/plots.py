@@ -1,0 +1,101 @@
+"""PNG plots of result records (matplotlib, Agg backend: no display needed).
+
+* :func:`ablation_bars`: one panel per metric, one bar per variant (the ablation table as a figure).
+* :func:`metric_vs_weight`: one metric against one guidance weight over a sweep's runs (every run a
+  point; the line joins the mean at each weight value, i.e. the marginal effect over the other weights).
+
+Each function returns what it drew, so callers (and tests) can check the figure's data.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Sequence
+
+from spread.experiments.tables import Column
+from spread.io import atomic_path
+
+
+def number(value) -> float | None:
+    """A finite float, or None (missing, null, NaN, not a number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return None if math.isnan(float(value)) or math.isinf(float(value)) else float(value)
+
+
+def figure(*args, **kwargs):
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(*args, **kwargs)
+
+
+def save(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Write the figure atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
+def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str | Path, label_key: str = "variant",
+                  title: str = "") -> dict[str, list[float | None]]:
+    """Bar plot: a panel per metric column, a bar per record (``n/a`` where the value is null). Returns
+    metric key → the values drawn, in record order."""
+    fig, axes = figure(1, len(columns), figsize=(2.6 * len(columns), 3.2), squeeze=False)
+    names = [str(r.get(label_key)) for r in records]
+    colours = ["#8c8c8c", "#4c72b0", "#dd8452", "#55a868", "#c44e52"]
+    drawn = {}
+    for ax, column in zip(axes[0], columns):
+        values = [number(r.get(column.key)) for r in records]
+        drawn[column.key] = values
+        heights = [0.0 if v is None else v for v in values]
+        bars = ax.bar(range(len(names)), heights, color=[colours[i % len(colours)] for i in range(len(names))])
+        for bar, v in zip(bars, values):
+            ax.annotate("n/a" if v is None else column.format(v), (bar.get_x() + bar.get_width() / 2, bar.get_height()),
+                        ha="center", va="bottom", fontsize=7)
+        if all(v is None for v in values):
+            ax.set_ylim(0, 1)
+            ax.set_yticks([])
+        ax.set_xticks(range(len(names)), names, rotation=20, fontsize=8)
+        ax.set_title(column.label + column.arrow, fontsize=9)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.margins(y=0.15)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    save(fig, path)
+    return drawn
+
+
+def metric_vs_weight(records: Sequence[dict], metric: Column, weight: str, path: str | Path,
+                     note: str = "") -> list[tuple[float, float]]:
+    """Scatter of ``metric`` against ``weight`` over the records that have both (sorted by weight, then
+    value), with the per-weight mean joined by a line. Returns the points drawn."""
+    points = sorted((number(r.get(weight)), number(r.get(metric.key))) for r in records
+                    if number(r.get(weight)) is not None and number(r.get(metric.key)) is not None)
+    fig, ax = figure(figsize=(4.2, 3.2))
+    if points:
+        ax.scatter([p[0] for p in points], [p[1] for p in points], s=18, alpha=0.6, label="runs")
+        by_weight = defaultdict(list)
+        for w, v in points:
+            by_weight[w].append(v)
+        xs = sorted(by_weight)
+        ax.plot(xs, [sum(by_weight[x]) / len(by_weight[x]) for x in xs], "-o", color="#c44e52", ms=4,
+                label="mean over the other weights")
+        ax.legend(fontsize=7)
+    else:
+        ax.text(0.5, 0.5, "no values" + (f"\n{note}" if note else ""), ha="center", va="center", fontsize=8,
+                transform=ax.transAxes, wrap=True)
+    ax.set_xlabel(weight)
+    ax.set_ylabel(metric.label + metric.arrow)
+    ax.set_title(f"{metric.label} vs {weight.split('.')[-1]} (n = {len(points)})", fontsize=9)
+    fig.tight_layout()
+    save(fig, path)
+    return points

@@ -1,0 +1,84 @@
+"""``spread-report``: run folders and wandb offline runs → a comparison table and metric-vs-weight plots.
+
+Writes into ``out_dir``:
+
+* ``report.md`` / ``report.csv``: one row per run (name, the guidance weights, GRecall, Col_mesh, ASD in
+  metres, Stability, FID, scene count, where it was read from); the CSV keeps full precision.
+* ``plots/<metric>_vs_<weight>.png``: each metric against each weight, every run a point, the mean per
+  weight value joined (:func:`spread.experiments.plots.metric_vs_weight`).
+* ``report.json``: what was read, what was skipped (unfinished runs) and the plots with their points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from spread.experiments.plots import metric_vs_weight
+from spread.experiments.runs import read_runs
+from spread.experiments.tables import METRICS, Column, write_tables
+from spread.io import write_json_atomic
+
+#: The guidance weights of DESIGN §5's sweeps, as config keys.
+WEIGHTS = ("guidance.collision", "guidance.gravity", "guidance.relation")
+
+
+@dataclass
+class ReportResult:
+    """records: one per run; plots: (metric, weight) → (png path, points drawn); tables: format → path;
+    unfinished: run folders without metrics.json that were skipped."""
+
+    records: list[dict]
+    plots: dict[tuple[str, str], tuple[Path, list]] = field(default_factory=dict)
+    tables: dict[str, Path] = field(default_factory=dict)
+    unfinished: list[Path] = field(default_factory=list)
+
+
+def report_columns(weights: Sequence[str], metrics: Sequence[Column]) -> list[Column]:
+    return [Column("run", "run"), *[Column(w, w.split(".")[-1], None) for w in weights], *metrics,
+            Column("n_scenes", "scenes", None)]
+
+
+def metric_columns(keys: Sequence[str] | None) -> list[Column]:
+    """The :data:`~spread.experiments.tables.METRICS` columns named by ``keys`` (all when None)."""
+    by_key = {c.key: c for c in METRICS}
+    if keys is None:
+        return list(METRICS)
+    unknown = [k for k in keys if k not in by_key]
+    if unknown:
+        raise ValueError(f"metrics: unknown {unknown} (choose from {list(by_key)})")
+    return [by_key[k] for k in keys]
+
+
+def plot_name(metric: str, weight: str, weights: Sequence[str]) -> str:
+    short = weight.split(".")[-1]
+    if sum(w.split(".")[-1] == short for w in weights) > 1:
+        short = weight.replace(".", "_")
+    return f"{metric}_vs_{short}.png"
+
+
+def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metrics: Sequence[str] | None = None,
+               title: str = "") -> ReportResult:
+    """Read ``runs`` (paths, globs, sweep folders; :func:`~spread.experiments.runs.find_runs`) and write the
+    report (module docstring) into ``out_dir``."""
+    out = Path(out_dir)
+    columns = metric_columns(metrics)
+    records, unfinished = read_runs(runs, weights)
+    result = ReportResult(records, unfinished=unfinished)
+    result.tables = write_tables(records, report_columns(weights, columns), out / "report",
+                                 caption=title or f"{len(records)} runs", formats=("md", "csv"))
+    fid_notes = sorted({str(r.get("fid_status")) for r in records if r.get("fid") is None and r.get("fid_status")})
+    for metric in columns:
+        for weight in weights:
+            path = out / "plots" / plot_name(metric.key, weight, weights)
+            note = "; ".join(fid_notes)[:200] if metric.key == "fid" else ""
+            result.plots[(metric.key, weight)] = (path, metric_vs_weight(records, metric, weight, path, note))
+    write_json_atomic(out / "report.json", {
+        "runs": [{"run": r["run"], "source": r["source"], "kind": r["kind"]} for r in records],
+        "unfinished": [str(p) for p in unfinished],
+        "tables": {k: str(v) for k, v in result.tables.items()},
+        "plots": [{"metric": m, "weight": w, "png": str(p), "points": pts}
+                  for (m, w), (p, pts) in result.plots.items()],
+    })
+    return result

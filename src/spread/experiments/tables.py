@@ -1,0 +1,165 @@
+"""Tables of result records (one dict per row) as Markdown, CSV and LaTeX; CSV reads back exactly.
+
+A :class:`Column` names a record key, its header label and how a value is printed in Markdown and
+LaTeX. CSV keeps the raw values (floats by ``repr``, so they read back bit for bit; ``None`` as an
+empty cell). :data:`METRICS` are the ablation table's columns (DESIGN §6): ASD in metres, as in the
+paper's table and ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+from spread.io import write_text_atomic
+
+
+@dataclass(frozen=True)
+class Column:
+    """key: record key; label: header; digits: decimals printed (None: as is); better: "max", "min" or
+    None (which value is bold in LaTeX and marked in Markdown); latex: header in LaTeX (default label)."""
+
+    key: str
+    label: str
+    digits: int | None = None
+    better: str | None = None
+    latex: str | None = None
+
+    @property
+    def arrow(self) -> str:
+        return {"max": " ↑", "min": " ↓"}.get(self.better or "", "")
+
+    def format(self, value) -> str:
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return "–"
+        if self.digits is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return f"{float(value):.{self.digits}f}"
+        return str(value)
+
+
+#: The five metrics of the ablation table (keys of ``metrics.json``), in the paper's order plus FID.
+METRICS = (
+    Column("grecall", "GRecall", 3, "max", r"GRecall$\uparrow$"),
+    Column("col_mesh", "Col_mesh", 3, "min", r"Col$_{\text{mesh}}\downarrow$"),
+    Column("asd", "ASD (m)", 4, "min", r"ASD (m)$\downarrow$"),
+    Column("stability", "Stability", 3, "max", r"Stability$\uparrow$"),
+    Column("fid", "FID", 2, "min", r"FID$\downarrow$"),
+)
+
+
+def best_rows(records: Sequence[dict], column: Column) -> set[int]:
+    """Indices of the rows holding the best value of ``column`` (ties all count; none without ``better``)."""
+    values = [(i, r.get(column.key)) for i, r in enumerate(records)]
+    values = [(i, float(v)) for i, v in values if isinstance(v, (int, float)) and not isinstance(v, bool)
+              and not math.isnan(float(v))]
+    if column.better not in ("max", "min") or len(values) < 2:
+        return set()
+    best = (max if column.better == "max" else min)(v for _, v in values)
+    return {i for i, v in values if v == best}
+
+
+def markdown_table(records: Sequence[dict], columns: Sequence[Column]) -> str:
+    """A GitHub Markdown table; the best value of each ranked column is bold."""
+    best = {c.key: best_rows(records, c) for c in columns}
+    lines = ["| " + " | ".join(c.label + c.arrow for c in columns) + " |",
+             "|" + "|".join("---" if c.digits is None else "---:" for c in columns) + "|"]
+    for i, r in enumerate(records):
+        cells = [c.format(r.get(c.key)) for c in columns]
+        cells = [f"**{s}**" if i in best[c.key] else s for s, c in zip(cells, columns)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def latex_escape(text: str) -> str:
+    """``text`` with LaTeX's special characters escaped."""
+    text = text.replace("\\", "\x00")
+    for char in "_%&#${}":
+        text = text.replace(char, "\\" + char)
+    return text.replace("\x00", r"\textbackslash{}")
+
+
+def latex_table(records: Sequence[dict], columns: Sequence[Column], caption: str = "", label: str = "") -> str:
+    """A booktabs ``table`` like the paper's ablation table; the best value per column is bold."""
+    best = {c.key: best_rows(records, c) for c in columns}
+    spec = "".join("l" if c.digits is None else "c" for c in columns)
+    head = " & ".join(c.latex or latex_escape(c.label) for c in columns)
+    rows = []
+    for i, r in enumerate(records):
+        cells = [latex_escape(c.format(r.get(c.key))).replace("–", "--") for c in columns]
+        cells = [rf"\textbf{{{s}}}" if i in best[c.key] else s for s, c in zip(cells, columns)]
+        rows.append("    " + " & ".join(cells) + r" \\")
+    parts = [r"\begin{table}[t]", r"  \centering"]
+    if caption:
+        parts.append(rf"  \caption{{{caption}}}")
+    parts += [rf"  \begin{{tabular}}{{{spec}}}", r"    \toprule", f"    {head} \\\\", r"    \midrule", *rows,
+              r"    \bottomrule", r"  \end{tabular}"]
+    if label:
+        parts.append(rf"  \label{{{label}}}")
+    parts.append(r"\end{table}")
+    return "\n".join(parts) + "\n"
+
+
+def csv_text(records: Sequence[dict], keys: Sequence[str]) -> str:
+    """CSV of ``keys`` (header row = keys); floats by ``repr``, None as an empty cell."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(keys)
+    for r in records:
+        writer.writerow(["" if r.get(k) is None else (repr(r[k]) if isinstance(r[k], float) else r[k]) for k in keys])
+    return buf.getvalue()
+
+
+def parse_cell(text: str):
+    """A CSV cell back to None, bool, int, float or str."""
+    if text == "":
+        return None
+    if text in ("True", "False"):
+        return text == "True"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def read_csv(path: str | Path) -> list[dict]:
+    """Records of a CSV written by :func:`write_csv` (cells parsed by :func:`parse_cell`)."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return [{k: parse_cell(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+
+
+def write_csv(records: Sequence[dict], keys: Sequence[str], path: str | Path) -> Path:
+    write_text_atomic(path, csv_text(records, keys))
+    return Path(path)
+
+
+def record_keys(records: Iterable[dict], first: Sequence[str] = ()) -> list[str]:
+    """``first``, then every other key of the records in order of appearance."""
+    keys = list(first)
+    for r in records:
+        keys += [k for k in r if k not in keys]
+    return keys
+
+
+def write_tables(records: Sequence[dict], columns: Sequence[Column], stem: str | Path, caption: str = "",
+                 label: str = "", csv_keys: Sequence[str] | None = None,
+                 formats: Sequence[str] = ("md", "csv", "tex")) -> dict[str, Path]:
+    """``stem.md`` / ``stem.csv`` / ``stem.tex`` (atomic writes); CSV holds ``csv_keys`` (default: the columns'
+    keys, then every other record key). Returns format → path."""
+    stem = Path(stem)
+    out = {}
+    if "md" in formats:
+        out["md"] = stem.with_suffix(".md")
+        write_text_atomic(out["md"], (f"{caption}\n\n" if caption else "") + markdown_table(records, columns))
+    if "csv" in formats:
+        keys = list(csv_keys) if csv_keys is not None else record_keys(records, [c.key for c in columns])
+        out["csv"] = write_csv(records, keys, stem.with_suffix(".csv"))
+    if "tex" in formats:
+        out["tex"] = stem.with_suffix(".tex")
+        write_text_atomic(out["tex"], latex_table(records, columns, latex_escape(caption), label))
+    return out

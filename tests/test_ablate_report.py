@@ -1,0 +1,448 @@
+"""spread-ablate, spread-report and the guidance-weight sweep.
+
+* tables: CSV reads back equal to the records; Markdown / LaTeX hold the rows with the right numbers.
+* report: two fake run folders and a real wandb offline run (written by wandb, read back without network)
+  → records, a table, one PNG per (metric, weight) with the right points; bad input names the path.
+* ablation stages with fake commands: finished stages are skipped, missing outputs redone, changed inputs
+  redone or refused, a failing stage blocks only its row.
+* the sweep preset: 27 jobs with distinct, deterministic run folders; the wandb sweep names the same ones.
+* end to end (tiny model, a few steps, 4 sampling steps, 1 stability run, no FID): the quick preset's
+  code path writes the three-row table; a re-run skips every stage; an interrupted sweep resumes.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from spread.cli import conf_dir
+from spread.experiments import AblationSpec, RunError, find_runs, read_runs, run_ablation, run_report
+from spread.experiments.ablation import StageError
+from spread.experiments.tables import METRICS, Column, read_csv, write_tables
+
+from helpers import FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, run_script
+
+ROWS = [
+    {"variant": "base", "method": "Ours (base)", "grecall": 0.963, "col_mesh": 0.241, "asd": 0.014,
+     "stability": 0.934, "fid": None, "n_scenes": 8, "status": "ok"},
+    {"variant": "geometry", "method": "+Geometry", "grecall": 0.965, "col_mesh": 0.225, "asd": 0.012,
+     "stability": 0.938, "fid": None, "n_scenes": 8, "status": "ok"},
+    {"variant": "guidance", "method": "+Guidance", "grecall": 0.1 + 0.2, "col_mesh": 0.121, "asd": 0.007,
+     "stability": 0.95, "fid": 12.5, "n_scenes": 8, "status": "ok"},
+]
+WEIGHTS = ("guidance.collision", "guidance.gravity", "guidance.relation")
+
+
+# ---- tables ---------------------------------------------------------------------------------------------
+
+def test_tables_round_trip_and_show_the_rows(tmp_path):
+    columns = [Column("method", "Method"), *METRICS]
+    paths = write_tables(ROWS, columns, tmp_path / "t", caption="Ablation", label="tab:x")
+    assert read_csv(paths["csv"]) == ROWS  # every key, None as None, 0.1 + 0.2 bit for bit
+    md = paths["md"].read_text().splitlines()
+    body = [line for line in md if line.startswith("| ") and "Method" not in line]
+    assert len(body) == 3
+    assert body[0].split(" | ")[1:5] == ["0.963", "0.241", "0.0140", "0.934"]
+    assert "**0.300**" not in body[2] and "0.300" in body[2] and "**12.50**" not in body[2]  # one FID: not ranked
+    assert "**0.121**" in body[2] and "**0.965**" in body[1]  # best Col_mesh (min), best GRecall (max)
+    tex = paths["tex"].read_text()
+    assert r"\toprule" in tex and r"\label{tab:x}" in tex and r"Col$_{\text{mesh}}\downarrow$" in tex
+    assert r"Ours (base) & 0.963 & 0.241 & 0.0140 & 0.934 & -- \\" in tex
+    assert r"+Guidance & 0.300 & \textbf{0.121} & \textbf{0.0070} & \textbf{0.950} & 12.50 \\" in tex
+
+
+def test_ablation_bar_plot_draws_every_row(tmp_path):
+    from PIL import Image
+
+    from spread.experiments.plots import ablation_bars
+
+    drawn = ablation_bars(ROWS, METRICS, tmp_path / "a.png", label_key="method")
+    assert drawn["col_mesh"] == [0.241, 0.225, 0.121] and drawn["fid"] == [None, None, 12.5]
+    assert Image.open(tmp_path / "a.png").size[0] > 500
+
+
+# ---- report ---------------------------------------------------------------------------------------------
+
+def metrics_json(col_mesh: float, grecall: float) -> dict:
+    return {"col_mesh": col_mesh, "grecall": grecall, "asd": 0.01, "stability": 0.9, "fid": None,
+            "fid_status": "disabled: fid.enabled is false", "n_scenes": 3, "n_objects": 20, "n_failed": 0}
+
+
+def fake_runs(root: Path) -> dict[str, Path]:
+    """A sweep folder with two run folders (weights in .hydra/config.yaml; in sampling.json only), an
+    unfinished run, and a wandb offline run written by wandb itself."""
+    a = root / "sweep" / "c0.0_g0.001_r0.001"
+    (a / ".hydra").mkdir(parents=True)
+    (a / ".hydra" / "config.yaml").write_text(yaml.safe_dump(
+        {"guidance": {"mode": "refine", "collision": 0.0, "gravity": 0.001, "relation": 0.001}, "seed": 0}))
+    (a / "metrics.json").write_text(json.dumps(metrics_json(0.30, 0.91)))
+    b = root / "sweep" / "c0.015_g0.002_r0.0"
+    b.mkdir(parents=True)
+    (b / "sampling.json").write_text(json.dumps(
+        {"samples": 3, "guidance": {"mode": "refine", "collision": 0.015, "gravity": 0.002, "relation": 0.0}}))
+    (b / "metrics.json").write_text(json.dumps(metrics_json(0.10, 0.95)))
+    unfinished = root / "sweep" / "c0.0075_g0.0_r0.0"
+    (unfinished / "scenes").mkdir(parents=True)
+    (unfinished / "sampling.json").write_text("{}")
+    return {"a": a, "b": b, "unfinished": unfinished}
+
+
+@pytest.fixture
+def wandb_run(tmp_path, monkeypatch) -> Path:
+    """A wandb offline run (flat dotted sweep keys, as a wandb agent sets them) with metrics in its summary."""
+    import wandb
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    run = wandb.init(project="spread", dir=str(tmp_path), mode="offline", name="agent-run",
+                     config={"guidance.collision": 0.0075, "guidance.gravity": 0.0, "guidance.relation": 0.002},
+                     settings=wandb.Settings(console="off", save_code=False, silent=True))
+    run.log({"col_mesh": 0.5, "grecall": 0.5})
+    run.summary.update(metrics_json(0.20, 0.93))
+    run.finish()
+    found = list((tmp_path / "wandb").glob("offline-run-*"))
+    assert len(found) == 1
+    return found[0]
+
+
+def test_report_reads_run_folders_and_a_wandb_offline_run(tmp_path, wandb_run):
+    runs = fake_runs(tmp_path)
+    result = run_report([str(tmp_path / "sweep"), str(wandb_run)], tmp_path / "report")
+    by_name = {r["run"]: r for r in result.records}
+    assert set(by_name) == {"c0.0_g0.001_r0.001", "c0.015_g0.002_r0.0", "agent-run"}
+    assert [by_name["c0.0_g0.001_r0.001"][w] for w in WEIGHTS] == [0.0, 0.001, 0.001]  # .hydra/config.yaml
+    assert [by_name["c0.015_g0.002_r0.0"][w] for w in WEIGHTS] == [0.015, 0.002, 0.0]  # sampling.json
+    assert [by_name["agent-run"][w] for w in WEIGHTS] == [0.0075, 0.0, 0.002]  # the .wandb file
+    assert by_name["agent-run"]["col_mesh"] == 0.20 and by_name["agent-run"]["kind"] == "wandb"
+    assert result.unfinished == [runs["unfinished"]]
+    assert len(result.plots) == 5 * 3
+    for (metric, weight), (png, points) in result.plots.items():
+        assert png.exists() and png.name == f"{metric}_vs_{weight.split('.')[-1]}.png"
+        expected = sorted((r[weight], r[metric]) for r in result.records if r[metric] is not None)
+        assert points == expected, (metric, weight)
+    assert result.plots[("col_mesh", "guidance.collision")][1] == [(0.0, 0.30), (0.0075, 0.20), (0.015, 0.10)]
+    assert result.plots[("fid", "guidance.gravity")][1] == []  # FID null everywhere: an empty, labelled plot
+    table = read_csv(result.tables["csv"])
+    assert [(r["run"], r["col_mesh"]) for r in table] == [(r["run"], r["col_mesh"]) for r in result.records]
+    assert "c0.015_g0.002_r0.0" in result.tables["md"].read_text()
+    assert json.loads((tmp_path / "report" / "report.json").read_text())["unfinished"] == [str(runs["unfinished"])]
+
+
+def test_report_bad_input_names_the_path(tmp_path):
+    runs = fake_runs(tmp_path)
+    with pytest.raises(RunError, match=f"{tmp_path / 'nope'}: no such folder"):
+        find_runs([str(tmp_path / "nope")])
+    with pytest.raises(RunError, match="matches nothing"):
+        find_runs([str(tmp_path / "sweep" / "x*")])
+    with pytest.raises(RunError, match=f"{runs['unfinished']}: no metrics.json"):
+        find_runs([str(runs["unfinished"])])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(RunError, match=f"{tmp_path / 'empty'}: no metrics.json, and no run folders"):
+        find_runs([str(tmp_path / "empty")])
+    records, unfinished = read_runs([str(tmp_path / "sweep" / "c0.0*")], WEIGHTS)  # a glob: unfinished skipped
+    assert [r["run"] for r in records] == ["c0.0_g0.001_r0.001", "c0.015_g0.002_r0.0"]
+    assert unfinished == [runs["unfinished"]]
+    proc = run_script("spread-report", f"runs={tmp_path / 'nope'}", f"out_dir={tmp_path / 'r'}", ok=False)
+    assert proc.returncode != 0 and f"{tmp_path / 'nope'}: no such folder" in proc.stderr
+
+
+# ---- ablation stages (fake commands) ----------------------------------------------------------------------
+
+def args(overrides: list[str]) -> dict:
+    return dict(o.split("=", 1) for o in overrides)
+
+
+class FakeCommands:
+    """Writes each command's outputs like the real one would (atomic end markers), records the calls."""
+
+    def __init__(self, fail_guidance: bool = False):
+        self.calls: list[tuple[str, str, str | None]] = []
+        self.fail_guidance = fail_guidance
+
+    def generate(self, overrides):
+        out = Path(args(overrides)["out_dir"])
+        (out / "test").mkdir(parents=True, exist_ok=True)
+        (out / "manifest.json").write_text("{}")
+        self.calls.append(("generate", str(out), None))
+
+    def train(self, overrides, run_dir):
+        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        (run_dir / "checkpoints" / "last.ckpt").write_bytes(str(run_dir).encode())
+        (run_dir / "metrics.json").write_text("{}")
+        self.calls.append(("train", run_dir.name, args(overrides)["ckpt_path"]))
+
+    def sample(self, overrides):
+        from spread.sampling.run import file_sha256
+
+        a = args(overrides)
+        out = Path(a["out_dir"])
+        self.calls.append(("sample", out.name, a["resume"]))
+        if self.fail_guidance and "guidance" in a:
+            raise RuntimeError("guidance exploded")
+        (out / "scenes").mkdir(parents=True, exist_ok=True)
+        if a["resume"] == "false":
+            for f in (out / "scenes").glob("*.npz"):
+                f.unlink()
+        for i in range(2):
+            (out / "scenes" / f"g{i}.npz").write_bytes(b"x")
+        (out / "sampling.json").write_text(json.dumps(
+            {"samples": 2, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "seed": a["seed"]},
+             "guidance": a.get("guidance")}))
+
+    def evaluate(self, overrides):
+        a = args(overrides)
+        out = Path(a["out_dir"])
+        out.mkdir(parents=True, exist_ok=True)
+        value = {"base": 0.3, "geometry": 0.2, "guidance": 0.1}[out.name]
+        (out / "metrics.json").write_text(json.dumps(metrics_json(value, 1 - value)))
+        self.calls.append(("evaluate", out.name, a["resume"]))
+        return {}
+
+
+def spec(tmp_path: Path, **kw) -> AblationSpec:
+    defaults = dict(out_dir=tmp_path / "abl", train=["seed=0"], train_variant={"base": ["experiment=base"],
+                    "geometry": ["experiment=geometry"]}, sample=["seed=0"], guidance=["guidance=refine"],
+                    evaluate=["seed=0"], generate=["rooms=4"])
+    return AblationSpec(**{**defaults, **kw})
+
+
+def test_ablation_resumes_stage_by_stage(tmp_path):
+    commands = FakeCommands()
+    first = run_ablation(spec(tmp_path), commands)
+    assert first.ok and set(first.stages.values()) == {"done"}
+    assert [c[0] for c in commands.calls] == ["generate", "train", "train", *["sample"] * 3, *["evaluate"] * 3]
+    assert [(r["variant"], r["col_mesh"]) for r in first.records] == [("base", 0.3), ("geometry", 0.2),
+                                                                       ("guidance", 0.1)]
+    assert read_csv(tmp_path / "abl" / "ablation.csv")[2]["col_mesh"] == 0.1
+    assert all(p.exists() for p in first.tables.values())
+
+    commands.calls.clear()  # everything finished: nothing runs, the table stays
+    again = run_ablation(spec(tmp_path), commands)
+    assert commands.calls == [] and set(again.stages.values()) == {"skipped"}
+
+    out = tmp_path / "abl"
+    (out / "eval" / "geometry" / "metrics.json").unlink()      # a missing output: that stage only, resumed
+    (out / "samples" / "base" / "scenes" / "g1.npz").unlink()  # a missing scene: sampling resumes
+    (out / "train" / "base" / "metrics.json").unlink()         # training interrupted: continue from last.ckpt
+    again = run_ablation(spec(tmp_path), commands)
+    assert commands.calls == [("train", "base", str(out / "train" / "base" / "checkpoints" / "last.ckpt")),
+                              ("sample", "base", "true"), ("evaluate", "geometry", "true")]
+    assert again.stages["table"] == "skipped"  # same rows
+
+    commands.calls.clear()  # a changed checkpoint: its samples and their evaluations are redone from scratch
+    (out / "train" / "geometry" / "checkpoints" / "last.ckpt").write_bytes(b"retrained")
+    run_ablation(spec(tmp_path), commands)
+    assert commands.calls == [("sample", "geometry", "false"), ("sample", "guidance", "false"),
+                              ("evaluate", "geometry", "false"), ("evaluate", "guidance", "false")]
+
+    with pytest.raises(StageError, match=f"{out / 'train' / 'base'}: made with other settings"):
+        from spread.experiments.ablation import Ablation, run_stage
+
+        ablation = Ablation(spec(tmp_path, train=["seed=1"]), commands)
+        run_stage(ablation.train_stage("base"), ablation.ledger)
+    changed = run_ablation(spec(tmp_path, train=["seed=1"]), commands)  # the command reports it per stage
+    assert changed.stages["train/base"] == "failed" and "made with other settings" in changed.errors["train/base"]
+
+
+def test_a_failing_row_blocks_only_itself(tmp_path):
+    commands = FakeCommands(fail_guidance=True)
+    result = run_ablation(spec(tmp_path), commands)
+    assert not result.ok and result.stages["sample/guidance"] == "failed"
+    assert result.stages["evaluate/guidance"] == "blocked" and result.stages["evaluate/geometry"] == "done"
+    assert "guidance exploded" in result.errors["sample/guidance"]
+    rows = read_csv(tmp_path / "abl" / "ablation.csv")
+    assert [r["col_mesh"] for r in rows] == [0.3, 0.2, None] and "not run" in rows[2]["status"]
+    commands.fail_guidance = False  # fixed: only the guidance row and the table run again
+    commands.calls.clear()
+    result = run_ablation(spec(tmp_path), commands)
+    assert result.ok and [c[:2] for c in commands.calls] == [("sample", "guidance"), ("evaluate", "guidance")]
+    assert result.stages["table"] == "done" and read_csv(tmp_path / "abl" / "ablation.csv")[2]["col_mesh"] == 0.1
+
+
+def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):
+    ckpt = tmp_path / "g.ckpt"
+    ckpt.write_bytes(b"given")
+    commands = FakeCommands()
+    result = run_ablation(spec(tmp_path, variants=("geometry", "guidance"), ckpt={"geometry": str(ckpt)}), commands)
+    assert result.stages["train/geometry"] == "given" and "train/base" not in result.stages
+    assert [r["variant"] for r in result.records] == ["geometry", "guidance"]
+    assert not [c for c in commands.calls if c[0] == "train"]
+    with pytest.raises(ValueError, match="variants"):
+        spec(tmp_path, variants=("bogus",))
+    with pytest.raises(FileNotFoundError, match="train.ckpt.base=/nope.ckpt"):
+        spec(tmp_path, ckpt={"base": "/nope.ckpt"})
+
+
+def test_presets_compose_and_an_unknown_preset_is_named():
+    from spread.cli.ablate import ablation_spec
+
+    quick = ablation_spec(compose("ablate", "+preset=quick"))
+    assert quick.out_dir == Path("runs/ablate/quick") and "sampler=ddim50" in quick.sample
+    paper = ablation_spec(compose("ablate", "+preset=paper"))
+    assert "sampler=ddpm" in paper.sample and "trainer=gpu" in paper.train
+    assert {"guidance.collision=7.5e-3", "guidance.gravity=1e-3", "guidance.relation=1e-3"} <= set(paper.guidance)
+    for preset in (quick, paper):  # every sub-command list composes with its command's config
+        for v in ("base", "geometry"):
+            cfg = compose("train", *preset.train, *preset.train_variant[v], "data.root=/d", "out_dir=/o")
+            assert cfg.model.variant == v
+        sample = compose("sample", *preset.sample, *preset.guidance, "ckpt=c", "data.root=/d", "out_dir=/o")
+        assert sample.guidance.mode == "refine"
+        compose("evaluate", *preset.evaluate, "scenes=/s", "reference=/d", "out_dir=/o")
+        compose("generate", *preset.generate, "out_dir=/o")
+    proc = run_script("spread-ablate", "+preset=nope", ok=False)
+    assert proc.returncode != 0 and "preset/nope" in proc.stderr and "quick" in proc.stderr
+
+
+# ---- the sweep preset -----------------------------------------------------------------------------------
+
+def sweep_jobs(*overrides: str) -> list[list[str]]:
+    """The jobs ``spread-sample -m +sweep=guidance_grid ...`` launches (Hydra's basic sweeper expansion)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    cfg = compose_hydra("sample", "+sweep=guidance_grid", *overrides)
+    params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
+    parsed = OverridesParser.create().parse_overrides([*params, *overrides])
+    return [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+def compose_hydra(name: str, *overrides: str):
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+        return hydra_compose(config_name=name, overrides=list(overrides), return_hydra_config=True)
+
+
+def test_sweep_preset_is_27_jobs_in_distinct_deterministic_folders():
+    base = ["ckpt=c.ckpt", "data.root=/d"]
+    jobs = sweep_jobs(*base)
+    assert len(jobs) == 27
+    folders = []
+    for job in jobs:
+        cfg = compose_hydra("sample", "+sweep=guidance_grid", *job)
+        assert cfg.evaluate is True and cfg.guidance.mode == "refine"
+        assert cfg.out_dir == f"{cfg.hydra.sweep.dir}/{cfg.hydra.sweep.subdir}"  # the job's Hydra folder
+        folders.append(cfg.out_dir)
+    assert len(set(folders)) == 27
+    assert "${now" not in str(compose_hydra("sample", "+sweep=guidance_grid", *base).hydra.sweep)
+    assert folders[::13] == [compose_hydra("sample", "+sweep=guidance_grid", *job).out_dir for job in jobs[::13]]
+    grid = {(c, g, r) for c, g, r in itertools.product([0.0, 0.0075, 0.03], [0.0, 0.001, 0.004], [0.0, 0.001, 0.004])}
+    assert {f"runs/sweeps/guidance_grid/c{c}_g{g}_r{r}" for c, g, r in grid} == set(folders)
+    # the wandb sweep file: same grid, same command, so a wandb agent's runs land in the same kind of folders
+    wandb_sweep = yaml.safe_load((Path(conf_dir()).parent / "sweeps" / "guidance_weights.yaml").read_text())
+    values = [wandb_sweep["parameters"][w]["values"] for w in WEIGHTS]
+    assert {tuple(v) for v in itertools.product(*values)} == grid and wandb_sweep["method"] == "grid"
+    command = wandb_sweep["command"]
+    assert "${args_no_hyphens}" in command and "evaluate=true" in command and "+sweep=guidance_grid" in command
+    fixed = [c.replace("${envvar:SPREAD_CKPT}", "c.ckpt").replace("${envvar:SPREAD_DATA}", "/d") for c in command
+             if not c.startswith("${")]
+    cfg = compose_hydra("sample", *fixed, "guidance.collision=0.015", "guidance.gravity=0.0", "guidance.relation=0.001")
+    assert cfg.out_dir.endswith("/c0.015_g0.0_r0.001") and cfg.evaluate is True
+
+
+# ---- end to end -----------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tiny_ablation(tmp_path_factory):
+    """The quick preset's code path on 12 generated rooms (3 test graphs) with a shrunken model."""
+    import torch
+
+    from spread.cli.ablate import run
+
+    torch.set_num_threads(1)
+    data = make_dataset(tmp_path_factory.mktemp("abdata"))
+    out = tmp_path_factory.mktemp("ablate") / "quick"
+    cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}")
+    cfg.train.extra = [*SMALL_MODEL, *FAST_TRAIN, "trainer.max_steps=3", "trainer.max_time=null"]
+    cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "batch_size=2"]
+    cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]
+    started = time.perf_counter()
+    result = run(cfg)
+    return {"cfg": cfg, "result": result, "out": out, "data": data, "seconds": time.perf_counter() - started}
+
+
+def test_tiny_ablation_end_to_end_and_resume(tiny_ablation):
+    from spread.cli.ablate import run
+
+    result, out = tiny_ablation["result"], tiny_ablation["out"]
+    assert result.ok, result.errors
+    assert [r["variant"] for r in result.records] == ["base", "geometry", "guidance"]
+    for r in result.records:
+        assert r["n_scenes"] == 3 and all(0.0 <= r[k] <= 1.0 for k in ("grecall", "col_mesh", "stability"))
+        assert r["asd"] is None or r["asd"] >= 0.0
+        assert r["fid"] is None and r["fid_status"].startswith("disabled")
+    rows = read_csv(out / "ablation.csv")
+    assert [(r["variant"], r["grecall"]) for r in rows] == [(r["variant"], r["grecall"]) for r in result.records]
+    assert "+Guidance" in (out / "ablation.tex").read_text() and (out / "ablation.png").stat().st_size > 0
+    # same graphs, same seeds: the three rows sampled the same files; guidance recorded only in its row
+    names = [sorted(p.name for p in (out / "samples" / v / "scenes").glob("*.npz"))
+             for v in ("base", "geometry", "guidance")]
+    assert names[0] == names[1] == names[2] and len(names[0]) == 3
+    manifests = {v: json.loads((out / "samples" / v / "sampling.json").read_text()) for v in ("geometry", "guidance")}
+    assert manifests["guidance"]["guidance"]["mode"] == "refine" and not manifests["geometry"].get("guidance")
+    assert manifests["guidance"]["fingerprint"]["ckpt_sha256"] == manifests["geometry"]["fingerprint"]["ckpt_sha256"]
+    assert manifests["guidance"]["fingerprint"]["seed"] == manifests["geometry"]["fingerprint"]["seed"]
+    protocols = {json.dumps(json.loads((out / "eval" / v / "metrics.json").read_text())["protocol"], sort_keys=True)
+                 for v in ("base", "geometry", "guidance")}
+    assert len(protocols) == 1  # one protocol for every row
+    assert (out / "train" / "base" / ".hydra" / "config.yaml").exists()
+    report = {r["run"]: r for r in run_report([str(out)], out / "report").records}  # eval/<v> → samples/<v>
+    assert set(report) == {"base", "geometry", "guidance"} and report["base"]["guidance.collision"] is None
+    assert [report["guidance"][w] for w in WEIGHTS] == [0.0075, 0.001, 0.001]
+    stamp = (out / "ablation.csv").stat().st_mtime_ns
+    started = time.perf_counter()
+    again = run(tiny_ablation["cfg"])
+    assert again.stages.pop("data") == "given" and set(again.stages.values()) == {"skipped"}, again.stages
+    assert (out / "ablation.csv").stat().st_mtime_ns == stamp and again.records == result.records
+    assert time.perf_counter() - started < 30
+
+
+def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
+    """Two grid points; the sweep is interrupted (SIGINT, like Ctrl-C) after the first run's metrics.json,
+    then launched again: the finished run is left as it is, the other one completes."""
+    out = tiny_ablation["out"]
+    sweep = tmp_path / "sweep"
+    ckpt = out / "train" / "geometry" / "checkpoints" / "last.ckpt"
+    cmd = [str(SCRIPTS / "spread-sample"), "-m", "+sweep=guidance_grid", f"ckpt={ckpt}",
+           f"data.root={tiny_ablation['data']}", f"sweep_dir={sweep}", "guidance.collision=0.0,0.015",
+           "guidance.gravity=0.001", "guidance.relation=0.001", "sampler.steps=4", "workers=0", "batch_size=2",
+           "renders=0", "progress=false", "logger=none", "evaluation.protocol.stability_runs=1",
+           "evaluation.fid.enabled=false", "ray.num_cpus=2"]
+    env = {**os.environ, "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "1"}
+    first, second = sweep / "c0.0_g0.001_r0.001", sweep / "c0.015_g0.001_r0.001"
+    log = tmp_path / "first_launch.log"
+    with open(log, "w") as fh:  # a file, not a pipe: a full pipe would stall the sweep
+        proc = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.time() + 300
+        while not (first / "metrics.json").exists() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        assert (first / "metrics.json").exists(), log.read_text()[-3000:]
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not (second / "metrics.json").exists()
+    stamps = {p: p.stat().st_mtime_ns for p in [first / "metrics.json", first / "per_scene.jsonl",
+                                                *sorted((first / "scenes").glob("*.npz"))]}
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps, \
+        "spread-sample must skip a run folder whose metrics.json exists (spread.experiments.is_finished_run)"
+    metrics = json.loads((second / "metrics.json").read_text())
+    assert metrics["n_scenes"] == 3 and metrics["n_failed"] == 0
+    report = run_report([str(sweep)], tmp_path / "report")
+    assert [r["guidance.collision"] for r in report.records] == [0.0, 0.015]
+    assert np.isfinite([r["col_mesh"] for r in report.records]).all()

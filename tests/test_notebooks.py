@@ -1,6 +1,10 @@
 """The notebooks run from a fresh clone: each is executed top to bottom in a fresh kernel in its fast mode
 (``SPREAD_NOTEBOOK_FAST=1``: a dozen rooms, a few training steps, 4 sampling steps), writing under a temporary
-folder; a cell that raises fails the test with the cell's traceback."""
+folder; a cell that raises fails the test with the cell's traceback.
+
+* ``01_quickstart``: generate, train, sample, evaluate.
+* ``02_results``: makes a tiny ablation and a 3-point guidance sweep itself (fast mode), then shows the table,
+  the sweep report's plots and before/after-physics renders."""
 
 from __future__ import annotations
 
@@ -48,3 +52,29 @@ def test_quickstart_runs_and_evaluates_generated_scenes(quickstart):
         assert (out / "quickstart" / "eval" / name / "metrics.json").exists()
     images = [o for c in nb.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
     assert len(images) >= 3  # the 2D/3D room, the loss curve, ground truth | generated
+
+
+def image_outputs(cell) -> list:
+    return [o for o in cell.get("outputs", []) if "image/png" in o.get("data", {})]
+
+
+def test_results_notebook_runs_on_a_fresh_tiny_ablation_and_sweep(tmp_path):
+    from spread.experiments.tables import read_csv
+
+    nb = execute("02_results.ipynb", tmp_path)
+    out = tmp_path / "results"
+    rows = read_csv(out / "ablate_tiny" / "ablation.csv")
+    assert [r["variant"] for r in rows] == ["base", "geometry", "guidance"]
+    assert all(r["status"] == "ok" and r["n_scenes"] >= 1 for r in rows), rows
+    assert all((out / "ablate_tiny" / f"ablation.{s}").exists() for s in ("md", "tex", "png"))
+    assert len(read_csv(out / "report" / "report.csv")) == 3  # the three sweep points
+    assert len(list((out / "report" / "plots").glob("*_vs_*.png"))) >= 1
+    assert len(list((out / "renders").glob("*_before_after.png"))) >= 2
+    text = outputs_text(nb)
+    assert "+Guidance" in "\n".join(o.get("data", {}).get("text/markdown", "") for c in nb.cells
+                                    for o in c.get("outputs", []))
+    assert "best: c" in text
+    cells = [c for c in nb.cells if c.cell_type == "code"]
+    before_after = [c for c in cells if "render_before_after(" in c.source]
+    assert before_after and image_outputs(before_after[0])  # the before | after sheet, inline
+    assert sum(len(image_outputs(c)) for c in cells) >= 4  # bar plot, sweep plots, before/after, gt | geometry | guidance

@@ -25,22 +25,22 @@ def number(value) -> float | None:
     return None if math.isnan(float(value)) or math.isinf(float(value)) else float(value)
 
 
-def figure(*args, **kwargs):
-    import matplotlib
+def figure(nrows: int = 1, ncols: int = 1, squeeze: bool = True, **kwargs):
+    """``(fig, axes)`` like ``plt.subplots``, but a standalone Agg figure: pyplot's backend and figure list are
+    never touched, so drawing files from a notebook leaves its inline plots alone."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(*args, **kwargs)
+    subplot_kw = kwargs.pop("subplot_kw", None)
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, squeeze=squeeze, subplot_kw=subplot_kw)
 
 
 def save(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Write the figure atomically and close it."""
-    import matplotlib.pyplot as plt
-
+    """Write the figure atomically (no pyplot involved)."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
-    plt.close(fig)
     return Path(path)
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Callable
 
 import hydra
 from lightning.pytorch.callbacks import Callback
@@ -151,8 +152,35 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
     return summary
 
 
-def train(cfg: DictConfig, run_dir: Path | None = None) -> dict:
-    """Fit the configured model on the configured data into ``run_dir``; returns the summary."""
+def atomic_checkpoint_io():
+    """A Lightning ``TorchCheckpointIO`` that writes each checkpoint to a temp file beside its target and
+    renames it (:func:`spread.io.atomic_path`): a job killed mid-save never leaves a torn ``last.ckpt``, also
+    when TMPDIR is on another filesystem than the run folder (where a rename falls back to a copy)."""
+    import torch
+    from lightning.pytorch.plugins.io import TorchCheckpointIO
+
+    from spread.io import atomic_path
+
+    class AtomicCheckpointIO(TorchCheckpointIO):
+        def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
+            if storage_options is not None:
+                raise TypeError(f"AtomicCheckpointIO: storage_options are not supported (got {storage_options!r})")
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path) as tmp:
+                torch.save(checkpoint, tmp)
+
+    return AtomicCheckpointIO()
+
+
+def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
+          extra_callbacks: list | None = None, prepare: Callable | None = None,
+          resume_from: Path | None = None) -> dict:
+    """Fit the configured model on the configured data into ``run_dir``; returns the summary.
+
+    The keyword arguments let another launcher run this same code (Ray Train,
+    :mod:`spread.distributed.ray_train`): ``trainer_overrides`` replace Trainer arguments of ``cfg.trainer``
+    (strategy, plugins, devices, ...), ``extra_callbacks`` join the config's, ``prepare(trainer) -> trainer``
+    runs before ``fit``, and ``resume_from`` (a checkpoint file) wins over ``ckpt_path``."""
     import lightning as L
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
@@ -160,14 +188,19 @@ def train(cfg: DictConfig, run_dir: Path | None = None) -> dict:
     route_lightning_logs()
     set_threads(cfg.get("threads"))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    ckpt_path = resolve_ckpt_path(cfg, run_dir)
+    ckpt_path = Path(resume_from) if resume_from is not None else resolve_ckpt_path(cfg, run_dir)
     resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
     newest = CheckpointStep()
+    overrides = dict(trainer_overrides or {})
+    plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir),
                                       logger=build_loggers(cfg, run_dir, resuming_here) or False,
-                                      callbacks=build_callbacks(cfg, run_dir) + [newest])
+                                      callbacks=build_callbacks(cfg, run_dir) + [newest, *(extra_callbacks or [])],
+                                      plugins=plugins, **overrides)
+    if prepare is not None:
+        trainer = prepare(trainer)
     if ckpt_path is not None:
         log.info("resuming from %s", ckpt_path)
     trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))

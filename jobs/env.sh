@@ -1,0 +1,71 @@
+# Sourced by the scripts in jobs/: the project's environment on whichever node runs them.
+#   SPREAD_HOME   the project checkout, the same path on every node (default: the folder above jobs/)
+#   SPREAD_VENV   its virtual environment (default: $SPREAD_HOME/.venv), on the shared filesystem or at the
+#                 same path on every node; activated here so that spread-*, torchrun and ray are found
+#   SPREAD_RUNS   where run folders go (default: $SPREAD_HOME/runs); must be shared by every node
+#   WANDB_MODE    offline unless set (compute nodes rarely reach the internet; `wandb sync` uploads later)
+SPREAD_HOME=${SPREAD_HOME:-$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)}
+SPREAD_VENV=${SPREAD_VENV:-$SPREAD_HOME/.venv}
+SPREAD_RUNS=${SPREAD_RUNS:-$SPREAD_HOME/runs}
+if [[ ! -x "$SPREAD_VENV/bin/spread-train" ]]; then
+    echo "jobs/env.sh: no spread-train in $SPREAD_VENV/bin (set SPREAD_VENV, or: make install)" >&2
+    return 1 2>/dev/null || exit 1
+fi
+export PATH="$SPREAD_VENV/bin:$PATH"
+export SPREAD_HOME SPREAD_VENV SPREAD_RUNS
+export WANDB_MODE=${WANDB_MODE:-offline}
+export PYTHONUNBUFFERED=1
+
+# spread_tmpdir DIR: point TMPDIR at DIR/.tmp (created). Lightning writes a checkpoint to a temporary file
+# under TMPDIR and renames it into place; the rename is atomic only on one filesystem, so on a cluster whose
+# /tmp is node-local and whose run folders are on a shared filesystem, a checkpoint would otherwise be
+# *copied* into place and a kill mid-copy would leave a torn last.ckpt (see jobs/README.md).
+spread_tmpdir() {
+    export TMPDIR="$1/.tmp"
+    mkdir -p "$TMPDIR"
+}
+
+# spread_resume OUT: the ckpt_path that resumes OUT's own newest checkpoint (Lightning's SLURM requeue
+# checkpoint hpc_ckpt_<n>.ckpt or checkpoints/last.ckpt, whichever is newer), or null for a fresh run.
+# (ckpt_path=last would also look at other run folders of the experiment when OUT has none.)
+spread_resume() {
+    local newest
+    newest=$(ls -t "$1"/hpc_ckpt_*.ckpt "$1"/checkpoints/last.ckpt 2>/dev/null | head -n 1 || true)
+    echo "${newest:-null}"
+}
+
+# spread_default ARRAY KEY=VALUE...: append each KEY=VALUE to the array named ARRAY unless it sets KEY already.
+# The scripts put the user's arguments first and their own after them: Hydra takes its flags (--multirun,
+# -m, --cfg ...) only before the overrides, and for a key given twice the last value wins.
+spread_default() {
+    local -n _args=$1
+    shift
+    local kv a
+    for kv in "$@"; do
+        for a in "${_args[@]}"; do
+            [[ "${a#+}" == "${kv%%=*}="* ]] && continue 2
+        done
+        _args+=("$kv")
+    done
+}
+
+# spread_submit COMMAND ARGS...: run COMMAND as a Ray job on the cluster at RAY_ADDRESS (the head's dashboard,
+# default http://127.0.0.1:8265: run this on the head node, or forward the port). The command runs on the
+# head node, where `ray.address=auto` joins the cluster; paths must be valid there (the same on every node).
+# RAY_SUBMIT_OPTS adds options to `ray job submit` (e.g. --no-wait, then `ray job logs -f <id>`); RAY_CLI is
+# the ray command (default: the venv's).
+# SPREAD_JOB_TMPDIR sets TMPDIR for the job's processes (see spread_tmpdir). SPREAD_SUBMIT=local runs the
+# command here instead (debugging a job script on one machine).
+spread_submit() {
+    local entry
+    entry=$(printf '%q ' "$@")
+    if [[ "${SPREAD_SUBMIT:-ray}" == local ]]; then
+        eval "$entry"
+        return
+    fi
+    local env="\"WANDB_MODE\": \"$WANDB_MODE\", \"PYTHONUNBUFFERED\": \"1\""
+    [[ -n "${SPREAD_JOB_TMPDIR:-}" ]] && env="$env, \"TMPDIR\": \"$SPREAD_JOB_TMPDIR\""
+    # shellcheck disable=SC2086
+    "${RAY_CLI:-ray}" job submit --address "${RAY_ADDRESS:-http://127.0.0.1:8265}" \
+        --runtime-env-json "{\"env_vars\": {$env}}" ${RAY_SUBMIT_OPTS:-} -- "$entry"
+}

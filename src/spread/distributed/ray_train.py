@@ -1,0 +1,181 @@
+"""Ray Train for ``spread-train``: the same config, code and run folder, on Ray workers (DESIGN §7).
+
+    python -m spread.distributed.ray_train experiment=quick data.root=/shared/rooms ray_train.num_workers=4
+    python -m spread.distributed.ray_train ... ray_train.address=auto ray_train.use_gpu=true   # a Ray cluster
+    python -m spread.distributed.ray_train ... ckpt_path=last out_dir=<its run folder>         # resume
+
+A Hydra app over ``conf/train.yaml`` (every ``spread-train`` override works) with ``trainer=ray`` chosen
+unless the command line names a trainer: ``conf/trainer/ray.yaml`` adds the ``ray_train`` block (workers,
+GPUs, CPUs per worker, address, failures, storage). The driver starts or joins Ray
+(:func:`~spread.distributed.session.ray_session`) and runs a ``ray.train.torch.TorchTrainer`` whose
+workers each call :func:`spread.cli.train.train` — the same data module, model, loggers, checkpoints
+(``<run folder>/checkpoints``, written by rank 0), final checkpoint and ``metrics.json`` as
+``spread-train`` — with Lightning's DDP replaced by Ray's pieces: ``RayDDPStrategy`` (devices from Ray),
+``RayLightningEnvironment`` (ranks from Ray), ``prepare_trainer`` and ``RayTrainReportCallback`` (a Ray
+checkpoint at every epoch end, into ``ray_train.storage_path``). Gloo on CPUs, NCCL on GPUs.
+
+Resume: a fresh launch follows ``ckpt_path`` exactly as ``spread-train`` does. When Ray restarts the
+worker group after a failure (``ray_train.max_failures``), the workers resume from Ray's newest reported
+checkpoint instead. The run folder and the storage path must be on a filesystem every node sees.
+
+This module sits above :mod:`spread.cli.train` on purpose (it is an entry point that reuses its builders);
+Ray and Lightning are imported inside the functions.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+#: Name of the config block that holds the Ray Train settings (``conf/trainer/ray.yaml``).
+BLOCK = "ray_train"
+
+
+@dataclass(frozen=True)
+class RayTrainSettings:
+    """address: None (private Ray on this machine) or "auto"/HOST:PORT (join); num_cpus: CPUs of a private
+    Ray; num_workers: training processes; use_gpu: one GPU each; cpus_per_worker: CPUs each reserves;
+    max_failures: worker-group restarts; storage_path: Ray Train's store (None: <run folder>/ray_train);
+    num_to_keep: Ray checkpoints kept; log_to_driver: echo worker output."""
+
+    address: str | None = None
+    num_cpus: int | None = None
+    num_workers: int = 2
+    use_gpu: bool = False
+    cpus_per_worker: float = 1.0
+    max_failures: int = 0
+    storage_path: str | None = None
+    num_to_keep: int | None = 2
+    log_to_driver: bool = True
+
+
+def split_config(cfg: DictConfig, run_dir: Path) -> tuple[dict, RayTrainSettings]:
+    """(the train config as a resolved plain dict, without the ``ray_train`` block and with ``out_dir`` =
+    ``run_dir``; the settings). Resolved here, once, so that every worker sees the same values
+    (``${now:...}`` in particular)."""
+    if BLOCK not in cfg:
+        raise SystemExit("spread ray_train: the config has no ray_train block; use trainer=ray")
+    container = OmegaConf.to_container(cfg, resolve=False)
+    settings = RayTrainSettings(**OmegaConf.to_container(cfg[BLOCK], resolve=True))
+    container.pop(BLOCK)
+    container["out_dir"] = str(run_dir)
+    resolved = OmegaConf.to_container(OmegaConf.create(container), resolve=True)
+    return resolved, settings
+
+
+def report_callback():
+    """``RayTrainReportCallback`` that leaves :class:`spread.cli.train.CheckpointStep` as it was: its epoch-end
+    checkpoint goes to Ray's store, not to ``checkpoints/last.ckpt``, so it must not make the final save
+    (:func:`spread.cli.train.save_final_checkpoint`) believe ``last.ckpt`` already holds the final state."""
+    from ray.train.lightning import RayTrainReportCallback
+
+    from spread.cli.train import CheckpointStep
+
+    class ReportCallback(RayTrainReportCallback):
+        def on_train_epoch_end(self, trainer, pl_module) -> None:
+            steps = [c for c in trainer.callbacks if isinstance(c, CheckpointStep)]
+            before = [c.step for c in steps]
+            super().on_train_epoch_end(trainer, pl_module)
+            for c, step in zip(steps, before):
+                c.step = step
+
+    return ReportCallback()
+
+
+def train_worker(config: dict) -> dict:
+    """The training function of every Ray Train worker: :func:`spread.cli.train.train` with Ray's strategy,
+    environment and report callback; returns the run summary (``Result.return_value`` from rank 0)."""
+    import ray.train
+    from ray.train.lightning import RayDDPStrategy, RayLightningEnvironment, RayTrainReportCallback, prepare_trainer
+
+    from spread.cli.train import train
+
+    cfg = OmegaConf.create(config["cfg"])
+    run_dir = Path(config["run_dir"])
+
+    def run(resume_from: Path | None) -> dict:
+        overrides = {"strategy": RayDDPStrategy(), "plugins": [RayLightningEnvironment()], "devices": "auto",
+                     "num_nodes": 1, "accelerator": "gpu" if config["use_gpu"] else "cpu"}
+        summary = train(cfg, run_dir, trainer_overrides=overrides, extra_callbacks=[report_callback()],
+                        prepare=prepare_trainer, resume_from=resume_from)
+        return {**summary, "world_size": ray.train.get_context().get_world_size()}
+
+    checkpoint = ray.train.get_checkpoint()  # set when Ray restarted the workers after a failure
+    if checkpoint is None:
+        return run(None)
+    with checkpoint.as_directory() as folder:
+        return run(Path(folder) / RayTrainReportCallback.CHECKPOINT_NAME)
+
+
+def run_ray_train(cfg: DictConfig, run_dir: Path):
+    """Train ``cfg`` (a composed ``conf/train.yaml`` with ``trainer=ray``) on Ray Train into ``run_dir``;
+    returns Ray Train's ``Result`` (``return_value``: rank 0's summary; ``checkpoint``: the newest Ray
+    checkpoint, a folder with ``checkpoint.ckpt``)."""
+    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train.torch import TorchTrainer
+
+    from spread.distributed.session import RaySettings, ray_session
+
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    container, settings = split_config(cfg, run_dir)
+    resources = {"CPU": float(settings.cpus_per_worker)}
+    if settings.use_gpu:
+        resources["GPU"] = 1.0
+    storage = Path(settings.storage_path or run_dir / "ray_train").resolve()
+    trainer = TorchTrainer(
+        train_worker,
+        train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu)},
+        scaling_config=ScalingConfig(num_workers=int(settings.num_workers), use_gpu=bool(settings.use_gpu),
+                                     resources_per_worker=resources),
+        run_config=RunConfig(name=run_dir.name, storage_path=str(storage),
+                             failure_config=FailureConfig(max_failures=int(settings.max_failures)),
+                             checkpoint_config=CheckpointConfig(num_to_keep=settings.num_to_keep)),
+    )
+    ray_settings = RaySettings(address=settings.address, num_cpus=settings.num_cpus,
+                               log_to_driver=settings.log_to_driver)
+    with ray_session(ray_settings):
+        result = trainer.fit()
+    if result.error is not None:
+        raise result.error
+    return result
+
+
+def with_default_trainer(argv: list[str]) -> list[str]:
+    """``argv`` with ``trainer=ray`` unless it names a trainer already (``trainer=...``, not ``trainer.x=``),
+    put before the first override (Hydra reads its flags, ``-m``, ``--cfg job``, only before the overrides)."""
+    names = [a.split("=", 1)[0].lstrip("+~") for a in argv[1:] if "=" in a]
+    if "trainer" in names:
+        return list(argv)
+    first = next((i for i, a in enumerate(argv) if i > 0 and "=" in a), len(argv))
+    return [*argv[:first], "trainer=ray", *argv[first:]]
+
+
+def _hydra_main():
+    import hydra
+
+    from spread.cli import conf_dir
+
+    @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
+    def main(cfg: DictConfig) -> None:
+        from spread.cli.train import run_folder
+
+        result = run_ray_train(cfg, run_folder(cfg))
+        summary = result.return_value or {}
+        print(f"run folder {run_folder(cfg)}: step {summary.get('global_step')}, epoch {summary.get('epoch')}, "
+              f"{summary.get('world_size')} Ray Train workers, checkpoint {summary.get('last_checkpoint')}; "
+              f"Ray checkpoint {None if result.checkpoint is None else result.checkpoint.path}")
+
+    return main
+
+
+def main() -> None:
+    sys.argv = with_default_trainer(sys.argv)
+    _hydra_main()()
+
+
+if __name__ == "__main__":
+    main()

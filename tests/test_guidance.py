@@ -19,14 +19,6 @@ REST = GAP + TOL / 2  # a resting object's gap: inside the gravity band
 SIZES = {"table": (1.0, 0.75, 0.7), "cup": (0.08, 0.1, 0.08), "crate": (0.4, 0.3, 0.4), "block": (0.3, 0.2, 0.3)}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def lib(tmp_path_factory):
     root = tmp_path_factory.mktemp("guidance_lib")

@@ -15,14 +15,6 @@ from spread.model import ModelConfig, Sampler, SceneDenoiser, graph_recall, sign
 BOUNDS = [-3.0, 0.0, -3.0, 3.0, 2.5, 3.0]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small ops on a shared 2-core machine: one intra-op thread is much faster (no OpenMP barriers
-    waiting on descheduled threads); restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 M = 48  # points per object in these tests
 
 

@@ -27,14 +27,6 @@ from helpers import (FAST_SAMPLE, FAST_TRAIN, QUIET, SCRIPTS, SMALL_MODEL, compo
 EXPERIMENTS = sorted(p.stem for p in (Path(conf_dir()) / "experiment").glob("*.yaml"))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 # ---- fixtures ------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -166,7 +166,8 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
         n = actor_count(cfg, len(todo))
         actor = ray.remote(SampleWorker).options(
             num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.num_gpus_per_worker,
-            max_restarts=cfg.ray.max_retries, max_task_retries=cfg.ray.max_retries)
+            max_restarts=cfg.ray.max_retries, max_task_retries=cfg.ray.max_retries,
+            scheduling_strategy=cfg.ray.scheduling_strategy)  # SPREAD: actors over every node
         actors = [actor.remote(**worker_arguments(cfg, scenes_dir)) for _ in range(n)]
         queue = list(todo)
         running = {}
@@ -240,9 +241,12 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
         bar.update(len(result["written"]))
 
     runner = {"workers": 0, "mode": "none"}
+    wanted = [item.name for b in todo for item in missing_items(b, scenes_dir)]
     if todo:
         runner = (run_on_ray if cfg.workers > 0 else run_in_process)(todo, cfg, scenes_dir, on_result)
     bar.close()
+    # counted on disk: a worker killed after writing some files never reports them, its retry skips them
+    written = [name for name in wanted if (scenes_dir / f"{name}.npz").exists()]
     renders = write_renders(out, batches, cfg.data_root, cfg.renders)
     files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
     manifest = {

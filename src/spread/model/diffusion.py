@@ -21,7 +21,11 @@ x̂_0 = (x_t − √(1−ᾱ_t) ε̂)/√ᾱ_t, clips it to [−1, 1] (``clip_x0
 applies ``x0_hook(x̂_0, ctx)`` if given (guidance plugs in here), turns x̂_0 back into the ε the
 scheduler steps with, then applies ``sample_hook(x_{t−1}, ctx)`` if given. Padding objects are
 held at 0 throughout (initial noise, every ε̂ and every sample are multiplied by the mask), so they
-never influence real ones. Randomness comes only from ``generator``: same seed, same samples.
+never influence real ones. Randomness comes only from ``generator``: same seed, same samples. A list
+of B generators (one per scene) makes each scene's noise independent of its batch-mates: with the
+deterministic samplers (DDIM with eta = 0, DPM-Solver++) a scene samples the same in any batch, up to float
+rounding; ancestral ones (DDPM, DDIM with eta > 0) draw each step's noise per scene but at the batch's padded
+size, so there a sample also depends on how far its batch is padded.
 """
 
 from __future__ import annotations
@@ -38,6 +42,9 @@ TRAIN_SCHEDULER_CONFIG: dict = {
     "prediction_type": "epsilon",
 }
 SAMPLER_KINDS = ("ddpm", "ddim", "dpmsolver++")
+#: Per-scene initial noise is drawn as (max(N, NOISE_ROWS), state_dim) and cut to N, so a scene's x_T does not
+#: depend on how far its batch is padded (torch's CPU normal sampler fills large tensors in another order).
+NOISE_ROWS = 64
 
 
 def training_scheduler(**overrides) -> DDPMScheduler:
@@ -107,7 +114,7 @@ class Sampler:
 
     @torch.no_grad()
     def sample(self, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
-               generator: torch.Generator | None = None, x0_hook: Hook | None = None,
+               generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
                sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding.
 
@@ -120,8 +127,16 @@ class Sampler:
         scheduler = self.scheduler()
         scheduler.set_timesteps(self.num_steps, device=device)
         alphas = scheduler.alphas_cumprod.to(device=device, dtype=torch.float64)
-        noise_device = generator.device if generator is not None else device
-        x = torch.randn((*mask.shape, state_dim), generator=generator, device=noise_device, dtype=dtype)
+        if isinstance(generator, (list, tuple)):  # one generator per scene: a scene's noise ignores its batch
+            if len(generator) != mask.shape[0]:
+                raise ValueError(f"Sampler.sample: {len(generator)} generators for a batch of {mask.shape[0]}")
+            rows = max(mask.shape[1], NOISE_ROWS)  # a fixed-size draw: the same first rows at any padding
+            x = torch.stack([torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:mask.shape[1]]
+                             .to(device) for g in generator])
+            generator = list(generator)
+        else:
+            noise_device = generator.device if generator is not None else device
+            x = torch.randn((*mask.shape, state_dim), generator=generator, device=noise_device, dtype=dtype)
         x = x.to(device) * keep
         extra = {"eta": self.eta} if self.kind == "ddim" else {}
         timesteps = scheduler.timesteps

@@ -8,10 +8,12 @@ Determinism (DESIGN §3 "same seed, same files"):
   of similar size share a batch, so little compute goes to padding — and, for each k separately, cut into
   runs of ``batch_size``. Asking for more samples per graph later adds batches and leaves those of the
   smaller k unchanged.
-* A batch's noise comes from one ``torch.Generator`` seeded from its items' seeds (:func:`batch_seed`).
-  (The sampler draws the noise of a whole batch from one generator; a sample therefore depends on its
-  batch-mates, which the fixed batching pins down. Re-running a batch — after a crash, on another worker
-  — gives the same files bit for bit on the same device and software.)
+* Each item's noise comes from its own ``torch.Generator`` seeded with the item's seed (the sampler takes
+  one generator per scene), so a sample does not depend on its batch-mates: with the deterministic samplers
+  (DDIM, DPM-Solver++) another ``batch_size`` gives the same samples up to float rounding; DDPM's step
+  noise is drawn at the batch's padded size, so there the batching still matters. Re-running
+  a batch — after a crash, on another worker — gives the same files bit for bit on the same device and
+  software. (:func:`batch_seed` names a batch's seed set; it no longer seeds noise.)
 """
 
 from __future__ import annotations

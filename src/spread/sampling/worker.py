@@ -145,7 +145,9 @@ class SampleWorker:
         sources = [self.source(item) for item in batch.items]
         encoded = collate_scenes([self.dataset.encode(src, source=item.graph.path)
                                   for src, item in zip(sources, batch.items)])
-        generator = torch.Generator().manual_seed(batch.seed)  # CPU noise: the same samples on any device
+        # one CPU generator per sample, seeded by (seed, graph, k): its noise is the same on any device and in
+        # any batch (so batch_size and workers change a sample only by float rounding, not by its noise)
+        generator = [torch.Generator().manual_seed(item.seed) for item in batch.items]
         guidance = None
         if self.guidance is not None:
             from spread.guidance import SceneGuidance

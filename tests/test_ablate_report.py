@@ -181,7 +181,7 @@ class FakeCommands:
         self.calls.append(("train", run_dir.name, args(overrides)["ckpt_path"]))
 
     def sample(self, overrides):
-        from spread.sampling.run import file_sha256
+        from spread.io import file_sha256
 
         a = args(overrides)
         out = Path(a["out_dir"])

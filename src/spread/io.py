@@ -86,3 +86,15 @@ def read_jsonl(path: str | os.PathLike) -> list[dict]:
             except json.JSONDecodeError:
                 continue
     return out
+
+
+def file_sha256(*paths: str | os.PathLike) -> str:
+    """Hex SHA-256 of the files' bytes, concatenated in order (one file: its ordinary sha256)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in paths:
+        with open(p, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()

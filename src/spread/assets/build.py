@@ -24,7 +24,8 @@ import numpy as np
 
 from spread.assets.builder import AssetSpec, write_asset
 from spread.assets.catalog import CATALOG, asset_id, default_categories, make_spec
-from spread.assets.library import AssetLibrary, AssetRecord, file_sha256
+from spread.assets.library import AssetLibrary, AssetRecord
+from spread.io import file_sha256
 from spread.io import write_json_atomic
 
 #: Bump when the builder's output for an unchanged spec changes (export, stability rules...).

@@ -160,15 +160,6 @@ class AssetGeometryCache:
     xz_hull: np.ndarray
 
 
-def file_sha256(*paths: str | os.PathLike) -> str:
-    h = hashlib.sha256()
-    for p in paths:
-        with open(p, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-    return h.hexdigest()
-
-
 # --------------------------------------------------------------------------------------------------
 # parts files
 # --------------------------------------------------------------------------------------------------

@@ -64,7 +64,8 @@ def wandb_tags(cfg: DictConfig, manifest: dict) -> list[str]:
     from spread.sampling.worker import sampler_label
     from spread.model import Sampler
 
-    hp = torch.load(str(cfg.ckpt), map_location="cpu", weights_only=False).get("hyper_parameters", {})
+    # mmap: the hyperparameters only, without reading the weights into memory
+    hp = torch.load(str(cfg.ckpt), map_location="cpu", weights_only=False, mmap=True).get("hyper_parameters", {})
     guidance = manifest.get("guidance")
     tags = [str(hp.get("variant", "unknown")), sampler_label(Sampler.from_config(
         OmegaConf.to_container(cfg.sampler, resolve=True)))]

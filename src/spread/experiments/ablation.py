@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 from spread.experiments.tables import METRICS, Column, write_tables
-from spread.io import write_json_atomic
+from spread.io import file_sha256, write_json_atomic
 
 log = logging.getLogger("spread.ablate")
 
@@ -195,12 +195,6 @@ def command_line(command: str, overrides: list[str]) -> str:
     return " ".join([command, *overrides])
 
 
-def sha256(path: Path) -> str:
-    from spread.sampling.run import file_sha256
-
-    return file_sha256(path)
-
-
 def scenes_complete(folder: Path) -> bool:
     """Every scene ``sampling.json`` counts is on disk."""
     try:
@@ -283,7 +277,7 @@ class Ablation:
             self.commands.sample(args)
 
         return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
-                     {"overrides": overrides, "ckpt_sha256": sha256(ckpt)}, run,
+                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, run,
                      complete=lambda: scenes_complete(folder))
 
     def evaluate_stage(self, variant: str) -> Stage:

@@ -16,14 +16,13 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from spread.distributed.session import RaySettings, ray_session
-from spread.io import write_json_atomic
+from spread.io import file_sha256, write_json_atomic
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches
 
 MANIFEST = "sampling.json"
@@ -84,14 +83,6 @@ def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
         scene = read_scene(path, assets=library)
         graphs.append(Graph(scene.scene_id, str(path), scene.num_objects))
     return graphs
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def guidance_settings(guidance) -> dict | None:

@@ -42,11 +42,7 @@ def sampler_label(sampler) -> str:
 
 def active_guidance(guidance):
     """The :class:`~spread.guidance.GuidanceConfig` of ``guidance`` (a config, mapping or mode name) when it
-    guides; None for ``None``, ``"none"`` or an inactive config (spread.guidance is not even imported)."""
-    mode = guidance if isinstance(guidance, str) or guidance is None else (
-        guidance.get("mode", "none") if isinstance(guidance, dict) else getattr(guidance, "mode", "none"))
-    if mode in (None, "none"):
-        return None
+    guides; None for ``None``, ``"none"`` or a config with no weight > 0."""
     from spread.guidance import GuidanceConfig
 
     config = GuidanceConfig.from_config(guidance)

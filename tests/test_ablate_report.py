@@ -33,11 +33,11 @@ from helpers import FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, run
 
 ROWS = [
     {"variant": "base", "method": "Ours (base)", "grecall": 0.963, "col_mesh": 0.241, "asd": 0.014,
-     "stability": 0.934, "fid": None, "n_scenes": 8, "status": "ok"},
+     "stability": 0.934, "fid": None, "kid": None, "n_scenes": 8, "status": "ok"},
     {"variant": "geometry", "method": "+Geometry", "grecall": 0.965, "col_mesh": 0.225, "asd": 0.012,
-     "stability": 0.938, "fid": None, "n_scenes": 8, "status": "ok"},
+     "stability": 0.938, "fid": None, "kid": None, "n_scenes": 8, "status": "ok"},
     {"variant": "guidance", "method": "+Guidance", "grecall": 0.1 + 0.2, "col_mesh": 0.121, "asd": 0.007,
-     "stability": 0.95, "fid": 12.5, "n_scenes": 8, "status": "ok"},
+     "stability": 0.95, "fid": 12.5, "kid": 0.004, "n_scenes": 8, "status": "ok"},
 ]
 WEIGHTS = ("guidance.collision", "guidance.gravity", "guidance.relation")
 
@@ -56,8 +56,8 @@ def test_tables_round_trip_and_show_the_rows(tmp_path):
     assert "**0.121**" in body[2] and "**0.965**" in body[1]  # best Col_mesh (min), best GRecall (max)
     tex = paths["tex"].read_text()
     assert r"\toprule" in tex and r"\label{tab:x}" in tex and r"Col$_{\text{mesh}}\downarrow$" in tex
-    assert r"Ours (base) & 0.963 & 0.241 & 0.0140 & 0.934 & -- \\" in tex
-    assert r"+Guidance & 0.300 & \textbf{0.121} & \textbf{0.0070} & \textbf{0.950} & 12.50 \\" in tex
+    assert r"Ours (base) & 0.963 & 0.241 & 0.0140 & 0.934 & -- & -- \\" in tex
+    assert r"+Guidance & 0.300 & \textbf{0.121} & \textbf{0.0070} & \textbf{0.950} & 12.50 & 0.0040 \\" in tex
 
 
 def test_ablation_bar_plot_draws_every_row(tmp_path):
@@ -124,7 +124,7 @@ def test_report_reads_run_folders_and_a_wandb_offline_run(tmp_path, wandb_run):
     assert [by_name["agent-run"][w] for w in WEIGHTS] == [0.0075, 0.0, 0.002]  # the .wandb file
     assert by_name["agent-run"]["col_mesh"] == 0.20 and by_name["agent-run"]["kind"] == "wandb"
     assert result.unfinished == [runs["unfinished"]]
-    assert len(result.plots) == 5 * 3
+    assert len(result.plots) == 6 * 3  # GRecall, Col_mesh, ASD, Stability, FID, KID × three weights
     for (metric, weight), (png, points) in result.plots.items():
         assert png.exists() and png.name == f"{metric}_vs_{weight.split('.')[-1]}.png"
         expected = sorted((r[weight], r[metric]) for r in result.records if r[metric] is not None)

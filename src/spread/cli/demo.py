@@ -5,7 +5,10 @@
 3. ``spread-sample``: one scene per test graph with DDIM-50 (Ray workers);
 4. ``spread-evaluate`` on the test split (ground truth) and on the samples, with ``--stability-runs``
    physics runs per scene instead of the protocol's 10 (a demo, not a reported number);
-5. a table of GRecall, Col_mesh, ASD and Stability: ground truth next to generated.
+5. a table of GRecall, Col_mesh, ASD, Stability, FID and KID: ground truth next to generated. FID and KID
+   compare each set's top-down renders with the *validation* rooms' (Inception features), so the ground
+   truth column shows the floor that a finite set of true rooms reaches, and the generated column can be
+   read against it.
 
 Every stage resumes where it stopped: rooms already written are kept, training continues from
 ``train/checkpoints/last.ckpt`` (its time budget counts across restarts, so a finished run takes no
@@ -25,7 +28,8 @@ from pathlib import Path
 
 #: (metric key, label, scale, digits) of the printed table
 ROWS = (("grecall", "GRecall ↑", 1.0, 3), ("col_mesh", "Col_mesh ↓", 1.0, 3), ("asd", "ASD (mm) ↓", 1000.0, 1),
-        ("stability", "Stability ↑", 1.0, 3), ("still_fraction", "objects still (< 1 cm) ↑", 1.0, 3))
+        ("stability", "Stability ↑", 1.0, 3), ("still_fraction", "objects still (< 1 cm) ↑", 1.0, 3),
+        ("fid", "FID ↓ (vs val rooms)", 1.0, 2), ("kid", "KID ↓ (vs val rooms)", 1.0, 4))
 
 
 def script(name: str) -> str:
@@ -92,7 +96,8 @@ def main(argv: list[str] | None = None) -> None:
     resume = f"resume={str(file_state(ckpt) == before).lower()}"
     run(script("spread-sample"), f"ckpt={ckpt}", f"data.root={data}", f"out_dir={samples}", "sampler=ddim50",
         f"seed={args.seed}", "batch_size=4", "progress=false", "logger=none", resume)
-    evaluate = ["logger=none", f"protocol.stability_runs={args.stability_runs}", "progress=false", "renders=4"]
+    evaluate = ["logger=none", f"protocol.stability_runs={args.stability_runs}", "progress=false", "renders=4",
+                "reference_split=val"]
     run(script("spread-evaluate"), f"scenes={data / 'test'}", f"reference={data}", f"out_dir={out / 'eval_truth'}",
         *evaluate)
     run(script("spread-evaluate"), f"scenes={samples / 'scenes'}", f"reference={data}",

@@ -3,7 +3,7 @@
 Every good record carries its scene's metric states (``record["state"][name]``: the sums one scene adds);
 the driver builds fresh aggregates from the protocol and ``merge_state``s each record into them — the same
 summation DDP's ``sync`` does across ranks — so the result does not depend on how scenes were split over
-workers, nodes or resumed runs. FID: the generated set's features come from the records
+workers, nodes or resumed runs. FID and KID: the generated set's features come from the records
 (``fid_features``), the reference set's statistics from states merged in by the caller.
 """
 
@@ -60,16 +60,18 @@ def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
     }
 
 
-def fid_values(fid, records: list[dict], status: str, n_reference_files: int) -> dict:
-    """FID fields of ``metrics.json``. ``fid`` is a :class:`~spread.metrics.SceneFID` whose reference
+def fid_values(fid, records: list[dict], status: str, n_reference_files: int, feature_model: str) -> dict:
+    """FID and KID fields of ``metrics.json``. ``fid`` is a :class:`~spread.metrics.SceneFID` whose reference
     states are merged in, or None when no extractor is available (then ``status`` says why)."""
     good = [r for r in records if not r.get("error")]
     if fid is None:
-        return {"fid": None, "fid_status": status, "fid_num_generated": len(good),
-                "fid_num_reference": n_reference_files}
+        return {"fid": None, "kid": None, "fid_status": status, "fid_feature_model": feature_model,
+                "fid_num_generated": len(good), "fid_num_reference": n_reference_files}
     features = [r["fid_features"] for r in good if r.get("fid_features") is not None]
     if features:
         fid.update(features=np.asarray(features, np.float64), real=False)
     out = fid.compute()
-    return {"fid": out["fid"], "fid_status": out["fid_status"], "fid_feature_model": out["feature_model"],
-            "fid_num_generated": out["num_generated"], "fid_num_reference": out["num_reference"]}
+    return {"fid": out["fid"], "kid": out["kid"], "fid_status": out["fid_status"],
+            "fid_feature_model": out["feature_model"], "fid_num_generated": out["num_generated"],
+            "fid_num_reference": out["num_reference"], "kid_subsets": out["kid_subsets"],
+            "kid_subset_size": out["kid_subset_size"]}

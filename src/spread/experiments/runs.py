@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Iterable
 
 #: ``metrics.json`` keys copied into a record.
-RECORD_METRICS = ("grecall", "col_mesh", "asd", "stability", "fid", "still_fraction", "n_scenes", "n_objects",
+RECORD_METRICS = ("grecall", "col_mesh", "asd", "stability", "fid", "kid", "still_fraction", "n_scenes", "n_objects",
                   "n_failed", "fid_status")
 #: Markers of a run folder that has not finished (no ``metrics.json`` yet).
 UNFINISHED_MARKERS = ("sampling.json", "scenes", "per_scene.jsonl", "protocol.json")

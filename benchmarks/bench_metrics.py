@@ -48,7 +48,7 @@ OBJECTS = {"book": (0.2, 0.04, 0.3), "mug": (0.09, 0.1, 0.09), "box": (0.3, 0.2,
 
 def legged(name, size):
     """A table-like asset: a top board on four legs (a non-convex watertight union)."""
-    from spread.assets.builder import AssetSpec, box_part
+    from spread.assets.assemble import AssetSpec, box_part
 
     w, h, d = size
     top, leg = 0.04, 0.05
@@ -60,7 +60,7 @@ def legged(name, size):
 
 def synthetic_rooms(out: Path, count: int, seed: int = 0):
     """Rooms of 6 furniture boxes on the floor and 14 objects on their tops (module docstring)."""
-    from spread.assets.builder import box_asset, library_from_specs
+    from spread.assets.assemble import box_asset, library_from_specs
     from spread.relations import scene_spatial_codes
     from spread.scene import Scene
 

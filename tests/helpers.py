@@ -46,7 +46,7 @@ def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 
     """``root/assets`` (the asset library) and ``root/data`` (rooms; 20% val, 30% test); returns ``root/data``."""
     from spread.assets.build import build_library
     from spread.procgen.dataset import DatasetConfig, generate_dataset
-    from spread.procgen.rooms import RoomConfig
+    from spread.procgen.room_types import RoomConfig
 
     lib = root / "assets"
     build_library(lib, categories=categories, seed=0, processes=2, progress=False)

@@ -14,7 +14,7 @@ import trimesh
 
 from spread.assets import AssetLibrary
 from spread.assets.build import build_asset, build_library
-from spread.assets.builder import AssetSpec, box_part, write_asset
+from spread.assets.assemble import AssetSpec, box_part, write_asset
 from spread.assets.catalog import (
     CATALOG, categories_with_tag, default_categories, furniture_categories, make_spec, object_categories,
 )

@@ -10,7 +10,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from spread.assets.builder import box_asset, library_from_specs
+from spread.assets.assemble import box_asset, library_from_specs
 from spread.data import (
     INDEX_PAD, PHYSICAL_PAD, SPATIAL_PAD, SceneDataset, StatsError, collate_scenes, compute_stats,
     denormalize_translation, load_stats, matrix_to_rot6d, normalize_translation, rot6d_to_matrix, save_stats,

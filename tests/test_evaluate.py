@@ -34,7 +34,7 @@ def dataset(tmp_path_factory):
     """A dataset folder whose test split holds ROOMS generated rooms (val/train empty)."""
     from spread.assets.build import build_library
     from spread.procgen.dataset import DatasetConfig, generate_dataset
-    from spread.procgen.rooms import RoomConfig
+    from spread.procgen.room_types import RoomConfig
 
     lib = tmp_path_factory.mktemp("evlib") / "assets"
     build_library(lib, seed=0, processes=2, progress=False)

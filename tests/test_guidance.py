@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from spread.assets.builder import box_asset, library_from_specs
+from spread.assets.assemble import box_asset, library_from_specs
 from spread.data import matrix_to_rot6d
 from spread.guidance import GuidanceConfig, SceneGuidance
 from spread.guidance.collision import cone_frames, conical_field

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from spread.assets.builder import AssetSpec, box_asset, box_part, library_from_specs
+from spread.assets.assemble import AssetSpec, box_asset, box_part, library_from_specs
 from spread.metrics import (
     COLLISION_DEPTH_THRESHOLD, AverageSupportDistance, GraphRecall, MeshCollisionRate, PhysicsStability, SceneFID,
     fid_render, scene_collisions, scene_features, scene_graph_recall, scene_stability, scene_support_distance,

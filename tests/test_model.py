@@ -317,7 +317,7 @@ def _scene(lib, rng, scene_id):
 
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
-    from spread.assets.builder import box_asset, library_from_specs
+    from spread.assets.assemble import box_asset, library_from_specs
     from spread.data import compute_stats, save_stats
     from spread.scene import write_scene
 

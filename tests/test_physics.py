@@ -14,7 +14,7 @@ import sys
 import numpy as np
 import pytest
 
-from spread.assets.builder import AssetSpec, box_asset, box_part, library_from_specs
+from spread.assets.assemble import AssetSpec, box_asset, box_part, library_from_specs
 from spread.physics import (
     BULLET_HULL_MARGIN, PhysicsParams, PhysicsWorld, displacement_stats, get_world, simulate_runs,
 )

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from spread.assets.builder import box_asset, library_from_specs
+from spread.assets.assemble import box_asset, library_from_specs
 from spread.relations import (
     VERTICAL_TOLERANCE, physical_codes, scene_spatial_codes, spatial_codes,
 )

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spread.assets.builder import box_asset, library_from_specs
+from spread.assets.assemble import box_asset, library_from_specs
 from spread.render import (
     PALETTES, TopDownRenderSettings, category_colour, export_glb, hashed_colour, render_before_after,
     render_grid, render_topdown, save_png,

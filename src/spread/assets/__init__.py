@@ -1,6 +1,6 @@
 """Asset library: procedural household meshes built from convex parts, with per-asset caches.
 
-Modules: ``library`` (records, on-disk library, caches), ``builder`` (spec → files), ``catalog``
+Modules: ``library`` (records, on-disk library, caches), ``assemble`` (convex parts → mesh, frame, record on disk), ``catalog``
 (categories, roles, densities, tags; ``make_spec``), ``build`` (``build_library``: every category ×
 variant, deterministic, resumable, parallel), ``categories/*`` (the generators), ``primitives``
 (convex building blocks), ``stability`` (rest-pose checks), ``queries`` (fits-on-surface questions),

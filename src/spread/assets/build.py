@@ -22,7 +22,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from spread.assets.builder import AssetSpec, write_asset
+from spread.assets.assemble import AssetSpec, write_asset
 from spread.assets.catalog import CATALOG, asset_id, default_categories, make_spec
 from spread.assets.library import AssetLibrary, AssetRecord
 from spread.io import file_sha256

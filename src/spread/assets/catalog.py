@@ -2,7 +2,7 @@
 
 ``CATALOG[name]`` is a :class:`~spread.assets.categories.registry.CategoryInfo` (role, density,
 tags, styles, generator). :func:`make_spec` turns (category, variant, seed) into an
-:class:`~spread.assets.builder.AssetSpec`, deterministically: variant ``v`` of category ``c`` draws
+:class:`~spread.assets.assemble.AssetSpec`, deterministically: variant ``v`` of category ``c`` draws
 from a numpy Generator seeded with ``(seed, sha256(c), v)``, independent of Python's hash seed,
 of the process and of the other categories.
 """
@@ -18,7 +18,7 @@ from spread.assets.categories import (  # noqa: F401
     containers, decor, electronics, kitchenware, misc, seating, storage, tables,
 )
 from spread.assets.categories.registry import REGISTRY, CategoryInfo
-from spread.assets.builder import AssetSpec
+from spread.assets.assemble import AssetSpec
 
 #: category name → CategoryInfo, for every registered category.
 CATALOG: dict[str, CategoryInfo] = REGISTRY

@@ -10,7 +10,7 @@ from spread.cli import conf_dir
 
 def dataset_config(cfg: DictConfig):
     from spread.procgen.dataset import DatasetConfig
-    from spread.procgen.rooms import RoomConfig
+    from spread.procgen.room_types import RoomConfig
     from spread.procgen.settle import SettleConfig
 
     room = OmegaConf.to_container(cfg.room, resolve=True)

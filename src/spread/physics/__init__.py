@@ -5,6 +5,6 @@ pybullet itself is imported only when a world is created, so importing this pack
 
 from spread.physics.contacts import FLOOR, ContactSet  # noqa: F401
 from spread.physics.params import BULLET_HULL_MARGIN, PhysicsParams  # noqa: F401
-from spread.physics.protocol import Displacement, Runs, displacement_stats, simulate_runs  # noqa: F401
+from spread.physics.runs import Displacement, Runs, displacement_stats, simulate_runs  # noqa: F401
 from spread.physics.world import PhysicsWorld, SettleResult  # noqa: F401
 from spread.physics.worker import get_world  # noqa: F401

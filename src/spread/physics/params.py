@@ -21,7 +21,7 @@ class PhysicsParams:
 
     gravity: m/s², world frame (y-up).
     time_step: s, one internal Bullet step (``PhysicsWorld.step(1)``); protocol steps of 1/60 s are
-        made of several of these (see ``protocol.simulate_runs``).
+        made of several of these (see ``spread.physics.runs.simulate_runs``).
     solver_iterations: sequential-impulse iterations per step (Bullet's ``numSolverIterations``).
     friction: Coulomb coefficient between two objects (pairwise, see module docstring).
     floor_friction: Coulomb coefficient between an object and the floor (pairwise).

@@ -20,7 +20,7 @@ import numpy as np
 from spread import __version__
 from spread.io import write_json_atomic
 from spread.procgen.room import HullCache, generate_room
-from spread.procgen.rooms import RoomConfig
+from spread.procgen.room_types import RoomConfig
 from spread.procgen.settle import SettleConfig
 from spread.scene import PHYSICAL_SUPPORT, read_scene, write_scene
 

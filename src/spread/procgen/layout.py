@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from spread.procgen.placement import Placement, footprint, yaw_matrix
-from spread.procgen.rooms import RoomConfig, RoomType
+from spread.procgen.room_types import RoomConfig, RoomType
 
 #: yaw that turns an asset's front (+z) away from each wall: back wall (−z), front wall (+z), −x, +x
 WALL_YAWS = {"-z": 0.0, "+z": math.pi, "-x": math.pi / 2, "+x": -math.pi / 2}

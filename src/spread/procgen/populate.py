@@ -15,7 +15,7 @@ import numpy as np
 
 from spread.assets.queries import INSIDE_OVERHANG
 from spread.procgen.placement import Placement, footprint, surface_polygon, yaw_matrix
-from spread.procgen.rooms import CONTAINER_CONTENTS, FURNITURE_AFFINITY, STACKABLE, RoomConfig
+from spread.procgen.room_types import CONTAINER_CONTENTS, FURNITURE_AFFINITY, STACKABLE, RoomConfig
 
 #: Keep footprints this far (metres) inside a surface's edge.
 SURFACE_INSET = 0.02

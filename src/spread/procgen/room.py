@@ -8,7 +8,7 @@ import numpy as np
 
 from spread.procgen.layout import place_furniture
 from spread.procgen.populate import populate
-from spread.procgen.rooms import ROOM_TYPES, RoomConfig
+from spread.procgen.room_types import ROOM_TYPES, RoomConfig
 from spread.procgen.settle import SettleConfig, SettleReport, settle_room
 from spread.relations import hull_vertices, scene_spatial_codes
 from spread.scene import Scene

@@ -28,12 +28,12 @@ import numpy as np
 
 def evaluate(scenes: Path, dataset: Path, out: Path, workers: int, substeps: int) -> tuple[float, dict, list]:
     """(wall seconds, metrics, records) of one evaluation with ``workers`` Ray workers."""
-    from spread.distributed import EvalProtocol, EvaluationConfig, RaySettings, run_evaluation
+    from spread.evaluation import EvalProtocol, EvaluationConfig, FIDConfig, run_evaluation
+    from spread.runtime import RaySettings
 
     cfg = EvaluationConfig(scenes=str(scenes), reference=str(dataset), out_dir=str(out), resume=False, renders=0,
-                           progress=False, chunk_size=2,
-                           protocol=EvalProtocol(fid_enabled=False, stability_substeps=substeps),
-                           ray=RaySettings(num_cpus=workers))
+                           progress=False, chunk_size=2, protocol=EvalProtocol(stability_substeps=substeps),
+                           fid=FIDConfig(enabled=False), ray=RaySettings(num_cpus=workers))
     t0 = time.perf_counter()
     result = run_evaluation(cfg)
     return time.perf_counter() - t0, result.metrics, result.records

@@ -131,7 +131,9 @@ def part_sampling(args, library) -> None:
         data = checkpoint_data_settings(torch.load(args.ckpt, map_location="cpu", weights_only=False), model)
     else:
         bounds = load_stats(os.path.join(args.data, "stats.json"))["bounds_translations"]
-        model = SceneDiffusion("geometry", "tiny", bounds=bounds).eval()
+        from spread.configs import model_config
+
+        model = SceneDiffusion("geometry", model_config("tiny"), bounds=bounds).eval()
         data = {"num_points": model.config.num_points, "seed": 0}
     dataset = SceneDataset(args.data, "test", library=library, num_points=data["num_points"], seed=data["seed"])
     items = [i % len(dataset) for i in range(args.batch)]

@@ -72,7 +72,9 @@ def run_row(config: str, variant: str, B: int, N: int, M: int, repeats: int) -> 
 
     network_module.signed_chamfer_features = timed
     torch.manual_seed(0)
-    model = SceneDiffusion(variant, config, bounds=BOUNDS)
+    from spread.configs import model_config
+
+    model = SceneDiffusion(variant, model_config(config), bounds=BOUNDS)
     opt = model.configure_optimizers()
     batch = synthetic_batch(B, N, M)
     timesteps = torch.linspace(50, 950, B).long()
@@ -100,7 +102,9 @@ def run_sampling(B: int, N: int, M: int, sampler: str, variant: str) -> dict:
     from spread.model.module import SceneDiffusion
 
     torch.manual_seed(0)
-    model = SceneDiffusion(variant, "tiny", bounds=BOUNDS).eval()
+    from spread.configs import model_config
+
+    model = SceneDiffusion(variant, model_config("tiny"), bounds=BOUNDS).eval()
     batch = synthetic_batch(B, N, M)
     t0 = time.perf_counter()
     model.sample(batch, sampler, generator=torch.Generator().manual_seed(0))

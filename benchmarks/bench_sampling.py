@@ -34,7 +34,9 @@ def tiny_model(ckpt: str | None, data: str):
     if ckpt:
         return SceneDiffusion.load_from_checkpoint(ckpt, map_location="cpu").eval()
     bounds = load_stats(os.path.join(data, "stats.json"))["bounds_translations"]
-    return SceneDiffusion("geometry", "tiny", bounds=bounds).eval()
+    from spread.configs import model_config
+
+    return SceneDiffusion("geometry", model_config("tiny"), bounds=bounds).eval()
 
 
 def time_sampler(model, batch: dict, sampler: str) -> float:
@@ -88,7 +90,9 @@ def main() -> None:
     for sampler in args.samplers:
         print(row(name, tiny, batch, sampler), flush=True)
     if args.paper_sampler:
-        paper = SceneDiffusion("geometry", "paper", bounds=tiny.hparams.bounds).eval()
+        from spread.configs import model_config
+
+        paper = SceneDiffusion("geometry", model_config("paper"), bounds=tiny.hparams.bounds).eval()
         big = test_batch(args.data, args.batch, paper.config.num_points, data["seed"])
         print(row("paper geometry (untrained)", paper, big, args.paper_sampler), flush=True)
 

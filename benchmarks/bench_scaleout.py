@@ -51,8 +51,8 @@ def checkpoint(out: Path, data: Path) -> Path:
     """The tiny geometry model trained for 20 steps (``experiment=quick``)."""
     from hydra import compose, initialize_config_dir
 
-    from spread.cli import conf_dir
-    from spread.cli.train import train
+    from spread.configs import conf_dir
+    from spread.training.fit import train
 
     run = out / "train"
     ckpt = run / "checkpoints" / "last.ckpt"
@@ -67,10 +67,10 @@ def checkpoint(out: Path, data: Path) -> Path:
 
 
 def sampling_config(args, data: Path, ckpt: Path, out: Path, workers: int):
-    from spread.distributed.session import RaySettings
-    from spread.sampling import SamplingConfig
+    from spread.runtime.ray import RaySettings
+    from spread.sampling import DataSplit, SamplingConfig
 
-    return SamplingConfig(ckpt=str(ckpt), data_root=str(data), out_dir=str(out), sampler=f"ddim-{args.steps}",
+    return SamplingConfig(ckpt=str(ckpt), data=DataSplit(str(data)), out_dir=str(out), sampler=f"ddim-{args.steps}",
                           samples_per_graph=args.samples_per_graph, seed=0, batch_size=args.batch, workers=workers,
                           device="cpu", threads=1, resume=False, renders=0, progress=False,
                           ray=RaySettings(num_cpus=max(1, workers)))
@@ -131,12 +131,12 @@ def sampling_parts(args, data: Path, ckpt: Path, scenes_dir: Path) -> dict:
 
 
 def evaluation_config(scenes: Path, data: Path, out: Path, workers: int, stability_runs: int):
-    from spread.distributed import EvalProtocol, EvaluationConfig, RaySettings
+    from spread.evaluation import EvalProtocol, EvaluationConfig, FIDConfig
+    from spread.runtime import RaySettings
 
     return EvaluationConfig(scenes=str(scenes), reference=str(data), out_dir=str(out), resume=False, renders=0,
-                            progress=False, chunk_size=2,
-                            protocol=EvalProtocol(fid_enabled=False, stability_runs=stability_runs),
-                            ray=RaySettings(num_cpus=workers))
+                            progress=False, chunk_size=2, protocol=EvalProtocol(stability_runs=stability_runs),
+                            fid=FIDConfig(enabled=False), ray=RaySettings(num_cpus=workers))
 
 
 def fmt(x: float, digits: int = 2) -> str:
@@ -159,7 +159,7 @@ def main() -> None:
 
     import torch
 
-    from spread.distributed import run_evaluation
+    from spread.evaluation import run_evaluation
     from spread.io import read_jsonl
     from spread.sampling import run_sampling
     from spread.scene import list_scene_files

@@ -76,7 +76,9 @@ def main() -> None:
     root = Path(args.dataset)
     out = Path(args.out)
     library = AssetLibrary.load(root / "assets")
-    model_cfg = "tiny"
+    from spread.configs import model_config
+
+    model_cfg = model_config("tiny")
     dm = SceneDataModule(root, batch_size=args.batch, num_workers=1, num_points=256, seed=0)
     model = SceneDiffusion(variant="geometry", config=model_cfg, sample_every_n_epochs=0)
     trainer = L.Trainer(max_time={"minutes": args.minutes}, accelerator="cpu", devices=1, logger=False,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Ray Train on a Ray cluster: Lightning DDP inside a TorchTrainer, one worker per device (a Ray job running
-# python -m spread.distributed.ray_train, which composes conf/train.yaml with trainer=ray).
-#   jobs/ray_train.sh experiment=geometry data.root=/shared/rooms ray_train.num_workers=8 ray_train.use_gpu=true
+# spread-train-ray, which composes conf/train.yaml with trainer=ray).
+#   jobs/ray_train.sh experiment=paper_geometry data.root=/shared/rooms ray_train.num_workers=8 ray_train.use_gpu=true
 #   jobs/ray_train.sh experiment=quick data.root=/shared/rooms ray_train.num_workers=4 ray_train.cpus_per_worker=4
 #   jobs/ray_train.sh ... ray_train.max_failures=3      # restart the workers from Ray's newest checkpoint
 # The run folder is $SPREAD_RUNS/train/ray-<RUN_ID> (RUN_ID defaults to the time; SPREAD_OUT overrides):
@@ -14,4 +14,4 @@ mkdir -p "$OUT/.tmp"
 export SPREAD_JOB_TMPDIR="$OUT/.tmp"   # checkpoints renamed into place on the run folder's filesystem
 ARGS=("$@" "out_dir=$OUT")
 spread_default ARGS ray_train.address=auto "ckpt_path=$(spread_resume "$OUT")"
-spread_submit "$SPREAD_VENV/bin/python" -m spread.distributed.ray_train "${ARGS[@]}"
+spread_submit "$SPREAD_VENV/bin/spread-train-ray" "${ARGS[@]}"

@@ -3,7 +3,7 @@
 # torchrun starts NPROC_PER_NODE processes per node; the nodes meet at a c10d rendezvous hosted by the
 # node that RDZV_ENDPOINT names (ranks are assigned there), and Lightning reads the ranks torchrun sets.
 #   on every node:  NNODES=2 NPROC_PER_NODE=4 RDZV_ENDPOINT=node0:29400 RUN_ID=geo1 \
-#                   jobs/torchrun.sh experiment=geometry data.root=/shared/rooms trainer.accelerator=gpu
+#                   jobs/torchrun.sh experiment=paper_geometry data.root=/shared/rooms trainer.accelerator=gpu
 # Settings (environment):
 #   NNODES          number of nodes (required)
 #   RDZV_ENDPOINT   HOST:PORT of the rendezvous, reachable from every node (required; the host runs the store)

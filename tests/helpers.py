@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from spread.cli import conf_dir
+from spread.configs import to_object
 
 SMALL_MODEL = ["model.config.depth=1", "model.config.dim=32", "model.config.dim_head=8", "model.config.heads=2",
                "model.config.edge_dim=16", "model.config.index_dim=8", "model.config.num_latents=4",
@@ -27,11 +27,9 @@ SCRIPTS = Path(sys.executable).parent
 
 
 def compose(config_name: str, *overrides: str):
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
+    from spread.configs import compose as compose_config
 
-    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
-        return hydra_compose(config_name=config_name, overrides=list(overrides))
+    return compose_config(config_name, list(overrides))
 
 
 def run_script(name: str, *args: str, timeout: int = 600, ok: bool = True) -> subprocess.CompletedProcess:
@@ -45,27 +43,26 @@ def run_script(name: str, *args: str, timeout: int = 600, ok: bool = True) -> su
 def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 8, categories=None) -> Path:
     """``root/assets`` (the asset library) and ``root/data`` (rooms; 20% val, 30% test); returns ``root/data``."""
     from spread.assets.build import build_library
-    from spread.procgen.dataset import DatasetConfig, generate_dataset
+    from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
     from spread.procgen.room_types import RoomConfig
 
     lib = root / "assets"
     build_library(lib, categories=categories, seed=0, processes=2, progress=False)
     out = root / "data"
     generate_dataset(out, DatasetConfig(rooms=rooms, seed=seed, processes=2, renders=0, val_fraction=0.2,
-                                        test_fraction=0.3, assets_from=str(lib),
+                                        test_fraction=0.3, assets=AssetSource(copy_from=str(lib)),
                                         room=RoomConfig(max_objects=max_objects)), progress=False)
     return out
 
 
 def train_in_process(out: Path, *overrides: str) -> dict:
-    from spread.cli.train import train
+    from spread.training.fit import train
 
     cfg = compose("train", f"out_dir={out}", *overrides)
     return train(cfg, run_dir=out)
 
 
 def sample_in_process(*overrides: str):
-    from spread.cli.sample import sampling_config
     from spread.sampling import run_sampling
 
-    return run_sampling(sampling_config(compose("sample", *FAST_SAMPLE, *overrides)))
+    return run_sampling(to_object(compose("sample", *FAST_SAMPLE, *overrides)))

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import yaml
 
-from spread.cli import conf_dir
+from spread.configs import conf_dir
 from spread.experiments import AblationSpec, RunError, find_runs, read_runs, run_ablation, run_report
 from spread.experiments.ablation import StageError
 from spread.experiments.tables import METRICS, Column, read_csv, write_tables
@@ -209,8 +209,8 @@ class FakeCommands:
 
 
 def spec(tmp_path: Path, **kw) -> AblationSpec:
-    defaults = dict(out_dir=tmp_path / "abl", train=["seed=0"], train_variant={"base": ["experiment=base"],
-                    "geometry": ["experiment=geometry"]}, sample=["seed=0"], guidance=["guidance=refine"],
+    defaults = dict(out_dir=tmp_path / "abl", train=["seed=0"], train_variant={"base": ["experiment=paper_base"],
+                    "geometry": ["experiment=paper_geometry"]}, sample=["seed=0"], guidance=["guidance=refine"],
                     evaluate=["seed=0"], generate=["rooms=4"])
     return AblationSpec(**{**defaults, **kw})
 
@@ -283,13 +283,13 @@ def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):
 
 
 def test_presets_compose_and_an_unknown_preset_is_named():
-    from spread.cli.ablate import ablation_spec
+    from spread.experiments.ablation_command import ablation_spec
 
     quick = ablation_spec(compose("ablate", "+preset=quick"))
     assert quick.out_dir == Path("runs/ablate/quick") and "sampler=ddim50" in quick.sample
     paper = ablation_spec(compose("ablate", "+preset=paper"))
     assert "sampler=ddpm" in paper.sample and "trainer=gpu" in paper.train
-    assert {"guidance.collision=7.5e-3", "guidance.gravity=1e-3", "guidance.relation=1e-3"} <= set(paper.guidance)
+    assert {"guidance.collision=7.5e-3", "guidance.gravity=1.0e-3", "guidance.relation=1.0e-3"} <= set(paper.guidance)
     for preset in (quick, paper):  # every sub-command list composes with its command's config
         for v in ("base", "geometry"):
             cfg = compose("train", *preset.train, *preset.train_variant[v], "data.root=/d", "out_dir=/o")
@@ -319,6 +319,9 @@ def compose_hydra(name: str, *overrides: str):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
+    from spread.configs import register
+
+    register(name)
     with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
         return hydra_compose(config_name=name, overrides=list(overrides), return_hydra_config=True)
 
@@ -357,7 +360,7 @@ def tiny_ablation(tmp_path_factory):
     """The quick preset's code path on 12 generated rooms (3 test graphs) with a shrunken model."""
     import torch
 
-    from spread.cli.ablate import run
+    from spread.experiments.ablation_command import ablate as run
 
     torch.set_num_threads(1)
     data = make_dataset(tmp_path_factory.mktemp("abdata"))
@@ -372,7 +375,7 @@ def tiny_ablation(tmp_path_factory):
 
 
 def test_tiny_ablation_end_to_end_and_resume(tiny_ablation):
-    from spread.cli.ablate import run
+    from spread.experiments.ablation_command import ablate as run
 
     result, out = tiny_ablation["result"], tiny_ablation["out"]
     assert result.ok, result.errors

@@ -33,14 +33,14 @@ METRIC_KEYS = ("col_mesh", "grecall", "asd", "stability", "still_fraction", "dis
 def dataset(tmp_path_factory):
     """A dataset folder whose test split holds ROOMS generated rooms (val/train empty)."""
     from spread.assets.build import build_library
-    from spread.procgen.dataset import DatasetConfig, generate_dataset
+    from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
     from spread.procgen.room_types import RoomConfig
 
     lib = tmp_path_factory.mktemp("evlib") / "assets"
     build_library(lib, seed=0, processes=2, progress=False)
     out = tmp_path_factory.mktemp("evdata") / "data"
     generate_dataset(out, DatasetConfig(rooms=ROOMS, seed=5, processes=2, renders=0, val_fraction=0.0,
-                                        test_fraction=1.0, assets_from=str(lib),
+                                        test_fraction=1.0, assets=AssetSource(copy_from=str(lib)),
                                         room=RoomConfig(max_objects=24)), progress=False)
     assert len(list_scene_files(out / "test")) == ROOMS
     return out
@@ -85,14 +85,10 @@ def cli_run(dataset, scenes_dir, tmp_path_factory):
 
 def run_in_process(*overrides: str):
     """Compose conf/evaluate.yaml with ``overrides`` and call the Hydra entry (no subprocess)."""
-    from hydra import compose, initialize_config_dir
-
-    from spread.cli import conf_dir
     from spread.cli.evaluate import main
+    from spread.configs import compose
 
-    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=list(overrides))
-    main(cfg)
+    main(compose("evaluate", list(overrides)))
 
 
 def comparable(metrics: dict) -> dict:
@@ -186,7 +182,7 @@ def test_resume_refuses_lines_of_another_protocol(cli_run, dataset, scenes_dir, 
 def test_a_worker_killed_mid_run_loses_no_scene(cli_run, dataset, scenes_dir, tmp_path, monkeypatch, max_retries):
     """A worker exits after its first scene: Ray re-runs the task (max_retries=3), or, with no retries left,
     the driver splits the failed chunk into one task per scene (max_retries=0)."""
-    from spread.distributed.work import FAULT_MARKER_ENV
+    from spread.evaluation.work import FAULT_MARKER_ENV
 
     marker = tmp_path / "killed"
     monkeypatch.setenv(FAULT_MARKER_ENV, str(marker))  # inherited by the Ray workers started below
@@ -259,7 +255,7 @@ def test_two_node_cluster_runs_chunks_on_both_nodes(cli_run, dataset, tmp_path):
 # ---- driver-side pieces, no Ray ------------------------------------------------------------------
 
 def test_load_finished_drops_duplicates_and_a_torn_line(tmp_path):
-    from spread.distributed.resume import load_finished
+    from spread.evaluation.resume import load_finished
 
     path = tmp_path / "per_scene.jsonl"
     for sid in ("a", "b", "a"):
@@ -276,8 +272,8 @@ def test_load_finished_drops_duplicates_and_a_torn_line(tmp_path):
 def test_records_merge_to_the_metrics_of_all_scenes_at_once(cli_run, dataset):
     """merge_state over per-scene states (the driver's path) equals one metric updated with every scene."""
     from spread.assets import AssetLibrary
-    from spread.distributed.aggregate import merge_records
-    from spread.distributed.protocol import EvalProtocol
+    from spread.evaluation.aggregate import merge_records
+    from spread.evaluation.protocol import EvalProtocol
 
     protocol = EvalProtocol(stability_runs=2)
     records = [r for r in read_jsonl(cli_run[0] / "per_scene.jsonl") if not r["error"]]
@@ -299,14 +295,15 @@ def crash_on_boom(paths, tag):
 
 
 def test_a_scene_that_always_kills_its_worker_is_reported_alone(monkeypatch):
-    from spread.distributed.fanout import fan_out
-    from spread.distributed.session import RaySettings, ray_session
+    from spread.evaluation.fanout import fan_out
+    from spread.evaluation.work import failure_record
+    from spread.runtime.ray import RaySettings, ray_session
 
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
     settings = RaySettings(num_cpus=1, max_retries=1)
     records = []
     with ray_session(settings):
-        stats = fan_out(["a", "boom", "c", "d"], 3, settings, crash_on_boom, ("x",), records.append)
+        stats = fan_out(["a", "boom", "c", "d"], 3, settings, crash_on_boom, ("x",), records.append, failure_record)
     by_id = {r["scene_id"]: r for r in records}
     assert sorted(by_id) == ["a", "boom", "c", "d"] and len(records) == 4
     assert "worker failed" in by_id["boom"]["error"]
@@ -315,7 +312,7 @@ def test_a_scene_that_always_kills_its_worker_is_reported_alone(monkeypatch):
 
 
 def test_import_pulls_no_heavy_modules():
-    code = ("import sys, spread.distributed, spread.cli.evaluate; "
+    code = ("import sys, spread.evaluation, spread.cli.evaluate; "
             "print([m for m in ('ray', 'wandb', 'pybullet', 'cleanfid') if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -11,7 +11,8 @@ from spread.assets.assemble import box_asset, library_from_specs
 from spread.data import matrix_to_rot6d
 from spread.guidance import GuidanceConfig, SceneGuidance
 from spread.guidance.collision import cone_frames, conical_field
-from spread.model import ModelConfig, Sampler
+from spread.configs import model_config
+from spread.model import Sampler
 
 BOUNDS = torch.tensor([-3.0, 0.0, -3.0, 3.0, 2.5, 3.0])
 GAP, TOL = 5e-4, 2e-3
@@ -291,9 +292,8 @@ def model_and_batch(lib):
     from spread.model.module import SceneDiffusion
 
     torch.manual_seed(0)
-    cfg = ModelConfig.tiny(depth=1, dim=32, dim_head=8, heads=2, edge_dim=16, index_dim=8, num_latents=4,
-                           shape_tokens=4, shape_dim=16, tokenizer_width=16, tokenizer_points=16, num_points=16,
-                           cond_dim=32)
+    cfg = model_config("tiny", depth=1, dim=32, dim_head=8, heads=2, edge_dim=16, index_dim=8, num_latents=4,
+                       shape_tokens=4, shape_dim=16, tokenizer_width=16, tokenizer_points=16, num_points=16, cond_dim=32)
     model = SceneDiffusion("geometry", cfg, bounds=BOUNDS.tolist()).eval()
     ids = [["table", "cup", "crate", "block"], ["crate", "block"]]
     B, N, M = 2, 4, 16
@@ -315,6 +315,15 @@ def make_guidance(lib, model_and_batch, config):
     return SceneGuidance(config, lib, ids, batch["physical"], batch["mask"], model.network.bounds)
 
 
+def guided_states(model, batch, sampler, generator, guidance):
+    """States sampled through the pipeline with ``guidance`` as its callback (None: unguided)."""
+    from spread.sampling.pipeline import ScenePipeline, guidance_callback
+
+    callback = guidance_callback(guidance) if guidance is not None else None
+    x, _ = ScenePipeline(model, None, sampler).sample_states(batch, generator, [callback] if callback else [])
+    return x
+
+
 def test_guidance_none_is_bit_for_bit(lib, model_and_batch):
     model, batch, _ = model_and_batch
     network = model.ema.module
@@ -327,9 +336,10 @@ def test_guidance_none_is_bit_for_bit(lib, model_and_batch):
 
     for sampler in ("ddim-4", "dpmsolver++-3"):
         ref = reference(sampler)
+        assert torch.equal(model.sample_states(batch, sampler, generator=torch.Generator().manual_seed(3)), ref)
         inactive = GuidanceConfig("paper", collision=0, gravity=0, relation=0)
         for guidance in (None, *(make_guidance(lib, model_and_batch, c) for c in ("none", inactive))):
-            out = model.sample_states(batch, sampler, generator=torch.Generator().manual_seed(3), guidance=guidance)
+            out = guided_states(model, batch, sampler, torch.Generator().manual_seed(3), guidance)
             assert torch.equal(out, ref)
 
 
@@ -340,7 +350,7 @@ def test_paper_and_refine_modes_sample(lib, model_and_batch, sampler):
     plain = model.sample_states(batch, sampler, generator=gen())
     for config in (GuidanceConfig("paper", start=0.5), GuidanceConfig("refine", iterations=4)):
         guidance = make_guidance(lib, model_and_batch, config)
-        out = model.sample_states(batch, sampler, generator=gen(), guidance=guidance)
+        out = guided_states(model, batch, sampler, gen(), guidance)
         assert torch.isfinite(out).all() and not torch.equal(out, plain), config.mode
         assert (out[~batch["mask"]] == 0).all(), "padding stays zero"
         stats = guidance.stats
@@ -348,7 +358,8 @@ def test_paper_and_refine_modes_sample(lib, model_and_batch, sampler):
             assert stats["steps"] == 3 and stats["network_calls"] == 0  # steps 3, 4, 5 of 6
         else:
             assert stats["steps"] == 4 and stats["network_calls"] == 4 and stats["network_s"] > 0
-        poses = model.sample(batch, sampler, generator=gen(), guidance=make_guidance(lib, model_and_batch, config))
+        poses = model.decode(guided_states(model, batch, sampler, gen(), make_guidance(lib, model_and_batch, config)),
+                             batch["mask"])
         assert torch.isfinite(poses.translation).all()
 
 
@@ -365,5 +376,5 @@ def test_paper_schedule_and_gravity_window(lib, model_and_batch):
 
     guidance.step = spy
     model, batch, _ = model_and_batch
-    model.sample_states(batch, "ddim-8", generator=torch.Generator().manual_seed(0), guidance=guidance)
+    guided_states(model, batch, "ddim-8", torch.Generator().manual_seed(0), guidance)
     assert seen == [False] * 8 + [True] * 4  # steps 2..5 without, 6..7 with gravity, twice each

@@ -9,6 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from spread.configs import model_config
 from spread.data import matrix_to_rot6d, rot6d_to_matrix
 from spread.model import ModelConfig, Sampler, SceneDenoiser, graph_recall, signed_chamfer_features
 
@@ -20,7 +21,7 @@ M = 48  # points per object in these tests
 
 def tiny(**overrides) -> ModelConfig:
     """The tiny preset, shrunk further so each test runs in a second or two."""
-    return ModelConfig.tiny(**{"depth": 2, "dim": 64, "dim_head": 16, "edge_dim": 32, "num_latents": 8,
+    return model_config("tiny", **{"depth": 2, "dim": 64, "dim_head": 16, "edge_dim": 32, "num_latents": 8,
                                "shape_tokens": 4, "shape_dim": 16, "tokenizer_width": 32, "tokenizer_points": M,
                                "index_dim": 16, "num_points": M, **overrides})
 
@@ -195,7 +196,7 @@ def test_one_batch_overfit_tiny_model():
     from spread.model.module import SceneDiffusion
 
     torch.manual_seed(0)
-    model = SceneDiffusion("geometry", ModelConfig.tiny(tokenizer_points=M, num_points=M), bounds=BOUNDS)
+    model = SceneDiffusion("geometry", model_config("tiny", tokenizer_points=M, num_points=M), bounds=BOUNDS)
     b = random_batch(sizes=(4, 3), seed=4)
     noise, t = torch.randn(2, 4, 9), torch.tensor([40, 400])
     opt = torch.optim.AdamW(model.network.parameters(), lr=2e-3)
@@ -365,7 +366,7 @@ def test_fast_dev_run_with_datamodule_and_grecall(root, tmp_path):
     from spread.model.module import SceneDiffusion
 
     dm = SceneDataModule(root, batch_size=2, num_points=M)
-    model = SceneDiffusion("geometry", "tiny", graph_dropout=0.5, sample_every_n_epochs=1, val_sampler="ddim-2",
+    model = SceneDiffusion("geometry", model_config("tiny"), graph_dropout=0.5, sample_every_n_epochs=1, val_sampler="ddim-2",
                            val_sample_scenes=2)
     trainer = _trainer(tmp_path, fast_dev_run=True)
     trainer.fit(model, datamodule=dm)

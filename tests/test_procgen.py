@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from spread.assets import AssetLibrary
-from spread.procgen.dataset import DatasetConfig, generate_dataset, scene_id_of, split_of
+from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset, scene_id_of, split_of
 from spread.procgen.quality import MAX_PENETRATION, MAX_SUPPORT_DISTANCE, check_room
 from spread.scene import list_scene_files, read_scene
 
@@ -34,7 +34,7 @@ def library_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory, library_dir):
     out = tmp_path_factory.mktemp("gen") / "data"
-    config = DatasetConfig(rooms=ROOMS, seed=3, processes=2, renders=2, assets_from=str(library_dir))
+    config = DatasetConfig(rooms=ROOMS, seed=3, processes=2, renders=2, assets=AssetSource(copy_from=str(library_dir)))
     manifest = generate_dataset(out, config, progress=False)
     lib = AssetLibrary.load(out / "assets")
     scenes = [read_scene(p, assets=lib) for s in ("train", "val", "test") for p in list_scene_files(out / s)]
@@ -99,7 +99,7 @@ def test_checks_catch_a_broken_room(dataset):
 
 def test_same_seed_gives_identical_files_regardless_of_processes(dataset, library_dir, tmp_path):
     out = dataset[0]
-    config = DatasetConfig(rooms=3, seed=3, processes=1, renders=0, assets_from=str(library_dir))
+    config = DatasetConfig(rooms=3, seed=3, processes=1, renders=0, assets=AssetSource(copy_from=str(library_dir)))
     generate_dataset(tmp_path / "again", config, progress=False)
     for index in range(3):
         rel = Path(split_of(index, config)) / f"{scene_id_of(index, 3)}.npz"
@@ -108,7 +108,7 @@ def test_same_seed_gives_identical_files_regardless_of_processes(dataset, librar
 
 
 def test_resume_skips_existing_rooms(library_dir, tmp_path):
-    config = DatasetConfig(rooms=2, seed=5, processes=1, renders=0, assets_from=str(library_dir))
+    config = DatasetConfig(rooms=2, seed=5, processes=1, renders=0, assets=AssetSource(copy_from=str(library_dir)))
     generate_dataset(tmp_path, config, progress=False)
     files = sorted(p for split in ("train", "val", "test") for p in (tmp_path / split).glob("*.npz"))
     assert files
@@ -128,7 +128,7 @@ def test_command_line(library_dir, tmp_path):
     env = dict(os.environ, WANDB_MODE="disabled")
     out = tmp_path / "cli"
     res = subprocess.run([str(exe), f"out_dir={out}", "rooms=2", "seed=1", "processes=1", "renders=1",
-                          "progress=false", f"assets.from={library_dir}"], capture_output=True, text=True, env=env, timeout=600)
+                          "progress=false", f"assets.copy_from={library_dir}"], capture_output=True, text=True, env=env, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "objects per room" in res.stdout
     assert (out / "manifest.json").exists() and (out / "renders" / "overview.png").exists()

@@ -256,7 +256,7 @@ def test_slurm_script_under_a_stand_in_srun_trains_two_nodes_and_resumes(dataset
 # ---- Ray Train -----------------------------------------------------------------------------------------
 
 def test_ray_train_config_and_default_trainer():
-    from spread.distributed.ray_train import RayTrainSettings, split_config, with_default_trainer
+    from spread.training.ray_train import RayTrainSettings, split_config, with_default_trainer
 
     assert with_default_trainer(["x", "experiment=quick"]) == ["x", "trainer=ray", "experiment=quick"]
     assert with_default_trainer(["x", "trainer=gpu", "trainer.devices=2"]) == ["x", "trainer=gpu", "trainer.devices=2"]
@@ -274,11 +274,11 @@ def test_ray_train_config_and_default_trainer():
 
 
 def test_ray_train_two_cpu_workers_report_a_checkpoint(dataset, tmp_path):
-    """``python -m spread.distributed.ray_train`` (trainer=ray by default): TorchTrainer with RayDDPStrategy,
+    """``spread-train-ray`` (trainer=ray by default): TorchTrainer with RayDDPStrategy,
     RayLightningEnvironment, prepare_trainer and RayTrainReportCallback, 2 workers of 0.5 CPU on a private
     2-CPU Ray, 3 steps: spread-train's run folder plus Ray's checkpoint of the last epoch (~50 s)."""
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "spread.distributed.ray_train", *TRAIN, f"data.root={dataset}",
+    proc = subprocess.run([sys.executable, "-m", "spread.cli.train_ray", *TRAIN, f"data.root={dataset}",
                            f"out_dir={out}", "trainer.max_steps=3", "ray_train.num_workers=2",
                            "ray_train.cpus_per_worker=0.5", "ray_train.num_cpus=2", "ray_train.log_to_driver=false"],
                           env=script_env(), capture_output=True, text=True, timeout=500)
@@ -298,7 +298,7 @@ def test_ray_train_restarts_a_failed_worker_group_from_its_newest_checkpoint(dat
     """Rank 1 dies after step 3, before that epoch's report: Ray restarts both workers
     (``ray_train.max_failures=1``) from its newest checkpoint (step 2), and the run reports steps 1-4 once
     each (one batch per rank per epoch, so one Ray checkpoint per step; ~90 s)."""
-    from spread.distributed.ray_train import run_ray_train
+    from spread.training.ray_train import run_ray_train
 
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
     marker, out = tmp_path / "crashed", tmp_path / "run"
@@ -442,7 +442,7 @@ def test_training_killed_mid_epoch_resumes_from_last_with_its_state(dataset, tmp
     """spread-train (a subprocess; 7 batches of 1 per epoch, a checkpoint every 3 steps) is SIGKILLed right
     after its first periodic checkpoint, mid-epoch; ``ckpt_path=last`` resumes at that checkpoint's step with
     its weights, EMA, optimizer and scheduler state bit for bit, and trains on to max_steps."""
-    from spread.cli.train import train
+    from spread.training.fit import train
 
     out = tmp_path / "run"
     common = [*TRAIN, f"data.root={dataset}", f"out_dir={out}", "data.batch_size=1",

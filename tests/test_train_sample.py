@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from spread.cli import conf_dir
+from spread.configs import conf_dir
 from spread.scene import list_scene_files, read_scene
 
 from helpers import (FAST_SAMPLE, FAST_TRAIN, QUIET, SCRIPTS, SMALL_MODEL, compose, make_dataset, run_script,
@@ -72,13 +72,17 @@ def test_every_experiment_composes_and_its_targets_resolve(experiment):
     assert str(cfg.out_dir).startswith(f"runs/train/{experiment}/")
 
 
-def test_model_presets_match_model_config_and_groups_compose():
+def test_model_groups_extend_model_config_and_compose():
     from spread.model import ModelConfig
 
-    assert dict(compose("train", "model=tiny").model.config) == ModelConfig.tiny().to_dict()
-    assert dict(compose("train", "model=paper").model.config) == ModelConfig.paper().to_dict()
-    assert compose("train", "experiment=base").model.variant == "base"
-    assert compose("train", "experiment=geometry").model.config.name == "paper"
+    paper = compose("train", "model=paper").model.config
+    assert dict(paper) == ModelConfig().to_dict()  # the paper's network is ModelConfig's defaults, one source
+    tiny = dict(compose("train", "model=tiny").model.config)
+    assert tiny["name"] == "tiny" and (tiny["dim"], tiny["depth"], tiny["num_points"]) == (128, 3, 256)
+    assert tiny["cond_dim"] == paper.cond_dim  # what tiny.yaml does not name comes from the paper's base
+    assert dict(compose("train", "model=tiny", "model.config.depth=4").model.config)["depth"] == 4
+    assert compose("train", "experiment=paper_base").model.variant == "base"
+    assert compose("train", "experiment=paper_geometry").model.config.name == "paper"
     quick = compose("train", "experiment=quick")
     assert quick.model.config.name == "tiny" and quick.trainer.max_time and quick.trainer.accelerator == "cpu"
     assert compose("train", "trainer=gpu").trainer.accelerator == "gpu"
@@ -100,15 +104,15 @@ def test_quick_model_instantiates_from_config():
 @pytest.mark.parametrize("choice, kind, steps", [("ddpm", "ddpm", 1000), ("ddim50", "ddim", 50),
                                                  ("ddim100", "ddim", 100), ("dpmsolver20", "dpmsolver++", 20)])
 def test_sampler_group(choice, kind, steps):
-    from spread.cli.sample import sampling_config
+    from spread.configs import to_object
     from spread.model import Sampler
+    from spread.sampling import SamplingConfig
 
-    cfg = sampling_config(compose("sample", f"sampler={choice}", "ckpt=x", "data.root=y", "out_dir=z"))
-    sampler = Sampler.from_config(cfg.sampler)
-    assert (sampler.kind, sampler.num_steps) == (kind, steps)
-    ddpm_k = sampling_config(compose("sample", "sampler=ddpm", "sampler.steps=100", "ckpt=x", "data.root=y",
-                                     "out_dir=z"))
-    assert Sampler.from_config(ddpm_k.sampler).num_steps == 100
+    cfg = to_object(compose("sample", f"sampler={choice}", "ckpt=x", "data.root=y", "out_dir=z"))
+    assert isinstance(cfg, SamplingConfig) and isinstance(cfg.sampler, Sampler)
+    assert (cfg.sampler.kind, cfg.sampler.num_steps) == (kind, steps)
+    ddpm_k = to_object(compose("sample", "sampler=ddpm", "sampler.steps=100", "ckpt=x", "data.root=y", "out_dir=z"))
+    assert ddpm_k.sampler.num_steps == 100
 
 
 # ---- training ---------------------------------------------------------------------------------------
@@ -148,7 +152,7 @@ def test_training_resumes_step_optimizer_and_ema(dataset, trained):
 
 
 def test_ckpt_path_last_starts_fresh_without_a_checkpoint_and_rejects_missing_files(tmp_path):
-    from spread.cli.train import resolve_ckpt_path
+    from spread.training.checkpoints import resolve_ckpt_path
 
     cfg = compose("train", "ckpt_path=last", f"paths.runs_dir={tmp_path}", "experiment_name=x")
     assert resolve_ckpt_path(cfg, tmp_path / "run") is None
@@ -192,7 +196,7 @@ def test_degenerate_sampled_rotations_are_repaired():
     from scipy.spatial.transform import Rotation
 
     from spread.data import rot6d_to_matrix
-    from spread.sampling.worker import repair_rotations
+    from spread.sampling.pipeline import repair_rotations
 
     good = Rotation.random(3, random_state=0).as_matrix().astype(np.float32)
     clipped = rot6d_to_matrix(np.array([[1, -1, 1, -1, 1, -1], [1, 1, 1, 1, 1, 1]], np.float32))  # parallel columns

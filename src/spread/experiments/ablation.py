@@ -1,8 +1,8 @@
 """``spread-ablate``: the ablation table (DESIGN §3 variants, §6 protocol) as resumable stages.
 
 The ablation is a sequence of the platform's own commands, run in this process through a
-:class:`Commands` object (``spread.cli.ablate`` wires it to ``spread-generate``, ``-train``, ``-sample`` and
-``-evaluate``'s library functions); each stage is exactly one command with its Hydra overrides, printed as
+:class:`Commands` object (:class:`spread.experiments.commands.InProcessCommands`: ``spread-generate``,
+``-train``, ``-sample`` and ``-evaluate``'s library functions); each stage is exactly one command with its Hydra overrides, printed as
 the equivalent command line. The stages, under ``out_dir``:
 
 | stage | command | folder | finished when |

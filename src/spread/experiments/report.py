@@ -82,3 +82,22 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metr
                   for (m, w), (p, pts) in result.plots.items()],
     })
     return result
+
+
+def runs_argument(value) -> list[str]:
+    """``runs`` as a list of strings (a single path or glob, or a list of them; a Hydra list node too)."""
+    if isinstance(value, (str, Path)):
+        return [str(value)]
+    return [str(v) for v in value]
+
+
+def print_report(result: ReportResult) -> None:
+    """The report's table and where its files went, on the console."""
+    from rich.console import Console
+
+    console = Console()
+    console.print(result.tables["md"].read_text())
+    for path in result.unfinished:
+        console.print(f"[yellow]skipped (no metrics.json yet): {path}[/yellow]")
+    console.print(f"{len(result.records)} runs; table {result.tables['md']}, {result.tables['csv']}; "
+                  f"{len(result.plots)} plots in {result.tables['md'].parent / 'plots'}")

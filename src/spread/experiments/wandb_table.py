@@ -11,16 +11,15 @@ from spread.experiments.tables import METRICS
 COLUMNS = ("variant", "method", *[c.key for c in METRICS], "still_fraction", "n_scenes", "fid_status", "status")
 
 
-def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Path, mode: str = "offline",
-                 project: str = "spread", name: str | None = None, tags: list[str] | None = None,
+def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Path, logger, name: str | None = None,
                  config: dict | None = None, group: str | None = None) -> str | None:
-    """Log the table; returns the wandb run folder (None when disabled)."""
+    """Log the table with ``logger`` (a :class:`~spread.runtime.tracking.LoggerConfig`, ``job_type=ablation``);
+    returns the wandb run folder (None when disabled)."""
     import wandb
 
-    run = wandb.init(project=project, group=group or None, name=name, tags=tags, dir=str(out_dir), mode=mode,
-                     job_type="ablation",
-                     reinit="finish_previous", config=config or {},
-                     settings=wandb.Settings(console="off", save_code=False, silent=True))
+    from spread.runtime.tracking import as_logger_config, init_run, run_folder
+
+    run = init_run(as_logger_config(logger), "ablation", out_dir, config or {}, group=group, name=name)
     try:
         table = wandb.Table(columns=list(COLUMNS))
         for r in records:
@@ -30,6 +29,6 @@ def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Pat
             payload["ablation_plot"] = wandb.Image(str(png))
         run.log(payload)
         run.summary.update({f"{r['variant']}/{c.key}": r.get(c.key) for r in records for c in METRICS})
-        return None if mode == "disabled" else str(getattr(run, "dir", "") or "")
+        return run_folder(run)
     finally:
         run.finish()

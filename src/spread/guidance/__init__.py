@@ -11,8 +11,8 @@ Three terms on posed meshes, each differentiable in torch w.r.t. the normalised 
 
 :class:`SceneGuidance` (:mod:`~spread.guidance.guide`) combines them with the weights and schedule of a
 :class:`GuidanceConfig` (:mod:`~spread.guidance.config`), as the paper's per-step hook (``paper``) or
-the release's post-hoc refinement at t = 0 (``refine``). ``SceneDiffusion.sample(..., guidance=g)``
-runs either. Imports go guidance → model, never back.
+the release's post-hoc refinement at t = 0 (``refine``); the sampling pipeline
+(:class:`spread.sampling.ScenePipeline`) plugs either in as a callback. Imports go guidance → model, never back.
 """
 
 from spread.guidance.config import MODES, GuidanceConfig  # noqa: F401

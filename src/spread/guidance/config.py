@@ -27,7 +27,7 @@ from typing import Any, Mapping
 MODES = ("none", "paper", "refine")
 
 
-@dataclass(frozen=True)
+@dataclass
 class GuidanceConfig:
     """Guided-sampling settings (module docstring). Units: weights are step sizes in normalised
     state space; ``cone_height``, ``gap``, ``tolerance`` are metres."""

@@ -47,10 +47,12 @@ class SceneGuidance:
     :class:`~spread.assets.AssetLibrary`. asset_ids: per scene, its real objects' asset ids in object
     order (they fill the True slots of ``mask``). physical: (B, N, N) physical codes (1 = row supports
     column; padding 3). mask: (B, N) bool. bounds: (6,) translation bounds, metres (stats.json).
+    alpha_bar0: ᾱ_0 of the model's training schedule (``refine``'s t = 0 projection; default: the default
+    schedule's).
     """
 
     def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,
-                 mask: torch.Tensor, bounds, detach_cones: bool = True):
+                 mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None):
         self.config = GuidanceConfig.from_config(config)
         self.mask = torch.as_tensor(mask).bool().cpu()
         if self.mask.dim() != 2:
@@ -69,7 +71,7 @@ class SceneGuidance:
         self.meshes = SceneMeshes(library, asset_ids, self.mask)
         self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
         self.detach_cones = detach_cones
-        self.alpha_bar0 = float(training_scheduler().alphas_cumprod[0])
+        self.alpha_bar0 = float(training_scheduler().alphas_cumprod[0]) if alpha_bar0 is None else float(alpha_bar0)
         self._on: dict[tuple, dict[str, torch.Tensor]] = {}
         self.reset_stats()
 

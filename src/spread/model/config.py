@@ -1,5 +1,7 @@
-"""Model sizes. ``ModelConfig.paper()`` is the paper/release network; ``ModelConfig.tiny()`` trains
-usefully on a 2-core CPU. Any field can be overridden: ``ModelConfig.from_any("tiny", depth=4)``.
+"""Model settings: :class:`ModelConfig` (the network's sizes) and :class:`SceneDiffusionConfig` (the
+LightningModule's arguments). Both are the single source of their defaults: Hydra's ``model`` group extends
+them (``conf/model/paper.yaml`` is ModelConfig's defaults = the paper's network, ``conf/model/tiny.yaml``
+overrides them to a size that trains usefully on a 2-core CPU; :mod:`spread.configs` registers the schema).
 
 Widths are channels; ``num_points`` is M, the surface samples per object the data module should load
 (the model itself takes whatever M the batch carries).
@@ -7,13 +9,17 @@ Widths are channels; ``num_points`` is M, the surface samples per object the dat
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Mapping
 
 
-@dataclass(frozen=True)
+@dataclass
 class ModelConfig:
-    name: str = "custom"
+    """The network's sizes. Defaults: the paper's / release's network (reference §2, paper supplement):
+    width 512, 6 blocks of 8 heads, 128-d edges, 256 × 64 shape tokens, a scene Perceiver of 256 latents
+    (4 × [cross + 2 self]), M = 2,000 points per object."""
+
+    name: str = "paper"
     # graph transformer (denoiser)
     dim: int = 512
     depth: int = 6
@@ -45,31 +51,15 @@ class ModelConfig:
     num_points: int = 2000  # M
 
     @classmethod
-    def paper(cls, **overrides) -> "ModelConfig":
-        """Width 512, 6 blocks, 8 heads, 256 scene latents (4 × [cross + 2 self]), 256 × 64 shape
-        tokens, M = 2,000 (reference §2, paper supplement)."""
-        return replace(cls(name="paper"), **overrides)
-
-    @classmethod
-    def tiny(cls, **overrides) -> "ModelConfig":
-        """Width 128, 3 blocks, 4 heads, 32 latents, 16 × 64 shape tokens, M = 256."""
-        base = cls(name="tiny", dim=128, depth=3, heads=4, dim_head=32, edge_dim=64, cond_dim=128, ff_mult=2,
-                   dropout=0.0, index_dim=32, shape_tokens=16, shape_dim=64, tokenizer_width=64,
-                   tokenizer_heads=4, tokenizer_points=256, num_latents=32, perceiver_depth=1,
-                   perceiver_self_per_cross=1, perceiver_cross_heads=1, perceiver_cross_dim_head=32,
-                   num_points=256)
-        return replace(base, **overrides)
-
-    @classmethod
-    def from_any(cls, config: "str | Mapping[str, Any] | ModelConfig", **overrides) -> "ModelConfig":
-        """A preset name ("paper", "tiny"), a mapping of fields (e.g. from a checkpoint), or a config."""
+    def from_any(cls, config: "Mapping[str, Any] | ModelConfig | None" = None, **overrides) -> "ModelConfig":
+        """A config, a mapping of fields (from a Hydra node or a checkpoint), or None (the defaults)."""
+        if config is None:
+            return replace(cls(), **overrides)
         if isinstance(config, ModelConfig):
             return replace(config, **overrides)
         if isinstance(config, str):
-            presets = {"paper": cls.paper, "tiny": cls.tiny}
-            if config not in presets:
-                raise ValueError(f"unknown model config '{config}' (choose from {sorted(presets)})")
-            return presets[config](**overrides)
+            raise ValueError(f"model config '{config}': give the fields (compose conf/model/{config}.yaml: "
+                             f"spread.configs.model_config('{config}'))")
         known = {f.name for f in fields(cls)}
         unknown = set(config) - known
         if unknown:
@@ -78,3 +68,32 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+@dataclass
+class SceneDiffusionConfig:
+    """The arguments of :class:`spread.model.module.SceneDiffusion` (the ``model`` config group's base).
+
+    variant: ``base`` | ``geometry`` (DESIGN §3); config: the network; bounds: translation bounds (None:
+    read from ``<data.root>/stats.json`` at setup, then saved in the checkpoint); beta_schedule,
+    diffusion_steps: the DDPM training schedule (paper: ``squaredcos_cap_v2``, 1,000); lr, weight_decay: AdamW
+    (paper: 1e-4, 1e-4); ema_decay; graph_dropout: > 0 trains classifier-free guidance on the graphs;
+    sample_every_n_epochs: > 0 samples val scenes every n epochs and logs val/grecall; val_sampler;
+    val_sample_scenes; seed: validation noise.
+    """
+
+    _target_: str = "spread.model.module.SceneDiffusion"
+    _convert_: str = "all"
+    variant: str = "geometry"
+    config: ModelConfig = field(default_factory=ModelConfig)
+    bounds: list[float] | None = None
+    beta_schedule: str = "squaredcos_cap_v2"
+    diffusion_steps: int = 1000
+    lr: float = 1e-4
+    weight_decay: float = 1e-4
+    ema_decay: float = 0.999
+    graph_dropout: float = 0.0
+    sample_every_n_epochs: int = 0
+    val_sampler: str = "ddim-25"
+    val_sample_scenes: int = 4
+    seed: int = 0

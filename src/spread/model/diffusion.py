@@ -1,9 +1,11 @@
-"""Noise schedules (diffusers) and the sampler: one training schedule, three interchangeable samplers.
+"""Noise schedules (diffusers) and the sampler: a training schedule, three interchangeable samplers.
 
-Training (paper supplement, reference §2.4): ``DDPMScheduler(num_train_timesteps=1000,
-beta_schedule="squaredcos_cap_v2", prediction_type="epsilon")``; x_t = ``add_noise(x_0, ε, t)``.
+Training: ``DDPMScheduler(num_train_timesteps, beta_schedule, prediction_type="epsilon")`` with the model's
+``diffusion_steps`` and ``beta_schedule`` (:class:`~spread.model.config.SceneDiffusionConfig`; the paper's
+1,000 steps of ``squaredcos_cap_v2`` by default, :data:`TRAIN_SCHEDULER_CONFIG`); x_t = ``add_noise(x_0, ε, t)``.
 
-:class:`Sampler` — chosen by config, independent of the model, built from the same training config:
+:class:`Sampler` — chosen by config, independent of the model, built from the model's training schedule
+(``schedule``: its scheduler config; the default schedule when not given):
 
 =============== ==================================================================================
 ``ddpm``        ancestral DDPM, by default over all 1000 steps (what the release runs)
@@ -48,7 +50,8 @@ NOISE_ROWS = 64
 
 
 def training_scheduler(**overrides) -> DDPMScheduler:
-    """The DDPM schedule the model is trained with (ε-prediction, cosine betas, T = 1000)."""
+    """A DDPM training schedule: ε-prediction, by default cosine betas over T = 1000 (the paper's);
+    ``overrides`` (``beta_schedule``, ``num_train_timesteps``, ...) change it."""
     return DDPMScheduler(**{**TRAIN_SCHEDULER_CONFIG, **overrides})
 
 
@@ -102,9 +105,10 @@ class Sampler:
     def num_steps(self) -> int:
         return int(self.steps)
 
-    def scheduler(self):
-        """A fresh diffusers scheduler for this sampler, from the training config."""
-        base = training_scheduler().config
+    def scheduler(self, schedule: Mapping | None = None):
+        """A fresh diffusers scheduler for this sampler, from a training schedule's config (default: the
+        default training schedule)."""
+        base = schedule if schedule is not None else training_scheduler().config
         if self.kind == "ddpm":  # fewer than 1000 steps: ancestral sampling on a strided schedule
             return DDPMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
         if self.kind == "ddim":
@@ -115,8 +119,10 @@ class Sampler:
     @torch.no_grad()
     def sample(self, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
                generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
-               sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding.
+               sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32,
+               schedule: Mapping | None = None) -> torch.Tensor:
+        """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding;
+        ``schedule``: the config of the schedule the model was trained with (default: the default one).
 
         Hooks run with autograd off; a guidance hook that needs gradients enables them itself
         (``torch.enable_grad()``).
@@ -124,7 +130,10 @@ class Sampler:
         mask = mask.bool()
         device = mask.device
         keep = mask[..., None].to(dtype)
-        scheduler = self.scheduler()
+        scheduler = self.scheduler(schedule)
+        if self.num_steps > scheduler.config.num_train_timesteps:
+            raise ValueError(f"sampler steps {self.num_steps} > the model's {scheduler.config.num_train_timesteps} "
+                             f"training timesteps")
         scheduler.set_timesteps(self.num_steps, device=device)
         alphas = scheduler.alphas_cumprod.to(device=device, dtype=torch.float64)
         if isinstance(generator, (list, tuple)):  # one generator per scene: a scene's noise ignores its batch

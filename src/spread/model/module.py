@@ -1,7 +1,8 @@
 """``SceneDiffusion``: the LightningModule that trains, validates and samples one variant.
 
 * Loss: ε-MSE over the 9 channels of the real objects only (padding excluded from numerator and
-  denominator), t ~ U{0, …, 999}, x_t from the training DDPM schedule (:mod:`spread.model.diffusion`).
+  denominator), t ~ U{0, …, T−1}, x_t from the model's DDPM training schedule (``beta_schedule``,
+  ``diffusion_steps`` = T; the paper's cosine schedule over 1,000 by default, :mod:`spread.model.diffusion`).
 * Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights.
 * EMA of the weights (:class:`~spread.model.ema.EMA`, a submodule: in the checkpoint, restored on
   resume); validation and :meth:`SceneDiffusion.sample` use it by default.
@@ -24,7 +25,7 @@ from typing import NamedTuple, Sequence
 import lightning as L
 import torch
 
-from spread.model.config import ModelConfig
+from spread.model.config import ModelConfig, SceneDiffusionConfig
 from spread.model.diffusion import Hook, Sampler, training_scheduler
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser
@@ -55,25 +56,27 @@ def slice_batch(batch: dict, count: int) -> dict:
     return {k: v[:count] for k, v in batch.items()}
 
 
-def _chain(first: Hook | None, second: Hook) -> Hook:
-    """A hook applying ``first`` (when given) then ``second``."""
-    if first is None:
-        return second
-    return lambda x0, ctx: second(first(x0, ctx), ctx)
+#: The defaults of SceneDiffusion's arguments (one source: :class:`~spread.model.config.SceneDiffusionConfig`).
+ARGS = SceneDiffusionConfig
 
 
 class SceneDiffusion(L.LightningModule):
-    def __init__(self, variant: str = "geometry", config: str | dict | ModelConfig = "tiny",
-                 bounds: Sequence[float] | None = None, lr: float = 1e-4, weight_decay: float = 1e-4,
-                 ema_decay: float = 0.999, graph_dropout: float = 0.0, sample_every_n_epochs: int = 0,
-                 val_sampler: str | dict = "ddim-25", val_sample_scenes: int = 4, seed: int = 0):
+    """Trains, validates and samples one variant (module docstring); arguments: :class:`SceneDiffusionConfig`
+    (``config`` None: the paper's network)."""
+
+    def __init__(self, variant: str = ARGS.variant, config: dict | ModelConfig | None = None,
+                 bounds: Sequence[float] | None = None, beta_schedule: str = ARGS.beta_schedule,
+                 diffusion_steps: int = ARGS.diffusion_steps, lr: float = ARGS.lr, weight_decay: float = ARGS.weight_decay,
+                 ema_decay: float = ARGS.ema_decay, graph_dropout: float = ARGS.graph_dropout,
+                 sample_every_n_epochs: int = ARGS.sample_every_n_epochs, val_sampler: str | dict = ARGS.val_sampler,
+                 val_sample_scenes: int = ARGS.val_sample_scenes, seed: int = ARGS.seed):
         super().__init__()
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
         self.save_hyperparameters({
             "variant": variant, "config": cfg.to_dict(),
             "bounds": None if bounds is None else [float(b) for b in bounds],
-            "lr": lr, "weight_decay": weight_decay, "ema_decay": ema_decay, "graph_dropout": graph_dropout,
+            "beta_schedule": beta_schedule, "diffusion_steps": int(diffusion_steps), "lr": lr, "weight_decay": weight_decay, "ema_decay": ema_decay, "graph_dropout": graph_dropout,
             "sample_every_n_epochs": sample_every_n_epochs,
             "val_sampler": dataclasses.asdict(sampler),
             "val_sample_scenes": val_sample_scenes, "seed": seed,
@@ -81,7 +84,7 @@ class SceneDiffusion(L.LightningModule):
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
         self.ema = EMA(self.network, ema_decay)
-        self.noise_schedule = training_scheduler()
+        self.noise_schedule = training_scheduler(beta_schedule=beta_schedule, num_train_timesteps=int(diffusion_steps))
 
     # ---- bounds -------------------------------------------------------------------------------------
     def set_bounds(self, bounds: Sequence[float]) -> None:
@@ -161,51 +164,51 @@ class SceneDiffusion(L.LightningModule):
         return loss
 
     # ---- sampling -------------------------------------------------------------------------------------
+    def denoiser(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0):
+        """(ε-function, mask) for the batch's scenes: ``eps_fn(x_t (B, N, 9), t (B,)) → ε̂`` of the EMA (or
+        training) network conditioned on the batch's graphs and assets; ``graph_scale ≠ 1`` mixes in the
+        graph-free prediction (ε̂ = ε̂_∅ + s (ε̂_G − ε̂_∅), classifier-free guidance). The network is used as
+        it is (call ``eval()`` first, as :meth:`sample_states` and the sampling pipeline do)."""
+        network = self.ema.module if use_ema else self.network
+        batch = batch_to(batch, self.device)
+        cond = network.condition(batch)
+        null = network.null_condition(cond) if graph_scale != 1.0 else None
+
+        def eps_fn(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            eps = network(x_t, t, cond)
+            if null is None:
+                return eps
+            eps_null = network(x_t, t, null)
+            return eps_null + graph_scale * (eps - eps_null)
+
+        return eps_fn, cond.mask
+
+    def decode(self, x: torch.Tensor, mask: torch.Tensor) -> Poses:
+        """Normalised states x (B, N, 9) → :class:`Poses` (metres, world-from-local; 0 / identity at padding)."""
+        mask = mask.to(x.device).bool()
+        translation, rotation = poses_from_state(x, self.network.bounds)
+        eye = torch.eye(3, device=x.device, dtype=rotation.dtype).expand_as(rotation)
+        return Poses(torch.where(mask[..., None], translation, 0.0), torch.where(mask[..., None, None], rotation, eye))
+
     @torch.no_grad()
     def sample_states(self, batch: dict, sampler: Sampler | str | dict | None = None,
-                      generator: torch.Generator | None = None, x0_hook: Hook | None = None,
-                      sample_hook: Hook | None = None, use_ema: bool = True, graph_scale: float = 1.0,
-                      guidance=None) -> torch.Tensor:
+                      generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
+                      sample_hook: Hook | None = None, use_ema: bool = True, graph_scale: float = 1.0) -> torch.Tensor:
         """Normalised states x̂_0 (B, N, 9) for the batch's scenes (graphs, assets, mask); zero at padding.
-
-        ``guidance``: a ``spread.guidance.SceneGuidance`` (duck-typed: ``config.mode``/``config.active``,
-        ``x0_hook``, ``refine``) built for this batch, or None. Mode ``paper`` adds its ``x0_hook`` after
-        any given ``x0_hook`` at every step; ``refine`` runs ``guidance.refine(x, eps_fn)`` after the
-        sampler; ``none`` (or None, or no weight > 0) samples exactly as without it.
-        """
+        Unguided (validation, quick looks); guided sampling with callbacks is :class:`spread.sampling.ScenePipeline`."""
         network = self.ema.module if use_ema else self.network
         was_training = network.training
         network.eval()
         try:
-            batch = batch_to(batch, self.device)
-            cond = network.condition(batch)
-            null = network.null_condition(cond) if graph_scale != 1.0 else None
-
-            def eps_fn(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-                eps = network(x_t, t, cond)
-                if null is None:
-                    return eps
-                eps_null = network(x_t, t, null)
-                return eps_null + graph_scale * (eps - eps_null)
-
-            mode = guidance.config.mode if guidance is not None and guidance.config.active else "none"
-            if mode == "paper":
-                x0_hook = _chain(x0_hook, guidance.x0_hook)
-            x = Sampler.from_config(sampler).sample(eps_fn, cond.mask, generator=generator, x0_hook=x0_hook,
-                                                    sample_hook=sample_hook)
-            if mode == "refine":
-                x = guidance.refine(x, eps_fn)
-            return x
+            eps_fn, mask = self.denoiser(batch, use_ema, graph_scale)
+            return Sampler.from_config(sampler).sample(eps_fn, mask, generator=generator, x0_hook=x0_hook,
+                                                       sample_hook=sample_hook, schedule=self.noise_schedule.config)
         finally:
             network.train(was_training)
 
-    def sample(self, batch: dict, sampler: Sampler | str | dict | None = None, generator: torch.Generator | None = None,
-               x0_hook: Hook | None = None, sample_hook: Hook | None = None, use_ema: bool = True,
-               graph_scale: float = 1.0, guidance=None) -> Poses:
-        """Sample poses for the batch's scenes: translation (B, N, 3) metres, rotation (B, N, 3, 3);
-        ``guidance`` as in :meth:`sample_states`."""
-        x = self.sample_states(batch, sampler, generator, x0_hook, sample_hook, use_ema, graph_scale, guidance)
-        mask = batch["mask"].to(x.device).bool()
-        translation, rotation = poses_from_state(x, self.network.bounds)
-        eye = torch.eye(3, device=x.device, dtype=rotation.dtype).expand_as(rotation)
-        return Poses(torch.where(mask[..., None], translation, 0.0), torch.where(mask[..., None, None], rotation, eye))
+    def sample(self, batch: dict, sampler: Sampler | str | dict | None = None,
+               generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
+               sample_hook: Hook | None = None, use_ema: bool = True, graph_scale: float = 1.0) -> Poses:
+        """Sample poses for the batch's scenes: translation (B, N, 3) metres, rotation (B, N, 3, 3)."""
+        x = self.sample_states(batch, sampler, generator, x0_hook, sample_hook, use_ema, graph_scale)
+        return self.decode(x, batch["mask"])

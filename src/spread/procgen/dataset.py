@@ -29,20 +29,32 @@ SPLITS = ("train", "val", "test")
 
 
 @dataclass
+class AssetSource:
+    """Where a dataset's asset library comes from. seed: the library's own seed (datasets with different
+    room seeds share assets); variants: per category; categories: None for every category of the catalog;
+    copy_from: an existing library folder to copy instead of building one (same assets for several datasets)."""
+
+    seed: int = 0
+    variants: int = 5
+    categories: list[str] | None = None
+    copy_from: str | None = None
+
+
+@dataclass
 class DatasetConfig:
+    """``spread-generate``'s settings (``conf/generate.yaml`` overrides these defaults). rooms: how many;
+    seed: the rooms' seed; processes: worker processes (the output does not depend on it); val_fraction /
+    test_fraction: shares of val and test rooms, by room index (the rest is train); max_attempts: a room whose
+    objects all fail settling is redrawn with the next sub-seed; renders: top-down PNGs of the first test rooms."""
+
     rooms: int = 200
     seed: int = 0
     processes: int = 2
-    #: fraction of rooms in val and test; the rest is train. Assignment is by room index.
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     max_attempts: int = 6
     renders: int = 8
-    asset_seed: int = 0
-    asset_variants: int = 5
-    asset_categories: list[str] | None = None
-    #: copy an existing library folder instead of building one (same assets for several datasets)
-    assets_from: str | None = None
+    assets: AssetSource = field(default_factory=AssetSource)
     room: RoomConfig = field(default_factory=RoomConfig)
     settle: SettleConfig = field(default_factory=SettleConfig)
 
@@ -112,15 +124,15 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    if config.assets_from and not (out / "assets" / "index.json").exists():
+    if config.assets.copy_from and not (out / "assets" / "index.json").exists():
         import shutil
 
-        src = Path(config.assets_from)
+        src = Path(config.assets.copy_from)
         if not (src / "index.json").exists():
-            raise FileNotFoundError(f"assets.from={src}: no asset library there (missing index.json)")
+            raise FileNotFoundError(f"assets.copy_from={src}: no asset library there (missing index.json)")
         shutil.copytree(src, out / "assets", dirs_exist_ok=True)
-    library = build_library(out / "assets", variants=config.asset_variants, seed=config.asset_seed,
-                            categories=config.asset_categories, processes=config.processes, progress=progress)
+    library = build_library(out / "assets", variants=config.assets.variants, seed=config.assets.seed,
+                            categories=config.assets.categories, processes=config.processes, progress=progress)
     t_assets = time.perf_counter() - t0
     todo = []
     for index in range(config.rooms):

@@ -21,27 +21,40 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from spread.distributed.session import RaySettings, ray_session
+from omegaconf import MISSING
+
+from spread.guidance import GuidanceConfig
 from spread.io import file_sha256, write_json_atomic
+from spread.model.diffusion import Sampler
+from spread.runtime.ray import RaySettings, ray_session
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches
 
 MANIFEST = "sampling.json"
 
 
 @dataclass
-class SamplingConfig:
-    """ckpt: Lightning checkpoint; data_root/split: dataset folder and the split whose graphs condition;
-    out_dir: run folder; sampler: a Sampler config or short name; samples_per_graph: k; seed; batch_size:
-    samples per forward batch (= per task); workers: Ray actors (0: in this process); device: cpu, cuda
-    or auto; threads: torch threads per worker; resume: skip existing files (false: delete and redo all);
-    renders: side-by-side PNGs; num_gpus_per_worker: GPUs each actor reserves; guidance: a
-    :class:`~spread.guidance.GuidanceConfig` mapping or mode name (None / ``"none"``: unguided)."""
+class DataSplit:
+    """A dataset folder and the split whose scene files are the conditioning graphs."""
 
-    ckpt: str
-    data_root: str
-    out_dir: str
+    root: str = MISSING
     split: str = "test"
-    sampler: dict | str = "ddim-50"
+
+
+@dataclass
+class SamplingConfig:
+    """ckpt: Lightning checkpoint; data: dataset folder and split whose graphs condition; out_dir: run
+    folder; sampler: a :class:`~spread.model.Sampler` (or its config / short name); samples_per_graph: k;
+    seed; batch_size: samples per forward batch (= per task); workers: Ray actors (0: in this process);
+    device: cpu, cuda or auto; threads: torch threads per worker; use_ema: the EMA weights; graph_scale:
+    classifier-free guidance on the graphs (needs a model trained with graph_dropout); resume: skip
+    existing files (false: delete and redo all); renders: side-by-side PNGs; progress: tqdm bar; guidance: a
+    :class:`~spread.guidance.GuidanceConfig` (or its mapping / mode name); ray: where the actors run
+    (``ray.num_gpus_per_worker``: GPUs per actor). ``conf/sample.yaml`` overrides these defaults."""
+
+    ckpt: str = MISSING
+    data: DataSplit = field(default_factory=DataSplit)
+    out_dir: str = MISSING
+    sampler: Sampler = field(default_factory=lambda: Sampler("ddim", 50))
     samples_per_graph: int = 1
     seed: int = 0
     batch_size: int = 16
@@ -53,9 +66,14 @@ class SamplingConfig:
     resume: bool = True
     renders: int = 4
     progress: bool = True
-    num_gpus_per_worker: float = 0.0
-    guidance: dict | str | None = None
+    guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     ray: RaySettings = field(default_factory=RaySettings)
+
+    def __post_init__(self) -> None:  # Python callers may give a sampler name or a guidance mode
+        if not isinstance(self.sampler, Sampler) and self.sampler is not MISSING:
+            self.sampler = Sampler.from_config(self.sampler)
+        if not isinstance(self.guidance, GuidanceConfig):
+            self.guidance = GuidanceConfig.from_config(self.guidance)
 
 
 @dataclass
@@ -87,21 +105,18 @@ def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
 
 def guidance_settings(guidance) -> dict | None:
     """The full guidance config of a run, or None when it samples unguided."""
-    from spread.sampling.worker import active_guidance
-
-    config = active_guidance(guidance)
-    return config.to_dict() if config is not None else None
+    config = GuidanceConfig.from_config(guidance)
+    return config.to_dict() if config.active else None
 
 
 def fingerprint(cfg: SamplingConfig, ckpt_hash: str) -> dict:
     """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files).
     Unguided runs carry no ``guidance`` key (so folders sampled before guidance existed still resume)."""
-    from spread.model import Sampler
-
     guidance = guidance_settings(cfg.guidance)
-    return ({"guidance": guidance} if guidance else {}) | {"ckpt_sha256": ckpt_hash, "sampler": asdict(Sampler.from_config(cfg.sampler)), "seed": int(cfg.seed),
-            "batch_size": int(cfg.batch_size), "split": cfg.split, "use_ema": bool(cfg.use_ema),
-            "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data_root).resolve())}
+    return ({"guidance": guidance} if guidance else {}) | {
+        "ckpt_sha256": ckpt_hash, "sampler": asdict(cfg.sampler), "seed": int(cfg.seed),
+        "batch_size": int(cfg.batch_size), "split": cfg.data.split, "use_ema": bool(cfg.use_ema),
+        "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data.root).resolve())}
 
 
 def check_fingerprint(out: Path, settings: dict, resume: bool) -> None:
@@ -117,9 +132,10 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> None:
 
 
 def worker_arguments(cfg: SamplingConfig, scenes_dir: Path) -> dict:
-    return {"ckpt": str(cfg.ckpt), "data_root": str(cfg.data_root), "split": cfg.split, "scenes_dir": str(scenes_dir),
-            "sampler": cfg.sampler, "seed": int(cfg.seed), "device": cfg.device, "threads": cfg.threads,
-            "use_ema": cfg.use_ema, "graph_scale": cfg.graph_scale, "guidance": guidance_settings(cfg.guidance)}
+    return {"ckpt": str(cfg.ckpt), "data_root": str(cfg.data.root), "split": cfg.data.split,
+            "scenes_dir": str(scenes_dir), "sampler": asdict(cfg.sampler), "seed": int(cfg.seed), "device": cfg.device,
+            "threads": cfg.threads, "use_ema": cfg.use_ema, "graph_scale": cfg.graph_scale,
+            "guidance": guidance_settings(cfg.guidance)}
 
 
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
@@ -139,11 +155,11 @@ def actor_count(cfg: SamplingConfig, batches: int) -> int:
     total = ray.cluster_resources()
     n = min(int(cfg.workers), batches)
     n = min(n, max(1, int(total.get("CPU", 1) // max(1, cfg.threads or 1))))
-    if cfg.num_gpus_per_worker > 0:
-        n = min(n, int(total.get("GPU", 0) // cfg.num_gpus_per_worker))
+    gpus = cfg.ray.num_gpus_per_worker
+    if gpus > 0:
+        n = min(n, int(total.get("GPU", 0) // gpus))
         if n < 1:
-            raise RuntimeError(f"ray.num_gpus_per_worker={cfg.num_gpus_per_worker} but the cluster has "
-                               f"{total.get('GPU', 0)} GPUs")
+            raise RuntimeError(f"ray.num_gpus_per_worker={gpus} but the cluster has {total.get('GPU', 0)} GPUs")
     return max(1, n)
 
 
@@ -156,7 +172,7 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
     with ray_session(cfg.ray) as cluster:
         n = actor_count(cfg, len(todo))
         actor = ray.remote(SampleWorker).options(
-            num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.num_gpus_per_worker,
+            num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.ray.num_gpus_per_worker,
             max_restarts=cfg.ray.max_retries, max_task_retries=cfg.ray.max_retries,
             scheduling_strategy=cfg.ray.scheduling_strategy)  # SPREAD: actors over every node
         actors = [actor.remote(**worker_arguments(cfg, scenes_dir)) for _ in range(n)]
@@ -209,7 +225,7 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
             old.unlink()
     if not Path(cfg.ckpt).is_file():
         raise FileNotFoundError(f"ckpt={cfg.ckpt}: no such checkpoint file")
-    graphs = list_graphs(cfg.data_root, cfg.split)
+    graphs = list_graphs(cfg.data.root, cfg.data.split)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, file_sha256(cfg.ckpt))
     check_fingerprint(out, settings, cfg.resume)
@@ -238,7 +254,7 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
     bar.close()
     # counted on disk: a worker killed after writing some files never reports them, its retry skips them
     written = [name for name in wanted if (scenes_dir / f"{name}.npz").exists()]
-    renders = write_renders(out, batches, cfg.data_root, cfg.renders)
+    renders = write_renders(out, batches, cfg.data.root, cfg.renders)
     files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),

@@ -1,9 +1,10 @@
-"""One sampling worker: a checkpoint's model and the dataset's encoder, turning batches into scene files.
+"""One sampling worker: a checkpoint's :class:`~spread.sampling.pipeline.ScenePipeline`, turning batches into files.
 
-A worker holds one model (EMA weights by default) for its whole life, so a Ray actor — or the driver
-itself when ``workers=0`` — pays for loading it once. Conditioning graphs are encoded exactly as in
-training: the asset points are sampled with the ``num_points`` and ``seed`` of the data module the
-checkpoint was trained with (Lightning stores its hyperparameters in the checkpoint).
+A worker holds one pipeline (model with EMA weights by default, encoder, sampler, guidance) for its whole
+life, so a Ray actor — or the driver itself when ``workers=0`` — pays for loading it once. Conditioning
+graphs are encoded exactly as in training: the asset points are sampled with the ``num_points`` and
+``seed`` of the data module the checkpoint was trained with (Lightning stores its hyperparameters in the
+checkpoint).
 
 A generated scene keeps the source's objects (asset ids, categories, order), both graphs and ``room``,
 takes the sampled poses, and records where it came from in two extra arrays (DESIGN §4):
@@ -19,11 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from spread.sampling.pipeline import ScenePipeline
 from spread.sampling.plan import BatchPlan, SampleItem, missing_items
 from spread.scene import Scene
-
-#: A sampled rotation further than this from orthonormal (max |RᵀR − I|) is replaced by its nearest rotation.
-REPAIR_TOLERANCE = 1e-4
 
 
 def resolve_device(device: str) -> str:
@@ -61,22 +60,20 @@ def checkpoint_data_settings(ckpt: dict, model) -> dict:
     return {"num_points": int(hp.get("num_points", model.config.num_points)), "seed": int(hp.get("seed", 0))}
 
 
-def repair_rotations(rotation: np.ndarray) -> tuple[np.ndarray, int]:
-    """(N, 3, 3) rotations with the degenerate ones replaced by the nearest proper rotation (SVD); and how
-    many were replaced. Gram–Schmidt of a sampled rot6d whose two columns are (anti)parallel — e.g. both
-    clipped to (±1, ±1, ±1) by an undertrained model — leaves a zero column, which no reader accepts."""
-    R = rotation.astype(np.float64)
-    error = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((error > REPAIR_TOLERANCE) | (np.linalg.det(R) <= 0))
-    if not len(bad):
-        return rotation, 0
-    U, _, Vt = np.linalg.svd(R[bad])
-    D = np.ones((len(bad), 3))
-    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
-    D[D[:, 2] == 0, 2] = 1.0
-    out = rotation.copy()
-    out[bad] = ((U * D[:, None, :]) @ Vt).astype(rotation.dtype)
-    return out, len(bad)
+def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = "cpu", use_ema: bool = True,
+                  graph_scale: float = 1.0, guidance=None) -> ScenePipeline:
+    """The pipeline of a ``spread-train`` checkpoint for a dataset's split (encoder with the checkpoint's
+    point settings, model in eval mode on ``device``)."""
+    import torch
+
+    from spread.data import SceneDataset
+    from spread.model.module import SceneDiffusion
+
+    checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
+    model = SceneDiffusion.load_from_checkpoint(ckpt, map_location=resolve_device(device)).eval()
+    data = checkpoint_data_settings(checkpoint, model)
+    dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
+    return ScenePipeline(model, dataset, sampler, guidance, use_ema, graph_scale)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,
@@ -92,9 +89,7 @@ class SampleWorker:
     """Loads ``ckpt`` once; :meth:`run` samples a batch and writes its missing scene files to ``scenes_dir``.
 
     ``sampler``: a :class:`~spread.model.Sampler` or its config; ``threads``: torch intra-op threads (None:
-    leave as is); ``use_ema`` / ``graph_scale``: as in :meth:`SceneDiffusion.sample`; ``guidance``: a
-    :class:`~spread.guidance.GuidanceConfig` or its mapping (None: unguided), applied to every batch with the
-    batch's meshes and support graph.
+    leave as is); ``use_ema`` / ``graph_scale`` / ``guidance``: as in :class:`ScenePipeline`.
     """
 
     def __init__(self, ckpt: str, data_root: str, split: str, scenes_dir: str, sampler, seed: int,
@@ -102,24 +97,13 @@ class SampleWorker:
                  guidance=None):
         import torch
 
-        from spread.data import SceneDataset
-        from spread.model import Sampler
-        from spread.model.module import SceneDiffusion
-
         if threads:
             torch.set_num_threads(int(threads))
-        self.device = resolve_device(device)
-        self.sampler = Sampler.from_config(sampler)
-        self.use_ema, self.graph_scale = bool(use_ema), float(graph_scale)
         self.scenes_dir = Path(scenes_dir)
-        checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
-        self.model = SceneDiffusion.load_from_checkpoint(ckpt, map_location=self.device).eval()
-        data = checkpoint_data_settings(checkpoint, self.model)
-        self.dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
-        self.guidance = active_guidance(guidance)
-        self.provenance = (f"ckpt={ckpt} sampler={sampler_label(self.sampler)} seed={int(seed)}"
-                           + (f" guidance={guidance_label(self.guidance)}" if self.guidance else ""))
-        self.guidance_stats: dict = {}
+        self.pipeline = load_pipeline(ckpt, data_root, split, sampler, device, use_ema, graph_scale, guidance)
+        guided = self.pipeline.guidance
+        self.provenance = (f"ckpt={ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(seed)}"
+                           + (f" guidance={guidance_label(guided)}" if guided else ""))
         self._sources: dict[str, Scene] = {}
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 
@@ -129,37 +113,22 @@ class SampleWorker:
 
         path = item.graph.path
         if path not in self._sources:
-            self._sources[path] = read_scene(path, assets=self.dataset.library)
+            self._sources[path] = read_scene(path, assets=self.pipeline.dataset.library)
         return self._sources[path]
 
     def sample(self, batch: BatchPlan) -> list[Scene]:
         """The generated scenes of every item of ``batch``, in order (nothing written)."""
         import torch
 
-        from spread.data import collate_scenes
-
         sources = [self.source(item) for item in batch.items]
-        encoded = collate_scenes([self.dataset.encode(src, source=item.graph.path)
-                                  for src, item in zip(sources, batch.items)])
         # one CPU generator per sample, seeded by (seed, graph, k): its noise is the same on any device and in
         # any batch (so batch_size and workers change a sample only by float rounding, not by its noise)
-        generator = [torch.Generator().manual_seed(item.seed) for item in batch.items]
-        guidance = None
-        if self.guidance is not None:
-            from spread.guidance import SceneGuidance
-
-            guidance = SceneGuidance(self.guidance, self.dataset.library, [list(src.asset_id) for src in sources],
-                                     encoded["physical"].to(self.model.device), encoded["mask"].to(self.model.device),
-                                     self.model.network.bounds)
-        poses = self.model.sample(encoded, self.sampler, generator=generator, use_ema=self.use_ema,
-                                  graph_scale=self.graph_scale, **({"guidance": guidance} if guidance else {}))
-        self.guidance_stats = dict(guidance.stats) if guidance is not None else {}
-        translation, rotation = poses.translation.cpu().numpy(), poses.rotation.cpu().numpy()
+        generators = [torch.Generator().manual_seed(item.seed) for item in batch.items]
+        poses = self.pipeline(sources, generators, [item.graph.path for item in batch.items])
         scenes = []
-        for b, (src, item) in enumerate(zip(sources, batch.items)):
-            R, repaired = repair_rotations(rotation[b, :src.num_objects])
-            self.repaired += repaired
-            scenes.append(generated_scene(src, translation[b, :src.num_objects], R, item, self.provenance))
+        for src, item, p in zip(sources, batch.items, poses):
+            self.repaired += p.repaired
+            scenes.append(generated_scene(src, p.translation, p.rotation, item, self.provenance))
         return scenes
 
     def run(self, batch: BatchPlan) -> dict:
@@ -178,4 +147,4 @@ class SampleWorker:
                     written.append(scene.scene_id)
         return {"index": batch.index, "written": written, "skipped": [n for n in batch.names() if n not in wanted],
                 "repaired_rotations": self.repaired - repaired_before, "seconds": time.perf_counter() - started,
-                "guidance": self.guidance_stats if wanted else {}, "pid": os.getpid()}
+                "guidance": self.pipeline.guidance_stats if wanted else {}, "pid": os.getpid()}

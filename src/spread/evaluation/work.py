@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from spread.distributed.protocol import EvalProtocol
+from spread.evaluation.protocol import EvalProtocol, FIDConfig
 
 #: Fault injection for tests: when this environment variable names a file that does not exist yet, the
 #: first task to see it creates the file and kills its own worker process (``os._exit``) after its first
@@ -48,30 +48,29 @@ def worker_library(assets_dir: str):
     return _LIBRARIES[key]
 
 
-def worker_extractor(protocol: EvalProtocol):
+def worker_extractor(fid: FIDConfig):
     """This process's FID extractor status (:class:`~spread.metrics.ExtractorStatus`), loaded on first use."""
-    key = (protocol.fid_feature_model, protocol.fid_weights_path, protocol.fid_extractor, protocol.fid_device)
+    key = (fid.enabled, fid.feature_model, fid.weights_path, fid.extractor, fid.device)
     if key not in _EXTRACTORS:
-        _EXTRACTORS[key] = load_fid_extractor(protocol)
+        _EXTRACTORS[key] = load_fid_extractor(fid)
     return _EXTRACTORS[key]
 
 
-def load_fid_extractor(protocol: EvalProtocol):
-    """clean-fid's extractor from local files (never downloaded), or the ``fid_extractor`` backbone."""
+def load_fid_extractor(fid: FIDConfig):
+    """The FID extractor from local files (never downloaded), or the ``fid.extractor`` backbone."""
     from spread.metrics import ExtractorStatus, load_extractor
 
-    if not protocol.fid_enabled:
-        return ExtractorStatus(protocol.fid_feature_model, None, 0, "disabled: fid.enabled is false")
-    if protocol.fid_extractor:
+    if not fid.enabled:
+        return ExtractorStatus(fid.feature_model, None, 0, "disabled: fid.enabled is false")
+    if fid.extractor:
         import importlib
 
-        module, _, attr = protocol.fid_extractor.partition(":")
+        module, _, attr = fid.extractor.partition(":")
         extractor = getattr(importlib.import_module(module), attr)()
         dim = int(getattr(extractor, "feature_dim", 0)) or \
             int(np.asarray(extractor(np.full((1, 8, 8, 3), 255, np.uint8))).shape[-1])
-        return ExtractorStatus(protocol.fid_feature_model, extractor, dim,
-                               f"ok: extractor {protocol.fid_extractor} ('{protocol.fid_feature_model}')")
-    return load_extractor(protocol.fid_feature_model, protocol.fid_weights_path, protocol.fid_device)
+        return ExtractorStatus(fid.feature_model, extractor, dim, f"ok: extractor {fid.extractor} ('{fid.feature_model}')")
+    return load_extractor(fid.feature_model, fid.weights_path, fid.device)
 
 
 def finite_or_none(value):
@@ -177,10 +176,10 @@ def maybe_inject_fault(done_in_chunk: int) -> None:
     os._exit(1)
 
 
-def evaluate_chunk(paths: Sequence[str], assets_dir: str, protocol: EvalProtocol) -> list[dict]:
+def evaluate_chunk(paths: Sequence[str], assets_dir: str, protocol: EvalProtocol, fid: FIDConfig) -> list[dict]:
     """Evaluate scene files in this process, in order; one record each (the body of a Ray task)."""
     library = worker_library(assets_dir)
-    extractor = worker_extractor(protocol).extractor
+    extractor = worker_extractor(fid).extractor
     records = []
     for path in paths:
         records.append(evaluate_scene(path, library, protocol, extractor))
@@ -188,7 +187,14 @@ def evaluate_chunk(paths: Sequence[str], assets_dir: str, protocol: EvalProtocol
     return records
 
 
-def reference_fid_state(paths: Sequence[str], assets_dir: str, protocol: EvalProtocol) -> dict:
+def failure_record(path: str, exc: BaseException) -> dict:
+    """The record of a scene whose single-scene task failed after its retries (:mod:`~spread.evaluation.fanout`)."""
+    return {"scene_id": scene_key(path), "file": str(path), "node_id": None, "pid": None,
+            "error": f"worker failed while evaluating this scene ({type(exc).__name__}: {str(exc)[:500]})",
+            "error_type": type(exc).__name__}
+
+
+def reference_fid_state(paths: Sequence[str], assets_dir: str, fid: FIDConfig, seed: int) -> dict:
     """FID states of reference scenes (the real set): ``{"state": SceneFID.metric_state, "failed": [...]}``.
 
     Scenes that cannot be rendered are listed in ``failed`` (id, error) and left out of the statistics.
@@ -197,10 +203,11 @@ def reference_fid_state(paths: Sequence[str], assets_dir: str, protocol: EvalPro
     from spread.scene import read_scene
 
     library = worker_library(assets_dir)
-    loaded = worker_extractor(protocol)
+    loaded = worker_extractor(fid)
     if loaded.extractor is None:
         raise RuntimeError(f"reference FID features need an extractor: {loaded.status}")
-    fid = SceneFID(protocol.fid_feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None)
+    metric = SceneFID(fid.feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None,
+                      kid_seed=seed)
     images, failed = [], []
     for path in paths:
         try:
@@ -208,6 +215,6 @@ def reference_fid_state(paths: Sequence[str], assets_dir: str, protocol: EvalPro
         except Exception as exc:
             failed.append({"scene_id": scene_key(path), "error": f"{type(exc).__name__}: {exc}"})
     if images:
-        fid.update(images=np.stack(images), real=True)
-    state = {k: [t.cpu() for t in v] if isinstance(v, list) else v.cpu() for k, v in fid.metric_state.items()}
+        metric.update(images=np.stack(images), real=True)
+    state = {k: [t.cpu() for t in v] if isinstance(v, list) else v.cpu() for k, v in metric.metric_state.items()}
     return {"state": state, "failed": failed}

@@ -2,10 +2,10 @@
 
 1. List the scene files of ``scenes`` and the reference split ``reference/<split>``; the asset library
    is ``reference/assets``.
-2. Resume: read ``out_dir/per_scene.jsonl`` (deduplicated, compacted; :mod:`~spread.distributed.resume`)
+2. Resume: read ``out_dir/per_scene.jsonl`` (deduplicated, compacted; :mod:`~spread.evaluation.resume`)
    and schedule only the scenes without a line. ``out_dir/protocol.json`` pins the protocol the lines were
    measured with; resuming with another protocol is refused (mixed lines would be summed silently).
-3. Fan the rest out as Ray tasks (:func:`~spread.distributed.fanout.fan_out`); the driver appends each
+3. Fan the rest out as Ray tasks (:func:`~spread.evaluation.fanout.fan_out`); the driver appends each
    record as it arrives and advances the progress bar.
 4. ``metrics.json`` (atomic) is computed from the file's deduplicated lines of this folder's scenes, so a
    resumed run reports exactly what a single run would. FID reference statistics are computed by Ray
@@ -20,13 +20,17 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from spread.distributed.aggregate import fid_values, summary_values
-from spread.distributed.fanout import fan_out, run_tasks
-from spread.distributed.protocol import EvalProtocol, versions
-from spread.distributed.resume import dedupe, load_finished
-from spread.distributed.session import RaySettings, ray_session
-from spread.distributed.work import evaluate_chunk, load_fid_extractor, reference_fid_state, scene_key
+from omegaconf import MISSING
+
+from spread.evaluation.aggregate import fid_values, summary_values
+from spread.evaluation.fanout import fan_out, run_tasks
+from spread.evaluation.protocol import EvalProtocol, FIDConfig, versions
+from spread.evaluation.resume import dedupe, load_finished
+from spread.evaluation.work import (
+    evaluate_chunk, failure_record, load_fid_extractor, reference_fid_state, scene_key, worker_library,
+)
 from spread.io import append_jsonl, read_jsonl, write_json_atomic
+from spread.runtime.ray import RaySettings, ray_session
 
 PER_SCENE = "per_scene.jsonl"
 METRICS = "metrics.json"
@@ -38,11 +42,13 @@ class EvaluationConfig:
     """scenes: folder of scene files; reference: dataset folder (``assets/`` + ``reference_split/``);
     out_dir: run folder; chunk_size: scenes per Ray task; resume: keep ``per_scene.jsonl`` lines;
     retry_failed: on resume, evaluate scenes whose line has an error again; renders: top-down PNGs of
-    the first evaluated scenes; progress: tqdm bar."""
+    the first evaluated scenes; progress: tqdm bar; protocol / fid: what is measured and how (DESIGN §6);
+    ray: where. The ``spread-evaluate`` config (``conf/evaluate.yaml``) is this record plus the command's
+    logger (:mod:`spread.configs`)."""
 
-    scenes: str
-    reference: str
-    out_dir: str
+    scenes: str = MISSING
+    reference: str = MISSING
+    out_dir: str = MISSING
     reference_split: str = "test"
     chunk_size: int = 4
     resume: bool = True
@@ -50,6 +56,7 @@ class EvaluationConfig:
     renders: int = 8
     progress: bool = True
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
+    fid: FIDConfig = field(default_factory=FIDConfig)
     ray: RaySettings = field(default_factory=RaySettings)
 
 
@@ -64,10 +71,10 @@ class EvaluationResult:
     out_dir: Path
 
 
-def check_protocol(out: Path, protocol: EvalProtocol, resume: bool) -> None:
+def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool) -> None:
     """Write ``protocol.json``; refuse to resume lines measured under a different protocol."""
     path = out / PROTOCOL
-    fingerprint = protocol.fingerprint()
+    fingerprint = protocol.fingerprint(fid)
     if resume and path.exists() and (out / PER_SCENE).exists():
         before = json.loads(path.read_text())
         if before != json.loads(json.dumps(fingerprint)):
@@ -81,19 +88,19 @@ def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: st
     """(SceneFID with the reference states merged in, or None; status; failed reference scenes)."""
     from spread.metrics import SceneFID
 
-    if not cfg.protocol.fid_enabled:
+    if not cfg.fid.enabled:
         return None, "disabled: fid.enabled is false", []
-    loaded = load_fid_extractor(cfg.protocol)
+    loaded = load_fid_extractor(cfg.fid)
     if loaded.extractor is None:
         return None, loaded.status, []
     if len(reference_files) < 2:
         return None, f"unavailable: the reference split has {len(reference_files)} scene files (FID needs ≥ 2)", []
-    fid = SceneFID(cfg.protocol.fid_feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None,
+    fid = SceneFID(cfg.fid.feature_model, extractor=loaded.extractor, feature_dim=loaded.feature_dim or None,
                    kid_seed=cfg.protocol.seed)
     fid.fid_status = loaded.status
     failed = []
     for part in run_tasks([str(p) for p in reference_files], 16, cfg.ray, reference_fid_state,
-                          (assets, cfg.protocol)):
+                          (assets, cfg.fid, cfg.protocol.seed)):
         fid.merge_state(part["state"])
         failed += part["failed"]
     return fid, loaded.status, failed
@@ -101,7 +108,6 @@ def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: st
 
 def write_renders(out: Path, records: list[dict], assets: str, count: int) -> list[Path]:
     """Top-down PNGs of the first ``count`` evaluated scenes, ``out/renders/<scene_id>.png``."""
-    from spread.distributed.work import worker_library
     from spread.render import render_topdown, save_png
     from spread.scene import read_scene
 
@@ -131,7 +137,7 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
     ref_dir = Path(cfg.reference) / cfg.reference_split
     reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
     per_scene = out / PER_SCENE
-    check_protocol(out, cfg.protocol, cfg.resume)
+    check_protocol(out, cfg.protocol, cfg.fid, cfg.resume)
     if not cfg.resume:
         per_scene.unlink(missing_ok=True)
     finished = load_finished(per_scene, retry_failed=cfg.retry_failed)
@@ -147,8 +153,8 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
         bar.update(1)
 
     with ray_session(cfg.ray) as cluster:
-        fan = fan_out(todo, cfg.chunk_size, cfg.ray, evaluate_chunk, (assets, cfg.protocol), on_record) if todo \
-            else None
+        fan = fan_out(todo, cfg.chunk_size, cfg.ray, evaluate_chunk, (assets, cfg.protocol, cfg.fid), on_record,
+                      failure_record) if todo else None
         fid, fid_status, ref_failed = reference_fid(cfg, reference_files, assets)
     bar.close()
 
@@ -157,12 +163,12 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
     records.sort(key=lambda r: r["scene_id"])
     metrics = summary_values(records, cfg.protocol)
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
-                              cfg.protocol.fid_feature_model))
+                              cfg.fid.feature_model))
     metrics.update({
         "failed": [{"scene_id": r["scene_id"], "error": r["error"]} for r in records if r.get("error")],
         "fid_reference_failed": ref_failed,
         "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
-        "protocol": cfg.protocol.to_dict(), "versions": versions(),
+        "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(),
         "run": {"evaluated_this_run": len(todo), "resumed": len(files) - len(todo),
                 "tasks": fan.tasks if fan else 0, "split_chunks": fan.split_chunks if fan else 0,
                 "chunk_size": cfg.chunk_size, "seconds": round(time.perf_counter() - started, 3),

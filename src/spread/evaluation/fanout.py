@@ -3,12 +3,12 @@
 Failure handling, in three layers:
 
 1. A scene that cannot be measured is not a failure of the task: the worker returns a record with its
-   ``error`` (:mod:`spread.distributed.work`).
+   ``error`` (:mod:`spread.evaluation.work`).
 2. A task whose worker process or node dies is re-run by Ray up to ``max_retries`` times (the chunk starts
    over; nothing it did was kept, since results only come back when the whole task returns).
 3. A chunk that still fails is split into one task per scene, so one scene that kills its worker (a
-   physics engine crash, say) takes only itself down; a single-scene task that fails gets a record whose
-   ``error`` says the worker died on it.
+   physics engine crash, say) takes only itself down; a single-scene task that fails gets the record
+   ``failure_record(item, exception)`` makes of it (the evaluation's says the worker died on that scene).
 
 Each scene therefore yields exactly one record, given to ``on_record`` once.
 """
@@ -18,8 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
-from spread.distributed.session import RaySettings
-from spread.distributed.work import scene_key
+from spread.runtime.ray import RaySettings
 
 
 def chunks(items: Sequence, size: int) -> list[list]:
@@ -34,13 +33,6 @@ def task_options(settings: RaySettings) -> dict:
             "scheduling_strategy": settings.scheduling_strategy}
 
 
-def task_failure_record(path: str, exc: BaseException) -> dict:
-    """The record of a scene whose single-scene task failed after its retries (see module docstring)."""
-    return {"scene_id": scene_key(path), "file": str(path), "node_id": None, "pid": None,
-            "error": f"worker failed while evaluating this scene ({type(exc).__name__}: {str(exc)[:500]})",
-            "error_type": type(exc).__name__}
-
-
 @dataclass
 class FanOutStats:
     """tasks: tasks submitted; split_chunks: chunks that failed after retries and were split."""
@@ -50,10 +42,11 @@ class FanOutStats:
 
 
 def fan_out(paths: Sequence[str], chunk_size: int, settings: RaySettings, task: Callable, task_args: tuple,
-            on_record: Callable[[dict], None]) -> FanOutStats:
+            on_record: Callable[[dict], None], failure_record: Callable[[str, BaseException], dict]) -> FanOutStats:
     """Run ``task(chunk, *task_args) -> list[record]`` as Ray tasks over ``paths`` (module docstring).
 
-    ``on_record`` is called on the driver for every record as its task's result arrives.
+    ``on_record`` is called on the driver for every record as its task's result arrives;
+    ``failure_record(path, exception)`` makes the record of an item whose single-item task failed.
     """
     import ray
 
@@ -79,7 +72,7 @@ def fan_out(paths: Sequence[str], chunk_size: int, settings: RaySettings, task: 
                     for path in chunk:
                         submit([path])
                     continue
-                records = [task_failure_record(chunk[0], exc)]
+                records = [failure_record(chunk[0], exc)]
             for record in records:
                 on_record(record)
     return stats

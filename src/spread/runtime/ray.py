@@ -17,11 +17,13 @@ from dataclasses import dataclass
 from typing import Iterator
 
 
-@dataclass(frozen=True)
+@dataclass
 class RaySettings:
     """address: None / "local" (start one), "auto" or "HOST:PORT" (join); num_cpus: CPUs of a started
     cluster (None: all); max_retries: re-runs of a task whose worker or node dies; scheduling_strategy:
-    "SPREAD" (chunks over all nodes) or "DEFAULT" (pack); log_to_driver: echo worker output here."""
+    "SPREAD" (chunks over all nodes) or "DEFAULT" (pack); log_to_driver: echo worker output here;
+    object_store_memory: bytes for a started cluster; num_gpus_per_worker: GPUs of each sampling actor.
+    The defaults are ``conf/ray/local.yaml``'s (registered as the ``ray`` group's base, :mod:`spread.configs`)."""
 
     address: str | None = None
     num_cpus: int | None = None
@@ -29,6 +31,7 @@ class RaySettings:
     scheduling_strategy: str = "SPREAD"
     log_to_driver: bool = False
     object_store_memory: int | None = 256 * 1024 * 1024  # bytes, for a started cluster
+    num_gpus_per_worker: float = 0.0  # GPUs each sampling actor reserves (evaluation tasks use none)
 
     @property
     def starts_cluster(self) -> bool:

@@ -14,7 +14,7 @@ from typing import Iterable
 import numpy as np
 import torch
 
-from spread.distributed.protocol import METRIC_NAMES, EvalProtocol
+from spread.evaluation.protocol import METRIC_NAMES, EvalProtocol
 
 
 def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:

@@ -1,14 +1,14 @@
 """Ray Train for ``spread-train``: the same config, code and run folder, on Ray workers (DESIGN §7).
 
-    python -m spread.distributed.ray_train experiment=quick data.root=/shared/rooms ray_train.num_workers=4
-    python -m spread.distributed.ray_train ... ray_train.address=auto ray_train.use_gpu=true   # a Ray cluster
-    python -m spread.distributed.ray_train ... ckpt_path=last out_dir=<its run folder>         # resume
+    spread-train-ray experiment=quick data.root=/shared/rooms ray_train.num_workers=4
+    spread-train-ray ... ray_train.address=auto ray_train.use_gpu=true   # a Ray cluster
+    spread-train-ray ... ckpt_path=last out_dir=<its run folder>         # resume
 
 A Hydra app over ``conf/train.yaml`` (every ``spread-train`` override works) with ``trainer=ray`` chosen
 unless the command line names a trainer: ``conf/trainer/ray.yaml`` adds the ``ray_train`` block (workers,
 GPUs, CPUs per worker, address, failures, storage). The driver starts or joins Ray
-(:func:`~spread.distributed.session.ray_session`) and runs a ``ray.train.torch.TorchTrainer`` whose
-workers each call :func:`spread.cli.train.train` — the same data module, model, loggers, checkpoints
+(:func:`~spread.runtime.ray.ray_session`) and runs a ``ray.train.torch.TorchTrainer`` whose
+workers each call :func:`spread.training.fit.train` — the same data module, model, loggers, checkpoints
 (``<run folder>/checkpoints``, written by rank 0), final checkpoint and ``metrics.json`` as
 ``spread-train`` — with Lightning's DDP replaced by Ray's pieces: ``RayDDPStrategy`` (devices from Ray),
 ``RayLightningEnvironment`` (ranks from Ray), ``prepare_trainer`` and ``RayTrainReportCallback`` (a Ray
@@ -18,7 +18,6 @@ Resume: a fresh launch follows ``ckpt_path`` exactly as ``spread-train`` does. W
 worker group after a failure (``ray_train.max_failures``), the workers resume from Ray's newest reported
 checkpoint instead. The run folder and the storage path must be on a filesystem every node sees.
 
-This module sits above :mod:`spread.cli.train` on purpose (it is an entry point that reuses its builders);
 Ray and Lightning are imported inside the functions.
 """
 
@@ -67,12 +66,13 @@ def split_config(cfg: DictConfig, run_dir: Path) -> tuple[dict, RayTrainSettings
 
 
 def report_callback():
-    """``RayTrainReportCallback`` that leaves :class:`spread.cli.train.CheckpointStep` as it was: its epoch-end
-    checkpoint goes to Ray's store, not to ``checkpoints/last.ckpt``, so it must not make the final save
-    (:func:`spread.cli.train.save_final_checkpoint`) believe ``last.ckpt`` already holds the final state."""
+    """``RayTrainReportCallback`` that leaves :class:`~spread.training.checkpoints.CheckpointStep` as it was: its
+    epoch-end checkpoint goes to Ray's store, not to ``checkpoints/last.ckpt``, so it must not make the final
+    save (:func:`~spread.training.checkpoints.save_final_checkpoint`) believe ``last.ckpt`` already holds the
+    final state."""
     from ray.train.lightning import RayTrainReportCallback
 
-    from spread.cli.train import CheckpointStep
+    from spread.training.checkpoints import CheckpointStep
 
     class ReportCallback(RayTrainReportCallback):
         def on_train_epoch_end(self, trainer, pl_module) -> None:
@@ -86,12 +86,12 @@ def report_callback():
 
 
 def train_worker(config: dict) -> dict:
-    """The training function of every Ray Train worker: :func:`spread.cli.train.train` with Ray's strategy,
+    """The training function of every Ray Train worker: :func:`spread.training.fit.train` with Ray's strategy,
     environment and report callback; returns the run summary (``Result.return_value`` from rank 0)."""
     import ray.train
     from ray.train.lightning import RayDDPStrategy, RayLightningEnvironment, RayTrainReportCallback, prepare_trainer
 
-    from spread.cli.train import train
+    from spread.training.fit import train
 
     cfg = OmegaConf.create(config["cfg"])
     run_dir = Path(config["run_dir"])
@@ -117,7 +117,7 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
     from ray.train.torch import TorchTrainer
 
-    from spread.distributed.session import RaySettings, ray_session
+    from spread.runtime.ray import RaySettings, ray_session
 
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -152,30 +152,3 @@ def with_default_trainer(argv: list[str]) -> list[str]:
         return list(argv)
     first = next((i for i, a in enumerate(argv) if i > 0 and "=" in a), len(argv))
     return [*argv[:first], "trainer=ray", *argv[first:]]
-
-
-def _hydra_main():
-    import hydra
-
-    from spread.cli import conf_dir
-
-    @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
-    def main(cfg: DictConfig) -> None:
-        from spread.cli.train import run_folder
-
-        result = run_ray_train(cfg, run_folder(cfg))
-        summary = result.return_value or {}
-        print(f"run folder {run_folder(cfg)}: step {summary.get('global_step')}, epoch {summary.get('epoch')}, "
-              f"{summary.get('world_size')} Ray Train workers, checkpoint {summary.get('last_checkpoint')}; "
-              f"Ray checkpoint {None if result.checkpoint is None else result.checkpoint.path}")
-
-    return main
-
-
-def main() -> None:
-    sys.argv = with_default_trainer(sys.argv)
-    _hydra_main()()
-
-
-if __name__ == "__main__":
-    main()

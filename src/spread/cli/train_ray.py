@@ -1,0 +1,35 @@
+"""``spread-train-ray experiment=NAME data.root=DIR ray_train.num_workers=N``: ``spread-train`` on Ray Train
+(:mod:`spread.training.ray_train`; ``trainer=ray`` unless the command line names a trainer)."""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from spread.configs import conf_dir, register
+from spread.training.ray_train import with_default_trainer
+
+register()
+
+
+@hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
+def _main(cfg: DictConfig) -> None:
+    from spread.training.fit import run_folder
+    from spread.training.ray_train import run_ray_train
+
+    result = run_ray_train(cfg, run_folder(cfg))
+    summary = result.return_value or {}
+    print(f"run folder {run_folder(cfg)}: step {summary.get('global_step')}, epoch {summary.get('epoch')}, "
+          f"{summary.get('world_size')} Ray Train workers, checkpoint {summary.get('last_checkpoint')}; "
+          f"Ray checkpoint {None if result.checkpoint is None else result.checkpoint.path}")
+
+
+def main() -> None:
+    sys.argv = with_default_trainer(sys.argv)
+    _main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,200 @@
+"""The configuration: the ``conf/`` folder, the structured-config schemas registered once, and ``compose``.
+
+Every library object's settings are a dataclass with its defaults, in the package that uses them. This
+module registers them with Hydra's ConfigStore, so that the YAML files only choose and override (DESIGN
+§5, "a default lives once"):
+
+* **group bases** — a group's YAML files start with ``defaults: [base, _self_]`` and override a few keys:
+  ``guidance/base`` = :class:`~spread.guidance.GuidanceConfig`, ``sampler/base`` =
+  :class:`~spread.model.Sampler`, ``model/base`` = :class:`~spread.model.config.SceneDiffusionConfig` (with
+  :class:`~spread.model.config.ModelConfig`: the paper's network), ``protocol/base`` =
+  :class:`~spread.evaluation.EvalProtocol`, ``fid/base`` = :class:`~spread.evaluation.FIDConfig`,
+  ``ray/base`` = :class:`~spread.runtime.RaySettings`, ``logger/base`` = :class:`~spread.runtime.LoggerConfig`,
+  ``paths/base`` = :class:`PathsConfig`;
+* **command schemas** — a command's primary config (``conf/<command>.yaml``) starts with its schema, the
+  library record it fills plus the command's own keys: ``generate_schema`` = :class:`GenerateCommand`
+  (:class:`~spread.procgen.dataset.DatasetConfig`), ``sample_schema`` = :class:`SampleCommand`
+  (:class:`~spread.sampling.SamplingConfig`), ``evaluate_schema`` = :class:`EvaluateCommand`
+  (:class:`~spread.evaluation.EvaluationConfig`). ``OmegaConf.to_object(cfg)`` then *is* the library record,
+  typed and validated — no field is copied by hand. ``spread-train`` instantiates its ``_target_`` nodes.
+
+Registration is per command (:func:`register`), so a light command (``spread-generate``) does not import
+torch to register the model's schema.
+"""
+
+
+import functools
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+#: The commands whose schemas :func:`register` knows, and the config groups each one composes.
+COMMANDS = ("generate", "train", "sample", "evaluate", "ablate", "report")
+
+
+def conf_dir() -> str:
+    """Absolute path of the Hydra config folder (the repository's ``conf/``, or ``$SPREAD_CONF_DIR``)."""
+    env = os.environ.get("SPREAD_CONF_DIR")
+    if env:
+        return str(Path(env).resolve())
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "conf" / "generate.yaml").exists():
+            return str(parent / "conf")
+    raise FileNotFoundError("cannot find the conf/ folder; set SPREAD_CONF_DIR to the repository's conf/")
+
+
+@dataclass
+class PathsConfig:
+    """runs_dir: where run folders go (relative paths: to the directory the command runs in)."""
+
+    runs_dir: str = "runs"
+
+
+def _store(group: str | None, name: str, node) -> None:
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group=group, name=name, node=node)
+
+
+def _common() -> None:
+    from spread.runtime.ray import RaySettings
+    from spread.runtime.tracking import LoggerConfig
+
+    _store("paths", "base", PathsConfig)
+    _store("ray", "base", RaySettings)
+    _store("logger", "base", LoggerConfig)
+
+
+def _generate() -> None:
+    _store(None, "generate_schema", GenerateCommand())
+
+
+def _model() -> None:
+    from spread.guidance.config import GuidanceConfig
+    from spread.model.config import SceneDiffusionConfig
+    from spread.model.diffusion import Sampler
+
+    _store("model", "base", SceneDiffusionConfig)
+    _store("sampler", "base", Sampler)
+    _store("guidance", "base", GuidanceConfig)
+
+
+def _evaluation() -> None:
+    from spread.evaluation.protocol import EvalProtocol, FIDConfig
+
+    _store("protocol", "base", EvalProtocol)
+    _store("fid", "base", FIDConfig)
+
+
+def register(*commands: str) -> None:
+    """Register the schemas the ``commands`` compose (all of :data:`COMMANDS` when none is named)."""
+    for name in commands or COMMANDS:
+        if name not in COMMANDS:
+            raise ValueError(f"unknown command '{name}' (known: {COMMANDS})")
+    wanted = set(commands or COMMANDS)
+    _common()
+    if wanted & {"generate", "ablate"}:
+        _generate()
+    if wanted & {"train", "sample", "ablate"}:
+        _model()
+    if wanted & {"sample", "evaluate", "ablate"}:
+        _evaluation()
+    if wanted & {"sample", "ablate"}:
+        _store(None, "sample_schema", sample_command())
+    if wanted & {"evaluate", "ablate"}:
+        _store(None, "evaluate_schema", evaluate_command())
+
+
+def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+    """``conf/<name>.yaml`` composed with ``overrides`` (inside a running Hydra app or not)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    register(name) if name in COMMANDS else register()
+    if GlobalHydra.instance().is_initialized():
+        return hydra_compose(config_name=name, overrides=list(overrides))
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+        return hydra_compose(config_name=name, overrides=list(overrides))
+
+
+def to_object(cfg: DictConfig):
+    """A composed config as its schema's dataclass (nested records included), validated."""
+    return OmegaConf.to_object(cfg)
+
+
+def model_config(name: str = "tiny", **fields):
+    """The :class:`~spread.model.config.ModelConfig` of ``conf/model/<name>.yaml`` with ``fields`` replaced,
+    e.g. for a test or benchmark that builds a ``tiny`` model without a command."""
+    from spread.model.config import ModelConfig
+
+    cfg = compose("train", [f"model={name}", "data.root=/unused"])
+    return ModelConfig.from_any(OmegaConf.to_container(cfg.model.config, resolve=True), **fields)
+
+
+# ---- command schemas --------------------------------------------------------------------------------------
+
+from spread.procgen.dataset import DatasetConfig  # noqa: E402  (light: no torch)
+
+
+@dataclass
+class GenerateCommand(DatasetConfig):
+    """``spread-generate``: the dataset's settings plus out_dir (the dataset folder) and progress."""
+
+    out_dir: str = MISSING
+    progress: bool = True
+    paths: PathsConfig = field(default_factory=PathsConfig)
+
+
+@functools.cache
+def sample_command():
+    """The ``spread-sample`` schema: :class:`~spread.sampling.SamplingConfig` plus the command's logger,
+    wandb group and tags, and ``evaluate=true``'s evaluation settings (defined here because it joins two
+    stages; built on demand so that importing this module stays light)."""
+    from spread.evaluation.protocol import EvalProtocol, FIDConfig
+    from spread.runtime.tracking import LoggerConfig
+    from spread.sampling.run import SamplingConfig
+
+    @dataclass
+    class EvaluateAfterSampling:
+        """``spread-sample evaluate=true``: evaluate ``out_dir/scenes`` against ``reference_split`` of the
+        dataset, results beside them (the scenes renders are already there, so none by default)."""
+
+        reference_split: str = "${data.split}"
+        chunk_size: int = 4
+        renders: int = 0
+        retry_failed: bool = False
+        protocol: EvalProtocol = field(default_factory=EvalProtocol)
+        fid: FIDConfig = field(default_factory=FIDConfig)
+
+    @dataclass
+    class SampleCommand(SamplingConfig):
+        logger: LoggerConfig = field(default_factory=LoggerConfig)
+        experiment_name: str = "sample"
+        tags: list[str] = field(default_factory=list)
+        evaluate: bool = False
+        evaluation: EvaluateAfterSampling = field(default_factory=EvaluateAfterSampling)
+        sweep_dir: str | None = None
+        paths: PathsConfig = field(default_factory=PathsConfig)
+
+    return SampleCommand
+
+
+@functools.cache
+def evaluate_command():
+    """The ``spread-evaluate`` schema: :class:`~spread.evaluation.EvaluationConfig` plus the command's seed
+    (the protocol's), logger and wandb group."""
+    from spread.evaluation.run import EvaluationConfig
+    from spread.runtime.tracking import LoggerConfig
+
+    @dataclass
+    class EvaluateCommand(EvaluationConfig):
+        seed: int = 0
+        logger: LoggerConfig = field(default_factory=LoggerConfig)
+        experiment_name: str = "evaluate"
+        paths: PathsConfig = field(default_factory=PathsConfig)
+
+    return EvaluateCommand

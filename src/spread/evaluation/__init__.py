@@ -1,0 +1,17 @@
+"""Evaluation (``spread-evaluate``, DESIGN §5, §6): scene files → per-scene records → ``metrics.json``.
+
+| module | job |
+|---|---|
+| :mod:`~spread.evaluation.protocol` | :class:`EvalProtocol`, :class:`FIDConfig`: every parameter behind a value; versions |
+| :mod:`~spread.evaluation.work` | worker side: scene file → per-scene record with metric states |
+| :mod:`~spread.evaluation.fanout` | items in chunks as Ray tasks, retries, splitting of failed chunks |
+| :mod:`~spread.evaluation.resume` | ``per_scene.jsonl``: finished scenes, deduplicated, torn line dropped |
+| :mod:`~spread.evaluation.aggregate` | records → metrics through torchmetrics ``merge_state`` |
+| :mod:`~spread.evaluation.run` | one run: :class:`EvaluationConfig`, :func:`run_evaluation` writes ``metrics.json`` etc. |
+| :mod:`~spread.evaluation.wandb_log` | metrics and a per-scene table with renders on wandb |
+
+Ray, wandb and pybullet are imported inside the functions that use them.
+"""
+
+from spread.evaluation.protocol import STABILITY_SUBSTEPS, EvalProtocol, FIDConfig, versions  # noqa: F401
+from spread.evaluation.run import EvaluationConfig, EvaluationResult, run_evaluation  # noqa: F401

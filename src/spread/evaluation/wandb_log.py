@@ -1,0 +1,56 @@
+"""An evaluation on wandb (conventions: :mod:`spread.runtime.tracking`): its metrics as summary + one log
+step, a per-scene table whose first rows carry the top-down renders, and the renders themselves.
+:func:`log_metrics` also serves a sampling run evaluated in the same command (``spread-sample
+evaluate=true``). Offline by default; ``mode="disabled"`` writes nothing and opens no connection.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+#: Per-scene table columns (besides ``scene_id`` and ``render``), as in ``per_scene.jsonl``.
+TABLE_COLUMNS = ("num_objects", "col_mesh", "grecall", "asd", "stability", "still_fraction", "error")
+
+
+def scalar_metrics(metrics: dict) -> dict:
+    """The numeric top-level entries of ``metrics.json`` (what wandb can chart)."""
+    return {k: v for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+
+
+def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
+    """An evaluation's metrics (summary + one step), its per-scene table (renders in the first rows) and the
+    renders."""
+    import wandb
+
+    scalars = scalar_metrics(metrics)
+    run.log(scalars)
+    run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
+    by_name = {Path(p).stem: p for p in renders}
+    table = wandb.Table(columns=["scene_id", "render", *TABLE_COLUMNS])
+    for r in records:
+        image = wandb.Image(str(by_name[r["scene_id"]])) if r["scene_id"] in by_name else None
+        table.add_data(r["scene_id"], image, *[r.get(c) for c in TABLE_COLUMNS])
+    # the table travels as a wandb artifact (staged in wandb's data dir until `wandb sync`); the renders
+    # are also logged on their own, so the run folder under out_dir/wandb holds them
+    run.log({"per_scene": table, "renders": [wandb.Image(str(p), caption=Path(p).stem) for p in renders]})
+
+
+def log_evaluation(result, logger, group: str | None = None, config: dict | None = None,
+                   tags: list[str] | None = None) -> str | None:
+    """Log an :class:`~spread.evaluation.run.EvaluationResult` (``job_type=evaluate``) with ``logger`` (a
+    :class:`~spread.runtime.tracking.LoggerConfig`); returns the run's folder (None when disabled or when the
+    logger is not wandb). ``config``: the command's config (default: the protocol and inputs)."""
+    from spread.runtime.tracking import as_logger_config, init_run, run_folder
+
+    logger = as_logger_config(logger)
+    if not logger.wandb:
+        return None
+    config = config if config is not None else {
+        "protocol": result.metrics["protocol"], "scenes": result.metrics["scenes"],
+        "reference": result.metrics["reference"], "versions": result.metrics["versions"]}
+    run = init_run(logger, "evaluate", result.out_dir, config, group=group, tags=tags)
+    try:
+        log_metrics(run, result.metrics, result.records, result.renders)
+        return run_folder(run)
+    finally:
+        run.finish()

@@ -1,0 +1,209 @@
+"""The platform's commands as library functions on composed configs: what ``spread-generate``, ``-train``,
+``-sample`` and ``-evaluate`` do, callable in-process (by the console scripts in :mod:`spread.cli`, by the
+ablation's stages, by notebooks).
+
+Each takes the composed ``conf/<command>.yaml`` (:func:`spread.configs.compose`, or the ``DictConfig`` a
+Hydra app receives), turns it into the library record its schema describes (:func:`spread.configs.to_object`:
+:class:`~spread.procgen.dataset.DatasetConfig`, :class:`~spread.sampling.SamplingConfig`,
+:class:`~spread.evaluation.EvaluationConfig`), runs the stage and logs it (:mod:`spread.runtime.tracking`).
+``spread-sample evaluate=true`` joins two stages here: sample, then evaluate the scenes into the same run
+folder (one wandb run holds both). The ``print_*`` functions are the commands' console summaries.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from spread.configs import to_object
+
+
+def save_config(cfg: DictConfig, folder: Path, overrides: list[str]) -> None:
+    """``folder/.hydra/config.yaml`` and ``overrides.yaml``, as the command's own Hydra run would leave them."""
+    from spread.io import write_text_atomic
+
+    write_text_atomic(folder / ".hydra" / "config.yaml", OmegaConf.to_yaml(cfg))
+    write_text_atomic(folder / ".hydra" / "overrides.yaml", OmegaConf.to_yaml(OmegaConf.create(list(overrides))))
+
+
+def plain(cfg: DictConfig) -> dict:
+    """The composed config as plain data (what wandb records as the run's config)."""
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+# ---- generate ------------------------------------------------------------------------------------------------
+
+def generate(cfg: DictConfig) -> dict:
+    """``spread-generate``: the dataset folder ``cfg.out_dir``; returns its manifest."""
+    from spread.procgen.dataset import generate_dataset
+
+    command = to_object(cfg)
+    return generate_dataset(command.out_dir, command, progress=command.progress)
+
+
+def print_dataset_summary(manifest: dict, out_dir: str) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    stats = manifest["statistics"]
+    run = manifest["this_run"]
+    table = Table(title=f"dataset {out_dir}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    for split, n in manifest["counts"].items():
+        table.add_row(f"rooms ({split})", str(n))
+    opr = stats["objects_per_room"]
+    table.add_row("objects per room min / mean / max", f"{opr['min']} / {opr['mean']:.1f} / {opr['max']}")
+    table.add_row("support pairs per room (mean)", f"{stats['support_pairs_per_room']['mean']:.1f}")
+    table.add_row("share of supported objects that are stacked", f"{stats['share_stacked']:.3f}")
+    table.add_row("categories in use / in library", f"{len(stats['categories'])} / {len(manifest['categories'])}")
+    table.add_row("asset library (s)", f"{run['seconds_assets']:.1f}")
+    table.add_row("rooms generated this run", str(run["rooms_generated"]))
+    table.add_row("room generation (s)", f"{run['seconds_rooms']:.1f}")
+    if run["rooms_per_second"]:
+        table.add_row("rooms per second", f"{run['rooms_per_second']:.2f}")
+    table.add_row("failed rooms", str(len(manifest["failed_rooms"])))
+    Console().print(table)
+    top = sorted(stats["categories"].items(), key=lambda kv: -kv[1])[:12]
+    Console().print("most frequent categories: " + ", ".join(f"{k} {v}" for k, v in top))
+
+
+# ---- train ---------------------------------------------------------------------------------------------------
+
+def train(cfg: DictConfig, run_dir: Path | None = None) -> dict:
+    """``spread-train``: fit into ``run_dir`` (default: Hydra's output folder, else ``cfg.out_dir``)."""
+    from spread.training.fit import train as fit
+
+    return fit(cfg, run_dir=run_dir)
+
+
+# ---- evaluate ------------------------------------------------------------------------------------------------
+
+def evaluate(cfg: DictConfig):
+    """``spread-evaluate``: evaluate ``cfg.scenes``; logs to wandb with ``logger=wandb``; returns the
+    :class:`~spread.evaluation.EvaluationResult`."""
+    from spread.evaluation import run_evaluation
+    from spread.evaluation.wandb_log import log_evaluation
+
+    command = to_object(cfg)
+    result = run_evaluation(command)
+    log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg))
+    return result
+
+
+def print_evaluation_summary(metrics: dict, out_dir) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    def fmt(v, digits=4):
+        return "null" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
+
+    table = Table(title=f"evaluation {out_dir}")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    table.add_row("Col_mesh (share of objects, ↓)", fmt(metrics["col_mesh"]))
+    table.add_row("GRecall (share of pairs, ↑)", fmt(metrics["grecall"]))
+    table.add_row("ASD (mm, ↓)", fmt(None if metrics["asd"] is None else 1000 * metrics["asd"], 2))
+    table.add_row("Stability (share of pairs, ↑)", fmt(metrics["stability"]))
+    table.add_row("still objects (share)", fmt(metrics["still_fraction"]))
+    table.add_row(f"FID ({metrics.get('fid_feature_model')}, ↓)", fmt(metrics["fid"], 2))
+    table.add_row("KID (↓)", fmt(metrics.get("kid")))
+    table.add_row("scenes / evaluated / failed",
+                  f"{metrics['n_scenes']} / {metrics['n_evaluated']} / {metrics['n_failed']}")
+    table.add_row("objects", str(metrics["n_objects"]))
+    table.add_row("seconds", fmt(metrics["run"]["seconds"], 1))
+    console = Console()
+    console.print(table)
+    console.print(f"fid_status: {metrics['fid_status']}")
+    for f in metrics["failed"][:10]:
+        console.print(f"failed {f['scene_id']}: {f['error']}")
+
+
+# ---- sample --------------------------------------------------------------------------------------------------
+
+def evaluation_after_sampling(command):
+    """The :class:`~spread.evaluation.EvaluationConfig` of ``spread-sample evaluate=true``: the run's scenes
+    against the dataset's ``evaluation.reference_split``, results beside them in ``out_dir``."""
+    from spread.evaluation import EvaluationConfig
+
+    ev = command.evaluation
+    return EvaluationConfig(
+        scenes=str(Path(command.out_dir) / "scenes"), reference=command.data.root, out_dir=command.out_dir,
+        reference_split=ev.reference_split, chunk_size=ev.chunk_size, resume=command.resume,
+        retry_failed=ev.retry_failed, renders=ev.renders, progress=command.progress, protocol=ev.protocol,
+        fid=ev.fid, ray=command.ray)
+
+
+def sample(cfg: DictConfig, log: bool = True):
+    """``spread-sample``: sample (then, with ``evaluate=true``, evaluate) into ``cfg.out_dir``; returns
+    (:class:`~spread.sampling.SamplingResult`, :class:`~spread.evaluation.EvaluationResult` or None). A
+    finished sweep point (``evaluate=true``, ``resume=true``, ``metrics.json`` there) is left as it is
+    and (None, None) returned. ``log=False``: no wandb run (the ablation logs its table instead)."""
+    from spread.experiments.runs import is_finished_run
+    from spread.sampling import run_sampling
+    from spread.sampling.wandb_log import log_sampling, sampling_tags
+
+    command = to_object(cfg)
+    if command.evaluate and command.resume and is_finished_run(command.out_dir):
+        print(f"{command.out_dir}: finished earlier (metrics.json exists), skipped")
+        return None, None
+    result = run_sampling(command)
+    evaluation = None
+    if command.evaluate:
+        from spread.evaluation import run_evaluation
+
+        evaluation = run_evaluation(evaluation_after_sampling(command))
+    more = None
+    if evaluation is not None:
+        from spread.evaluation.wandb_log import log_metrics
+
+        renders = list(result.manifest.get("renders") or [])
+
+        def more(run):
+            log_metrics(run, evaluation.metrics, evaluation.records, renders)
+    if log and command.logger.wandb:
+        log_sampling(result.manifest, command.out_dir, plain(cfg), command.logger, group=command.experiment_name,
+                     tags=sampling_tags(command.ckpt, command.sampler, result.manifest, command.tags), more=more)
+    return result, evaluation
+
+
+def print_sampling_summary(result) -> None:
+    m = result.manifest
+    per_batch = "" if m["seconds_per_batch"] is None else f", {m['seconds_per_batch']:.2f} s per batch"
+    print(f"{result.out_dir / 'scenes'}: {m['samples']} scenes of {m['graphs']} graphs "
+          f"({m['written_this_run']} written now, {m['resumed']} already there; {m['seconds']:.1f} s{per_batch}; "
+          f"{m['runner']['mode']}, {m['runner']['workers']} worker(s))")
+
+
+# ---- the commands as one object (the ablation's stages) ---------------------------------------------------------
+
+class InProcessCommands:
+    """:class:`~spread.experiments.ablation.Commands` backed by the functions above: each stage composes its
+    command's config from the stage's overrides, saves it in the stage's folder as the command would, and runs."""
+
+    def generate(self, overrides: list[str]) -> None:
+        from spread.configs import compose
+
+        generate(compose("generate", overrides))
+
+    def train(self, overrides: list[str], run_dir: Path) -> None:
+        from spread.configs import compose
+
+        cfg = compose("train", overrides)
+        save_config(cfg, run_dir, overrides)
+        train(cfg, run_dir=run_dir)
+
+    def sample(self, overrides: list[str]) -> None:
+        from spread.configs import compose
+
+        cfg = compose("sample", overrides)
+        save_config(cfg, Path(str(cfg.out_dir)), overrides)
+        sample(cfg, log=False)
+
+    def evaluate(self, overrides: list[str]) -> dict:
+        from spread.configs import compose
+
+        cfg = compose("evaluate", overrides)
+        save_config(cfg, Path(str(cfg.out_dir)), overrides)
+        return evaluate(cfg).metrics

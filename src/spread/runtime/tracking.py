@@ -1,0 +1,88 @@
+"""Experiment tracking: the ``logger`` config, the one factory of loggers, and the wandb conventions.
+
+Every command logs through here, with one set of conventions so runs line up on the dashboard:
+``project`` (``spread``), ``group`` = the experiment (the training experiment, the ablation, the sweep),
+``job_type`` = ``train`` | ``sample`` | ``evaluate`` | ``ablation``, ``tags`` = variant, sampler, guidance
+mode and weights, ``config`` = the command's whole composed config.
+
+``logger.name``: ``wandb`` (offline by default: files under ``<run folder>/wandb``, ``wandb sync``
+uploads them later; ``WANDB_MODE`` overrides ``mode``), ``csv`` (Lightning's CSV files; the other commands
+log nothing) or ``none``. Nothing here opens a network connection in the offline and disabled modes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+NAMES = ("wandb", "csv", "none")
+
+
+@dataclass
+class LoggerConfig:
+    """name: ``wandb`` | ``csv`` | ``none``; mode: wandb's mode (``offline``, ``online``, ``disabled``);
+    project: wandb project; run_name: the run's name (None: the command picks one); tags: extra tags."""
+
+    name: str = "wandb"
+    mode: str = "offline"
+    project: str = "spread"
+    run_name: str | None = None
+    tags: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.name not in NAMES:
+            raise ValueError(f"logger: key 'name' is {self.name!r}, choose from {NAMES}")
+
+    @property
+    def wandb(self) -> bool:
+        return self.name == "wandb"
+
+
+def as_logger_config(logger) -> LoggerConfig:
+    """A LoggerConfig from itself, a mapping (a Hydra node), or None (``none``)."""
+    if logger is None:
+        return LoggerConfig(name="none")
+    if isinstance(logger, LoggerConfig):
+        return logger
+    return LoggerConfig(**dict(logger))
+
+
+def init_run(logger: LoggerConfig, job_type: str, out_dir: str | Path, config: dict, group: str | None = None,
+             name: str | None = None, tags: list[str] | None = None, run_id: str | None = None):
+    """``wandb.init`` with the conventions of the module docstring; files under ``out_dir/wandb``."""
+    import wandb
+
+    return wandb.init(project=logger.project, group=group or None, job_type=job_type, name=logger.run_name or name,
+                      tags=[*(tags or []), *logger.tags], dir=str(out_dir), mode=logger.mode, config=config,
+                      id=run_id, resume="allow" if run_id else None, reinit="finish_previous",
+                      settings=wandb.Settings(console="off", save_code=False, silent=True))
+
+
+def run_folder(run) -> str | None:
+    """The wandb run's folder (None when wandb is disabled)."""
+    return None if run.settings.mode == "disabled" else str(getattr(run, "dir", "") or "")
+
+
+def previous_wandb_id(run_dir: Path) -> str | None:
+    """The id of the newest wandb run in ``<run folder>/wandb`` (``latest-run`` → ``…-run-<time>-<id>``)."""
+    latest = Path(run_dir) / "wandb" / "latest-run"
+    return latest.resolve().name.rsplit("-", 1)[-1] if latest.exists() else None
+
+
+def lightning_loggers(logger: LoggerConfig, run_dir: Path, group: str, tags: list[str], config: dict,
+                      resuming_here: bool = False) -> list:
+    """Lightning loggers for a training run: ``wandb`` → WandbLogger (``job_type=train``) + CSVLogger,
+    ``csv`` → CSVLogger, ``none`` → none. The CSV files go to ``csv/version_<n>`` (a resumed run never
+    overwrites); ``resuming_here``: the run continues from this folder's own checkpoint, so it continues
+    this folder's wandb run too (same id)."""
+    from lightning.pytorch.loggers import CSVLogger, WandbLogger
+
+    if logger.name == "none":
+        return []
+    loggers = [CSVLogger(save_dir=str(run_dir), name="csv")]
+    if logger.wandb:
+        loggers.insert(0, WandbLogger(
+            project=logger.project, name=logger.run_name or f"{group}/{Path(run_dir).name}", save_dir=str(run_dir),
+            mode=logger.mode, group=group, job_type="train", tags=[*tags, *logger.tags], config=config,
+            log_model=False, id=previous_wandb_id(run_dir) if resuming_here else None))
+    return loggers

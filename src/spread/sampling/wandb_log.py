@@ -1,0 +1,53 @@
+"""A sampling run on wandb (``job_type=sample``; conventions: :mod:`spread.runtime.tracking`): its counts,
+timings and guidance totals, the ground truth | generated renders, and tags for the variant, sampler and
+guidance weights. Offline by default; ``mode="disabled"`` writes nothing and opens no connection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+
+def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = None) -> list[str]:
+    """Variant (from the checkpoint's hyperparameters, read without loading its weights), sampler and
+    guidance tags, plus ``extra``."""
+    import torch
+
+    from spread.sampling.worker import sampler_label
+
+    hp = torch.load(str(ckpt), map_location="cpu", weights_only=False, mmap=True).get("hyper_parameters", {})
+    guidance = manifest.get("guidance")
+    tags = [str(hp.get("variant", "unknown")), sampler_label(sampler)]
+    if guidance:
+        tags += ["guidance", f"guidance={guidance['mode']}"] + [f"{k}={guidance[k]:g}"
+                                                                for k in ("collision", "gravity", "relation")]
+    return tags + [str(t) for t in (extra or [])]
+
+
+def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, group: str | None = None,
+                 tags: list[str] | None = None, more: Callable | None = None) -> str | None:
+    """Log a sampling run (``sampling.json``: counts, timings, guidance) with ``logger`` (a
+    :class:`~spread.runtime.tracking.LoggerConfig`); ``more(run)`` logs more into the same run (an evaluation
+    of the scenes, say); without it the renders are logged. Returns the run folder (None when not logged)."""
+    import wandb
+
+    from spread.runtime.tracking import as_logger_config, init_run, run_folder
+
+    logger = as_logger_config(logger)
+    if not logger.wandb:
+        return None
+    run = init_run(logger, "sample", out_dir, config, group=group, tags=tags)
+    try:
+        numbers = {f"sampling/{k}": manifest[k] for k in ("samples", "written_this_run", "seconds",
+                                                          "seconds_per_batch", "repaired_rotations")
+                   if isinstance(manifest.get(k), (int, float))}
+        numbers |= {f"guidance/{k}": v for k, v in (manifest.get("guidance_totals") or {}).items()}
+        run.log(numbers)
+        run.summary.update(numbers)
+        if more is not None:
+            more(run)
+        elif manifest.get("renders"):
+            run.log({"renders": [wandb.Image(str(p), caption=Path(p).stem) for p in manifest["renders"]]})
+        return run_folder(run)
+    finally:
+        run.finish()

@@ -1,0 +1,18 @@
+"""Training (``spread-train``, ``spread-train-ray``; DESIGN §5, §7): fit one variant or baseline with Lightning.
+
+| module | job |
+|---|---|
+| :mod:`~spread.training.fit` | :func:`train`: data module + model + trainer from the config, loggers, run folder, summary |
+| :mod:`~spread.training.checkpoints` | atomic checkpoint writes, the final checkpoint, which one a run resumes |
+| :mod:`~spread.training.ray_train` | the same :func:`train` on Ray Train workers (``RayDDPStrategy``) |
+
+Lightning and Ray are imported by the modules that need them; ``import spread.training`` stays light.
+"""
+
+
+def __getattr__(name: str):
+    if name in ("train", "run_folder", "set_threads"):
+        from spread.training import fit
+
+        return getattr(fit, name)
+    raise AttributeError(f"module 'spread.training' has no attribute '{name}'")

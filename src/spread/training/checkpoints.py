@@ -1,0 +1,83 @@
+"""Checkpoints of a training run: atomic writes, the final state, which checkpoint a run resumes from.
+
+The run folder's ``checkpoints/`` holds ``last.ckpt`` (what ``ckpt_path=last`` resumes) and the newest
+periodic one. ``ckpt_path``: ``null`` starts a new run; a path resumes from that checkpoint (weights, EMA,
+optimizer, global step, loop state); ``last`` resumes ``<run folder>/checkpoints/last.ckpt`` when it
+exists, else the newest ``<paths.runs_dir>/train/<experiment_name>/*/checkpoints/last.ckpt``, else starts a
+new run (so a preempted job can always be relaunched with ``ckpt_path=last out_dir=<its folder>``).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from lightning.pytorch.callbacks import Callback
+from omegaconf import DictConfig
+
+log = logging.getLogger("spread.train")
+
+
+def resolve_ckpt_path(cfg: DictConfig, run_dir: Path) -> Path | None:
+    """The checkpoint to resume from, following the rules of the module docstring."""
+    value = cfg.get("ckpt_path")
+    if value in (None, "", "null"):
+        return None
+    if str(value) != "last":
+        path = Path(str(value))
+        if not path.is_file():
+            raise SystemExit(f"spread-train: ckpt_path={value}: no such checkpoint file")
+        return path
+    own = run_dir / "checkpoints" / "last.ckpt"
+    if own.is_file():
+        return own
+    runs = Path(str(cfg.paths.runs_dir)) / "train" / str(cfg.experiment_name)
+    found = sorted(runs.glob("*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
+    if found:
+        return found[-1]
+    log.warning("ckpt_path=last: no last.ckpt in %s or under %s; starting a new run", own.parent, runs)
+    return None
+
+
+class CheckpointStep(Callback):
+    """Remembers the global step of the newest checkpoint this run saved or resumed from."""
+
+    def __init__(self):
+        self.step: int | None = None
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint) -> None:
+        self.step = int(trainer.global_step)
+
+    def on_load_checkpoint(self, trainer, pl_module, checkpoint) -> None:
+        self.step = int(checkpoint.get("global_step", -1))
+
+
+def save_final_checkpoint(trainer, run_dir: Path, newest: CheckpointStep) -> None:
+    """``checkpoints/last.ckpt`` = the state at the end of ``fit``, when no checkpoint holds it yet.
+    ModelCheckpoint saves "last" only at its own moments (every n steps, epoch ends), so a run stopped by
+    ``max_time`` mid-epoch would otherwise leave a last.ckpt behind the trained weights. A resumed run that
+    takes no step leaves the file untouched (same bytes, so samplers keyed on its hash stay valid)."""
+    if trainer.fast_dev_run or trainer.checkpoint_callback is None or trainer.global_step == 0:
+        return
+    if newest.step != trainer.global_step:
+        trainer.save_checkpoint(run_dir / "checkpoints" / "last.ckpt")
+
+
+def atomic_checkpoint_io():
+    """A Lightning ``TorchCheckpointIO`` that writes each checkpoint to a temp file beside its target and
+    renames it (:func:`spread.io.atomic_path`): a job killed mid-save never leaves a torn ``last.ckpt``, also
+    when TMPDIR is on another filesystem than the run folder (where a rename falls back to a copy)."""
+    import torch
+    from lightning.pytorch.plugins.io import TorchCheckpointIO
+
+    from spread.io import atomic_path
+
+    class AtomicCheckpointIO(TorchCheckpointIO):
+        def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
+            if storage_options is not None:
+                raise TypeError(f"AtomicCheckpointIO: storage_options are not supported (got {storage_options!r})")
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path) as tmp:
+                torch.save(checkpoint, tmp)
+
+    return AtomicCheckpointIO()

@@ -1,0 +1,116 @@
+"""One training run (``spread-train``, DESIGN §5): a composed ``conf/train.yaml`` → a run folder.
+
+The run folder (``out_dir``, by default ``<paths.runs_dir>/train/<experiment>/<time>``) holds ``.hydra/``
+(the composed config), ``checkpoints/`` (:mod:`~spread.training.checkpoints`), ``csv/version_<n>/metrics.csv``
+(one version per launch), ``wandb/`` (offline unless ``WANDB_MODE`` says otherwise) and ``metrics.json``
+(the final step and logged values). The data module, model and trainer are ``_target_`` nodes of the config
+(``conf/data``, ``conf/model``, ``conf/trainer``); :func:`train` adds the loggers
+(:func:`spread.runtime.tracking.lightning_loggers`), the callbacks, the final checkpoint and the resume logic.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Callable
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from spread.training.checkpoints import CheckpointStep, atomic_checkpoint_io, resolve_ckpt_path, save_final_checkpoint
+
+log = logging.getLogger("spread.train")
+
+
+def run_folder(cfg: DictConfig) -> Path:
+    """Hydra's output dir inside a Hydra app (also in DDP child processes); ``cfg.out_dir`` otherwise."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir)
+    return Path(str(cfg.out_dir))
+
+
+def set_threads(threads: int | None) -> None:
+    """torch intra-op threads (None: torch's default). One thread is much faster on a shared 2-core CPU."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+
+
+def route_lightning_logs() -> None:
+    """Lightning prints its messages with its own handler; inside a Hydra app the root logger already
+    prints them (and writes the run's log file), so drop Lightning's handler to print each line once."""
+    if not logging.getLogger().handlers:
+        return
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in [h for h in logger.handlers if type(h) is logging.StreamHandler]:
+            logger.removeHandler(handler)
+        logger.propagate = True
+
+
+def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
+    """ModelCheckpoint into ``<run folder>/checkpoints`` plus the ``callbacks`` of the config."""
+    checkpoint = hydra.utils.instantiate(cfg.checkpoint, dirpath=str(run_dir / "checkpoints"))
+    return [checkpoint] + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
+
+
+def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
+    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values (rank zero only)."""
+    from spread.io import write_json_atomic
+
+    last = run_dir / "checkpoints" / "last.ckpt"
+    summary = {
+        "global_step": int(trainer.global_step), "epoch": int(trainer.current_epoch),
+        "last_checkpoint": str(last) if last.exists() else None,
+        "resumed_from": None if resumed_from is None else str(resumed_from),
+        "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+    }
+    if trainer.is_global_zero:
+        write_json_atomic(run_dir / "metrics.json", summary)
+    return summary
+
+
+def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
+          extra_callbacks: list | None = None, prepare: Callable | None = None,
+          resume_from: Path | None = None) -> dict:
+    """Fit the configured model on the configured data into ``run_dir``; returns the summary.
+
+    The keyword arguments let another launcher run this same code (Ray Train,
+    :mod:`spread.training.ray_train`): ``trainer_overrides`` replace Trainer arguments of ``cfg.trainer``
+    (strategy, plugins, devices, ...), ``extra_callbacks`` join the config's, ``prepare(trainer) -> trainer``
+    runs before ``fit``, and ``resume_from`` (a checkpoint file) wins over ``ckpt_path``."""
+    import lightning as L
+
+    from spread.runtime.tracking import as_logger_config, lightning_loggers
+
+    run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    route_lightning_logs()
+    set_threads(cfg.get("threads"))
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    ckpt_path = Path(resume_from) if resume_from is not None else resolve_ckpt_path(cfg, run_dir)
+    resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
+    datamodule = hydra.utils.instantiate(cfg.data)
+    model = hydra.utils.instantiate(cfg.model)
+    newest = CheckpointStep()
+    overrides = dict(trainer_overrides or {})
+    plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]
+    loggers = lightning_loggers(as_logger_config(cfg.logger), run_dir, str(cfg.experiment_name),
+                                [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
+    trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
+                                      callbacks=build_callbacks(cfg, run_dir) + [newest, *(extra_callbacks or [])],
+                                      plugins=plugins, **overrides)
+    if prepare is not None:
+        trainer = prepare(trainer)
+    if ckpt_path is not None:
+        log.info("resuming from %s", ckpt_path)
+    trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
+    save_final_checkpoint(trainer, run_dir, newest)
+    summary = write_summary(trainer, run_dir, ckpt_path)
+    if trainer.is_global_zero:
+        print(f"run folder {run_dir}: step {summary['global_step']}, epoch {summary['epoch']}, "
+              f"checkpoint {summary['last_checkpoint']}")
+    return summary

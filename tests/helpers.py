@@ -56,10 +56,10 @@ def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 
 
 
 def train_in_process(out: Path, *overrides: str) -> dict:
-    from spread.training.fit import train
+    from spread.experiments.commands import train
 
     cfg = compose("train", f"out_dir={out}", *overrides)
-    return train(cfg, run_dir=out)
+    return train(cfg, run_dir=out, overrides=list(overrides))
 
 
 def sample_in_process(*overrides: str):

@@ -263,10 +263,10 @@ def test_load_finished_drops_duplicates_and_a_torn_line(tmp_path):
     append_jsonl(path, {"scene_id": "c", "error": "ValueError: bad"})
     with open(path, "a") as fh:
         fh.write('{"scene_id": "d", "err')
-    assert list(load_finished(path)) == ["a", "b", "c"]
+    assert list(load_finished(path)[0]) == ["a", "b", "c"]
     append_jsonl(path, {"scene_id": "e", "error": None})  # lands on its own line after compaction
     assert [r["scene_id"] for r in read_jsonl(path)] == ["a", "b", "c", "e"]
-    assert list(load_finished(path, retry_failed=True)) == ["a", "b", "e"]
+    assert list(load_finished(path, retry_failed=True)[0]) == ["a", "b", "e"]
 
 
 def test_records_merge_to_the_metrics_of_all_scenes_at_once(cli_run, dataset):

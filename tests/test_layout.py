@@ -27,7 +27,7 @@ FLOORS = (
     ("physics", "render", "relations"),
     ("scene",),
     ("assets",),
-    ("io",),
+    ("io", "safe_load"),
 )
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}
 

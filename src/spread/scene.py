@@ -131,6 +131,30 @@ def _fail(source: str, key: str | None, problem: str) -> None:
     raise SceneFormatError(source, key, problem)
 
 
+def support_cycle(supports: np.ndarray) -> list[int]:
+    """A cycle of the directed support graph (``supports[i, j]``: i supports j) as [i, j, …, i], or [] when
+    there is none (iterative depth-first search)."""
+    n = len(supports)
+    state = np.zeros(n, np.int8)  # 0 new, 1 on the current path, 2 done
+    for root in range(n):
+        if state[root]:
+            continue
+        path, stack = [root], [iter(np.flatnonzero(supports[root]))]
+        state[root] = 1
+        while stack:
+            nxt = next(stack[-1], None)
+            if nxt is None:
+                state[path.pop()] = 2
+                stack.pop()
+            elif state[nxt] == 1:
+                return path[path.index(int(nxt)):] + [int(nxt)]
+            elif state[nxt] == 0:
+                state[nxt] = 1
+                path.append(int(nxt))
+                stack.append(iter(np.flatnonzero(supports[nxt])))
+    return []
+
+
 def validate_scene(scene: Scene, source: str, assets: "AssetLibrary | Iterable[str] | None" = None) -> None:
     """Check every contract of DESIGN §4; raise :class:`SceneFormatError` naming source, key, problem."""
     n = scene.num_objects
@@ -184,6 +208,10 @@ def validate_scene(scene: Scene, source: str, assets: "AssetLibrary | Iterable[s
     if (ph[diag] != PHYSICAL_NONE).any():
         i = int(np.argmax(ph[diag] != PHYSICAL_NONE))
         _fail(source, "physical", f"object {i} has a physical relation with itself")
+    cycle = support_cycle(ph == PHYSICAL_SUPPORT)
+    if cycle:
+        _fail(source, "physical", "support cycle " + " → ".join(str(i) for i in cycle)
+              + " (i supports j supports … i): support must be a forest rooted at the floor")
     if assets is not None:
         known = assets if hasattr(assets, "__contains__") else set(assets)
         for i, aid in enumerate(scene.asset_id):
@@ -216,12 +244,15 @@ def read_scene(path: str | os.PathLike, assets: "AssetLibrary | Iterable[str] | 
     src = str(path)
     if not path.exists():
         _fail(src, None, "file does not exist")
+    from spread.safe_load import UnsafeFileError, load_npz
+
     try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as exc:  # zip errors, pickled content, truncated file
+        with load_npz(path) as data:
+            arrays = {k: data[k] for k in data.files}
+    except UnsafeFileError as exc:  # an object array: it would need unpickling
+        raise SceneFormatError(src, None, str(exc).removeprefix(f"{path}: ")) from None
+    except Exception as exc:  # zip errors, truncated file
         raise SceneFormatError(src, None, f"not a readable .npz file ({type(exc).__name__}: {exc})") from exc
-    with data:
-        arrays = {k: data[k] for k in data.files}
     return scene_from_arrays(arrays, source=src, assets=assets, validate=validate)
 
 

@@ -198,7 +198,7 @@ def save_parts(path: str | os.PathLike, parts: Sequence["object"]) -> None:
 def load_parts(path: str | os.PathLike) -> list["object"]:
     import trimesh
 
-    with np.load(path) as data:
+    with np.load(path, allow_pickle=False) as data:
         V, F = data["vertices"], data["faces"]
         vc, fc = data["vertex_counts"], data["face_counts"]
     out, vo, fo = [], 0, 0
@@ -319,7 +319,7 @@ class AssetLibrary:
         cache = None
         if path.exists():
             try:
-                with np.load(path) as d:
+                with np.load(path, allow_pickle=False) as d:
                     cache = AssetGeometryCache(d["surface_points"], d["surface_normals"], d["xz_hull"])
             except Exception:
                 cache = None  # torn or stale cache: rebuild

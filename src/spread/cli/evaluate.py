@@ -20,6 +20,8 @@ def main(cfg: DictConfig) -> None:
 
     result = evaluate(cfg)
     print_evaluation_summary(result.metrics, result.out_dir)
+    if result.metrics["n_evaluated"] == 0:  # metrics.json lists why; a run that measured nothing did not succeed
+        raise SystemExit(f"spread-evaluate: none of the {result.metrics['n_scenes']} scenes could be evaluated")
 
 
 if __name__ == "__main__":

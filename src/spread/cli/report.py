@@ -17,12 +17,14 @@ register("report")
 @hydra.main(config_path=conf_dir(), config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     from spread.experiments import RunError, print_report, run_report, runs_argument
+    from spread.experiments.commands import record_config
 
     try:
         result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=[str(w) for w in cfg.weights],
                             metrics=[str(m) for m in cfg.metrics], title=str(cfg.title or ""))
     except (RunError, ValueError) as exc:
         raise SystemExit(f"spread-report: {exc}") from exc
+    record_config(cfg, cfg.out_dir)()
     print_report(result)
 
 

@@ -24,6 +24,8 @@ def main(cfg: DictConfig) -> None:
         print_evaluation_summary(evaluation.metrics, evaluation.out_dir)
     if result is not None:
         print_sampling_summary(result)
+    if evaluation is not None and evaluation.metrics["n_evaluated"] == 0:
+        raise SystemExit(f"spread-sample: none of the {evaluation.metrics['n_scenes']} sampled scenes could be evaluated")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""``spread-train experiment=NAME data.root=DIR``: train one variant with Lightning (:mod:`spread.training`)."""
+"""``spread-train experiment=NAME data.root=DIR``: train one variant with Lightning (:mod:`spread.training`;
+the command is :func:`spread.experiments.commands.train`)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ register()
 
 @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    from spread.training.fit import train
+    from spread.experiments.commands import train
 
     train(cfg)
 

@@ -16,9 +16,11 @@ register()
 
 @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
 def _main(cfg: DictConfig) -> None:
+    from spread.experiments.commands import record_config
     from spread.training.fit import run_folder
     from spread.training.ray_train import run_ray_train
 
+    record_config(cfg, run_folder(cfg))()
     result = run_ray_train(cfg, run_folder(cfg))
     summary = result.return_value or {}
     print(f"run folder {run_folder(cfg)}: step {summary.get('global_step')}, epoch {summary.get('epoch')}, "

@@ -1,7 +1,8 @@
 """``SceneDataModule``: the dataset folder's train/val/test splits as Lightning dataloaders.
 
-The train loader shuffles with a ``torch.Generator`` seeded from ``seed``, so the batch order of a
-run is reproducible. Items carry no randomness of their own (points are fixed per asset), so worker
+The train loader shuffles each epoch by (``seed``, epoch) and can resume mid-epoch
+(:mod:`spread.data.order`), so the batch order of a run is reproducible, also across a resume; under DDP
+Lightning's distributed sampler takes over (seeded likewise per epoch). Items carry no randomness of their own (points are fixed per asset), so worker
 count does not change what a batch holds. Worker processes get the datasets either by fork (copied)
 or by pickling (``multiprocessing_context="spawn"``): the dataset then reloads its asset library
 lazily in the worker.
@@ -64,6 +65,27 @@ class SceneDataModule(L.LightningDataModule):
         for split in wanted.get(stage, SPLITS) if stage else SPLITS:
             if (self.root / split).is_dir():
                 self.dataset(split)
+        if stage == "fit":
+            self.check_fit()
+
+    def check_fit(self) -> None:
+        """Before training: the train split has scenes, and so does val when the trainer validates (a run that
+        would crash at its first validation, with no checkpoint, is refused up front)."""
+        if not self.scene_files("train"):
+            raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'train'} to train on")
+        trainer = self.trainer
+        validates = trainer is None or (trainer.limit_val_batches != 0 and trainer.check_val_every_n_epoch is not None)
+        if validates and not self.scene_files("val"):
+            raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'val'}, and the trainer "
+                             f"validates every {getattr(trainer, 'check_val_every_n_epoch', 1)} epochs; give a dataset "
+                             f"with a val split (spread-generate writes one from 10 rooms on) or set "
+                             f"trainer.limit_val_batches=0")
+
+    def scene_files(self, split: str) -> list:
+        from spread.scene import list_scene_files
+
+        folder = self.root / split
+        return list_scene_files(folder) if folder.is_dir() else []
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         generator = torch.Generator().manual_seed(self.seed) if shuffle else None
@@ -74,7 +96,27 @@ class SceneDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", shuffle=True)
+        trainer = self.trainer
+        if trainer is not None and trainer.world_size > 1:  # Lightning puts its distributed sampler in
+            return self._loader("train", shuffle=True)
+        from spread.data.order import EpochOrder, StatefulLoader
+
+        dataset = self.dataset("train")
+        return StatefulLoader(
+            dataset, batch_size=self.batch_size, sampler=EpochOrder(len(dataset), self.seed, self.train_position),
+            num_workers=self.num_workers, collate_fn=collate_scenes, pin_memory=self.pin_memory,
+            persistent_workers=self.persistent_workers, multiprocessing_context=self.multiprocessing_context)
+
+    def train_position(self) -> tuple[int, int]:
+        """(epoch, train items already seen in it), from the trainer's global step (:mod:`spread.data.order`)."""
+        from spread.data.order import batches_per_epoch
+
+        trainer = self.trainer
+        if trainer is None:
+            return 0, 0
+        per_epoch = batches_per_epoch(len(self.dataset("train")), self.batch_size, trainer.limit_train_batches)
+        epoch, within = divmod(trainer.global_step * trainer.accumulate_grad_batches, max(1, per_epoch))
+        return epoch, within * self.batch_size
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", shuffle=False)

@@ -4,7 +4,9 @@ The driver appends one line per finished scene (:func:`spread.io.append_jsonl`, 
 can leave a torn last line and, if it is resumed twice over the same folder, duplicates. On start,
 :func:`load_finished` reads the lines (skipping a torn one), keeps the first line of each scene id, and
 rewrites the file atomically with exactly those lines — so the next append starts on a fresh line (an
-append after a torn line would otherwise glue the new line onto the torn one and lose it).
+append after a torn line would otherwise glue the new line onto the torn one and lose it). A line counts
+only for the content it was measured on: each record carries the SHA-256 of its scene file, and a scene
+whose file changed since is evaluated again.
 """
 
 from __future__ import annotations
@@ -27,16 +29,25 @@ def dedupe(records: Iterable[dict]) -> dict[str, dict]:
     return out
 
 
-def load_finished(path: str | os.PathLike, retry_failed: bool = False) -> dict[str, dict]:
-    """Finished scenes of a ``per_scene.jsonl`` (scene id → record), and the file compacted to them.
+def load_finished(path: str | os.PathLike, retry_failed: bool = False,
+                  inputs: dict[str, str] | None = None) -> tuple[dict[str, dict], list[str]]:
+    """(finished scenes of a ``per_scene.jsonl``: scene id → record; ids dropped because their input
+    changed), and the file compacted to the finished ones.
 
     ``retry_failed``: drop the records that have an ``error`` so those scenes are evaluated again.
+    ``inputs``: scene id → SHA-256 of the scene file now; a record whose ``input_sha256`` differs (the file
+    was replaced under the same name, or the record predates input hashes) is dropped and counted, so that
+    scene is evaluated again instead of keeping a result of other content.
     """
     path = Path(path)
     if not path.exists():
-        return {}
+        return {}, []
     finished = dedupe(read_jsonl(path))
     if retry_failed:
         finished = {k: r for k, r in finished.items() if not r.get("error")}
+    changed = []
+    if inputs is not None:
+        changed = sorted(k for k, r in finished.items() if k in inputs and r.get("input_sha256") != inputs[k])
+        finished = {k: r for k, r in finished.items() if k not in changed}
     write_text_atomic(path, "".join(json.dumps(r) + "\n" for r in finished.values()))
-    return finished
+    return finished, changed

@@ -19,6 +19,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from omegaconf import MISSING
 
@@ -29,7 +30,7 @@ from spread.evaluation.resume import dedupe, load_finished
 from spread.evaluation.work import (
     evaluate_chunk, failure_record, load_fid_extractor, reference_fid_state, scene_key, worker_library,
 )
-from spread.io import append_jsonl, read_jsonl, write_json_atomic
+from spread.io import append_jsonl, file_sha256, read_jsonl, write_json_atomic
 from spread.runtime.ray import RaySettings, ray_session
 
 PER_SCENE = "per_scene.jsonl"
@@ -119,15 +120,18 @@ def write_renders(out: Path, records: list[dict], assets: str, count: int) -> li
     return paths
 
 
-def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
-    """Evaluate every scene file of ``cfg.scenes`` (module docstring)."""
+def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
+    """Evaluate every scene file of ``cfg.scenes`` (module docstring); ``before_work()`` runs once the checks
+    passed (the command records its config there)."""
     from spread.scene import list_scene_files
     from tqdm.auto import tqdm
 
     started = time.perf_counter()
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    files = list_scene_files(cfg.scenes)
+    files = list_scene_files(cfg.scenes) if Path(cfg.scenes).is_dir() else []
+    if not files:
+        raise FileNotFoundError(f"scenes={cfg.scenes}: no scene files (<scene_id>.npz) to evaluate")
     keys = [scene_key(f) for f in files]
     if len(set(keys)) != len(keys):
         raise ValueError(f"{cfg.scenes}: two scene files share a name")
@@ -138,9 +142,12 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
     reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
     per_scene = out / PER_SCENE
     check_protocol(out, cfg.protocol, cfg.fid, cfg.resume)
+    if before_work is not None:
+        before_work()
     if not cfg.resume:
         per_scene.unlink(missing_ok=True)
-    finished = load_finished(per_scene, retry_failed=cfg.retry_failed)
+    inputs = {k: file_sha256(f) for f, k in zip(files, keys)}
+    finished, changed = load_finished(per_scene, retry_failed=cfg.retry_failed, inputs=inputs)
     todo = [str(f) for f, k in zip(files, keys) if k not in finished]
     bar = tqdm(total=len(files), initial=len(files) - len(todo), desc="scenes", unit="scene",
                disable=not cfg.progress)
@@ -170,6 +177,7 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
         "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(),
         "run": {"evaluated_this_run": len(todo), "resumed": len(files) - len(todo),
+                "skipped_as_done": len(files) - len(todo), "redone_input_changed": len(changed),
                 "tasks": fan.tasks if fan else 0, "split_chunks": fan.split_chunks if fan else 0,
                 "chunk_size": cfg.chunk_size, "seconds": round(time.perf_counter() - started, 3),
                 "ray": {**cluster, "max_retries": cfg.ray.max_retries,

@@ -114,7 +114,13 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
     from spread.physics import get_world
     from spread.scene import read_scene
 
+    from spread.io import file_sha256
+
     record = {"scene_id": scene_key(path), "file": str(path), **where_am_i()}
+    try:
+        record["input_sha256"] = file_sha256(path)  # what this record was measured on (resume compares it)
+    except OSError:
+        record["input_sha256"] = None
     seconds: dict[str, float] = {}
 
     def timed(name, fn, *args, **kwargs):

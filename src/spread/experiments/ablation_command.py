@@ -47,12 +47,13 @@ def ablation_spec(cfg: DictConfig):
 def ablate(cfg: DictConfig):
     """The ablation of ``cfg``; returns the :class:`~spread.experiments.AblationResult`."""
     from spread.experiments.ablation import run_ablation
-    from spread.experiments.commands import InProcessCommands
+    from spread.experiments.commands import InProcessCommands, record_config
     from spread.runtime.tracking import as_logger_config
     from spread.training.fit import set_threads
 
     set_threads(cfg.get("threads"))
     spec = ablation_spec(cfg)
+    record_config(cfg, spec.out_dir)()
     logger = as_logger_config(cfg.logger)
     log_table = None
     if logger.wandb:

@@ -27,6 +27,18 @@ def save_config(cfg: DictConfig, folder: Path, overrides: list[str]) -> None:
     write_text_atomic(folder / ".hydra" / "overrides.yaml", OmegaConf.to_yaml(OmegaConf.create(list(overrides))))
 
 
+def hydra_overrides() -> list[str]:
+    """The command line's overrides inside a running Hydra app (``[]`` outside one)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+
+
+def record_config(cfg: DictConfig, folder, overrides: list[str] | None = None):
+    """A callback that writes the run's config into ``folder/.hydra`` (run by a stage once its checks passed)."""
+    return lambda: save_config(cfg, Path(folder), hydra_overrides() if overrides is None else overrides)
+
+
 def plain(cfg: DictConfig) -> dict:
     """The composed config as plain data (what wandb records as the run's config)."""
     return OmegaConf.to_container(cfg, resolve=True)
@@ -36,9 +48,13 @@ def plain(cfg: DictConfig) -> dict:
 
 def generate(cfg: DictConfig) -> dict:
     """``spread-generate``: the dataset folder ``cfg.out_dir``; returns its manifest."""
+    from hydra.core.hydra_config import HydraConfig
+
     from spread.procgen.dataset import generate_dataset
 
     command = to_object(cfg)
+    if HydraConfig.initialized():  # the dataset folder stays the dataset: the config goes to the log folder
+        record_config(cfg, HydraConfig.get().runtime.output_dir)()
     return generate_dataset(command.out_dir, command, progress=command.progress)
 
 
@@ -67,27 +83,33 @@ def print_dataset_summary(manifest: dict, out_dir: str) -> None:
     Console().print(table)
     top = sorted(stats["categories"].items(), key=lambda kv: -kv[1])[:12]
     Console().print("most frequent categories: " + ", ".join(f"{k} {v}" for k, v in top))
+    for message in manifest.get("warnings") or []:
+        Console().print(f"[yellow]warning: {message}[/yellow]")
 
 
 # ---- train ---------------------------------------------------------------------------------------------------
 
-def train(cfg: DictConfig, run_dir: Path | None = None) -> dict:
+def train(cfg: DictConfig, run_dir: Path | None = None, overrides: list[str] | None = None) -> dict:
     """``spread-train``: fit into ``run_dir`` (default: Hydra's output folder, else ``cfg.out_dir``)."""
+    from spread.training.fit import run_folder
     from spread.training.fit import train as fit
 
+    run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
+    record_config(cfg, run_dir, overrides)()
     return fit(cfg, run_dir=run_dir)
 
 
 # ---- evaluate ------------------------------------------------------------------------------------------------
 
-def evaluate(cfg: DictConfig):
+def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     """``spread-evaluate``: evaluate ``cfg.scenes``; logs to wandb with ``logger=wandb``; returns the
-    :class:`~spread.evaluation.EvaluationResult`."""
+    :class:`~spread.evaluation.EvaluationResult`. The config is recorded in ``out_dir/.hydra`` once the
+    protocol check passed."""
     from spread.evaluation import run_evaluation
     from spread.evaluation.wandb_log import log_evaluation
 
     command = to_object(cfg)
-    result = run_evaluation(command)
+    result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
     log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg))
     return result
 
@@ -135,7 +157,7 @@ def evaluation_after_sampling(command):
         fid=ev.fid, ray=command.ray)
 
 
-def sample(cfg: DictConfig, log: bool = True):
+def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None):
     """``spread-sample``: sample (then, with ``evaluate=true``, evaluate) into ``cfg.out_dir``; returns
     (:class:`~spread.sampling.SamplingResult`, :class:`~spread.evaluation.EvaluationResult` or None). A
     finished sweep point (``evaluate=true``, ``resume=true``, ``metrics.json`` there) is left as it is
@@ -148,7 +170,7 @@ def sample(cfg: DictConfig, log: bool = True):
     if command.evaluate and command.resume and is_finished_run(command.out_dir):
         print(f"{command.out_dir}: finished earlier (metrics.json exists), skipped")
         return None, None
-    result = run_sampling(command)
+    result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
     evaluation = None
     if command.evaluate:
         from spread.evaluation import run_evaluation
@@ -180,7 +202,7 @@ def print_sampling_summary(result) -> None:
 
 class InProcessCommands:
     """:class:`~spread.experiments.ablation.Commands` backed by the functions above: each stage composes its
-    command's config from the stage's overrides, saves it in the stage's folder as the command would, and runs."""
+    command's config from the stage's overrides and runs it (which records the config in its folder)."""
 
     def generate(self, overrides: list[str]) -> None:
         from spread.configs import compose
@@ -190,20 +212,14 @@ class InProcessCommands:
     def train(self, overrides: list[str], run_dir: Path) -> None:
         from spread.configs import compose
 
-        cfg = compose("train", overrides)
-        save_config(cfg, run_dir, overrides)
-        train(cfg, run_dir=run_dir)
+        train(compose("train", overrides), run_dir=run_dir, overrides=overrides)
 
     def sample(self, overrides: list[str]) -> None:
         from spread.configs import compose
 
-        cfg = compose("sample", overrides)
-        save_config(cfg, Path(str(cfg.out_dir)), overrides)
-        sample(cfg, log=False)
+        sample(compose("sample", overrides), log=False, overrides=overrides)
 
     def evaluate(self, overrides: list[str]) -> dict:
         from spread.configs import compose
 
-        cfg = compose("evaluate", overrides)
-        save_config(cfg, Path(str(cfg.out_dir)), overrides)
-        return evaluate(cfg).metrics
+        return evaluate(compose("evaluate", overrides), overrides=overrides).metrics

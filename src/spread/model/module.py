@@ -86,6 +86,14 @@ class SceneDiffusion(L.LightningModule):
         self.ema = EMA(self.network, ema_decay)
         self.noise_schedule = training_scheduler(beta_schedule=beta_schedule, num_train_timesteps=int(diffusion_steps))
 
+    @classmethod
+    def from_checkpoint(cls, checkpoint: dict, map_location="cpu") -> "SceneDiffusion":
+        """The model of a checkpoint's dict (read with :func:`spread.safe_load.load_checkpoint`, which runs no
+        code): its hyperparameters, then its weights (EMA included), strictly."""
+        model = cls(**checkpoint["hyper_parameters"])
+        model.load_state_dict(checkpoint["state_dict"])
+        return model.to(map_location)
+
     # ---- bounds -------------------------------------------------------------------------------------
     def set_bounds(self, bounds: Sequence[float]) -> None:
         self.network.set_bounds(bounds)

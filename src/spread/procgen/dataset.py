@@ -115,12 +115,39 @@ def _make_room(args) -> dict:
 
 # ---- driver --------------------------------------------------------------------------------------
 
+def check_config(config: DatasetConfig) -> list[str]:
+    """Refuse settings that cannot make a dataset (before any work); return warnings for ones that make an
+    unusual one (a split that gets no rooms), which the manifest records and the command prints."""
+    if config.rooms < 1:
+        raise ValueError(f"rooms={config.rooms}: a dataset needs at least 1 room")
+    for key in ("val_fraction", "test_fraction"):
+        value = getattr(config, key)
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"{key}={value}: a fraction in [0, 1]")
+    if config.val_fraction + config.test_fraction > 1.0:
+        raise ValueError(f"val_fraction + test_fraction = {config.val_fraction + config.test_fraction} > 1")
+    counts = Counter(split_of(i, config) for i in range(config.rooms))
+    warnings = []
+    for split in ("train", "val", "test"):
+        wanted = {"val": config.val_fraction, "test": config.test_fraction}.get(split, 1.0)
+        if wanted > 0 and counts[split] == 0:
+            warnings.append(f"rooms={config.rooms} gives the {split} split no rooms (rooms go to splits by index in "
+                            f"blocks of 10: val_fraction={config.val_fraction}, test_fraction={config.test_fraction} "
+                            f"need at least 10 rooms); spread-train needs val rooms, spread-sample test rooms")
+    return warnings
+
+
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or complete) the dataset folder; returns the manifest written."""
+    import logging
+
     from tqdm.auto import tqdm
 
     from spread.assets.build import build_library
 
+    warnings = check_config(config)
+    for message in warnings:
+        logging.getLogger("spread.generate").warning(message)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -209,6 +236,7 @@ def write_dataset_files(out: Path, config: DatasetConfig, library, results: list
         "config": cfg,
         "counts": {s: len(v) for s, v in scenes.items()},
         "failed_rooms": failed,
+        "warnings": check_config(config),
         "categories": library.categories,
         "assets": len(library),
         "statistics": dataset_statistics(all_scenes),

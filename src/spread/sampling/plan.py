@@ -83,9 +83,12 @@ def plan_batches(graphs: list[Graph], samples_per_graph: int, batch_size: int, s
     """Every item of the run in batches (module docstring for the order)."""
     if samples_per_graph < 1 or batch_size < 1:
         raise ValueError(f"samples_per_graph and batch_size must be ≥ 1, got {samples_per_graph}, {batch_size}")
-    ids = [g.scene_id for g in graphs]
-    if len(set(ids)) != len(ids):
-        raise ValueError("two conditioning graphs share a scene id")
+    seen: dict[str, Graph] = {}
+    for g in graphs:
+        if g.scene_id in seen:
+            raise ValueError(f"two conditioning graphs share the scene id '{g.scene_id}': {seen[g.scene_id].path} "
+                             f"and {g.path} (sampled files are named after it)")
+        seen[g.scene_id] = g
     ordered = sorted(graphs, key=lambda g: (g.num_objects, g.scene_id))
     batches: list[BatchPlan] = []
     for k in range(samples_per_graph):
@@ -96,7 +99,26 @@ def plan_batches(graphs: list[Graph], samples_per_graph: int, batch_size: int, s
 
 
 def missing_items(batch: BatchPlan, scenes_dir: str | Path) -> list[SampleItem]:
-    """Items of ``batch`` whose scene file is not in ``scenes_dir`` yet (files are written atomically, so
-    an existing file is complete)."""
+    """Items of ``batch`` whose scene file is not in ``scenes_dir`` yet (files are written atomically, and
+    :func:`remove_unreadable` has removed damaged ones, so an existing file is complete)."""
     scenes_dir = Path(scenes_dir)
     return [item for item in batch.items if not (scenes_dir / f"{item.name}.npz").exists()]
+
+
+def remove_unreadable(batches: list[BatchPlan], scenes_dir: str | Path) -> list[str]:
+    """Delete the plan's existing scene files that do not read back as valid scenes (cut short or damaged by
+    something other than this platform's atomic writes), so a resumed run samples them again; returns their
+    names. A file that reads back is kept as it is."""
+    from spread.scene import read_scene
+
+    removed = []
+    for item in (item for batch in batches for item in batch.items):
+        path = Path(scenes_dir) / f"{item.name}.npz"
+        if not path.exists():
+            continue
+        try:
+            read_scene(path)
+        except Exception:  # any reason it does not read back: sample it again
+            path.unlink()
+            removed.append(item.name)
+    return removed

@@ -20,6 +20,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from omegaconf import MISSING
 
@@ -27,7 +28,8 @@ from spread.guidance import GuidanceConfig
 from spread.io import file_sha256, write_json_atomic
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session
-from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches
+from spread.safe_load import load_checkpoint
+from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, remove_unreadable
 
 MANIFEST = "sampling.json"
 
@@ -212,8 +214,9 @@ def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: in
     return paths
 
 
-def run_sampling(cfg: SamplingConfig) -> SamplingResult:
-    """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring)."""
+def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
+    """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring);
+    ``before_work()`` runs once the checks passed (the command records its config there)."""
     from tqdm.auto import tqdm
 
     started = time.perf_counter()
@@ -223,12 +226,14 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
     if not cfg.resume:  # a fresh run: no file of an earlier run may stay beside the new ones
         for old in scenes_dir.glob("*.npz"):
             old.unlink()
-    if not Path(cfg.ckpt).is_file():
-        raise FileNotFoundError(f"ckpt={cfg.ckpt}: no such checkpoint file")
+    load_checkpoint(cfg.ckpt, mmap=True)  # missing, damaged or unsafe: a clear error before any work
     graphs = list_graphs(cfg.data.root, cfg.data.split)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, file_sha256(cfg.ckpt))
     check_fingerprint(out, settings, cfg.resume)
+    if before_work is not None:
+        before_work()
+    damaged = remove_unreadable(batches, scenes_dir)
     todo = [b for b in batches if missing_items(b, scenes_dir)]
     total = sum(len(b.items) for b in batches)
     pending = sum(len(missing_items(b, scenes_dir)) for b in todo)
@@ -259,7 +264,8 @@ def run_sampling(cfg: SamplingConfig) -> SamplingResult:
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
         "graphs": len(graphs), "samples": total, "written_this_run": len(written),
-        "resumed": total - pending, "batches": len(batches), "batches_run": len(todo),
+        "resumed": total - pending, "redone_unreadable": len(damaged), "batches": len(batches),
+        "batches_run": len(todo),
         "repaired_rotations": repaired[0],
         "guidance": settings.get("guidance"), "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "device": cfg.device, "threads": cfg.threads,

@@ -11,11 +11,10 @@ from typing import Callable
 def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = None) -> list[str]:
     """Variant (from the checkpoint's hyperparameters, read without loading its weights), sampler and
     guidance tags, plus ``extra``."""
-    import torch
-
+    from spread.safe_load import load_checkpoint
     from spread.sampling.worker import sampler_label
 
-    hp = torch.load(str(ckpt), map_location="cpu", weights_only=False, mmap=True).get("hyper_parameters", {})
+    hp = load_checkpoint(ckpt, mmap=True).get("hyper_parameters", {})
     guidance = manifest.get("guidance")
     tags = [str(hp.get("variant", "unknown")), sampler_label(sampler)]
     if guidance:

@@ -64,13 +64,12 @@ def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = 
                   graph_scale: float = 1.0, guidance=None) -> ScenePipeline:
     """The pipeline of a ``spread-train`` checkpoint for a dataset's split (encoder with the checkpoint's
     point settings, model in eval mode on ``device``)."""
-    import torch
-
     from spread.data import SceneDataset
     from spread.model.module import SceneDiffusion
+    from spread.safe_load import load_checkpoint
 
-    checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
-    model = SceneDiffusion.load_from_checkpoint(ckpt, map_location=resolve_device(device)).eval()
+    checkpoint = load_checkpoint(ckpt)
+    model = SceneDiffusion.from_checkpoint(checkpoint, map_location=resolve_device(device)).eval()
     data = checkpoint_data_settings(checkpoint, model)
     dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
     return ScenePipeline(model, dataset, sampler, guidance, use_ema, graph_scale)

@@ -18,6 +18,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from spread.training.checkpoints import CheckpointStep, atomic_checkpoint_io, resolve_ckpt_path, save_final_checkpoint
+from spread.training.determinism import ExactResume
 
 log = logging.getLogger("spread.train")
 
@@ -101,7 +102,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     loggers = lightning_loggers(as_logger_config(cfg.logger), run_dir, str(cfg.experiment_name),
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
-                                      callbacks=build_callbacks(cfg, run_dir) + [newest, *(extra_callbacks or [])],
+                                      callbacks=build_callbacks(cfg, run_dir) + [newest, ExactResume(int(cfg.seed)),
+                                                                                 *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)
     if prepare is not None:
         trainer = prepare(trainer)

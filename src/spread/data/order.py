@@ -1,0 +1,71 @@
+"""The training order of a split: a function of (seed, position) alone, so a resumed run sees the same batches.
+
+A run killed at step k and resumed from its checkpoint must see exactly the batches the uninterrupted run
+would have seen. :class:`EpochOrder` shuffles epoch e with a generator seeded by (seed, e) — not by a
+generator advanced through earlier epochs, which a resumed process would not have advanced — and it asks,
+each time an epoch's iteration begins, where training stands: ``position()`` → (epoch, items already trained
+in it), which the data module derives from the trainer's restored global step. The sampler's body runs when
+the loader first draws from it (after Lightning has restored the checkpoint), and ``set_epoch`` is ignored:
+Lightning's own epoch counter can differ by one after a mid-epoch stop, the step count cannot.
+
+:class:`StatefulLoader` tells Lightning the loader resumes (it has no state of its own to save: the position
+follows the global step Lightning restores).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from typing import Callable
+
+import torch
+from torch.utils.data import DataLoader, Sampler
+
+
+def epoch_seed(seed: int, epoch: int) -> int:
+    """A 63-bit seed from (seed, epoch) (SHA-256, so nearby seeds give unrelated orders)."""
+    digest = hashlib.sha256(f"spread-order/{int(seed)}/{int(epoch)}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") & (2 ** 63 - 1)
+
+
+def batches_per_epoch(items: int, batch_size: int, limit: int | float = 1.0) -> int:
+    """Batches Lightning trains per epoch over ``items`` (``limit_train_batches``: a count or a fraction)."""
+    full = math.ceil(items / batch_size)
+    if isinstance(limit, int) and not isinstance(limit, bool) and limit != 1:
+        return min(full, limit)
+    return int(full * float(limit)) if float(limit) < 1.0 else full
+
+
+class EpochOrder(Sampler):
+    """Indices 0 … n−1 in epoch e's order (:func:`epoch_seed`), from the position training stands at.
+
+    ``position()`` → (epoch, items of that epoch already trained); without it, epochs count up from 0.
+    """
+
+    def __init__(self, n: int, seed: int, position: Callable[[], tuple[int, int]] | None = None):
+        self.n, self.seed, self.position = int(n), int(seed), position
+        self._next_epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:  # Lightning calls it; the position decides (module docstring)
+        pass
+
+    def order(self, epoch: int) -> list[int]:
+        return torch.randperm(self.n, generator=torch.Generator().manual_seed(epoch_seed(self.seed, epoch))).tolist()
+
+    def __iter__(self):
+        epoch, start = self.position() if self.position is not None else (self._next_epoch, 0)
+        self._next_epoch = epoch + 1
+        yield from self.order(epoch)[start:]
+
+    def __len__(self) -> int:
+        return self.n
+
+
+class StatefulLoader(DataLoader):
+    """A ``DataLoader`` Lightning treats as resumable: its order follows the restored global step."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass

@@ -1,0 +1,93 @@
+"""The loader policy for files the platform did not write itself: no data file runs code.
+
+* ``.npz`` arrays (scene files, asset caches, the release's ``boxes.npz``): :func:`load_npz`, numpy with
+  ``allow_pickle=False`` — an object array (which numpy can only restore by unpickling) is refused with an
+  error naming the file, never loaded.
+* Checkpoints: :func:`load_checkpoint`, ``torch.load(weights_only=True)`` — tensors, containers and plain
+  values only (what Lightning writes for the platform's modules: no allow-list is needed). A pickled
+  object (a ``__reduce__`` payload, a custom class) is refused before anything in it runs; a truncated or
+  corrupt file gets an error naming it instead of a bare ``PytorchStreamReader`` traceback.
+
+Both raise :class:`UnsafeFileError` (a ``ValueError``) with the file and the reason.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+
+
+class UnsafeFileError(ValueError):
+    """A data file or checkpoint that cannot be loaded safely: it needs unpickling, or it is damaged."""
+
+
+def load_npz(path: str | os.PathLike):
+    """``np.load(path, allow_pickle=False)`` (an ``NpzFile``; use it as a context manager). Reading an object
+    array from it raises :class:`UnsafeFileError` naming the file and the key."""
+    import numpy as np
+
+    path = Path(path)
+    data = np.load(path, allow_pickle=False)
+    if not hasattr(data, "files"):
+        data.close() if hasattr(data, "close") else None
+        raise UnsafeFileError(f"{path}: not an .npz archive of arrays")
+    return _GuardedNpz(data, path)
+
+
+class _GuardedNpz:
+    """An ``NpzFile`` whose object arrays raise :class:`UnsafeFileError` (file and key) instead of numpy's
+    bare "Object arrays cannot be loaded when allow_pickle=False"."""
+
+    def __init__(self, data, path: Path):
+        self._data, self.path = data, path
+        self.files = list(data.files)
+
+    def __getitem__(self, key: str):
+        try:
+            return self._data[key]
+        except ValueError as exc:
+            if "allow_pickle" in str(exc):
+                raise UnsafeFileError(f"{self.path}: key '{key}' is an object array; reading it would unpickle "
+                                      f"Python objects from the file, which the platform never does") from None
+            raise
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._data.files
+
+    def keys(self):
+        return self._data.files
+
+    def get(self, key: str, default=None):
+        return self[key] if key in self else default
+
+    def close(self) -> None:
+        self._data.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = False) -> dict:
+    """A checkpoint's dict, loaded with ``weights_only=True`` (module docstring); ``mmap`` reads tensors
+    lazily (cheap when only the hyperparameters are wanted)."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint file")
+    try:
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
+    except pickle.UnpicklingError as exc:
+        detail = str(exc).strip().splitlines()[-1][:300] if str(exc).strip() else type(exc).__name__
+        raise UnsafeFileError(f"{path}: refused — it holds pickled Python objects beyond tensors and plain data, "
+                              f"which could run code when loaded ({detail})") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise UnsafeFileError(f"{path}: not a readable checkpoint (truncated or corrupt: "
+                              f"{type(exc).__name__}: {str(exc)[:200]})") from None
+    if not isinstance(checkpoint, dict):
+        raise UnsafeFileError(f"{path}: not a checkpoint (a {type(checkpoint).__name__}, expected a dict)")
+    return checkpoint

@@ -1,0 +1,221 @@
+"""Hostile and damaged input (docs/robustness.md): no code runs from a data file, resume notices changed or
+broken files, late failures come early with a clear message, and a resumed training run is the same run.
+
+Payloads in these tests only create a marker file; the marker must never appear.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from spread.safe_load import UnsafeFileError, load_checkpoint, load_npz
+from spread.scene import SceneFormatError, list_scene_files, read_scene, write_scene
+
+from helpers import FAST_TRAIN, SMALL_MODEL, make_dataset, train_in_process
+
+
+class Payload:
+    """Unpickling this object creates ``marker`` (what an attacker's ``os.system`` would do instead)."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("robust"), rooms=12)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(dataset, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("robustrun") / "run"
+    train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.max_time=null", "trainer.max_steps=2",
+                     *SMALL_MODEL, *FAST_TRAIN)
+    return out / "checkpoints" / "last.ckpt"
+
+
+# ---- no code runs from a data file -----------------------------------------------------------------------
+
+def test_a_checkpoint_carrying_a_pickled_payload_is_refused_and_runs_nothing(checkpoint, tmp_path):
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.ckpt"
+    data = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    data["hyper_parameters"]["note"] = Payload(marker)
+    torch.save(data, evil)
+    with pytest.raises(UnsafeFileError, match="evil.ckpt.*pickled"):
+        load_checkpoint(evil)
+    assert not marker.exists()
+    assert load_checkpoint(checkpoint)["global_step"] == 2  # the platform's own checkpoints load as they are
+
+
+def test_spread_sample_refuses_a_payload_checkpoint_before_any_work(dataset, checkpoint, tmp_path):
+    from helpers import sample_in_process
+
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.ckpt"
+    data = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    data["state_dict"]["extra"] = Payload(marker)
+    torch.save(data, evil)
+    with pytest.raises(UnsafeFileError, match="evil.ckpt"):
+        sample_in_process(f"ckpt={evil}", f"data.root={dataset}", f"out_dir={tmp_path / 'out'}")
+    assert not marker.exists() and not list((tmp_path / "out" / "scenes").glob("*.npz"))
+
+
+def test_a_truncated_checkpoint_gets_an_error_naming_the_file(checkpoint, tmp_path):
+    cut = tmp_path / "cut.ckpt"
+    cut.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
+    with pytest.raises(UnsafeFileError, match="cut.ckpt.*truncated or corrupt"):
+        load_checkpoint(cut)
+
+
+def test_an_object_array_in_an_npz_is_refused_and_runs_nothing(dataset, tmp_path):
+    marker = tmp_path / "pwned"
+    source = list_scene_files(dataset / "test")[0]
+    with np.load(source) as f:
+        arrays = {k: f[k] for k in f.files}
+    arrays["category"] = np.array([Payload(marker)] * len(arrays["category"]), dtype=object)
+    evil = tmp_path / "evil.npz"
+    np.savez(evil, **arrays)
+    with pytest.raises((UnsafeFileError, SceneFormatError), match="evil.npz"):
+        read_scene(evil)
+    with load_npz(evil) as data, pytest.raises(UnsafeFileError, match="'category' is an object array"):
+        data["category"]
+    assert not marker.exists()
+
+
+# ---- resume notices changed or broken files ----------------------------------------------------------------
+
+def test_a_resumed_sampling_run_resamples_a_truncated_file(dataset, checkpoint, tmp_path):
+    from helpers import sample_in_process
+
+    out = tmp_path / "out"
+    first = sample_in_process(f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}")
+    victim = first.files[0]
+    intact = victim.read_bytes()
+    victim.write_bytes(intact[: len(intact) // 3])  # a file cut short by something other than our atomic writes
+    again = sample_in_process(f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}")
+    assert again.manifest["redone_unreadable"] == 1 and again.manifest["written_this_run"] == 1
+    assert victim.read_bytes() == intact  # the same seeds, so the same scene again
+
+
+def test_a_resumed_evaluation_redoes_a_scene_whose_file_was_replaced(dataset, tmp_path):
+    from spread.configs import compose
+    from spread.experiments.commands import evaluate
+
+    scenes = tmp_path / "scenes"
+    shutil.copytree(dataset / "test", scenes)
+    overrides = [f"scenes={scenes}", f"reference={dataset}", f"out_dir={tmp_path / 'eval'}", "logger=none",
+                 "protocol.stability_runs=1", "fid.enabled=false", "ray.num_cpus=2", "progress=false", "renders=0"]
+    first = evaluate(compose("evaluate", overrides))
+    victim = list_scene_files(scenes)[0]
+    scene = read_scene(victim)
+    moved = scene.with_poses(scene.translation * 0.7, scene.rotation)  # same name and id, other content
+    write_scene(moved, victim)
+    again = evaluate(compose("evaluate", overrides))
+    run = again.metrics["run"]
+    assert run["redone_input_changed"] == 1 and run["evaluated_this_run"] == 1
+    assert run["skipped_as_done"] == len(list_scene_files(scenes)) - 1
+    old = {r["scene_id"]: r for r in first.records}[victim.stem]
+    new = {r["scene_id"]: r for r in again.records}[victim.stem]
+    assert new["input_sha256"] != old["input_sha256"] and new["details"] != old["details"]
+
+
+def test_a_refused_resume_leaves_the_recorded_config_as_it_was(dataset, tmp_path):
+    from spread.configs import compose
+    from spread.experiments.commands import evaluate
+
+    out = tmp_path / "eval"
+    overrides = [f"scenes={dataset / 'test'}", f"reference={dataset}", f"out_dir={out}", "logger=none",
+                 "protocol.stability_runs=1", "fid.enabled=false", "ray.num_cpus=2", "progress=false", "renders=0"]
+    evaluate(compose("evaluate", overrides))
+    recorded = (out / ".hydra" / "config.yaml").read_text()
+    with pytest.raises(ValueError, match="another protocol"):
+        evaluate(compose("evaluate", [*overrides, "protocol.stability_steps=50"]))
+    assert (out / ".hydra" / "config.yaml").read_text() == recorded
+    assert json.loads((out / "metrics.json").read_text())["protocol"]["stability_steps"] == 100
+
+
+# ---- late and silent failures come early -------------------------------------------------------------------
+
+def test_training_without_a_val_split_is_refused_before_any_step(dataset, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data, ignore=shutil.ignore_patterns("val"))
+    out = tmp_path / "run"
+    with pytest.raises(ValueError, match=r"no scene files in .*val.*limit_val_batches=0"):
+        train_in_process(out, "experiment=quick", f"data.root={data}", "trainer.max_steps=2", *SMALL_MODEL,
+                         *FAST_TRAIN)
+    assert not (out / "checkpoints").exists()
+
+
+def test_generate_refuses_zero_rooms_before_the_asset_library_and_warns_about_empty_splits(tmp_path):
+    from spread.procgen.dataset import DatasetConfig, check_config, generate_dataset
+
+    with pytest.raises(ValueError, match="rooms=0"):
+        generate_dataset(tmp_path / "zero", DatasetConfig(rooms=0), progress=False)
+    assert not (tmp_path / "zero" / "assets").exists()
+    warnings = check_config(DatasetConfig(rooms=8))
+    assert len(warnings) == 2 and "val split no rooms" in warnings[0] and "test split no rooms" in warnings[1]
+    assert check_config(DatasetConfig(rooms=10)) == []
+
+
+def test_spread_evaluate_fails_when_nothing_could_be_evaluated(dataset, tmp_path):
+    from helpers import run_script
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = run_script("spread-evaluate", f"scenes={empty}", f"reference={dataset}", f"out_dir={tmp_path / 'a'}",
+                      "logger=none", ok=False)
+    assert proc.returncode != 0 and "no scene files" in proc.stderr
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    scene = read_scene(list_scene_files(dataset / "test")[0])
+    scene.asset_id = np.array(["no_such_asset"] * scene.num_objects)
+    write_scene(scene, bad / f"{scene.scene_id}.npz", validate=False)
+    proc = run_script("spread-evaluate", f"scenes={bad}", f"reference={dataset}", f"out_dir={tmp_path / 'b'}",
+                      "logger=none", "fid.enabled=false", "ray.num_cpus=1", ok=False)
+    assert proc.returncode != 0 and "none of the 1 scenes could be evaluated" in proc.stderr
+    assert json.loads((tmp_path / "b" / "metrics.json").read_text())["n_failed"] == 1
+
+
+def test_two_graphs_with_one_scene_id_are_refused_naming_both_files():
+    from spread.sampling.plan import Graph, plan_batches
+
+    graphs = [Graph("kitchen", "/a/kitchen.npz", 3), Graph("kitchen", "/b/other.npz", 4)]
+    with pytest.raises(ValueError, match=r"'kitchen'.*/a/kitchen.npz.*/b/other.npz"):
+        plan_batches(graphs, 1, 2, 0)
+
+
+def test_a_support_cycle_is_refused_with_the_cycle(dataset, tmp_path):
+    scene = read_scene(list_scene_files(dataset / "test")[0])
+    scene.physical = np.zeros_like(scene.physical)
+    scene.physical[0, scene.num_objects - 1] = scene.physical[scene.num_objects - 1, 0] = 1
+    with pytest.raises(SceneFormatError, match=rf"support cycle 0 → {scene.num_objects - 1} → 0"):
+        write_scene(scene, tmp_path / "cycle.npz")
+
+
+# ---- a resumed training run is the same run --------------------------------------------------------------
+
+def test_a_training_run_stopped_mid_epoch_and_resumed_equals_the_uninterrupted_run(dataset, tmp_path):
+    """Dropout and graph dropout on, 6 train rooms at batch 4 (2 batches an epoch): stopped after step 3
+    (mid-epoch) and resumed to step 7, the weights and EMA equal the uninterrupted run's bit for bit."""
+    common = ["experiment=quick", f"data.root={dataset}", "trainer.max_time=null", *SMALL_MODEL, *FAST_TRAIN,
+              "model.config.dropout=0.1", "model.graph_dropout=0.3", "trainer.check_val_every_n_epoch=1"]
+    whole = train_in_process(tmp_path / "whole", *common, "trainer.max_steps=7")
+    train_in_process(tmp_path / "part", *common, "trainer.max_steps=3")
+    resumed = train_in_process(tmp_path / "part", *common, "trainer.max_steps=7", "ckpt_path=last")
+    assert whole["global_step"] == resumed["global_step"] == 7
+    a = load_checkpoint(tmp_path / "whole" / "checkpoints" / "last.ckpt")["state_dict"]
+    b = load_checkpoint(tmp_path / "part" / "checkpoints" / "last.ckpt")["state_dict"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert whole["metrics"]["train/loss"] == resumed["metrics"]["train/loss"]
+    assert os.path.exists(tmp_path / "part" / ".hydra" / "config.yaml")

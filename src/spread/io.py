@@ -98,3 +98,39 @@ def file_sha256(*paths: str | os.PathLike) -> str:
             for chunk in iter(lambda: fh.read(1 << 20), b""):
                 h.update(chunk)
     return h.hexdigest()
+
+
+#: Characters a :func:`safe_name` keeps as they are (portable file-name characters).
+_SAFE_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
+#: Longest name :func:`safe_name` returns (well below the 255-byte limit of common file systems, room
+#: left for suffixes such as ``_k3.npz``).
+SAFE_NAME_MAX = 120
+_HASH_LEN = 10
+
+
+def safe_name(text: str) -> str:
+    """``text`` (any id: a dataset tag, an asset name) as one safe path component, collision-free.
+
+    A name made only of ``[A-Za-z0-9._-]``, not starting with ``.``, at most :data:`SAFE_NAME_MAX`
+    characters and not already ending like a hashed name is returned unchanged. Any other is
+    *hashed*: unsafe characters become ``_``, it is cut to fit, and ``_`` plus the first 10 hex digits
+    of its SHA-256 are appended (``"ProcTHOR-Test-196-room|4"`` → ``"ProcTHOR-Test-196-room_4_<hash>"``,
+    ``"../x"`` → ``"_._x_<hash>"``). Unchanged names never end in ``_`` + 10 hex digits and hashed ones
+    always do, so two different ids give the same name only through a 40-bit hash collision. The result
+    never contains a path separator, is never ``.``/``..`` or empty, and is never hidden.
+    """
+    import hashlib
+    import re
+
+    text = str(text)
+    pattern = re.compile(r"_[0-9a-f]{%d}$" % _HASH_LEN)
+    clean = (text and not text.startswith(".") and len(text) <= SAFE_NAME_MAX
+             and all(c in _SAFE_CHARS for c in text) and not pattern.search(text))
+    if clean:
+        return text
+    digest = hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:_HASH_LEN]
+    body = "".join(c if c in _SAFE_CHARS else "_" for c in text)
+    if body.startswith("."):
+        body = "_" + body[1:]
+    body = body[:SAFE_NAME_MAX - _HASH_LEN - 1]
+    return f"{body}_{digest}"

@@ -4,8 +4,10 @@
 
 Meshes: variant 0 of each category of the procedural catalog (closed, concave: the boolean union of its
 parts) and an *open* copy of it (its upward faces at the top removed: an open-topped shell, as public
-asset sets ship cups and bins). Each (mesh, method) runs in its own process, killed after ``--timeout``
-seconds. Prints one table: faces, closed?, per method the number of parts, seconds and the Hausdorff
+asset sets ship cups and bins), plus the tests' hard meshes (tests/realdata.py): a table whose legs are
+open shells pushed into its board (multi-body) and a single-layer open cup. Both methods run with the
+platform's settings (:mod:`spread.assets.decompose`). Each (mesh, method) runs in its own process, killed
+after ``--timeout`` seconds. Prints one table: faces, closed?, per method the number of parts, seconds and the Hausdorff
 distance between the mesh and the parts' union (mm, and relative to the bbox diagonal).
 """
 
@@ -35,6 +37,20 @@ def meshes(categories, seed: int):
         opened = trimesh.Trimesh(mesh.vertices, mesh.faces[~drop], process=False)
         opened.remove_unreferenced_vertices()
         out.append((f"{cat} (open)", opened))
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import realdata
+
+    from spread.assets.mesh_files import clean_mesh
+
+    bodies = [b for _, b in realdata.table_bodies()]
+    table = clean_mesh(np.concatenate([b.vertices for b in bodies]),
+                       np.concatenate([b.faces + sum(len(c.vertices) for c in bodies[:k]) for k, b in enumerate(bodies)]))
+    out.append(("table, open legs (tests)", table.mesh))
+    mug = realdata.open_mug()
+    out.append(("cup, single layer (tests)", clean_mesh(mug.vertices, mug.faces).mesh))
     return out
 
 

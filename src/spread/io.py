@@ -109,24 +109,21 @@ _HASH_LEN = 10
 
 
 def safe_name(text: str) -> str:
-    """``text`` (any id: a dataset tag, an asset name) as one safe path component, collision-free.
+    """``text`` (any id: a dataset tag, an asset name) as one safe path component.
 
-    A name made only of ``[A-Za-z0-9._-]``, not starting with ``.``, at most :data:`SAFE_NAME_MAX`
-    characters and not already ending like a hashed name is returned unchanged. Any other is
-    *hashed*: unsafe characters become ``_``, it is cut to fit, and ``_`` plus the first 10 hex digits
-    of its SHA-256 are appended (``"ProcTHOR-Test-196-room|4"`` → ``"ProcTHOR-Test-196-room_4_<hash>"``,
-    ``"../x"`` → ``"_._x_<hash>"``). Unchanged names never end in ``_`` + 10 hex digits and hashed ones
-    always do, so two different ids give the same name only through a 40-bit hash collision. The result
-    never contains a path separator, is never ``.``/``..`` or empty, and is never hidden.
+    A name made only of ``[A-Za-z0-9._-]``, not starting with ``.`` and at most :data:`SAFE_NAME_MAX`
+    characters is returned unchanged (so ``safe_name`` is idempotent). Any other is *hashed*: unsafe
+    characters become ``_``, it is cut to fit, and ``_`` plus the first 10 hex digits of its SHA-256 are
+    appended (``"ProcTHOR-Test-196-room|4"`` → ``"ProcTHOR-Test-196-room_4_<hash>"``, ``"../x"`` →
+    ``"_._x_<hash>"``). Two different ids give the same name only if one is a hashed name whose 40-bit
+    hash suffix another id reproduces (a hash collision). The result never contains a path separator,
+    is never ``.``/``..`` or empty, and is never hidden. File systems that ignore case can still
+    confuse ids that differ only in case.
     """
     import hashlib
-    import re
 
     text = str(text)
-    pattern = re.compile(r"_[0-9a-f]{%d}$" % _HASH_LEN)
-    clean = (text and not text.startswith(".") and len(text) <= SAFE_NAME_MAX
-             and all(c in _SAFE_CHARS for c in text) and not pattern.search(text))
-    if clean:
+    if text and not text.startswith(".") and len(text) <= SAFE_NAME_MAX and all(c in _SAFE_CHARS for c in text):
         return text
     digest = hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:_HASH_LEN]
     body = "".join(c if c in _SAFE_CHARS else "_" for c in text)

@@ -61,6 +61,14 @@ def print_summary(metrics: dict, out_dir) -> None:
     table.add_row("seconds", fmt(metrics["run"]["seconds"], 1))
     console = Console()
     console.print(table)
+    if metrics.get("per_room_type"):
+        by_type = Table(title="per room type")
+        for col in ("room type", "scenes", "Col_mesh", "GRecall", "ASD (mm)", "Stability"):
+            by_type.add_column(col, justify="left" if col == "room type" else "right")
+        for name, m in metrics["per_room_type"].items():
+            by_type.add_row(name, str(m["n_evaluated"]), fmt(m["col_mesh"]), fmt(m["grecall"]),
+                            fmt(None if m["asd"] is None else 1000 * m["asd"], 2), fmt(m["stability"]))
+        console.print(by_type)
     console.print(f"fid_status: {metrics['fid_status']}")
     for f in metrics["failed"][:10]:
         console.print(f"failed {f['scene_id']}: {f['error']}")

@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from spread.distributed.aggregate import fid_values, summary_values
+from spread.distributed.aggregate import fid_values, per_room_type_values, summary_values
 from spread.distributed.fanout import fan_out, run_tasks
 from spread.distributed.protocol import EvalProtocol, versions
 from spread.distributed.resume import dedupe, load_finished
@@ -155,6 +155,9 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
     records = [r for k, r in dedupe(read_jsonl(per_scene)).items() if k in wanted]
     records.sort(key=lambda r: r["scene_id"])
     metrics = summary_values(records, cfg.protocol)
+    by_type = per_room_type_values(records, cfg.protocol)
+    if by_type is not None:
+        metrics["per_room_type"] = by_type
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed)))
     metrics.update({
         "failed": [{"scene_id": r["scene_id"], "error": r["error"]} for r in records if r.get("error")],

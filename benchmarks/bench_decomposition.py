@@ -64,7 +64,8 @@ def _run(args, queue) -> None:
     t0 = time.perf_counter()
     dec = convex_decomposition(mesh, method=method)
     seconds = time.perf_counter() - t0
-    queue.put({"parts": len(dec.parts), "seconds": seconds, **decomposition_fidelity(mesh, dec.parts)})
+    queue.put({"parts": len(dec.parts), "seconds": seconds, "fallback": dec.settings.get("fallback"),
+               **decomposition_fidelity(mesh, dec.parts)})
 
 
 def measure(mesh, method: str, timeout: float) -> dict | None:
@@ -97,14 +98,15 @@ def main() -> None:
     def cell(r):
         if r is None:
             return f"> {args.timeout:.0f} s (killed) | – | –"
-        return f"{r['parts']} | {r['seconds']:.1f} | {1000 * r['hausdorff']:.1f} ({r['relative']:.3f})"
+        note = " (failed: V-HACD fallback)" if r.get("fallback") else ""
+        return f"{r['parts']}{note} | {r['seconds']:.1f} | {1000 * r['hausdorff']:.1f} ({r['relative']:.3f})"
 
     print("\n| mesh | faces | closed | V-HACD parts | s | Hausdorff mm (rel.) | CoACD parts | s | Hausdorff mm (rel.) |")
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['mesh']} | {r['faces']} | {'yes' if r['closed'] else 'no'} | {cell(r['vhacd'])} | {cell(r['coacd'])} |")
     for method in ("vhacd", "coacd"):
-        done = [r[method] for r in rows if r[method] is not None]
+        done = [r[method] for r in rows if r[method] is not None and not r[method].get("fallback")]
         if done:
             print(f"{method}: {len(done)}/{len(rows)} finished, median {np.median([d['seconds'] for d in done]):.1f} s, "
                   f"median Hausdorff {1000 * np.median([d['hausdorff'] for d in done]):.1f} mm, "

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import realdata
+from spread.importers.base import hash_fraction
 from spread.importers.run import ImportConfig, import_dataset
 from spread.io import safe_name
 from spread.scene import read_scene
@@ -74,9 +75,11 @@ def test_release_rooms_import_with_safe_ids_and_their_tags_inside(release):
     root, manifest = release
     out = root / "out"
     assert manifest["failed_rooms"] == 0 and manifest["failed_assets"] == 0
-    # no test list in the file: its val list is the test split, recorded in the manifest
-    assert manifest["counts"] == {"train": 2, "val": 0, "test": 2}
+    # no test list in the file: its val list is the test split, val is carved from train (by tag hash)
+    assert manifest["counts"] == {"train": 1, "val": 1, "test": 2}
     assert "test = the file's val list" in manifest["splits"]["rule"]
+    val = [str(read_scene(p).extras["source_tag"]) for p in (root / "out" / "val").glob("*.npz")]
+    assert val == [min(("ProcTHOR-Test-0-room|rest", "ProcTHOR-Test-1-room|sunk"), key=hash_fraction)]
     tags = {str(read_scene(p).extras["source_tag"]): p for p in out.glob("*/*.npz")}
     assert set(tags) == {f"ProcTHOR-Test-{k}-room|{kind}" for k, kind in enumerate(realdata.KINDS)}
     for tag, path in tags.items():
@@ -163,7 +166,7 @@ def test_reimport_skips_finished_rooms_and_assets(release):
     before = {p: p.stat().st_mtime_ns for p in files}
     manifest = import_dataset(ImportConfig("spread_release", str(root / "src"), str(out), **FAST))
     assert manifest["this_run"]["rooms_written"] == 0 and manifest["this_run"]["assets_built"] == 0
-    assert manifest["counts"] == {"train": 2, "val": 0, "test": 2}
+    assert manifest["counts"] == {"train": 1, "val": 1, "test": 2}
     assert {p: p.stat().st_mtime_ns for p in files} == before
 
 
@@ -214,7 +217,7 @@ def test_broken_mesh_file_fails_its_rooms_only(tmp_path):
 def test_threed_front_rooms_import_with_scaled_meshes_and_room_type(front):
     root, manifest = front
     out = root / "out"
-    assert manifest["failed_rooms"] == 0 and manifest["counts"] == {"train": 2, "val": 0, "test": 2}
+    assert manifest["failed_rooms"] == 0 and manifest["counts"] == {"train": 1, "val": 1, "test": 2}
     assert manifest["room_types"] == {"bedroom": 4}
     lib = library_of(out)
     table = [lib[a] for a in lib if a.startswith(realdata.JIDS[0])]

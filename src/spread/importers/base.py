@@ -93,6 +93,22 @@ class Source:
         return {}
 
 
+def hash_fraction(tag: str) -> float:
+    """A number in [0, 1) from the SHA-256 of ``tag``: an order-independent, reproducible draw."""
+    import hashlib
+
+    return int.from_bytes(hashlib.sha256(tag.encode("utf-8")).digest()[:8], "little") / 2.0 ** 64
+
+
+def carve_val(train: list[str], fraction: float) -> set[str]:
+    """The train tags that become val: the ``max(1, round(fraction · n))`` tags with the smallest
+    :func:`hash_fraction` (none when train has fewer than two tags or ``fraction`` is 0)."""
+    if len(train) < 2 or fraction <= 0:
+        return set()
+    k = min(len(train) - 1, max(1, int(round(fraction * len(train)))))
+    return set(sorted(train, key=hash_fraction)[:k])
+
+
 def check_tag(tag: object, src: Path, file: str, key: str) -> str:
     """``tag`` as a room folder name inside ``src``; raises :class:`SceneFormatError` naming ``file`` and
     ``key`` when it is not a string, is empty, ``.``/``..``, or holds a path separator (a hostile tag such

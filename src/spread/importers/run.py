@@ -74,7 +74,7 @@ def make_source(cfg: ImportConfig):
     if cfg.source == "threed_front":
         from spread.importers.threed_front import ThreedFront
 
-        return ThreedFront(cfg.src, cfg.splits, cfg.room_type, cfg.future_models)
+        return ThreedFront(cfg.src, cfg.splits, cfg.room_type, cfg.future_models, cfg.val_fraction)
     raise ValueError(f"source={cfg.source!r}: expected one of {', '.join(SOURCES)}")
 
 

@@ -21,30 +21,26 @@ The manifest counts objects whose ``bbox_center`` differs from the mesh's by mor
 
 Splits. ``train`` and ``val`` are the file's lists. When there is no ``test`` list the authors' held-out
 list — their ``val``, whose tags read ``ProcTHOR-Test-…`` — is the **test** split, and **val** is carved
-from ``train``: the tags whose SHA-256 falls in the lowest ``val_fraction`` (independent of order). A tag
+from ``train``: the ``max(1, round(val_fraction · n))`` tags with the smallest SHA-256 (independent of
+order; training needs a val split). A tag
 listed in two splits is kept in the later of test, val, train only (no leakage); both rules and the
 counts go to the manifest.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
 
-from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, check_tag, error_record
+from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record
 from spread.io import safe_name
 from spread.scene import SceneFormatError, load_npz_arrays, reference_scene
 
 SPLIT_FILE = "train_test_split.json"
 #: Objects whose ``bbox_center`` and mesh bbox centre differ by more than this (metres) are counted.
 CENTRE_TOLERANCE = 1e-3
-
-
-def _hash_fraction(tag: str) -> float:
-    return int.from_bytes(hashlib.sha256(tag.encode("utf-8")).digest()[:8], "little") / 2.0 ** 64
 
 
 class SpreadRelease(Source):
@@ -62,7 +58,8 @@ class SpreadRelease(Source):
 
     def info(self) -> dict:
         return {"source": self.name, "src": str(self.src), "room_type": self.room_type,
-                "val_fraction": self.val_fraction}
+                "val_fraction": self.val_fraction,
+                "graph": "the file's: relations (physical), regions_bbox (spatial)"}
 
     # ---- rooms ---------------------------------------------------------------------------------
     def rooms(self) -> RoomList:
@@ -99,10 +96,9 @@ class SpreadRelease(Source):
             split_of = {t: s for s in ("train", "val", "test") for t in good.get(s, [])}
         else:
             rule = (f"no test list in {SPLIT_FILE}: test = the file's val list (the authors' held-out rooms); "
-                    f"val = the train tags whose sha256 falls in the lowest {self.val_fraction:g}")
-            split_of = {}
-            for t in good["train"]:
-                split_of[t] = "val" if _hash_fraction(t) < self.val_fraction else "train"
+                    f"val = the max(1, round({self.val_fraction:g} · n)) train tags of smallest sha256")
+            carved = carve_val(good["train"], self.val_fraction)
+            split_of = {t: "val" if t in carved else "train" for t in good["train"]}
             for t in good.get("val", []):
                 split_of[t] = "test"
         listed = sum(len(v) for v in good.values())

@@ -6,7 +6,8 @@ Layout of ``src`` (one room type per folder, as those projects preprocess it)::
     dataset_stats.txt                JSON: ``class_labels`` (the one-hot columns), ``object_types``, bounds
 
 and ``splits=CSV``: lines ``RoomId,train|val|test`` (the projects' ``*_threed_front_splits.csv``; a line
-may also name the whole folder). Rooms whose RoomId the CSV does not list are skipped and counted.
+may also name the whole folder). Rooms whose RoomId the CSV does not list are skipped and counted. When
+it has no val rows, val is carved from train as for the release (``val_fraction``, by tag hash).
 
 ``boxes.npz`` keys used: ``class_labels`` (N, C) one-hot, ``translations`` (N, 3) bbox centres relative
 to the floor plan's bbox centre (metres, y-up, floor y = 0), ``sizes`` (N, 3) **half** extents, ``angles``
@@ -38,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spread.importers.base import SPLITS, AssetRequest, RoomList, RoomRef, Source, error_record
+from spread.importers.base import SPLITS, AssetRequest, RoomList, RoomRef, Source, carve_val, error_record
 from spread.io import safe_name
 from spread.scene import (
     SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT, SPATIAL_SELF, Scene,
@@ -95,8 +96,10 @@ class ThreedFront(Source):
 
     name = "threed_front"
 
-    def __init__(self, src: str | Path, splits: str | Path, room_type: str, future_models: str | Path | None = None):
+    def __init__(self, src: str | Path, splits: str | Path, room_type: str, future_models: str | Path | None = None,
+                 val_fraction: float = 0.05):
         self.src = Path(src)
+        self.val_fraction = float(val_fraction)
         if not self.src.is_dir():
             raise FileNotFoundError(f"src={self.src}: not a folder")
         if not splits:
@@ -125,7 +128,9 @@ class ThreedFront(Source):
                 "room_type": self.room_type,
                 "future_models": str(self.future_models) if self.future_models else None,
                 "meshes": "3D-FUTURE raw_model.obj scaled to the file's sizes" if self.future_models
-                else "oriented boxes of the file's sizes (no future_models given)"}
+                else "oriented boxes of the file's sizes (no future_models given)",
+                "graph": "physical: the platform's, from the posed meshes (3D-FRONT has none); spatial: the "
+                         "room's relations.npy when present, else the platform's"}
 
     def rooms(self) -> RoomList:
         split_of = read_splits(self.splits_path)
@@ -137,7 +142,13 @@ class ThreedFront(Source):
                 skipped += 1
                 continue
             rooms.append(RoomRef(tag, split, str(folder)))
-        splits = {"rule": f"the splits file's RoomId → split ({self.splits_path})", "file": str(self.splits_path),
+        rule = f"the splits file's RoomId → split ({self.splits_path})"
+        if not any(r.split == "val" for r in rooms):  # training needs a val split
+            carved = carve_val([r.tag for r in rooms if r.split == "train"], self.val_fraction)
+            rooms = [RoomRef(r.tag, "val", r.folder) if r.tag in carved else r for r in rooms]
+            rule += (f"; no val rows: val = the max(1, round({self.val_fraction:g} · n)) train rooms of "
+                     f"smallest sha256")
+        splits = {"rule": rule, "file": str(self.splits_path),
                   "not_in_splits": skipped,
                   "counts": {s: sum(1 for r in rooms if r.split == s) for s in SPLITS}}
         return RoomList(rooms, errors, splits)

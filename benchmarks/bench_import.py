@@ -1,6 +1,6 @@
 """Import throughput and metric cost per scene on real-style meshes against the same rooms' procedural meshes.
 
-    python benchmarks/bench_import.py [--rooms 24] [--processes 2] [--work DIR] [--categories ...]
+    python benchmarks/bench_import.py [--rooms 16] [--processes 2] [--work DIR] [--categories ...]
 
 1. Generates ``--rooms`` procedural rooms (spread-generate, ``--categories`` × 2 variants).
 2. Writes them in the SPREAD release layout the way public assets ship: every asset a **multi-body** glb
@@ -93,13 +93,12 @@ def evaluate(folder: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--rooms", type=int, default=24)
+    parser.add_argument("--rooms", type=int, default=16)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--categories", nargs="+", default=CATEGORIES)
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     args = parser.parse_args()
 
-    from spread.assets.build import build_library
     from spread.importers.run import ImportConfig, import_dataset
     from spread.procgen.dataset import DatasetConfig, generate_dataset
     from spread.procgen.rooms import RoomConfig
@@ -108,10 +107,8 @@ def main() -> None:
         work = args.work or Path(tmp)
         data = work / "procedural"
         if not (data / "manifest.json").exists():
-            build_library(work / "library", categories=args.categories, variants=2, processes=args.processes,
-                          progress=False)
             generate_dataset(data, DatasetConfig(rooms=args.rooms, processes=args.processes, renders=0,
-                                                 assets_from=str(work / "library"),
+                                                 asset_categories=list(args.categories), asset_variants=2,
                                                  room=RoomConfig(max_objects=12)), progress=False)
         src = work / "release"
         if not src.exists():

@@ -170,6 +170,23 @@ def test_reimport_skips_finished_rooms_and_assets(release):
     assert {p: p.stat().st_mtime_ns for p in files} == before
 
 
+def test_changed_room_is_converted_again_and_a_broken_one_loses_its_file(tmp_path):
+    src = realdata.release_layout(tmp_path / "src")
+    out = tmp_path / "out"
+    import_dataset(ImportConfig("spread_release", str(src), str(out), **FAST))
+    rest, sunk = "ProcTHOR-Test-0-room|rest", "ProcTHOR-Test-1-room|sunk"
+    moved = realdata.release_boxes("rest")
+    moved["T_bbox"][2, 0] += 0.1  # the cup moves 10 cm along x
+    np.savez(src / rest / "boxes.npz", **moved)
+    (src / sunk / "boxes.npz").write_bytes(b"truncated")
+    manifest = import_dataset(ImportConfig("spread_release", str(src), str(out), **FAST))
+    assert manifest["this_run"]["rooms_written"] == 1 and manifest["failed_rooms"] == 1
+    (rest_file,) = [p for p in out.glob("*/*.npz") if str(read_scene(p).extras["source_tag"]) == rest]
+    assert read_scene(rest_file).translation[1, 0] == pytest.approx(realdata.MUG_X + 0.1)
+    assert not list(out.glob(f"*/{safe_name(sunk)}.npz"))  # the broken room's old file is gone
+    assert sum(manifest["counts"].values()) == 3
+
+
 def _snapshot(root: Path, skip: Path) -> dict:
     return {str(p): p.stat().st_mtime_ns for p in root.rglob("*") if skip not in p.parents and p != skip}
 
@@ -299,3 +316,15 @@ def test_default_coacd_decomposition_keeps_the_resting_room_stable(tmp_path):
     assert manifest["decomposition"]["hausdorff_m"]["max"] < 0.06
     result = scene_stability(scenes_by_kind(tmp_path / "out", lib)["rest"], lib, runs=2)
     assert result.stability == 1.0 and result.still_fraction == 1.0
+
+
+def test_import_command_config_composes_into_the_import_options():
+    from helpers import compose
+
+    from spread.cli.import_ import import_config
+
+    cfg = import_config(compose("import", "source=threed_front", "src=/data/bedroom", "out_dir=/tmp/x",
+                                "splits=/data/s.csv", "room_type=bedroom", "+decomposition_settings.threshold=0.03"))
+    assert (cfg.source, cfg.splits, cfg.room_type, cfg.future_models) == ("threed_front", "/data/s.csv", "bedroom", None)
+    assert cfg.decomposition == "coacd" and cfg.decomposition_settings == {"threshold": 0.03}
+    assert cfg.stats == "source" and cfg.processes == 2

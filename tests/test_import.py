@@ -331,3 +331,17 @@ def test_import_command_config_composes_into_the_import_options():
     assert (cfg.source, cfg.splits, cfg.room_type, cfg.future_models) == ("threed_front", "/data/s.csv", "bedroom", None)
     assert cfg.decomposition == "coacd" and cfg.decomposition_settings == {"threshold": 0.03}
     assert cfg.stats == "source" and cfg.processes == 2
+
+
+def test_instructscene_relations_become_the_spatial_graph(tmp_path):
+    src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
+    room = sorted(p for p in src.iterdir() if p.is_dir())[0]  # the resting room
+    # InstructScene's cache: object 1 (the cup) "above" (0) object 0; object 0 "closely right of" (8) object 2
+    np.save(room / "relations.npy", np.array([[1, 0, 0], [0, 8, 2]], np.int64))
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(tmp_path / "out"), splits=str(splits),
+                                           room_type="bedroom", **FAST))
+    (path,) = [p for p in (tmp_path / "out").glob("*/*.npz") if str(read_scene(p).extras["source_tag"]) == room.name]
+    spatial = read_scene(path).spatial
+    assert (spatial[1, 0], spatial[0, 1]) == (4, 5)  # above / below
+    assert (spatial[0, 2], spatial[2, 0]) == (0, 1)  # right of / left of ("closely" dropped)
+    assert manifest["room_counts"]["spatial_pairs_filled"] == 2  # cup–cube, both ways: the platform's codes

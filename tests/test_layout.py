@@ -19,6 +19,7 @@ FLOORS = (
     ("cli",),
     ("experiments",),
     ("configs",),
+    ("importers",),  # a dataset from another layout: uses procgen's dataset statistics and renders
     ("procgen", "training", "sampling", "evaluation"),
     ("runtime",),
     ("guidance", "metrics"),

@@ -93,6 +93,51 @@ def test_an_object_array_in_an_npz_is_refused_and_runs_nothing(dataset, tmp_path
     assert not marker.exists()
 
 
+# ---- nothing is written outside the output folder, whatever an id says -----------------------------------
+
+def _files_under(root: Path) -> set[Path]:
+    return {p for p in root.rglob("*") if p.is_file()}
+
+
+def test_hostile_scene_ids_only_name_files_inside_the_scenes_folder(dataset, checkpoint, tmp_path):
+    from helpers import sample_in_process
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    hostile = ["../../../pwned_sample", str(tmp_path / "abs_pwned"), "sub/dir"]
+    for path, scene_id in zip(list_scene_files(data / "test"), hostile):
+        scene = read_scene(path)
+        write_scene(scene.with_poses(scene.translation, scene.rotation, scene_id=scene_id), path)
+    before = _files_under(tmp_path)
+    out = tmp_path / "a" / "b" / "out"
+    result = sample_in_process(f"ckpt={checkpoint}", f"data.root={data}", f"out_dir={out}", "renders=3")
+    new = _files_under(tmp_path) - before
+    assert new and all(out in p.parents for p in new)
+    scenes = [p for p in new if p.suffix == ".npz" and "scenes" in p.parts]
+    assert all(p.parent == out / "scenes" for p in scenes) and len(result.files) == len(scenes)
+    assert not (tmp_path / "abs_pwned_k0.npz").exists() and not (out / "scenes" / "sub").exists()
+
+
+def test_a_hostile_asset_id_keeps_its_geometry_cache_inside_the_library(dataset, tmp_path):
+    from spread.assets import AssetLibrary
+
+    lib_dir = tmp_path / "deep" / "assets"
+    shutil.copytree(dataset / "assets", lib_dir)
+    shutil.rmtree(lib_dir / "cache", ignore_errors=True)
+    index = json.loads((lib_dir / "index.json").read_text())
+    old_id = sorted(index["assets"])[0]
+    hostile = "../../../pwned_asset"
+    record = index["assets"].pop(old_id)
+    index["assets"][hostile] = {**record, "asset_id": hostile}
+    (lib_dir / "index.json").write_text(json.dumps(index))
+    before = _files_under(tmp_path)
+    library = AssetLibrary.load(lib_dir)
+    library.geometry(hostile)
+    new = _files_under(tmp_path) - before
+    assert len(new) == 1 and next(iter(new)).parent == lib_dir / "cache"
+    assert library.cache_path(hostile).exists() and not list(tmp_path.rglob("pwned_asset*"))
+
+
 # ---- resume notices changed or broken files ----------------------------------------------------------------
 
 def test_a_resumed_sampling_run_resamples_a_truncated_file(dataset, checkpoint, tmp_path):

@@ -15,7 +15,8 @@ module registers them with Hydra's ConfigStore, so that the YAML files only choo
   library record it fills plus the command's own keys: ``generate_schema`` = :class:`GenerateCommand`
   (:class:`~spread.procgen.dataset.DatasetConfig`), ``sample_schema`` = :class:`SampleCommand`
   (:class:`~spread.sampling.SamplingConfig`), ``evaluate_schema`` = :class:`EvaluateCommand`
-  (:class:`~spread.evaluation.EvaluationConfig`). ``OmegaConf.to_object(cfg)`` then *is* the library record,
+  (:class:`~spread.evaluation.EvaluationConfig`), ``import_schema`` = ``ImportCommand``
+  (:class:`~spread.importers.run.ImportConfig`). ``OmegaConf.to_object(cfg)`` then *is* the library record,
   typed and validated — no field is copied by hand. ``spread-train`` instantiates its ``_target_`` nodes.
 
 Registration is per command (:func:`register`), so a light command (``spread-generate``) does not import
@@ -31,7 +32,7 @@ from pathlib import Path
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 #: The commands whose schemas :func:`register` knows, and the config groups each one composes.
-COMMANDS = ("generate", "train", "sample", "evaluate", "ablate", "report")
+COMMANDS = ("generate", "import", "train", "sample", "evaluate", "ablate", "report")
 
 
 def conf_dir() -> str:
@@ -98,6 +99,8 @@ def register(*commands: str) -> None:
     _common()
     if wanted & {"generate", "ablate"}:
         _generate()
+    if "import" in wanted:
+        _store(None, "import_schema", import_command())
     if wanted & {"train", "sample", "ablate"}:
         _model()
     if wanted & {"sample", "evaluate", "ablate"}:
@@ -198,3 +201,15 @@ def evaluate_command():
         paths: PathsConfig = field(default_factory=PathsConfig)
 
     return EvaluateCommand
+
+
+@functools.cache
+def import_command():
+    """The ``spread-import`` schema: :class:`~spread.importers.run.ImportConfig` plus the run-folder paths."""
+    from spread.importers.run import ImportConfig
+
+    @dataclass
+    class ImportCommand(ImportConfig):
+        paths: PathsConfig = field(default_factory=PathsConfig)
+
+    return ImportCommand

@@ -98,3 +98,36 @@ def file_sha256(*paths: str | os.PathLike) -> str:
             for chunk in iter(lambda: fh.read(1 << 20), b""):
                 h.update(chunk)
     return h.hexdigest()
+
+
+#: Characters a :func:`safe_name` keeps as they are (portable file-name characters).
+_SAFE_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
+#: Longest name :func:`safe_name` returns (well below the 255-byte limit of common file systems, room
+#: left for suffixes such as ``_k3.npz``).
+SAFE_NAME_MAX = 120
+_HASH_LEN = 10
+
+
+def safe_name(text: str) -> str:
+    """``text`` (any id: a dataset tag, an asset name) as one safe path component.
+
+    A name made only of ``[A-Za-z0-9._-]``, not starting with ``.`` and at most :data:`SAFE_NAME_MAX`
+    characters is returned unchanged (so ``safe_name`` is idempotent). Any other is *hashed*: unsafe
+    characters become ``_``, it is cut to fit, and ``_`` plus the first 10 hex digits of its SHA-256 are
+    appended (``"ProcTHOR-Test-196-room|4"`` → ``"ProcTHOR-Test-196-room_4_<hash>"``, ``"../x"`` →
+    ``"_._x_<hash>"``). Two different ids give the same name only if one is a hashed name whose 40-bit
+    hash suffix another id reproduces (a hash collision). The result never contains a path separator,
+    is never ``.``/``..`` or empty, and is never hidden. File systems that ignore case can still
+    confuse ids that differ only in case.
+    """
+    import hashlib
+
+    text = str(text)
+    if text and not text.startswith(".") and len(text) <= SAFE_NAME_MAX and all(c in _SAFE_CHARS for c in text):
+        return text
+    digest = hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:_HASH_LEN]
+    body = "".join(c if c in _SAFE_CHARS else "_" for c in text)
+    if body.startswith("."):
+        body = "_" + body[1:]
+    body = body[:SAFE_NAME_MAX - _HASH_LEN - 1]
+    return f"{body}_{digest}"

@@ -316,15 +316,48 @@ def read_reference_boxes(path: str | os.PathLike, scene_id: str | None = None,
     ``bbox_center`` and, when present, ``miche_feature``/``xyz``/``normal`` are kept as extras
     (``reference_bbox_center``, ``shape_tokens``, ``surface_points``, ``surface_normals``).
     Categories are the asset id with trailing ``_<digits>`` and ``_unpacked`` parts removed.
+
+    The file is read with ``allow_pickle=False`` (:func:`load_npz_arrays`): a key stored as an object
+    array (pickled Python objects, which could run code when loaded) is refused with an error naming it.
     """
     path = Path(path)
     src = str(path)
+    arrays = load_npz_arrays(path)
+    return reference_scene(arrays, src, scene_id or path.parent.name or path.stem, meshes)
+
+
+def load_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, read with ``allow_pickle=False``.
+
+    Raises :class:`SceneFormatError` naming the file for an unreadable file, and naming the key for an
+    object array (pickled Python objects are never unpickled: save strings as unicode arrays instead,
+    ``np.asarray(names, dtype=str)``).
+    """
+    src = str(path)
     try:
-        data = np.load(path, allow_pickle=True)
+        data = np.load(path, allow_pickle=False)
     except Exception as exc:
         raise SceneFormatError(src, None, f"not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+    arrays = {}
     with data:
-        arrays = {k: data[k] for k in data.files}
+        for key in data.files:
+            try:
+                arrays[key] = data[key]
+            except ValueError as exc:
+                if "allow_pickle" in str(exc):
+                    raise SceneFormatError(src, key, "stored as an object array (pickled Python objects); refused "
+                                           "without unpickling — store strings as a unicode array "
+                                           "(np.asarray(values, dtype=str))") from exc
+                raise SceneFormatError(src, key, f"unreadable array ({exc})") from exc
+            except Exception as exc:
+                raise SceneFormatError(src, key, f"unreadable array ({type(exc).__name__}: {exc})") from exc
+    return arrays
+
+
+def reference_scene(arrays: Mapping[str, np.ndarray], src: str, scene_id: str,
+                    meshes: Mapping[str, "object"] | None = None) -> Scene:
+    """The Scene of the release's ``boxes.npz`` arrays (see :func:`read_reference_boxes`); errors name
+    ``src`` and the release's key."""
     for key in ("T_bbox", "R_bbox", "obj_names", "regions_bbox"):
         if key not in arrays:
             _fail(src, key, "missing required key of the reference boxes.npz layout")
@@ -337,9 +370,28 @@ def read_reference_boxes(path: str | os.PathLike, scene_id: str | None = None,
     for key, arr, shape in (("T_bbox", T, (n1, 3)), ("R_bbox", R, (n1, 3, 3))):
         if arr.shape != shape:
             _fail(src, key, f"shape {arr.shape}, expected {shape} (N+1 = {n1} from obj_names)")
+    for key, arr in (("T_bbox", T), ("R_bbox", R)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            idx = np.argwhere(bad)[0].tolist()
+            _fail(src, key, f"non-finite value {arr[tuple(idx)]} at index {idx}")
     regions = np.asarray(arrays["regions_bbox"])
     if regions.shape != (n1, n1):
         _fail(src, "regions_bbox", f"shape {regions.shape}, expected {(n1, n1)}")
+    integral = regions.dtype.kind in "iu" or (regions.dtype.kind == "f" and np.isfinite(regions).all()
+                                               and (regions == np.round(regions)).all())
+    if not integral or ((regions[1:, 1:] < 0) | (regions[1:, 1:] > SPATIAL_SELF)).any():
+        _fail(src, "regions_bbox", f"codes must be integers in 0..{SPATIAL_SELF} (dtype {regions.dtype})")
+    for key in ("bbox_center", "miche_feature", "xyz", "normal"):
+        if key in arrays and (arrays[key].ndim < 1 or arrays[key].shape[0] != n1):
+            _fail(src, key, f"shape {arrays[key].shape}: first axis must be N+1 = {n1} (from obj_names)")
+        if key in arrays and arrays[key].dtype.kind not in "fiu":
+            _fail(src, key, f"expected numbers, got dtype {arrays[key].dtype}")
+    if "relations" in arrays and arrays["relations"].size and (
+            arrays["relations"].dtype.kind not in "iuf" or arrays["relations"].size % 3
+            or not np.all(np.asarray(arrays["relations"]) == np.round(np.asarray(arrays["relations"], float)))):
+        _fail(src, "relations", f"expected integer triples [s, p, o], got shape {arrays['relations'].shape} "
+                                f"dtype {arrays['relations'].dtype}")
     n = n1 - 1
     physical = np.zeros((n, n), dtype=np.int8)
     relations = np.asarray(arrays.get("relations", np.zeros((0, 3), int)))
@@ -364,7 +416,7 @@ def read_reference_boxes(path: str | os.PathLike, scene_id: str | None = None,
     object_names = names[1:]
     categories = np.array([_reference_category(nm) for nm in object_names])
     scene = Scene(
-        scene_id=scene_id or path.parent.name or path.stem,
+        scene_id=scene_id,
         asset_id=object_names, category=categories,
         translation=T[1:], rotation=R[1:], spatial=spatial, physical=physical,
         extras=extras,

@@ -124,9 +124,12 @@ class AssetRecord:
     rest_poses: list[RestPose] = field(default_factory=list)
     support_surfaces: list[SupportSurface] = field(default_factory=list)
     tags: list[str] = field(default_factory=list)  # e.g. "stackable", "container"
+    #: where an imported asset came from and what was done to it (file, sha256, cleaning, decomposition
+    #: and its fidelity); empty for procedural assets. Stored in index.json only when not empty.
+    source: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "asset_id": self.asset_id, "category": self.category, "variant": int(self.variant),
             "role": self.role, "extents": [float(v) for v in self.extents], "volume": float(self.volume),
             "density": float(self.density), "mass": float(self.mass), "mesh_file": self.mesh_file,
@@ -136,6 +139,9 @@ class AssetRecord:
             "support_surfaces": [s.to_dict() for s in self.support_surfaces],
             "tags": list(self.tags),
         }
+        if self.source:
+            d["source"] = dict(self.source)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "AssetRecord":
@@ -147,7 +153,7 @@ class AssetRecord:
             content_hash=d["content_hash"],
             rest_poses=[RestPose.from_dict(p) for p in d.get("rest_poses", [])],
             support_surfaces=[SupportSurface.from_dict(s) for s in d.get("support_surfaces", [])],
-            tags=list(d.get("tags", [])),
+            tags=list(d.get("tags", [])), source=dict(d.get("source") or {}),
         )
 
 
@@ -306,8 +312,12 @@ class AssetLibrary:
             return self._parts[asset_id]
 
     def cache_path(self, asset_id: str) -> Path:
+        """``cache/<asset_id>.<hash>.npz`` as one :func:`spread.io.safe_name` inside the library, whatever
+        the index says the id or hash is."""
+        from spread.io import safe_name
+
         rec = self[asset_id]
-        return self.root / "cache" / f"{asset_id}.{rec.content_hash[:16]}.npz"
+        return self.root / "cache" / (safe_name(f"{asset_id}.{str(rec.content_hash)[:16]}") + ".npz")
 
     def geometry(self, asset_id: str) -> AssetGeometryCache:
         """Surface points/normals and xz hull, built once per content hash and kept on disk."""

@@ -75,3 +75,13 @@ def fid_values(fid, records: list[dict], status: str, n_reference_files: int, fe
             "fid_feature_model": out["feature_model"], "fid_num_generated": out["num_generated"],
             "fid_num_reference": out["num_reference"], "kid_subsets": out["kid_subsets"],
             "kid_subset_size": out["kid_subset_size"]}
+
+
+def per_room_type_values(records: list[dict], protocol: EvalProtocol) -> dict | None:
+    """:func:`summary_values` of each room type's records (``record["room_type"]``, from the scene file's
+    ``room_type`` array), or None when no record has a room type (FID stays over the whole set)."""
+    types = sorted({r["room_type"] for r in records if r.get("room_type")})
+    if not types:
+        return None
+    return {t: summary_values([r for r in records if r.get("room_type") == t], protocol) for t in types}
+

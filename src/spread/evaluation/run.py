@@ -23,7 +23,7 @@ from typing import Callable
 
 from omegaconf import MISSING
 
-from spread.evaluation.aggregate import fid_values, summary_values
+from spread.evaluation.aggregate import fid_values, per_room_type_values, summary_values
 from spread.evaluation.fanout import fan_out, run_tasks
 from spread.evaluation.protocol import EvalProtocol, FIDConfig, versions
 from spread.evaluation.resume import dedupe, load_finished
@@ -169,6 +169,9 @@ def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None
     records = [r for k, r in dedupe(read_jsonl(per_scene)).items() if k in wanted]
     records.sort(key=lambda r: r["scene_id"])
     metrics = summary_values(records, cfg.protocol)
+    by_type = per_room_type_values(records, cfg.protocol)
+    if by_type is not None:
+        metrics["per_room_type"] = by_type
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
                               cfg.fid.feature_model))
     metrics.update({

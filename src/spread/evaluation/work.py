@@ -151,6 +151,7 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
     stability = results["stability"]
     record.update({
         "inner_scene_id": scene.scene_id,
+        "room_type": str(scene.extras["room_type"]) if "room_type" in scene.extras else None,
         "num_objects": scene.num_objects,
         "col_mesh": results["col_mesh"].rate,
         "grecall": results["grecall"].to_dict()["grecall"],

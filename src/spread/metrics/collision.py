@@ -6,7 +6,10 @@ Per scene (:func:`scene_collisions`):
    canonical meshes (``fcl.Convex`` for convex meshes, ``fcl.BVHModel`` otherwise — the geometry
    ``trimesh.collision.CollisionManager`` builds). FCL's mesh–mesh test only finds intersecting
    surfaces, so a mesh entirely inside another is missed; every pair whose AABB contains the other's
-   AABB (a necessary condition for containment) is therefore a candidate too.
+   AABB (a necessary condition for containment) is therefore a candidate too. A mesh with openings
+   (not watertight, measured as a winding-number solid, :mod:`spread.metrics.solid`) can be entered
+   through an opening without crossing a face, so a pair with such a mesh is a candidate as soon as
+   their AABBs overlap.
    We call ``fcl.collide`` per pair rather than going through ``CollisionManager``: the manager rebuilds
    each object's BVH on every ``add_object`` (≈ 20 ms for a 5k-face mesh) and identifies objects by their
    geometry, so geometry cannot be shared; here each asset's FCL geometry is built once per process.
@@ -78,7 +81,8 @@ class CollisionResult:
 
 
 def candidate_pairs(scene, library) -> list[tuple[int, int, bool, bool]]:
-    """(i, j, fcl_contact, contained) for every pair i < j that FCL finds touching or whose AABBs nest."""
+    """(i, j, fcl_contact, contained) for every pair i < j that FCL finds touching, whose AABBs nest, or
+    whose AABBs overlap when one of the two meshes has openings."""
     import fcl
 
     ids = [str(a) for a in scene.asset_id]
@@ -88,6 +92,8 @@ def candidate_pairs(scene, library) -> list[tuple[int, int, bool, bool]]:
     overlap = np.all((lo[:, None] <= hi[None]) & (hi[:, None] >= lo[None]), axis=-1)
     inside = np.all((lo[:, None] >= lo[None]) & (hi[:, None] <= hi[None]), axis=-1)  # [i, j]: i's box in j's
     nested = inside | inside.T
+    openings = np.array([asset_geometry(library, a).has_openings for a in ids])
+    enterable = openings[:, None] | openings[None, :]
     objects: dict[int, object] = {}
 
     def obj(k: int):
@@ -101,7 +107,7 @@ def candidate_pairs(scene, library) -> list[tuple[int, int, bool, bool]]:
         result = fcl.CollisionResult()
         fcl.collide(obj(i), obj(j), fcl.CollisionRequest(), result)
         touching = bool(result.is_collision)
-        if touching or nested[i, j]:
+        if touching or nested[i, j] or enterable[i, j]:
             out.append((i, j, bool(touching), bool(nested[i, j])))
     return out
 

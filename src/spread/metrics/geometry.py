@@ -16,6 +16,14 @@ every queried point q: points near a queried point that is far outside need no q
 distance (rtree + exact closest points, ray tests for the sign) is called only on points whose bound is
 below the best value found so far (less a 10 µm tolerance), in a few batches; the result is the minimum
 over the point set to within that tolerance.
+
+Meshes as shipped (open, non-manifold, self-intersecting: :mod:`spread.metrics.solid`). A mesh takes the
+exact path above when it is watertight and no face of it is buried inside its own solid. Any other mesh
+is measured as a *solid by winding number* (:class:`~spread.metrics.solid.SolidMesh`): inside where the
+generalised winding number exceeds ½, distances to its bounding faces. Bound (1) still holds outside the
+box (the mesh's faces lie in it), so points outside are skipped as before; inside the box neither bound
+holds (an opening lets the inside reach the box without crossing a face), so every point inside the box
+is queried, in one batch (libigl: an AABB tree and the fast winding number) — exact over the point set.
 """
 
 from __future__ import annotations
@@ -42,11 +50,13 @@ DISTANCE_TOLERANCE = 1e-5
 class AssetGeometry:
     """One asset's measuring geometry, canonical frame, metres.
 
-    mesh: the watertight canonical mesh used for queries (trimesh.Trimesh): the library's own mesh, or a
-        copy without its zero-area faces when it has some (see :func:`asset_geometry`).
+    mesh: the canonical mesh used for queries (trimesh.Trimesh): the library's own mesh, or a copy
+        without its zero-area faces when it has some (see :func:`asset_geometry`).
     points: (P, 3) float64, the mesh vertices (at most :data:`MAX_VERTICES`) followed by surface samples
         (at most :data:`SURFACE_SAMPLES`).
     lo, hi: (3,) the mesh's axis-aligned bounding box.
+    solid: None for a watertight mesh without buried faces (the exact path); else the winding-number
+        solid (:class:`~spread.metrics.solid.SolidMesh`) that signed distances are measured against.
     """
 
     asset_id: str
@@ -54,6 +64,12 @@ class AssetGeometry:
     points: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
+    solid: object = None
+
+    @property
+    def has_openings(self) -> bool:
+        """Not watertight: its solid can be entered without crossing a face (through an opening)."""
+        return self.solid is not None and not bool(self.mesh.is_watertight)
 
 
 _GEOMETRY: dict[tuple[str, str], AssetGeometry] = {}
@@ -68,17 +84,21 @@ def _strided(points: np.ndarray, limit: int) -> np.ndarray:
 def asset_geometry(library, asset_id: str) -> AssetGeometry:
     """The :class:`AssetGeometry` of an asset, built once per content hash and kept for the process.
 
-    Raises ``ValueError`` naming the asset when its mesh is not watertight (signed distances need a
-    closed surface to know inside from outside). Zero-area faces (boolean unions leave a few slivers) are
-    dropped from the query mesh: they bound no volume, but trimesh's sign test would take the zero normal
-    of a sliver that happens to hold the closest point and return a distance of 0.
+    A watertight mesh without buried faces takes the exact path; any other mesh (open, non-manifold,
+    overlapping bodies) is measured as a winding-number solid (module docstring). Raises ``ValueError``
+    naming the asset only when the mesh has no non-degenerate face. Zero-area faces (boolean unions leave
+    a few slivers) are dropped from the query mesh: they bound no volume, but trimesh's sign test would
+    take the zero normal of a sliver that happens to hold the closest point and return a distance of 0.
     """
+    from spread.metrics.solid import solid_mesh
+
     key = (library[asset_id].content_hash, asset_id)
     geom = _GEOMETRY.get(key)
     if geom is None:
         mesh = library.mesh(asset_id)
-        if not mesh.is_watertight:
-            raise ValueError(f"asset '{asset_id}': mesh is not watertight; signed distances need a closed mesh")
+        solid = solid_mesh(mesh, name=f"asset '{asset_id}'")
+        if mesh.is_watertight and solid.buried == 0:
+            solid = None
         keep = mesh.nondegenerate_faces()
         if not keep.all():
             mesh = mesh.copy()
@@ -87,7 +107,7 @@ def asset_geometry(library, asset_id: str) -> AssetGeometry:
         vertices = _strided(np.asarray(mesh.vertices, np.float64), MAX_VERTICES)
         points = np.concatenate([vertices, _strided(np.asarray(samples, np.float64), SURFACE_SAMPLES)])
         lo, hi = (np.asarray(b, np.float64) for b in mesh.bounds)
-        geom = _GEOMETRY[key] = AssetGeometry(asset_id, mesh, points, lo, hi)
+        geom = _GEOMETRY[key] = AssetGeometry(asset_id, mesh, points, lo, hi, solid)
     return geom
 
 
@@ -142,6 +162,18 @@ def min_signed_distance(geom: AssetGeometry, points_local: np.ndarray, stop_at: 
 
     n = len(points_local)
     bound = box_signed_distance(points_local, geom.lo, geom.hi)
+    if geom.solid is not None:  # winding-number solid: only bound (1) outside the box holds
+        best, best_index = float("inf"), -1
+        inside_box = bound <= 0
+        for todo in (np.flatnonzero(inside_box), None):
+            if todo is None:  # then the points outside the box that could still be lower
+                todo = np.flatnonzero(~inside_box & (bound < min(best, stop_at) - tolerance))
+            if len(todo):
+                d = geom.solid.signed_distance(points_local[todo])
+                k = int(np.argmin(d))
+                if d[k] < best:
+                    best, best_index = float(d[k]), int(todo[k])
+        return best, best_index
     value = np.full(n, np.inf)
     done = np.zeros(n, bool)
     best, best_index, chunk = float("inf"), -1, FIRST_CHUNK

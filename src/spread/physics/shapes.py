@@ -56,6 +56,35 @@ def mass_frame(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return com, axes, np.maximum(moments, 1e-12)
 
 
+def parts_mass_frame(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`mass_frame` of a union of convex parts (trimesh each), uniform density, overlaps counted twice."""
+    volumes = np.array([abs(float(p.volume)) for p in parts])
+    total = float(volumes.sum())
+    if not total > 0:
+        raise ValueError("the convex parts enclose no volume")
+    centres = np.array([np.asarray(p.center_mass, np.float64) for p in parts])
+    com = (volumes[:, None] * centres).sum(0) / total
+    inertia = np.zeros((3, 3))
+    for part, v, c in zip(parts, volumes, centres):
+        tensor = np.asarray(part.moment_inertia, np.float64) * (v / abs(float(part.mass)))  # about c, mass v
+        d = c - com
+        inertia += tensor + v * (float(d @ d) * np.eye(3) - np.outer(d, d))  # parallel axes
+    moments, axes = np.linalg.eigh(0.5 * (inertia + inertia.T) / total)
+    if np.linalg.det(axes) < 0:
+        axes[:, -1] *= -1.0
+    return com, axes, np.maximum(moments, 1e-12)
+
+
+def asset_mass_frame(library, asset_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mass frame of an asset: its watertight mesh's (:func:`mass_frame`), or, for a mesh that bounds
+    no volume of its own (open shells of imported assets), that of its convex parts — the shapes the
+    physics world simulates."""
+    mesh = library.mesh(asset_id)
+    if mesh.is_watertight and float(mesh.volume) > 0:
+        return mass_frame(mesh)
+    return parts_mass_frame(library.convex_parts(asset_id))
+
+
 def inset_convex(vertices: np.ndarray, margin: float) -> np.ndarray:
     """Vertices of the convex hull of ``vertices`` with every face plane moved inward by ``margin`` (metres).
 

@@ -27,7 +27,7 @@ import numpy as np
 from spread.physics.contacts import FLOOR, ContactSet, contact_set
 from spread.physics.frames import body_to_scene, scene_to_body
 from spread.physics.params import BULLET_HULL_MARGIN, PhysicsParams
-from spread.physics.shapes import BodyShape, body_parts, mass_frame, write_parts_obj
+from spread.physics.shapes import BodyShape, asset_mass_frame, body_parts, write_parts_obj
 
 
 @dataclass
@@ -118,7 +118,7 @@ class PhysicsWorld:
         key = (str(asset_id), record.content_hash)
         shape = self._shapes.get(key)
         if shape is None:
-            com, axes, inertia_per_kg = mass_frame(library.mesh(asset_id))
+            com, axes, inertia_per_kg = asset_mass_frame(library, asset_id)
             path = self._shape_file(library, asset_id,
                                     lambda: body_parts(library.convex_parts(asset_id), com, axes))
             flags = self._pb.URDF_INITIALIZE_SAT_FEATURES if self.params.sat_features else 0

@@ -22,7 +22,8 @@ import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
-#: File name of a generated scene: ``<source scene id>_k<sample index>.npz``.
+#: File name of a generated scene: ``<source scene id>_k<sample index>.npz`` (made a
+#: :func:`spread.io.safe_name`, so that no scene id can lead a file outside ``out_dir``).
 SAMPLE_NAME = "{graph}_k{k}"
 
 
@@ -55,8 +56,11 @@ class SampleItem:
 
     @property
     def name(self) -> str:
-        """The generated scene's id and file stem."""
-        return SAMPLE_NAME.format(graph=self.graph.scene_id, k=self.k)
+        """The generated scene's id and file stem: one safe path component whatever the graph's id
+        (``../../x`` or ``/abs/x`` or ``sub/dir`` become hashed names inside the scenes folder)."""
+        from spread.io import safe_name
+
+        return safe_name(SAMPLE_NAME.format(graph=self.graph.scene_id, k=self.k))
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ checkpoint).
 A generated scene keeps the source's objects (asset ids, categories, order), both graphs and ``room``,
 takes the sampled poses, and records where it came from in two extra arrays (DESIGN §4):
 ``source`` = ``"ckpt=… sampler=… seed=… graph=<scene_id> k=<i>"`` and ``conditioned_on`` = the source
-scene id. Each file is validated and written atomically (:func:`spread.scene.write_scene`).
+scene id; the source's ``room_type`` array, when it has one, is kept too. Each file is validated and written atomically (:func:`spread.scene.write_scene`).
 """
 
 from __future__ import annotations
@@ -81,6 +81,8 @@ def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray
     scene = source.with_poses(translation, rotation, scene_id=item.name)
     scene.extras = {"source": np.asarray(f"{provenance} graph={item.graph.scene_id} k={item.k}"),
                     "conditioned_on": np.asarray(source.scene_id)}
+    if "room_type" in source.extras:  # evaluation reports per room type (imported 3D-FRONT rooms)
+        scene.extras["room_type"] = np.asarray(source.extras["room_type"])
     return scene
 
 

@@ -1,0 +1,22 @@
+"""``spread-import source=spread_release|threed_front src=DIR out_dir=DIR``: another layout → dataset folder
+(:mod:`spread.importers`; ``import`` is a Python keyword, hence the module name)."""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from spread.configs import conf_dir, register
+
+register("import")
+
+
+@hydra.main(config_path=conf_dir(), config_name="import", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    from spread.experiments.commands import import_data, print_import_summary
+
+    print_import_summary(import_data(cfg), cfg.out_dir)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,372 @@
+"""``spread-import``: a source layout → the platform's dataset folder (DESIGN §4), in parallel, resumable.
+
+Phases, all in one spawn-context process pool (``processes``; rooms and assets are independent):
+
+1. **rooms**: the source's room list and splits (:meth:`~spread.importers.base.Source.rooms`);
+2. **scan**: each room's file is read and checked, giving the assets it needs;
+3. **assets**: every asset some readable room needs is imported into ``out_dir/assets`` (mesh cleaned,
+   convex decomposition, record; :mod:`spread.assets.imported`), then the library index is written and
+   the geometry caches built;
+4. **scenes**: each room whose assets all imported becomes ``out_dir/<split>/<scene_id>.npz`` (the file's
+   own graph; the platform's relations are computed from the posed meshes and compared with it).
+
+Resumable: an asset whose inputs and files are unchanged is not imported again (its sidecar record), a
+room whose scene file exists and whose line in ``out_dir/import/rooms.jsonl`` says it succeeded with the
+same inputs (:func:`room_fingerprint`: its folder's files, its assets' content, the options) is not
+converted again, and rooms and assets that failed are tried again. A room that fails loses the scene
+file an earlier run wrote for it. Every file is written atomically, and
+only under ``out_dir`` (scene ids and asset ids are :func:`spread.io.safe_name`s).
+
+Failures never stop the import: each is recorded (tag, file, key, message) and counted in
+``manifest.json``. ``stats.json`` holds the translation bounds of the source's ``dataset_stats.txt``
+when it has them (``stats=source``, the authors' normalisation) or of the train split (``stats=computed``).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from omegaconf import MISSING
+
+from spread import __version__
+from spread.importers.base import SPLITS, AssetRequest, RoomRef, error_record
+from spread.io import append_jsonl, read_jsonl, write_json_atomic
+
+IMPORTER_VERSION = "spread-import-1"
+SOURCES = ("spread_release", "threed_front")
+
+
+@dataclass
+class ImportConfig:
+    """Options of one import (``conf/import.yaml`` documents each): ``source`` (spread_release |
+    threed_front), ``src`` (the source folder) and ``out_dir`` (the dataset folder written) are required."""
+
+    source: str = MISSING
+    src: str = MISSING
+    out_dir: str = MISSING
+    splits: str | None = None
+    room_type: str | None = None
+    future_models: str | None = None
+    val_fraction: float = 0.05
+    processes: int = 2
+    progress: bool = True
+    stats: str = "source"
+    renders: int = 4
+    decomposition: str = "coacd"
+    decomposition_settings: dict = field(default_factory=dict)
+    density: float = 400.0
+    fidelity_samples: int = 2000
+
+    def settings(self):
+        from spread.assets.imported import ImportSettings
+
+        return ImportSettings(self.decomposition, dict(self.decomposition_settings), float(self.density),
+                              int(self.fidelity_samples))
+
+
+def make_source(cfg: ImportConfig):
+    """The :class:`~spread.importers.base.Source` named by ``cfg.source``."""
+    if cfg.source == "spread_release":
+        from spread.importers.spread_release import SpreadRelease
+
+        return SpreadRelease(cfg.src, room_type=cfg.room_type, val_fraction=cfg.val_fraction)
+    if cfg.source == "threed_front":
+        from spread.importers.threed_front import ThreedFront
+
+        return ThreedFront(cfg.src, cfg.splits, cfg.room_type, cfg.future_models, cfg.val_fraction)
+    raise ValueError(f"source={cfg.source!r}: expected one of {', '.join(SOURCES)}")
+
+
+# ---- worker side ---------------------------------------------------------------------------------
+
+_WORKER: dict = {}
+
+
+def _init_worker(cfg: ImportConfig) -> None:
+    import os
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _WORKER.clear()
+    _WORKER["cfg"] = cfg
+    _WORKER["source"] = make_source(cfg)
+
+
+def _library():
+    if "library" not in _WORKER:
+        from spread.assets import AssetLibrary
+
+        _WORKER["library"] = AssetLibrary.load(Path(_WORKER["cfg"].out_dir) / "assets")
+    return _WORKER["library"]
+
+
+def folder_hash(folder: str | Path) -> str:
+    """SHA-256 over the names and bytes of the files directly in a room folder (its inputs; renders and
+    other subfolders are not read by the importers)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    folder = Path(folder)
+    if folder.is_dir():
+        for path in sorted(p for p in folder.iterdir() if p.is_file()):
+            h.update(path.name.encode() + b"\0")
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(chunk)
+    return h.hexdigest()
+
+
+def room_fingerprint(scan: dict, records: dict, source_info: dict) -> str:
+    """What a room's scene file depends on: its folder's files, its assets' content, the importer and options."""
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps({
+        "version": IMPORTER_VERSION, "folder": scan["folder_hash"], "source": source_info,
+        "assets": [records[r.asset_id].content_hash for r in scan["requests"]],
+    }, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _scan_job(ref: RoomRef) -> dict:
+    try:
+        return {"tag": ref.tag, "requests": _WORKER["source"].scan(ref), "error": None,
+                "folder_hash": folder_hash(ref.folder)}
+    except Exception as exc:  # recorded, the import goes on
+        return {"tag": ref.tag, "requests": None, "error": error_record(ref.tag, exc, ref.folder)}
+
+
+def _asset_job(request: AssetRequest) -> dict:
+    started = time.perf_counter()
+    cfg = _WORKER["cfg"]
+    try:
+        record, built = _WORKER["source"].import_asset(Path(cfg.out_dir) / "assets", request, cfg.settings())
+        return {"asset_id": request.asset_id, "record": record.to_dict(), "built": built,
+                "seconds": time.perf_counter() - started, "error": None}
+    except Exception as exc:
+        return {"asset_id": request.asset_id, "record": None, "built": False,
+                "seconds": time.perf_counter() - started,
+                "error": {**error_record(None, exc, request.path), "asset_id": request.asset_id}}
+
+
+def agreement(scene, library) -> dict:
+    """Counts comparing the scene's graph (the file's) with the platform's relations of its posed meshes."""
+    from spread.relations import physical_codes, scene_spatial_codes
+    from spread.scene import PHYSICAL_SUPPORT
+
+    ids = [str(a) for a in scene.asset_id]
+    n = scene.num_objects
+    off = ~np.eye(n, dtype=bool)
+    spatial = scene_spatial_codes(scene.translation, scene.rotation, ids, library)
+    physical = physical_codes(scene.translation, scene.rotation, ids, library).codes
+    file_sup, our_sup = scene.physical == PHYSICAL_SUPPORT, physical == PHYSICAL_SUPPORT
+    return {"spatial_pairs": int(off.sum()), "spatial_equal": int(((spatial == scene.spatial) & off).sum()),
+            "physical_equal": int(((physical == scene.physical) & off).sum()),
+            "file_support": int(file_sup.sum()), "file_support_found": int((file_sup & our_sup).sum()),
+            "platform_support": int(our_sup.sum())}
+
+
+def _room_job(args: tuple[RoomRef, list[AssetRequest], str]) -> dict:
+    from spread.scene import write_scene
+
+    ref, requests, fingerprint = args
+    cfg = _WORKER["cfg"]
+    started = time.perf_counter()
+    try:
+        library = _library()
+        scene, counts = _WORKER["source"].scene(ref, library, requests)
+        scene.validate(source=f"room '{ref.tag}' ({ref.folder})", assets=library)
+        path = Path(cfg.out_dir) / ref.split / f"{ref.scene_id}.npz"
+        write_scene(scene, path)
+        return {"tag": ref.tag, "scene_id": ref.scene_id, "split": ref.split, "ok": True, "fingerprint": fingerprint,
+                "objects": scene.num_objects,
+                "room_type": str(scene.extras["room_type"]) if "room_type" in scene.extras else None,
+                "agreement": agreement(scene, library), "counts": counts,
+                "seconds": time.perf_counter() - started, "error": None}
+    except Exception as exc:
+        return {"tag": ref.tag, "scene_id": ref.scene_id, "split": ref.split, "ok": False,
+                "seconds": time.perf_counter() - started, "error": error_record(ref.tag, exc, ref.folder)}
+
+
+# ---- driver --------------------------------------------------------------------------------------
+
+def _map(pool, fn, items, desc: str, progress: bool):
+    from tqdm.auto import tqdm
+
+    if not items:
+        return []
+    it = pool.imap_unordered(fn, items) if pool is not None else map(fn, items)
+    return list(tqdm(it, total=len(items), desc=desc, unit=desc.split()[0], disable=not progress))
+
+
+def import_dataset(cfg: ImportConfig) -> dict:
+    """Run the import (module docstring); returns the manifest written to ``out_dir/manifest.json``."""
+    from spread.assets import AssetLibrary, AssetRecord
+
+    if cfg.stats not in ("source", "computed"):
+        raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
+    out = Path(cfg.out_dir)
+    source = make_source(cfg)  # fails early (missing split file, bad options) before anything is written
+    room_list = source.rooms()
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "import" / "rooms.jsonl"
+    done = {r["tag"]: r for r in read_jsonl(log_path) if r.get("ok")}
+    t0 = time.perf_counter()
+    processes = max(1, int(cfg.processes))
+    pool = mp.get_context("spawn").Pool(processes, initializer=_init_worker, initargs=(cfg,)) if processes > 1 else None
+    if pool is None:
+        _init_worker(cfg)
+    try:
+        scans = {r["tag"]: r for r in _map(pool, _scan_job, room_list.rooms, "rooms scanned", cfg.progress)}
+        t_scan = time.perf_counter() - t0
+        wanted: dict[str, AssetRequest] = {}
+        for ref in room_list.rooms:
+            for req in scans[ref.tag]["requests"] or []:
+                prev = wanted.setdefault(req.asset_id, req)
+                if prev != req:
+                    scans[ref.tag] = {"tag": ref.tag, "requests": None, "error": {
+                        "tag": ref.tag, "file": ref.folder, "key": None,
+                        "error": f"asset id '{req.asset_id}' is asked for with other inputs by another room"}}
+        t1 = time.perf_counter()
+        asset_results = _map(pool, _asset_job, sorted(wanted.values(), key=lambda r: r.asset_id),
+                             "assets imported", cfg.progress)
+        t_assets = time.perf_counter() - t1
+        records = {r["asset_id"]: AssetRecord.from_dict(r["record"]) for r in asset_results if r["record"]}
+        failed_assets = {r["asset_id"]: r["error"] for r in asset_results if r["error"]}
+        library = AssetLibrary(out / "assets", records)
+        library.save_index(build={"importer": IMPORTER_VERSION, **source.info()})
+        t2 = time.perf_counter()
+        library.build_caches()
+        t_caches = time.perf_counter() - t2
+        room_errors = list(room_list.errors)
+        failed_refs: list[RoomRef] = []
+        jobs = []
+        info = source.info()
+        for ref in room_list.rooms:
+            scan = scans[ref.tag]
+            if scan["error"]:
+                room_errors.append(scan["error"])
+                failed_refs.append(ref)
+                continue
+            missing = [req.asset_id for req in scan["requests"] if req.asset_id in failed_assets]
+            if missing:
+                first = failed_assets[missing[0]]
+                room_errors.append({"tag": ref.tag, "file": first["file"], "key": first["key"],
+                                    "error": f"asset '{missing[0]}' failed to import: {first['error']}"
+                                             + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")})
+                failed_refs.append(ref)
+                continue
+            fingerprint = room_fingerprint(scan, records, info)
+            path = out / ref.split / f"{ref.scene_id}.npz"
+            if done.get(ref.tag, {}).get("fingerprint") == fingerprint and path.exists():
+                continue
+            jobs.append((ref, scan["requests"], fingerprint))
+        t3 = time.perf_counter()
+        results = _map(pool, _room_job, jobs, "rooms written", cfg.progress)
+        t_rooms = time.perf_counter() - t3
+    finally:
+        if pool is not None:
+            pool.close()
+            pool.join()
+    by_tag = {ref.tag: ref for ref in room_list.rooms}
+    for r in results:
+        append_jsonl(log_path, r)
+        if r["ok"]:
+            done[r["tag"]] = r
+        else:
+            room_errors.append(r["error"])
+            failed_refs.append(by_tag[r["tag"]])
+    for ref in failed_refs:  # a file left by an earlier run of a room that fails now is not data any more
+        done.pop(ref.tag, None)
+        (out / ref.split / f"{ref.scene_id}.npz").unlink(missing_ok=True)
+    manifest = write_manifest(out, cfg, source, room_list, library, done, room_errors, failed_assets, asset_results,
+                              {"seconds_scan": t_scan, "seconds_assets": t_assets, "seconds_caches": t_caches,
+                               "seconds_rooms": t_rooms, "rooms_written": sum(1 for r in results if r["ok"]),
+                               "assets_built": sum(1 for r in asset_results if r["built"])})
+    if cfg.renders > 0:
+        from spread.procgen.dataset import write_renders
+
+        write_renders(out, library, cfg.renders)
+    return manifest
+
+
+def _sum(rows, key) -> int:
+    return int(sum(r.get(key, 0) for r in rows))
+
+
+def write_manifest(out: Path, cfg: ImportConfig, source, room_list, library, done: dict, room_errors: list,
+                   failed_assets: dict, asset_results: list, run: dict) -> dict:
+    """stats.json and manifest.json of the imported folder (module docstring)."""
+    from spread.data.stats import compute_stats, save_stats
+    from spread.importers.spread_release import read_dataset_stats
+    from spread.procgen.dataset import dataset_statistics
+    from spread.scene import read_scene
+
+    current = {r.tag: r for r in room_list.rooms}
+    good = {t: r for t, r in done.items() if t in current and (out / r["split"] / f"{r['scene_id']}.npz").exists()}
+    files = {s: sorted(out / s / f"{r['scene_id']}.npz" for r in good.values() if r["split"] == s) for s in SPLITS}
+    scenes = {s: [read_scene(p, assets=library) for p in fs] for s, fs in files.items()}
+    all_scenes = [sc for v in scenes.values() for sc in v]
+    stats = None
+    if all_scenes:
+        stats = compute_stats(scenes["train"] or all_scenes)
+        source_stats = read_dataset_stats(Path(cfg.src) / "dataset_stats.txt")
+        bounds = (source_stats or {}).get("bounds_translations")
+        stats["bounds_source"] = "computed from the train split"
+        if cfg.stats == "source" and isinstance(bounds, list) and len(bounds) == 6:
+            stats["bounds_translations"] = [float(v) for v in bounds]
+            stats["bounds_source"] = f"{Path(cfg.src) / 'dataset_stats.txt'} (bounds_translations)"
+        save_stats(out / "stats.json", stats)
+    agreements = [r["agreement"] for r in good.values()]
+    agree = {k: _sum(agreements, k) for k in ("spatial_pairs", "spatial_equal", "physical_equal", "file_support",
+                                               "file_support_found", "platform_support")}
+    agree["spatial_agreement"] = agree["spatial_equal"] / agree["spatial_pairs"] if agree["spatial_pairs"] else None
+    agree["physical_agreement"] = agree["physical_equal"] / agree["spatial_pairs"] if agree["spatial_pairs"] else None
+    agree["file_support_recall"] = (agree["file_support_found"] / agree["file_support"]
+                                    if agree["file_support"] else None)
+    counts = Counter()
+    for r in good.values():
+        for k, v in (r.get("counts") or {}).items():
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                counts[k] += v
+    fidelity = [r["record"]["source"]["decomposition"].get("fidelity", {}).get("hausdorff")
+                for r in asset_results if r["record"] and "decomposition" in r["record"].get("source", {})]
+    fidelity = [f for f in fidelity if f is not None]
+    records = list(library.records.values())
+    n_rooms = run["rooms_written"]
+    manifest = {
+        "generator": IMPORTER_VERSION,
+        "spread_version": __version__,
+        "source": source.info(),
+        "config": asdict(cfg),
+        "splits": room_list.splits,
+        "counts": {s: len(v) for s, v in scenes.items()},
+        "room_types": dict(Counter(str(sc.extras["room_type"]) for sc in all_scenes if "room_type" in sc.extras)),
+        "failed_rooms": len(room_errors),
+        "failed_assets": len(failed_assets),
+        "errors": {"rooms": room_errors, "assets": list(failed_assets.values())},
+        "categories": library.categories,
+        "assets": len(library),
+        "meshes": {"closed": sum(1 for r in records if r.source.get("closed")),
+                   "open": sum(1 for r in records if r.source and not r.source.get("closed")),
+                   "boxes": sum(1 for r in records if "box" in r.tags)},
+        "decomposition": {"method": cfg.decomposition, "settings": dict(cfg.decomposition_settings),
+                          "hausdorff_m": {"median": float(np.median(fidelity)), "max": float(np.max(fidelity))}
+                          if fidelity else None},
+        "relations_agreement": agree,
+        "room_counts": dict(counts),
+        "statistics": dataset_statistics(all_scenes) if all_scenes else None,
+        "stats_bounds": stats["bounds_source"] if stats else None,
+        "this_run": {
+            **{k: (round(v, 2) if isinstance(v, float) else v) for k, v in run.items()},
+            "assets_per_second": round(run["assets_built"] / run["seconds_assets"], 3)
+            if run["assets_built"] and run["seconds_assets"] > 0 else None,
+            "rooms_per_second": round(n_rooms / run["seconds_rooms"], 3)
+            if n_rooms and run["seconds_rooms"] > 0 else None,
+        },
+    }
+    write_json_atomic(out / "manifest.json", manifest)
+    return manifest

@@ -1,0 +1,165 @@
+"""``source=spread_release``: the layout the SPREAD authors publish their processed ProcTHOR data in.
+
+Layout of ``src`` (reference_implementation.md §1)::
+
+    train_test_split.json        {"train": [tag, ...], "val": [...], optionally "test": [...]}
+    <tag>/boxes.npz              one room: index 0 is a placeholder (dropped)
+    meshes/<name>_unpacked.glb   one mesh per ``obj_names`` entry (``<name>.glb`` is accepted too)
+    dataset_stats.txt            JSON: ``bounds_translations`` etc. (optional)
+
+``boxes.npz`` keys used: ``T_bbox`` (N+1, 3) world bbox centres, ``R_bbox`` (N+1, 3, 3) world-from-local,
+``bbox_center`` (N+1, 3) the local bbox centre, ``obj_names`` (N+1,), ``relations`` (K, 3) triples
+``[s, p, o]`` (p: 0 empty, 1 support, 2 contact), ``regions_bbox`` (N+1, N+1) spatial codes (our
+vocabulary), optional ``miche_feature``, ``xyz``, ``normal`` (kept as extras ``shape_tokens``,
+``surface_points``, ``surface_normals``, in the release's object frame). Read with ``allow_pickle=False``.
+
+Frames. The release places a mesh by ``v_world = R · (v_file − bbox_center) + T``. The library's
+canonical mesh is the file's mesh minus its own bbox centre ``c`` (``AssetRecord.source
+["canonical_offset"]``), so ``translation = T + R · (c − bbox_center)`` and ``rotation = R``; when the
+file's ``bbox_center`` is the mesh's bbox centre (as the release intends) the translation is ``T_bbox``.
+The manifest counts objects whose ``bbox_center`` differs from the mesh's by more than 1 mm.
+
+Splits. ``train`` and ``val`` are the file's lists. When there is no ``test`` list the authors' held-out
+list — their ``val``, whose tags read ``ProcTHOR-Test-…`` — is the **test** split, and **val** is carved
+from ``train``: the ``max(1, round(val_fraction · n))`` tags with the smallest SHA-256 (independent of
+order; training needs a val split). A tag
+listed in two splits is kept in the later of test, val, train only (no leakage); both rules and the
+counts go to the manifest.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record
+from spread.io import safe_name
+from spread.scene import SceneFormatError, load_npz_arrays, reference_scene
+
+SPLIT_FILE = "train_test_split.json"
+#: Objects whose ``bbox_center`` and mesh bbox centre differ by more than this (metres) are counted.
+CENTRE_TOLERANCE = 1e-3
+
+
+class SpreadRelease(Source):
+    """The release layout (module docstring). ``room_type``: a label stored in every scene (the release
+    has none of its own); ``val_fraction``: share of train carved into val when the file has no test list."""
+
+    name = "spread_release"
+
+    def __init__(self, src: str | Path, room_type: str | None = None, val_fraction: float = 0.05):
+        self.src = Path(src)
+        self.room_type = room_type
+        self.val_fraction = float(val_fraction)
+        if not self.src.is_dir():
+            raise FileNotFoundError(f"src={self.src}: not a folder")
+
+    def info(self) -> dict:
+        return {"source": self.name, "src": str(self.src), "room_type": self.room_type,
+                "val_fraction": self.val_fraction,
+                "graph": "the file's: relations (physical), regions_bbox (spatial)"}
+
+    # ---- rooms ---------------------------------------------------------------------------------
+    def rooms(self) -> RoomList:
+        path = self.src / SPLIT_FILE
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: split file missing (the release layout lists its tags per split "
+                                    f"in {SPLIT_FILE}: {{\"train\": [...], \"val\": [...]}})")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a JSON object of tag lists, got {type(data).__name__}")
+        unknown = sorted(set(data) - {"train", "val", "test"})
+        lists = {}
+        for key in ("train", "val", "test"):
+            if key in data:
+                if not isinstance(data[key], list):
+                    raise ValueError(f"{path}: key '{key}' must be a list of tags, got {type(data[key]).__name__}")
+                lists[key] = data[key]
+        if "train" not in lists:
+            raise ValueError(f"{path}: key 'train' missing")
+        errors, good = [], {}
+        for key, tags in lists.items():
+            ok = []
+            for k, tag in enumerate(tags):
+                try:
+                    ok.append(check_tag(tag, self.src, str(path), f"{key}[{k}]"))
+                except SceneFormatError as exc:
+                    errors.append(error_record(str(tag), exc))
+            good[key] = ok
+        if "test" in good:
+            rule = "the file's train / val / test lists"
+            split_of = {t: s for s in ("train", "val", "test") for t in good.get(s, [])}
+        else:
+            rule = (f"no test list in {SPLIT_FILE}: test = the file's val list (the authors' held-out rooms); "
+                    f"val = the max(1, round({self.val_fraction:g} · n)) train tags of smallest sha256")
+            carved = carve_val(good["train"], self.val_fraction)
+            split_of = {t: "val" if t in carved else "train" for t in good["train"]}
+            for t in good.get("val", []):
+                split_of[t] = "test"
+        listed = sum(len(v) for v in good.values())
+        rooms = [RoomRef(t, s, str(self.src / t)) for t, s in sorted(split_of.items())]
+        splits = {"rule": rule, "file": str(path), "ignored_keys": unknown,
+                  "listed_in_two_splits": listed - len(split_of),
+                  "counts": {s: sum(1 for r in rooms if r.split == s) for s in ("train", "val", "test")}}
+        return RoomList(rooms, errors, splits)
+
+    # ---- per room ------------------------------------------------------------------------------
+    def _arrays(self, ref: RoomRef) -> tuple[str, dict]:
+        path = Path(ref.folder) / "boxes.npz"
+        if not path.is_file():
+            raise SceneFormatError(str(path), None, f"tag '{ref.tag}' has no boxes.npz")
+        return str(path), load_npz_arrays(path)
+
+    def mesh_path(self, name: str) -> Path | None:
+        for candidate in (f"{name}_unpacked.glb", f"{name}.glb"):
+            if "/" in candidate or "\\" in candidate or candidate.startswith(".."):
+                return None
+            p = self.src / "meshes" / candidate
+            if p.is_file():
+                return p
+        return None
+
+    def scan(self, ref: RoomRef) -> list[AssetRequest]:
+        file, arrays = self._arrays(ref)
+        scene = reference_scene(arrays, file, ref.scene_id)
+        requests = []
+        for k, name in enumerate(scene.asset_id.tolist()):
+            path = self.mesh_path(name)
+            if path is None:
+                raise SceneFormatError(file, f"obj_names[{k + 1}]",
+                                       f"object '{name}' has no mesh (looked for {self.src / 'meshes' / (name + '_unpacked.glb')})")
+            requests.append(AssetRequest(safe_name(name), str(scene.category[k]), "mesh", str(path)))
+        return requests
+
+    def scene(self, ref: RoomRef, library, requests: list[AssetRequest]):
+        file, arrays = self._arrays(ref)
+        scene = reference_scene(arrays, file, ref.scene_id)
+        scene.asset_id = np.array([r.asset_id for r in requests])
+        R = scene.rotation.astype(np.float64)
+        offsets = np.array([library[r.asset_id].source.get("canonical_offset", [0.0, 0.0, 0.0]) for r in requests])
+        file_centres = np.asarray(arrays["bbox_center"], np.float64)[1:] if "bbox_center" in arrays else offsets
+        shift = offsets - file_centres
+        scene.translation = (scene.translation.astype(np.float64) + np.einsum("nij,nj->ni", R, shift)).astype(np.float32)
+        scene.extras["source_tag"] = np.asarray(ref.tag)
+        scene.extras["import_source"] = np.asarray(self.name)
+        if self.room_type:
+            scene.extras["room_type"] = np.asarray(self.room_type)
+        return scene, {"bbox_center_differs": int((np.linalg.norm(shift, axis=1) > CENTRE_TOLERANCE).sum())}
+
+
+def read_dataset_stats(path: Path) -> dict | None:
+    """The source's ``dataset_stats.txt`` (JSON) or None when absent; errors name the file."""
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    return data

@@ -1,0 +1,292 @@
+"""``source=threed_front``: InstructScene's (and ATISS', DiffuScene's) preprocessed 3D-FRONT rooms.
+
+Layout of ``src`` (one room type per folder, as those projects preprocess it)::
+
+    <houseUUID>_<RoomId>/boxes.npz   one room
+    dataset_stats.txt                JSON: ``class_labels`` (the one-hot columns), ``object_types``, bounds
+
+and ``splits=CSV``: lines ``RoomId,train|val|test`` (the projects' ``*_threed_front_splits.csv``; a line
+may also name the whole folder). Rooms whose RoomId the CSV does not list are skipped and counted. When
+it has no val rows, val is carved from train as for the release (``val_fraction``, by tag hash).
+
+``boxes.npz`` keys used: ``class_labels`` (N, C) one-hot, ``translations`` (N, 3) bbox centres relative
+to the floor plan's bbox centre (metres, y-up, floor y = 0), ``sizes`` (N, 3) **half** extents, ``angles``
+(N, 1) rotation about +y in radians, ``jids`` (N,) 3D-FUTURE model ids, ``floor_plan_vertices`` /
+``floor_plan_faces`` / ``floor_plan_centroid`` (kept, centred, as extras and the ``room`` bounds),
+``scene_type`` (kept). Read with ``allow_pickle=False``.
+
+Frames: the projects place a model by ``v_world = R_y(θ) · (s ⊙ v_model − c) + t`` with ``R_y(θ)`` the
+right-handed rotation about +y ([[cos θ, 0, sin θ], [0, 1, 0], [−sin θ, 0, cos θ]]; their row-vector code
+writes its transpose), so ``rotation = R_y(angle)`` and ``translation = translations``.
+
+Meshes: with ``future_models=DIR`` each object is ``DIR/<jid>/raw_model.obj`` scaled per axis to
+``2 · sizes`` (rounded to 1 mm: asset id ``<jid>-<x>x<y>x<z>`` in mm); one decomposition per model is
+reused for every scale. Without it an oriented box of ``2 · sizes`` stands in (asset ``box-<class>-…``)
+and the manifest says so.
+
+Graph: 3D-FRONT has no physical relations; the platform computes them from the posed meshes
+(:func:`spread.relations.physical_codes`). Spatial codes are the file's own when the room folder has
+InstructScene's cached ``relations.npy`` (triples over its 10 predicates, mapped to ours: "closely X"
+→ X; pairs it leaves out — farther than 3 m — get the platform's code, and are counted); otherwise the
+platform's codes from the posed meshes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from spread.importers.base import SPLITS, AssetRequest, RoomList, RoomRef, Source, carve_val, error_record
+from spread.io import safe_name
+from spread.scene import (
+    SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT, SPATIAL_SELF, Scene,
+    SceneFormatError, load_npz_arrays,
+)
+
+ROOM_TYPES = ("bedroom", "livingroom", "diningroom")
+#: InstructScene's predicate vocabulary (index order) → our spatial codes (DESIGN §3).
+INSTRUCTSCENE_PREDICATES = {
+    0: SPATIAL_ABOVE, 1: SPATIAL_LEFT, 2: SPATIAL_FRONT, 3: SPATIAL_LEFT, 4: SPATIAL_FRONT,
+    5: SPATIAL_BELOW, 6: SPATIAL_RIGHT, 7: SPATIAL_BEHIND, 8: SPATIAL_RIGHT, 9: SPATIAL_BEHIND,
+}
+REVERSE = {SPATIAL_ABOVE: SPATIAL_BELOW, SPATIAL_BELOW: SPATIAL_ABOVE, SPATIAL_LEFT: SPATIAL_RIGHT,
+           SPATIAL_RIGHT: SPATIAL_LEFT, SPATIAL_FRONT: SPATIAL_BEHIND, SPATIAL_BEHIND: SPATIAL_FRONT}
+
+
+def rotation_y(angles: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) right-handed rotations about +y by ``angles`` (N,) radians."""
+    c, s = np.cos(angles), np.sin(angles)
+    R = np.zeros((len(angles), 3, 3))
+    R[:, 0, 0], R[:, 0, 2], R[:, 1, 1], R[:, 2, 0], R[:, 2, 2] = c, s, 1.0, -s, c
+    return R
+
+
+def read_splits(path: Path) -> dict[str, str]:
+    """``{id: split}`` of a splits CSV; errors name the file and line."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: splits file missing (lines 'RoomId,train|val|test')")
+    out: dict[str, str] = {}
+    with open(path, newline="") as fh:
+        for line_no, row in enumerate(csv.reader(fh), start=1):
+            row = [c.strip() for c in row]
+            if not row or not any(row):
+                continue
+            if len(row) < 2 or row[1] not in SPLITS:
+                if line_no == 1:
+                    continue  # a header line
+                raise ValueError(f"{path}: line {line_no}: expected 'RoomId,train|val|test', got {','.join(row)!r}")
+            out[row[0]] = row[1]
+    return out
+
+
+def room_id_of(tag: str) -> str:
+    """The RoomId of a ``<houseUUID>_<RoomId>`` folder name (the part after the first ``_``)."""
+    return tag.split("_", 1)[1] if "_" in tag else tag
+
+
+def size_mm(extents: np.ndarray) -> str:
+    return "x".join(f"{int(round(1000 * v)):04d}" for v in extents)
+
+
+class ThreedFront(Source):
+    """InstructScene's 3D-FRONT layout (module docstring)."""
+
+    name = "threed_front"
+
+    def __init__(self, src: str | Path, splits: str | Path, room_type: str, future_models: str | Path | None = None,
+                 val_fraction: float = 0.05):
+        self.src = Path(src)
+        self.val_fraction = float(val_fraction)
+        if not self.src.is_dir():
+            raise FileNotFoundError(f"src={self.src}: not a folder")
+        if not splits:
+            raise ValueError("source=threed_front needs splits=CSV (lines 'RoomId,train|val|test')")
+        self.splits_path = Path(splits)
+        if room_type not in ROOM_TYPES:
+            raise ValueError(f"source=threed_front: room_type={room_type!r}, expected one of {', '.join(ROOM_TYPES)}")
+        self.room_type = room_type
+        self.future_models = Path(future_models) if future_models else None
+        if self.future_models is not None and not self.future_models.is_dir():
+            raise FileNotFoundError(f"future_models={self.future_models}: not a folder")
+        stats_path = self.src / "dataset_stats.txt"
+        if not stats_path.is_file():
+            raise FileNotFoundError(f"{stats_path}: missing (it names the one-hot class_labels columns)")
+        try:
+            self.stats = json.loads(stats_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{stats_path}: not valid JSON ({exc})") from exc
+        self.class_labels = [str(c) for c in self.stats.get("class_labels") or []]
+        self.object_types = [str(c) for c in self.stats.get("object_types") or []]
+        if not self.class_labels and not self.object_types:
+            raise ValueError(f"{stats_path}: key 'class_labels' missing or empty")
+
+    def info(self) -> dict:
+        return {"source": self.name, "src": str(self.src), "splits": str(self.splits_path),
+                "room_type": self.room_type,
+                "future_models": str(self.future_models) if self.future_models else None,
+                "meshes": "3D-FUTURE raw_model.obj scaled to the file's sizes" if self.future_models
+                else "oriented boxes of the file's sizes (no future_models given)",
+                "graph": "physical: the platform's, from the posed meshes (3D-FRONT has none); spatial: the "
+                         "room's relations.npy when present, else the platform's"}
+
+    def rooms(self) -> RoomList:
+        split_of = read_splits(self.splits_path)
+        rooms, errors, skipped = [], [], 0
+        for folder in sorted(p for p in self.src.iterdir() if p.is_dir()):
+            tag = folder.name
+            split = split_of.get(tag, split_of.get(room_id_of(tag)))
+            if split is None:
+                skipped += 1
+                continue
+            rooms.append(RoomRef(tag, split, str(folder)))
+        rule = f"the splits file's RoomId → split ({self.splits_path})"
+        if not any(r.split == "val" for r in rooms):  # training needs a val split
+            carved = carve_val([r.tag for r in rooms if r.split == "train"], self.val_fraction)
+            rooms = [RoomRef(r.tag, "val", r.folder) if r.tag in carved else r for r in rooms]
+            rule += (f"; no val rows: val = the max(1, round({self.val_fraction:g} · n)) train rooms of "
+                     f"smallest sha256")
+        splits = {"rule": rule, "file": str(self.splits_path),
+                  "not_in_splits": skipped,
+                  "counts": {s: sum(1 for r in rooms if r.split == s) for s in SPLITS}}
+        return RoomList(rooms, errors, splits)
+
+    def _arrays(self, ref: RoomRef) -> tuple[str, dict]:
+        path = Path(ref.folder) / "boxes.npz"
+        if not path.is_file():
+            raise SceneFormatError(str(path), None, f"room '{ref.tag}' has no boxes.npz")
+        file = str(path)
+        arrays = load_npz_arrays(path)
+        for key in ("class_labels", "translations", "sizes", "angles"):
+            if key not in arrays:
+                raise SceneFormatError(file, key, "missing required key of the 3D-FRONT boxes.npz layout")
+        labels = arrays["class_labels"]
+        if labels.ndim != 2 or labels.dtype.kind not in "fiub":
+            raise SceneFormatError(file, "class_labels", f"expected a one-hot (N, C) array, got shape {labels.shape}")
+        n = labels.shape[0]
+        if n == 0:
+            raise SceneFormatError(file, "class_labels", "room has no objects")
+        for key, shape in (("translations", (n, 3)), ("sizes", (n, 3))):
+            if arrays[key].shape != shape:
+                raise SceneFormatError(file, key, f"shape {arrays[key].shape}, expected {shape} (N = {n} from class_labels)")
+        if arrays["angles"].reshape(-1).shape != (n,):
+            raise SceneFormatError(file, "angles", f"shape {arrays['angles'].shape}, expected ({n}, 1)")
+        for key in ("translations", "sizes", "angles"):
+            if arrays[key].dtype.kind not in "fiu":
+                raise SceneFormatError(file, key, f"expected numbers, got dtype {arrays[key].dtype}")
+            bad = ~np.isfinite(arrays[key].astype(np.float64))
+            if bad.any():
+                idx = np.argwhere(bad)[0].tolist()
+                raise SceneFormatError(file, key, f"non-finite value at index {idx}")
+        if (arrays["sizes"] <= 0).any():
+            idx = np.argwhere(arrays["sizes"] <= 0)[0].tolist()
+            raise SceneFormatError(file, "sizes", f"half extent {arrays['sizes'][tuple(idx)]} ≤ 0 at index {idx}")
+        if "jids" in arrays and (arrays["jids"].shape != (n,) or arrays["jids"].dtype.kind not in "US"):
+            raise SceneFormatError(file, "jids", f"expected (N,) = ({n},) strings, got shape {arrays['jids'].shape} "
+                                                 f"dtype {arrays['jids'].dtype}")
+        return file, arrays
+
+    def categories(self, file: str, labels: np.ndarray) -> list[str]:
+        width = labels.shape[1]
+        names = self.class_labels if len(self.class_labels) == width else (
+            self.object_types if len(self.object_types) == width else None)
+        if names is None:
+            raise SceneFormatError(file, "class_labels", f"{width} columns, but dataset_stats.txt has "
+                                                         f"{len(self.class_labels)} class_labels and "
+                                                         f"{len(self.object_types)} object_types")
+        index = labels.argmax(1)
+        out = []
+        for k, i in enumerate(index):
+            name = names[int(i)]
+            if name in ("start", "end") or labels[k].max() <= 0:
+                raise SceneFormatError(file, "class_labels", f"object {k} has class '{name}' (not an object)")
+            out.append(name)
+        return out
+
+    def scan(self, ref: RoomRef) -> list[AssetRequest]:
+        file, arrays = self._arrays(ref)
+        cats = self.categories(file, arrays["class_labels"])
+        extents = np.round(2.0 * arrays["sizes"].astype(np.float64), 3)
+        extents = np.maximum(extents, 0.001)
+        requests = []
+        for k, (cat, ext) in enumerate(zip(cats, extents)):
+            size = tuple(float(v) for v in ext)
+            if self.future_models is None:
+                requests.append(AssetRequest(safe_name(f"box-{cat}-{size_mm(ext)}"), cat, "box", size=size))
+                continue
+            if "jids" not in arrays:
+                raise SceneFormatError(file, "jids", "missing: future_models was given, so every object needs its jid")
+            jid = str(arrays["jids"][k])
+            path = self.future_models / jid / "raw_model.obj"
+            if not jid or "/" in jid or "\\" in jid or jid in (".", "..") or not path.is_file():
+                raise SceneFormatError(file, f"jids[{k}]", f"object '{jid}' has no mesh (looked for {path})")
+            requests.append(AssetRequest(safe_name(f"{jid}-{size_mm(ext)}"), cat, "mesh", str(path), size))
+        return requests
+
+    def file_spatial(self, ref: RoomRef, n: int) -> tuple[np.ndarray, int] | None:
+        """(spatial codes with -1 where the file says nothing, pairs filled) from ``relations.npy``, or None."""
+        path = Path(ref.folder) / "relations.npy"
+        if not path.is_file():
+            return None
+        try:
+            rel = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise SceneFormatError(str(path), None, f"unreadable or an object array (refused): {exc}") from exc
+        codes = np.full((n, n), -1, np.int64)
+        if rel.size:
+            if rel.dtype.kind not in "iu" or rel.ndim != 2 or rel.shape[1] != 3:
+                raise SceneFormatError(str(path), None, f"expected (K, 3) integer triples, got {rel.shape} {rel.dtype}")
+            for s, p, o in rel.tolist():
+                if not (0 <= s < n and 0 <= o < n) or p not in INSTRUCTSCENE_PREDICATES:
+                    continue  # virtual root relations and out-of-vocabulary predicates
+                codes[s, o] = INSTRUCTSCENE_PREDICATES[p]
+                codes[o, s] = REVERSE[INSTRUCTSCENE_PREDICATES[p]]
+        np.fill_diagonal(codes, SPATIAL_SELF)
+        return codes, int((codes < 0).sum())
+
+    def scene(self, ref: RoomRef, library, requests: list[AssetRequest]):
+        from spread.relations import physical_codes, scene_aabbs, scene_spatial_codes
+
+        file, arrays = self._arrays(ref)
+        n = len(requests)
+        T = arrays["translations"].astype(np.float64)
+        R = rotation_y(arrays["angles"].astype(np.float64).reshape(-1))
+        ids = [r.asset_id for r in requests]
+        computed = scene_spatial_codes(T, R, ids, library)
+        given = self.file_spatial(ref, n)
+        filled = 0
+        if given is None:
+            spatial = computed
+        else:
+            spatial, filled = given
+            spatial = np.where(spatial < 0, computed, spatial).astype(np.int8)
+        physical = physical_codes(T, R, ids, library).codes
+        lo, hi = scene_aabbs(T, R, ids, library)
+        extras = {"source_tag": np.asarray(ref.tag), "import_source": np.asarray(self.name),
+                  "room_type": np.asarray(self.room_type)}
+        room_lo, room_hi = lo.min(0), hi.max(0)
+        if "floor_plan_vertices" in arrays and "floor_plan_centroid" in arrays:
+            fv = arrays["floor_plan_vertices"].astype(np.float64)
+            fc = arrays["floor_plan_centroid"].astype(np.float64).reshape(-1)
+            if fv.ndim == 2 and fv.shape[1] == 3 and fc.shape == (3,) and np.isfinite(fv).all() and np.isfinite(fc).all():
+                centred = fv - fc
+                extras["floor_plan_vertices"] = centred.astype(np.float32)
+                if "floor_plan_faces" in arrays and arrays["floor_plan_faces"].dtype.kind in "iu":
+                    extras["floor_plan_faces"] = arrays["floor_plan_faces"].astype(np.int32)
+                room_lo = np.minimum(room_lo, centred.min(0))
+                room_hi = np.maximum(room_hi, centred.max(0))
+        room_lo[1] = min(0.0, room_lo[1])
+        for key in ("scene_type", "scene_id", "scene_uid"):
+            if key in arrays and arrays[key].dtype.kind in "US" and arrays[key].shape == ():
+                extras[f"source_{key}"] = np.asarray(str(arrays[key]))
+        if "jids" in arrays:
+            extras["jids"] = arrays["jids"].astype(str)
+        scene = Scene(ref.scene_id, np.array(ids), np.array([r.category for r in requests]), T.astype(np.float32),
+                      R.astype(np.float32), spatial.astype(np.int8), physical, room=np.stack([room_lo, room_hi]),
+                      extras=extras)
+        return scene, {"spatial_pairs_filled": filled, "file_spatial": given is not None}
+
+
+__all__ = ["ThreedFront", "read_splits", "rotation_y", "error_record"]

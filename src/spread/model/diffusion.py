@@ -102,9 +102,10 @@ class Sampler:
     def num_steps(self) -> int:
         return int(self.steps)
 
-    def scheduler(self):
-        """A fresh diffusers scheduler for this sampler, from the training config."""
-        base = training_scheduler().config
+    def scheduler(self, schedule: Mapping | None = None):
+        """A fresh diffusers scheduler for this sampler, from the training config; ``schedule`` overrides keys
+        of it (``{"beta_schedule": "linear"}`` for a model trained on another noise schedule)."""
+        base = training_scheduler(**dict(schedule or {})).config
         if self.kind == "ddpm":  # fewer than 1000 steps: ancestral sampling on a strided schedule
             return DDPMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
         if self.kind == "ddim":
@@ -115,16 +116,18 @@ class Sampler:
     @torch.no_grad()
     def sample(self, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
                generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
-               sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+               sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32,
+               schedule: Mapping | None = None) -> torch.Tensor:
         """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding.
 
         Hooks run with autograd off; a guidance hook that needs gradients enables them itself
-        (``torch.enable_grad()``).
+        (``torch.enable_grad()``). ``schedule``: overrides of the training noise schedule (as in
+        :meth:`scheduler`), for models trained on another one.
         """
         mask = mask.bool()
         device = mask.device
         keep = mask[..., None].to(dtype)
-        scheduler = self.scheduler()
+        scheduler = self.scheduler(schedule)
         scheduler.set_timesteps(self.num_steps, device=device)
         alphas = scheduler.alphas_cumprod.to(device=device, dtype=torch.float64)
         if isinstance(generator, (list, tuple)):  # one generator per scene: a scene's noise ignores its batch

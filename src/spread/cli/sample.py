@@ -67,7 +67,7 @@ def wandb_tags(cfg: DictConfig, manifest: dict) -> list[str]:
     # mmap: the hyperparameters only, without reading the weights into memory
     hp = torch.load(str(cfg.ckpt), map_location="cpu", weights_only=False, mmap=True).get("hyper_parameters", {})
     guidance = manifest.get("guidance")
-    tags = [str(hp.get("variant", "unknown")), sampler_label(Sampler.from_config(
+    tags = [str(hp.get("variant") or hp.get("method", "unknown")), sampler_label(Sampler.from_config(
         OmegaConf.to_container(cfg.sampler, resolve=True)))]
     if guidance:
         tags += ["guidance", f"guidance={guidance['mode']}"] + [f"{k}={guidance[k]:g}"

@@ -102,6 +102,7 @@ class SampleWorker:
                  guidance=None):
         import torch
 
+        from spread.baselines import load_module
         from spread.data import SceneDataset
         from spread.model import Sampler
         from spread.model.module import SceneDiffusion
@@ -113,10 +114,13 @@ class SampleWorker:
         self.use_ema, self.graph_scale = bool(use_ema), float(graph_scale)
         self.scenes_dir = Path(scenes_dir)
         checkpoint = torch.load(ckpt, map_location="cpu", weights_only=False)
-        self.model = SceneDiffusion.load_from_checkpoint(ckpt, map_location=self.device).eval()
+        self.model = load_module(ckpt, map_location=self.device).eval()  # SceneDiffusion or a baseline
         data = checkpoint_data_settings(checkpoint, self.model)
         self.dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
         self.guidance = active_guidance(guidance)
+        if self.guidance is not None and not isinstance(self.model, SceneDiffusion):
+            raise ValueError(f"guidance={self.guidance.mode}: SPREAD's guidance needs a SceneDiffusion checkpoint, "
+                             f"{ckpt} is a '{self.model.hparams.method}' baseline (sample it with guidance=none)")
         self.provenance = (f"ckpt={ckpt} sampler={sampler_label(self.sampler)} seed={int(seed)}"
                            + (f" guidance={guidance_label(self.guidance)}" if self.guidance else ""))
         self.guidance_stats: dict = {}

@@ -13,9 +13,7 @@ One small generated dataset (12 rooms over 12 categories: 7 train, 2 val, 3 test
 
 from __future__ import annotations
 
-import json
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np

@@ -37,7 +37,6 @@ reachability terms of PhyScene are off, as in its collision config.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import torch

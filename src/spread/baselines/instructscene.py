@@ -27,7 +27,6 @@ seeds as SPREAD). This is SPREAD's graph denoiser without shape tokens, geometry
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch

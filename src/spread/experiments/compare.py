@@ -37,8 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spread.experiments.ablation import (Ablation, Commands, Ledger, Stage, StageError, command_line,
-                                         sampling_inputs, scenes_complete)
+from spread.experiments.ablation import Ablation, Commands, Ledger, Stage, command_line, scenes_complete
 from spread.experiments.tables import Column, write_tables
 from spread.io import file_sha256, write_json_atomic
 

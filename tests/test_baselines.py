@@ -161,7 +161,7 @@ def test_diffuscene_slot_mask_hides_empty_slots_from_the_loss(batch, facts):
     garbage["mask"][:, N] = True  # the same slots marked real do count: the check above can fail
     garbage["category_index"][:, N] = 0
     counted = model.loss(garbage, model.network, generator=torch.Generator().manual_seed(3))["loss"]
-    assert abs(float(counted - loss)) > 1e-3
+    assert abs(float((counted - loss).detach())) > 1e-3
 
 
 def test_box_iou_guidance_moves_overlapping_boxes_apart(facts):

@@ -32,7 +32,7 @@ from pathlib import Path
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 #: The commands whose schemas :func:`register` knows, and the config groups each one composes.
-COMMANDS = ("generate", "import", "train", "sample", "evaluate", "ablate", "report")
+COMMANDS = ("generate", "import", "train", "sample", "evaluate", "ablate", "compare", "report")
 
 
 def conf_dir() -> str:
@@ -97,17 +97,17 @@ def register(*commands: str) -> None:
             raise ValueError(f"unknown command '{name}' (known: {COMMANDS})")
     wanted = set(commands or COMMANDS)
     _common()
-    if wanted & {"generate", "ablate"}:
+    if wanted & {"generate", "ablate", "compare"}:
         _generate()
     if "import" in wanted:
         _store(None, "import_schema", import_command())
-    if wanted & {"train", "sample", "ablate"}:
+    if wanted & {"train", "sample", "ablate", "compare"}:
         _model()
-    if wanted & {"sample", "evaluate", "ablate"}:
+    if wanted & {"sample", "evaluate", "ablate", "compare"}:
         _evaluation()
-    if wanted & {"sample", "ablate"}:
+    if wanted & {"sample", "ablate", "compare"}:
         _store(None, "sample_schema", sample_command())
-    if wanted & {"evaluate", "ablate"}:
+    if wanted & {"evaluate", "ablate", "compare"}:
         _store(None, "evaluate_schema", evaluate_command())
 
 

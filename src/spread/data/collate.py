@@ -12,12 +12,15 @@ physical        (B, N, N) int64              3 = :data:`PHYSICAL_PAD` (vocabular
 asset_index     (B, N) int64                 −1 = :data:`INDEX_PAD` (never a valid index: use the
 category_index  (B, N) int64                 mask, or map −1 to a pad embedding, before looking up)
 points, normals (B, N, M, 3)                 0
+extents         (B, N, 3)                    0
+room            (B, 2, 3)                    (per scene, stacked: no padding)
 scene_id        list of B str
 num_objects     (B,) int64                   N of each scene
 =============== ============================ ==================================================
 
-Pairs between a real and a padded object, in both directions, get the pad codes. Other tensors whose
-first dimension is the scene's N are zero-padded along it; anything else is collected into a list.
+Pairs between a real and a padded object, in both directions, get the pad codes. Keys of
+:data:`SCENE_KEYS` are per-scene tensors of one shape, stacked. Other tensors whose first dimension is
+the scene's N are zero-padded along it; anything else is collected into a list.
 """
 
 from __future__ import annotations
@@ -41,7 +44,10 @@ PAD_SPEC: dict[str, tuple[float, int]] = {
     "category_index": (INDEX_PAD, 1),
     "points": (0.0, 1),
     "normals": (0.0, 1),
+    "extents": (0.0, 1),
 }
+#: Per-scene tensors (not per object): stacked along a new batch dimension.
+SCENE_KEYS = ("room",)
 
 
 def _pad(tensors: Sequence[torch.Tensor], sizes: Sequence[int], n_max: int, value, object_dims: int) -> torch.Tensor:
@@ -70,6 +76,8 @@ def collate_scenes(items: Sequence[dict]) -> dict:
         if key in PAD_SPEC:
             value, dims = PAD_SPEC[key]
             batch[key] = _pad(values, sizes, n_max, value, dims)
+        elif key in SCENE_KEYS:
+            batch[key] = torch.stack([torch.as_tensor(v) for v in values])
         elif all(isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == n for v, n in zip(values, sizes)):
             batch[key] = _pad(values, sizes, n_max, 0, 1)
         else:

@@ -14,8 +14,13 @@ asset_index    (N,) int64     index into ``asset_ids`` (the library's sorted ass
 category_index (N,) int64     index into ``categories``
 points         (N, M, 3) f32  surface samples, canonical (object-local, bbox-centred) frame, metres
 normals        (N, M, 3) f32  their unit normals, same frame
+extents        (N, 3) f32     each asset's canonical bbox size (the library record's ``extents``), metres
+room           (2, 3) f32     the scene's floor/room bounds [min, max] (metres); NaN when the file has none
 scene_id       str
 ============== ============== =====================================================================
+
+``extents`` and ``room`` serve models that reason about boxes and the floor (the baselines of
+:mod:`spread.baselines`); SceneDiffusion does not read them.
 
 Scene files are validated on read (against the library too), so a broken file fails with an error
 naming the file and key. The dataset pickles without its library (it holds a lock and meshes); a
@@ -134,5 +139,9 @@ class SceneDataset(torch.utils.data.Dataset):
             "category_index": torch.tensor([self._category_index[c] for c in scene.category], dtype=torch.long),
             "points": torch.from_numpy(np.stack(pts)),
             "normals": torch.from_numpy(np.stack(nrm)),
+            "extents": torch.from_numpy(np.stack([np.asarray(self.library[str(a)].extents, np.float32)
+                                                  for a in scene.asset_id])),
+            "room": torch.from_numpy(np.full((2, 3), np.nan, np.float32) if scene.room is None
+                                     else np.asarray(scene.room, np.float32)),
             "scene_id": scene.scene_id,
         }

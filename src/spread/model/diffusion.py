@@ -106,9 +106,10 @@ class Sampler:
         return int(self.steps)
 
     def scheduler(self, schedule: Mapping | None = None):
-        """A fresh diffusers scheduler for this sampler, from a training schedule's config (default: the
-        default training schedule)."""
-        base = schedule if schedule is not None else training_scheduler().config
+        """A fresh diffusers scheduler for this sampler, from the config of the schedule the model was trained
+        with (``model.noise_schedule.config``, or only the keys that differ from the default training schedule,
+        e.g. ``{"beta_schedule": "linear"}``; default: the default training schedule)."""
+        base = training_scheduler(**{k: v for k, v in dict(schedule or {}).items() if not k.startswith("_")}).config
         if self.kind == "ddpm":  # fewer than 1000 steps: ancestral sampling on a strided schedule
             return DDPMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
         if self.kind == "ddim":
@@ -122,7 +123,7 @@ class Sampler:
                sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32,
                schedule: Mapping | None = None) -> torch.Tensor:
         """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding;
-        ``schedule``: the config of the schedule the model was trained with (default: the default one).
+        ``schedule``: the training schedule's config, as in :meth:`scheduler`.
 
         Hooks run with autograd off; a guidance hook that needs gradients enables them itself
         (``torch.enable_grad()``).

@@ -16,7 +16,7 @@ def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = 
 
     hp = load_checkpoint(ckpt, mmap=True).get("hyper_parameters", {})
     guidance = manifest.get("guidance")
-    tags = [str(hp.get("variant", "unknown")), sampler_label(sampler)]
+    tags = [str(hp.get("variant") or hp.get("method", "unknown")), sampler_label(sampler)]  # SPREAD variant or baseline
     if guidance:
         tags += ["guidance", f"guidance={guidance['mode']}"] + [f"{k}={guidance[k]:g}"
                                                                 for k in ("collision", "gravity", "relation")]

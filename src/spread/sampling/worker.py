@@ -62,14 +62,19 @@ def checkpoint_data_settings(ckpt: dict, model) -> dict:
 
 def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = "cpu", use_ema: bool = True,
                   graph_scale: float = 1.0, guidance=None) -> ScenePipeline:
-    """The pipeline of a ``spread-train`` checkpoint for a dataset's split (encoder with the checkpoint's
+    """The pipeline of a ``spread-train`` checkpoint (SceneDiffusion or a baseline) for a dataset's split (encoder with the checkpoint's
     point settings, model in eval mode on ``device``)."""
+    from spread.baselines import module_from_checkpoint
     from spread.data import SceneDataset
     from spread.model.module import SceneDiffusion
     from spread.safe_load import load_checkpoint
 
     checkpoint = load_checkpoint(ckpt)
-    model = SceneDiffusion.from_checkpoint(checkpoint, map_location=resolve_device(device)).eval()
+    model = module_from_checkpoint(checkpoint, map_location=resolve_device(device)).eval()  # SPREAD or a baseline
+    guided = active_guidance(guidance)
+    if guided is not None and not isinstance(model, SceneDiffusion):
+        raise ValueError(f"guidance={guided.mode}: SPREAD's guidance needs a SceneDiffusion checkpoint, "
+                         f"{ckpt} is a '{model.hparams.method}' baseline (sample it with guidance=none)")
     data = checkpoint_data_settings(checkpoint, model)
     dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
     return ScenePipeline(model, dataset, sampler, guidance, use_ema, graph_scale)

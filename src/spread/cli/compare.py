@@ -1,0 +1,28 @@
+"""``spread-compare +table1=quick``: the paper's Table 1 — every method trained, sampled, evaluated, tabulated.
+
+The work is :func:`spread.experiments.compare_command.compare`. Exit status 1 when a stage failed (the table
+is still written, with the failed rows empty).
+"""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from spread.configs import conf_dir, register
+
+register()
+
+
+@hydra.main(config_path=conf_dir(), config_name="compare", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    from spread.experiments.compare_command import compare, print_comparison
+
+    result = compare(cfg)
+    print_comparison(result)
+    if not result.ok:
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,397 @@
+"""``spread-compare``: the paper's Table 1 — every method trained, sampled and evaluated on one dataset.
+
+The stages are the ablation's (:mod:`spread.experiments.ablation`: the same :class:`Stage`, ledger, resume
+rules and in-process :class:`~spread.experiments.ablation.Commands`), over methods instead of variants:
+
+| stage | command | folder under ``out_dir`` | finished when |
+|---|---|---|---|
+| ``data`` (only when ``data.root`` is not given or does not exist) | spread-generate | ``data/`` | ``manifest.json`` |
+| ``train/<m>``, m = atiss, diffuscene, instructscene, spread (unless given) | spread-train | ``train/<m>/`` | ``metrics.json``, ``last.ckpt`` |
+| ``derive/physcene`` | :func:`spread.baselines.with_box_guidance` | ``train/physcene.ckpt`` | the file |
+| ``sample/<m>`` | spread-sample | ``samples/<m>/`` | ``sampling.json``, all scenes |
+| ``evaluate/<m>`` | spread-evaluate | ``eval/<m>/`` | ``metrics.json`` |
+| ``table`` | — | ``table1.{md,csv,tex}`` (+ wandb Table) | the three files |
+
+``physcene`` is DiffuScene's checkpoint sampled with PhyScene-style box-IoU guidance (no second training);
+``spread`` is the platform's own SceneDiffusion (by default the ``geometry`` model sampled with guidance).
+Every method samples the split's graphs with one shared override list (``sample.overrides``: sampler, seed,
+samples per graph) plus its own (``sample.<m>``); every evaluation shares ``evaluate.overrides``. The ledger is
+``out_dir/compare.json``; ``out_dir/compare_times.json`` keeps each stage's CPU seconds (this process).
+
+Table layouts (``layout``): ``procthor`` — GRecall, Col_mesh, ASD, Stability, FID, KID; ``threedfront`` —
+Col_mesh per room type (the test graphs' ``room_type``) and FID, KID; ``auto`` picks ``threedfront`` when the
+dataset's ``manifest.json`` names 3D-FRONT as its source, else ``procthor``. Both add the sampling time per
+scene (the paper's Table 3) and the CSV holds every value (per-room-type Col_mesh included). GRecall is "—"
+for the methods that do not see the graph (ATISS, DiffuScene, PhyScene-style); the value measured anyway is
+in the CSV as ``grecall_measured``. The caption states each method's budget: its training run (size, steps
+taken) and its sampler.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from spread.experiments.ablation import Ablation, Commands, Ledger, Stage, command_line, scenes_complete
+from spread.experiments.tables import Column, write_tables
+from spread.io import file_sha256, write_json_atomic
+
+log = logging.getLogger("spread.compare")
+
+METHODS = ("atiss", "diffuscene", "physcene", "instructscene", "spread")
+LABELS = {"atiss": "ATISS", "diffuscene": "DiffuScene", "physcene": "DiffuScene + PhyScene guidance",
+          "instructscene": "InstructScene (graph-to-layout)", "spread": "SPREAD (ours)"}
+#: What a row is, for the caption (the paper's rows, as run here).
+NOTES = {"atiss": "autoregressive, no graph", "diffuscene": "DDPM over slots, no graph",
+         "physcene": "DiffuScene + oriented box-IoU guidance",
+         "instructscene": "SPREAD's graph denoiser without shape tokens, geometry or the physical graph",
+         "spread": "the platform's SceneDiffusion"}
+#: The trained checkpoint each method samples (physcene: derived from DiffuScene's).
+CHECKPOINT_OF = {"atiss": "atiss", "diffuscene": "diffuscene", "physcene": "physcene",
+                 "instructscene": "instructscene", "spread": "spread"}
+TRAINED = ("atiss", "diffuscene", "instructscene", "spread")
+LEDGER = "compare.json"
+TIMES = "compare_times.json"
+TABLE = "table1"
+LAYOUTS = ("auto", "procthor", "threedfront")
+
+
+@dataclass
+class CompareSpec:
+    """What to run; override lists are Hydra overrides of the sub-commands' configs (``conf/compare.yaml``
+    documents each). ``ckpt``: trained method → a given checkpoint; ``box_guidance``: the physcene row's
+    :class:`~spread.baselines.diffuscene.BoxGuidance` fields."""
+
+    out_dir: Path
+    data_root: Path | None = None
+    split: str = "test"
+    methods: tuple[str, ...] = METHODS
+    generate: list[str] = field(default_factory=list)
+    train: list[str] = field(default_factory=list)
+    train_method: dict[str, list[str]] = field(default_factory=dict)
+    ckpt: dict[str, str | None] = field(default_factory=dict)
+    box_guidance: dict = field(default_factory=dict)
+    sample: list[str] = field(default_factory=list)
+    sample_method: dict[str, list[str]] = field(default_factory=dict)
+    evaluate: list[str] = field(default_factory=list)
+    layout: str = "auto"
+    title: str = ""
+    group: str = ""
+
+    def __post_init__(self) -> None:
+        self.out_dir = Path(self.out_dir)
+        unknown = [m for m in self.methods if m not in METHODS]
+        if unknown or not self.methods:
+            raise ValueError(f"methods: unknown or none {unknown or list(self.methods)} (choose from {list(METHODS)})")
+        self.methods = tuple(m for m in METHODS if m in self.methods)
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout: {self.layout!r}, choose from {LAYOUTS}")
+        for method, path in self.ckpt.items():
+            if method not in TRAINED:
+                raise ValueError(f"train.ckpt.{method}: only {list(TRAINED)} are trained (physcene derives from "
+                                 f"diffuscene)")
+            if path and not Path(path).is_file():
+                raise FileNotFoundError(f"train.ckpt.{method}={path}: no such checkpoint file")
+
+    def named(self, overrides: list[str]) -> list[str]:
+        return ([f"experiment_name={self.group}"] if self.group else []) + list(overrides)
+
+    @property
+    def dataset(self) -> Path:
+        return Path(self.data_root) if self.data_root else self.out_dir / "data"
+
+    def trained(self) -> list[str]:
+        """The checkpoints the chosen methods need, in order."""
+        need = {"diffuscene" if m == "physcene" else m for m in self.methods}
+        return [t for t in TRAINED if t in need]
+
+
+@dataclass
+class CompareResult:
+    """records: the table's rows; stages: name → status; errors: name → message; tables: format → path."""
+
+    records: list[dict]
+    stages: dict[str, str]
+    errors: dict[str, str]
+    tables: dict[str, Path]
+    seconds: float
+    layout: str = "procthor"
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+
+class Comparison(Ablation):
+    """The ablation's stage runner (attempt, data and evaluation stages) over :data:`METHODS`."""
+
+    def __init__(self, spec: CompareSpec, commands: Commands):
+        self.spec = spec
+        self.commands = commands
+        self.out = spec.out_dir
+        self.ledger = Ledger(self.out / LEDGER)
+        self.status: dict[str, str] = {}
+        self.errors: dict[str, str] = {}
+        self.times_path = self.out / TIMES
+        self.times: dict = json.loads(self.times_path.read_text()) if self.times_path.exists() else {}
+
+    # ---- folders ----
+    def ckpt(self, trained: str) -> Path:
+        if trained == "physcene":
+            return self.out / "train" / "physcene.ckpt"
+        given = self.spec.ckpt.get(trained)
+        return Path(given) if given else self.train_dir(trained) / "checkpoints" / "last.ckpt"
+
+    def timed(self, name: str, run: Callable[[bool], None]) -> Callable[[bool], None]:
+        """``run`` with this process's CPU seconds recorded under ``name`` in ``compare_times.json``."""
+        def wrapper(resume: bool) -> None:
+            started = time.process_time()
+            run(resume)
+            self.times[name] = round(self.times.get(name, 0.0) * resume + time.process_time() - started, 3)
+            write_json_atomic(self.times_path, self.times)
+        return wrapper
+
+    # ---- stages ----
+    def train_stage(self, method: str) -> Stage:
+        folder = self.train_dir(method)
+        last = folder / "checkpoints" / "last.ckpt"
+        overrides = self.spec.named([*self.spec.train, *self.spec.train_method.get(method, []),
+                                     f"data.root={self.spec.dataset}", f"out_dir={folder}"])
+
+        def run(resume: bool) -> None:
+            extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
+            log.info("  ≙ %s", command_line("spread-train", overrides + extra))
+            self.commands.train(overrides + extra, folder)
+
+        return Stage(f"train/{method}", folder, [folder / "metrics.json", last], {"overrides": overrides},
+                     self.timed(f"train/{method}", run), derived=False)
+
+    def derive_stage(self) -> Stage:
+        from spread.baselines import with_box_guidance
+
+        source, target = self.ckpt("diffuscene"), self.ckpt("physcene")
+        inputs = {"diffuscene_sha256": file_sha256(source), "box_guidance": self.spec.box_guidance}
+
+        def run(resume: bool) -> None:
+            log.info("  ≙ spread.baselines.with_box_guidance(%s, %s, %s)", source, target, self.spec.box_guidance)
+            with_box_guidance(source, target, self.spec.box_guidance)
+
+        return Stage("derive/physcene", target.parent, [target], inputs, run)
+
+    def sample_stage(self, method: str) -> Stage:
+        folder, ckpt = self.sample_dir(method), self.ckpt(CHECKPOINT_OF[method])
+        overrides = self.spec.named([*self.spec.sample, *self.spec.sample_method.get(method, []), f"ckpt={ckpt}",
+                                     f"data.root={self.spec.dataset}", f"data.split={self.spec.split}",
+                                     f"out_dir={folder}"])
+
+        def run(resume: bool) -> None:
+            args = overrides + [f"resume={str(resume).lower()}"]
+            log.info("  ≙ %s", command_line("spread-sample", args))
+            self.commands.sample(args)
+
+        return Stage(f"sample/{method}", folder, [folder / "sampling.json"],
+                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, self.timed(f"sample/{method}", run),
+                     complete=lambda: scenes_complete(folder))
+
+    # ---- the table ----
+    def layout(self) -> str:
+        if self.spec.layout != "auto":
+            return self.spec.layout
+        manifest = self.spec.dataset / "manifest.json"
+        try:
+            source = str(json.loads(manifest.read_text()).get("source", ""))
+        except (OSError, ValueError):
+            source = ""
+        return "threedfront" if re.search(r"3d-?front", source, re.IGNORECASE) else "procthor"
+
+    def room_types(self) -> dict[str, str]:
+        """Test graph scene id → its ``room_type`` (graphs without one are left out)."""
+        from spread.scene import list_scene_files, read_scene
+
+        folder = self.spec.dataset / self.spec.split
+        out = {}
+        for path in list_scene_files(folder) if folder.is_dir() else []:
+            scene = read_scene(path, validate=False)
+            if "room_type" in scene.extras:
+                out[scene.scene_id] = str(scene.extras["room_type"])
+        return out
+
+    def rows(self) -> list[dict]:
+        from spread.baselines import GRAPH_CONDITIONED
+
+        rooms = self.room_types()
+        suffix = re.compile(r"_k\d+$")  # generated scene <graph>_k<k> (spread.sampling.plan.SAMPLE_NAME) → graph
+        records = []
+        for m in self.spec.methods:
+            ok = self.status.get(f"evaluate/{m}") in ("done", "skipped")
+            metrics = json.loads((self.eval_dir(m) / "metrics.json").read_text()) if ok else {}
+            row = {"method_key": m, "method": LABELS[m]}
+            measured = metrics.get("grecall")
+            row["grecall"] = measured if m in GRAPH_CONDITIONED else None
+            row["grecall_measured"] = measured
+            for key in ("col_mesh", "asd", "stability", "fid", "kid", "still_fraction", "n_scenes", "n_objects",
+                        "fid_status"):
+                row[key] = metrics.get(key)
+            if ok:
+                row.update(self.per_room_col_mesh(m, rooms, suffix))
+            row.update(self.budget(m))
+            row["status"] = "ok" if metrics else self.failure(m)
+            records.append(row)
+        return records
+
+    def failure(self, method: str) -> str:
+        """The first error on the method's way to its row (training, derivation, sampling, evaluation)."""
+        trained = "diffuscene" if method == "physcene" else method
+        chain = ["data", f"train/{trained}", *(["derive/physcene"] if method == "physcene" else []),
+                 f"sample/{method}", f"evaluate/{method}"]
+        for name in chain:
+            if self.status.get(name) == "failed":
+                return self.errors[name]
+        return self.errors.get(f"evaluate/{method}", "not run")
+
+    def per_room_col_mesh(self, method: str, rooms: dict[str, str], suffix) -> dict:
+        """``col_mesh/<room type>`` from the evaluation's per-scene states (colliding / all objects)."""
+        path = self.eval_dir(method) / "per_scene.jsonl"
+        sums: dict[str, list[int]] = {}
+        for line in path.read_text().splitlines() if path.exists() else []:
+            record = json.loads(line)
+            if record.get("error"):
+                continue
+            room = rooms.get(suffix.sub("", record["scene_id"]))
+            if room is None:
+                continue
+            state = record["state"]["col_mesh"]
+            acc = sums.setdefault(room, [0, 0])
+            acc[0] += int(state["colliding_objects"])
+            acc[1] += int(state["objects"])
+        return {f"col_mesh/{room}": (c / n if n else None) for room, (c, n) in sorted(sums.items())}
+
+    def budget(self, method: str) -> dict:
+        """Training steps and size, sampler, sampling seconds per scene, CPU seconds of this process."""
+        out: dict = {}
+        trained = "diffuscene" if method == "physcene" else method
+        summary = self.train_dir(trained) / "metrics.json"
+        if summary.exists():
+            out["train_steps"] = json.loads(summary.read_text()).get("global_step")
+        config = self.train_dir(trained) / ".hydra" / "config.yaml"
+        if config.exists():
+            import yaml
+
+            cfg = yaml.safe_load(config.read_text()) or {}
+            out["model_size"] = ((cfg.get("model") or {}).get("config") or {}).get("name")
+        manifest = self.sample_dir(method) / "sampling.json"
+        if manifest.exists():
+            data = json.loads(manifest.read_text())
+            sampler = data.get("fingerprint", {}).get("sampler") or {}
+            out["sampler"] = "one pass per object" if method == "atiss" else f"{sampler.get('kind')}-{sampler.get('steps')}"
+            if data.get("guidance"):
+                out["sampler"] += f" + {data['guidance']['mode']} guidance"
+            if method == "physcene":
+                out["sampler"] += " + box-IoU guidance"
+            per_batch, batches, written = data.get("seconds_per_batch"), data.get("batches_run"), data.get("written_this_run")
+            if per_batch is not None and written:
+                out["seconds_per_scene"] = per_batch * batches / written
+        for stage in ("train", "sample"):
+            key = f"{stage}/{trained if stage == 'train' else method}"
+            if key in self.times:
+                out[f"{stage}_cpu_s"] = self.times[key]
+        return out
+
+    def columns(self, layout: str, records: list[dict]) -> list[Column]:
+        time_col = Column("seconds_per_scene", "s / scene", 3, "min", r"s / scene$\downarrow$")
+        fid = [Column("fid", "FID", 2, "min", r"FID$\downarrow$"), Column("kid", "KID", 4, "min", r"KID$\downarrow$")]
+        if layout == "threedfront":
+            rooms = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith("col_mesh/")})
+            per_room = [Column(f"col_mesh/{room}", f"Col_mesh {room}", 3, "min",
+                               rf"Col$_{{\text{{mesh}}}}$ {room}$\downarrow$") for room in rooms]
+            return [Column("method", "Method"), *per_room, *fid, time_col]
+        return [Column("method", "Method"), Column("grecall", "GRecall", 3, "max", r"GRecall$\uparrow$"),
+                Column("col_mesh", "Col_mesh", 3, "min", r"Col$_{\text{mesh}}\downarrow$"),
+                Column("asd", "ASD (m)", 4, "min", r"ASD (m)$\downarrow$"),
+                Column("stability", "Stability", 3, "max", r"Stability$\uparrow$"), *fid, time_col]
+
+    def caption(self, records: list[dict]) -> str:
+        parts = []
+        for r in records:
+            steps = r.get("train_steps")
+            size = r.get("model_size") or "?"
+            trained = f"{size} model, {steps} training steps" if steps is not None else "given checkpoint"
+            parts.append(f"{r['method']}: {trained}; {r.get('sampler', '?')} ({NOTES[r['method_key']]})")
+        title = self.spec.title or f"Table 1 on {self.spec.dataset.name} ({self.spec.split} graphs, same seeds)"
+        return title + ". Budget: " + "; ".join(parts) + ". GRecall is not reported for methods that do not see the graph."
+
+    def table_stage(self, records: list[dict], log_table) -> Stage:
+        stem = self.out / TABLE
+        outputs = [stem.with_suffix(s) for s in (".md", ".csv", ".tex")]
+        layout = self.layout()
+
+        def run(resume: bool) -> None:
+            columns = self.columns(layout, records)
+            keys = ["method_key", "method", "grecall", "grecall_measured", "col_mesh", "asd", "stability", "fid",
+                    "kid", "seconds_per_scene"]
+            keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
+            keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "still_fraction",
+                     "n_scenes", "n_objects", "fid_status", "status"]
+            write_tables(records, columns, stem, caption=self.caption(records), label="tab:table1", csv_keys=keys)
+            if log_table is not None:
+                log_table(records, columns)
+
+        return Stage("table", self.out, outputs, {"rows": records, "layout": layout}, run)
+
+    # ---- running ----
+    def run(self, log_table=None) -> CompareResult:
+        started = time.perf_counter()
+        self.out.mkdir(parents=True, exist_ok=True)
+        spec = self.spec
+        self.attempt("data", self.data_stage, [])
+        for t in spec.trained():
+            if spec.ckpt.get(t):
+                self.status[f"train/{t}"] = "given"
+            else:
+                self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
+        if "physcene" in spec.methods:
+            self.attempt("derive/physcene", self.derive_stage, ["train/diffuscene"])
+        for m in spec.methods:
+            needs = ["data", "derive/physcene" if m == "physcene" else f"train/{m}"]
+            self.attempt(f"sample/{m}", lambda m=m: self.sample_stage(m), needs)
+        for m in spec.methods:
+            self.attempt(f"evaluate/{m}", lambda m=m: self.evaluate_stage(m), [f"sample/{m}"])
+        records = self.rows()
+        self.attempt("table", lambda: self.table_stage(records, log_table), [])
+        stem = self.out / TABLE
+        tables = {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}
+        return CompareResult(records, dict(self.status), dict(self.errors), tables,
+                             round(time.perf_counter() - started, 3), self.layout())
+
+
+def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> CompareResult:
+    """Run (or resume) every stage of ``spec`` (module docstring) and write Table 1."""
+    return Comparison(spec, commands).run(log_table)
+
+
+def log_table1(records: list[dict], columns: list[Column], out_dir: str | Path, logger, name: str | None = None,
+               config: dict | None = None, group: str | None = None) -> str | None:
+    """Table 1 as a ``wandb.Table`` (the table's columns plus budget fields) and per-method summary values
+    (``<method>/<metric>``), with ``logger`` (a :class:`~spread.runtime.tracking.LoggerConfig`,
+    ``job_type=compare``). Returns the wandb run folder (None when disabled)."""
+    import wandb
+
+    from spread.runtime.tracking import as_logger_config, init_run, run_folder
+
+    keys = ["method_key", *[c.key for c in columns], "grecall_measured", "train_steps", "sampler", "status"]
+    run = init_run(as_logger_config(logger), "compare", out_dir, config or {}, group=group, name=name)
+    try:
+        table = wandb.Table(columns=keys)
+        for r in records:
+            table.add_data(*[r.get(k) for k in keys])
+        run.log({"table1": table})
+        run.summary.update({f"{r['method_key']}/{c.key}": r.get(c.key) for r in records for c in columns
+                            if c.key != "method"})
+        return run_folder(run)
+    finally:
+        run.finish()

@@ -162,6 +162,7 @@ def main() -> None:
     ap.add_argument("--noise-floor", action="store_true", help="also pybullet with evaluation seed 1")
     ap.add_argument("--mujoco", nargs="*", default=[], metavar="KEY=VALUE", help="MujocoParams overrides")
     ap.add_argument("--pictures", type=int, default=0, help="render the N rooms that differ most")
+    ap.add_argument("--report-only", action="store_true", help="measure nothing: tabulate the rooms already done")
     a = ap.parse_args()
     from spread.scene import list_scene_files
 
@@ -176,7 +177,7 @@ def main() -> None:
     done = {k: _read(p) for k, p in store.items()}
     tasks = [(e, label, str(f), a.assets, a.substeps, overrides) for e in engines for label, files in files_of.items()
              for f in files if f.stem not in done[(e, label)]]
-    if tasks:
+    if tasks and not a.report_only:
         import multiprocessing
 
         from tqdm import tqdm

@@ -50,12 +50,12 @@ def make_scene(library, asset_ids, translation, rotation=None, scene_id="s") -> 
                  R.astype(np.float32), spatial, np.zeros((n, n), np.int8))
 
 
-@pytest.fixture(scope="module")
-def library(tmp_path_factory):
+def build_box_library(root):
+    """The module's library (see the module docstring) under ``root``."""
     u_parts = [box_part((0.5, 0.05, 0.2), (0, 0.025, 0)),
                box_part((0.05, 0.3, 0.2), (-0.225, 0.15, 0)), box_part((0.05, 0.3, 0.2), (0.225, 0.15, 0))]
     l_parts = [box_part((0.3, 0.1, 0.1), (0, 0.05, 0)), box_part((0.1, 0.3, 0.1), (-0.1, 0.15, 0))]
-    return library_from_specs(tmp_path_factory.mktemp("mujoco_lib"), [
+    return library_from_specs(root, [
         box_asset("box", (0.2, 0.2, 0.2), category="box"),
         box_asset("small", (0.1, 0.1, 0.1), category="small"),
         box_asset("cube", (0.3, 0.3, 0.3), category="cube"),
@@ -64,6 +64,26 @@ def library(tmp_path_factory):
         AssetSpec("L", "L", 0, "object", l_parts, density=500.0),
         AssetSpec("U", "U", 0, "object", u_parts, density=300.0),
     ])
+
+
+def settled_box_room(library, scene_id="settled") -> Scene:
+    """A table with a box and a cup on it, a box in the U's gap, an L and a two-box tower on the floor: dropped a
+    few millimetres and settled in pybullet, as the room generator does. No two centres on a sector boundary of
+    the spatial codes (there sub-millimetre motion flips left/front)."""
+    ids = ["table", "small", "cup", "U", "small", "L", "box", "box"]
+    t = [[0, TABLE_TOP / 2, 0], [0.2, TABLE_TOP + 0.053, 0.1], [-0.3, TABLE_TOP + 0.053, -0.1], [1.2, 0.15, 0],
+         [1.3, 0.103, 0], [-1.2, 0.153, 0.5], [0.3, 0.103, 1.2], [0.3, 0.306, 1.2]]
+    R = np.stack([np.eye(3), _rot_y(0.3), np.eye(3), np.eye(3), np.eye(3), _rot_y(1.0), np.eye(3), _rot_y(0.2)])
+    with PhysicsWorld() as pw:
+        pw.load_scene(make_scene(library, ids, t, R), library)
+        settled = pw.settle()
+    assert settled.settled
+    return make_scene(library, ids, settled.translation, settled.rotation, scene_id=scene_id)
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    return build_box_library(tmp_path_factory.mktemp("mujoco_lib"))
 
 
 @pytest.fixture(scope="module")
@@ -308,19 +328,7 @@ def test_import_does_not_pull_mujoco():
 # ---- settled rooms -------------------------------------------------------------------------------------
 
 def test_room_settled_by_pybullet_stays_in_mujoco(world, library):
-    # a table with a box and a cup on it, a box in the U's gap, an L and a two-box tower on the floor: dropped a
-    # few millimetres and settled in pybullet (as the room generator does), then measured in MuJoCo. No two
-    # centres on a sector boundary of the spatial codes (there sub-millimetre motion flips left/front).
-    ids = ["table", "small", "cup", "U", "small", "L", "box", "box"]
-    t = [[0, TABLE_TOP / 2, 0], [0.2, TABLE_TOP + 0.053, 0.1], [-0.3, TABLE_TOP + 0.053, -0.1], [1.2, 0.15, 0],
-         [1.3, 0.103, 0], [-1.2, 0.153, 0.5], [0.3, 0.103, 1.2], [0.3, 0.306, 1.2]]
-    R = np.stack([np.eye(3), _rot_y(0.3), np.eye(3), np.eye(3), np.eye(3), _rot_y(1.0), np.eye(3), _rot_y(0.2)])
-    with PhysicsWorld() as pw:
-        pw.load_scene(make_scene(library, ids, t, R), library)
-        settled = pw.settle()
-    assert settled.settled
-    scene = make_scene(library, ids, settled.translation, settled.rotation, scene_id="settled")
-    result = scene_stability(scene, library, world=world)
+    result = scene_stability(settled_box_room(library), library, world=world)
     assert result.stability >= 0.99 and result.still_fraction >= 0.99
     assert max(result.max_displacement) < 3e-3
 
@@ -337,3 +345,10 @@ def test_generated_kitchen_stays_in_mujoco(kitchen):
     scene, library = kitchen
     result = scene_stability(scene, library, world=MujocoWorld())
     assert result.stability >= 0.99 and result.still_fraction >= 0.99
+
+
+def test_a_diverging_simulation_raises_instead_of_looking_still(library):
+    # MuJoCo's default would reset a diverged simulation to its start, which reads as "nothing moved"
+    scene = make_scene(library, ["box"], [[0, 0.1, 0]])
+    with MujocoWorld(MujocoParams(gravity=float("nan"))) as w, pytest.raises(FloatingPointError, match="diverged"):
+        simulate_runs(scene, library, runs=2, steps=5, world=w)

@@ -98,3 +98,31 @@ def file_sha256(*paths: str | os.PathLike) -> str:
             for chunk in iter(lambda: fh.read(1 << 20), b""):
                 h.update(chunk)
     return h.hexdigest()
+
+
+#: Characters a :func:`safe_name` keeps as they are.
+_SAFE_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
+_WINDOWS_DEVICES = frozenset({"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(10)),
+                              *(f"LPT{i}" for i in range(10))})
+#: Longest name :func:`safe_name` returns (well under every common file system's 255-byte limit).
+SAFE_NAME_MAX = 120
+
+
+def safe_name(text: object) -> str:
+    """A file name for any id: one path component, never ``.``/``..``, hidden or empty, on any file system.
+
+    ``text`` (anything; ``str()`` of it) keeps its ASCII letters, digits, ``.``, ``_`` and ``-``; every other
+    character becomes ``_`` and leading dots are dropped. When that changed anything, the result would be
+    longer than :data:`SAFE_NAME_MAX`, or it is a Windows device name (``CON``, ``nul.txt``), 10 hex digits of the id's SHA-256 are appended (``-<hash>``), so two
+    different ids never share a name (``room|4`` → ``room_4-<hash>``, distinct from the id ``room_4``).
+    Deterministic: the same id always gives the same name.
+    """
+    import hashlib
+
+    raw = str(text)
+    kept = "".join(c if c in _SAFE_CHARS else "_" for c in raw).lstrip(".")
+    reserved = kept.split(".")[0].upper() in _WINDOWS_DEVICES
+    if kept == raw and 0 < len(kept) <= SAFE_NAME_MAX and not reserved:
+        return kept
+    digest = hashlib.sha256(raw.encode("utf-8", "surrogatepass")).hexdigest()[:10]
+    return f"{kept[:SAFE_NAME_MAX - 11]}-{digest}" if kept else f"id-{digest}"

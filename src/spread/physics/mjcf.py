@@ -15,6 +15,9 @@ Stability world) gravity is −y and the floor plane's normal +y. With ``up="z"`
 viewer and most robotics code are z-up) every body sits in a ``<frame>`` that turns y-up into z-up
 (x → x, y → z, z → −y) and gravity is −z; the physics is the same.
 
+A diverging simulation is not reset to the start (``autoreset`` off: a reset would look perfectly still);
+its poses turn non-finite and :class:`~spread.physics.mujoco_world.MujocoWorld` raises.
+
 Units SI: metres, kilograms, seconds.
 """
 
@@ -140,13 +143,13 @@ def _floor_extent(scene) -> tuple[float, float]:
 
 
 def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False, floor: bool = True,
-               names: Sequence[str] | None = None) -> str:
+               names: Sequence[str] | None = None, colours: np.ndarray | None = None) -> str:
     """MJCF text of ``scene``: a static floor plane (y = 0) and one free body per object at its scene pose.
 
     ``params``: :class:`~spread.physics.mujoco_world.MujocoParams` (timestep, solver, contact settings);
     defaults if None. ``visual``: also give each body its asset's visual mesh (group 1, no collisions,
-    no mass), for viewers and export. ``names``: body names (default ``o<index>_<asset_id>``, made safe
-    for XML ids). Masses: the asset records' (kg), inertia from the watertight mesh at uniform density.
+    no mass), for viewers and export, coloured by ``colours`` (N, 4) RGBA in [0, 1] if given. ``names``: body
+    names (default ``o<index>_<asset_id>``, made safe for XML ids). Masses: the asset records' (kg), inertia from the watertight mesh at uniform density.
     """
     from spread.physics.mujoco_world import MujocoParams
 
@@ -171,7 +174,7 @@ def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False,
            f'cone="{p.cone}" solver="{p.solver}" iterations="{p.iterations}" tolerance="{p.tolerance!r}" '
            f'noslip_iterations="{p.noslip_iterations}" ccd_iterations="{p.ccd_iterations}" '
            f'ccd_tolerance="{p.ccd_tolerance!r}">',
-           f'    <flag refsafe="{_on(p.refsafe)}" multiccd="{_on(p.multiccd)}"/>',
+           f'    <flag refsafe="{_on(p.refsafe)}" multiccd="{_on(p.multiccd)}" autoreset="disable"/>',
            '  </option>',
            '  <default>',
            f'    <geom condim="{p.condim}" friction="{_num((p.friction, p.torsional_friction, p.rolling_friction))}" '
@@ -212,7 +215,8 @@ def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False,
         for h in range(len(g.hulls)):
             out.append(f'{indent}  <geom type="mesh" mesh="a{k}_hull{h}"/>')
         if visual:
-            out.append(f'{indent}  <geom type="mesh" mesh="a{k}_visual" contype="0" conaffinity="0" group="1"/>')
+            rgba = "" if colours is None else f' rgba="{_num(colours[i])}"'
+            out.append(f'{indent}  <geom type="mesh" mesh="a{k}_visual" contype="0" conaffinity="0" group="1"{rgba}/>')
         out.append(f'{indent}</body>')
     if up == "z" and n:
         out.append('    </frame>')

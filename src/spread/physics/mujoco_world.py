@@ -35,8 +35,11 @@ class MujocoParams:
         takes the larger of two geoms' coefficients; the floor has priority, so its value is used as is.
     torsional_friction / rolling_friction: m, used only with ``condim`` 4 / 6.
     condim: 3 = sliding friction only (MuJoCo's default).
-    solref / solimp: MuJoCo's soft-contact reference (time constant s, damping ratio) and impedance:
-        the defaults, under which a resting body sinks ≈ 0.1–0.3 mm into its support.
+    solref / solimp: MuJoCo's soft-contact reference (time constant s, damping ratio) and impedance. The
+        time constant is half MuJoCo's default 0.02 s: measured on ground-truth rooms (benchmarks/RESULTS.md),
+        0.02 s lets resting objects creep (1.7 % of objects moved ≥ 1 cm) where 0.01 s keeps them; a resting
+        body sinks ≈ 0.1 mm into its support. MuJoCo raises it to 2 internal steps when the step is longer
+        (``refsafe``), e.g. to 0.033 s with one internal step of 1/60 s.
     noslip_iterations: extra iterations of the no-slip solver (0: off).
     refsafe: MuJoCo raises a contact time constant below 2 internal steps to 2 steps (its default, on).
     multiccd: several contact points per pair of convex meshes (MuJoCo's default, on): flat faces rest
@@ -57,7 +60,7 @@ class MujocoParams:
     torsional_friction: float = 0.005
     rolling_friction: float = 1e-4
     condim: int = 3
-    solref: tuple[float, float] = (0.02, 1.0)
+    solref: tuple[float, float] = (0.01, 1.0)
     solimp: tuple[float, float, float, float, float] = (0.9, 0.95, 0.001, 0.5, 2.0)
     noslip_iterations: int = 0
     refsafe: bool = True
@@ -65,6 +68,18 @@ class MujocoParams:
     ccd_iterations: int = 35
     ccd_tolerance: float = 1e-6
     threads: int = 1
+
+
+def _route_warnings(mujoco) -> None:
+    """Send MuJoCo's warnings to Python's ``logging`` (logger ``spread.physics.mujoco``) instead of its default,
+    which appends to ``MUJOCO_LOG.TXT`` in the working directory. Once per process."""
+    if getattr(_route_warnings, "done", False):
+        return
+    import logging
+
+    log = logging.getLogger("spread.physics.mujoco")
+    mujoco.set_mju_user_warning(lambda text: log.warning("MuJoCo: %s", text))
+    _route_warnings.done = True
 
 
 class MujocoWorld:
@@ -80,6 +95,7 @@ class MujocoWorld:
     def __init__(self, params: MujocoParams | None = None):
         import mujoco
 
+        _route_warnings(mujoco)
         self._mj = mujoco
         self.params = params or MujocoParams()
         self.time_step = self.params.time_step
@@ -190,6 +206,8 @@ class MujocoWorld:
         if runs == 0:
             return np.zeros((0, n, 3)), np.zeros((0, n, 3, 3))
         qpos = np.stack([self._qpos(translation[r], rotation[r]) for r in range(runs)])
+        unstable = self._mj.mjtWarning.mjWARN_BADQACC
+        diverged = False
         if self.params.threads <= 1 or runs == 1:
             final = np.zeros_like(qpos)
             for r in range(runs):
@@ -197,8 +215,13 @@ class MujocoWorld:
                 self.data.qpos[:] = qpos[r]
                 self._mj.mj_step(self.model, self.data, nstep=int(nstep))
                 final[r] = self.data.qpos
+                diverged |= self.data.warning[unstable].number > 0
         else:
             final = self._rollout(qpos, int(nstep))
+            diverged = any(d.warning[unstable].number > 0 for d in self._datas)
+        if diverged or not np.isfinite(final).all():
+            raise FloatingPointError(f"MuJoCo simulation of scene '{scene.scene_id}' diverged (huge or non-finite "
+                                     f"accelerations); time step {self.time_step} s is too long for these contacts")
         return self._poses_of(final)
 
     def _rollout(self, qpos: np.ndarray, nstep: int) -> np.ndarray:
@@ -209,6 +232,8 @@ class MujocoWorld:
         threads = min(int(self.params.threads), len(qpos))
         while len(self._datas) < threads:
             self._datas.append(mj.MjData(m))
+        for d in self._datas:
+            mj.mj_resetData(m, d)  # clears the warning counters read after the rollout
         if self._pool is None:
             self._pool = rollout.Rollout(nthread=int(self.params.threads))
         spec = mj.mjtState.mjSTATE_FULLPHYSICS

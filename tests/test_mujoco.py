@@ -150,6 +150,19 @@ def test_pose_round_trip_with_off_centre_mass_and_rotations(world, library):
         world.set_poses(t[:2], R[:2])
 
 
+def test_velocities_are_those_of_the_centre_of_mass(library):
+    with MujocoWorld(MujocoParams(gravity=0.0)) as w:
+        w.load_scene(make_scene(library, ["L"], [[0, 2.0, 0]], _rot_y(0.7)[None]), library)
+        w.data.qvel[:] = [0.1, 0.0, -0.2, 0.5, -1.0, 3.0]  # free joint: body-origin velocity, local angular velocity
+        mujoco.mj_forward(w.model, w.data)
+        lin, ang = w.velocities()
+        com0, R0 = w.data.xipos[1].copy(), w.data.xmat[1].reshape(3, 3).copy()
+        w.step(1)
+        mujoco.mj_forward(w.model, w.data)
+        assert np.allclose(lin[0], (w.data.xipos[1] - com0) / w.time_step, rtol=0.02, atol=1e-4)
+        assert np.allclose(ang[0], R0 @ [0.5, -1.0, 3.0], atol=1e-9)  # world frame
+
+
 def test_z_up_export_is_the_same_room_turned(library):
     scene = make_scene(library, ["table", "box"], [[0, TABLE_TOP / 2, 0], [0.2, TABLE_TOP + 0.1, 0.1]],
                        rotation=np.stack([np.eye(3), _rot_y(0.5)]))
@@ -331,6 +344,19 @@ def test_room_settled_by_pybullet_stays_in_mujoco(world, library):
     result = scene_stability(settled_box_room(library), library, world=world)
     assert result.stability >= 0.99 and result.still_fraction >= 0.99
     assert max(result.max_displacement) < 3e-3
+
+
+def test_room_settling_can_verify_with_mujoco(library):
+    import spread.procgen.settle as settle
+
+    T0 = np.array([[0, TABLE_TOP / 2 + 0.002, 0], [0.2, TABLE_TOP + 0.055, 0.1]])
+    keep, T, R, rel, report = settle.settle_room(["table", "small"], ["dining_table", "small"], ["furniture", "object"],
+                                                 [None, 0], T0, np.tile(np.eye(3), (2, 1, 1)), library,
+                                                 settle.SettleConfig(verify_physics="mujoco"))
+    assert list(keep) == [0, 1] and rel.codes[0, 1] == 1  # the table supports the box
+    assert settle._MUJOCO is not None and settle._MUJOCO.models_compiled >= 1  # the verification ran in MuJoCo
+    with pytest.raises(ValueError, match="verify_physics"):
+        settle.SettleConfig(verify_physics="bullet")
 
 
 @pytest.fixture(scope="module")

@@ -176,12 +176,10 @@ class MujocoWorld:
         n = self.num_objects
         lin, ang = np.zeros((n, 3)), np.zeros((n, 3))
         v = np.zeros(6)
-        for i in range(n):
+        for i in range(n):  # a body's object frame is its inertial frame: the velocity at the centre of mass
             self._mj.mj_objectVelocity(self.model, self.data, self._mj.mjtObj.mjOBJ_BODY, i + 1, v, 0)
             ang[i], lin[i] = v[:3], v[3:]
-        # mj_objectVelocity gives the velocity of the body frame's origin; move it to the centre of mass
-        com_offset = np.asarray(self.data.xipos[1:]) - np.asarray(self.data.xpos[1:])
-        return lin + np.cross(ang, com_offset), ang
+        return lin, ang
 
     def set_time_step(self, seconds: float) -> None:
         """Length of one internal step (``step(1)``), seconds."""

@@ -4,7 +4,8 @@
         --set jit15=J15 --out /tmp/agree [--rooms 100] [--processes 2] [--noise-floor] [--pictures 4]
 
 Each (engine, set, room) is one :func:`spread.metrics.scene_stability` with the protocol's constants
-(10 runs × 100 steps of 1/60 s, ``--substeps`` internal steps each, jitter 0.5 mm, seeds from the scene
+(10 runs × 100 steps of 1/60 s of ``--pybullet-substeps`` / ``--substeps`` (MuJoCo) internal steps each
+(4: the protocol's 1/240 s), jitter 0.5 mm, seeds from the scene
 ids as ``spread-evaluate`` draws them). Engines: ``pybullet`` (the reference), ``mujoco``
 (:class:`spread.physics.MujocoParams` defaults, ``--mujoco key=value`` to override) and, with
 ``--noise-floor``, ``pybullet@seed1``: pybullet again with another evaluation seed (other sub-millimetre
@@ -106,7 +107,7 @@ def side_view(scene):
                  scene.spatial, scene.physical, room=None)
 
 
-def pictures(rows: list, sets: dict, assets: str, substeps: int, overrides: dict, out: Path) -> list[Path]:
+def pictures(rows: list, sets: dict, assets: str, substeps: dict, overrides: dict, out: Path) -> list[Path]:
     """Render the rooms of ``rows`` ((label, scene_id, run) each); returns the written files."""
     from dataclasses import replace
 
@@ -122,7 +123,7 @@ def pictures(rows: list, sets: dict, assets: str, substeps: int, overrides: dict
         finals = []
         for engine in ("pybullet", "mujoco"):
             runs = simulate_runs(scene, library, runs=STABILITY_RUNS, seed=scene_seed(scene.scene_id, 0),
-                                 world=_world(engine, substeps, overrides))
+                                 world=_world(engine, substeps[engine], overrides))
             finals.append(scene.with_poses(runs.translation[run].astype(np.float32),
                                            runs.rotation[run].astype(np.float32)))
         views = [scene, *finals]
@@ -157,7 +158,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--rooms", type=int, default=100, help="first N scene files of each set")
     ap.add_argument("--processes", type=int, default=2)
-    ap.add_argument("--substeps", type=int, default=4, help="internal steps per protocol step of 1/60 s")
+    ap.add_argument("--substeps", type=int, default=4, help="MuJoCo's internal steps per protocol step of 1/60 s")
+    ap.add_argument("--pybullet-substeps", type=int, default=4, help="pybullet's (4: the protocol's reference)")
     ap.add_argument("--engines", nargs="+", default=["pybullet", "mujoco"], choices=ENGINES)
     ap.add_argument("--noise-floor", action="store_true", help="also pybullet with evaluation seed 1")
     ap.add_argument("--mujoco", nargs="*", default=[], metavar="KEY=VALUE", help="MujocoParams overrides")
@@ -169,14 +171,15 @@ def main() -> None:
     sets = dict(s.split("=", 1) for s in a.set)
     overrides = {k: eval(v, {}) for k, v in (kv.split("=", 1) for kv in a.mujoco)}  # numbers / tuples only
     engines = list(a.engines) + (["pybullet@seed1"] if a.noise_floor and "pybullet@seed1" not in a.engines else [])
-    sub = "" if a.substeps == 4 else f"_sub{a.substeps}"
-    tag = sub + "".join(f"_{k}{v}" for k, v in sorted(overrides.items()))
+    substeps = {e: a.substeps if e == "mujoco" else a.pybullet_substeps for e in engines}
+    sub = {e: "" if n == 4 else f"_sub{n}" for e, n in substeps.items()}
+    tag = "".join(f"_{k}{v}" for k, v in sorted(overrides.items()))
     files_of = {label: list_scene_files(d)[:a.rooms] for label, d in sets.items()}
-    store = {(e, label): a.out / (e.replace("@", "_") + (tag if e == "mujoco" else sub)) / f"{label}.jsonl"
+    store = {(e, label): a.out / (e.replace("@", "_") + sub[e] + (tag if e == "mujoco" else "")) / f"{label}.jsonl"
              for e in engines for label in sets}
     done = {k: _read(p) for k, p in store.items()}
-    tasks = [(e, label, str(f), a.assets, a.substeps, overrides) for e in engines for label, files in files_of.items()
-             for f in files if f.stem not in done[(e, label)]]
+    tasks = [(e, label, str(f), a.assets, substeps[e], overrides) for e in engines
+             for label, files in files_of.items() for f in files if f.stem not in done[(e, label)]]
     if tasks and not a.report_only:
         import multiprocessing
 
@@ -190,6 +193,9 @@ def main() -> None:
                     fh.write(json.dumps(record) + "\n")
                 done[(engine, label)][record["scene_id"]] = record
 
+    if not {"pybullet", "mujoco"} <= set(engines):
+        print(f"measured: {', '.join(engines)} (the table needs both pybullet and mujoco)")
+        return
     print(f"| set | rooms | pybullet | MuJoCo | per-room abs diff mean / median / max | rooms diff > 0.05 | "
           f"rank corr. | pybullet other seed: abs diff mean / max | still pb / mj | CPU s/room pb / mj |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -221,7 +227,7 @@ def main() -> None:
     if a.pictures:
         worst.sort(reverse=True)
         rows = [(label, i, run) for _, label, i, run in worst[:a.pictures]]
-        for (d, label, i, run), path in zip(worst, pictures(rows, sets, a.assets, a.substeps, overrides,
+        for (d, label, i, run), path in zip(worst, pictures(rows, sets, a.assets, substeps, overrides,
                                                             a.out / "pictures")):
             print(f"picture: {path} ({label} {i}, |diff| {d:.3f}, run {run})")
 

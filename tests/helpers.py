@@ -3,7 +3,9 @@
 * ``SMALL_MODEL``: the tiny model shrunk further (tests check plumbing, not learning).
 * ``compose``: a Hydra config of ``conf/`` with overrides; ``run_script``: a console script in a subprocess
   (wandb disabled) that must succeed.
-* ``make_dataset``: a small generated dataset (its own asset library); ``train_in_process`` /
+* ``make_dataset``: a small generated dataset (its own asset library); ``settled_room``: one generated,
+  physics-settled kitchen of ≥ 8 objects and its small library (for physics and export tests);
+  ``train_in_process`` /
   ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a subprocess.
 """
 
@@ -53,6 +55,28 @@ def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 
                                         test_fraction=0.3, assets=AssetSource(copy_from=str(lib)),
                                         room=RoomConfig(max_objects=max_objects)), progress=False)
     return out
+
+
+def settled_room(root: Path, min_objects: int = 8):
+    """(Scene, AssetLibrary): the first kitchen of seeds 0, 1, ... with ≥ ``min_objects`` objects, generated and
+    settled by :func:`spread.procgen.room.generate_room` from a 10-category, 1-variant library under ``root``."""
+    import numpy as np
+
+    from spread.assets.build import build_library
+    from spread.procgen.room import generate_room
+    from spread.procgen.room_types import RoomConfig
+    from spread.procgen.settle import SettleConfig
+
+    # no plates or bowls: nested ones sit millimetres apart, where the spatial code flips with sub-millimetre motion
+    library = build_library(root / "assets", categories=["kitchen_counter", "shelf", "dining_table", "chair", "book",
+                                                        "mug", "cup", "bottle", "jar", "box"],
+                            variants=1, processes=1, progress=False, caches=False)
+    for seed in range(20):
+        result = generate_room(f"kitchen{seed}", np.random.default_rng(seed), library,
+                               RoomConfig(room_types={"kitchen": 1.0}, max_objects=24), SettleConfig())
+        if result.scene is not None and result.scene.num_objects >= min_objects:
+            return result.scene, library
+    raise AssertionError(f"no kitchen of {min_objects}+ objects in 20 seeds")
 
 
 def train_in_process(out: Path, *overrides: str) -> dict:

@@ -36,7 +36,7 @@ RELEASE_NETWORK = {"dim": 512, "depth": 6, "heads": 8, "edge_dim": 128, "dim_hea
 #: The guidance weights of the supplement and the release's 100 refinement iterations.
 SUPPLEMENT_GUIDANCE = {"mode": "refine", "iterations": 100, "collision": 7.5e-3, "relation": 1e-3, "gravity": 1e-3}
 
-COMMANDS = {"generate": ["out_dir=/o"], "import": ["source=spread_release", "src=/s", "out_dir=/o"], "train": ["data.root=/d"], "sample": ["ckpt=c", "data.root=/d", "out_dir=/o"],
+COMMANDS = {"generate": ["out_dir=/o"], "import": ["source=spread_release", "src=/s", "out_dir=/o"], "export": ["scenes=/s", "out_dir=/o"], "train": ["data.root=/d"], "sample": ["ckpt=c", "data.root=/d", "out_dir=/o"],
             "evaluate": ["scenes=/s", "reference=/d", "out_dir=/o"], "ablate": [], "compare": [], "report": ["runs=/r"]}
 
 

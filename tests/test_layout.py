@@ -22,7 +22,7 @@ FLOORS = (
     ("importers",),  # a dataset from another layout: uses procgen's dataset statistics and renders
     ("procgen", "training", "sampling", "evaluation"),
     ("runtime",),
-    ("guidance", "metrics", "baselines"),
+    ("guidance", "metrics", "baselines", "export"),
     ("model",),
     ("data",),
     ("physics", "render", "relations"),

@@ -16,7 +16,8 @@ module registers them with Hydra's ConfigStore, so that the YAML files only choo
   (:class:`~spread.procgen.dataset.DatasetConfig`), ``sample_schema`` = :class:`SampleCommand`
   (:class:`~spread.sampling.SamplingConfig`), ``evaluate_schema`` = :class:`EvaluateCommand`
   (:class:`~spread.evaluation.EvaluationConfig`), ``import_schema`` = ``ImportCommand``
-  (:class:`~spread.importers.run.ImportConfig`). ``OmegaConf.to_object(cfg)`` then *is* the library record,
+  (:class:`~spread.importers.run.ImportConfig`), ``export_schema`` = ``ExportCommand``
+  (:class:`~spread.export.ExportConfig`). ``OmegaConf.to_object(cfg)`` then *is* the library record,
   typed and validated — no field is copied by hand. ``spread-train`` instantiates its ``_target_`` nodes.
 
 Registration is per command (:func:`register`), so a light command (``spread-generate``) does not import
@@ -32,7 +33,7 @@ from pathlib import Path
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 #: The commands whose schemas :func:`register` knows, and the config groups each one composes.
-COMMANDS = ("generate", "import", "train", "sample", "evaluate", "ablate", "compare", "report")
+COMMANDS = ("generate", "import", "export", "train", "sample", "evaluate", "ablate", "compare", "report")
 
 
 def conf_dir() -> str:
@@ -101,6 +102,8 @@ def register(*commands: str) -> None:
         _generate()
     if "import" in wanted:
         _store(None, "import_schema", import_command())
+    if "export" in wanted:
+        _store(None, "export_schema", export_command())
     if wanted & {"train", "sample", "ablate", "compare"}:
         _model()
     if wanted & {"sample", "evaluate", "ablate", "compare"}:
@@ -213,3 +216,15 @@ def import_command():
         paths: PathsConfig = field(default_factory=PathsConfig)
 
     return ImportCommand
+
+
+@functools.cache
+def export_command():
+    """The ``spread-export`` schema: :class:`~spread.export.ExportConfig` plus the run-folder paths."""
+    from spread.export import ExportConfig
+
+    @dataclass
+    class ExportCommand(ExportConfig):
+        paths: PathsConfig = field(default_factory=PathsConfig)
+
+    return ExportCommand

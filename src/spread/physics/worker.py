@@ -1,4 +1,8 @@
-"""One :class:`PhysicsWorld` per worker process (Ray task, multiprocessing pool): created on first use.
+"""One physics world per worker process (Ray task, multiprocessing pool): created on first use.
+
+The engine follows the params: :class:`~spread.physics.PhysicsParams` (or none) gives a pybullet
+:class:`~spread.physics.world.PhysicsWorld`, :class:`~spread.physics.MujocoParams` a
+:class:`~spread.physics.mujoco_world.MujocoWorld`.
 
 The world lives in a thread-local slot tagged with the process id, so a forked child never reuses its
 parent's client and two threads never share one.
@@ -9,18 +13,18 @@ from __future__ import annotations
 import os
 import threading
 
+from spread.physics.mujoco_world import MujocoParams
 from spread.physics.params import PhysicsParams
 
 _local = threading.local()
 
 
-def get_world(params: PhysicsParams | None = None):
-    """This process's (and thread's) :class:`~spread.physics.world.PhysicsWorld`, created on first call.
+def get_world(params: PhysicsParams | MujocoParams | None = None):
+    """This process's (and thread's) physics world, created on first call: pybullet for
+    :class:`PhysicsParams` (the default), MuJoCo for :class:`MujocoParams`.
 
     With ``params`` different from the current world's, the world is closed and rebuilt with them.
     """
-    from spread.physics.world import PhysicsWorld
-
     world = getattr(_local, "world", None)
     if world is not None and getattr(_local, "pid", None) != os.getpid():
         world = None  # inherited through fork: that client belongs to the parent
@@ -28,6 +32,13 @@ def get_world(params: PhysicsParams | None = None):
         world.close()
         world = None
     if world is None:
-        world = PhysicsWorld(params)
+        if isinstance(params, MujocoParams):
+            from spread.physics.mujoco_world import MujocoWorld
+
+            world = MujocoWorld(params)
+        else:
+            from spread.physics.world import PhysicsWorld
+
+            world = PhysicsWorld(params)
         _local.world, _local.pid = world, os.getpid()
     return world

@@ -11,8 +11,9 @@ Pipeline for one room (all in metres, world frame):
 3. **Snap**: going up the support forest from the floor, move each object vertically so that its
    lowest downward-facing samples touch its supporter (floor: y = 0) exactly: support distances
    become ≈ 0 instead of the solver's resting penetration.
-4. **Verify**: simulate ``verify_steps`` of 1/60 s (the evaluation's protocol); objects that move more
-   than ``verify_motion`` are rejected and the room goes back to step 1 (bounded by ``rounds``).
+4. **Verify**: simulate ``verify_steps`` of 1/60 s (the evaluation's protocol) in ``verify_physics``
+   (pybullet, or MuJoCo for rooms meant to be measured with ``protocol.physics=mujoco``); objects that
+   move more than ``verify_motion`` are rejected and the room goes back to step 1 (bounded by ``rounds``).
 """
 
 from __future__ import annotations
@@ -40,6 +41,12 @@ class SettleConfig:
     verify_dt: float = 1.0 / 60.0
     verify_motion: float = 0.005
     rounds: int = 4
+    #: engine of the verification run: "pybullet" (the settling world itself) or "mujoco"
+    verify_physics: str = "pybullet"
+
+    def __post_init__(self) -> None:
+        if self.verify_physics not in ("pybullet", "mujoco"):
+            raise ValueError(f"settle.verify_physics must be 'pybullet' or 'mujoco', got {self.verify_physics!r}")
 
 
 @dataclass
@@ -98,6 +105,19 @@ def settle_room(ids: list[str], categories: list[str], roles: list[str], parent:
             world.close()
 
 
+def _mujoco_world():
+    """This process's MuJoCo world for verification runs (default :class:`~spread.physics.MujocoParams`)."""
+    global _MUJOCO
+    if _MUJOCO is None:
+        from spread.physics import MujocoWorld
+
+        _MUJOCO = MujocoWorld()
+    return _MUJOCO
+
+
+_MUJOCO = None
+
+
 def _settle(ids, categories, roles, parent, translation, rotation, library, config, world, report):
     from spread.physics import simulate_runs
 
@@ -124,7 +144,8 @@ def _settle(ids, categories, roles, parent, translation, rotation, library, conf
             Ts, rel = _snap(Ta, Ra, rel, ids_a, library)
             # verify with the evaluation protocol
             runs = simulate_runs(_bare_scene(ids_a, [categories[k] for k in alive], Ts, Ra), library, runs=1,
-                                 steps=config.verify_steps, dt=config.verify_dt, jitter=0.0, seed=0, world=world)
+                                 steps=config.verify_steps, dt=config.verify_dt, jitter=0.0, seed=0,
+                                 world=world if config.verify_physics == "pybullet" else _mujoco_world())
             motion = np.linalg.norm(runs.translation[0] - Ts, axis=1)
             movers = {int(k) for k in np.nonzero(motion > config.verify_motion)[0]}
             if not movers:

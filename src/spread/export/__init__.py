@@ -1,0 +1,186 @@
+"""Simulation-ready export of scenes (``spread-export``): URDF (pybullet), MJCF (MuJoCo), USD (Isaac Sim), glb.
+
+Every format carries what a simulator needs: the visual mesh, the collision parts (the asset's exact convex
+parts, the same bodies as the platform's Stability worlds), mass, centre of mass and inertia, and a static
+floor whose top is y = 0 (MJCF: z = 0, see below). Per scene, under ``out_dir``:
+
+=======  ======================================  ===================================================
+format   written                                 loads with
+=======  ======================================  ===================================================
+urdf     ``<id>/scene.json`` + URDFs + .obj      :func:`spread.export.urdf.load_urdf_scene` (pybullet)
+mjcf     ``<id>.xml`` (self-contained)           ``mujoco.MjModel.from_xml_path``; z-up (y-up room
+                                                 turned by a ``<frame>``), gravity −z
+usd      ``<id>.usda``                           ``pxr.Usd.Stage.Open``; Isaac Sim; y-up stage
+glb      ``<id>.glb``                            viewers (no physics data)
+=======  ======================================  ===================================================
+
+``<id>`` is :func:`spread.io.safe_name` of the scene id: one path component whatever the id holds, so
+nothing is written outside ``out_dir``. Writes are atomic: a file goes through a temporary file and a
+rename; a URDF folder is built in a temporary folder beside it and renamed into place.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from omegaconf import MISSING
+
+FORMATS = ("urdf", "mjcf", "usd", "glb")
+
+
+@dataclass
+class ExportConfig:
+    """``spread-export``: scenes: folder of ``<scene_id>.npz`` files; out_dir: files go here, one per scene;
+    assets: the asset library folder (None: the ``assets/`` folder beside ``scenes`` or inside it); format:
+    one of :data:`FORMATS`; floor: a static floor (top face at y = 0); progress: a tqdm bar."""
+
+    scenes: str = MISSING
+    out_dir: str = MISSING
+    assets: str | None = None
+    format: str = "urdf"
+    floor: bool = True
+    progress: bool = True
+
+
+def assets_of(scenes: str | os.PathLike, assets: str | os.PathLike | None) -> Path:
+    """The asset library folder: ``assets`` if given, else ``assets/`` beside the scenes folder or inside it."""
+    if assets:
+        path = Path(assets)
+        if not (path / "index.json").exists():
+            raise FileNotFoundError(f"assets={assets}: not an asset library (no index.json)")
+        return path
+    for candidate in (Path(scenes).parent / "assets", Path(scenes) / "assets"):
+        if (candidate / "index.json").exists():
+            return candidate
+    raise FileNotFoundError(f"no asset library beside scenes={scenes} (looked for ../assets and assets/); "
+                            "give assets=DIR")
+SUFFIX = {"urdf": "", "mjcf": ".xml", "usd": ".usda", "glb": ".glb"}
+
+
+def scene_colours(scene, palette: str | None = None) -> np.ndarray:
+    """(N, 4) RGBA in [0, 1]: each object's category colour (the render palette)."""
+    from spread.render.palette import DEFAULT_PALETTE, category_colour
+
+    rgb = [category_colour(str(c), palette or DEFAULT_PALETTE) for c in scene.category]
+    return np.concatenate([np.asarray(rgb, np.float64).reshape(-1, 3) / 255.0, np.ones((len(rgb), 1))], axis=1)
+
+
+def export_path(out_dir: str | os.PathLike, scene_id: str, fmt: str) -> Path:
+    """Where ``scene_id`` is written in ``fmt`` under ``out_dir`` (always a direct child of ``out_dir``)."""
+    from spread.io import safe_name
+
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown export format {fmt!r} (known: {', '.join(FORMATS)})")
+    out = Path(out_dir).resolve()
+    path = out / (safe_name(scene_id) + SUFFIX[fmt])
+    if path.parent != out:  # safe_name returns one path component; this guards the guarantee
+        raise ValueError(f"export path {path} of scene id {scene_id!r} is not inside {out}")
+    return path
+
+
+def export_scene(scene, library, out_dir: str | os.PathLike, fmt: str, floor: bool = True) -> Path:
+    """Write ``scene`` in ``fmt`` under ``out_dir`` (module docstring); returns the file or folder written."""
+    path = export_path(out_dir, scene.scene_id, fmt)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    colours = scene_colours(scene)
+    if fmt == "urdf":
+        from spread.export.urdf import write_urdf_scene
+
+        _write_folder(path, lambda tmp: write_urdf_scene(scene, library, tmp, colours, floor=floor))
+    elif fmt == "mjcf":
+        from spread.io import safe_name, write_text_atomic
+        from spread.physics.mjcf import scene_mjcf
+
+        names = [f"o{i:03d}_{safe_name(a)}" for i, a in enumerate(scene.asset_id)]
+        write_text_atomic(path, scene_mjcf(scene, library, up="z", visual=True, floor=floor, names=names,
+                                           colours=colours))
+    elif fmt == "usd":
+        from spread.export.urdf import floor_rect
+        from spread.export.usd import build_usd_stage
+        from spread.io import atomic_path
+
+        with atomic_path(path) as tmp:
+            tmp.unlink()  # pxr creates the layer itself (and refuses an existing file)
+            build_usd_stage(scene, library, tmp, colours, floor=floor, floor_rect=floor_rect(scene))
+    else:
+        from spread.render.export import export_glb
+
+        export_glb(scene, library, path, floor=floor)
+    return path
+
+
+def _write_folder(path: Path, fill) -> None:
+    """Build a folder with ``fill(tmp_folder)`` beside ``path``, then move it into place (replacing an older one)."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        fill(tmp)
+        os.chmod(tmp, 0o777 & ~_umask())
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=path.parent))
+            os.replace(path, old / "x")
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@dataclass
+class ExportReport:
+    """What :func:`export_folder` did: files written (by scene id) and scenes that failed (id → error)."""
+
+    format: str
+    out_dir: str
+    written: dict[str, str] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"format": self.format, "out_dir": self.out_dir, "n_written": len(self.written),
+                "n_failed": len(self.failed), "written": self.written, "failed": self.failed}
+
+
+def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir: str | os.PathLike, fmt: str,
+                  floor: bool = True, progress: bool = False) -> ExportReport:
+    """Export every scene file of ``scenes`` (asset library ``assets``) in ``fmt`` to ``out_dir``.
+
+    A scene that cannot be read or exported is reported in ``failed`` (its file and the error) and the others
+    go on. ``out_dir/export.json`` (atomic) records the report.
+    """
+    from spread.assets import AssetLibrary
+    from spread.io import write_json_atomic
+    from spread.scene import list_scene_files, read_scene
+
+    if fmt not in FORMATS:
+        raise ValueError(f"format={fmt!r}: unknown export format (known: {', '.join(FORMATS)})")
+    library = AssetLibrary.load(assets)
+    files = list_scene_files(scenes)
+    report = ExportReport(fmt, str(Path(out_dir).resolve()))
+    iterator = files
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(files, desc=f"export {fmt}", unit="scene")
+    for path in iterator:
+        try:
+            scene = read_scene(path, assets=library)
+            report.written[str(scene.scene_id)] = str(export_scene(scene, library, out_dir, fmt, floor=floor))
+        except Exception as exc:  # one bad scene does not stop the export
+            report.failed[path.stem] = f"{path}: {type(exc).__name__}: {exc}"
+            if os.environ.get("SPREAD_DEBUG"):
+                traceback.print_exc()
+    write_json_atomic(Path(out_dir) / "export.json", report.to_dict())
+    return report

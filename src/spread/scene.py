@@ -333,9 +333,11 @@ def load_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
     object array (pickled Python objects are never unpickled: save strings as unicode arrays instead,
     ``np.asarray(names, dtype=str)``).
     """
+    from spread.safe_load import UnsafeFileError, load_npz
+
     src = str(path)
     try:
-        data = np.load(path, allow_pickle=False)
+        data = load_npz(path)
     except Exception as exc:
         raise SceneFormatError(src, None, f"not a readable .npz file ({type(exc).__name__}: {exc})") from exc
     arrays = {}
@@ -343,12 +345,10 @@ def load_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
         for key in data.files:
             try:
                 arrays[key] = data[key]
-            except ValueError as exc:
-                if "allow_pickle" in str(exc):
-                    raise SceneFormatError(src, key, "stored as an object array (pickled Python objects); refused "
-                                           "without unpickling — store strings as a unicode array "
-                                           "(np.asarray(values, dtype=str))") from exc
-                raise SceneFormatError(src, key, f"unreadable array ({exc})") from exc
+            except UnsafeFileError as exc:
+                raise SceneFormatError(src, key, "stored as an object array (pickled Python objects); refused "
+                                       "without unpickling — store strings as a unicode array "
+                                       "(np.asarray(values, dtype=str))") from exc
             except Exception as exc:
                 raise SceneFormatError(src, key, f"unreadable array ({type(exc).__name__}: {exc})") from exc
     return arrays

@@ -346,3 +346,27 @@ def test_instructscene_relations_become_the_spatial_graph(tmp_path):
     assert (spatial[1, 0], spatial[0, 1]) == (4, 5)  # above / below
     assert (spatial[0, 2], spatial[2, 0]) == (0, 1)  # right of / left of ("closely" dropped)
     assert manifest["room_counts"]["spatial_pairs_filled"] == 2  # cup–cube, both ways: the platform's codes
+
+
+def test_an_imported_threed_front_dataset_trains_samples_evaluates_per_room_type_and_exports(front, tmp_path):
+    """Every stage takes the imported folder as it is: a few training steps, samples of its test graphs,
+    their evaluation per room type, and an MJCF export of the samples."""
+    from helpers import FAST_SAMPLE, FAST_TRAIN, SMALL_MODEL, compose, sample_in_process, train_in_process
+
+    from spread.experiments.commands import evaluate, export
+
+    data = front[0] / "out"
+    run = tmp_path / "run"
+    train_in_process(run, "experiment=quick", f"data.root={data}", "trainer.max_time=null", "trainer.max_steps=2",
+                     "data.batch_size=2", *SMALL_MODEL, *FAST_TRAIN)
+    sampled = sample_in_process(f"ckpt={run / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
+                                f"out_dir={tmp_path / 'samples'}")
+    assert len(sampled.files) == len(list((data / "test").glob("*.npz"))) == 2
+    assert all(str(read_scene(p).extras["room_type"]) == "bedroom" for p in sampled.files)
+    result = evaluate(compose("evaluate", f"scenes={tmp_path / 'samples' / 'scenes'}", f"reference={data}",
+                              f"out_dir={tmp_path / 'eval'}", "logger=none", "protocol.stability_runs=1",
+                              "fid.enabled=false", "ray.num_cpus=1", "progress=false", "renders=0"))
+    assert result.metrics["n_evaluated"] == 2 and set(result.metrics["per_room_type"]) == {"bedroom"}
+    report = export(compose("export", f"scenes={tmp_path / 'samples' / 'scenes'}", f"assets={data / 'assets'}",
+                            "format=mjcf", f"out_dir={tmp_path / 'mjcf'}", "progress=false"))
+    assert not report.failed and len(list((tmp_path / "mjcf").glob("*.xml"))) == 2

@@ -304,6 +304,29 @@ def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, tra
     assert json.loads((out / "metrics.json").read_text())["n_evaluated"] == 3
 
 
+def test_sample_draws_3d_figures_of_the_first_samples(dataset, trained, tmp_path):
+    """``figures=1``: the first sample as a 3D scene card (view + relation matrix) and before | after physics,
+    listed in sampling.json; ``figure_kinds`` picks which; an unknown kind is refused by name."""
+    from PIL import Image
+
+    out = tmp_path / "figs"
+    result = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                               "renders=0", "figures=1")
+    first = result.files[0].stem
+    expected = [out / "renders" / f"{first}_3d.png", out / "renders" / f"{first}_physics.png"]
+    assert result.manifest["figures"] == [str(p) for p in expected]
+    assert sorted((out / "renders").glob("*.png")) == sorted(expected)
+    for path in expected:
+        image = np.asarray(Image.open(path).convert("RGB"))
+        assert image.shape[0] > 400 and image.shape[1] > 1000 and image.std() > 10
+    only = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                             "renders=0", "figures=1", "figure_kinds=[card]")
+    assert only.manifest["figures"] == [str(expected[0])]
+    with pytest.raises(Exception, match="figure_kinds: unknown \\['movie'\\]"):
+        sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                          "figure_kinds=[movie]")
+
+
 def test_sample_rejects_an_unknown_guidance_mode(dataset, trained, tmp_path):
     proc = run_script("spread-sample", f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}",
                       f"out_dir={tmp_path / 'bad'}", *FAST_SAMPLE, "logger=none", "guidance.mode=strong", ok=False)

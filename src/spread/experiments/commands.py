@@ -158,7 +158,7 @@ def sample(cfg: DictConfig, log: bool = True):
     if evaluation is not None:
         from spread.evaluation.wandb_log import log_metrics
 
-        renders = list(result.manifest.get("renders") or [])
+        renders = list(result.manifest.get("renders") or []) + list(result.manifest.get("figures") or [])
 
         def more(run):
             log_metrics(run, evaluation.metrics, evaluation.records, renders)

@@ -98,12 +98,14 @@ def scene_figure(scene, library, settings: PerspectiveSettings | None = None, ti
 def before_after_figure(scene, library, settings: PerspectiveSettings | None = None, outcome=None, seed: int = 0,
                         title: str | None = None) -> np.ndarray:
     """The scene as given | after one Stability run (:func:`~spread.render.physics_view.after_physics`, or
-    ``outcome`` when already simulated), side by side with one camera framing both; legend on the right."""
+    ``outcome`` when already simulated), side by side, both seen by the camera that frames the scene as given
+    (objects that physics throws far away leave the picture; the caption gives the largest displacement);
+    legend on the right."""
     from spread.render.physics_view import after_physics
 
     settings = settings or PerspectiveSettings()
     outcome = outcome or after_physics(scene, library, seed=seed)
-    camera = default_camera([outcome.before, outcome.after], library, settings)
+    camera = default_camera(outcome.before, library, settings)
     views = [render_perspective(s, library, settings, camera) for s in (outcome.before, outcome.after)]
     w, h, legend_w = settings.width / DPI, settings.height / DPI, _legend_width(scene.category)
     fig = _figure(2 * w + legend_w, h + 0.65)

@@ -127,6 +127,13 @@ def test_ground_truth_split_scores_as_ground_truth(cli_run):
     assert metrics["asd"] < 1e-3  # metres
     assert metrics["stability"] >= 0.98
     assert metrics["n_objects"] > 2 * ROOMS
+    # the bootstrap over scenes: ground truth never collides and keeps every relation, so those intervals have
+    # zero width; the seed is the protocol's and only the evaluated scenes are resampled
+    assert metrics["col_mesh_lo"] == metrics["col_mesh_hi"] == 0.0
+    assert metrics["grecall_lo"] == metrics["grecall_hi"] == 1.0
+    assert metrics["asd_lo"] <= metrics["asd"] <= metrics["asd_hi"]
+    assert metrics["bootstrap"] == {"method": "percentile", "unit": "scene", "resamples": 1000, "level": 0.95,
+                                    "seed": metrics["protocol"]["seed"], "n_scenes": ROOMS}
 
 
 def test_fid_and_kid_come_offline_from_the_shipped_inception_weights(cli_run):

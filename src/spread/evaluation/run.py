@@ -8,8 +8,10 @@
 3. Fan the rest out as Ray tasks (:func:`~spread.evaluation.fanout.fan_out`); the driver appends each
    record as it arrives and advances the progress bar.
 4. ``metrics.json`` (atomic) is computed from the file's deduplicated lines of this folder's scenes, so a
-   resumed run reports exactly what a single run would. FID reference statistics are computed by Ray
-   tasks too when an extractor is available; otherwise FID is null with the reason.
+   resumed run reports exactly what a single run would; with each metric its 95 % bootstrap interval over
+   scenes (``<metric>_lo`` / ``_hi``, ``bootstrap``: :mod:`~spread.evaluation.bootstrap`, seeded by the
+   protocol's seed). FID reference statistics are computed by Ray tasks too when an extractor is available;
+   otherwise FID is null with the reason.
 5. A few top-down renders of evaluated scenes go to ``out_dir/renders/``.
 """
 
@@ -23,6 +25,7 @@ from pathlib import Path
 from omegaconf import MISSING
 
 from spread.evaluation.aggregate import fid_values, summary_values
+from spread.evaluation.bootstrap import RESAMPLES, bootstrap_intervals
 from spread.evaluation.fanout import fan_out, run_tasks
 from spread.evaluation.protocol import EvalProtocol, FIDConfig, versions
 from spread.evaluation.resume import dedupe, load_finished
@@ -42,8 +45,8 @@ class EvaluationConfig:
     """scenes: folder of scene files; reference: dataset folder (``assets/`` + ``reference_split/``);
     out_dir: run folder; chunk_size: scenes per Ray task; resume: keep ``per_scene.jsonl`` lines;
     retry_failed: on resume, evaluate scenes whose line has an error again; renders: top-down PNGs of
-    the first evaluated scenes; progress: tqdm bar; protocol / fid: what is measured and how (DESIGN §6);
-    ray: where. The ``spread-evaluate`` config (``conf/evaluate.yaml``) is this record plus the command's
+    the first evaluated scenes; progress: tqdm bar; bootstrap_resamples: resamples of the confidence intervals
+    (0: none); protocol / fid: what is measured and how (DESIGN §6); ray: where. The ``spread-evaluate`` config (``conf/evaluate.yaml``) is this record plus the command's
     logger (:mod:`spread.configs`)."""
 
     scenes: str = MISSING
@@ -55,6 +58,7 @@ class EvaluationConfig:
     retry_failed: bool = False
     renders: int = 8
     progress: bool = True
+    bootstrap_resamples: int = RESAMPLES
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     fid: FIDConfig = field(default_factory=FIDConfig)
     ray: RaySettings = field(default_factory=RaySettings)
@@ -162,6 +166,8 @@ def run_evaluation(cfg: EvaluationConfig) -> EvaluationResult:
     records = [r for k, r in dedupe(read_jsonl(per_scene)).items() if k in wanted]
     records.sort(key=lambda r: r["scene_id"])
     metrics = summary_values(records, cfg.protocol)
+    if cfg.bootstrap_resamples > 0:
+        metrics.update(bootstrap_intervals(records, cfg.bootstrap_resamples, seed=cfg.protocol.seed))
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
                               cfg.fid.feature_model))
     metrics.update({

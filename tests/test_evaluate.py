@@ -116,7 +116,8 @@ def test_files_and_keys(cli_run):
     assert protocol["collision_threshold"] == 0.01 and protocol["stability_jitter"] == 5e-4
     assert protocol["stability_substeps"] == 4 and protocol["fid_render"]["image_size"] == 256
     assert {"spread", "torch", "pybullet", "trimesh", "ray"} <= set(metrics["versions"])
-    assert "Col_mesh" in stdout
+    assert "Col_mesh" in stdout and "95 % interval" in stdout and "[0.0000, 0.0000]" in stdout  # Col_mesh's
+    assert "interval: the 95 % percentile bootstrap interval over scenes (1,000 resamples, seed 0)" in stdout
 
 
 def test_ground_truth_split_scores_as_ground_truth(cli_run):

@@ -485,3 +485,27 @@ def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
     report = run_report([str(sweep)], tmp_path / "report")
     assert [r["guidance.collision"] for r in report.records] == [0.0, 0.015]
     assert np.isfinite([r["col_mesh"] for r in report.records]).all()
+
+
+def test_wandb_ablation_table_carries_the_bounds_and_the_row_figures(tmp_path, monkeypatch):
+    """Offline: the logged table has each metric's bounds and the bootstrap's seed; each row's figure is an image."""
+    from spread.experiments.wandb_table import log_ablation
+    from spread.render import save_png
+    from spread.runtime.tracking import LoggerConfig
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    records = [{"variant": v, "method": v, "grecall": 0.8, "grecall_lo": 0.7, "grecall_hi": 0.9, "col_mesh": 0.2,
+                "col_mesh_lo": 0.1, "col_mesh_hi": 0.3, "ci_level": 0.95, "ci_resamples": 1000, "ci_seed": 4}
+               for v in ("base", "geometry")]
+    for k in ("truth", "base"):  # geometry's figure is missing: logged without it
+        save_png(np.full((8, 8, 3), 200, np.uint8), tmp_path / f"ablation_{k}.png")
+    folder = Path(log_ablation(records, None, tmp_path, LoggerConfig(mode="offline"), name="t"))  # its files/
+    tables = list((folder / "media" / "table").glob("ablation_*.table.json"))
+    assert len(tables) == 1
+    logged = json.loads(tables[0].read_text())
+    columns = logged["columns"]
+    assert columns[columns.index("grecall"):columns.index("grecall") + 3] == ["grecall", "grecall_lo", "grecall_hi"]
+    assert logged["data"][0][columns.index("ci_seed")] == 4
+    images = sorted(p.name.split("_")[0] for p in (folder / "media" / "images" / "ablation_figure").glob("*.png"))
+    assert images == ["base", "truth"]

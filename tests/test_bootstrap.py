@@ -33,7 +33,7 @@ def test_two_scenes_give_the_interval_between_their_own_ratios():
     assert (out["col_mesh_lo"], out["col_mesh_hi"]) == (0.0, 0.5)
     assert (out["grecall_lo"], out["grecall_hi"]) == (0.5, 1.0)
     assert out["bootstrap"] == {"method": "percentile", "unit": "scene", "resamples": 10_000, "level": 0.95,
-                                "seed": 1, "n_scenes": 2}
+                                "seed": 1, "n_scenes": 2, "measured": {m: 2 for m in RATIOS} | {"asd": 0}}
 
 
 def test_interval_is_the_percentile_interval_of_pooled_ratios_of_resampled_scenes():
@@ -84,6 +84,10 @@ def test_pooled_not_averaged_and_reproducible_by_seed():
 
 def test_metrics_nobody_measured_have_no_interval_and_bad_input_is_named():
     rows = [record("a", 0, 3, 6, 6), record("b", 1, 3, 3, 6)]  # no support pairs anywhere: ASD undefined
+    out = bootstrap_intervals(rows * 3 + [record("c", 0, 2, 2, 2, asd_sum=0.01, support=1)], resamples=50)
+    assert out["asd_lo"] == out["asd_hi"] == 0.01 and out["bootstrap"]["measured"]["asd"] == 1  # one room: say so
+    assert interval_note(out["bootstrap"]).endswith(
+        "seed 0); FID and KID have none. Fewer than 5 scenes measured asd (1): too few for a trustworthy interval.")
     out = bootstrap_intervals(rows, resamples=50)
     assert out["asd_lo"] is None and out["asd_hi"] is None and out["grecall_lo"] is not None
     empty = bootstrap_intervals([], resamples=50)

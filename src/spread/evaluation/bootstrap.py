@@ -39,6 +39,9 @@ RATIOS = {
 }
 RESAMPLES = 1000
 LEVEL = 0.95
+#: Fewer scenes than this measuring a metric: its interval is flagged (a bootstrap over a handful of units is
+#: too narrow).
+FEW = 5
 
 
 def scene_sums(records: Iterable[dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -70,7 +73,9 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
                         seed: int = 0) -> dict:
     """``{"<metric>_lo": ..., "<metric>_hi": ..., "bootstrap": {...}}`` for the metrics of :data:`RATIOS` over
     ``records`` (``per_scene.jsonl`` lines); None where a metric has no value. ``bootstrap`` records the
-    method, resamples, level, seed and the number of scenes."""
+    method, resamples, level, seed, the number of scenes and, per metric, how many of them measured it
+    (``measured``: a non-zero denominator, e.g. ASD only counts rooms with support pairs — an interval
+    resting on a handful of such rooms is too narrow to trust)."""
     if not 0 < level < 1:
         raise ValueError(f"level must be in (0, 1), got {level}")
     if resamples < 1:
@@ -78,7 +83,7 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
     sums = scene_sums(records)
     n = len(next(iter(sums.values()))[0])
     meta = {"method": "percentile", "unit": "scene", "resamples": int(resamples), "level": float(level),
-            "seed": int(seed), "n_scenes": n}
+            "seed": int(seed), "n_scenes": n, "measured": {m: int((den > 0).sum()) for m, (_, den) in sums.items()}}
     out: dict = {}
     index = resample_indices(n, resamples, seed) if n else None
     quantiles = [(1 - level) / 2, (1 + level) / 2]
@@ -98,5 +103,10 @@ def interval_note(meta: dict | None) -> str:
     """One sentence saying what a table's ± is, from a ``bootstrap`` block (empty without one)."""
     if not meta:
         return ""
-    return (f"± is half the width of the {meta['level'] * 100:g} % {meta['method']} bootstrap interval over scenes "
+    note = (f"± is half the width of the {meta['level'] * 100:g} % {meta['method']} bootstrap interval over scenes "
             f"({meta['resamples']:,} resamples, seed {meta['seed']}); FID and KID have none.")
+    few = {m: k for m, k in (meta.get("measured") or {}).items() if 0 < k < FEW}
+    if few:
+        note += (f" Fewer than {FEW} scenes measured " + ", ".join(f"{m} ({k})" for m, k in few.items())
+                 + ": too few for a trustworthy interval.")
+    return note

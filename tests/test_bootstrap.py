@@ -233,3 +233,21 @@ def test_grouped_intervals_bootstrap_each_group_on_its_own_scenes():
         assert out[f"col_mesh/{name}_lo"] <= out[f"col_mesh/{name}"] <= out[f"col_mesh/{name}_hi"]
     with pytest.raises(ValueError, match="unknown metric 'fid'"):
         grouped_intervals(rooms, group.get, ["fid"])
+
+
+def test_make_demo_table_prints_each_cell_with_its_interval():
+    """make demo's ground truth | generated table: value ± half-width, ASD in mm, '–' for a missing metric."""
+    from rich.console import Console
+
+    from spread.cli.demo import comparison_table
+
+    truth = {"grecall": 1.0, "grecall_lo": 1.0, "grecall_hi": 1.0, "col_mesh": 0.0, "asd": None,
+             "stability": 0.99, "n_scenes": 8, "n_objects": 60}
+    generated = {"grecall": 0.8, "grecall_lo": 0.75, "grecall_hi": 0.85, "col_mesh": 0.2, "col_mesh_lo": 0.1,
+                 "col_mesh_hi": 0.3, "asd": 0.25, "asd_lo": 0.2, "asd_hi": 0.31, "stability": 0.9,
+                 "n_scenes": 8, "n_objects": 61}
+    console = Console(width=200, record=True)
+    console.print(comparison_table(truth, generated, "t"))
+    text = console.export_text()
+    assert "1.000 ± 0.000" in text and "0.800 ± 0.050" in text and "0.200 ± 0.100" in text
+    assert "250.0 ± 55.0" in text and "–" in text

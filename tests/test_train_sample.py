@@ -291,6 +291,9 @@ def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, tra
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_scenes"] == 3 and metrics["n_evaluated"] == 3 and metrics["n_failed"] == 0
     assert metrics["protocol"]["stability_runs"] == 1
+    # the intervals: the run's seed drew them, over its 3 scenes, and they hold the reported value
+    assert metrics["bootstrap"]["seed"] == metrics["protocol"]["seed"] and metrics["bootstrap"]["n_scenes"] == 3
+    assert metrics["grecall_lo"] <= metrics["grecall"] <= metrics["grecall_hi"]
     lines = (out / "per_scene.jsonl").read_text().splitlines()
     assert len(lines) == 3
     stamp = (out / "metrics.json").stat().st_mtime_ns

@@ -46,8 +46,8 @@ class EvaluationConfig:
     out_dir: run folder; chunk_size: scenes per Ray task; resume: keep ``per_scene.jsonl`` lines;
     retry_failed: on resume, evaluate scenes whose line has an error again; renders: top-down PNGs of
     the first evaluated scenes; progress: tqdm bar; bootstrap_resamples: resamples of the confidence intervals
-    (0: none); protocol / fid: what is measured and how (DESIGN §6); ray: where. The ``spread-evaluate`` config (``conf/evaluate.yaml``) is this record plus the command's
-    logger (:mod:`spread.configs`)."""
+    (0: none); protocol / fid: what is measured and how (DESIGN §6); ray: where. The ``spread-evaluate``
+    config (``conf/evaluate.yaml``) is this record plus the command's logger (:mod:`spread.configs`)."""
 
     scenes: str = MISSING
     reference: str = MISSING

@@ -1,7 +1,8 @@
 """The ablation table on wandb: a ``wandb.Table`` (one row per variant; each metric's bootstrap bounds and the
 bootstrap's seed beside it), the bar plot, the figures (``ablation_<row>.png`` in ``out_dir``: one test graph per
-row in 3D with its relation matrix), and per-variant summary values (``<variant>/<metric>``, ``_lo``, ``_hi``). Offline by default: files under ``out_dir/wandb``, ``wandb sync``
-uploads them later; ``mode="disabled"`` writes nothing and opens no connection."""
+row in 3D with its relation matrix), and per-variant summary values (``<variant>/<metric>``, ``_lo``, ``_hi``).
+Offline by default: files under ``out_dir/wandb``, ``wandb sync`` uploads them later; ``mode="disabled"`` writes
+nothing and opens no connection."""
 
 from __future__ import annotations
 

@@ -214,11 +214,18 @@ def test_any_table_with_bounds_prints_them_and_its_csv_names_the_seed(tmp_path):
                          note=table_note([row]))
     back = read_csv(paths["csv"])[0]
     assert list(back) == ["method", "col_mesh", "col_mesh_lo", "col_mesh_hi", "col_mesh/bedroom",
-                          "col_mesh/bedroom_lo", "col_mesh/bedroom_hi", "ci_level", "ci_resamples", "ci_seed"]
-    assert back["ci_seed"] == 9 and back["ci_resamples"] == 1000
+                          "col_mesh/bedroom_lo", "col_mesh/bedroom_hi", "ci_level", "ci_resamples", "ci_seed",
+                          "ci_few"]
+    assert back["ci_seed"] == 9 and back["ci_resamples"] == 1000 and back["ci_few"] is None  # 16 rooms measured all
     half = (row["col_mesh/bedroom_hi"] - row["col_mesh/bedroom_lo"]) / 2
     assert f"| {row['col_mesh/bedroom']:.3f} ± {half:.3f} |" in paths["md"].read_text()
-    assert "seed 9" in paths["md"].read_text()
+    assert "seed 9" in paths["md"].read_text() and "Fewer than" not in paths["md"].read_text()
+    # two rooms with support pairs among six: the row says ASD's interval is not to be trusted
+    rows = [record(f"s{k}", 0, 4, 6, 12, asd_sum=0.01 * k, support=int(k < 2)) for k in range(6)]
+    flagged = {"method": "B", **ci_columns(bootstrap_intervals(rows, seed=0))}
+    assert flagged["ci_few"] == "asd (2)"
+    assert table_note([row, flagged]).endswith(
+        "Fewer than 5 scenes measured B: asd (2): too few for a trustworthy interval.")
 
 
 def test_grouped_intervals_bootstrap_each_group_on_its_own_scenes():

@@ -99,14 +99,19 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
     return out
 
 
+def few_measured(meta: dict | None) -> str:
+    """``"asd (2), ..."``: the metrics fewer than :data:`FEW` (but some) scenes measured, "" when none."""
+    counts = (meta or {}).get("measured") or {}
+    return ", ".join(f"{m} ({k})" for m, k in counts.items() if 0 < k < FEW)
+
+
 def interval_note(meta: dict | None) -> str:
     """One sentence saying what a table's ± is, from a ``bootstrap`` block (empty without one)."""
     if not meta:
         return ""
     note = (f"± is half the width of the {meta['level'] * 100:g} % {meta['method']} bootstrap interval over scenes "
             f"({meta['resamples']:,} resamples, seed {meta['seed']}); FID and KID have none.")
-    few = {m: k for m, k in (meta.get("measured") or {}).items() if 0 < k < FEW}
+    few = few_measured(meta)
     if few:
-        note += (f" Fewer than {FEW} scenes measured " + ", ".join(f"{m} ({k})" for m, k in few.items())
-                 + ": too few for a trustworthy interval.")
+        note += f" Fewer than {FEW} scenes measured {few}: too few for a trustworthy interval."
     return note

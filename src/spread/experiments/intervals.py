@@ -17,7 +17,7 @@ from pathlib import Path
 
 from typing import Callable, Iterable
 
-from spread.evaluation.bootstrap import RATIOS, bootstrap_intervals, interval_note
+from spread.evaluation.bootstrap import FEW, RATIOS, bootstrap_intervals, few_measured, interval_note
 from spread.experiments.tables import CI_SETTINGS
 
 #: Row fields of the intervals, in table order.
@@ -76,10 +76,12 @@ def grouped_intervals(records: Iterable[dict], group_of: Callable[[str], str | N
 
 
 def ci_columns(intervals: dict) -> dict:
-    """The interval fields of a row plus ``ci_level``, ``ci_resamples``, ``ci_seed`` (None without intervals)."""
+    """The interval fields of a row plus ``ci_level``, ``ci_resamples``, ``ci_seed`` and ``ci_few`` (the metrics
+    too few scenes measured, :func:`~spread.evaluation.bootstrap.few_measured`; None without intervals)."""
     meta = intervals.get("bootstrap") or {}
     return {**{k: intervals.get(k) for k in INTERVAL_KEYS},
-            **{k: meta.get(k.removeprefix("ci_")) for k in CI_SETTINGS}}
+            **{k: meta.get(k.removeprefix("ci_")) for k in CI_SETTINGS if k != "ci_few"},
+            "ci_few": (few_measured(meta) or None) if meta else None}
 
 
 def table_note(records) -> str:
@@ -93,4 +95,7 @@ def table_note(records) -> str:
                           "seed": seeds[0]})
     if len(seeds) > 1 or len({(r["ci_level"], r["ci_resamples"]) for r in metas}) > 1:
         note += f" (rows differ: seeds {seeds}; see the CSV's ci_* columns)"
+    few = [f"{r.get('method') or r.get('run') or i}: {r['ci_few']}" for i, r in enumerate(metas) if r.get("ci_few")]
+    if few:
+        note += f" Fewer than {FEW} scenes measured " + "; ".join(few) + ": too few for a trustworthy interval."
     return note

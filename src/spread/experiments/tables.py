@@ -172,7 +172,7 @@ def record_keys(records: Iterable[dict], first: Sequence[str] = ()) -> list[str]
 
 
 #: Row fields that record how a row's intervals were drawn (:func:`spread.experiments.intervals.ci_columns`).
-CI_SETTINGS = ("ci_level", "ci_resamples", "ci_seed")
+CI_SETTINGS = ("ci_level", "ci_resamples", "ci_seed", "ci_few")
 
 
 def with_bounds(keys: Sequence[str], records: Sequence[dict]) -> list[str]:

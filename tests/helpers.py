@@ -24,7 +24,7 @@ SMALL_MODEL = ["model.config.depth=1", "model.config.dim=32", "model.config.dim_
                "model.config.tokenizer_points=32", "model.config.num_points=32", "model.config.cond_dim=32"]
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
 FAST_TRAIN = [*QUIET, "logger=csv", "trainer.num_sanity_val_steps=0", "data.batch_size=4"]
-FAST_SAMPLE = ["sampler.steps=4", "progress=false", "renders=2", "batch_size=2", "workers=0"]
+FAST_SAMPLE = ["sampler.steps=4", "progress=false", "renders=2", "figures=0", "batch_size=2", "workers=0"]
 SCRIPTS = Path(sys.executable).parent
 
 

@@ -84,16 +84,31 @@ def fake_runs(root: Path) -> dict[str, Path]:
     (a / ".hydra").mkdir(parents=True)
     (a / ".hydra" / "config.yaml").write_text(yaml.safe_dump(
         {"guidance": {"mode": "refine", "collision": 0.0, "gravity": 0.001, "relation": 0.001}, "seed": 0}))
-    (a / "metrics.json").write_text(json.dumps(metrics_json(0.30, 0.91)))
+    (a / "metrics.json").write_text(json.dumps({**metrics_json(0.30, 0.91), "col_mesh_lo": 0.25, "col_mesh_hi": 0.36,
+                                                "bootstrap": {"method": "percentile", "unit": "scene",
+                                                              "resamples": 500, "level": 0.95, "seed": 3,
+                                                              "n_scenes": 3}}))
     b = root / "sweep" / "c0.015_g0.002_r0.0"
     b.mkdir(parents=True)
     (b / "sampling.json").write_text(json.dumps(
         {"samples": 3, "guidance": {"mode": "refine", "collision": 0.015, "gravity": 0.002, "relation": 0.0}}))
-    (b / "metrics.json").write_text(json.dumps(metrics_json(0.10, 0.95)))
+    (b / "metrics.json").write_text(json.dumps(metrics_json(0.10, 0.95)))  # from before intervals: bootstrapped
+    (b / "per_scene.jsonl").write_text("".join(json.dumps(r) + "\n" for r in per_scene_lines()))  # from these
     unfinished = root / "sweep" / "c0.0075_g0.0_r0.0"
     (unfinished / "scenes").mkdir(parents=True)
     (unfinished / "sampling.json").write_text("{}")
     return {"a": a, "b": b, "unfinished": unfinished}
+
+
+def per_scene_lines() -> list[dict]:
+    """Three evaluated scenes (10 objects; 1 of them colliding in two scenes, none in the third)."""
+    def line(k, colliding):
+        return {"scene_id": f"g{k}_k0", "error": None, "num_objects": 10, "state": {
+            "col_mesh": {"colliding_objects": colliding, "objects": 10}, "grecall": {"matches": 80, "pairs": 90},
+            "asd": {"abs_distance_sum": 0.02, "pairs": 2},
+            "stability": {"unchanged_pairs": 85, "pairs": 90, "objects": 10, "still_objects": 9,
+                          "displacement_ok": 9, "rotation_ok": 10}}}
+    return [line(0, 1), line(1, 2), line(2, 0)]
 
 
 @pytest.fixture
@@ -107,7 +122,8 @@ def wandb_run(tmp_path, monkeypatch) -> Path:
                      config={"guidance.collision": 0.0075, "guidance.gravity": 0.0, "guidance.relation": 0.002},
                      settings=wandb.Settings(console="off", save_code=False, silent=True))
     run.log({"col_mesh": 0.5, "grecall": 0.5})
-    run.summary.update(metrics_json(0.20, 0.93))
+    run.summary.update({**metrics_json(0.20, 0.93), "col_mesh_lo": 0.1, "col_mesh_hi": 0.3, "ci_level": 0.95,
+                        "ci_resamples": 1000, "ci_seed": 0})  # what spread-evaluate's wandb_log writes
     run.finish()
     found = list((tmp_path / "wandb").glob("offline-run-*"))
     assert len(found) == 1
@@ -133,7 +149,19 @@ def test_report_reads_run_folders_and_a_wandb_offline_run(tmp_path, wandb_run):
     assert result.plots[("fid", "guidance.gravity")][1] == []  # FID null everywhere: an empty, labelled plot
     table = read_csv(result.tables["csv"])
     assert [(r["run"], r["col_mesh"]) for r in table] == [(r["run"], r["col_mesh"]) for r in result.records]
-    assert "c0.015_g0.002_r0.0" in result.tables["md"].read_text()
+    md = result.tables["md"].read_text()
+    assert "c0.015_g0.002_r0.0" in md
+    # intervals: metrics.json's own (a), bootstrapped from per_scene.jsonl with seed 0 (b), the wandb summary's
+    from spread.evaluation.bootstrap import bootstrap_intervals
+
+    computed = bootstrap_intervals(per_scene_lines(), seed=0)
+    by_name = {r["run"]: r for r in table}
+    assert (by_name["c0.0_g0.001_r0.001"]["col_mesh_lo"], by_name["c0.0_g0.001_r0.001"]["ci_seed"]) == (0.25, 3)
+    assert by_name["c0.015_g0.002_r0.0"]["col_mesh_lo"] == computed["col_mesh_lo"] == 0.0
+    assert by_name["c0.015_g0.002_r0.0"]["col_mesh_hi"] == computed["col_mesh_hi"] == 0.2
+    assert (by_name["agent-run"]["col_mesh_hi"], by_name["agent-run"]["ci_resamples"]) == (0.3, 1000)
+    assert "0.300 ± 0.055" in md and "0.100 ± 0.100" in md and "0.200 ± 0.100" in md
+    assert "seed 0" in md and "seeds [0, 3]" in md
     assert json.loads((tmp_path / "report" / "report.json").read_text())["unfinished"] == [str(runs["unfinished"])]
 
 
@@ -211,7 +239,7 @@ class FakeCommands:
 def spec(tmp_path: Path, **kw) -> AblationSpec:
     defaults = dict(out_dir=tmp_path / "abl", train=["seed=0"], train_variant={"base": ["experiment=paper_base"],
                     "geometry": ["experiment=paper_geometry"]}, sample=["seed=0"], guidance=["guidance=refine"],
-                    evaluate=["seed=0"], generate=["rooms=4"])
+                    evaluate=["seed=0"], generate=["rooms=4"], figures=False)  # fake scenes: nothing to draw
     return AblationSpec(**{**defaults, **kw})
 
 
@@ -367,7 +395,7 @@ def tiny_ablation(tmp_path_factory):
     out = tmp_path_factory.mktemp("ablate") / "quick"
     cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}")
     cfg.train.extra = [*SMALL_MODEL, *FAST_TRAIN, "trainer.max_steps=3", "trainer.max_time=null"]
-    cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "batch_size=2"]
+    cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "figures=0", "batch_size=2"]
     cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]
     started = time.perf_counter()
     result = run(cfg)
@@ -387,6 +415,14 @@ def test_tiny_ablation_end_to_end_and_resume(tiny_ablation):
     rows = read_csv(out / "ablation.csv")
     assert [(r["variant"], r["grecall"]) for r in rows] == [(r["variant"], r["grecall"]) for r in result.records]
     assert "+Guidance" in (out / "ablation.tex").read_text() and (out / "ablation.png").stat().st_size > 0
+    # every cell with its bootstrap interval (bounds and seed in the CSV), one scene per row drawn in 3D
+    for r in rows:
+        assert r["grecall_lo"] <= r["grecall"] <= r["grecall_hi"] and r["ci_resamples"] == 1000 and r["ci_seed"] == 0
+    md = (out / "ablation.md").read_text()
+    assert " ± " in md and "bootstrap interval over scenes (1,000 resamples, seed 0)" in md
+    assert r"$\pm$" in (out / "ablation.tex").read_text()
+    for v in ("truth", "base", "geometry", "guidance"):
+        assert (out / f"ablation_{v}.png").stat().st_size > 10_000 and f"(ablation_{v}.png)" in md
     # same graphs, same seeds: the three rows sampled the same files; guidance recorded only in its row
     names = [sorted(p.name for p in (out / "samples" / v / "scenes").glob("*.npz"))
              for v in ("base", "geometry", "guidance")]
@@ -449,3 +485,27 @@ def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
     report = run_report([str(sweep)], tmp_path / "report")
     assert [r["guidance.collision"] for r in report.records] == [0.0, 0.015]
     assert np.isfinite([r["col_mesh"] for r in report.records]).all()
+
+
+def test_wandb_ablation_table_carries_the_bounds_and_the_row_figures(tmp_path, monkeypatch):
+    """Offline: the logged table has each metric's bounds and the bootstrap's seed; each row's figure is an image."""
+    from spread.experiments.wandb_table import log_ablation
+    from spread.render import save_png
+    from spread.runtime.tracking import LoggerConfig
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    records = [{"variant": v, "method": v, "grecall": 0.8, "grecall_lo": 0.7, "grecall_hi": 0.9, "col_mesh": 0.2,
+                "col_mesh_lo": 0.1, "col_mesh_hi": 0.3, "ci_level": 0.95, "ci_resamples": 1000, "ci_seed": 4}
+               for v in ("base", "geometry")]
+    for k in ("truth", "base"):  # geometry's figure is missing: logged without it
+        save_png(np.full((8, 8, 3), 200, np.uint8), tmp_path / f"ablation_{k}.png")
+    folder = Path(log_ablation(records, None, tmp_path, LoggerConfig(mode="offline"), name="t"))  # its files/
+    tables = list((folder / "media" / "table").glob("ablation_*.table.json"))
+    assert len(tables) == 1
+    logged = json.loads(tables[0].read_text())
+    columns = logged["columns"]
+    assert columns[columns.index("grecall"):columns.index("grecall") + 3] == ["grecall", "grecall_lo", "grecall_hi"]
+    assert logged["data"][0][columns.index("ci_seed")] == 4
+    images = sorted(p.name.split("_")[0] for p in (folder / "media" / "images" / "ablation_figure").glob("*.png"))
+    assert images == ["base", "truth"]

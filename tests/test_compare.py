@@ -79,7 +79,11 @@ class FakeCommands:
         # g0 (bedroom): 1 of 4 objects colliding; g1 (bedroom): index of 4; g2 (livingroom): 2 of 5
         colliding = {"g0": (1, 4), "g1": (index, 4), "g2": (2, 5)}
         lines = [json.dumps({"scene_id": f"{g}_k0", "error": None,
-                             "state": {"col_mesh": {"colliding_objects": c, "objects": n}}})
+                             "state": {"col_mesh": {"colliding_objects": c, "objects": n},
+                                       "grecall": {"matches": 9, "pairs": 10},
+                                       "asd": {"abs_distance_sum": 0.01, "pairs": 1},
+                                       "stability": {"unchanged_pairs": 8, "pairs": 10, "still_objects": n,
+                                                     "objects": n}}})
                  for g, (c, n) in colliding.items()]
         (out / "per_scene.jsonl").write_text("\n".join(lines) + "\n")
         self.calls.append(("evaluate", out.name, a["resume"]))
@@ -116,6 +120,10 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
     assert csv["diffuscene"]["col_mesh"] == pytest.approx(0.4) and csv["diffuscene"]["grecall"] is None
     md = (out / "table1.md").read_text()
     assert "GRecall ↑" in md and "| ATISS | – |" in md and "Budget:" in md and "7 training steps" in md
+    # every cell with its bootstrap interval over the three scenes; none for a GRecall the table leaves out
+    assert rows["atiss"]["grecall_lo"] is None and rows["spread"]["grecall_lo"] == rows["spread"]["grecall_hi"] == 0.9
+    lo, hi = rows["atiss"]["col_mesh_lo"], rows["atiss"]["col_mesh_hi"]  # per scene 1/4, 0/4, 2/5
+    assert 0.0 <= lo < 3 / 13 < hi <= 2 / 5 and "±" in md and csv["atiss"]["ci_seed"] == 0
 
     commands.calls.clear()  # everything finished: nothing runs
     again = run_comparison(spec(tmp_path), commands)

@@ -116,7 +116,8 @@ def test_files_and_keys(cli_run):
     assert protocol["collision_threshold"] == 0.01 and protocol["stability_jitter"] == 5e-4
     assert protocol["stability_substeps"] == 4 and protocol["fid_render"]["image_size"] == 256
     assert {"spread", "torch", "pybullet", "trimesh", "ray"} <= set(metrics["versions"])
-    assert "Col_mesh" in stdout
+    assert "Col_mesh" in stdout and "95 % interval" in stdout and "[0.0000, 0.0000]" in stdout  # Col_mesh's
+    assert "interval: the 95 % percentile bootstrap interval over scenes (1,000 resamples, seed 0)" in stdout
 
 
 def test_ground_truth_split_scores_as_ground_truth(cli_run):
@@ -127,6 +128,15 @@ def test_ground_truth_split_scores_as_ground_truth(cli_run):
     assert metrics["asd"] < 1e-3  # metres
     assert metrics["stability"] >= 0.98
     assert metrics["n_objects"] > 2 * ROOMS
+    # the bootstrap over scenes: ground truth never collides and keeps every relation, so those intervals have
+    # zero width; the seed is the protocol's and only the evaluated scenes are resampled
+    assert metrics["col_mesh_lo"] == metrics["col_mesh_hi"] == 0.0
+    assert metrics["grecall_lo"] == metrics["grecall_hi"] == 1.0
+    assert metrics["asd_lo"] <= metrics["asd"] <= metrics["asd_hi"]
+    assert {k: v for k, v in metrics["bootstrap"].items() if k != "measured"} == {
+        "method": "percentile", "unit": "scene", "resamples": 1000, "level": 0.95,
+        "seed": metrics["protocol"]["seed"], "n_scenes": ROOMS}
+    assert metrics["bootstrap"]["measured"]["grecall"] == ROOMS
 
 
 def test_fid_and_kid_come_offline_from_the_shipped_inception_weights(cli_run):

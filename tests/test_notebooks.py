@@ -4,7 +4,8 @@ folder; a cell that raises fails the test with the cell's traceback.
 
 * ``01_quickstart``: generate, train, sample, evaluate.
 * ``02_results``: makes a tiny ablation and a 3-point guidance sweep itself (fast mode), then shows the table,
-  the sweep report's plots and before/after-physics renders."""
+  the sweep report's plots, before/after-physics renders (top-down and 3D) and one graph's rows in 3D with
+  their relation matrices."""
 
 from __future__ import annotations
 
@@ -51,7 +52,9 @@ def test_quickstart_runs_and_evaluates_generated_scenes(quickstart):
     for name in ("ground_truth", "generated"):
         assert (out / "quickstart" / "eval" / name / "metrics.json").exists()
     images = [o for c in nb.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
-    assert len(images) >= 3  # the 2D/3D room, the loss curve, ground truth | generated
+    assert len(images) >= 5  # the 2D/3D room, the loss curve, ground truth | generated, 3D card, before | after
+    renders = out / "quickstart" / "samples" / "renders"
+    assert len(list(renders.glob("*_3d.png"))) == 1 and len(list(renders.glob("*_physics.png"))) == 1
 
 
 def image_outputs(cell) -> list:
@@ -70,6 +73,8 @@ def test_results_notebook_runs_on_a_fresh_tiny_ablation_and_sweep(tmp_path):
     assert len(read_csv(out / "report" / "report.csv")) == 3  # the three sweep points
     assert len(list((out / "report" / "plots").glob("*_vs_*.png"))) >= 1
     assert len(list((out / "renders").glob("*_before_after.png"))) >= 2
+    assert len(list((out / "renders").glob("*_physics_3d.png"))) == 2  # geometry and guidance rows, in 3D
+    assert all((out / "ablate_tiny" / f"ablation_{k}.png").exists() for k in ("truth", "base", "geometry", "guidance"))
     text = outputs_text(nb)
     assert "+Guidance" in "\n".join(o.get("data", {}).get("text/markdown", "") for c in nb.cells
                                     for o in c.get("outputs", []))

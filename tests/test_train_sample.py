@@ -294,6 +294,9 @@ def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, tra
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_scenes"] == 3 and metrics["n_evaluated"] == 3 and metrics["n_failed"] == 0
     assert metrics["protocol"]["stability_runs"] == 1
+    # the intervals: the run's seed drew them, over its 3 scenes, and they hold the reported value
+    assert metrics["bootstrap"]["seed"] == metrics["protocol"]["seed"] and metrics["bootstrap"]["n_scenes"] == 3
+    assert metrics["grecall_lo"] <= metrics["grecall"] <= metrics["grecall_hi"]
     lines = (out / "per_scene.jsonl").read_text().splitlines()
     assert len(lines) == 3
     stamp = (out / "metrics.json").stat().st_mtime_ns
@@ -305,6 +308,29 @@ def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, tra
     assert "0 written now, 3 already there" in again.stdout
     assert (out / "per_scene.jsonl").read_text().splitlines() == lines
     assert json.loads((out / "metrics.json").read_text())["n_evaluated"] == 3
+
+
+def test_sample_draws_3d_figures_of_the_first_samples(dataset, trained, tmp_path):
+    """``figures=1``: the first sample as a 3D scene card (view + relation matrix) and before | after physics,
+    listed in sampling.json; ``figure_kinds`` picks which; an unknown kind is refused by name."""
+    from PIL import Image
+
+    out = tmp_path / "figs"
+    result = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                               "renders=0", "figures=1")
+    first = result.files[0].stem
+    expected = [out / "renders" / f"{first}_3d.png", out / "renders" / f"{first}_physics.png"]
+    assert result.manifest["figures"] == [str(p) for p in expected]
+    assert sorted((out / "renders").glob("*.png")) == sorted(expected)
+    for path in expected:
+        image = np.asarray(Image.open(path).convert("RGB"))
+        assert image.shape[0] > 400 and image.shape[1] > 1000 and image.std() > 10
+    only = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                             "renders=0", "figures=1", "figure_kinds=[card]")
+    assert only.manifest["figures"] == [str(expected[0])]
+    with pytest.raises(Exception, match="figure_kinds: unknown \\['movie'\\]"):
+        sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
+                          "figure_kinds=[movie]")
 
 
 def test_sample_rejects_an_unknown_guidance_mode(dataset, trained, tmp_path):

@@ -53,6 +53,15 @@ def max_time(minutes: float) -> str:
     return f"00:{seconds // 3600:02d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
+def cell(metrics: dict, key: str, scale: float, digits: int) -> str:
+    """``value ± h`` (h: half the width of the metric's bootstrap interval in ``metrics.json``), or the value."""
+    value, lo, hi = metrics.get(key), metrics.get(f"{key}_lo"), metrics.get(f"{key}_hi")
+    if value is None:
+        return "–"
+    text = f"{scale * value:.{digits}f}"
+    return text if lo is None or hi is None else f"{text} ± {scale * (hi - lo) / 2:.{digits}f}"
+
+
 def comparison_table(truth: dict, generated: dict, title: str):
     from rich.table import Table
 
@@ -60,8 +69,7 @@ def comparison_table(truth: dict, generated: dict, title: str):
     for column in ("metric", "ground truth", "generated"):
         table.add_column(column, justify="left" if column == "metric" else "right")
     for key, label, scale, digits in ROWS:
-        cells = ["–" if m.get(key) is None else f"{scale * m[key]:.{digits}f}" for m in (truth, generated)]
-        table.add_row(label, *cells)
+        table.add_row(label, *(cell(m, key, scale, digits) for m in (truth, generated)))
     table.add_row("scenes / objects", *(f"{m['n_scenes']} / {m['n_objects']}" for m in (truth, generated)))
     return table
 
@@ -80,6 +88,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> None:
     from rich.console import Console
+
+    from spread.evaluation.bootstrap import interval_note
 
     args = parse_args(argv)
     out = Path(args.out)
@@ -109,7 +119,11 @@ def main(argv: list[str] | None = None) -> None:
     console.print()
     console.print(comparison_table(truth, generated, f"test split: ground truth vs tiny geometry model "
                                                      f"({steps} steps, DDIM-50; stability {args.stability_runs} runs)"))
-    console.print(f"renders: {data / 'renders'} (rooms), {samples / 'renders'} (ground truth | generated)")
+    note = interval_note(generated.get("bootstrap"))
+    if note:
+        console.print(note)
+    console.print(f"renders: {data / 'renders'} (rooms), {samples / 'renders'} (ground truth | generated; "
+                  f"*_3d.png: 3D view + relation matrix, *_physics.png: before | after physics)")
 
 
 if __name__ == "__main__":

@@ -7,11 +7,13 @@
 | :mod:`~spread.evaluation.fanout` | items in chunks as Ray tasks, retries, splitting of failed chunks |
 | :mod:`~spread.evaluation.resume` | ``per_scene.jsonl``: finished scenes, deduplicated, torn line dropped |
 | :mod:`~spread.evaluation.aggregate` | records → metrics through torchmetrics ``merge_state`` |
+| :mod:`~spread.evaluation.bootstrap` | confidence intervals: a bootstrap over scenes of the pooled ratios |
 | :mod:`~spread.evaluation.run` | one run: :class:`EvaluationConfig`, :func:`run_evaluation` writes ``metrics.json`` etc. |
 | :mod:`~spread.evaluation.wandb_log` | metrics and a per-scene table with renders on wandb |
 
 Ray, wandb and pybullet are imported inside the functions that use them.
 """
 
+from spread.evaluation.bootstrap import bootstrap_intervals, interval_note  # noqa: F401
 from spread.evaluation.protocol import STABILITY_SUBSTEPS, EvalProtocol, FIDConfig, versions  # noqa: F401
 from spread.evaluation.run import EvaluationConfig, EvaluationResult, run_evaluation  # noqa: F401

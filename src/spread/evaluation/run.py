@@ -8,8 +8,10 @@
 3. Fan the rest out as Ray tasks (:func:`~spread.evaluation.fanout.fan_out`); the driver appends each
    record as it arrives and advances the progress bar.
 4. ``metrics.json`` (atomic) is computed from the file's deduplicated lines of this folder's scenes, so a
-   resumed run reports exactly what a single run would. FID reference statistics are computed by Ray
-   tasks too when an extractor is available; otherwise FID is null with the reason.
+   resumed run reports exactly what a single run would; with each metric its 95 % bootstrap interval over
+   scenes (``<metric>_lo`` / ``_hi``, ``bootstrap``: :mod:`~spread.evaluation.bootstrap`, seeded by the
+   protocol's seed). FID reference statistics are computed by Ray tasks too when an extractor is available;
+   otherwise FID is null with the reason.
 5. A few top-down renders of evaluated scenes go to ``out_dir/renders/``.
 """
 
@@ -24,6 +26,7 @@ from typing import Callable
 from omegaconf import MISSING
 
 from spread.evaluation.aggregate import fid_values, per_room_type_values, summary_values
+from spread.evaluation.bootstrap import RESAMPLES, bootstrap_intervals
 from spread.evaluation.fanout import fan_out, run_tasks
 from spread.evaluation.protocol import EvalProtocol, FIDConfig, versions
 from spread.evaluation.resume import dedupe, load_finished
@@ -43,9 +46,9 @@ class EvaluationConfig:
     """scenes: folder of scene files; reference: dataset folder (``assets/`` + ``reference_split/``);
     out_dir: run folder; chunk_size: scenes per Ray task; resume: keep ``per_scene.jsonl`` lines;
     retry_failed: on resume, evaluate scenes whose line has an error again; renders: top-down PNGs of
-    the first evaluated scenes; progress: tqdm bar; protocol / fid: what is measured and how (DESIGN §6);
-    ray: where. The ``spread-evaluate`` config (``conf/evaluate.yaml``) is this record plus the command's
-    logger (:mod:`spread.configs`)."""
+    the first evaluated scenes; progress: tqdm bar; bootstrap_resamples: resamples of the confidence intervals
+    (0: none); protocol / fid: what is measured and how (DESIGN §6); ray: where. The ``spread-evaluate``
+    config (``conf/evaluate.yaml``) is this record plus the command's logger (:mod:`spread.configs`)."""
 
     scenes: str = MISSING
     reference: str = MISSING
@@ -56,6 +59,7 @@ class EvaluationConfig:
     retry_failed: bool = False
     renders: int = 8
     progress: bool = True
+    bootstrap_resamples: int = RESAMPLES
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     fid: FIDConfig = field(default_factory=FIDConfig)
     ray: RaySettings = field(default_factory=RaySettings)
@@ -172,6 +176,8 @@ def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None
     by_type = per_room_type_values(records, cfg.protocol)
     if by_type is not None:
         metrics["per_room_type"] = by_type
+    if cfg.bootstrap_resamples > 0:
+        metrics.update(bootstrap_intervals(records, cfg.bootstrap_resamples, seed=cfg.protocol.seed))
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
                               cfg.fid.feature_model))
     metrics.update({

@@ -23,6 +23,8 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
     import wandb
 
     scalars = scalar_metrics(metrics)
+    boot = metrics.get("bootstrap") or {}  # the intervals' settings, flat (what spread-report reads back)
+    scalars |= {f"ci_{k}": boot[k] for k in ("level", "resamples", "seed") if k in boot}
     run.log(scalars)
     run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
     by_name = {Path(p).stem: p for p in renders}

@@ -11,7 +11,14 @@ the equivalent command line. The stages, under ``out_dir``:
 | ``train/<v>``, v = base, geometry (unless given) | spread-train | ``train/<v>/`` | ``metrics.json``, ``last.ckpt`` |
 | ``sample/<v>``, v = base, geometry, guidance | spread-sample | ``samples/<v>/`` | ``sampling.json``, all scenes |
 | ``evaluate/<v>`` | spread-evaluate | ``eval/<v>/`` | ``metrics.json`` |
+| ``figures`` (``figures: true``) | — | ``ablation_<v>.png``, ``ablation_truth.png`` | the PNGs |
 | ``table`` | — | ``ablation.{md,csv,tex,png}`` (+ wandb table) | the four files |
+
+**Figures**: one scene per row — the first test graph that every row sampled — as the paper shows scenes: a
+3D view with its category legend beside the relation matrix against the graph
+(:func:`spread.render.scene_card_figure`), and the graph's ground-truth room the same way; ``ablation.md``
+links them under the table. **Intervals**: every metric cell is value ± half the width of its 95 % bootstrap
+interval over scenes (:mod:`spread.experiments.intervals`); the CSV keeps the bounds and the bootstrap's seed.
 
 ``guidance`` samples the ``geometry`` checkpoint with guidance; all three rows sample the same split's
 graphs with the same seed and are evaluated with the same protocol (one override list for all).
@@ -36,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
 
+from spread.experiments.intervals import ci_columns, row_intervals, table_note
 from spread.experiments.tables import METRICS, Column, write_tables
 from spread.io import file_sha256, write_json_atomic
 
@@ -84,6 +92,7 @@ class AblationSpec:
     guidance: list[str] = field(default_factory=list)
     evaluate: list[str] = field(default_factory=list)
     title: str = ""
+    figures: bool = True  # one scene per row in 3D with its relation matrix (ablation_<v>.png)
     group: str = ""     # wandb group of every stage's run (``experiment_name=<group>``); "" leaves each command's
 
     def named(self, overrides: list[str]) -> list[str]:
@@ -328,19 +337,48 @@ class Ablation:
             row.update({"still_fraction": metrics.get("still_fraction"), "n_scenes": metrics.get("n_scenes"),
                         "n_objects": metrics.get("n_objects"), "fid_status": metrics.get("fid_status"),
                         "status": "ok" if metrics else self.errors.get(f"evaluate/{v}", "not run")})
+            row.update(ci_columns(row_intervals(metrics, self.eval_dir(v)) if metrics else {}))
             records.append(row)
         return records
+
+    def figure_scene(self) -> str | None:
+        """The scene file name the figures show: the first one every sampled row has."""
+        sets = [{p.name for p in (self.sample_dir(v) / "scenes").glob("*.npz")} for v in self.spec.variants
+                if self.status.get(f"sample/{v}") in ("done", "skipped")]
+        common = sorted(set.intersection(*sets)) if sets else []
+        return common[0] if common else None
+
+    def figure_paths(self) -> dict[str, Path]:
+        """row (and ``truth``) → its figure's path."""
+        return {v: self.out / f"{TABLE}_{v}.png" for v in ("truth", *self.spec.variants)}
+
+    def figures_stage(self) -> Stage | None:
+        name = self.figure_scene()
+        if name is None:
+            raise StageError("figures: no scene that every sampled row has, nothing to draw")
+        rows = [v for v in self.spec.variants if (self.sample_dir(v) / "scenes" / name).exists()]
+        truth = self.spec.dataset / self.spec.split / f"{graph_of(name)}.npz"
+        paths = {k: p for k, p in self.figure_paths().items() if k in rows or (k == "truth" and truth.exists())}
+
+        def run(resume: bool) -> None:
+            write_row_figures(self.spec.dataset, {v: self.sample_dir(v) / "scenes" / name for v in rows},
+                              truth if truth.exists() else None, paths)
+
+        inputs = {"scene": name, "samples": {v: sampling_inputs(self.sample_dir(v)) for v in rows}}
+        return Stage("figures", self.out, list(paths.values()), inputs, run)
 
     def table_stage(self, records: list[dict], log_table: Callable[[list[dict], Path], None] | None) -> Stage:
         stem = self.out / TABLE
         outputs = [stem.with_suffix(s) for s in (".md", ".csv", ".tex", ".png")]
+        figures = {k: p.name for k, p in self.figure_paths().items()
+                   if self.status.get("figures") in ("done", "skipped") and p.exists()}
 
         def run(resume: bool) -> None:
-            write_ablation_table(records, stem, self.spec.title)
+            write_ablation_table(records, stem, self.spec.title, figures)
             if log_table is not None:
                 log_table(records, stem.with_suffix(".png"))
 
-        return Stage("table", self.out, outputs, {"rows": records}, run)
+        return Stage("table", self.out, outputs, {"rows": records, "figures": figures}, run)
 
     def run(self, log_table: Callable[[list[dict], Path], None] | None = None) -> AblationResult:
         started = time.perf_counter()
@@ -358,6 +396,8 @@ class Ablation:
         for v in spec.variants:
             self.attempt(f"evaluate/{v}", lambda v=v: self.evaluate_stage(v), [f"sample/{v}"])
         records = self.rows()
+        if spec.figures:
+            self.attempt("figures", self.figures_stage, [])
         self.attempt("table", lambda: self.table_stage(records, log_table), [])
         stem = self.out / TABLE
         tables = {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex", "png")}
@@ -369,16 +409,46 @@ def table_columns() -> list[Column]:
     return [Column("method", "Method"), *METRICS]
 
 
-def write_ablation_table(records: list[dict], stem: Path, title: str = "") -> dict[str, Path]:
-    """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold) and ``.png`` (bars per metric)."""
+def write_ablation_table(records: list[dict], stem: Path, title: str = "",
+                         figures: dict[str, str] | None = None) -> dict[str, Path]:
+    """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold, ± the bootstrap interval) and ``.png`` (bars
+    per metric); ``figures`` (row or ``truth`` → PNG file name beside the table) are linked under the Markdown
+    table."""
     from spread.experiments.plots import ablation_bars
 
     caption = title or "Ablation: base, +geometry perceiver, +guidance (same test graphs, seeds and protocol)"
+    shown = ""
+    if figures:
+        labels = {"truth": "ground truth", **LABELS}
+        shown = "One test graph, row by row (3D view | relation matrix against the graph):" \
+            + "".join(f"\n\n**{labels[k]}**\n\n![{labels[k]}]({name})" for k, name in figures.items())
     paths = write_tables(records, table_columns(), stem, caption=caption, label="tab:ablation",
                          csv_keys=["variant", "method", *[c.key for c in METRICS], "still_fraction", "n_scenes",
-                                   "n_objects", "fid_status", "status"])
+                                   "n_objects", "fid_status", "status", "ci_level", "ci_resamples", "ci_seed"],
+                         note=table_note(records), md_extra=shown)
     ablation_bars(records, METRICS, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
+
+
+def graph_of(sample_name: str) -> str:
+    """The conditioning graph's scene id of a sample file name ``<graph>_k<i>.npz``."""
+    return Path(sample_name).stem.rsplit("_k", 1)[0]
+
+
+def write_row_figures(dataset: Path, scenes: dict[str, Path], truth: Path | None,
+                      paths: dict[str, Path]) -> dict[str, Path]:
+    """Scene cards (3D view + relation matrix) of one sampled scene per row and of its graph's ground truth."""
+    from spread.assets.library import AssetLibrary
+    from spread.render import save_png, scene_card_figure
+    from spread.scene import read_scene
+
+    library = AssetLibrary.load(Path(dataset) / "assets")
+    written = {}
+    for key, path in ([("truth", truth)] if truth is not None else []) + list(scenes.items()):
+        scene = read_scene(path, assets=library)
+        label = "ground truth" if key == "truth" else LABELS[key]
+        written[key] = save_png(scene_card_figure(scene, library, title=f"{label}: {scene.scene_id}"), paths[key])
+    return written
 
 
 def run_ablation(spec: AblationSpec, commands: Commands,

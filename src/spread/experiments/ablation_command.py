@@ -41,7 +41,7 @@ def ablation_spec(cfg: DictConfig):
         sample=sampler + strings(cfg.sample.overrides) + strings(cfg.sample.get("extra")),
         guidance=guidance + strings(cfg.sample.guidance),
         evaluate=strings(cfg.evaluate.overrides) + strings(cfg.evaluate.get("extra")),
-        title=str(cfg.get("title") or ""), group=f"ablate_{cfg.name}")
+        title=str(cfg.get("title") or ""), figures=bool(cfg.get("figures", True)), group=f"ablate_{cfg.name}")
 
 
 def ablate(cfg: DictConfig):
@@ -66,6 +66,7 @@ def ablate(cfg: DictConfig):
 
 
 def console_table(result, title: str):
+    """The ablation table for the console: value ± half-width of its bootstrap interval per cell."""
     from rich.table import Table
 
     from spread.experiments.ablation import table_columns
@@ -75,16 +76,21 @@ def console_table(result, title: str):
     for c in columns:
         table.add_column(c.label + c.arrow, justify="left" if c.digits is None else "right")
     for r in result.records:
-        table.add_row(*[c.format(r.get(c.key)) for c in columns])
+        table.add_row(*[c.cell(r) for c in columns])
     return table
 
 
 def print_ablation(result, cfg: DictConfig) -> None:
     from rich.console import Console
 
+    from spread.experiments.intervals import table_note
+
     console = Console()
     console.print()
     console.print(console_table(result, f"ablation {cfg.name} ({cfg.out_dir}, {result.seconds / 60:.1f} min)"))
+    note = table_note(result.records)
+    if note:
+        console.print(note)
     fid = {r.get("fid_status") for r in result.records if r.get("fid") is None and r.get("fid_status")}
     for status in sorted(fid):
         console.print(f"FID: {status}")

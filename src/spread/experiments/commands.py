@@ -199,20 +199,30 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
 
 
 def print_evaluation_summary(metrics: dict, out_dir) -> None:
+    """The evaluation's console table: each metric, its 95 % bootstrap interval over scenes where it has one."""
     from rich.console import Console
     from rich.table import Table
+
+    from spread.evaluation.bootstrap import interval_note
 
     def fmt(v, digits=4):
         return "null" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
 
+    def interval(key, scale=1.0, digits=4):
+        lo, hi = metrics.get(f"{key}_lo"), metrics.get(f"{key}_hi")
+        return "" if lo is None or hi is None else f"[{scale * lo:.{digits}f}, {scale * hi:.{digits}f}]"
+
+    level = (metrics.get("bootstrap") or {}).get("level")
     table = Table(title=f"evaluation {out_dir}")
     table.add_column("metric")
     table.add_column("value", justify="right")
-    table.add_row("Col_mesh (share of objects, ↓)", fmt(metrics["col_mesh"]))
-    table.add_row("GRecall (share of pairs, ↑)", fmt(metrics["grecall"]))
-    table.add_row("ASD (mm, ↓)", fmt(None if metrics["asd"] is None else 1000 * metrics["asd"], 2))
-    table.add_row("Stability (share of pairs, ↑)", fmt(metrics["stability"]))
-    table.add_row("still objects (share)", fmt(metrics["still_fraction"]))
+    table.add_column(f"{level * 100:g} % interval" if level else "interval", justify="right")
+    table.add_row("Col_mesh (share of objects, ↓)", fmt(metrics["col_mesh"]), interval("col_mesh"))
+    table.add_row("GRecall (share of pairs, ↑)", fmt(metrics["grecall"]), interval("grecall"))
+    table.add_row("ASD (mm, ↓)", fmt(None if metrics["asd"] is None else 1000 * metrics["asd"], 2),
+                  interval("asd", 1000, 2))
+    table.add_row("Stability (share of pairs, ↑)", fmt(metrics["stability"]), interval("stability"))
+    table.add_row("still objects (share)", fmt(metrics["still_fraction"]), interval("still_fraction"))
     table.add_row(f"FID ({metrics.get('fid_feature_model')}, ↓)", fmt(metrics["fid"], 2))
     table.add_row("KID (↓)", fmt(metrics.get("kid")))
     table.add_row("scenes / evaluated / failed",
@@ -229,6 +239,9 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
             by_type.add_row(name, str(m["n_evaluated"]), fmt(m["col_mesh"]), fmt(m["grecall"]),
                             fmt(None if m["asd"] is None else 1000 * m["asd"], 2), fmt(m["stability"]))
         console.print(by_type)
+    note = interval_note(metrics.get("bootstrap"))
+    if note:
+        console.print(note.replace("± is half the width of the", "interval: the"), soft_wrap=True)
     console.print(f"fid_status: {metrics['fid_status']}")
     for f in metrics["failed"][:10]:
         console.print(f"failed {f['scene_id']}: {f['error']}")
@@ -272,7 +285,7 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     if evaluation is not None:
         from spread.evaluation.wandb_log import log_metrics
 
-        renders = list(result.manifest.get("renders") or [])
+        renders = list(result.manifest.get("renders") or []) + list(result.manifest.get("figures") or [])
 
         def more(run):
             log_metrics(run, evaluation.metrics, evaluation.records, renders)

@@ -38,6 +38,9 @@ from pathlib import Path
 from typing import Callable
 
 from spread.experiments.ablation import Ablation, Commands, Ledger, Stage, command_line, scenes_complete
+from spread.experiments.intervals import (
+    ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
+)
 from spread.experiments.tables import Column, write_tables
 from spread.io import file_sha256, write_json_atomic
 
@@ -238,7 +241,12 @@ class Comparison(Ablation):
                         "fid_status"):
                 row[key] = metrics.get(key)
             if ok:
-                row.update(self.per_room_col_mesh(m, rooms, suffix))
+                row.update(ci_columns(row_intervals(metrics, self.eval_dir(m))))
+                if m not in GRAPH_CONDITIONED:  # no GRecall cell, so no interval beside it
+                    row["grecall_lo"] = row["grecall_hi"] = None
+                row.update(grouped_intervals(folder_records(self.eval_dir(m)) or [],
+                                             lambda sid: rooms.get(suffix.sub("", sid)), ["col_mesh"],
+                                             seed=protocol_seed(metrics)))
             row.update(self.budget(m))
             row["status"] = "ok" if metrics else self.failure(m)
             records.append(row)
@@ -253,23 +261,6 @@ class Comparison(Ablation):
             if self.status.get(name) == "failed":
                 return self.errors[name]
         return self.errors.get(f"evaluate/{method}", "not run")
-
-    def per_room_col_mesh(self, method: str, rooms: dict[str, str], suffix) -> dict:
-        """``col_mesh/<room type>`` from the evaluation's per-scene states (colliding / all objects)."""
-        path = self.eval_dir(method) / "per_scene.jsonl"
-        sums: dict[str, list[int]] = {}
-        for line in path.read_text().splitlines() if path.exists() else []:
-            record = json.loads(line)
-            if record.get("error"):
-                continue
-            room = rooms.get(suffix.sub("", record["scene_id"]))
-            if room is None:
-                continue
-            state = record["state"]["col_mesh"]
-            acc = sums.setdefault(room, [0, 0])
-            acc[0] += int(state["colliding_objects"])
-            acc[1] += int(state["objects"])
-        return {f"col_mesh/{room}": (c / n if n else None) for room, (c, n) in sorted(sums.items())}
 
     def budget(self, method: str) -> dict:
         """Training steps and size, sampler, sampling seconds per scene, CPU seconds of this process."""
@@ -337,7 +328,8 @@ class Comparison(Ablation):
             keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
             keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "still_fraction",
                      "n_scenes", "n_objects", "fid_status", "status"]
-            write_tables(records, columns, stem, caption=self.caption(records), label="tab:table1", csv_keys=keys)
+            write_tables(records, columns, stem, caption=self.caption(records), label="tab:table1", csv_keys=keys,
+                         note=table_note(records))
             if log_table is not None:
                 log_table(records, columns)
 

@@ -3,7 +3,9 @@
 Writes into ``out_dir``:
 
 * ``report.md`` / ``report.csv``: one row per run (name, the guidance weights, GRecall, Col_mesh, ASD in
-  metres, Stability, FID, scene count, where it was read from); the CSV keeps full precision.
+  metres, Stability, FID, scene count, where it was read from), each metric with its 95 % bootstrap interval
+  over scenes (value ± half-width; :mod:`spread.experiments.intervals`); the CSV keeps full precision and the
+  bounds (``<metric>_lo``, ``<metric>_hi``) and the bootstrap's seed.
 * ``plots/<metric>_vs_<weight>.png``: each metric against each weight, every run a point, the mean per
   weight value joined (:func:`spread.experiments.plots.metric_vs_weight`).
 * ``report.json``: what was read, what was skipped (unfinished runs) and the plots with their points.
@@ -15,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+from spread.experiments.intervals import table_note
 from spread.experiments.plots import metric_vs_weight
 from spread.experiments.runs import read_runs
 from spread.experiments.tables import METRICS, Column, write_tables
@@ -67,7 +70,8 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metr
     records, unfinished = read_runs(runs, weights)
     result = ReportResult(records, unfinished=unfinished)
     result.tables = write_tables(records, report_columns(weights, columns), out / "report",
-                                 caption=title or f"{len(records)} runs", formats=("md", "csv"))
+                                 caption=title or f"{len(records)} runs", formats=("md", "csv"),
+                                 note=table_note(records))
     fid_notes = sorted({str(r.get("fid_status")) for r in records if r.get("fid") is None and r.get("fid_status")})
     for metric in columns:
         for weight in weights:

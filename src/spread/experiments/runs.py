@@ -3,7 +3,8 @@
 A **run folder** (DESIGN §4) is a folder with an evaluation ``metrics.json`` (one that has ``col_mesh``):
 ``spread-evaluate``'s out_dir, or a ``spread-sample evaluate=true`` out_dir. Its settings come from
 ``.hydra/config.yaml`` (the composed config) and, where that lacks a key, ``sampling.json`` (its
-``guidance`` record, then its ``fingerprint``).
+``guidance`` record, then its ``fingerprint``). A record carries each metric's confidence interval
+(:mod:`spread.experiments.intervals`: from ``metrics.json``, or bootstrapped from ``per_scene.jsonl``).
 
 A **wandb offline run** is a ``wandb/offline-run-<time>-<id>`` folder. wandb ≥ 0.2x keeps an offline run
 only in ``run-<id>.wandb``: a LevelDB-style log (7-byte file header, 32 KiB blocks, records of
@@ -22,6 +23,9 @@ import json
 import struct
 from pathlib import Path
 from typing import Iterable
+
+from spread.experiments.intervals import INTERVAL_KEYS, ci_columns, row_intervals
+from spread.experiments.tables import CI_SETTINGS
 
 #: ``metrics.json`` keys copied into a record.
 RECORD_METRICS = ("grecall", "col_mesh", "asd", "stability", "fid", "kid", "still_fraction", "n_scenes", "n_objects",
@@ -106,6 +110,7 @@ def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
     for key in weights:
         record[key] = first_number(configs, key)
     record.update({k: metrics.get(k) for k in RECORD_METRICS})
+    record.update(ci_columns(row_intervals(metrics, path)))
     return record
 
 
@@ -220,6 +225,7 @@ def read_wandb_run(path: str | Path, weights: Iterable[str]) -> dict:
     for key in weights:
         record[key] = first_number([run["config"]], key)
     record.update({k: summary.get(k) for k in RECORD_METRICS})
+    record.update({k: summary.get(k) for k in (*INTERVAL_KEYS, *CI_SETTINGS)})
     return record
 
 

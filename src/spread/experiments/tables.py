@@ -4,6 +4,11 @@ A :class:`Column` names a record key, its header label and how a value is printe
 LaTeX. CSV keeps the raw values (floats by ``repr``, so they read back bit for bit; ``None`` as an
 empty cell). :data:`METRICS` are the ablation table's columns (DESIGN §6): ASD in metres, as in the
 paper's table and ``metrics.json``.
+
+**Confidence intervals.** A record that holds ``<key>_lo`` and ``<key>_hi`` beside ``<key>`` (the bootstrap
+interval of :mod:`spread.evaluation.bootstrap`) prints as ``value ± h`` with h half the interval's width,
+in the column's digits; CSV keeps both bounds as columns right after the value. ``note`` (what ± means) goes
+under the Markdown table and into the LaTeX caption.
 """
 
 from __future__ import annotations
@@ -40,6 +45,23 @@ class Column:
             return f"{float(value):.{self.digits}f}"
         return str(value)
 
+    def half_width(self, record: dict) -> float | None:
+        """Half the width of the record's interval for this column, None without one."""
+        lo, hi = record.get(f"{self.key}_lo"), record.get(f"{self.key}_hi")
+        if self.digits is None or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi)):
+            return None
+        return None if math.isnan(lo) or math.isnan(hi) else (float(hi) - float(lo)) / 2
+
+    def cell(self, record: dict, latex: bool = False) -> str:
+        """The printed cell: the value, with ``± half-width`` when the record has an interval for it."""
+        text = self.format(record.get(self.key))
+        half = self.half_width(record)
+        if half is None or text == "–":
+            return text
+        if latex:
+            return rf"{text}\,{{\scriptsize$\pm${half:.{self.digits}f}}}"
+        return f"{text} ± {half:.{self.digits}f}"
+
 
 #: The metrics of the ablation table (keys of ``metrics.json``): the paper's order, then FID and KID
 #: (KID is unbiased: it can be slightly below 0 when two sets match).
@@ -70,7 +92,7 @@ def markdown_table(records: Sequence[dict], columns: Sequence[Column]) -> str:
     lines = ["| " + " | ".join(c.label + c.arrow for c in columns) + " |",
              "|" + "|".join("---" if c.digits is None else "---:" for c in columns) + "|"]
     for i, r in enumerate(records):
-        cells = [c.format(r.get(c.key)) for c in columns]
+        cells = [c.cell(r) for c in columns]
         cells = [f"**{s}**" if i in best[c.key] else s for s, c in zip(cells, columns)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -91,7 +113,8 @@ def latex_table(records: Sequence[dict], columns: Sequence[Column], caption: str
     head = " & ".join(c.latex or latex_escape(c.label) for c in columns)
     rows = []
     for i, r in enumerate(records):
-        cells = [latex_escape(c.format(r.get(c.key))).replace("–", "--") for c in columns]
+        cells = [c.cell(r, latex=True) if c.half_width(r) is not None and r.get(c.key) is not None
+                 else latex_escape(c.format(r.get(c.key))).replace("–", "--") for c in columns]
         cells = [rf"\textbf{{{s}}}" if i in best[c.key] else s for s, c in zip(cells, columns)]
         rows.append("    " + " & ".join(cells) + r" \\")
     parts = [r"\begin{table}[t]", r"  \centering"]
@@ -148,20 +171,43 @@ def record_keys(records: Iterable[dict], first: Sequence[str] = ()) -> list[str]
     return keys
 
 
+#: Row fields that record how a row's intervals were drawn (:func:`spread.experiments.intervals.ci_columns`).
+CI_SETTINGS = ("ci_level", "ci_resamples", "ci_seed", "ci_few")
+
+
+def with_bounds(keys: Sequence[str], records: Sequence[dict]) -> list[str]:
+    """``keys`` with ``<key>_lo``, ``<key>_hi`` right after each key whose bounds some record has, and the
+    :data:`CI_SETTINGS` some record has at the end (so that a CSV always says which seed drew its bounds)."""
+    present = {k for r in records for k in r} | set(keys)
+    bounds = {f"{k}_{b}" for k in keys for b in ("lo", "hi")} & present
+    out = []
+    for key in keys:
+        if key not in bounds:
+            out += [key, *[b for b in (f"{key}_lo", f"{key}_hi") if b in bounds]]
+    if bounds:
+        out += [k for k in CI_SETTINGS if k in present and k not in out]
+    return out
+
+
 def write_tables(records: Sequence[dict], columns: Sequence[Column], stem: str | Path, caption: str = "",
                  label: str = "", csv_keys: Sequence[str] | None = None,
-                 formats: Sequence[str] = ("md", "csv", "tex")) -> dict[str, Path]:
+                 formats: Sequence[str] = ("md", "csv", "tex"), note: str = "", md_extra: str = "") -> dict[str, Path]:
     """``stem.md`` / ``stem.csv`` / ``stem.tex`` (atomic writes); CSV holds ``csv_keys`` (default: the columns'
-    keys, then every other record key). Returns format → path."""
+    keys, then every other record key), each followed by its interval bounds where records have them;
+    ``note`` goes under the Markdown table and at the end of the LaTeX caption, ``md_extra`` (Markdown: images,
+    links) under the Markdown table only. Returns format → path."""
     stem = Path(stem)
     out = {}
     if "md" in formats:
         out["md"] = stem.with_suffix(".md")
-        write_text_atomic(out["md"], (f"{caption}\n\n" if caption else "") + markdown_table(records, columns))
+        write_text_atomic(out["md"], (f"{caption}\n\n" if caption else "") + markdown_table(records, columns)
+                          + "".join(f"\n{text}\n" for text in (note, md_extra) if text))
     if "csv" in formats:
         keys = list(csv_keys) if csv_keys is not None else record_keys(records, [c.key for c in columns])
-        out["csv"] = write_csv(records, keys, stem.with_suffix(".csv"))
+        out["csv"] = write_csv(records, with_bounds(keys, records), stem.with_suffix(".csv"))
     if "tex" in formats:
         out["tex"] = stem.with_suffix(".tex")
-        write_text_atomic(out["tex"], latex_table(records, columns, latex_escape(caption), label))
+        full = " ".join(p for p in (caption, note) if p)
+        write_text_atomic(out["tex"], latex_table(records, columns, latex_escape(full).replace("±", r"$\pm$"),
+                                                  label))
     return out

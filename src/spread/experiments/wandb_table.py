@@ -1,12 +1,14 @@
-"""The ablation table on wandb: a ``wandb.Table`` (one row per variant), the bar plot, and per-variant
-summary values (``<variant>/<metric>``). Offline by default: files under ``out_dir/wandb``, ``wandb sync``
-uploads them later; ``mode="disabled"`` writes nothing and opens no connection."""
+"""The ablation table on wandb: a ``wandb.Table`` (one row per variant; each metric's bootstrap bounds and the
+bootstrap's seed beside it), the bar plot, the figures (``ablation_<row>.png`` in ``out_dir``: one test graph per
+row in 3D with its relation matrix), and per-variant summary values (``<variant>/<metric>``, ``_lo``, ``_hi``).
+Offline by default: files under ``out_dir/wandb``, ``wandb sync`` uploads them later; ``mode="disabled"`` writes
+nothing and opens no connection."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from spread.experiments.tables import METRICS
+from spread.experiments.tables import METRICS, with_bounds
 
 COLUMNS = ("variant", "method", *[c.key for c in METRICS], "still_fraction", "n_scenes", "fid_status", "status")
 
@@ -21,14 +23,20 @@ def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Pat
 
     run = init_run(as_logger_config(logger), "ablation", out_dir, config or {}, group=group, name=name)
     try:
-        table = wandb.Table(columns=list(COLUMNS))
+        columns = with_bounds(list(COLUMNS), records)
+        table = wandb.Table(columns=columns)
         for r in records:
-            table.add_data(*[r.get(c) for c in COLUMNS])
+            table.add_data(*[r.get(c) for c in columns])
         payload = {"ablation": table}
         if png is not None and Path(png).exists():
             payload["ablation_plot"] = wandb.Image(str(png))
+        for k in ("truth", *[r["variant"] for r in records]):
+            figure = Path(out_dir) / f"ablation_{k}.png"
+            if figure.exists():
+                payload[f"ablation_figure/{k}"] = wandb.Image(str(figure))
         run.log(payload)
-        run.summary.update({f"{r['variant']}/{c.key}": r.get(c.key) for r in records for c in METRICS})
+        run.summary.update({f"{r['variant']}/{key}": r.get(key) for r in records for c in METRICS
+                            for key in (c.key, f"{c.key}_lo", f"{c.key}_hi") if key in r})
         return run_folder(run)
     finally:
         run.finish()

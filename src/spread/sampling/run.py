@@ -10,7 +10,10 @@
 4. Fan out: ``workers`` Ray actors (one model each, ``threads`` CPUs and ``num_gpus_per_worker`` GPUs each),
    one batch per task, the next batch to whichever actor finishes first; ``workers=0`` samples in this
    process. Actors that die are restarted and their task retried (``ray.max_retries``).
-5. ``out_dir/renders/``: ground truth | generated, side by side, for the first few samples;
+5. ``out_dir/renders/``: ground truth | generated top-down, side by side, for the first ``renders`` samples;
+   for the first ``figures`` samples also a 3D scene card (``<name>_3d.png``: the perspective view with its
+   category legend and the relation matrix against the conditioning graph) and the scene before | after one
+   Stability run (``<name>_physics.png``), see :mod:`spread.render.figures`;
    ``out_dir/sampling.json``: the settings, counts and timings.
 """
 
@@ -32,6 +35,8 @@ from spread.safe_load import load_checkpoint
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, remove_unreadable
 
 MANIFEST = "sampling.json"
+#: The 3D figures ``spread-sample`` can write per sample: file suffix of each.
+FIGURE_KINDS = {"card": "_3d", "physics": "_physics"}
 
 
 @dataclass
@@ -49,7 +54,9 @@ class SamplingConfig:
     seed; batch_size: samples per forward batch (= per task); workers: Ray actors (0: in this process);
     device: cpu, cuda or auto; threads: torch threads per worker; use_ema: the EMA weights; graph_scale:
     classifier-free guidance on the graphs (needs a model trained with graph_dropout); resume: skip
-    existing files (false: delete and redo all); renders: side-by-side PNGs; progress: tqdm bar; guidance: a
+    existing files (false: delete and redo all); renders: top-down truth | generated PNGs of the first samples;
+    figures: 3D figures of the first samples, of the kinds in ``figure_kinds`` (``card``: 3D view + relation
+    matrix, ``physics``: before | after one Stability run); progress: tqdm bar; guidance: a
     :class:`~spread.guidance.GuidanceConfig` (or its mapping / mode name); ray: where the actors run
     (``ray.num_gpus_per_worker``: GPUs per actor). ``conf/sample.yaml`` overrides these defaults."""
 
@@ -67,6 +74,8 @@ class SamplingConfig:
     graph_scale: float = 1.0
     resume: bool = True
     renders: int = 4
+    figures: int = 2
+    figure_kinds: list[str] = field(default_factory=lambda: list(FIGURE_KINDS))
     progress: bool = True
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     ray: RaySettings = field(default_factory=RaySettings)
@@ -76,6 +85,9 @@ class SamplingConfig:
             self.sampler = Sampler.from_config(self.sampler)
         if not isinstance(self.guidance, GuidanceConfig):
             self.guidance = GuidanceConfig.from_config(self.guidance)
+        unknown = [k for k in self.figure_kinds if k not in FIGURE_KINDS]
+        if unknown:
+            raise ValueError(f"figure_kinds: unknown {unknown} (choose from {list(FIGURE_KINDS)})")
 
 
 @dataclass
@@ -214,6 +226,27 @@ def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: in
     return paths
 
 
+def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: int, kinds, seed: int = 0) -> list[Path]:
+    """3D figures of the first ``count`` samples (module docstring, step 5), ``out/renders/<name><suffix>.png``."""
+    from spread.assets.library import AssetLibrary
+    from spread.render import before_after_figure, save_png, scene_card_figure
+    from spread.scene import read_scene
+
+    items = [item for b in batches for item in b.items][:max(0, count)]
+    if not items or not kinds:
+        return []
+    library = AssetLibrary.load(Path(data_root) / "assets")
+    paths = []
+    for item in items:
+        generated = read_scene(out / "scenes" / f"{item.name}.npz", assets=library)
+        title = f"{item.name} (graph of {item.graph.scene_id})"
+        for kind in kinds:
+            image = scene_card_figure(generated, library, title=title) if kind == "card" \
+                else before_after_figure(generated, library, seed=seed, title=item.name)
+            paths.append(save_png(image, out / "renders" / f"{item.name}{FIGURE_KINDS[kind]}.png"))
+    return paths
+
+
 def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
     """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring);
     ``before_work()`` runs once the checks passed (the command records its config there)."""
@@ -260,6 +293,7 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
     # counted on disk: a worker killed after writing some files never reports them, its retry skips them
     written = [name for name in wanted if (scenes_dir / f"{name}.npz").exists()]
     renders = write_renders(out, batches, cfg.data.root, cfg.renders)
+    figures = write_figures(out, batches, cfg.data.root, cfg.figures, cfg.figure_kinds, cfg.seed)
     files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
@@ -268,7 +302,7 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],
         "guidance": settings.get("guidance"), "guidance_totals": guidance_totals or None,
-        "renders": [str(p) for p in renders], "device": cfg.device, "threads": cfg.threads,
+        "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),
         "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,
         "runner": runner,

@@ -27,7 +27,7 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
                  tags: list[str] | None = None, more: Callable | None = None) -> str | None:
     """Log a sampling run (``sampling.json``: counts, timings, guidance) with ``logger`` (a
     :class:`~spread.runtime.tracking.LoggerConfig`); ``more(run)`` logs more into the same run (an evaluation
-    of the scenes, say); without it the renders are logged. Returns the run folder (None when not logged)."""
+    of the scenes, say); without it the renders and 3D figures are logged. Returns the run folder (None when not logged)."""
     import wandb
 
     from spread.runtime.tracking import as_logger_config, init_run, run_folder
@@ -45,8 +45,11 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
         run.summary.update(numbers)
         if more is not None:
             more(run)
-        elif manifest.get("renders"):
-            run.log({"renders": [wandb.Image(str(p), caption=Path(p).stem) for p in manifest["renders"]]})
+        else:
+            images = {key: [wandb.Image(str(p), caption=Path(p).stem) for p in manifest[key]]
+                      for key in ("renders", "figures") if manifest.get(key)}
+            if images:
+                run.log(images)
         return run_folder(run)
     finally:
         run.finish()

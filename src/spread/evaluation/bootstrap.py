@@ -1,0 +1,117 @@
+"""Confidence intervals of the pooled metrics: a bootstrap over scenes (what ``metrics.json`` reports as
+``<metric>_lo`` / ``<metric>_hi``, and every table prints as value ± half-width).
+
+Every metric of DESIGN §6 is a **pooled ratio** over the evaluated scenes, each scene adding to a numerator
+and a denominator (its torchmetrics states, ``per_scene.jsonl``'s ``state``): Col_mesh = colliding objects /
+objects, GRecall = matching pairs / pairs, ASD = Σ|gap| / support pairs, Stability = unchanged (run, pair)s /
+(run, pair)s, the still share = still (run, object)s / (run, object)s. A scene is the unit that is drawn
+independently (its objects, pairs and physics runs are not independent of each other), so one bootstrap
+resample draws n scenes with replacement from the n evaluated ones and recomputes each metric as the pooled
+ratio of the drawn scenes' sums — not as a mean of per-scene ratios, which would weigh a 3-object room like a
+30-object one and would not be the reported number.
+
+The interval is the **percentile interval**: the (1 − level)/2 and (1 + level)/2 quantiles (numpy's default
+linear interpolation) of the resampled ratios; resamples whose denominator is 0 (a metric no drawn scene
+measured, e.g. ASD without support pairs) are left out. Resamples are ``numpy.random.default_rng(seed)
+.integers(0, n, size=(resamples, n))``, drawn once and shared by every metric, so the same records and seed
+give the same intervals, bit for bit. Defaults: 1,000 resamples, 95 %, the evaluation's seed.
+
+FID and KID get no interval: they are statistics of the whole set against the reference set, not sums over
+scenes (FID's bias changes with the number of distinct scenes, which a resample with repeats lowers), and each
+resample would need a 2048 × 2048 matrix square root — minutes per table cell. KID's own subset estimate is
+what ``metrics.json`` reports for it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Iterable
+
+import numpy as np
+
+#: metric → (state block in a record, numerator state, denominator state)
+RATIOS = {
+    "col_mesh": ("col_mesh", "colliding_objects", "objects"),
+    "grecall": ("grecall", "matches", "pairs"),
+    "asd": ("asd", "abs_distance_sum", "pairs"),
+    "stability": ("stability", "unchanged_pairs", "pairs"),
+    "still_fraction": ("stability", "still_objects", "objects"),
+}
+RESAMPLES = 1000
+LEVEL = 0.95
+#: Fewer scenes than this measuring a metric: its interval is flagged (a bootstrap over a handful of units is
+#: too narrow).
+FEW = 5
+
+
+def scene_sums(records: Iterable[dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """metric → (numerators (n,), denominators (n,)) of the good records (those without ``error``), in order."""
+    good = [r for r in records if not r.get("error")]
+    out = {}
+    for metric, (block, num, den) in RATIOS.items():
+        try:
+            out[metric] = (np.array([float(r["state"][block][num]) for r in good], np.float64),
+                           np.array([float(r["state"][block][den]) for r in good], np.float64))
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"per-scene record without the state '{block}.{num}'/'{block}.{den}' ({exc!r}); "
+                             f"evaluate again with this version") from None
+    return out
+
+
+def pooled(num: np.ndarray, den: np.ndarray) -> float:
+    """Σ num / Σ den, NaN when Σ den is 0."""
+    total = float(den.sum())
+    return float(num.sum()) / total if total > 0 else float("nan")
+
+
+def resample_indices(n: int, resamples: int, seed: int) -> np.ndarray:
+    """(resamples, n) scene indices drawn with replacement (module docstring)."""
+    return np.random.default_rng(int(seed)).integers(0, n, size=(int(resamples), n))
+
+
+def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, level: float = LEVEL,
+                        seed: int = 0) -> dict:
+    """``{"<metric>_lo": ..., "<metric>_hi": ..., "bootstrap": {...}}`` for the metrics of :data:`RATIOS` over
+    ``records`` (``per_scene.jsonl`` lines); None where a metric has no value. ``bootstrap`` records the
+    method, resamples, level, seed, the number of scenes and, per metric, how many of them measured it
+    (``measured``: a non-zero denominator, e.g. ASD only counts rooms with support pairs — an interval
+    resting on a handful of such rooms is too narrow to trust)."""
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    if resamples < 1:
+        raise ValueError(f"resamples must be ≥ 1, got {resamples}")
+    sums = scene_sums(records)
+    n = len(next(iter(sums.values()))[0])
+    meta = {"method": "percentile", "unit": "scene", "resamples": int(resamples), "level": float(level),
+            "seed": int(seed), "n_scenes": n, "measured": {m: int((den > 0).sum()) for m, (_, den) in sums.items()}}
+    out: dict = {}
+    index = resample_indices(n, resamples, seed) if n else None
+    quantiles = [(1 - level) / 2, (1 + level) / 2]
+    for metric, (num, den) in sums.items():
+        lo = hi = None
+        if n and not math.isnan(pooled(num, den)):
+            nb, db = num[index].sum(axis=1), den[index].sum(axis=1)
+            ok = db > 0
+            if ok.any():
+                lo, hi = (float(q) for q in np.quantile(nb[ok] / db[ok], quantiles))
+        out[f"{metric}_lo"], out[f"{metric}_hi"] = lo, hi
+    out["bootstrap"] = meta
+    return out
+
+
+def few_measured(meta: dict | None) -> str:
+    """``"asd (2), ..."``: the metrics fewer than :data:`FEW` (but some) scenes measured, "" when none."""
+    counts = (meta or {}).get("measured") or {}
+    return ", ".join(f"{m} ({k})" for m, k in counts.items() if 0 < k < FEW)
+
+
+def interval_note(meta: dict | None) -> str:
+    """One sentence saying what a table's ± is, from a ``bootstrap`` block (empty without one)."""
+    if not meta:
+        return ""
+    note = (f"± is half the width of the {meta['level'] * 100:g} % {meta['method']} bootstrap interval over scenes "
+            f"({meta['resamples']:,} resamples, seed {meta['seed']}); FID and KID have none.")
+    few = few_measured(meta)
+    if few:
+        note += f" Fewer than {FEW} scenes measured {few}: too few for a trustworthy interval."
+    return note

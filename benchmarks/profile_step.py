@@ -38,6 +38,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--ops", type=int, default=15)
     ap.add_argument("--augment", action="store_true")
+    ap.add_argument("--no-dedupe", action="store_true", help="encode every object's shape (drop shape_index)")
+    ap.add_argument("--no-cache", action="store_true", help="re-read every scene file")
     ap.add_argument("--set", nargs="*", default=[])
     args = ap.parse_args()
 
@@ -58,7 +60,8 @@ def main() -> None:
         else:
             module_args[key] = parse_value(value)
     cfg = model_config(args.model, **config_fields)
-    dm = SceneDataModule(args.dataset, batch_size=args.batch, num_points=cfg.num_points, seed=0, augment=args.augment)
+    dm = SceneDataModule(args.dataset, batch_size=args.batch, num_points=cfg.num_points, seed=0, augment=args.augment,
+                         cache=not args.no_cache)
     model = SceneDiffusion(args.variant, cfg, bounds=dm.translation_bounds(), **module_args)
     model.train()
     opt = torch.optim.AdamW(model.network.parameters(), lr=1e-4, weight_decay=1e-4)
@@ -89,6 +92,8 @@ def main() -> None:
         nonlocal objects
         t0 = time.perf_counter()
         batch = next(loader)
+        if args.no_dedupe:
+            batch.pop("shape_index", None)
         t1 = time.perf_counter()
         loss = model.training_loss(batch)
         t2 = time.perf_counter()
@@ -108,13 +113,18 @@ def main() -> None:
 
     for _ in range(3):
         step(False)
+    if not args.no_cache:  # the cache is warm after the first epoch: measure that state
+        data = dm.dataset("train")
+        for i in range(len(data)):
+            data.read(i)
     times.clear()
     for _ in range(args.steps):
         step(True)
     n = args.steps
     total = times["step"]
     print(f"# profile_step {time.strftime('%Y-%m-%d %H:%M')} {args.model} {args.variant} batch {args.batch} "
-          f"threads {args.threads} steps {n} objects/batch {objects / n:.1f} set {args.set}")
+          f"threads {args.threads} steps {n} objects/batch {objects / n:.1f} set {args.set}"
+          f"{' no-dedupe' if args.no_dedupe else ''}{' no-cache' if args.no_cache else ''}")
     print("| part | ms / step | share |")
     print("|---|---:|---:|")
     order = ["data", "forward (all)", "shape encoder", "edge encoder", "chamfer features", "perceiver", "denoiser",

@@ -81,7 +81,8 @@ class SceneDiffusionConfig:
     sample_every_n_epochs: > 0 samples val scenes every n epochs and logs val/grecall; val_sampler;
     val_sample_scenes; seed: validation noise.
 
-    What learning at small compute added (benchmarks/RESULTS.md, "Learning at small compute", measured each):
+    Levers for learning at small compute (benchmarks/RESULTS.md, "Learning at small compute": the cpu_hour
+    recipe, which levers it uses and which were measured):
     prediction: what the network outputs, ``epsilon`` (the paper's) | ``sample`` (x_0) | ``v_prediction``;
     loss_weighting: ``none`` | ``min_snr`` (with ``min_snr_gamma``); lr_warmup_steps: linear warm-up from 0;
     lr_schedule: ``constant`` | ``cosine`` (from lr after the warm-up down to ``lr_final_ratio``·lr at the

@@ -8,7 +8,7 @@ test graphs, for every checkpoint of a training run, against optimiser steps, sc
            [--guided 3000 last | --guided all] [--guidance guidance.gravity=4e-3 ...]
            [--stability-runs 10 --stability-at last]
     # 3. one table (95% bootstrap intervals over scenes) and one plot for one or more runs
-    python benchmarks/learning_curve.py report LABEL=RUN ... [--png FILE] [--markdown]
+    python benchmarks/learning_curve.py report LABEL=RUN ... [--png FILE] [--targets] [--wandb DIR]
 
 ``train`` runs ``spread-train`` in this process (one torch thread unless ``threads=`` says otherwise) with
 ``trainer.max_steps``, a checkpoint every ``--every`` steps (all kept) and the run's ``clock.jsonl``
@@ -292,6 +292,36 @@ def cmd_report(args) -> None:
                   + " | ".join(cells) + " |")
     if args.png:
         plot(runs, have, Path(args.png), args.targets)
+    if args.wandb:
+        log_wandb(runs, Path(args.wandb))
+
+
+def log_wandb(runs: dict, out_dir: Path) -> list[str]:
+    """One wandb run per curve (``job_type=learning_curve``, group = its label; offline unless ``WANDB_MODE``
+    says otherwise): per checkpoint ``<mode>/<metric>`` with ``_low`` / ``_high`` bounds, on the step axis
+    ``curve/step``, with ``curve/scenes`` and ``curve/minutes``. Returns the runs' folders."""
+    from spread.runtime.tracking import LoggerConfig, init_run, run_folder
+
+    folders = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for label, rows in runs.items():
+        run = init_run(LoggerConfig(), "learning_curve", out_dir, {"label": label}, group=label, name=label)
+        run.define_metric("curve/step")
+        run.define_metric("*", step_metric="curve/step")
+        for step in sorted({r["step"] for r in rows}):
+            data = {"curve/step": step}
+            for r in (r for r in rows if r["step"] == step):
+                if r["scenes_seen"] is not None:
+                    data["curve/scenes"] = r["scenes_seen"]
+                if r["seconds"] is not None:
+                    data["curve/minutes"] = r["seconds"] / 60
+                for key, (value, low, high) in r["metrics"].items():
+                    data.update({f"{r['mode']}/{key}": value, f"{r['mode']}/{key}_low": low,
+                                 f"{r['mode']}/{key}_high": high})
+            run.log(data)
+        folders.append(run_folder(run))
+        run.finish()
+    return folders
 
 
 def plot(runs: dict, have: list[str], png: Path, targets: bool) -> None:
@@ -363,6 +393,7 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("runs", nargs="+", help="LABEL=RUN folders")
     r.add_argument("--png")
     r.add_argument("--targets", action="store_true", help="draw the cpu_hour targets")
+    r.add_argument("--wandb", help="also log each curve to wandb, files under this folder")
     args = ap.parse_args(argv)
     args.overrides = extra
     {"train": cmd_train, "eval": cmd_eval, "report": cmd_report}[args.command](args)

@@ -110,3 +110,14 @@ def test_report_places_each_curve_file_on_steps_scenes_and_minutes_and_draws_the
     assert "| tiny | unguided | 2000 | 32000 | 8.0 | 2 | 0.850 [" in table
     assert "| tiny | guided | 2000 |" in table and "Stability" in table
     assert png.stat().st_size > 10_000
+
+
+def test_report_logs_each_curve_as_an_offline_wandb_run(lc, tmp_path, monkeypatch):
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    run = make_run(tmp_path, [1000], [{"step": 1000, "scenes": 16000, "seconds": 240.0}], last=False)
+    (run / "curve").mkdir()
+    (run / "curve" / "0001000_unguided.jsonl").write_text(json.dumps(record(5, 10, 4, 8, [0.3])) + "\n")
+    folders = lc.log_wandb({"tiny": lc.load_run(run)}, tmp_path / "wb")
+    assert len(folders) == 1 and folders[0]
+    logged = list((tmp_path / "wb" / "wandb").glob("offline-run-*/run-*.wandb"))
+    assert len(logged) == 1 and logged[0].stat().st_size > 0

@@ -163,7 +163,8 @@ def cmd_eval(args) -> None:
         out = run / "curve"
         out.mkdir(exist_ok=True)
         (out / "settings.json").write_text(json.dumps({
-            "test": str(args.test), "graphs": args.graphs, "sampler": args.sampler, "seed": args.seed,
+            "test": str(args.test), "split": args.split, "graphs": args.graphs, "sampler": args.sampler,
+            "seed": args.seed,
             "stability_runs": args.stability_runs, "guidance": guidance.to_dict(),
             "guidance_overrides": guidance_overrides}, indent=1))
         for step, ckpt in steps.items():
@@ -174,12 +175,12 @@ def cmd_eval(args) -> None:
             if not todo:
                 continue
             t0 = time.perf_counter()
-            pipeline = load_pipeline(str(ckpt), str(args.test), "test", args.sampler,
+            pipeline = load_pipeline(str(ckpt), str(args.test), args.split, args.sampler,
                                      guidance=guidance if "guided" in todo else None)
             data = pipeline.dataset
             n = min(args.graphs, len(data))
             if n < args.graphs:
-                print(f"warning: {args.test} has {len(data)} test graphs, fewer than --graphs {args.graphs}")
+                print(f"warning: {args.test} has {len(data)} {args.split} graphs, fewer than --graphs {args.graphs}")
             records = {m: [] for m in todo}
             for start in range(0, n, args.batch):
                 idx = list(range(start, min(n, start + args.batch)))
@@ -326,6 +327,7 @@ def log_wandb(runs: dict, out_dir: Path) -> list[str]:
 
 def plot(runs: dict, have: list[str], png: Path, targets: bool) -> None:
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -333,7 +335,7 @@ def plot(runs: dict, have: list[str], png: Path, targets: bool) -> None:
     axes_x = (("step", "optimiser steps"), ("scenes_seen", "training scenes seen"), ("seconds", "training minutes"))
     target = {"grecall": (0.93, "unguided target"), "col_mesh": (0.12, "guided target"),
               "asd": (20.0, "guided target"), "stability": (0.95, "guided target")}
-    fig, grid = plt.subplots(len(have), 3, figsize=(13, 2.8 * len(have)), squeeze=False)
+    fig, grid = plt.subplots(len(have), 3, figsize=(13, 2.8 * len(have)), squeeze=False, sharex="col")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for row, key in enumerate(have):
         _, label, scale, _ = next(m for m in METRICS if m[0] == key)
@@ -346,13 +348,21 @@ def plot(runs: dict, have: list[str], png: Path, targets: bool) -> None:
                     if not pts:
                         continue
                     x, y, lo, hi = map(np.asarray, zip(*pts))
-                    ax.plot(x, y, style, color=colours[c % len(colours)], ms=3, label=f"{name} {mode}")
-                    ax.fill_between(x, lo, hi, color=colours[c % len(colours)], alpha=0.15)
+                    colour = colours[c % len(colours)]
+                    ax.plot(x, y, style, color=colour, ms=3, label=f"{name} {mode}")
+                    ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt="none", ecolor=colour, elinewidth=0.8, capsize=2)
+                    ax.fill_between(x, lo, hi, color=colour, alpha=0.12)
             if targets and key in target:
                 ax.axhline(target[key][0], color="k", lw=0.8, ls=":", label=target[key][1])
             if key == "asd":
                 ax.set_yscale("log")
-            ax.set_xlabel(xlabel)
+                ax.yaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+                ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+                ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            if row == len(have) - 1:
+                ax.set_xlabel(xlabel)
+            if xkey == "scenes_seen":
+                ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v / 1000:g}k"))
             ax.set_ylabel(label)
             ax.grid(alpha=0.3)
             if row == 0 and col == 0:
@@ -379,6 +389,7 @@ def main(argv: list[str] | None = None) -> None:
     e = sub.add_parser("eval")
     e.add_argument("runs", nargs="+")
     e.add_argument("--test", required=True, help="dataset whose test split holds the graphs")
+    e.add_argument("--split", default="test", help="the split of --test whose graphs are sampled (val to tune)")
     e.add_argument("--graphs", type=int, default=100)
     e.add_argument("--sampler", default="ddim-50")
     e.add_argument("--batch", type=int, default=16)

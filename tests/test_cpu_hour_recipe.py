@@ -34,12 +34,12 @@ def test_cpu_hour_builds_a_module_with_its_prediction_and_schedule():
     assert model.variant == "base" and model.config.dim == 128
 
 
-def test_cpu_hour_samples_with_ddim50_and_refine_at_four_times_the_papers_gravity():
+def test_cpu_hour_samples_with_ddim50_and_refine_at_twice_the_papers_collision_and_four_times_its_gravity():
     sampling = recipe().sampling
     cfg = to_object(compose("sample", [*SAMPLE, *sampling.sampler, *sampling.guidance]))
     assert (cfg.sampler.kind, cfg.sampler.num_steps) == ("ddim", 50)
     assert cfg.guidance.mode == "refine" and cfg.guidance.active
-    assert (cfg.guidance.collision, cfg.guidance.gravity, cfg.guidance.relation) == pytest.approx((7.5e-3, 4e-3,
+    assert (cfg.guidance.collision, cfg.guidance.gravity, cfg.guidance.relation) == pytest.approx((1.5e-2, 4e-3,
                                                                                                    1e-3))
 
 

@@ -21,8 +21,10 @@ evaluation's per-scene functions (DESIGN §6): GRecall, Col_mesh, ASD and, with 
 over R physics runs at the checkpoints named by ``--stability-at`` (default: every evaluated one; the protocol's
 10 runs is ``--stability-runs 10``). Per-scene records go to ``RUN/curve/<step>_<mode>.jsonl`` with each scene's
 sampling seconds (a rerun skips what exists, unless Stability is now asked for and the file lacks it).
-Every checkpoint is sampled with the same noise: its graph ``i`` draws x_T from seed ``seed · 1000003 + i``. Metrics pool over scenes as ``spread-evaluate``
-does (ratios of sums); the intervals resample scenes with replacement (2,000 resamples, seed 0).
+Every checkpoint is sampled with the same noise: its graph ``i`` draws x_T from seed ``seed · 1000003 + i``.
+``--split val`` samples a dataset's val graphs instead (to choose guidance weights away from the test graphs).
+Metrics pool over scenes as ``spread-evaluate`` does (ratios of sums); the intervals resample scenes with
+replacement (2,000 resamples, seed 0). ``report --wandb DIR`` also logs each curve as a wandb run.
 """
 
 from __future__ import annotations

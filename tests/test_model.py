@@ -190,6 +190,29 @@ def test_tokenizer_is_a_function_of_the_asset_only():
     assert torch.equal(a, c) and a.shape == (2, 5, 4, 16) and (a[0, 3:] == 0).all()
 
 
+def test_tokenizer_encodes_each_shared_point_set_once_with_the_same_result():
+    torch.manual_seed(0)
+    net = SceneDenoiser(tiny(), "base", BOUNDS)
+    b = random_batch(sizes=(4, 3), seed=6)
+    # object 2 of scene 1 carries the points of object 0 of scene 0; index 9 is another set
+    b["points"][1, 2], b["normals"][1, 2] = b["points"][0, 0], b["normals"][0, 0]
+    b["shape_index"] = torch.tensor([[5, 1, 2, 3], [9, 4, 5, -1]])
+    calls = []
+    original = net.shape_encoder.encode
+    net.shape_encoder.encode = lambda p, n: calls.append(len(p)) or original(p, n)
+    shared = net.shape_encoder(b)
+    separate = net.shape_encoder({k: v for k, v in b.items() if k != "shape_index"})
+    assert calls == [6, 7], "6 distinct point sets among 7 real objects"
+    assert torch.allclose(shared, separate, atol=1e-6) and torch.equal(shared[1, 2], shared[0, 0])
+    # gradients of the shared encoding equal those of encoding every object
+    grads = []
+    for batch in (b, {k: v for k, v in b.items() if k != "shape_index"}):
+        net.zero_grad()
+        (net.shape_encoder(batch) * torch.linspace(-1, 1, 16)).sum().backward()
+        grads.append(torch.cat([p.grad.flatten() for p in net.shape_encoder.parameters()]))
+    assert torch.allclose(grads[0], grads[1], atol=1e-5)
+
+
 # ---- training ---------------------------------------------------------------------------------------
 
 def test_one_batch_overfit_tiny_model():
@@ -210,6 +233,82 @@ def test_one_batch_overfit_tiny_model():
         if losses[-1] < losses[0] / 10:
             break
     assert losses[-1] < losses[0] / 10, f"loss {losses[0]:.3f} → {losses[-1]:.3f} in {len(losses)} steps"
+
+
+@pytest.mark.parametrize("prediction", ["epsilon", "sample", "v_prediction"])
+def test_every_prediction_target_gives_back_the_noise(prediction):
+    from spread.model.diffusion import epsilon_from_prediction, prediction_target, training_scheduler
+
+    g = torch.Generator().manual_seed(1)
+    x0, noise = torch.rand(3, 5, 9, generator=g) * 2 - 1, torch.randn(3, 5, 9, generator=g)
+    alpha_bar = training_scheduler().alphas_cumprod[torch.tensor([0, 500, 999])].double()
+    a = alpha_bar.float()[:, None, None]
+    x_t = a.sqrt() * x0 + (1 - a).sqrt() * noise
+    target = prediction_target(prediction, x0, noise, alpha_bar)
+    assert torch.allclose(epsilon_from_prediction(prediction, target, x_t, alpha_bar), noise, atol=2e-3)
+    expected = {"epsilon": noise, "sample": x0, "v_prediction": a.sqrt() * noise - (1 - a).sqrt() * x0}[prediction]
+    assert torch.allclose(target, expected)
+    with pytest.raises(ValueError, match="unknown prediction"):
+        prediction_target("x0", x0, noise, alpha_bar)
+
+
+def test_min_snr_weights_and_learning_rate_schedule_known_values():
+    from spread.model.diffusion import loss_weights
+    from spread.model.module import lr_factor
+
+    alpha_bar = torch.tensor([10 / 11, 0.5], dtype=torch.float64)  # SNR 10 and 1
+    assert torch.allclose(loss_weights("min_snr", "epsilon", alpha_bar, 5.0), torch.tensor([0.5, 1.0]).double())
+    assert torch.allclose(loss_weights("min_snr", "sample", alpha_bar, 5.0), torch.tensor([5.0, 1.0]).double())
+    assert torch.allclose(loss_weights("min_snr", "v_prediction", alpha_bar, 5.0), torch.tensor([5 / 11, 0.5]).double())
+    assert torch.equal(loss_weights("none", "sample", alpha_bar), torch.ones(2).double())
+    assert [lr_factor(s, 4, 104, "cosine", 0.1) for s in (0, 3, 4, 54, 104, 200)] == pytest.approx(
+        [0.25, 1.0, 1.0, 0.55, 0.1, 0.1])
+    assert lr_factor(50, 0, None, "constant", 0.1) == 1.0
+
+
+def test_a_prediction_other_than_epsilon_trains_and_samples():
+    from spread.model.module import SceneDiffusion
+
+    torch.manual_seed(0)
+    model = SceneDiffusion("base", tiny(), bounds=BOUNDS, prediction="sample", loss_weighting="min_snr")
+    b = random_batch(sizes=(4, 3), seed=4)
+    x0 = b["x"]
+    # an ideal x0-predictor (its output is the clean state) gives zero loss, and ε̂ = the true noise
+    noise, t = torch.randn(2, 4, 9) * b["mask"][..., None], torch.tensor([40, 700])
+    x_t = model.noise_schedule.add_noise(x0, noise, t)
+    assert torch.allclose(model.epsilon(x0, x_t, t), noise, atol=1e-3)
+    loss = model.training_loss(b, noise, t)
+    loss.backward()
+    assert torch.isfinite(loss) and loss > 0
+    poses = model.sample(b, "ddim-3", torch.Generator().manual_seed(0))
+    assert torch.isfinite(poses.translation).all()
+
+
+def test_geometry_model_started_from_a_base_checkpoint_predicts_what_the_base_predicts(tmp_path):
+    from spread.model.module import SceneDiffusion
+
+    torch.manual_seed(0)
+    base = SceneDiffusion("base", tiny(), bounds=BOUNDS)
+    with torch.no_grad():  # a "trained" EMA: different from the training weights
+        for p in base.ema.module.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    torch.save({"state_dict": base.state_dict()}, tmp_path / "base.ckpt")
+    geometry = SceneDiffusion("geometry", tiny(), bounds=BOUNDS, init_from=str(tmp_path / "base.ckpt"))
+    fresh = geometry.initialise_from(str(tmp_path / "base.ckpt"))
+    assert fresh and all(k.startswith("perceiver.") or ".geometry_attn." in k or ".norm_geometry." in k for k in fresh)
+    b = random_batch(seed=8)
+    t = torch.tensor([30, 600])
+    x_t = b["x"] + 0.2 * torch.randn_like(b["x"]) * b["mask"][..., None]
+    base_net, geo_net = base.ema.module.eval(), geometry.network.eval()
+    with torch.no_grad():
+        expected = base_net(x_t, t, base_net.condition(b))
+        assert torch.allclose(geo_net(x_t, t, geo_net.condition(b)), expected, atol=1e-5)
+        assert torch.allclose(geometry.ema.module.eval()(x_t, t, geometry.ema.module.condition(b)), expected, atol=1e-5)
+    wider = SceneDiffusion("geometry", tiny(dim=96), bounds=BOUNDS)
+    with pytest.raises(ValueError, match="shape"):
+        wider.initialise_from(str(tmp_path / "base.ckpt"))
+    with pytest.raises(FileNotFoundError, match="init_from"):
+        wider.initialise_from(str(tmp_path / "missing.ckpt"))
 
 
 # ---- samplers ---------------------------------------------------------------------------------------

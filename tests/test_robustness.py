@@ -264,3 +264,17 @@ def test_a_training_run_stopped_mid_epoch_and_resumed_equals_the_uninterrupted_r
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert whole["metrics"]["train/loss"] == resumed["metrics"]["train/loss"]
     assert os.path.exists(tmp_path / "part" / ".hydra" / "config.yaml")
+
+
+def test_an_augmented_epoch_draws_distinct_room_symmetry_pairs_in_a_resumable_order():
+    from spread.data.order import EpochOrder
+
+    rooms = 10
+    order = EpochOrder(8 * rooms, seed=3, per_epoch=rooms)
+    first = list(order)
+    assert len(first) == len(order) == rooms and len(set(first)) == rooms and max(first) < 8 * rooms
+    assert list(order) != first  # the next epoch draws other pairs
+    resumed = EpochOrder(8 * rooms, seed=3, position=lambda: (0, 4), per_epoch=rooms)
+    assert list(resumed) == first[4:]  # mid-epoch resume continues the same epoch's order
+    with pytest.raises(ValueError, match="per_epoch"):
+        EpochOrder(5, seed=0, per_epoch=6)

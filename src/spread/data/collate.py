@@ -11,6 +11,7 @@ spatial         (B, N, N) int64              7 = :data:`SPATIAL_PAD` (vocabulary
 physical        (B, N, N) int64              3 = :data:`PHYSICAL_PAD` (vocabulary 0..2 + pad, size 4)
 asset_index     (B, N) int64                 −1 = :data:`INDEX_PAD` (never a valid index: use the
 category_index  (B, N) int64                 mask, or map −1 to a pad embedding, before looking up)
+shape_index     (B, N) int64                 −1
 points, normals (B, N, M, 3)                 0
 extents         (B, N, 3)                    0
 room            (B, 2, 3)                    (per scene, stacked: no padding)
@@ -42,6 +43,7 @@ PAD_SPEC: dict[str, tuple[float, int]] = {
     "physical": (PHYSICAL_PAD, 2),
     "asset_index": (INDEX_PAD, 1),
     "category_index": (INDEX_PAD, 1),
+    "shape_index": (INDEX_PAD, 1),
     "points": (0.0, 1),
     "normals": (0.0, 1),
     "extents": (0.0, 1),

@@ -1,9 +1,13 @@
 """``SceneDataModule``: the dataset folder's train/val/test splits as Lightning dataloaders.
 
-The train loader shuffles each epoch by (``seed``, epoch) and can resume mid-epoch
-(:mod:`spread.data.order`), so the batch order of a run is reproducible, also across a resume; under DDP
-Lightning's distributed sampler takes over (seeded likewise per epoch). Items carry no randomness of their own (points are fixed per asset), so worker
-count does not change what a batch holds. Worker processes get the datasets either by fork (copied)
+The train loader orders each epoch by (``seed``, epoch) and can resume mid-epoch (:mod:`spread.data.order`),
+so the batch order of a run is reproducible, also across a resume; under DDP Lightning's distributed sampler
+takes over (seeded likewise per epoch). Items carry no randomness of their own (points are fixed per asset), so
+worker count does not change what a batch holds. ``augment=true`` trains on the 8 floor symmetries of every room
+(:mod:`spread.data.augment`): each epoch draws ``len(train)`` distinct (room, symmetry) pairs from the
+8·``len(train)`` in the same (seed, epoch) order, and every split is normalised with the square bounds
+(:meth:`SceneDataModule.translation_bounds`, which the model reads at setup), so a checkpoint's bounds fit
+rotated rooms too. Validation and test items are never transformed. Worker processes get the datasets either by fork (copied)
 or by pickling (``multiprocessing_context="spawn"``): the dataset then reloads its asset library
 lazily in the worker.
 """
@@ -20,8 +24,25 @@ from torch.utils.data import DataLoader
 from spread.data.collate import collate_scenes
 from spread.data.dataset import SceneDataset
 from spread.data.points import DEFAULT_NUM_POINTS
+from spread.data.stats import load_stats
 
 SPLITS = ("train", "val", "test")
+
+
+class SymmetricScenes(torch.utils.data.Dataset):
+    """A :class:`SceneDataset` seen under its 8 floor symmetries: item i = room i mod n after transform i // n."""
+
+    def __init__(self, dataset: SceneDataset):
+        from spread.data.augment import NUM_TRANSFORMS
+
+        self.dataset, self.transforms = dataset, NUM_TRANSFORMS
+
+    def __len__(self) -> int:
+        return self.transforms * len(self.dataset)
+
+    def __getitem__(self, index: int) -> dict:
+        n = len(self.dataset)
+        return self.dataset.item(index % n, index // n)
 
 
 class SceneDataModule(L.LightningDataModule):
@@ -29,19 +50,22 @@ class SceneDataModule(L.LightningDataModule):
 
     def __init__(self, root: str | os.PathLike, batch_size: int = 8, num_workers: int = 0,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, pin_memory: bool = False,
-                 persistent_workers: bool = False, multiprocessing_context: str | None = None):
+                 persistent_workers: bool = False, multiprocessing_context: str | None = None,
+                 augment: bool = False, cache: bool = True):
         super().__init__()
         self.root = Path(root)
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.num_points = int(num_points)
         self.seed = int(seed)
+        self.augment = bool(augment)
+        self.cache = bool(cache)
         self.pin_memory = bool(pin_memory)
         self.persistent_workers = bool(persistent_workers) and self.num_workers > 0
         self.multiprocessing_context = multiprocessing_context if self.num_workers > 0 else None
         self.save_hyperparameters({"root": str(self.root), "batch_size": self.batch_size,
                                    "num_workers": self.num_workers, "num_points": self.num_points,
-                                   "seed": self.seed, "pin_memory": self.pin_memory})
+                                   "seed": self.seed, "pin_memory": self.pin_memory, "augment": self.augment})
         self._library = None
         self._datasets: dict[str, SceneDataset] = {}
 
@@ -53,11 +77,20 @@ class SceneDataModule(L.LightningDataModule):
             self._library = AssetLibrary.load(self.root / "assets")
         return self._library
 
+    def translation_bounds(self) -> list[float]:
+        """The bounds every split is normalised with: stats.json's, squared in x and z when augmenting."""
+        bounds = load_stats(self.root / "stats.json")["bounds_translations"]
+        if not self.augment:
+            return [float(b) for b in bounds]
+        from spread.data.augment import square_bounds
+
+        return square_bounds(bounds)
+
     def dataset(self, split: str) -> SceneDataset:
         """The split's dataset, built on first use (sharing one asset library)."""
         if split not in self._datasets:
-            self._datasets[split] = SceneDataset(self.root, split, library=self.library,
-                                                 num_points=self.num_points, seed=self.seed)
+            self._datasets[split] = SceneDataset(self.root, split, library=self.library, num_points=self.num_points,
+                                                 seed=self.seed, bounds=self.translation_bounds(), cache=self.cache)
         return self._datasets[split]
 
     def setup(self, stage: str | None = None) -> None:
@@ -89,8 +122,13 @@ class SceneDataModule(L.LightningDataModule):
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         generator = torch.Generator().manual_seed(self.seed) if shuffle else None
+        dataset, sampler = self.dataset(split), None
+        if shuffle and self.augment:
+            dataset = SymmetricScenes(dataset)
+            sampler = torch.utils.data.RandomSampler(dataset, num_samples=len(self.dataset(split)), generator=generator)
+            shuffle, generator = False, None
         return DataLoader(
-            self.dataset(split), batch_size=self.batch_size, shuffle=shuffle, generator=generator,
+            dataset, batch_size=self.batch_size, shuffle=shuffle, generator=generator, sampler=sampler,
             num_workers=self.num_workers, collate_fn=collate_scenes, pin_memory=self.pin_memory,
             persistent_workers=self.persistent_workers, multiprocessing_context=self.multiprocessing_context,
         )
@@ -102,8 +140,12 @@ class SceneDataModule(L.LightningDataModule):
         from spread.data.order import EpochOrder, StatefulLoader
 
         dataset = self.dataset("train")
+        per_epoch = len(dataset)
+        if self.augment:  # the 8 floor symmetries of every room; an epoch still has len(train) items
+            dataset = SymmetricScenes(dataset)
         return StatefulLoader(
-            dataset, batch_size=self.batch_size, sampler=EpochOrder(len(dataset), self.seed, self.train_position),
+            dataset, batch_size=self.batch_size,
+            sampler=EpochOrder(len(dataset), self.seed, self.train_position, per_epoch=per_epoch),
             num_workers=self.num_workers, collate_fn=collate_scenes, pin_memory=self.pin_memory,
             persistent_workers=self.persistent_workers, multiprocessing_context=self.multiprocessing_context)
 

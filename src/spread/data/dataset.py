@@ -11,6 +11,8 @@ x              (N, 9) float32 [normalised world translation (3, in [−1, 1]), r
 spatial        (N, N) int64   spatial codes 0..6 (row i "is … of" column j)
 physical       (N, N) int64   physical codes 0 none, 1 i supports j, 2 contact
 asset_index    (N,) int64     index into ``asset_ids`` (the library's sorted asset ids)
+shape_index    (N,) int64     which point set the object carries: ``asset_index``, + len(asset_ids) when
+                              mirrored (:meth:`SceneDataset.item`); equal indices, equal points
 category_index (N,) int64     index into ``categories``
 points         (N, M, 3) f32  surface samples, canonical (object-local, bbox-centred) frame, metres
 normals        (N, M, 3) f32  their unit normals, same frame
@@ -23,7 +25,9 @@ scene_id       str
 :mod:`spread.baselines`); SceneDiffusion does not read them.
 
 Scene files are validated on read (against the library too), so a broken file fails with an error
-naming the file and key. The dataset pickles without its library (it holds a lock and meshes); a
+naming the file and key. ``bounds`` (6 floats) replaces stats.json's translation bounds in the normalisation
+(the square bounds of an augmented training run, :mod:`spread.data.augment`); :meth:`SceneDataset.item`
+encodes a scene after one of the 8 floor symmetries (poses, spatial codes and, when mirrored, the points). The dataset pickles without its library (it holds a lock and meshes); a
 worker process that gets a pickled copy reloads the library lazily from its folder.
 """
 
@@ -38,7 +42,7 @@ import torch
 
 from spread.data.points import DEFAULT_NUM_POINTS, asset_points
 from spread.data.rotation import matrix_to_rot6d
-from spread.data.stats import load_stats, normalize_translation
+from spread.data.stats import load_stats, normalize_translation, translation_bounds
 from spread.scene import Scene, list_scene_files, read_scene
 
 
@@ -62,7 +66,8 @@ class SceneDataset(torch.utils.data.Dataset):
     """Scenes of ``<root>/<split>`` encoded as tensors (see the module docstring for the keys)."""
 
     def __init__(self, root: str | os.PathLike, split: str, library=None,
-                 num_points: int = DEFAULT_NUM_POINTS, seed: int = 0):
+                 num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, bounds: list[float] | None = None,
+                 cache: bool = False):
         from spread.assets.library import AssetLibrary
 
         self.root = Path(root)
@@ -75,6 +80,9 @@ class SceneDataset(torch.utils.data.Dataset):
         if not self.files:
             raise FileNotFoundError(f"{self.root / split}: no scene files (*.npz)")
         self.stats = load_stats(self.root / "stats.json")
+        if bounds is not None:
+            self.stats = {**self.stats, "bounds_translations": [float(b) for b in bounds]}
+            translation_bounds(self.stats, source=f"{self.root}: bounds")
         self._library = library if library is not None else AssetLibrary.load(self.root / "assets")
         self._library_root = Path(self._library.root)
         self.asset_ids: list[str] = sorted(self._library.records)
@@ -83,12 +91,15 @@ class SceneDataset(torch.utils.data.Dataset):
         self._asset_index = {a: i for i, a in enumerate(self.asset_ids)}
         self._category_index = {c: i for i, c in enumerate(self.categories)}
         self._points: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.cache = bool(cache)  # keep every validated Scene record read (a few kB each) in memory
+        self._scenes: dict[int, Scene] = {}
 
     # ---- pickling: drop the library and the point memo, reload lazily ---------------------------
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
         state["_library"] = None
         state["_points"] = {}
+        state["_scenes"] = {}
         return state
 
     @property
@@ -104,11 +115,27 @@ class SceneDataset(torch.utils.data.Dataset):
         return len(self.files)
 
     def read(self, index: int) -> Scene:
-        """The validated Scene record of item ``index``."""
-        return read_scene(self.files[index], assets=self.library)
+        """The validated Scene record of item ``index`` (kept in memory with ``cache``; callers do not modify it)."""
+        scene = self._scenes.get(index)
+        if scene is None:
+            scene = read_scene(self.files[index], assets=self.library)
+            if self.cache:
+                self._scenes[index] = scene
+        return scene
 
     def __getitem__(self, index: int) -> dict:
         return self.encode(self.read(index), source=str(self.files[index]))
+
+    def item(self, index: int, transform: int = 0) -> dict:
+        """Item ``index`` after floor symmetry ``transform`` ∈ 0..7 (:mod:`spread.data.augment`) about the xz
+        centre of the normalisation bounds; 0 is ``self[index]``."""
+        from spread.data.augment import bounds_centre, transform_scene
+
+        if transform == 0:
+            return self[index]
+        centre = bounds_centre(self.stats["bounds_translations"])
+        scene = transform_scene(self.read(index), transform, centre)
+        return self.encode(scene, source=str(self.files[index]), transform=transform)
 
     def points_of(self, asset_id: str) -> tuple[np.ndarray, np.ndarray]:
         """(M, 3) points and normals of an asset, memoised; see :mod:`spread.data.points`."""
@@ -118,8 +145,9 @@ class SceneDataset(torch.utils.data.Dataset):
             self._points[asset_id] = hit
         return hit
 
-    def encode(self, scene: Scene, source: str | None = None) -> dict:
-        """Tensors of one Scene (also used to encode test graphs at sampling time)."""
+    def encode(self, scene: Scene, source: str | None = None, transform: int = 0) -> dict:
+        """Tensors of one Scene (also used to encode test graphs at sampling time). ``transform``: the floor
+        symmetry the scene went through (its points and normals are mirrored when it is a mirror)."""
         source = source or f"scene '{scene.scene_id}'"
         for i, aid in enumerate(scene.asset_id):
             if aid not in self._asset_index:
@@ -128,17 +156,24 @@ class SceneDataset(torch.utils.data.Dataset):
             if cat not in self._category_index:
                 raise ValueError(f"{source}: key 'category': object {i} category '{cat}' is not in the "
                                  f"dataset's category list ({len(self.categories)} categories)")
+        asset_index = torch.tensor([self._asset_index[a] for a in scene.asset_id], dtype=torch.long)
         t = normalize_translation(scene.translation.astype(np.float32), self.stats)
         x = np.concatenate([t, matrix_to_rot6d(scene.rotation.astype(np.float32))], axis=-1)
         pts, nrm = zip(*(self.points_of(str(a)) for a in scene.asset_id))
+        pts, nrm = np.stack(pts), np.stack(nrm)
+        if transform >= 4:
+            from spread.data.augment import mirror_local
+
+            pts, nrm = mirror_local(pts, transform), mirror_local(nrm, transform)
         return {
             "x": torch.from_numpy(np.ascontiguousarray(x, np.float32)),
             "spatial": torch.from_numpy(scene.spatial.astype(np.int64)),
             "physical": torch.from_numpy(scene.physical.astype(np.int64)),
-            "asset_index": torch.tensor([self._asset_index[a] for a in scene.asset_id], dtype=torch.long),
+            "asset_index": asset_index,
+            "shape_index": asset_index + (len(self.asset_ids) if transform >= 4 else 0),
             "category_index": torch.tensor([self._category_index[c] for c in scene.category], dtype=torch.long),
-            "points": torch.from_numpy(np.stack(pts)),
-            "normals": torch.from_numpy(np.stack(nrm)),
+            "points": torch.from_numpy(np.ascontiguousarray(pts)),
+            "normals": torch.from_numpy(np.ascontiguousarray(nrm)),
             "extents": torch.from_numpy(np.stack([np.asarray(self.library[str(a)].extents, np.float32)
                                                   for a in scene.asset_id])),
             "room": torch.from_numpy(np.full((2, 3), np.nan, np.float32) if scene.room is None

@@ -37,20 +37,27 @@ def batches_per_epoch(items: int, batch_size: int, limit: int | float = 1.0) -> 
 
 
 class EpochOrder(Sampler):
-    """Indices 0 … n−1 in epoch e's order (:func:`epoch_seed`), from the position training stands at.
+    """Indices of 0 … n−1 in epoch e's order (:func:`epoch_seed`), from the position training stands at.
 
     ``position()`` → (epoch, items of that epoch already trained); without it, epochs count up from 0.
+    ``per_epoch``: an epoch is the first ``per_epoch`` of the order (distinct indices; default all ``n``), e.g.
+    ``len(train)`` of the 8·``len(train)`` (room, symmetry) pairs of an augmented split.
     """
 
-    def __init__(self, n: int, seed: int, position: Callable[[], tuple[int, int]] | None = None):
+    def __init__(self, n: int, seed: int, position: Callable[[], tuple[int, int]] | None = None,
+                 per_epoch: int | None = None):
         self.n, self.seed, self.position = int(n), int(seed), position
+        self.per_epoch = self.n if per_epoch is None else int(per_epoch)
+        if not 0 < self.per_epoch <= self.n:
+            raise ValueError(f"EpochOrder: per_epoch={per_epoch} must be in 1..{self.n}")
         self._next_epoch = 0
 
     def set_epoch(self, epoch: int) -> None:  # Lightning calls it; the position decides (module docstring)
         pass
 
     def order(self, epoch: int) -> list[int]:
-        return torch.randperm(self.n, generator=torch.Generator().manual_seed(epoch_seed(self.seed, epoch))).tolist()
+        order = torch.randperm(self.n, generator=torch.Generator().manual_seed(epoch_seed(self.seed, epoch)))
+        return order[:self.per_epoch].tolist()
 
     def __iter__(self):
         epoch, start = self.position() if self.position is not None else (self._next_epoch, 0)
@@ -58,7 +65,7 @@ class EpochOrder(Sampler):
         yield from self.order(epoch)[start:]
 
     def __len__(self) -> int:
-        return self.n
+        return self.per_epoch
 
 
 class StatefulLoader(DataLoader):

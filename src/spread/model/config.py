@@ -80,6 +80,15 @@ class SceneDiffusionConfig:
     (paper: 1e-4, 1e-4); ema_decay; graph_dropout: > 0 trains classifier-free guidance on the graphs;
     sample_every_n_epochs: > 0 samples val scenes every n epochs and logs val/grecall; val_sampler;
     val_sample_scenes; seed: validation noise.
+
+    Levers for learning at small compute (benchmarks/RESULTS.md, "Learning at small compute": the cpu_hour
+    recipe, which levers it uses and which were measured):
+    prediction: what the network outputs, ``epsilon`` (the paper's) | ``sample`` (x_0) | ``v_prediction``;
+    loss_weighting: ``none`` | ``min_snr`` (with ``min_snr_gamma``); lr_warmup_steps: linear warm-up from 0;
+    lr_schedule: ``constant`` | ``cosine`` (from lr after the warm-up down to ``lr_final_ratio``·lr at the
+    trainer's ``max_steps``); init_from: a checkpoint whose EMA weights start every matching weight (a
+    ``geometry`` model from a trained ``base`` one: the perceiver and the geometry attention start fresh, the
+    latter at zero so step 0 predicts what the base model predicts).
     """
 
     _target_: str = "spread.model.module.SceneDiffusion"
@@ -97,3 +106,10 @@ class SceneDiffusionConfig:
     val_sampler: str = "ddim-25"
     val_sample_scenes: int = 4
     seed: int = 0
+    prediction: str = "epsilon"
+    loss_weighting: str = "none"
+    min_snr_gamma: float = 5.0
+    lr_warmup_steps: int = 0
+    lr_schedule: str = "constant"
+    lr_final_ratio: float = 0.1
+    init_from: str | None = None

@@ -44,6 +44,12 @@ TRAIN_SCHEDULER_CONFIG: dict = {
     "prediction_type": "epsilon",
 }
 SAMPLER_KINDS = ("ddpm", "ddim", "dpmsolver++")
+#: What the network predicts (diffusers' names): the noise ε, the clean state x_0, or v = √ᾱ ε − √(1−ᾱ) x_0
+#: (Salimans & Ho 2022). Samplers and guidance always receive ε (:func:`epsilon_from_prediction`).
+PREDICTIONS = ("epsilon", "sample", "v_prediction")
+#: Per-timestep loss weights: none (plain MSE on the prediction), min_snr (Hang et al. 2023, min(SNR, γ)
+#: expressed for the prediction target).
+LOSS_WEIGHTINGS = ("none", "min_snr")
 #: Per-scene initial noise is drawn as (max(N, NOISE_ROWS), state_dim) and cut to N, so a scene's x_T does not
 #: depend on how far its batch is padded (torch's CPU normal sampler fills large tensors in another order).
 NOISE_ROWS = 64
@@ -53,6 +59,58 @@ def training_scheduler(**overrides) -> DDPMScheduler:
     """A DDPM training schedule: ε-prediction, by default cosine betas over T = 1000 (the paper's);
     ``overrides`` (``beta_schedule``, ``num_train_timesteps``, ...) change it."""
     return DDPMScheduler(**{**TRAIN_SCHEDULER_CONFIG, **overrides})
+
+
+def check_prediction(prediction: str) -> str:
+    if prediction not in PREDICTIONS:
+        raise ValueError(f"unknown prediction '{prediction}' (choose from {PREDICTIONS})")
+    return prediction
+
+
+def prediction_target(prediction: str, x0: torch.Tensor, noise: torch.Tensor, alpha_bar: torch.Tensor) -> torch.Tensor:
+    """The training target of a network that predicts ``prediction`` for x_t = √ᾱ x_0 + √(1−ᾱ) ε;
+    x0, noise (B, N, C), alpha_bar (B,) ᾱ_t of each scene's timestep."""
+    check_prediction(prediction)
+    if prediction == "epsilon":
+        return noise
+    if prediction == "sample":
+        return x0
+    a = alpha_bar.to(x0)[:, None, None]
+    return a.sqrt() * noise - (1 - a).sqrt() * x0
+
+
+def epsilon_from_prediction(prediction: str, output: torch.Tensor, x_t: torch.Tensor,
+                            alpha_bar: torch.Tensor) -> torch.Tensor:
+    """ε̂ from the network's output (B, N, C) at states x_t (B, N, C) with ᾱ_t (B,): the identity for
+    ``epsilon``, ε = (x_t − √ᾱ x̂_0)/√(1−ᾱ) for ``sample``, ε = √(1−ᾱ) x_t + √ᾱ v̂ for ``v_prediction``."""
+    check_prediction(prediction)
+    if prediction == "epsilon":
+        return output
+    a = alpha_bar.to(device=x_t.device, dtype=torch.float64)[:, None, None]
+    x, out = x_t.double(), output.double()
+    if prediction == "sample":
+        eps = (x - a.sqrt() * out) / (1 - a).clamp(min=1e-12).sqrt()
+    else:
+        eps = (1 - a).sqrt() * x + a.sqrt() * out
+    return eps.to(output.dtype)
+
+
+def loss_weights(weighting: str, prediction: str, alpha_bar: torch.Tensor, gamma: float = 5.0) -> torch.Tensor:
+    """(B,) per-scene loss weights for timesteps with ᾱ_t ``alpha_bar`` (B,). ``min_snr``: the weight that
+    makes each target's MSE equal min(SNR, γ)·‖x̂_0 − x_0‖² (Hang et al. 2023): min(SNR, γ)/SNR for ε,
+    min(SNR, γ) for x_0, min(SNR, γ)/(SNR + 1) for v; SNR = ᾱ/(1 − ᾱ)."""
+    check_prediction(prediction)
+    if weighting not in LOSS_WEIGHTINGS:
+        raise ValueError(f"unknown loss weighting '{weighting}' (choose from {LOSS_WEIGHTINGS})")
+    if weighting == "none":
+        return torch.ones_like(alpha_bar)
+    snr = alpha_bar / (1 - alpha_bar)
+    clipped = snr.clamp(max=gamma)
+    if prediction == "epsilon":
+        return clipped / snr
+    if prediction == "sample":
+        return clipped
+    return clipped / (snr + 1)
 
 
 @dataclass

@@ -1,9 +1,15 @@
 """``SceneDiffusion``: the LightningModule that trains, validates and samples one variant.
 
-* Loss: ε-MSE over the 9 channels of the real objects only (padding excluded from numerator and
-  denominator), t ~ U{0, …, T−1}, x_t from the model's DDPM training schedule (``beta_schedule``,
-  ``diffusion_steps`` = T; the paper's cosine schedule over 1,000 by default, :mod:`spread.model.diffusion`).
-* Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights.
+* Loss: MSE of the network's ``prediction`` (ε by default, the paper's; or x_0, or v) over the 9 channels of
+  the real objects only (padding excluded from numerator and denominator), each scene weighted by
+  ``loss_weighting`` of its timestep (none, or min-SNR), t ~ U{0, …, T−1}, x_t from the model's DDPM training
+  schedule (``beta_schedule``, ``diffusion_steps`` = T; the paper's cosine schedule over 1,000 by default,
+  :mod:`spread.model.diffusion`). Whatever it predicts, :meth:`SceneDiffusion.denoiser` hands samplers and
+  guidance ε̂.
+* Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights; optional linear
+  warm-up and cosine decay to the trainer's ``max_steps`` (``lr_warmup_steps``, ``lr_schedule``).
+* ``init_from``: a checkpoint whose EMA weights start every weight they have (a ``geometry`` model from a
+  trained ``base`` one), loaded at the start of fitting (a resumed run then restores its own state).
 * EMA of the weights (:class:`~spread.model.ema.EMA`, a submodule: in the checkpoint, restored on
   resume); validation and :meth:`SceneDiffusion.sample` use it by default.
 * Classifier-free guidance training: with probability ``graph_dropout`` a scene's two graphs are
@@ -26,7 +32,8 @@ import lightning as L
 import torch
 
 from spread.model.config import ModelConfig, SceneDiffusionConfig
-from spread.model.diffusion import Hook, Sampler, training_scheduler
+from spread.model.diffusion import (Hook, Sampler, check_prediction, epsilon_from_prediction, loss_weights,
+                                    prediction_target, training_scheduler)
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser
 from spread.model.poses import poses_from_state
@@ -41,10 +48,31 @@ class Poses(NamedTuple):
     rotation: torch.Tensor
 
 
-def masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean squared error over the real objects' channels; prediction/target (B, N, C), mask (B, N)."""
+def masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+               weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean squared error over the real objects' channels; prediction/target (B, N, C), mask (B, N);
+    ``weights`` (B,) scale each scene's squared errors (the denominator stays the count of real channels)."""
     keep = mask[..., None].to(prediction.dtype)
-    return ((prediction - target) ** 2 * keep).sum() / (keep.sum() * prediction.shape[-1]).clamp(min=1)
+    squared = ((prediction - target) ** 2 * keep).sum((1, 2))
+    if weights is not None:
+        squared = squared * weights.to(squared)
+    return squared.sum() / (keep.sum() * prediction.shape[-1]).clamp(min=1)
+
+
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def lr_factor(step: int, warmup: int, total: int | None, schedule: str, final_ratio: float) -> float:
+    """Multiplier of the base learning rate at optimiser step ``step`` (0-based): linear warm-up over
+    ``warmup`` steps, then constant or a half cosine from 1 to ``final_ratio`` at step ``total``."""
+    import math
+
+    if warmup > 0 and step < warmup:
+        return (step + 1) / warmup
+    if schedule == "constant":
+        return 1.0
+    progress = min(1.0, max(0, step - warmup) / max(1, (total or 0) - warmup))
+    return final_ratio + (1 - final_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
 def batch_to(batch: dict, device: torch.device) -> dict:
@@ -69,17 +97,28 @@ class SceneDiffusion(L.LightningModule):
                  diffusion_steps: int = ARGS.diffusion_steps, lr: float = ARGS.lr, weight_decay: float = ARGS.weight_decay,
                  ema_decay: float = ARGS.ema_decay, graph_dropout: float = ARGS.graph_dropout,
                  sample_every_n_epochs: int = ARGS.sample_every_n_epochs, val_sampler: str | dict = ARGS.val_sampler,
-                 val_sample_scenes: int = ARGS.val_sample_scenes, seed: int = ARGS.seed):
+                 val_sample_scenes: int = ARGS.val_sample_scenes, seed: int = ARGS.seed,
+                 prediction: str = ARGS.prediction, loss_weighting: str = ARGS.loss_weighting,
+                 min_snr_gamma: float = ARGS.min_snr_gamma, lr_warmup_steps: int = ARGS.lr_warmup_steps,
+                 lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
+                 init_from: str | None = ARGS.init_from):
         super().__init__()
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
+        check_prediction(prediction)
+        loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
+        if lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"unknown lr_schedule '{lr_schedule}' (choose from {LR_SCHEDULES})")
         self.save_hyperparameters({
             "variant": variant, "config": cfg.to_dict(),
             "bounds": None if bounds is None else [float(b) for b in bounds],
             "beta_schedule": beta_schedule, "diffusion_steps": int(diffusion_steps), "lr": lr, "weight_decay": weight_decay, "ema_decay": ema_decay, "graph_dropout": graph_dropout,
             "sample_every_n_epochs": sample_every_n_epochs,
             "val_sampler": dataclasses.asdict(sampler),
-            "val_sample_scenes": val_sample_scenes, "seed": seed,
+            "val_sample_scenes": val_sample_scenes, "seed": seed, "prediction": prediction,
+            "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
+            "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
+            "init_from": None if init_from is None else str(init_from),
         })
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
@@ -101,9 +140,17 @@ class SceneDiffusion(L.LightningModule):
         self.hparams["bounds"] = [float(b) for b in bounds]
 
     def setup(self, stage: str | None = None) -> None:
-        if torch.isfinite(self.network.bounds).all() or self._trainer is None:
+        if self._trainer is None:
             return
-        root = getattr(self.trainer.datamodule, "root", None) if self.trainer.datamodule is not None else None
+        if stage in (None, "fit") and self.hparams.init_from and not getattr(self, "_initialised", False):
+            self.initialise_from(self.hparams.init_from)
+        if torch.isfinite(self.network.bounds).all():
+            return
+        datamodule = self.trainer.datamodule
+        if datamodule is not None and hasattr(datamodule, "translation_bounds"):
+            self.set_bounds(datamodule.translation_bounds())  # what its datasets normalise with (augmented or not)
+            return
+        root = getattr(datamodule, "root", None) if datamodule is not None else None
         if root is None:
             if self.variant == "geometry":
                 raise RuntimeError("SceneDiffusion: pass bounds= or train with a SceneDataModule (its stats.json)")
@@ -112,10 +159,51 @@ class SceneDiffusion(L.LightningModule):
 
         self.set_bounds(load_stats(root / "stats.json")["bounds_translations"])
 
+    def initialise_from(self, path: str) -> list[str]:
+        """Start the network (and its EMA) from the EMA weights of checkpoint ``path``: every weight of the
+        same name and shape; the rest (a ``geometry`` model's perceiver and geometry attention, starting from a
+        ``base`` one) keeps its fresh initialisation, with each geometry attention's output at zero so the
+        model predicts at step 0 what the checkpoint's did. Translation bounds come from the data, not the
+        checkpoint. Returns the names left fresh."""
+        from pathlib import Path
+
+        file = Path(path)
+        if not file.is_file():
+            raise FileNotFoundError(f"model.init_from={path}: no such checkpoint file")
+        state = torch.load(file, map_location="cpu", weights_only=True).get("state_dict", {})
+        prefix = "ema.module."
+        source = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix) and not k.endswith("bounds")}
+        if not source:
+            raise ValueError(f"model.init_from={path}: no EMA weights ('{prefix}*') in its state_dict")
+        own = self.network.state_dict()
+        for name, value in source.items():
+            if name in own and own[name].shape != value.shape:
+                raise ValueError(f"model.init_from={path}: weight '{name}' has shape {tuple(value.shape)}, "
+                                 f"this model's {tuple(own[name].shape)} (another network size?)")
+        loaded = {k: v for k, v in source.items() if k in own}
+        fresh = sorted(k for k in own if k not in loaded and not k.endswith("bounds"))
+        self.network.load_state_dict({**own, **loaded})
+        with torch.no_grad():
+            for i, block in enumerate(self.network.denoiser.blocks):
+                out = getattr(block.geometry_attn, "to_out", None)
+                if out is not None and f"denoiser.blocks.{i}.geometry_attn.to_out.0.weight" in fresh:
+                    out[0].weight.zero_()
+                    out[0].bias.zero_()
+        self.ema.module.load_state_dict(self.network.state_dict())
+        self.ema.num_updates.zero_()
+        self._initialised = True
+        return fresh
+
     # ---- training -------------------------------------------------------------------------------------
+    def alpha_bar(self, timesteps: torch.Tensor) -> torch.Tensor:
+        """ᾱ_t (B,) float64 of the training schedule at integer timesteps (B,)."""
+        alphas = self.noise_schedule.alphas_cumprod.to(device=timesteps.device, dtype=torch.float64)
+        return alphas[timesteps.long()]
+
     def training_loss(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
                       network: SceneDenoiser | None = None) -> torch.Tensor:
-        """ε-MSE of one batch; ``noise`` (B, N, 9) and ``timesteps`` (B,) are drawn when not given."""
+        """Weighted MSE of the ``prediction`` on one batch; ``noise`` (B, N, 9) and ``timesteps`` (B,) are
+        drawn when not given."""
         network = network if network is not None else self.network
         x0, mask = batch["x"].float(), batch["mask"].bool()
         B = x0.shape[0]
@@ -128,8 +216,14 @@ class SceneDiffusion(L.LightningModule):
         drop = None
         if network.training and self.hparams.graph_dropout > 0:
             drop = torch.rand(B, device=x0.device) < self.hparams.graph_dropout
-        eps = network(x_t, timesteps, network.condition(batch, drop))
-        return masked_mse(eps, noise, mask)
+        output = network(x_t, timesteps, network.condition(batch, drop))
+        prediction = self.hparams.get("prediction", "epsilon")
+        alpha_bar = self.alpha_bar(timesteps)
+        target = prediction_target(prediction, x0, noise, alpha_bar) * keep
+        weights = None
+        if self.hparams.get("loss_weighting", "none") != "none":
+            weights = loss_weights(self.hparams.loss_weighting, prediction, alpha_bar, self.hparams.min_snr_gamma)
+        return masked_mse(output, target, mask, weights)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss = self.training_loss(batch)
@@ -141,12 +235,32 @@ class SceneDiffusion(L.LightningModule):
         super().optimizer_step(*args, **kwargs)
         self.ema.update(self.network)
 
+    def epsilon(self, output: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """ε̂ from the network's raw output at states x_t and timesteps t (B,) (the identity for ε-prediction)."""
+        prediction = self.hparams.get("prediction", "epsilon")
+        if prediction == "epsilon":
+            return output
+        return epsilon_from_prediction(prediction, output, x_t, self.alpha_bar(t.to(x_t.device)))
+
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, batch: dict) -> torch.Tensor:
         """ε̂ (B, N, 9) of the training network for states x_t (B, N, 9) at timesteps t (B,)."""
-        return self.network(x_t, t, self.network.condition(batch))
+        return self.epsilon(self.network(x_t, t, self.network.condition(batch)), x_t, t)
 
     def configure_optimizers(self):
-        return torch.optim.AdamW(self.network.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        optimizer = torch.optim.AdamW(self.network.parameters(), lr=self.hparams.lr,
+                                      weight_decay=self.hparams.weight_decay)
+        warmup, schedule = int(self.hparams.get("lr_warmup_steps", 0)), self.hparams.get("lr_schedule", "constant")
+        if warmup <= 0 and schedule == "constant":
+            return optimizer
+        total = None
+        if schedule == "cosine":
+            total = int(self.trainer.max_steps) if self._trainer is not None else -1
+            if total is None or total <= 0:
+                raise ValueError("model.lr_schedule=cosine decays to trainer.max_steps: set trainer.max_steps")
+        final = float(self.hparams.get("lr_final_ratio", 0.1))
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: lr_factor(step, warmup, total, schedule, final))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     # ---- validation -----------------------------------------------------------------------------------
     def _sampling_due(self) -> bool:
@@ -183,10 +297,10 @@ class SceneDiffusion(L.LightningModule):
         null = network.null_condition(cond) if graph_scale != 1.0 else None
 
         def eps_fn(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            eps = network(x_t, t, cond)
+            eps = self.epsilon(network(x_t, t, cond), x_t, t)
             if null is None:
                 return eps
-            eps_null = network(x_t, t, null)
+            eps_null = self.epsilon(network(x_t, t, null), x_t, t)
             return eps_null + graph_scale * (eps - eps_null)
 
         return eps_fn, cond.mask

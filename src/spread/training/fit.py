@@ -53,9 +53,13 @@ def route_lightning_logs() -> None:
 
 
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
-    """ModelCheckpoint into ``<run folder>/checkpoints`` plus the ``callbacks`` of the config."""
+    """ModelCheckpoint into ``<run folder>/checkpoints``, the training clock (steps, scenes and seconds of each
+    checkpoint in ``clock.jsonl``, :mod:`~spread.training.clock`) plus the ``callbacks`` of the config."""
+    from spread.training.clock import TrainingClock
+
     checkpoint = hydra.utils.instantiate(cfg.checkpoint, dirpath=str(run_dir / "checkpoints"))
-    return [checkpoint] + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
+    return ([checkpoint, TrainingClock(run_dir)]
+            + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
 
 
 def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:

@@ -1,0 +1,54 @@
+"""experiment=cpu_hour (issue 15's CPU recipe): it composes to the levers its file names, builds the module they
+describe, its `sampling` block composes with spread-sample to DDIM-50 + refine with its weights, and the
+commands that use it (make demo, spread-ablate +preset=quick) take it."""
+
+import pytest
+
+from spread.configs import compose, to_object
+
+SAMPLE = ["ckpt=/c.ckpt", "data.root=/d", "out_dir=/o"]
+
+
+def recipe(*overrides):
+    return compose("train", ["experiment=cpu_hour", "data.root=/d", *overrides])
+
+
+def test_cpu_hour_trains_the_tiny_base_model_with_its_levers_within_an_hour():
+    cfg = recipe()
+    assert cfg.experiment_name == "cpu_hour" and cfg.model.variant == "base" and cfg.model.config.name == "tiny"
+    assert (cfg.model.prediction, cfg.model.loss_weighting, cfg.model.lr_schedule) == ("v_prediction", "min_snr",
+                                                                                        "cosine")
+    assert cfg.model.lr_warmup_steps < cfg.trainer.max_steps
+    assert cfg.data.augment is True and cfg.data.batch_size == 16
+    days, hours, minutes, seconds = map(int, cfg.trainer.max_time.split(":"))
+    assert days * 86400 + hours * 3600 + minutes * 60 + seconds <= 3600
+    assert cfg.checkpoint.save_top_k == -1  # every periodic checkpoint kept for the learning curve
+    assert cfg.model.sample_every_n_epochs > 0  # validation sampling stays on (val/grecall)
+
+
+def test_cpu_hour_builds_a_module_with_its_prediction_and_schedule():
+    import hydra
+
+    model = hydra.utils.instantiate(recipe().model, bounds=[-3, 0, -3, 3, 3, 3])
+    assert model.hparams.prediction == "v_prediction" and model.hparams.lr_schedule == "cosine"
+    assert model.variant == "base" and model.config.dim == 128
+
+
+def test_cpu_hour_samples_with_ddim50_and_refine_at_twice_the_papers_collision_and_four_times_its_gravity():
+    sampling = recipe().sampling
+    cfg = to_object(compose("sample", [*SAMPLE, *sampling.sampler, *sampling.guidance]))
+    assert (cfg.sampler.kind, cfg.sampler.num_steps) == ("ddim", 50)
+    assert cfg.guidance.mode == "refine" and cfg.guidance.active
+    assert (cfg.guidance.collision, cfg.guidance.gravity, cfg.guidance.relation) == pytest.approx((1.5e-2, 4e-3,
+                                                                                                   1e-3))
+
+
+def test_quick_preset_trains_both_variants_by_the_recipe_with_a_shorter_schedule():
+    from spread.experiments.ablation_command import ablation_spec
+
+    spec = ablation_spec(compose("ablate", ["+preset=quick"]))
+    for variant in ("base", "geometry"):
+        cfg = compose("train", [*spec.train_variant[variant], "experiment=cpu_hour", "data.root=/d"])
+        assert cfg.model.variant == variant
+    quick = compose("ablate", ["+preset=quick"])
+    assert "experiment=cpu_hour" in quick.train.overrides and "trainer.max_steps=1200" in quick.train.overrides

@@ -73,7 +73,7 @@ def test_urdf_room_loads_in_pybullet_and_stays_put(data, tmp_path):
 
     _, library, scene = data
     folder = export_scene(scene, library, tmp_path, "urdf")
-    assert folder == tmp_path.resolve() / safe_name("room|1") and (folder / "scene.json").exists()
+    assert folder == tmp_path.resolve() / safe_name(scene.scene_id) and (folder / "scene.json").exists()
     client = pb.connect(pb.DIRECT)
     try:
         bodies = load_urdf_scene(folder / "scene.json", client)

@@ -260,19 +260,27 @@ class Ablation:
 
         return Stage("data", root, [root / "manifest.json"], {"overrides": overrides}, run, derived=False)
 
+    def train_lists(self, trained: str) -> list[str]:
+        """The ``spread-train`` overrides of one trained row (the spec's shared list, then the row's own)."""
+        return [*self.spec.train, *self.spec.train_variant.get(trained, [])]
+
+    def timed(self, name: str, run: Callable[[bool], None]) -> Callable[[bool], None]:
+        """A stage body as it runs (a subclass may wrap it, e.g. to record its CPU time)."""
+        return run
+
     def train_stage(self, trained: str) -> Stage:
         folder = self.train_dir(trained)
         last = folder / "checkpoints" / "last.ckpt"
-        overrides = self.spec.named([*self.spec.train, *self.spec.train_variant.get(trained, []),
-                                      f"data.root={self.spec.dataset}", f"out_dir={folder}"])
+        overrides = self.spec.named([*self.train_lists(trained), f"data.root={self.spec.dataset}",
+                                     f"out_dir={folder}"])
 
         def run(resume: bool) -> None:
             extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
             log.info("  ≙ %s", command_line("spread-train", overrides + extra))
             self.commands.train(overrides + extra, folder)
 
-        return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], {"overrides": overrides}, run,
-                     derived=False)
+        return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], {"overrides": overrides},
+                     self.timed(f"train/{trained}", run), derived=False)
 
     def sample_stage(self, variant: str) -> Stage:
         folder, ckpt = self.sample_dir(variant), self.ckpt(CHECKPOINT_OF[variant])

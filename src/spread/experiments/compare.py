@@ -160,19 +160,8 @@ class Comparison(Ablation):
         return wrapper
 
     # ---- stages ----
-    def train_stage(self, method: str) -> Stage:
-        folder = self.train_dir(method)
-        last = folder / "checkpoints" / "last.ckpt"
-        overrides = self.spec.named([*self.spec.train, *self.spec.train_method.get(method, []),
-                                     f"data.root={self.spec.dataset}", f"out_dir={folder}"])
-
-        def run(resume: bool) -> None:
-            extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
-            log.info("  ≙ %s", command_line("spread-train", overrides + extra))
-            self.commands.train(overrides + extra, folder)
-
-        return Stage(f"train/{method}", folder, [folder / "metrics.json", last], {"overrides": overrides},
-                     self.timed(f"train/{method}", run), derived=False)
+    def train_lists(self, method: str) -> list[str]:
+        return [*self.spec.train, *self.spec.train_method.get(method, [])]
 
     def derive_stage(self) -> Stage:
         from spread.baselines import with_box_guidance

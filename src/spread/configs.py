@@ -206,16 +206,19 @@ def evaluate_command():
     return EvaluateCommand
 
 
+def _with_paths(base: type, name: str) -> type:
+    """``base`` (a library record whose fields are a command's keys) plus the run-folder ``paths``."""
+    from dataclasses import make_dataclass
+
+    return make_dataclass(name, [("paths", PathsConfig, field(default_factory=PathsConfig))], bases=(base,))
+
+
 @functools.cache
 def import_command():
     """The ``spread-import`` schema: :class:`~spread.importers.run.ImportConfig` plus the run-folder paths."""
     from spread.importers.run import ImportConfig
 
-    @dataclass
-    class ImportCommand(ImportConfig):
-        paths: PathsConfig = field(default_factory=PathsConfig)
-
-    return ImportCommand
+    return _with_paths(ImportConfig, "ImportCommand")
 
 
 @functools.cache
@@ -223,8 +226,4 @@ def export_command():
     """The ``spread-export`` schema: :class:`~spread.export.ExportConfig` plus the run-folder paths."""
     from spread.export import ExportConfig
 
-    @dataclass
-    class ExportCommand(ExportConfig):
-        paths: PathsConfig = field(default_factory=PathsConfig)
-
-    return ExportCommand
+    return _with_paths(ExportConfig, "ExportCommand")

@@ -39,6 +39,15 @@ def record_config(cfg: DictConfig, folder, overrides: list[str] | None = None):
     return lambda: save_config(cfg, Path(folder), hydra_overrides() if overrides is None else overrides)
 
 
+def record_in_log_folder(cfg: DictConfig) -> None:
+    """Record the config in Hydra's log folder (commands whose ``out_dir`` is a dataset folder, which stays
+    the dataset); nothing outside a running Hydra app."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        record_config(cfg, HydraConfig.get().runtime.output_dir)()
+
+
 def plain(cfg: DictConfig) -> dict:
     """The composed config as plain data (what wandb records as the run's config)."""
     return OmegaConf.to_container(cfg, resolve=True)
@@ -48,13 +57,10 @@ def plain(cfg: DictConfig) -> dict:
 
 def generate(cfg: DictConfig) -> dict:
     """``spread-generate``: the dataset folder ``cfg.out_dir``; returns its manifest."""
-    from hydra.core.hydra_config import HydraConfig
-
     from spread.procgen.dataset import generate_dataset
 
     command = to_object(cfg)
-    if HydraConfig.initialized():  # the dataset folder stays the dataset: the config goes to the log folder
-        record_config(cfg, HydraConfig.get().runtime.output_dir)()
+    record_in_log_folder(cfg)
     return generate_dataset(command.out_dir, command, progress=command.progress)
 
 
@@ -92,13 +98,10 @@ def print_dataset_summary(manifest: dict, out_dir: str) -> None:
 def import_data(cfg: DictConfig) -> dict:
     """``spread-import``: another layout converted into the dataset folder ``cfg.out_dir``; returns its
     manifest. A missing split file or a bad option raises ``SystemExit`` with one line naming it."""
-    from hydra.core.hydra_config import HydraConfig
-
     from spread.importers.run import import_dataset
 
     command = to_object(cfg)
-    if HydraConfig.initialized():  # the dataset folder stays the dataset: the config goes to the log folder
-        record_config(cfg, HydraConfig.get().runtime.output_dir)()
+    record_in_log_folder(cfg)
     try:
         return import_dataset(command)
     except (FileNotFoundError, ValueError) as exc:

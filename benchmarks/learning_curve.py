@@ -257,6 +257,34 @@ def bootstrap(records: list[dict], resamples: int = 2000, seed: int = 0) -> dict
     return out
 
 
+def paired_difference(records: list[dict], reference: list[dict], resamples: int = 2000, seed: int = 0) -> dict:
+    """metric → (Δ, low, high) of ``records`` minus ``reference`` on the same test graphs (matched by scene id):
+    both pooled over one resample of the graphs at a time, so the interval holds the per-graph noise that both
+    runs share (same graph, same x_T) out of the difference. Only graphs scored in both count."""
+    ref = {r["scene_id"]: r for r in reference}
+    ids = [r["scene_id"] for r in records if r["scene_id"] in ref]
+    if not ids:
+        return {}
+    mine = {r["scene_id"]: r for r in records}
+    a, b = sums([mine[i] for i in ids]), sums([ref[i] for i in ids])
+    picks = np.random.default_rng(seed).integers(0, len(ids), (resamples, len(ids)))
+    ta, tb = a[picks].sum(1), b[picks].sum(1)  # (resamples, 8)
+    pa, pb = ratios(a.sum(0)), ratios(b.sum(0))
+    out = {}
+    for i, key in enumerate(("grecall", "col_mesh", "asd", "stability")):
+        if math.isnan(pa[key]) or math.isnan(pb[key]):
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            delta = ta[:, 2 * i] / ta[:, 2 * i + 1] - tb[:, 2 * i] / tb[:, 2 * i + 1]
+        out[key] = (pa[key] - pb[key], float(np.nanpercentile(delta, 2.5)), float(np.nanpercentile(delta, 97.5)))
+    return out
+
+
+def curve_records(run: Path, step: int, mode: str = "unguided") -> list[dict]:
+    path = run / "curve" / f"{step:07d}_{mode}.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line]
+
+
 # ---- report ------------------------------------------------------------------------------------------
 
 def load_run(run: Path) -> list[dict]:
@@ -293,10 +321,39 @@ def cmd_report(args) -> None:
             cells = [cell(r["metrics"][k], s, d) if k in r["metrics"] else "" for k, _, s, d in METRICS if k in have]
             print(f"| {label} | {r['mode']} | {r['step']} | {r['scenes_seen'] or ''} | {minutes} | {r['graphs']} | "
                   + " | ".join(cells) + " |")
+    if args.paired_against:
+        paired_table(args, runs)
     if args.png:
         plot(runs, have, Path(args.png), args.targets)
     if args.wandb:
         log_wandb(runs, Path(args.wandb))
+
+
+def paired_table(args, runs: dict) -> None:
+    """Each run's last unguided checkpoint against the reference run's last one: paired differences."""
+    paths = {(label or Path(path).name): Path(path) for label, _, path in (i.rpartition("=") for i in args.runs)}
+    ref_label = args.paired_against
+    if ref_label not in runs:
+        raise SystemExit(f"--paired-against {ref_label!r} is not one of the runs ({', '.join(runs)})")
+
+    def last(label):
+        return max(r["step"] for r in runs[label] if r["mode"] == "unguided")
+
+    reference = curve_records(paths[ref_label], last(ref_label))
+    print(f"\nPaired differences against {ref_label} (step {last(ref_label)}), unguided, same test graphs and x_T: "
+          f"Δ [95 % paired bootstrap interval]")
+    print("| run | step | scenes seen | train min | ΔGRecall ↑ | ΔCol_mesh ↓ | ΔASD mm ↓ |")
+    print("|---|---:|---:|---:|---|---|---|")
+    for label in runs:
+        if label == ref_label:
+            continue
+        step = last(label)
+        row = next(r for r in runs[label] if r["mode"] == "unguided" and r["step"] == step)
+        d = paired_difference(curve_records(paths[label], step), reference)
+        minutes = "" if row["seconds"] is None else f"{row['seconds'] / 60:.1f}"
+        cells = [cell(d[k], s, dg) if k in d else "" for k, _, s, dg in METRICS if k != "stability"]
+        print(f"| {label} | {step} | {row['scenes_seen'] or ''} | {minutes} | " + " | ".join(
+            cells) + " |")
 
 
 def log_wandb(runs: dict, out_dir: Path) -> list[str]:
@@ -407,6 +464,8 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--png")
     r.add_argument("--targets", action="store_true", help="draw the cpu_hour targets")
     r.add_argument("--wandb", help="also log each curve to wandb, files under this folder")
+    r.add_argument("--paired-against", metavar="LABEL",
+                   help="also tabulate every run's last unguided checkpoint minus this run's, paired per test graph")
     args = ap.parse_args(argv)
     args.overrides = extra
     {"train": cmd_train, "eval": cmd_eval, "report": cmd_report}[args.command](args)

@@ -52,6 +52,24 @@ def test_bootstrap_interval_brackets_the_pooled_value_and_collapses_for_identica
     assert lc.bootstrap(records, resamples=500, seed=0) == intervals  # seeded
 
 
+def test_paired_difference_matches_graphs_by_id_and_is_narrower_than_two_unpaired_intervals(lc):
+    rng = np.random.default_rng(2)
+    base = []
+    for i, (m, c) in enumerate(zip(rng.integers(2, 9, 80), rng.integers(0, 6, 80))):
+        r = record(int(m), 10, int(c), 8, rng.uniform(0, 0.1, 3))
+        r["scene_id"] = f"g{i}"
+        base.append(r)
+    better = [dict(r, grecall_matches=r["grecall_matches"] + 1) for r in base][::-1]  # +1 match per graph, reordered
+    d = lc.paired_difference(better, base, resamples=500)
+    assert d["grecall"][0] == pytest.approx(0.1)  # 80 more matches of 800 pairs
+    assert d["grecall"][1] == pytest.approx(0.1) and d["grecall"][2] == pytest.approx(0.1)  # every graph +1: no spread
+    assert d["col_mesh"] == pytest.approx((0.0, 0.0, 0.0)) and d["asd"] == pytest.approx((0.0, 0.0, 0.0))
+    a, b = lc.bootstrap(better, resamples=500), lc.bootstrap(base, resamples=500)
+    assert a["grecall"][1] - b["grecall"][2] < 0.1 - 1e-6  # unpaired, the two intervals overlap or nearly so
+    other = [dict(r, scene_id="x" + r["scene_id"]) for r in base]
+    assert lc.paired_difference(other, base) == {}  # no graph in common: nothing to compare
+
+
 def make_run(tmp_path, steps, clock_lines, last=True):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)

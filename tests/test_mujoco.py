@@ -86,9 +86,10 @@ def library(tmp_path_factory):
     return build_box_library(tmp_path_factory.mktemp("mujoco_lib"))
 
 
-@pytest.fixture(scope="module")
-def world():
-    with MujocoWorld() as w:
+@pytest.fixture(scope="module", params=[False, True], ids=["awake", "sleeping"])
+def world(request):
+    """Every known answer holds with MuJoCo's sleeping islands off (the default) and on."""
+    with MujocoWorld(MujocoParams(sleep=request.param)) as w:
         yield w
 
 
@@ -295,9 +296,41 @@ def test_runs_repeat_with_a_seed_differ_across_seeds_and_match_across_threads(wo
     c = simulate_runs(scene, library, runs=4, steps=30, seed=8, world=world)
     assert np.array_equal(a.translation, b.translation) and np.array_equal(a.rotation, b.rotation)
     assert np.abs(a.translation - c.translation).max() > 1e-5
-    with MujocoWorld(MujocoParams(threads=2)) as threaded:  # mujoco.rollout: the same runs, bit for bit
+    with MujocoWorld(MujocoParams(threads=2, sleep=world.params.sleep)) as threaded:  # mujoco.rollout: the same runs, bit for bit
         d = simulate_runs(scene, library, runs=4, steps=30, seed=7, world=threaded)
     assert np.array_equal(a.translation, d.translation) and np.array_equal(a.rotation, d.rotation)
+
+
+def test_a_sleeping_box_is_woken_by_a_box_landing_on_it_and_pushed_as_when_awake(library):
+    # the 0.1 m box rests on the floor; the 0.2 m box falls from 0.6 m onto its edge (centre 12 cm off), tips off
+    # and shoves it ~5 mm. With sleep on, the small box falls asleep first, is woken by the impact, moves as in
+    # the awake world and sleeps again
+    scene = make_scene(library, ["small", "box"], [[0, 0.05, 0], [0.12, 0.6, 0]])
+    final, awake = {}, []
+    for sleep in (False, True):
+        with MujocoWorld(MujocoParams(sleep=sleep)) as w:
+            w.load_scene(scene, library)
+            for _ in range(60):
+                protocol_steps(w, 1)
+                awake.append(bool(w.data.body_awake[1])) if sleep else None
+            final[sleep] = displacement_stats((scene.translation, scene.rotation), w.poses())
+    assert not all(awake[:10]) and awake[20] and not awake[-1]  # asleep, woken by the impact, asleep again
+    assert final[False].distance[0] > 3e-3
+    assert abs(final[True].distance[0] - final[False].distance[0]) < 1e-3
+    assert final[True].angle[1] > 1.0 and final[False].angle[1] > 1.0  # the big box tipped off in both
+
+
+def test_sleeping_runs_of_a_settled_room_end_early_and_agree_with_awake_runs(library):
+    scene = settled_box_room(library)
+    runs = {}
+    for sleep in (False, True):
+        with MujocoWorld(MujocoParams(sleep=sleep)) as w:
+            runs[sleep] = simulate_runs(scene, library, runs=4, world=w)
+            runs[sleep, "steps"] = w.steps_simulated
+    assert runs[False, "steps"] == 4 * 100 * 4 and runs[True, "steps"] < 0.5 * runs[False, "steps"]
+    assert np.abs(runs[True].translation - runs[False].translation).max() < 1e-3
+    moved = {k: displacement_stats((scene.translation, scene.rotation), runs[k]).distance for k in (False, True)}
+    assert ((moved[True] < 0.01) == (moved[False] < 0.01)).all()
 
 
 def test_a_loaded_scene_model_is_reused_for_its_runs(library):

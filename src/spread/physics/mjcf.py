@@ -173,8 +173,9 @@ def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False,
            f'  <option timestep="{p.time_step!r}" gravity="{_num(gravity)}" integrator="{p.integrator}" '
            f'cone="{p.cone}" solver="{p.solver}" iterations="{p.iterations}" tolerance="{p.tolerance!r}" '
            f'noslip_iterations="{p.noslip_iterations}" ccd_iterations="{p.ccd_iterations}" '
-           f'ccd_tolerance="{p.ccd_tolerance!r}">',
-           f'    <flag refsafe="{_on(p.refsafe)}" multiccd="{_on(p.multiccd)}" autoreset="disable"/>',
+           f'ccd_tolerance="{p.ccd_tolerance!r}" sleep_tolerance="{p.sleep_tolerance!r}">',
+           f'    <flag refsafe="{_on(p.refsafe)}" multiccd="{_on(p.multiccd)}" sleep="{_on(p.sleep)}" '
+           'autoreset="disable"/>',
            '  </option>',
            '  <default>',
            f'    <geom condim="{p.condim}" friction="{_num((p.friction, p.torsional_friction, p.rolling_friction))}" '

@@ -46,6 +46,12 @@ class MujocoParams:
         on a face, not on one point.
     ccd_iterations / ccd_tolerance: the convex collision (GJK/EPA) iteration cap and tolerance, m.
     threads: threads that step one scene's runs together (``mujoco.rollout``); 1: a plain loop.
+    sleep: MuJoCo's sleeping islands (MuJoCo ≥ 3.4): a group of touching bodies whose every velocity (angular
+        ones times the body's size) stays under ``sleep_tolerance`` m/s for 10 internal steps is frozen and
+        skipped by collision and solver until an awake body touches it. A run whose bodies are all asleep
+        cannot change any more, so it ends there (:meth:`MujocoWorld.simulate`). With sleep on, runs are
+        stepped one after another (``threads`` is not used: the sleep state is not part of a rollout's state).
+    sleep_tolerance: m/s, MuJoCo's default 1e-3.
     """
 
     gravity: float = 9.81
@@ -68,6 +74,8 @@ class MujocoParams:
     ccd_iterations: int = 35
     ccd_tolerance: float = 1e-6
     threads: int = 1
+    sleep: bool = False
+    sleep_tolerance: float = 1e-3
 
 
 def _route_warnings(mujoco) -> None:
@@ -105,6 +113,7 @@ class MujocoWorld:
         self._datas: list = []
         self._pool = None
         self.models_compiled = 0
+        self.steps_simulated = 0  # internal steps actually taken by simulate (fewer than asked when runs sleep)
 
     # ---- scenes ------------------------------------------------------------------------------
     @property
@@ -206,21 +215,42 @@ class MujocoWorld:
         qpos = np.stack([self._qpos(translation[r], rotation[r]) for r in range(runs)])
         unstable = self._mj.mjtWarning.mjWARN_BADQACC
         diverged = False
-        if self.params.threads <= 1 or runs == 1:
+        if self.params.threads <= 1 or runs == 1 or self.params.sleep:
             final = np.zeros_like(qpos)
             for r in range(runs):
                 self._mj.mj_resetData(self.model, self.data)
                 self.data.qpos[:] = qpos[r]
-                self._mj.mj_step(self.model, self.data, nstep=int(nstep))
+                self._run(int(nstep))
                 final[r] = self.data.qpos
                 diverged |= self.data.warning[unstable].number > 0
         else:
             final = self._rollout(qpos, int(nstep))
+            self.steps_simulated += len(qpos) * int(nstep)
             diverged = any(d.warning[unstable].number > 0 for d in self._datas)
         if diverged or not np.isfinite(final).all():
             raise FloatingPointError(f"MuJoCo simulation of scene '{scene.scene_id}' diverged (huge or non-finite "
                                      f"accelerations); time step {self.time_step} s is too long for these contacts")
         return self._poses_of(final)
+
+    #: Internal steps between two checks of whether every body sleeps (MuJoCo's own wait before sleeping).
+    SLEEP_CHECK = 10
+
+    def _run(self, nstep: int) -> None:
+        """Step ``self.data`` ``nstep`` internal steps; with sleep on, stop early once every body sleeps (a world
+        whose islands all sleep stays exactly as it is: sleeping bodies are frozen and nothing awake can wake
+        them)."""
+        if not self.params.sleep:
+            self._mj.mj_step(self.model, self.data, nstep=nstep)
+            self.steps_simulated += nstep
+            return
+        done = 0
+        while done < nstep:
+            k = min(self.SLEEP_CHECK, nstep - done)
+            self._mj.mj_step(self.model, self.data, nstep=k)
+            done += k
+            if self.data.ntree_awake == 0:
+                break
+        self.steps_simulated += done
 
     def _rollout(self, qpos: np.ndarray, nstep: int) -> np.ndarray:
         """Final qpos (runs, nq) of runs started from rest at ``qpos`` (runs, nq), stepped on threads."""

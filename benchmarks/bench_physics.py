@@ -1,12 +1,13 @@
 """Stability engines side by side: seconds per room for pybullet and MuJoCo, 100 rooms with every metric but FID
 on the local cores, runs stepped on threads, and where MuJoCo's time goes. Prints one table.
 
-    python benchmarks/bench_physics.py --dataset DIR [--rooms 100] [--workers 2] [--configs pybullet:4 mujoco:4 mujoco:1]
+    python benchmarks/bench_physics.py --dataset DIR [--rooms 100] [--workers 2] [--configs pybullet:4 mujoco:4 mujoco:4:sleep mujoco:1]
         [--thread-rooms 10] [--profile-rooms 5]
 
 Rooms: the first ``--rooms`` scene files of ``DIR/test`` (``DIR`` from ``spread-generate``: also the reference
 and the asset library). Each config ``ENGINE:SUBSTEPS`` is one complete :func:`run_evaluation` (``resume``
-off, FID off, no renders, no logger, ``--workers`` local Ray workers, chunks of 2) timed wall-clock from
+off, FID off, no renders, no logger, ``--workers`` local Ray workers, chunks of 2; ``:sleep`` adds
+``protocol.physics_sleep=true``) timed wall-clock from
 the call to ``metrics.json`` (Ray start, imports, cold caches included); per-metric seconds are the
 workers' own (``per_scene.jsonl``). ``--thread-rooms``: one process, MuJoCo, the protocol's 10 runs of
 each room stepped by 1 thread vs ``mujoco.rollout`` on 2 threads (wall seconds). ``--profile-rooms``:
@@ -27,13 +28,13 @@ from pathlib import Path
 import numpy as np
 
 
-def evaluate(scenes: Path, dataset: Path, out: Path, workers: int, engine: str, substeps: int):
+def evaluate(scenes: Path, dataset: Path, out: Path, workers: int, engine: str, substeps: int, sleep: bool = False):
     from spread.evaluation import EvalProtocol, EvaluationConfig, FIDConfig, run_evaluation
     from spread.runtime import RaySettings
 
     cfg = EvaluationConfig(scenes=str(scenes), reference=str(dataset), out_dir=str(out), resume=False, renders=0,
                            progress=False, chunk_size=2,
-                           protocol=EvalProtocol(stability_substeps=substeps, physics=engine),
+                           protocol=EvalProtocol(stability_substeps=substeps, physics=engine, physics_sleep=sleep),
                            fid=FIDConfig(enabled=False),
                            ray=RaySettings(num_cpus=workers))
     t0 = time.perf_counter()
@@ -112,9 +113,9 @@ def main() -> None:
     loads = [os.getloadavg()[0]]
     runs = {}
     for config in args.configs:
-        engine, substeps = config.split(":")
+        engine, substeps, *flags = config.split(":")
         runs[config] = evaluate(scenes, args.dataset, args.out / config.replace(":", "_"), args.workers, engine,
-                                int(substeps))
+                                int(substeps), sleep="sleep" in flags)
         loads.append(os.getloadavg()[0])
     library = AssetLibrary.load(args.dataset / "assets")
     threads = thread_timing(files, library, args.thread_rooms) if args.thread_rooms else None

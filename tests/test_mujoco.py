@@ -358,6 +358,10 @@ def test_protocol_physics_selects_the_engine():
     assert EvalProtocol(physics="mujoco").to_dict()["physics_params"]["solver"] == "Newton"
     with pytest.raises(ValueError, match="protocol.physics"):
         EvalProtocol(physics="bullet")
+    assert EvalProtocol(physics="mujoco", physics_sleep=True).physics_params().sleep
+    assert not EvalProtocol(physics="mujoco").physics_params().sleep
+    with pytest.raises(ValueError, match="physics_sleep.*pybullet"):
+        EvalProtocol(physics_sleep=True)
 
 
 def test_mujoco_cannot_pin_objects(world, library):

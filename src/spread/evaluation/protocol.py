@@ -69,6 +69,8 @@ class EvalProtocol:
     stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
     physics: the Stability engine, ``pybullet`` (the reference, default) or ``mujoco`` (same bodies and
         protocol, :class:`~spread.physics.MujocoWorld`; agreement in benchmarks/RESULTS.md).
+    physics_sleep: MuJoCo only: its sleeping islands (``MujocoParams.sleep``): bodies at rest are skipped and a
+        run ends when all are (benchmarks/RESULTS.md measures the cost and the agreement).
     seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker),
         and KID's subsets use it too.
     """
@@ -80,6 +82,7 @@ class EvalProtocol:
     stability_substeps: int = STABILITY_SUBSTEPS
     stability_jitter: float = STABILITY_JITTER
     physics: str = "pybullet"
+    physics_sleep: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -90,6 +93,9 @@ class EvalProtocol:
             raise ValueError("stability_dt and collision_threshold must be > 0 and stability_jitter ≥ 0")
         if self.physics not in PHYSICS_ENGINES:
             raise ValueError(f"protocol.physics must be one of {PHYSICS_ENGINES}, got {self.physics!r}")
+        if self.physics_sleep and self.physics != "mujoco":
+            raise ValueError(f"protocol.physics_sleep=true needs protocol.physics=mujoco (got {self.physics!r}: "
+                             "pybullet's runs have no sleeping islands)")
 
     def physics_params(self):
         """The settings of the Stability world, whose type picks the engine (:func:`spread.physics.get_world`):
@@ -97,8 +103,10 @@ class EvalProtocol:
         internal step ``stability_dt / stability_substeps`` seconds."""
         from spread.physics import MujocoParams, PhysicsParams
 
-        engine = MujocoParams if self.physics == "mujoco" else PhysicsParams
-        return engine(time_step=self.stability_dt / self.stability_substeps)
+        step = self.stability_dt / self.stability_substeps
+        if self.physics == "mujoco":
+            return MujocoParams(time_step=step, sleep=self.physics_sleep)
+        return PhysicsParams(time_step=step)
 
     def metrics(self) -> dict:
         """Fresh torchmetrics aggregates keyed by :data:`METRIC_NAMES`, configured by this protocol."""

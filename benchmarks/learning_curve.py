@@ -6,9 +6,10 @@ test graphs, for every checkpoint of a training run, against optimiser steps, sc
     # 2. score every checkpoint on the test graphs of another dataset (another generator seed)
     python benchmarks/learning_curve.py eval RUN --test DIR --graphs 100 [--sampler ddim-50]
            [--guided 3000 last | --guided all] [--guidance guidance.gravity=4e-3 ...]
-           [--stability-runs 10 --stability-at last]
+           [--stability-runs 10 --stability-at last] [--graph-scale 2]
     # 3. one table (95% bootstrap intervals over scenes) and one plot for one or more runs
     python benchmarks/learning_curve.py report LABEL=RUN ... [--png FILE] [--targets] [--wandb DIR]
+           [--paired-against LABEL]   # each run's last checkpoint minus LABEL's, paired per test graph
 
 ``train`` runs ``spread-train`` in this process (one torch thread unless ``threads=`` says otherwise) with
 ``trainer.max_steps``, a checkpoint every ``--every`` steps (all kept) and the run's ``clock.jsonl``
@@ -164,21 +165,22 @@ def cmd_eval(args) -> None:
         stability_steps = pick(args.stability_at or ["all"], list(steps)) if args.stability_runs > 0 else set()
         out = run / "curve"
         out.mkdir(exist_ok=True)
+        tag = "" if args.graph_scale == 1.0 else f"-cfg{args.graph_scale:g}"  # a mode of its own in the report
         (out / "settings.json").write_text(json.dumps({
             "test": str(args.test), "split": args.split, "graphs": args.graphs, "sampler": args.sampler,
-            "seed": args.seed,
+            "seed": args.seed, "graph_scale": args.graph_scale,
             "stability_runs": args.stability_runs, "guidance": guidance.to_dict(),
             "guidance_overrides": guidance_overrides}, indent=1))
         for step, ckpt in steps.items():
             modes = ["unguided"] + (["guided"] if step in guided_steps else [])
             stability = args.stability_runs if step in stability_steps else 0
-            todo = [m for m in modes if not (out / f"{step:07d}_{m}.jsonl").exists()
-                    or (stability and not has_stability(out / f"{step:07d}_{m}.jsonl"))]
+            todo = [m for m in modes if not (out / f"{step:07d}_{m}{tag}.jsonl").exists()
+                    or (stability and not has_stability(out / f"{step:07d}_{m}{tag}.jsonl"))]
             if not todo:
                 continue
             t0 = time.perf_counter()
             pipeline = load_pipeline(str(ckpt), str(args.test), args.split, args.sampler,
-                                     guidance=guidance if "guided" in todo else None)
+                                     guidance=guidance if "guided" in todo else None, graph_scale=args.graph_scale)
             data = pipeline.dataset
             n = min(args.graphs, len(data))
             if n < args.graphs:
@@ -210,7 +212,7 @@ def cmd_eval(args) -> None:
                         records[mode].append(record)
             for mode in todo:
                 lines = "".join(json.dumps(r) + "\n" for r in records[mode])
-                write_text_atomic(out / f"{step:07d}_{mode}.jsonl", lines)
+                write_text_atomic(out / f"{step:07d}_{mode}{tag}.jsonl", lines)
                 summary = pooled(records[mode])
                 per_scene = sum(r["sample_seconds"] for r in records[mode]) / len(records[mode])
                 print(f"{run.name} step {step} {mode}: " + ", ".join(f"{k} {v:.4f}" for k, v in summary.items())
@@ -459,6 +461,9 @@ def main(argv: list[str] | None = None) -> None:
     e.add_argument("--stability-runs", type=int, default=0, help="physics runs per scene (0: no Stability)")
     e.add_argument("--stability-at", nargs="*", default=[], help="checkpoint steps, 'last' or 'all' (default)")
     e.add_argument("--threads", type=int, default=1)
+    e.add_argument("--graph-scale", type=float, default=1.0,
+                   help="classifier-free guidance on the graphs (models trained with model.graph_dropout > 0); "
+                        "curve files get the mode suffix -cfgS")
     r = sub.add_parser("report")
     r.add_argument("runs", nargs="+", help="LABEL=RUN folders")
     r.add_argument("--png")

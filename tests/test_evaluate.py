@@ -155,6 +155,15 @@ def test_clip_fid_without_local_clip_weights_is_null_with_the_reason(dataset, tm
     assert metrics["fid_status"].startswith("unavailable") and "clip" in metrics["fid_status"].lower()
 
 
+def test_ground_truth_is_stable_in_sleeping_mujoco_through_the_ray_fanout(dataset, tmp_path):
+    out = tmp_path / "run"
+    run_in_process(*args(dataset / "test", dataset, out, "logger=none", "fid.enabled=false", "renders=0",
+                         "protocol.physics=mujoco", "protocol.physics_sleep=true"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["protocol"]["physics"] == "mujoco" and metrics["protocol"]["physics_params"]["sleep"] is True
+    assert metrics["n_evaluated"] == ROOMS and metrics["stability"] >= 0.98 and metrics["still_fraction"] >= 0.98
+
+
 def test_bad_files_are_counted_and_listed_with_their_errors(cli_run):
     out, metrics, _ = cli_run
     assert metrics["n_failed"] == 3

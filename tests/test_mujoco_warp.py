@@ -155,13 +155,16 @@ def test_falling_runs_end_like_c_mujoco(world, library):
 
 
 @pytest.mark.slow
-def test_runs_repeat_bit_for_bit_on_cpu_and_differ_across_seeds(world, library):
+def test_runs_repeat_bit_for_bit_on_cpu_with_or_without_graph_replay_and_differ_across_seeds(world, library):
     scene = make_scene(library, ["box", "box", "L", "cup"], TOWER[:2] + [[0.6, 0.15, 0], [-0.6, 0.05, 0.2]])
     a = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=world)
     b = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=world)
     c = simulate_runs(scene, library, runs=3, steps=30, seed=8, world=world)
     assert np.array_equal(a.translation, b.translation) and np.array_equal(a.rotation, b.rotation)
     assert np.abs(a.translation - c.translation).max() > 1e-5
+    with MujocoWarpWorld(MujocoWarpParams(device="cpu", graph_capture=False)) as direct:  # launched from Python
+        d = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=direct)
+    assert np.array_equal(a.translation, d.translation) and np.array_equal(a.rotation, d.rotation)
 
 
 @pytest.mark.slow

@@ -5,8 +5,8 @@ The same model as :class:`~spread.physics.mujoco_world.MujocoWorld` — the MJCF
 compiled by C MuJoCo — copied to the device (``mujoco_warp.put_model``) with one world per run
 (``make_data(nworld=runs)``); every run starts from rest at its own initial poses (``reset_data``, then
 ``qpos``), and all worlds advance together, ``nstep`` calls of ``mujoco_warp.step``. Poses in and out are
-the Scene's (y-up, metres, bbox-centre ``t``, world-from-local ``R``). On CUDA one step is captured as a
-CUDA graph and relaunched (MJWarp's recommended path); on the CPU the kernels are launched directly.
+the Scene's (y-up, metres, bbox-centre ``t``, world-from-local ``R``). One step is captured as a graph
+and replayed (MJWarp's recommended path on CUDA; Warp ≥ 1.19 replays captured launches on the CPU too).
 
 What differs from C MuJoCo (MJWarp's documented differences, mujoco/doc/mjwarp/index.rst):
 
@@ -60,7 +60,9 @@ class MujocoWarpParams(MujocoParams):
         first; None: sized from the scene (:meth:`MujocoWarpWorld.buffers`).
     overflow_retries: times a batch whose buffers overflowed is run again with doubled buffers before
         :class:`RuntimeError`.
-    graph_capture: on CUDA, capture one step as a CUDA graph and relaunch it (ignored on the CPU).
+    graph_capture: capture one step's kernel launches as a graph and replay it (CUDA graphs; on the CPU
+        Warp replays the recorded launches: same results bit for bit, half the time of launching them from
+        Python on this machine).
     """
 
     device: str = "auto"
@@ -270,7 +272,7 @@ class MujocoWarpWorld:
             mjw.reset_data(m, d)
             d.qpos.assign(qpos.astype(np.float32))
             step = lambda: mjw.step(m, d)  # noqa: E731
-            if self.device.startswith("cuda") and self.params.graph_capture:
+            if self.params.graph_capture:
                 if self._graph is None:  # a captured step reads the arrays in place: the state set above is used
                     with wp.ScopedCapture() as capture:
                         mjw.step(m, d)

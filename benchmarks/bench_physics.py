@@ -1,8 +1,9 @@
 """Stability engines side by side: seconds per room for pybullet and MuJoCo, 100 rooms with every metric but FID
 on the local cores, runs stepped on threads, and where MuJoCo's time goes. Prints one table.
 
-    python benchmarks/bench_physics.py --dataset DIR [--rooms 100] [--workers 2] [--configs pybullet:4 mujoco:4 mujoco:4:sleep mujoco:1]
-        [--thread-rooms 10] [--profile-rooms 5]
+    python benchmarks/bench_physics.py --dataset DIR [--rooms 100] [--workers 2]
+        [--configs pybullet:4 mujoco:4 mujoco:4:sleep mujoco:1] [--thread-rooms 10] [--profile-rooms 5]
+        [--warp-rooms 3 --warp-device cpu]
 
 Rooms: the first ``--rooms`` scene files of ``DIR/test`` (``DIR`` from ``spread-generate``: also the reference
 and the asset library). Each config ``ENGINE:SUBSTEPS`` is one complete :func:`run_evaluation` (``resume``
@@ -12,7 +13,10 @@ the call to ``metrics.json`` (Ray start, imports, cold caches included); per-met
 workers' own (``per_scene.jsonl``). ``--thread-rooms``: one process, MuJoCo, the protocol's 10 runs of
 each room stepped by 1 thread vs ``mujoco.rollout`` on 2 threads (wall seconds). ``--profile-rooms``:
 MuJoCo's own timers over one run of each room (ms per internal step: collision, constraint assembly,
-solver), the profile of what is left.
+solver), the profile of what is left. ``--warp-rooms``: one process, the protocol's 10 runs of each room as
+one batch of MuJoCo Warp worlds on ``--warp-device`` against C MuJoCo on one thread: wall and CPU seconds of
+the first room (kernel compile or cache load) and of the rest, and how far the final poses differ.
+(``--configs mujoco_warp:4`` runs MuJoCo Warp through the whole evaluation like the other engines.)
 """
 
 from __future__ import annotations
@@ -60,6 +64,37 @@ def thread_timing(files, library, rooms: int) -> tuple[float, float, bool]:
     return out["t1"], out["t2"], out[1] == out[2]
 
 
+def warp_timing(files, library, rooms: int, device: str) -> dict:
+    """MuJoCo Warp (one batch of 10 worlds per room) against C MuJoCo on one thread, one process: wall and CPU
+    seconds per room of the first room and of the others, the largest final-position difference and whether
+    both engines call the same objects still (moved < 1 cm and turned < 0.1 rad) in every run."""
+    from spread.metrics import STABILITY_DT, STABILITY_JITTER, STABILITY_RUNS, STABILITY_STEPS, STILL_ANGLE, \
+        STILL_DISTANCE
+    from spread.physics import MujocoParams, MujocoWarpParams, MujocoWarpWorld, MujocoWorld, displacement_stats, \
+        simulate_runs
+    from spread.scene import read_scene
+
+    scenes = [read_scene(f, assets=library) for f in files[:rooms]]
+    out = {"warp": [], "c": [], "dmax": [], "same_still": True}
+    kw = dict(runs=STABILITY_RUNS, steps=STABILITY_STEPS, dt=STABILITY_DT, jitter=STABILITY_JITTER, seed=0)
+    t0, c0 = time.perf_counter(), time.process_time()
+    warp = MujocoWarpWorld(MujocoWarpParams(time_step=STABILITY_DT / 4, device=device))
+    out["init"] = (time.perf_counter() - t0, time.process_time() - c0)
+    c_world = MujocoWorld(MujocoParams(time_step=STABILITY_DT / 4))
+    for scene in scenes:
+        results = {}
+        for name, world in (("warp", warp), ("c", c_world)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            results[name] = simulate_runs(scene, library, world=world, **kw)
+            out[name].append((time.perf_counter() - t0, time.process_time() - c0))
+        out["dmax"].append(float(np.abs(results["warp"].translation - results["c"].translation).max()))
+        still = [(lambda m: (m.distance < STILL_DISTANCE) & (m.angle < STILL_ANGLE))(
+            displacement_stats((scene.translation, scene.rotation), results[k])) for k in ("warp", "c")]
+        out["same_still"] &= bool((still[0] == still[1]).all())
+    out["device"], out["objects"] = warp.device, float(np.mean([s.num_objects for s in scenes]))
+    return out
+
+
 def mujoco_profile(files, library, rooms: int) -> dict:
     """Mean ms per internal step of MuJoCo's timers, and contacts per step, over one protocol run per room."""
     import mujoco
@@ -94,9 +129,12 @@ def main() -> None:
     ap.add_argument("--dataset", type=Path, required=True, help="dataset folder (assets/ + test/)")
     ap.add_argument("--rooms", type=int, default=100)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--configs", nargs="+", default=["pybullet:4", "mujoco:4", "mujoco:1"])
+    ap.add_argument("--configs", nargs="*", default=["pybullet:4", "mujoco:4", "mujoco:1"],
+                    help="ENGINE:SUBSTEPS, ENGINE one of protocol.physics (pybullet, mujoco, mujoco_warp); none: skip")
     ap.add_argument("--thread-rooms", type=int, default=10)
     ap.add_argument("--profile-rooms", type=int, default=5)
+    ap.add_argument("--warp-rooms", type=int, default=0, help="rooms for the MuJoCo Warp timing (0: none)")
+    ap.add_argument("--warp-device", default="auto", help="MuJoCo Warp device: cpu | cuda | auto")
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "bench_physics")
     args = ap.parse_args()
     os.environ.setdefault("WANDB_MODE", "disabled")
@@ -120,15 +158,18 @@ def main() -> None:
     library = AssetLibrary.load(args.dataset / "assets")
     threads = thread_timing(files, library, args.thread_rooms) if args.thread_rooms else None
     profile = mujoco_profile(files, library, args.profile_rooms) if args.profile_rooms else None
+    warp = warp_timing(files, library, args.warp_rooms, args.warp_device) if args.warp_rooms else None
     loads.append(os.getloadavg()[0])
 
-    objects = np.array([r["num_objects"] for r in runs[args.configs[0]][2] if not r.get("error")])
     print(f"# bench_physics  {time.strftime('%Y-%m-%d %H:%M')}  {platform.machine()} {os.cpu_count()} CPUs  "
           f"1-min load before/between/after runs {' / '.join(f'{x:.1f}' for x in loads)}  rooms={len(files)} "
-          f"objects/room mean {objects.mean():.1f}  workers={args.workers}  dataset {args.dataset}")
-    print("| engine:substeps | Stability s/room (worker, mean / median / max) | Col_mesh + ASD s/room | "
-          f"{len(files)} rooms, all metrics but FID, {args.workers} workers (s, wall) | Stability | still | failed |")
-    print("|---|---|---|---|---|---|---|")
+          f"workers={args.workers}  dataset {args.dataset}")
+    if runs:
+        objects = [r["num_objects"] for r in runs[args.configs[0]][2] if not r.get("error")]
+        print(f"objects/room mean {np.mean(objects):.1f}")
+        print("| engine:substeps | Stability s/room (worker, mean / median / max) | Col_mesh + ASD s/room | "
+              f"{len(files)} rooms, all metrics but FID, {args.workers} workers (s, wall) | Stability | still | failed |")
+        print("|---|---|---|---|---|---|---|")
     for config, (wall, metrics, records) in runs.items():
         good = [r for r in records if not r.get("error")]
         st = np.array([r["seconds"]["stability"] for r in good])
@@ -146,6 +187,20 @@ def main() -> None:
               "ms per internal step: " + ", ".join(f"{k} {v:.3f}" for k, v in profile.items()
                                                    if k not in ("contacts per step", "objects per room",
                                                                 "geoms per room")))
+
+    if warp:
+        print(f"\nMuJoCo Warp on {warp['device']} vs C MuJoCo 1 thread ({args.warp_rooms} rooms, "
+              f"{warp['objects']:.1f} objects, 10 runs x 400 internal steps, 1 process): world creation "
+              f"{warp['init'][0]:.1f} s wall / {warp['init'][1]:.1f} s CPU")
+        print("| engine | first room s (wall / CPU) | other rooms s/room (wall / CPU) |\n|---|---|---|")
+        for name, label in (("warp", "MuJoCo Warp, 10 worlds per batch"), ("c", "C MuJoCo, 1 thread")):
+            first, rest = warp[name][0], np.array(warp[name][1:]).reshape(-1, 2)
+            rest_s = f"{rest[:, 0].mean():.2f} / {rest[:, 1].mean():.2f}" if len(rest) else "-"
+            print(f"| {label} | {first[0]:.2f} / {first[1]:.2f} | {rest_s} |")
+        print("CPU s per room, MuJoCo Warp / C MuJoCo: " + ", ".join(
+            f"{a[1]:.1f} / {b[1]:.2f}" for a, b in zip(warp["warp"], warp["c"])))
+        print(f"largest final-position difference per room (m): {' '.join(f'{d:.2g}' for d in warp['dmax'])}; "
+              f"same still objects in every run: {warp['same_still']}")
 
 
 if __name__ == "__main__":

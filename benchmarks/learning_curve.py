@@ -197,7 +197,7 @@ def cmd_eval(args) -> None:
                 if "guided" in todo:  # refine the same sampler output (what sampling with guidance=refine does)
                     s0 = time.perf_counter()
                     (callback,) = pipeline.callbacks(batch, sources)
-                    eps_fn, _ = pipeline.model.denoiser(batch, pipeline.use_ema)
+                    eps_fn, _ = pipeline.model.denoiser(batch, pipeline.use_ema, pipeline.graph_scale)
                     with torch.no_grad():
                         states["guided"] = callback.after(x.clone(), eps_fn)
                     seconds["guided"] = seconds["unguided"] + time.perf_counter() - s0
@@ -341,21 +341,23 @@ def paired_table(args, runs: dict) -> None:
     def last(label):
         return max(r["step"] for r in runs[label] if r["mode"] == "unguided")
 
-    reference = curve_records(paths[ref_label], last(ref_label))
+    reference = curve_records(paths[ref_label], last(ref_label))  # its plain unguided samples
     print(f"\nPaired differences against {ref_label} (step {last(ref_label)}), unguided, same test graphs and x_T: "
           f"Δ [95 % paired bootstrap interval]")
     print("| run | step | scenes seen | train min | ΔGRecall ↑ | ΔCol_mesh ↓ | ΔASD mm ↓ |")
     print("|---|---:|---:|---:|---|---|---|")
     for label in runs:
-        if label == ref_label:
-            continue
         step = last(label)
-        row = next(r for r in runs[label] if r["mode"] == "unguided" and r["step"] == step)
-        d = paired_difference(curve_records(paths[label], step), reference)
-        minutes = "" if row["seconds"] is None else f"{row['seconds'] / 60:.1f}"
-        cells = [cell(d[k], s, dg) if k in d else "" for k, _, s, dg in METRICS if k != "stability"]
-        print(f"| {label} | {step} | {row['scenes_seen'] or ''} | {minutes} | " + " | ".join(
-            cells) + " |")
+        # the plain unguided samples and those with classifier-free guidance on the graphs (unguided-cfgS)
+        for row in sorted((r for r in runs[label] if r["step"] == step and r["mode"].startswith("unguided")),
+                          key=lambda r: r["mode"]):
+            if label == ref_label and row["mode"] == "unguided":
+                continue
+            d = paired_difference(curve_records(paths[label], step, row["mode"]), reference)
+            minutes = "" if row["seconds"] is None else f"{row['seconds'] / 60:.1f}"
+            cells = [cell(d[k], s, dg) if k in d else "" for k, _, s, dg in METRICS if k != "stability"]
+            name = label if row["mode"] == "unguided" else f"{label} ({row['mode'].split('-', 1)[1]})"
+            print(f"| {name} | {step} | {row['scenes_seen'] or ''} | {minutes} | " + " | ".join(cells) + " |")
 
 
 def log_wandb(runs: dict, out_dir: Path) -> list[str]:

@@ -24,6 +24,7 @@ def test_cpu_hour_trains_the_tiny_base_model_with_its_levers_within_an_hour():
     assert days * 86400 + hours * 3600 + minutes * 60 + seconds <= 3600
     assert cfg.checkpoint.save_top_k == -1  # every periodic checkpoint kept for the learning curve
     assert cfg.model.sample_every_n_epochs > 0  # validation sampling stays on (val/grecall)
+    assert 0 < cfg.model.graph_dropout < 1  # trains the graph-free branch of classifier-free guidance
 
 
 def test_cpu_hour_builds_a_module_with_its_prediction_and_schedule():
@@ -34,10 +35,11 @@ def test_cpu_hour_builds_a_module_with_its_prediction_and_schedule():
     assert model.variant == "base" and model.config.dim == 128
 
 
-def test_cpu_hour_samples_with_ddim50_and_refine_at_twice_the_papers_collision_and_four_times_its_gravity():
+def test_cpu_hour_samples_with_ddim50_graph_guidance_and_refine_at_twice_the_papers_collision_and_4x_gravity():
     sampling = recipe().sampling
     cfg = to_object(compose("sample", [*SAMPLE, *sampling.sampler, *sampling.guidance]))
     assert (cfg.sampler.kind, cfg.sampler.num_steps) == ("ddim", 50)
+    assert cfg.graph_scale == 2.0  # classifier-free guidance on the graphs, the scale chosen on val
     assert cfg.guidance.mode == "refine" and cfg.guidance.active
     assert (cfg.guidance.collision, cfg.guidance.gravity, cfg.guidance.relation) == pytest.approx((1.5e-2, 4e-3,
                                                                                                    1e-3))
@@ -52,3 +54,5 @@ def test_quick_preset_trains_both_variants_by_the_recipe_with_a_shorter_schedule
         assert cfg.model.variant == variant
     quick = compose("ablate", ["+preset=quick"])
     assert "experiment=cpu_hour" in quick.train.overrides and "trainer.max_steps=1200" in quick.train.overrides
+    sample = to_object(compose("sample", [*SAMPLE, *spec.sample]))
+    assert sample.graph_scale == 2.0  # the recipe trains with graph dropout, so its rows sample as the recipe does

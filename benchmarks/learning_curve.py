@@ -174,8 +174,9 @@ def cmd_eval(args) -> None:
         for step, ckpt in steps.items():
             modes = ["unguided"] + (["guided"] if step in guided_steps else [])
             stability = args.stability_runs if step in stability_steps else 0
+            simulated = {m: stability if m in args.stability_modes else 0 for m in modes}
             todo = [m for m in modes if not (out / f"{step:07d}_{m}{tag}.jsonl").exists()
-                    or (stability and not has_stability(out / f"{step:07d}_{m}{tag}.jsonl"))]
+                    or (simulated[m] and not has_stability(out / f"{step:07d}_{m}{tag}.jsonl"))]
             if not todo:
                 continue
             t0 = time.perf_counter()
@@ -207,7 +208,7 @@ def cmd_eval(args) -> None:
                         k = src.num_objects
                         R, _ = repair_rotations(poses.rotation[b, :k].numpy())
                         scene = src.with_poses(poses.translation[b, :k].numpy(), R, scene_id=src.scene_id)
-                        record = score(scene, data.library, stability)
+                        record = score(scene, data.library, simulated[mode])
                         record["sample_seconds"] = round(seconds[mode] / len(idx), 4)
                         records[mode].append(record)
             for mode in todo:
@@ -405,7 +406,8 @@ def plot(runs: dict, have: list[str], png: Path, targets: bool) -> None:
         for col, (xkey, xlabel) in enumerate(axes_x):
             ax = grid[row][col]
             for c, (name, rows) in enumerate(runs.items()):
-                for mode, style in (("unguided", "-o"), ("guided", "--s")):
+                modes = sorted({r["mode"] for r in rows}, key=lambda m: (m.startswith("guided"), m))
+                for mode, style in ((m, "--s" if m.startswith("guided") else "-o") for m in modes):
                     pts = sorted((r[xkey] / (60 if xkey == "seconds" else 1), *(scale * v for v in r["metrics"][key]))
                                  for r in rows if r["mode"] == mode and key in r["metrics"] and r[xkey] is not None)
                     if not pts:
@@ -462,6 +464,8 @@ def main(argv: list[str] | None = None) -> None:
     e.add_argument("--guidance", nargs="*", default=[], help="guidance overrides (guidance.gravity=4e-3)")
     e.add_argument("--stability-runs", type=int, default=0, help="physics runs per scene (0: no Stability)")
     e.add_argument("--stability-at", nargs="*", default=[], help="checkpoint steps, 'last' or 'all' (default)")
+    e.add_argument("--stability-modes", nargs="+", default=["unguided", "guided"], choices=["unguided", "guided"],
+                   help="which samples Stability simulates (default both)")
     e.add_argument("--threads", type=int, default=1)
     e.add_argument("--graph-scale", type=float, default=1.0,
                    help="classifier-free guidance on the graphs (models trained with model.graph_dropout > 0); "

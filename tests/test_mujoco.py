@@ -289,16 +289,22 @@ def test_box_above_a_smaller_box_with_its_centre_past_the_edge_tips_off_and_lose
     assert result.unchanged == [0] * 10 and result.max_rotation[1] > 0.5
 
 
-def test_runs_repeat_with_a_seed_differ_across_seeds_and_match_across_threads(world, library):
+def assert_runs_repeat_differ_across_seeds_and_match(world, other, library, runs: int) -> None:
+    """``world``'s runs repeat bit for bit with a seed and differ with another; ``other`` (the same model
+    stepped another way) gives the same runs bit for bit."""
     scene = make_scene(library, ["box", "box", "L", "cup"], TOWER[:2] + [[0.6, 0.15, 0], [-0.6, 0.05, 0.2]])
-    a = simulate_runs(scene, library, runs=4, steps=30, seed=7, world=world)
-    b = simulate_runs(scene, library, runs=4, steps=30, seed=7, world=world)
-    c = simulate_runs(scene, library, runs=4, steps=30, seed=8, world=world)
+    a = simulate_runs(scene, library, runs=runs, steps=30, seed=7, world=world)
+    b = simulate_runs(scene, library, runs=runs, steps=30, seed=7, world=world)
+    c = simulate_runs(scene, library, runs=runs, steps=30, seed=8, world=world)
     assert np.array_equal(a.translation, b.translation) and np.array_equal(a.rotation, b.rotation)
     assert np.abs(a.translation - c.translation).max() > 1e-5
-    with MujocoWorld(MujocoParams(threads=2, sleep=world.params.sleep)) as threaded:  # mujoco.rollout: the same runs, bit for bit
-        d = simulate_runs(scene, library, runs=4, steps=30, seed=7, world=threaded)
+    d = simulate_runs(scene, library, runs=runs, steps=30, seed=7, world=other)
     assert np.array_equal(a.translation, d.translation) and np.array_equal(a.rotation, d.rotation)
+
+
+def test_runs_repeat_with_a_seed_differ_across_seeds_and_match_across_threads(world, library):
+    with MujocoWorld(MujocoParams(threads=2, sleep=world.params.sleep)) as threaded:  # mujoco.rollout
+        assert_runs_repeat_differ_across_seeds_and_match(world, threaded, library, runs=4)
 
 
 def test_a_sleeping_box_is_woken_by_a_box_landing_on_it_and_pushed_as_when_awake(library):
@@ -333,14 +339,18 @@ def test_sleeping_runs_of_a_settled_room_end_early_and_agree_with_awake_runs(lib
     assert ((moved[True] < 0.01) == (moved[False] < 0.01)).all()
 
 
+def assert_model_reused_for_new_poses_and_rebuilt_for_new_bodies(w, library) -> None:
+    scene = make_scene(library, ["box"] * 2, TOWER[:2])
+    simulate_runs(scene, library, runs=3, steps=2, world=w)
+    simulate_runs(scene.with_poses(scene.translation + 0.01, scene.rotation), library, runs=3, steps=2, world=w)
+    assert w.models_compiled == 1
+    simulate_runs(make_scene(library, ["box", "small"], TOWER[:2]), library, runs=1, steps=2, world=w)
+    assert w.models_compiled == 2
+
+
 def test_a_loaded_scene_model_is_reused_for_its_runs(library):
     with MujocoWorld() as w:
-        scene = make_scene(library, ["box"] * 2, TOWER[:2])
-        simulate_runs(scene, library, runs=3, steps=2, world=w)
-        simulate_runs(scene.with_poses(scene.translation + 0.01, scene.rotation), library, runs=3, steps=2, world=w)
-        assert w.models_compiled == 1
-        simulate_runs(make_scene(library, ["box", "small"], TOWER[:2]), library, runs=1, steps=2, world=w)
-        assert w.models_compiled == 2
+        assert_model_reused_for_new_poses_and_rebuilt_for_new_bodies(w, library)
 
 
 def test_get_world_picks_the_engine_from_the_params():

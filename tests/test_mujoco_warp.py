@@ -25,7 +25,10 @@ from spread.physics import (
 pytest.importorskip("mujoco")
 mjw = pytest.importorskip("mujoco_warp")
 
-from test_mujoco import TOWER, build_box_library, cube_tower, make_scene, settled_box_room  # noqa: E402
+from test_mujoco import (  # noqa: E402
+    TOWER, assert_model_reused_for_new_poses_and_rebuilt_for_new_bodies,
+    assert_runs_repeat_differ_across_seeds_and_match, build_box_library, cube_tower, make_scene, settled_box_room,
+)
 
 CPU = MujocoWarpParams(device="cpu")
 
@@ -156,15 +159,8 @@ def test_falling_runs_end_like_c_mujoco(world, library):
 
 @pytest.mark.slow
 def test_runs_repeat_bit_for_bit_on_cpu_with_or_without_graph_replay_and_differ_across_seeds(world, library):
-    scene = make_scene(library, ["box", "box", "L", "cup"], TOWER[:2] + [[0.6, 0.15, 0], [-0.6, 0.05, 0.2]])
-    a = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=world)
-    b = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=world)
-    c = simulate_runs(scene, library, runs=3, steps=30, seed=8, world=world)
-    assert np.array_equal(a.translation, b.translation) and np.array_equal(a.rotation, b.rotation)
-    assert np.abs(a.translation - c.translation).max() > 1e-5
     with MujocoWarpWorld(MujocoWarpParams(device="cpu", graph_capture=False)) as direct:  # launched from Python
-        d = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=direct)
-    assert np.array_equal(a.translation, d.translation) and np.array_equal(a.rotation, d.rotation)
+        assert_runs_repeat_differ_across_seeds_and_match(world, direct, library, runs=3)
 
 
 @pytest.mark.slow
@@ -193,9 +189,4 @@ def test_a_diverging_simulation_raises_instead_of_returning_nan(library):
 @pytest.mark.slow
 def test_a_loaded_scene_model_is_reused_for_its_runs(library):
     with MujocoWarpWorld(CPU) as w:
-        scene = make_scene(library, ["box"] * 2, TOWER[:2])
-        simulate_runs(scene, library, runs=3, steps=2, world=w)
-        simulate_runs(scene.with_poses(scene.translation + 0.01, scene.rotation), library, runs=3, steps=2, world=w)
-        assert w.models_compiled == 1
-        simulate_runs(make_scene(library, ["box", "small"], TOWER[:2]), library, runs=1, steps=2, world=w)
-        assert w.models_compiled == 2
+        assert_model_reused_for_new_poses_and_rebuilt_for_new_bodies(w, library)

@@ -223,6 +223,9 @@ def sampling_inputs(folder: Path) -> dict:
 class Ablation:
     """Builds the stages of an :class:`AblationSpec` and runs them with :class:`Commands`."""
 
+    #: the trained checkpoint each row samples from
+    checkpoint_of: dict[str, str] = CHECKPOINT_OF
+
     def __init__(self, spec: AblationSpec, commands: Commands):
         self.spec = spec
         self.commands = commands
@@ -282,11 +285,14 @@ class Ablation:
         return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], {"overrides": overrides},
                      self.timed(f"train/{trained}", run), derived=False)
 
+    def sample_lists(self, variant: str) -> list[str]:
+        """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own)."""
+        return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
+
     def sample_stage(self, variant: str) -> Stage:
-        folder, ckpt = self.sample_dir(variant), self.ckpt(CHECKPOINT_OF[variant])
-        overrides = self.spec.named([*self.spec.sample, *(self.spec.guidance if variant == "guidance" else []),
-                                     f"ckpt={ckpt}", f"data.root={self.spec.dataset}", f"data.split={self.spec.split}",
-                                     f"out_dir={folder}"])
+        folder, ckpt = self.sample_dir(variant), self.ckpt(self.checkpoint_of[variant])
+        overrides = self.spec.named([*self.sample_lists(variant), f"ckpt={ckpt}", f"data.root={self.spec.dataset}",
+                                     f"data.split={self.spec.split}", f"out_dir={folder}"])
 
         def run(resume: bool) -> None:
             args = overrides + [f"resume={str(resume).lower()}"]
@@ -294,7 +300,7 @@ class Ablation:
             self.commands.sample(args)
 
         return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
-                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, run,
+                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, self.timed(f"sample/{variant}", run),
                      complete=lambda: scenes_complete(folder))
 
     def evaluate_stage(self, variant: str) -> Stage:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spread.experiments.ablation import Ablation, Commands, Ledger, Stage, command_line, scenes_complete
+from spread.experiments.ablation import Ablation, Commands, Ledger, Stage
 from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
@@ -133,6 +133,8 @@ class CompareResult:
 class Comparison(Ablation):
     """The ablation's stage runner (attempt, data and evaluation stages) over :data:`METHODS`."""
 
+    checkpoint_of = CHECKPOINT_OF
+
     def __init__(self, spec: CompareSpec, commands: Commands):
         self.spec = spec
         self.commands = commands
@@ -175,20 +177,8 @@ class Comparison(Ablation):
 
         return Stage("derive/physcene", target.parent, [target], inputs, run)
 
-    def sample_stage(self, method: str) -> Stage:
-        folder, ckpt = self.sample_dir(method), self.ckpt(CHECKPOINT_OF[method])
-        overrides = self.spec.named([*self.spec.sample, *self.spec.sample_method.get(method, []), f"ckpt={ckpt}",
-                                     f"data.root={self.spec.dataset}", f"data.split={self.spec.split}",
-                                     f"out_dir={folder}"])
-
-        def run(resume: bool) -> None:
-            args = overrides + [f"resume={str(resume).lower()}"]
-            log.info("  ≙ %s", command_line("spread-sample", args))
-            self.commands.sample(args)
-
-        return Stage(f"sample/{method}", folder, [folder / "sampling.json"],
-                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, self.timed(f"sample/{method}", run),
-                     complete=lambda: scenes_complete(folder))
+    def sample_lists(self, method: str) -> list[str]:
+        return [*self.spec.sample, *self.spec.sample_method.get(method, [])]
 
     # ---- the table ----
     def layout(self) -> str:

@@ -157,3 +157,17 @@ def test_parts_mass_frame_equals_the_mesh_frame_of_their_union():
     union = trimesh.boolean.union([low, high], engine="manifold")
     for a, b in zip(parts_mass_frame([low, high]), mass_frame(union)):
         np.testing.assert_allclose(np.abs(a), np.abs(b), atol=1e-9)  # principal axes up to sign
+
+
+def test_an_imported_asset_is_reused_until_its_inputs_or_files_change(tmp_path):
+    from spread.assets.imported import import_box_asset
+
+    rec, built = import_box_asset(tmp_path, "crate", (0.4, 0.3, 0.2), "box")
+    assert built
+    again, built = import_box_asset(tmp_path, "crate", (0.4, 0.3, 0.2), "box")
+    assert not built and again.content_hash == rec.content_hash
+    _, built = import_box_asset(tmp_path, "crate", (0.4, 0.3, 0.25), "box")  # other extents: another fingerprint
+    assert built
+    (tmp_path / rec.parts_file).write_bytes(b"damaged")
+    _, built = import_box_asset(tmp_path, "crate", (0.4, 0.3, 0.25), "box")  # intact files are required
+    assert built

@@ -24,9 +24,7 @@ import numpy as np
 
 from spread.assets.assemble import AssetSpec, write_asset
 from spread.assets.catalog import CATALOG, asset_id, default_categories, make_spec
-from spread.assets.library import AssetLibrary, AssetRecord
-from spread.io import file_sha256
-from spread.io import write_json_atomic
+from spread.assets.library import AssetLibrary, AssetRecord, reusable_record, write_record_sidecar
 
 #: Bump when the builder's output for an unchanged spec changes (export, stability rules...).
 BUILD_VERSION = 1
@@ -48,35 +46,16 @@ def spec_fingerprint(spec: AssetSpec) -> str:
     return h.hexdigest()
 
 
-def _sidecar(root: Path, aid: str) -> Path:
-    return root / "records" / f"{aid}.json"
-
-
-def _reusable(root: Path, aid: str, fingerprint: str) -> AssetRecord | None:
-    """The recorded asset if its sidecar matches ``fingerprint`` and its files are intact."""
-    path = _sidecar(root, aid)
-    try:
-        data = json.loads(path.read_text())
-        if data.get("spec_fingerprint") != fingerprint:
-            return None
-        rec = AssetRecord.from_dict(data["record"])
-        if file_sha256(root / rec.mesh_file, root / rec.parts_file) != rec.content_hash:
-            return None
-        return rec
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
 def build_asset(root: str | Path, category: str, variant: int, seed: int) -> tuple[dict, bool]:
     """Build (or reuse) one asset; returns its record as a dict and whether it was (re)built."""
     root = Path(root)
     spec = make_spec(category, variant, seed)
     fingerprint = spec_fingerprint(spec)
-    rec = _reusable(root, spec.asset_id, fingerprint)
+    rec = reusable_record(root, spec.asset_id, fingerprint)
     if rec is not None:
         return rec.to_dict(), False
     rec = write_asset(root, spec)
-    write_json_atomic(_sidecar(root, spec.asset_id), {"spec_fingerprint": fingerprint, "record": rec.to_dict()})
+    write_record_sidecar(root, spec.asset_id, fingerprint, rec)
     return rec.to_dict(), True
 
 

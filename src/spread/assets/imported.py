@@ -33,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from spread.assets.library import AssetRecord, RestPose, load_parts, parts_bytes
+from spread.assets.library import (
+    AssetRecord, RestPose, load_parts, parts_bytes, reusable_record, write_record_sidecar,
+)
 from spread.io import file_sha256, write_bytes_atomic, write_json_atomic
 
 #: Bump when the files written for unchanged inputs change.
@@ -136,23 +138,6 @@ def write_imported_asset(root: Path, asset_id: str, mesh, parts, category: str, 
     )
 
 
-def _sidecar(root: Path, asset_id: str) -> Path:
-    return root / "records" / f"{asset_id}.json"
-
-
-def _reusable(root: Path, asset_id: str, fingerprint: str) -> AssetRecord | None:
-    try:
-        data = json.loads(_sidecar(root, asset_id).read_text())
-        if data.get("fingerprint") != fingerprint:
-            return None
-        rec = AssetRecord.from_dict(data["record"])
-        if file_sha256(root / rec.mesh_file, root / rec.parts_file) != rec.content_hash:
-            return None
-        return rec
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
 def import_mesh_asset(root: str | Path, asset_id: str, mesh_path: str | Path, category: str,
                       settings: ImportSettings | None = None, scale_to=None) -> tuple[AssetRecord, bool]:
     """Import one mesh file as asset ``asset_id`` under library ``root``; returns (record, built).
@@ -172,7 +157,7 @@ def import_mesh_asset(root: str | Path, asset_id: str, mesh_path: str | Path, ca
         "version": IMPORT_VERSION, "file_sha256": file_hash, "category": category,
         "scale_to": None if target is None else target.tolist(), "settings": settings.fingerprint(),
     }, sort_keys=True).encode()).hexdigest()
-    rec = _reusable(root, asset_id, fingerprint)
+    rec = reusable_record(root, asset_id, fingerprint)
     if rec is not None:
         return rec, False
     loaded = load_mesh_file(mesh_path)
@@ -196,7 +181,7 @@ def import_mesh_asset(root: str | Path, asset_id: str, mesh_path: str | Path, ca
               "decomposition": decomposition}
     density = category_density(category, settings.density)
     rec = write_imported_asset(root, asset_id, canonical, parts, category, density, source)
-    write_json_atomic(_sidecar(root, asset_id), {"fingerprint": fingerprint, "record": rec.to_dict()})
+    write_record_sidecar(root, asset_id, fingerprint, rec)
     return rec, True
 
 
@@ -214,7 +199,7 @@ def import_box_asset(root: str | Path, asset_id: str, extents, category: str,
     density = category_density(category, settings.density)
     fingerprint = hashlib.sha256(json.dumps({"version": IMPORT_VERSION, "box": extents.round(6).tolist(),
                                              "category": category, "density": density}).encode()).hexdigest()
-    rec = _reusable(root, asset_id, fingerprint)
+    rec = reusable_record(root, asset_id, fingerprint)
     if rec is not None:
         return rec, False
     spec = box_asset(asset_id, extents, category=category, density=density,
@@ -222,7 +207,7 @@ def import_box_asset(root: str | Path, asset_id: str, extents, category: str,
     rec = write_asset(root, spec)
     rec.tags = ["imported", "box"]
     rec.source = {"kind": "box stand-in", "extents": extents.tolist(), "closed": True}
-    write_json_atomic(_sidecar(root, asset_id), {"fingerprint": fingerprint, "record": rec.to_dict()})
+    write_record_sidecar(root, asset_id, fingerprint, rec)
     return rec, True
 
 

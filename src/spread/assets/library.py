@@ -157,6 +157,33 @@ class AssetRecord:
         )
 
 
+def _sidecar(root: Path, asset_id: str) -> Path:
+    return Path(root) / "records" / f"{asset_id}.json"
+
+
+def reusable_record(root: str | os.PathLike, asset_id: str, fingerprint: str) -> AssetRecord | None:
+    """The asset's recorded :class:`AssetRecord` when its sidecar ``records/<asset_id>.json`` was written for
+    ``fingerprint`` (what built it: spec, source file, settings) and its mesh and parts files are intact; else
+    None (the asset is to be built again)."""
+    from spread.io import file_sha256
+
+    try:
+        data = json.loads(_sidecar(Path(root), asset_id).read_text())
+        if data.get("fingerprint", data.get("spec_fingerprint")) != fingerprint:  # spec_…: older libraries
+            return None
+        rec = AssetRecord.from_dict(data["record"])
+        if file_sha256(Path(root) / rec.mesh_file, Path(root) / rec.parts_file) != rec.content_hash:
+            return None
+        return rec
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def write_record_sidecar(root: str | os.PathLike, asset_id: str, fingerprint: str, rec: AssetRecord) -> None:
+    """``records/<asset_id>.json``: the record and the fingerprint it was built for (atomic)."""
+    write_json_atomic(_sidecar(Path(root), asset_id), {"fingerprint": fingerprint, "record": rec.to_dict()})
+
+
 @dataclass
 class AssetGeometryCache:
     """Per-asset derived data, canonical frame. Points/normals float32 (P, 3); hull (K, 2) CCW in xz."""

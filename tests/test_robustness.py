@@ -278,3 +278,21 @@ def test_an_augmented_epoch_draws_distinct_room_symmetry_pairs_in_a_resumable_or
     assert list(resumed) == first[4:]  # mid-epoch resume continues the same epoch's order
     with pytest.raises(ValueError, match="per_epoch"):
         EpochOrder(5, seed=0, per_epoch=6)
+
+
+@pytest.mark.parametrize("text, problem", [("[1, 2]", "expected a JSON object, got list"),
+                                           ('{"version": ', "not valid JSON")])
+def test_damaged_json_files_are_refused_naming_the_file(tmp_path, text, problem):
+    from spread.assets import AssetLibrary
+    from spread.data.stats import StatsError, load_stats
+    from spread.importers.threed_front import ROOM_TYPES, ThreedFront
+
+    (tmp_path / "index.json").write_text(text)
+    with pytest.raises(ValueError, match=f"index.json: {problem}"):
+        AssetLibrary.load(tmp_path)
+    (tmp_path / "stats.json").write_text(text)
+    with pytest.raises(StatsError, match=f"stats.json: {problem}"):
+        load_stats(tmp_path / "stats.json")
+    (tmp_path / "dataset_stats.txt").write_text(text)
+    with pytest.raises(ValueError, match=f"dataset_stats.txt: {problem}"):
+        ThreedFront(tmp_path, splits=tmp_path / "splits.csv", room_type=ROOM_TYPES[0])

@@ -56,6 +56,19 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int = 2) -> Non
     write_text_atomic(path, json.dumps(obj, indent=indent, sort_keys=False) + "\n")
 
 
+def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueError) -> dict:
+    """The JSON object in file ``path``; ``error`` naming the file when it is not valid JSON or not an object
+    (a missing file raises ``FileNotFoundError`` as ``open`` does: callers that explain it check first)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise error(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise error(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
 def append_jsonl(path: str | os.PathLike, record: dict) -> None:
     """Append one JSON line and fsync it: a killed job keeps every line already appended.
 

@@ -29,7 +29,7 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from spread.io import atomic_path, write_json_atomic
+from spread.io import atomic_path, read_json_object, write_json_atomic
 
 LIBRARY_VERSION = 1
 #: Surface samples stored per asset in its cache (the issue asks for at least 2,000).
@@ -267,10 +267,7 @@ class AssetLibrary:
         index = root / "index.json"
         if not index.exists():
             raise FileNotFoundError(f"{index}: no asset library here (missing index.json)")
-        try:
-            data = json.loads(index.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{index}: not valid JSON ({exc})") from exc
+        data = read_json_object(index)
         if data.get("version") != LIBRARY_VERSION:
             raise ValueError(f"{index}: key 'version' is {data.get('version')!r}, expected {LIBRARY_VERSION}")
         records = {}

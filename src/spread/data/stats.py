@@ -10,7 +10,6 @@ normalisation never divides by zero.
 
 from __future__ import annotations
 
-import json
 import os
 from collections import Counter
 from pathlib import Path
@@ -18,7 +17,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from spread.io import write_json_atomic
+from spread.io import read_json_object, write_json_atomic
 
 STATS_VERSION = 1
 #: Smallest range (metres) kept on a translation axis.
@@ -71,12 +70,7 @@ def load_stats(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.exists():
         raise StatsError(f"{path}: stats file does not exist (compute it with spread.data.compute_stats)")
-    try:
-        stats = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise StatsError(f"{path}: not valid JSON ({exc})") from exc
-    if not isinstance(stats, dict):
-        raise StatsError(f"{path}: expected a JSON object, got {type(stats).__name__}")
+    stats = read_json_object(path, StatsError)
     translation_bounds(stats, source=str(path))
     return stats
 

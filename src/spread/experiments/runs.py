@@ -26,6 +26,7 @@ from typing import Iterable
 
 from spread.experiments.intervals import INTERVAL_KEYS, ci_columns, row_intervals
 from spread.experiments.tables import CI_SETTINGS
+from spread.io import read_json_object
 
 #: ``metrics.json`` keys copied into a record.
 RECORD_METRICS = ("grecall", "col_mesh", "asd", "stability", "fid", "kid", "still_fraction", "n_scenes", "n_objects",
@@ -91,10 +92,7 @@ def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
     metrics_path = path / "metrics.json"
     if not metrics_path.exists():
         raise RunError(f"{path}: no metrics.json (the run has not finished, or this is not a run folder)")
-    try:
-        metrics = json.loads(metrics_path.read_text())
-    except ValueError as exc:
-        raise RunError(f"{metrics_path}: not valid JSON ({exc})") from exc
+    metrics = read_json_object(metrics_path, RunError)
     if "col_mesh" not in metrics:
         raise RunError(f"{metrics_path}: not an evaluation metrics.json (no 'col_mesh' key)")
     configs = []

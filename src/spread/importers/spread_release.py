@@ -29,13 +29,12 @@ counts go to the manifest.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record
-from spread.io import safe_name
+from spread.io import read_json_object, safe_name
 from spread.scene import SceneFormatError, load_npz_arrays, reference_scene
 
 SPLIT_FILE = "train_test_split.json"
@@ -67,12 +66,7 @@ class SpreadRelease(Source):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: split file missing (the release layout lists its tags per split "
                                     f"in {SPLIT_FILE}: {{\"train\": [...], \"val\": [...]}})")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from exc
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a JSON object of tag lists, got {type(data).__name__}")
+        data = read_json_object(path)
         unknown = sorted(set(data) - {"train", "val", "test"})
         lists = {}
         for key in ("train", "val", "test"):
@@ -154,12 +148,4 @@ class SpreadRelease(Source):
 
 def read_dataset_stats(path: Path) -> dict | None:
     """The source's ``dataset_stats.txt`` (JSON) or None when absent; errors name the file."""
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object")
-    return data
+    return read_json_object(path) if path.is_file() else None

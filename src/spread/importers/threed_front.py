@@ -34,13 +34,12 @@ platform's codes from the posed meshes.
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
 
 from spread.importers.base import SPLITS, AssetRequest, RoomList, RoomRef, Source, carve_val, error_record
-from spread.io import safe_name
+from spread.io import read_json_object, safe_name
 from spread.scene import (
     SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT, SPATIAL_SELF, Scene,
     SceneFormatError, load_npz_arrays,
@@ -114,10 +113,7 @@ class ThreedFront(Source):
         stats_path = self.src / "dataset_stats.txt"
         if not stats_path.is_file():
             raise FileNotFoundError(f"{stats_path}: missing (it names the one-hot class_labels columns)")
-        try:
-            self.stats = json.loads(stats_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{stats_path}: not valid JSON ({exc})") from exc
+        self.stats = read_json_object(stats_path)
         self.class_labels = [str(c) for c in self.stats.get("class_labels") or []]
         self.object_types = [str(c) for c in self.stats.get("object_types") or []]
         if not self.class_labels and not self.object_types:

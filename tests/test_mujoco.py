@@ -22,6 +22,7 @@ from spread.physics import (
 from spread.physics.mjcf import asset_geometry, cuboid, scene_mjcf
 from spread.relations import scene_spatial_codes
 from spread.scene import Scene
+from test_physics import box_specs
 
 mujoco = pytest.importorskip("mujoco")
 
@@ -52,17 +53,11 @@ def make_scene(library, asset_ids, translation, rotation=None, scene_id="s") -> 
 
 def build_box_library(root):
     """The module's library (see the module docstring) under ``root``."""
-    u_parts = [box_part((0.5, 0.05, 0.2), (0, 0.025, 0)),
-               box_part((0.05, 0.3, 0.2), (-0.225, 0.15, 0)), box_part((0.05, 0.3, 0.2), (0.225, 0.15, 0))]
-    l_parts = [box_part((0.3, 0.1, 0.1), (0, 0.05, 0)), box_part((0.1, 0.3, 0.1), (-0.1, 0.15, 0))]
     return library_from_specs(root, [
-        box_asset("box", (0.2, 0.2, 0.2), category="box"),
-        box_asset("small", (0.1, 0.1, 0.1), category="small"),
+        *box_specs(),
         box_asset("cube", (0.3, 0.3, 0.3), category="cube"),
         box_asset("table", (1.0, TABLE_TOP, 0.6), category="dining_table", role="furniture"),
         AssetSpec("cup", "cup", 0, "object", [cylinder_part(0.04, 0.1)], density=400.0),
-        AssetSpec("L", "L", 0, "object", l_parts, density=500.0),
-        AssetSpec("U", "U", 0, "object", u_parts, density=300.0),
     ])
 
 

@@ -47,16 +47,19 @@ def make_scene(asset_ids, translation, rotation=None, scene_id="s") -> Scene:
                  np.array(rotation, np.float32), spatial, np.zeros((n, n), np.int8))
 
 
-def build_library(root):
+def box_specs() -> list[AssetSpec]:
+    """``box`` (0.2 m cube), ``small`` (0.1 m cube), ``L`` (two box parts, centre of mass off the bbox centre),
+    ``U`` (a concave trough of three parts)."""
     u_parts = [box_part((0.5, 0.05, 0.2), (0, 0.025, 0)),
                box_part((0.05, 0.3, 0.2), (-0.225, 0.15, 0)), box_part((0.05, 0.3, 0.2), (0.225, 0.15, 0))]
     l_parts = [box_part((0.3, 0.1, 0.1), (0, 0.05, 0)), box_part((0.1, 0.3, 0.1), (-0.1, 0.15, 0))]
-    return library_from_specs(root, [
-        box_asset("box", (0.2, 0.2, 0.2), category="box"),
-        box_asset("small", (0.1, 0.1, 0.1), category="small"),
-        AssetSpec("L", "L", 0, "object", l_parts, density=500.0),
-        AssetSpec("U", "U", 0, "object", u_parts, density=300.0),
-    ])
+    return [box_asset("box", (0.2, 0.2, 0.2), category="box"), box_asset("small", (0.1, 0.1, 0.1), category="small"),
+            AssetSpec("L", "L", 0, "object", l_parts, density=500.0),
+            AssetSpec("U", "U", 0, "object", u_parts, density=300.0)]
+
+
+def build_library(root):
+    return library_from_specs(root, box_specs())
 
 
 @pytest.fixture(scope="module")

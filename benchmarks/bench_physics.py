@@ -130,7 +130,8 @@ def main() -> None:
     ap.add_argument("--rooms", type=int, default=100)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--configs", nargs="*", default=["pybullet:4", "mujoco:4", "mujoco:1"],
-                    help="ENGINE:SUBSTEPS, ENGINE one of protocol.physics (pybullet, mujoco, mujoco_warp); none: skip")
+                    help="ENGINE:SUBSTEPS[:sleep], ENGINE one of protocol.physics (pybullet, mujoco, mujoco_warp); "
+                         ":sleep adds protocol.physics_sleep=true (mujoco); none: skip")
     ap.add_argument("--thread-rooms", type=int, default=10)
     ap.add_argument("--profile-rooms", type=int, default=5)
     ap.add_argument("--warp-rooms", type=int, default=0, help="rooms for the MuJoCo Warp timing (0: none)")

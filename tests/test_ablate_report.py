@@ -27,7 +27,9 @@ import yaml
 from spread.configs import conf_dir
 from spread.experiments import AblationSpec, RunError, find_runs, read_runs, run_ablation, run_report
 from spread.experiments.ablation import StageError
-from spread.experiments.tables import METRICS, Column, read_csv, write_tables
+from spread.experiments.tables import Column, metric_columns, read_csv, write_tables
+
+METRICS = metric_columns()
 
 from helpers import FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, run_script
 
@@ -51,13 +53,13 @@ def test_tables_round_trip_and_show_the_rows(tmp_path):
     md = paths["md"].read_text().splitlines()
     body = [line for line in md if line.startswith("| ") and "Method" not in line]
     assert len(body) == 3
-    assert body[0].split(" | ")[1:5] == ["0.963", "0.241", "0.0140", "0.934"]
+    assert body[0].split(" | ")[1:5] == ["0.963", "0.241", "14.0", "0.934"]  # ASD in mm (stored 0.0140 m)
     assert "**0.300**" not in body[2] and "0.300" in body[2] and "**12.50**" not in body[2]  # one FID: not ranked
     assert "**0.121**" in body[2] and "**0.965**" in body[1]  # best Col_mesh (min), best GRecall (max)
     tex = paths["tex"].read_text()
     assert r"\toprule" in tex and r"\label{tab:x}" in tex and r"Col$_{\text{mesh}}\downarrow$" in tex
-    assert r"Ours (base) & 0.963 & 0.241 & 0.0140 & 0.934 & -- & -- \\" in tex
-    assert r"+Guidance & 0.300 & \textbf{0.121} & \textbf{0.0070} & \textbf{0.950} & 12.50 & 0.0040 \\" in tex
+    assert r"Ours (base) & 0.963 & 0.241 & 14.0 & 0.934 & -- & -- \\" in tex
+    assert r"+Guidance & 0.300 & \textbf{0.121} & \textbf{7.0} & \textbf{0.950} & 12.50 & 0.0040 \\" in tex
 
 
 def test_ablation_bar_plot_draws_every_row(tmp_path):

@@ -5,8 +5,18 @@ import json
 import numpy as np
 import pytest
 
-from spread.evaluation.bootstrap import RATIOS, bootstrap_intervals, interval_note, resample_indices
+from spread.evaluation.bootstrap import bootstrap_intervals, interval_note, resample_indices
 from spread.experiments.intervals import grouped_intervals
+
+#: The known answer of what each pooled value is (DESIGN §6): value → (state block, numerator, denominator).
+#: The bootstrap asks each registered metric for these terms; this test states them independently.
+RATIOS = {
+    "col_mesh": ("col_mesh", "colliding_objects", "objects"),
+    "grecall": ("grecall", "matches", "pairs"),
+    "asd": ("asd", "abs_distance_sum", "pairs"),
+    "stability": ("stability", "unchanged_pairs", "pairs"),
+    "still_fraction": ("stability", "still_objects", "objects"),
+}
 
 
 def record(scene_id, colliding, objects, matches, pairs, asd_sum=0.0, support=0, unchanged=None, still=None,
@@ -92,9 +102,11 @@ def test_metrics_nobody_measured_have_no_interval_and_bad_input_is_named():
     assert out["asd_lo"] is None and out["asd_hi"] is None and out["grecall_lo"] is not None
     empty = bootstrap_intervals([], resamples=50)
     assert empty["grecall_lo"] is None and empty["bootstrap"]["n_scenes"] == 0
-    with pytest.raises(ValueError, match="grecall.matches"):
-        bootstrap_intervals([{"scene_id": "x", "error": None, "state": {"col_mesh": {"colliding_objects": 0,
-                                                                                      "objects": 1}}}])
+    with pytest.raises(ValueError, match="colliding_objects"):  # a state the metric needs is missing: named
+        bootstrap_intervals([{"scene_id": "x", "error": None, "state": {"col_mesh": {"objects": 1}}}])
+    with pytest.raises(ValueError, match="'y' without the 'grecall' state"):  # one scene lacks a metric the rest have
+        bootstrap_intervals([record("x", 0, 3, 6, 6), {"scene_id": "y", "error": None, "state": {
+            "col_mesh": {"colliding_objects": 0, "objects": 1}}}])
     with pytest.raises(ValueError, match="level"):
         bootstrap_intervals(rows, level=95)
     assert "95 % percentile bootstrap interval over scenes (1,000 resamples, seed 0)" in \
@@ -165,19 +177,21 @@ def test_same_seed_same_interval_other_seed_other_resamples():
 # ---- tables ----------------------------------------------------------------------------------------
 
 def test_tables_print_value_plus_minus_half_width_and_csv_keeps_the_bounds(tmp_path):
-    from spread.experiments.tables import METRICS, Column, read_csv, write_tables
+    from spread.experiments.tables import Column, metric_columns, read_csv, write_tables
 
     rows = [{"method": "A", "grecall": 0.8, "grecall_lo": 0.75, "grecall_hi": 0.83, "asd": 0.0123,
              "asd_lo": 0.01, "asd_hi": 0.0152, "fid": 12.0},
             {"method": "B", "grecall": 0.9, "grecall_lo": None, "grecall_hi": None, "asd": None}]
-    columns = [Column("method", "Method"), *[c for c in METRICS if c.key in ("grecall", "asd", "fid")]]
+    columns = [Column("method", "Method"), *[c for c in metric_columns() if c.key in ("grecall", "asd", "fid")]]
     paths = write_tables(rows, columns, tmp_path / "t", caption="cap", note="± is what it is.")
     md = paths["md"].read_text()
-    assert "| A | 0.800 ± 0.040 | 0.0123 ± 0.0026 | 12.00 |" in md
+    assert "| GRecall ↑ | ASD (mm) ↓ | FID ↓ |" in md  # ASD shown in its registered unit, mm
+    assert "| A | 0.800 ± 0.040 | 12.3 ± 2.6 | 12.00 |" in md
     assert "| B | **0.900** | – | – |" in md and md.rstrip().endswith("± is what it is.")
     tex = paths["tex"].read_text()
     assert r"0.800\,{\scriptsize$\pm$0.040}" in tex and "± is what it is." not in tex and r"$\pm$ is what" in tex
     back = read_csv(paths["csv"])
+    assert back[0]["asd"] == 0.0123  # CSV keeps the stored value (metres)
     assert back[0]["grecall_lo"] == 0.75 and back[0]["grecall_hi"] == 0.83 and back[1]["grecall_lo"] is None
     assert list(back[0])[:4] == ["method", "grecall", "grecall_lo", "grecall_hi"]
 

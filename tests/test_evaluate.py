@@ -300,7 +300,7 @@ def test_records_merge_to_the_metrics_of_all_scenes_at_once(cli_run, dataset):
     library = AssetLibrary.load(dataset / "assets")
     scenes = [read_scene(p, assets=library) for p in list_scene_files(dataset / "test")]
     for name in ("col_mesh", "grecall", "asd"):
-        whole = protocol.metrics()[name]
+        whole = protocol.build_metrics()[name]
         whole.update(scenes, library)
         assert float(merged[name].compute()) == pytest.approx(float(whole.compute()), abs=1e-12), name
     assert float(merged["stability"].compute()["stability"]) == cli_run[1]["stability"]

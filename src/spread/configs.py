@@ -161,6 +161,7 @@ def sample_command():
     wandb group and tags, and ``evaluate=true``'s evaluation settings (defined here because it joins two
     stages; built on demand so that importing this module stays light)."""
     from spread.evaluation.protocol import EvalProtocol, FIDConfig
+    from spread.metrics.registry import default_metric_names
     from spread.runtime.tracking import LoggerConfig
     from spread.sampling.run import SamplingConfig
 
@@ -170,6 +171,9 @@ def sample_command():
         dataset, results beside them (the scenes renders are already there, so none by default)."""
 
         reference_split: str = "${data.split}"
+        #: registered metrics by name (``spread.metrics.registry``; default the four of DESIGN §6), read by
+        #: ``evaluation.protocol.metrics`` (conf/sample.yaml)
+        metrics: list[str] = field(default_factory=default_metric_names)
         chunk_size: int = 4
         renders: int = 0
         retry_failed: bool = False
@@ -194,11 +198,15 @@ def evaluate_command():
     """The ``spread-evaluate`` schema: :class:`~spread.evaluation.EvaluationConfig` plus the command's seed
     (the protocol's), logger and wandb group."""
     from spread.evaluation.run import EvaluationConfig
+    from spread.metrics.registry import default_metric_names
     from spread.runtime.tracking import LoggerConfig
 
     @dataclass
     class EvaluateCommand(EvaluationConfig):
         seed: int = 0
+        #: registered metrics by name (``spread.metrics.registry``, plugins included), read by
+        #: ``protocol.metrics`` (conf/evaluate.yaml); default the four of DESIGN §6
+        metrics: list[str] = field(default_factory=default_metric_names)
         logger: LoggerConfig = field(default_factory=LoggerConfig)
         experiment_name: str = "evaluate"
         paths: PathsConfig = field(default_factory=PathsConfig)

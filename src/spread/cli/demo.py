@@ -29,9 +29,16 @@ import sys
 from pathlib import Path
 
 #: (metric key, label, scale, digits) of the printed table
-ROWS = (("grecall", "GRecall ↑", 1.0, 3), ("col_mesh", "Col_mesh ↓", 1.0, 3), ("asd", "ASD (mm) ↓", 1000.0, 1),
-        ("stability", "Stability ↑", 1.0, 3), ("still_fraction", "objects still (< 1 cm) ↑", 1.0, 3),
-        ("fid", "FID ↓ (vs val rooms)", 1.0, 2), ("kid", "KID ↓ (vs val rooms)", 1.0, 4))
+def rows(metrics: dict) -> list[tuple[str, str, float, int]]:
+    """(key, label, display scale, digits) of the table: the metrics the evaluation selected (the registry's
+    display), the still share, FID and KID."""
+    from spread.metrics.registry import METRICS, SET_METRICS, ordered
+
+    names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
+    out = [(s.name, f"{s.label} {'↑' if s.higher_is_better else '↓'}", s.scale, s.digits)
+           for s in ordered(METRICS.get(n) for n in names)]
+    out.append(("still_fraction", "objects still (< 1 cm) ↑", 1.0, 3))
+    return out + [(s.name, f"{s.label} ↓ (vs val rooms)", s.scale, s.digits) for s in SET_METRICS]
 
 
 def script(name: str) -> str:
@@ -70,7 +77,7 @@ def comparison_table(truth: dict, generated: dict, title: str):
     table = Table(title=title)
     for column in ("metric", "ground truth", "generated"):
         table.add_column(column, justify="left" if column == "metric" else "right")
-    for key, label, scale, digits in ROWS:
+    for key, label, scale, digits in rows(generated):
         table.add_row(label, *(cell(m, key, scale, digits) for m in (truth, generated)))
     table.add_row("scenes / objects", *(f"{m['n_scenes']} / {m['n_objects']}" for m in (truth, generated)))
     return table

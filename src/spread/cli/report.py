@@ -21,7 +21,7 @@ def main(cfg: DictConfig) -> None:
 
     try:
         result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=[str(w) for w in cfg.weights],
-                            metrics=[str(m) for m in cfg.metrics], title=str(cfg.title or ""))
+                            metrics=None if cfg.metrics is None else [str(m) for m in cfg.metrics], title=str(cfg.title or ""))
     except (RunError, ValueError) as exc:
         raise SystemExit(f"spread-report: {exc}") from exc
     record_config(cfg, cfg.out_dir)()

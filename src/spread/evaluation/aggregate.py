@@ -14,18 +14,21 @@ from typing import Iterable
 import numpy as np
 import torch
 
-from spread.evaluation.protocol import METRIC_NAMES, EvalProtocol
+from spread.evaluation.protocol import EvalProtocol
 
 
 def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
-    """Aggregates (name → metric) with every good record's per-scene states merged in."""
-    metrics = protocol.metrics()
+    """Aggregates (name → metric) of the protocol's metrics with every good record's per-scene states merged in;
+    a record without a selected metric's state is an error naming the scene and the metric."""
+    metrics = protocol.build_metrics()
     for record in records:
         if record.get("error"):
             continue
-        for name in METRIC_NAMES:
-            metric = metrics[name]
-            state = record["state"][name]
+        for name, metric in metrics.items():
+            state = (record.get("state") or {}).get(name)
+            if state is None:
+                raise ValueError(f"per_scene.jsonl: scene '{record.get('scene_id')}' has no '{name}' state (measured "
+                                 f"with another metric selection); evaluate it again")
             metric.merge_state({k: torch.as_tensor(state[k], dtype=getattr(metric, k).dtype)
                                 for k in metric.metric_state})
     return metrics
@@ -38,26 +41,18 @@ def as_float(value) -> float | None:
 
 
 def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
-    """The four metrics, the still shares and the counts over deduplicated ``records``."""
+    """Every selected metric's values (its ``compute()``: Stability adds the still shares), the counts of the
+    scenes and objects, and each metric's own counts (``n_colliding_objects``, ...) over deduplicated ``records``."""
     metrics = merge_records(records, protocol)
-    stability = metrics["stability"].compute()
     good = [r for r in records if not r.get("error")]
-    return {
-        "col_mesh": as_float(metrics["col_mesh"].compute()),
-        "grecall": as_float(metrics["grecall"].compute()),
-        "asd": as_float(metrics["asd"].compute()),
-        "stability": as_float(stability["stability"]),
-        "still_fraction": as_float(stability["still_fraction"]),
-        "displacement_ok_fraction": as_float(stability["displacement_ok_fraction"]),
-        "rotation_ok_fraction": as_float(stability["rotation_ok_fraction"]),
-        "n_scenes": len(records),
-        "n_evaluated": len(good),
-        "n_failed": len(records) - len(good),
-        "n_objects": int(sum(r["num_objects"] for r in good)),
-        "n_colliding_objects": int(metrics["col_mesh"].colliding_objects),
-        "n_support_pairs": int(metrics["asd"].pairs),
-        "n_graph_pairs": int(metrics["grecall"].pairs),
-    }
+    out: dict = {}
+    for name, metric in metrics.items():
+        out.update({k: as_float(v) for k, v in metric.values(name).items()})
+    out.update({"n_scenes": len(records), "n_evaluated": len(good), "n_failed": len(records) - len(good),
+                "n_objects": int(sum(r["num_objects"] for r in good))})
+    for metric in metrics.values():
+        out.update(metric.count_values())
+    return out
 
 
 def fid_values(fid, records: list[dict], status: str, n_reference_files: int, feature_model: str) -> dict:

@@ -29,14 +29,6 @@ from typing import Iterable
 
 import numpy as np
 
-#: metric → (state block in a record, numerator state, denominator state)
-RATIOS = {
-    "col_mesh": ("col_mesh", "colliding_objects", "objects"),
-    "grecall": ("grecall", "matches", "pairs"),
-    "asd": ("asd", "abs_distance_sum", "pairs"),
-    "stability": ("stability", "unchanged_pairs", "pairs"),
-    "still_fraction": ("stability", "still_objects", "objects"),
-}
 RESAMPLES = 1000
 LEVEL = 0.95
 #: Fewer scenes than this measuring a metric: its interval is flagged (a bootstrap over a handful of units is
@@ -44,18 +36,24 @@ LEVEL = 0.95
 FEW = 5
 
 
-def scene_sums(records: Iterable[dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """metric → (numerators (n,), denominators (n,)) of the good records (those without ``error``), in order."""
+def scene_sums(records: Iterable[dict], metrics: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """value → (numerators (n,), denominators (n,)) of the good records (those without ``error``), in order, for
+    every pooled-ratio value of ``metrics`` (name → metric; each metric says which of its per-scene states form
+    which value: :meth:`~spread.metrics.base.SceneMetric.pooled_terms`)."""
     good = [r for r in records if not r.get("error")]
-    out = {}
-    for metric, (block, num, den) in RATIOS.items():
-        try:
-            out[metric] = (np.array([float(r["state"][block][num]) for r in good], np.float64),
-                           np.array([float(r["state"][block][den]) for r in good], np.float64))
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"per-scene record without the state '{block}.{num}'/'{block}.{den}' ({exc!r}); "
-                             f"evaluate again with this version") from None
-    return out
+    out: dict[str, tuple[list, list]] = {}
+    for name, metric in metrics.items():
+        for value in metric.ratios:
+            out[value] = ([], [])
+        for r in good:
+            state = (r.get("state") or {}).get(name)
+            if state is None:
+                raise ValueError(f"per-scene record of '{r.get('scene_id')}' without the '{name}' state; evaluate "
+                                 f"again with this version")
+            for value, (num, den) in metric.pooled_terms(state).items():
+                out[value][0].append(num)
+                out[value][1].append(den)
+    return {k: (np.array(num, np.float64), np.array(den, np.float64)) for k, (num, den) in out.items()}
 
 
 def pooled(num: np.ndarray, den: np.ndarray) -> float:
@@ -69,10 +67,24 @@ def resample_indices(n: int, resamples: int, seed: int) -> np.ndarray:
     return np.random.default_rng(int(seed)).integers(0, n, size=(int(resamples), n))
 
 
+def record_metrics(records: Iterable[dict]) -> dict:
+    """name → a registered metric (default settings) for every metric whose states the records carry, in the
+    records' order (the pooled-ratio definitions do not depend on the protocol's settings)."""
+    from spread.metrics.registry import default_metric_names, metric_spec
+
+    names: list[str] = []
+    for r in records:
+        if not r.get("error"):
+            names += [n for n in (r.get("state") or {}) if n not in names]
+    names = names or default_metric_names()  # nothing measured: the default metrics, each without an interval
+    return {name: metric_spec(name).create() for name in names}
+
+
 def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, level: float = LEVEL,
-                        seed: int = 0) -> dict:
-    """``{"<metric>_lo": ..., "<metric>_hi": ..., "bootstrap": {...}}`` for the metrics of :data:`RATIOS` over
-    ``records`` (``per_scene.jsonl`` lines); None where a metric has no value. ``bootstrap`` records the
+                        seed: int = 0, metrics: dict | None = None) -> dict:
+    """``{"<value>_lo": ..., "<value>_hi": ..., "bootstrap": {...}}`` for every pooled-ratio value of ``metrics``
+    (name → metric, e.g. ``protocol.build_metrics()``; default: the registered metrics whose states the records
+    carry) over ``records`` (``per_scene.jsonl`` lines); None where a metric has no value. ``bootstrap`` records the
     method, resamples, level, seed, the number of scenes and, per metric, how many of them measured it
     (``measured``: a non-zero denominator, e.g. ASD only counts rooms with support pairs — an interval
     resting on a handful of such rooms is too narrow to trust)."""
@@ -80,8 +92,9 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
         raise ValueError(f"level must be in (0, 1), got {level}")
     if resamples < 1:
         raise ValueError(f"resamples must be ≥ 1, got {resamples}")
-    sums = scene_sums(records)
-    n = len(next(iter(sums.values()))[0])
+    records = list(records)
+    sums = scene_sums(records, record_metrics(records) if metrics is None else metrics)
+    n = sum(1 for r in records if not r.get("error"))
     meta = {"method": "percentile", "unit": "scene", "resamples": int(resamples), "level": float(level),
             "seed": int(seed), "n_scenes": n, "measured": {m: int((den > 0).sum()) for m, (_, den) in sums.items()}}
     out: dict = {}

@@ -14,7 +14,7 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 from spread.metrics import (
     COLLISION_DEPTH_THRESHOLD, FID_RENDER_SETTINGS, STABILITY_DT, STABILITY_JITTER, STABILITY_RUNS,
@@ -34,8 +34,6 @@ STABILITY_SUBSTEPS = 4
 #: Stability engines (``protocol.physics``).
 PHYSICS_ENGINES = ("pybullet", "mujoco", "mujoco_warp")
 
-#: Metric names in per-scene states and in ``metrics.json``, in report order.
-METRIC_NAMES = ("col_mesh", "grecall", "asd", "stability")
 
 
 @dataclass
@@ -75,6 +73,8 @@ class EvalProtocol:
         a run ends when all are (benchmarks/RESULTS.md measures the cost and the agreement).
     seed: the evaluation's seed; a scene's runs use ``scene_seed(scene_id, seed)`` (same on every worker),
         and KID's subsets use it too.
+    metrics: the registered per-scene metrics measured, by name (:mod:`spread.metrics.registry`; default the
+        four of DESIGN §6). ``spread-evaluate metrics=[...]`` and ``spread-sample evaluation.metrics=[...]`` set it.
     """
 
     collision_threshold: float = COLLISION_DEPTH_THRESHOLD
@@ -86,6 +86,7 @@ class EvalProtocol:
     physics: str = "pybullet"
     physics_sleep: bool = False
     seed: int = 0
+    metrics: list[str] = field(default_factory=lambda: _default_metrics())
 
     def __post_init__(self) -> None:
         if self.stability_runs < 1 or self.stability_steps < 1 or self.stability_substeps < 1:
@@ -98,6 +99,9 @@ class EvalProtocol:
         if self.physics_sleep and self.physics != "mujoco":
             raise ValueError(f"protocol.physics_sleep=true needs protocol.physics=mujoco (got {self.physics!r}: "
                              "only C MuJoCo's runs have sleeping islands here)")
+        from spread.metrics.registry import selected_metrics
+
+        self.metrics = [spec.name for spec in selected_metrics([str(m) for m in self.metrics])]
 
     def physics_params(self):
         """The settings of the Stability world, whose type picks the engine (:func:`spread.physics.get_world`):
@@ -112,17 +116,12 @@ class EvalProtocol:
         engine = {"mujoco_warp": MujocoWarpParams}.get(self.physics, PhysicsParams)
         return engine(time_step=step)
 
-    def metrics(self) -> dict:
-        """Fresh torchmetrics aggregates keyed by :data:`METRIC_NAMES`, configured by this protocol."""
-        from spread.metrics import AverageSupportDistance, GraphRecall, MeshCollisionRate, PhysicsStability
+    def build_metrics(self) -> dict:
+        """Fresh torchmetrics aggregates of the selected :attr:`metrics`, by name, configured by this protocol
+        (each registered metric's factory; the Stability one carries the world's params)."""
+        from spread.metrics.registry import selected_metrics
 
-        return {
-            "col_mesh": MeshCollisionRate(self.collision_threshold),
-            "grecall": GraphRecall(),
-            "asd": AverageSupportDistance(),
-            "stability": PhysicsStability(self.stability_runs, self.stability_steps, self.stability_dt,
-                                          self.stability_jitter, base_seed=self.seed),
-        }
+        return {spec.name: spec.create(self) for spec in selected_metrics(self.metrics)}
 
     def to_dict(self, fid: FIDConfig | None = None) -> dict:
         """The protocol as ``metrics.json`` reports it: these fields, the FID settings and the fixed constants."""
@@ -155,3 +154,9 @@ def versions() -> dict:
         except importlib.metadata.PackageNotFoundError:
             out[dist] = None
     return out
+
+
+def _default_metrics() -> list[str]:
+    from spread.metrics.registry import default_metric_names
+
+    return default_metric_names()

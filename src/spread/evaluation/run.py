@@ -177,7 +177,8 @@ def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None
     if by_type is not None:
         metrics["per_room_type"] = by_type
     if cfg.bootstrap_resamples > 0:
-        metrics.update(bootstrap_intervals(records, cfg.bootstrap_resamples, seed=cfg.protocol.seed))
+        metrics.update(bootstrap_intervals(records, cfg.bootstrap_resamples, seed=cfg.protocol.seed,
+                                           metrics=cfg.protocol.build_metrics()))
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
                               cfg.fid.feature_model))
     metrics.update({

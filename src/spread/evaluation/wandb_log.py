@@ -8,8 +8,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: Per-scene table columns (besides ``scene_id`` and ``render``), as in ``per_scene.jsonl``.
-TABLE_COLUMNS = ("num_objects", "col_mesh", "grecall", "asd", "stability", "still_fraction", "error")
+def table_columns(metrics: dict) -> list[str]:
+    """Per-scene table columns (besides ``scene_id`` and ``render``), as in ``per_scene.jsonl``: the object count,
+    every value of the metrics the evaluation selected (its protocol's ``metrics``), the error."""
+    from spread.metrics.registry import METRICS
+
+    names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
+    values = [v for n in names for v in ([n, "still_fraction"] if n == "stability" else [n])]
+    return ["num_objects", *values, "error"]
 
 
 def scalar_metrics(metrics: dict) -> dict:
@@ -28,10 +34,11 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
     run.log(scalars)
     run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
     by_name = {Path(p).stem: p for p in renders}
-    table = wandb.Table(columns=["scene_id", "render", *TABLE_COLUMNS])
+    columns = table_columns(metrics)
+    table = wandb.Table(columns=["scene_id", "render", *columns])
     for r in records:
         image = wandb.Image(str(by_name[r["scene_id"]])) if r["scene_id"] in by_name else None
-        table.add_data(r["scene_id"], image, *[r.get(c) for c in TABLE_COLUMNS])
+        table.add_data(r["scene_id"], image, *[r.get(c) for c in columns])
     # the table travels as a wandb artifact (staged in wandb's data dir until `wandb sync`); the renders
     # are also logged on their own, so the run folder under out_dir/wandb holds them
     run.log({"per_scene": table, "renders": [wandb.Image(str(p), caption=Path(p).stem) for p in renders]})

@@ -1,7 +1,8 @@
 """Worker side of ``spread-evaluate``: one scene file → one ``per_scene.jsonl`` record; a chunk → records.
 
-A record holds every metric's value and diagnostics (the per-scene results' ``to_dict()``), the scene's
-**torchmetrics states** (``state``: one small dict per metric, what ``metric.update([result])`` leaves in a
+A record holds every selected metric's values (``compute()`` of a metric that saw this scene only, e.g.
+``grecall``, or Stability's ``stability`` and still shares) and diagnostics (the per-scene results' ``to_dict()``
+under ``details``), the scene's **torchmetrics states** (``state``: one small dict per metric, what ``metric.update([result])`` leaves in a
 fresh metric; the driver sums them with ``merge_state``, as DDP would), seconds per metric, and where it
 ran (Ray node id, process id). A scene that cannot be measured (unreadable file, unknown asset, NaN
 poses, no objects, ...) gives a record with ``error`` (type and message naming the problem) instead.
@@ -30,6 +31,7 @@ FAULT_MARKER_ENV = "SPREAD_EVAL_FAULT_MARKER"
 
 _LIBRARIES: dict[str, object] = {}
 _EXTRACTORS: dict[tuple, object] = {}
+_METRICS: dict[str, dict] = {}
 
 
 def scene_key(path: str | os.PathLike) -> str:
@@ -97,21 +99,11 @@ def where_am_i() -> dict:
     return {"node_id": node, "pid": os.getpid()}
 
 
-def scene_states(results: dict, protocol: EvalProtocol) -> dict:
-    """Per-metric torchmetrics states ({name: {state: number}}) of one scene's results."""
-    states = {}
-    for name, metric in protocol.metrics().items():
-        metric.update([results[name]])
-        states[name] = {k: v.tolist() for k, v in metric.metric_state.items()}
-    return states
-
-
-def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, extractor=None) -> dict:
-    """Every metric of one scene file (module docstring); never raises for a bad scene."""
-    from spread.metrics import (
-        fid_render, scene_collisions, scene_graph_recall, scene_seed, scene_stability, scene_support_distance,
-    )
-    from spread.physics import get_world
+def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, extractor=None,
+                   metrics: dict | None = None) -> dict:
+    """Every selected metric of one scene file (module docstring); never raises for a bad scene. ``metrics``:
+    this process's metric objects (``protocol.build_metrics()``), whose ``evaluate`` measures the scene."""
+    from spread.metrics import fid_render
     from spread.scene import read_scene
 
     from spread.io import file_sha256
@@ -129,17 +121,10 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         seconds[name] = time.perf_counter() - t0
         return out
 
+    metrics = protocol.build_metrics() if metrics is None else metrics
     try:
         scene = timed("read", read_scene, path, assets=library)
-        results = {
-            "col_mesh": timed("col_mesh", scene_collisions, scene, library, protocol.collision_threshold),
-            "grecall": timed("grecall", scene_graph_recall, scene, library),
-            "asd": timed("asd", scene_support_distance, scene, library),
-            "stability": timed("stability", scene_stability, scene, library, protocol.stability_runs,
-                               protocol.stability_steps, protocol.stability_dt, protocol.stability_jitter,
-                               seed=scene_seed(scene.scene_id, protocol.seed),
-                               world=get_world(protocol.physics_params())),
-        }
+        results = {name: timed(name, metric.evaluate, scene, library) for name, metric in metrics.items()}
         features = None
         if extractor is not None:
             image = timed("fid_render", fid_render, scene, library)
@@ -148,25 +133,43 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         record.update(error=f"{type(exc).__name__}: {exc}", error_type=type(exc).__name__,
                       traceback=traceback.format_exc(limit=4)[-2000:], seconds=seconds)
         return record
-    stability = results["stability"]
     record.update({
         "inner_scene_id": scene.scene_id,
         "room_type": str(scene.extras["room_type"]) if "room_type" in scene.extras else None,
         "num_objects": scene.num_objects,
-        "col_mesh": results["col_mesh"].rate,
-        "grecall": results["grecall"].to_dict()["grecall"],
-        "asd": results["asd"].to_dict()["asd"],
-        "stability": stability.to_dict()["stability"],
-        "still_fraction": stability.still_fraction,
-        "displacement_ok_fraction": sum(stability.displacement_ok) / (stability.num_objects * stability.runs),
-        "rotation_ok_fraction": sum(stability.rotation_ok) / (stability.num_objects * stability.runs),
+    })
+    states = {}
+    for name, result in results.items():
+        one = protocol_metric(metrics, name)  # a fresh metric that sees this scene only
+        one.update([result])
+        record.update(one.values(name))
+        states[name] = {k: v.tolist() for k, v in one.metric_state.items()}
+    record.update({
         "details": {name: r.to_dict() for name, r in results.items()},
-        "state": scene_states(results, protocol),
+        "state": states,
         "fid_features": None if features is None else np.asarray(features, np.float64).tolist(),
         "seconds": seconds,
         "error": None,
     })
     return finite_or_none(record)
+
+
+def protocol_metric(metrics: dict, name: str):
+    """A fresh copy of ``metrics[name]`` with empty states (same settings)."""
+    metric = metrics[name].clone()
+    metric.reset()
+    return metric
+
+
+def worker_metrics(protocol: EvalProtocol) -> dict:
+    """This process's metric objects of ``protocol`` (built once per protocol and reused across tasks)."""
+    import json
+
+    key = json.dumps(protocol.fingerprint(), sort_keys=True, default=str)
+    if key not in _METRICS:
+        _METRICS.clear()
+        _METRICS[key] = protocol.build_metrics()
+    return _METRICS[key]
 
 
 def maybe_inject_fault(done_in_chunk: int) -> None:
@@ -187,9 +190,10 @@ def evaluate_chunk(paths: Sequence[str], assets_dir: str, protocol: EvalProtocol
     """Evaluate scene files in this process, in order; one record each (the body of a Ray task)."""
     library = worker_library(assets_dir)
     extractor = worker_extractor(fid).extractor
+    metrics = worker_metrics(protocol)
     records = []
     for path in paths:
-        records.append(evaluate_scene(path, library, protocol, extractor))
+        records.append(evaluate_scene(path, library, protocol, extractor, metrics))
         maybe_inject_fault(len(records))
     return records
 

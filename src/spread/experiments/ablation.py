@@ -41,10 +41,10 @@ import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Callable, Protocol, Sequence
 
 from spread.experiments.intervals import ci_columns, row_intervals, table_note
-from spread.experiments.tables import METRICS, Column, write_tables
+from spread.experiments.tables import Column, columns_of, write_tables
 from spread.io import file_sha256, write_json_atomic
 
 log = logging.getLogger("spread.ablate")
@@ -347,7 +347,7 @@ class Ablation:
         for v in self.spec.variants:
             path = self.eval_dir(v) / "metrics.json"
             metrics = json.loads(path.read_text()) if self.status.get(f"evaluate/{v}") in ("done", "skipped") else {}
-            row = {"variant": v, "method": LABELS[v], **{c.key: metrics.get(c.key) for c in METRICS}}
+            row = {"variant": v, "method": LABELS[v], **{c.key: metrics.get(c.key) for c in columns_of([metrics])}}
             row.update({"still_fraction": metrics.get("still_fraction"), "n_scenes": metrics.get("n_scenes"),
                         "n_objects": metrics.get("n_objects"), "fid_status": metrics.get("fid_status"),
                         "status": "ok" if metrics else self.errors.get(f"evaluate/{v}", "not run")})
@@ -419,8 +419,8 @@ class Ablation:
                               round(time.perf_counter() - started, 3))
 
 
-def table_columns() -> list[Column]:
-    return [Column("method", "Method"), *METRICS]
+def table_columns(records: Sequence[dict] = ()) -> list[Column]:
+    return [Column("method", "Method"), *columns_of(records)]
 
 
 def write_ablation_table(records: list[dict], stem: Path, title: str = "",
@@ -436,11 +436,12 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
         labels = {"truth": "ground truth", **LABELS}
         shown = "One test graph, row by row (3D view | relation matrix against the graph):" \
             + "".join(f"\n\n**{labels[k]}**\n\n![{labels[k]}]({name})" for k, name in figures.items())
-    paths = write_tables(records, table_columns(), stem, caption=caption, label="tab:ablation",
-                         csv_keys=["variant", "method", *[c.key for c in METRICS], "still_fraction", "n_scenes",
+    metrics = columns_of(records)
+    paths = write_tables(records, table_columns(records), stem, caption=caption, label="tab:ablation",
+                         csv_keys=["variant", "method", *[c.key for c in metrics], "still_fraction", "n_scenes",
                                    "n_objects", "fid_status", "status", "ci_level", "ci_resamples", "ci_seed"],
                          note=table_note(records), md_extra=shown)
-    ablation_bars(records, METRICS, stem.with_suffix(".png"), label_key="method", title=caption)
+    ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
 
 

@@ -201,6 +201,14 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     return result
 
 
+def evaluated_specs(metrics: dict) -> list:
+    """The registered metrics a ``metrics.json`` holds (its protocol's selection), in table order."""
+    from spread.metrics.registry import METRICS, ordered
+
+    names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
+    return ordered(METRICS.get(n) for n in names if n in METRICS)
+
+
 def print_evaluation_summary(metrics: dict, out_dir) -> None:
     """The evaluation's console table: each metric, its 95 % bootstrap interval over scenes where it has one."""
     from rich.console import Console
@@ -220,12 +228,13 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
     table.add_column("metric")
     table.add_column("value", justify="right")
     table.add_column(f"{level * 100:g} % interval" if level else "interval", justify="right")
-    table.add_row("Col_mesh (share of objects, ↓)", fmt(metrics["col_mesh"]), interval("col_mesh"))
-    table.add_row("GRecall (share of pairs, ↑)", fmt(metrics["grecall"]), interval("grecall"))
-    table.add_row("ASD (mm, ↓)", fmt(None if metrics["asd"] is None else 1000 * metrics["asd"], 2),
-                  interval("asd", 1000, 2))
-    table.add_row("Stability (share of pairs, ↑)", fmt(metrics["stability"]), interval("stability"))
-    table.add_row("still objects (share)", fmt(metrics["still_fraction"]), interval("still_fraction"))
+    specs = evaluated_specs(metrics)
+    for spec in specs:
+        digits = max(spec.digits, 4) if spec.scale == 1 else spec.digits + 1
+        table.add_row(f"{spec.label} ({spec.description or spec.name}, {'↑' if spec.higher_is_better else '↓'})",
+                      fmt(spec.display(metrics.get(spec.name)), digits), interval(spec.name, spec.scale, digits))
+    if "still_fraction" in metrics:
+        table.add_row("still objects (share)", fmt(metrics["still_fraction"]), interval("still_fraction"))
     table.add_row(f"FID ({metrics.get('fid_feature_model')}, ↓)", fmt(metrics["fid"], 2))
     table.add_row("KID (↓)", fmt(metrics.get("kid")))
     table.add_row("scenes / evaluated / failed",
@@ -236,11 +245,11 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
     console.print(table)
     if metrics.get("per_room_type"):
         by_type = Table(title="per room type")
-        for col in ("room type", "scenes", "Col_mesh", "GRecall", "ASD (mm)", "Stability"):
+        for col in ("room type", "scenes", *[s.label for s in specs]):
             by_type.add_column(col, justify="left" if col == "room type" else "right")
         for name, m in metrics["per_room_type"].items():
-            by_type.add_row(name, str(m["n_evaluated"]), fmt(m["col_mesh"]), fmt(m["grecall"]),
-                            fmt(None if m["asd"] is None else 1000 * m["asd"], 2), fmt(m["stability"]))
+            by_type.add_row(name, str(m["n_evaluated"]), *[fmt(s.display(m.get(s.name)), s.digits + (s.scale != 1))
+                                                          for s in specs])
         console.print(by_type)
     note = interval_note(metrics.get("bootstrap"))
     if note:

@@ -17,18 +17,24 @@ from pathlib import Path
 
 from typing import Callable, Iterable
 
-from spread.evaluation.bootstrap import FEW, RATIOS, bootstrap_intervals, few_measured, interval_note
+from spread.evaluation.bootstrap import (
+    FEW, bootstrap_intervals, few_measured, interval_note, pooled, record_metrics, scene_sums,
+)
 from spread.experiments.tables import CI_SETTINGS
 
-#: Row fields of the intervals, in table order.
-INTERVAL_KEYS = tuple(f"{m}_{b}" for m in RATIOS for b in ("lo", "hi"))
+
+def interval_keys(intervals: dict) -> list[str]:
+    """The ``<value>_lo`` / ``<value>_hi`` fields of a bootstrap result or ``metrics.json`` (whichever registered
+    metrics the run selected), in order."""
+    values = [k[:-3] for k in intervals if k.endswith("_lo") and f"{k[:-3]}_hi" in intervals]
+    return [f"{m}_{b}" for m in values for b in ("lo", "hi")]
 
 
 def row_intervals(metrics: dict, folder: str | Path | None) -> dict:
     """``{"<metric>_lo": .., "<metric>_hi": .., "bootstrap": {...}}`` for one evaluated run; {} when neither
     ``metrics`` nor ``folder/per_scene.jsonl`` gives them."""
     if metrics.get("bootstrap"):
-        return {**{k: metrics.get(k) for k in INTERVAL_KEYS}, "bootstrap": metrics["bootstrap"]}
+        return {**{k: metrics.get(k) for k in interval_keys(metrics)}, "bootstrap": metrics["bootstrap"]}
     records = folder_records(folder)
     if records is None:
         return {}
@@ -64,13 +70,12 @@ def grouped_intervals(records: Iterable[dict], group_of: Callable[[str], str | N
     out = {}
     for group, rows in sorted(groups.items()):
         boot = bootstrap_intervals(rows, seed=seed)
+        sums = scene_sums(rows, record_metrics(rows))
         for metric in metrics:
-            if metric not in RATIOS:
-                raise ValueError(f"grouped_intervals: unknown metric '{metric}' (choose from {list(RATIOS)})")
-            block, num, den = RATIOS[metric]
-            total = sum(float(r["state"][block][den]) for r in rows)
-            value = sum(float(r["state"][block][num]) for r in rows) / total if total > 0 else None
-            out[f"{metric}/{group}"] = value
+            if metric not in sums:
+                raise ValueError(f"grouped_intervals: unknown metric '{metric}' (choose from {list(sums)})")
+            value = pooled(*sums[metric])
+            out[f"{metric}/{group}"] = None if value != value else value
             out[f"{metric}/{group}_lo"], out[f"{metric}/{group}_hi"] = boot[f"{metric}_lo"], boot[f"{metric}_hi"]
     return out
 
@@ -79,7 +84,7 @@ def ci_columns(intervals: dict) -> dict:
     """The interval fields of a row plus ``ci_level``, ``ci_resamples``, ``ci_seed`` and ``ci_few`` (the metrics
     too few scenes measured, :func:`~spread.evaluation.bootstrap.few_measured`; None without intervals)."""
     meta = intervals.get("bootstrap") or {}
-    return {**{k: intervals.get(k) for k in INTERVAL_KEYS},
+    return {**{k: intervals.get(k) for k in interval_keys(intervals)},
             **{k: meta.get(k.removeprefix("ci_")) for k in CI_SETTINGS if k != "ci_few"},
             "ci_few": (few_measured(meta) or None) if meta else None}
 

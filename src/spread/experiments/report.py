@@ -20,7 +20,7 @@ from typing import Sequence
 from spread.experiments.intervals import table_note
 from spread.experiments.plots import metric_vs_weight
 from spread.experiments.runs import read_runs
-from spread.experiments.tables import METRICS, Column, write_tables
+from spread.experiments.tables import Column, columns_of, metric_column, write_tables
 from spread.io import write_json_atomic
 
 #: The guidance weights of DESIGN §5's sweeps, as config keys.
@@ -44,14 +44,17 @@ def report_columns(weights: Sequence[str], metrics: Sequence[Column]) -> list[Co
 
 
 def metric_columns(keys: Sequence[str] | None) -> list[Column]:
-    """The :data:`~spread.experiments.tables.METRICS` columns named by ``keys`` (all when None)."""
-    by_key = {c.key: c for c in METRICS}
+    """The columns of the registered metrics (and FID, KID) named by ``keys`` (None: every registered metric and
+    FID, KID), each in its display unit."""
+    from spread.metrics.registry import SET_METRICS, all_metrics, display_spec
+
     if keys is None:
-        return list(METRICS)
-    unknown = [k for k in keys if k not in by_key]
+        return [metric_column(s) for s in [*all_metrics(), *SET_METRICS]]
+    unknown = [k for k in keys if display_spec(k) is None]
     if unknown:
-        raise ValueError(f"metrics: unknown {unknown} (choose from {list(by_key)})")
-    return [by_key[k] for k in keys]
+        known = [s.name for s in [*all_metrics(), *SET_METRICS]]
+        raise ValueError(f"metrics: unknown {unknown} (choose from {known})")
+    return [metric_column(display_spec(k)) for k in keys]
 
 
 def plot_name(metric: str, weight: str, weights: Sequence[str]) -> str:
@@ -66,8 +69,8 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metr
     """Read ``runs`` (paths, globs, sweep folders; :func:`~spread.experiments.runs.find_runs`) and write the
     report (module docstring) into ``out_dir``."""
     out = Path(out_dir)
-    columns = metric_columns(metrics)
     records, unfinished = read_runs(runs, weights)
+    columns = metric_columns(metrics) if metrics is not None else columns_of(records)
     result = ReportResult(records, unfinished=unfinished)
     result.tables = write_tables(records, report_columns(weights, columns), out / "report",
                                  caption=title or f"{len(records)} runs", formats=("md", "csv"),

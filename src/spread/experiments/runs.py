@@ -24,13 +24,19 @@ import struct
 from pathlib import Path
 from typing import Iterable
 
-from spread.experiments.intervals import INTERVAL_KEYS, ci_columns, row_intervals
+from spread.experiments.intervals import ci_columns, row_intervals
 from spread.experiments.tables import CI_SETTINGS
 from spread.io import read_json_object
 
-#: ``metrics.json`` keys copied into a record.
-RECORD_METRICS = ("grecall", "col_mesh", "asd", "stability", "fid", "kid", "still_fraction", "n_scenes", "n_objects",
-                  "n_failed", "fid_status")
+#: ``metrics.json`` keys copied into a record besides every registered metric's (:func:`record_metrics`).
+RECORD_EXTRAS = ("fid", "kid", "still_fraction", "n_scenes", "n_objects", "n_failed", "fid_status")
+
+
+def record_metrics() -> list[str]:
+    """The ``metrics.json`` keys a run record copies: every registered metric (plugins too), then the extras."""
+    from spread.metrics.registry import METRICS
+
+    return [*METRICS.names(), *RECORD_EXTRAS]
 #: Markers of a run folder that has not finished (no ``metrics.json`` yet).
 UNFINISHED_MARKERS = ("sampling.json", "scenes", "per_scene.jsonl", "protocol.json")
 WANDB_BLOCK = 32768
@@ -53,9 +59,17 @@ def select(tree, dotted: str):
     return node
 
 
+def is_evaluation(metrics: dict) -> bool:
+    """An evaluation's ``metrics.json`` (it counts evaluated scenes and records its protocol), whichever metrics
+    it selected."""
+    if not isinstance(metrics, dict):
+        return False
+    return "n_evaluated" in metrics or any(k in metrics for k in record_metrics()[:-len(RECORD_EXTRAS)])
+
+
 def is_eval_metrics(path: Path) -> bool:
     try:
-        return "col_mesh" in json.loads(path.read_text())
+        return is_evaluation(json.loads(path.read_text()))
     except (OSError, ValueError):
         return False
 
@@ -93,8 +107,8 @@ def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
     if not metrics_path.exists():
         raise RunError(f"{path}: no metrics.json (the run has not finished, or this is not a run folder)")
     metrics = read_json_object(metrics_path, RunError)
-    if "col_mesh" not in metrics:
-        raise RunError(f"{metrics_path}: not an evaluation metrics.json (no 'col_mesh' key)")
+    if not is_evaluation(metrics):
+        raise RunError(f"{metrics_path}: not an evaluation metrics.json (no registered metric and no 'n_evaluated')")
     configs = []
     hydra = path / ".hydra" / "config.yaml"
     if hydra.exists():
@@ -107,7 +121,7 @@ def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
     record = {"run": path.name, "source": str(path), "kind": "folder"}
     for key in weights:
         record[key] = first_number(configs, key)
-    record.update({k: metrics.get(k) for k in RECORD_METRICS})
+    record.update({k: metrics.get(k) for k in record_metrics()})
     record.update(ci_columns(row_intervals(metrics, path)))
     return record
 
@@ -217,13 +231,14 @@ def read_wandb_run(path: str | Path, weights: Iterable[str]) -> dict:
             raise RunError(f"{path}: no .wandb file and no files/wandb-summary.json (not a wandb run folder)")
         run = read_wandb_file(found[0])
     summary = run["summary"]
-    if "col_mesh" not in summary:
-        raise RunError(f"{path}: the wandb run has no 'col_mesh' in its summary (not an evaluation run)")
+    if not any(k in summary for k in record_metrics()[:-len(RECORD_EXTRAS)]):
+        raise RunError(f"{path}: the wandb run has no registered metric in its summary (not an evaluation run)")
     record = {"run": run.get("name") or run["id"], "source": str(path), "kind": "wandb"}
     for key in weights:
         record[key] = first_number([run["config"]], key)
-    record.update({k: summary.get(k) for k in RECORD_METRICS})
-    record.update({k: summary.get(k) for k in (*INTERVAL_KEYS, *CI_SETTINGS)})
+    record.update({k: summary.get(k) for k in record_metrics()})
+    bounds = [f"{m}_{b}" for m in record_metrics() for b in ("lo", "hi")]
+    record.update({k: summary.get(k) for k in (*bounds, *CI_SETTINGS) if k in summary})
     return record
 
 

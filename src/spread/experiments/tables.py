@@ -2,8 +2,9 @@
 
 A :class:`Column` names a record key, its header label and how a value is printed in Markdown and
 LaTeX. CSV keeps the raw values (floats by ``repr``, so they read back bit for bit; ``None`` as an
-empty cell). :data:`METRICS` are the ablation table's columns (DESIGN §6): ASD in metres, as in the
-paper's table and ``metrics.json``.
+empty cell). :func:`metric_columns` are the results tables' columns, from the metric registry
+(:mod:`spread.metrics.registry`): every table shows a metric in its registered display unit (ASD in mm, stored in
+metres in ``metrics.json`` and in CSV), with the unit in the header.
 
 **Confidence intervals.** A record that holds ``<key>_lo`` and ``<key>_hi`` beside ``<key>`` (the bootstrap
 interval of :mod:`spread.evaluation.bootstrap`) prints as ``value ± h`` with h half the interval's width,
@@ -26,13 +27,15 @@ from spread.io import write_text_atomic
 @dataclass(frozen=True)
 class Column:
     """key: record key; label: header; digits: decimals printed (None: as is); better: "max", "min" or
-    None (which value is bold in LaTeX and marked in Markdown); latex: header in LaTeX (default label)."""
+    None (which value is bold in LaTeX and marked in Markdown); latex: header in LaTeX (default label);
+    scale: printed value = stored value × scale (a display unit: ASD m → mm), CSV keeps the stored value."""
 
     key: str
     label: str
     digits: int | None = None
     better: str | None = None
     latex: str | None = None
+    scale: float = 1.0
 
     @property
     def arrow(self) -> str:
@@ -42,7 +45,9 @@ class Column:
         if value is None or (isinstance(value, float) and math.isnan(value)):
             return "–"
         if self.digits is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
-            return f"{float(value):.{self.digits}f}"
+            return f"{float(value) * self.scale:.{self.digits}f}"
+        if self.digits is not None:
+            return f"invalid ({value!r})"  # a hand-edited or corrupt value is never shown as a number
         return str(value)
 
     def half_width(self, record: dict) -> float | None:
@@ -50,29 +55,39 @@ class Column:
         lo, hi = record.get(f"{self.key}_lo"), record.get(f"{self.key}_hi")
         if self.digits is None or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi)):
             return None
-        return None if math.isnan(lo) or math.isnan(hi) else (float(hi) - float(lo)) / 2
+        return None if math.isnan(lo) or math.isnan(hi) else (float(hi) - float(lo)) / 2 * self.scale
 
     def cell(self, record: dict, latex: bool = False) -> str:
         """The printed cell: the value, with ``± half-width`` when the record has an interval for it."""
         text = self.format(record.get(self.key))
         half = self.half_width(record)
-        if half is None or text == "–":
+        if half is None or text == "–" or text.startswith("invalid"):
             return text
         if latex:
             return rf"{text}\,{{\scriptsize$\pm${half:.{self.digits}f}}}"
         return f"{text} ± {half:.{self.digits}f}"
 
 
-#: The metrics of the ablation table (keys of ``metrics.json``): the paper's order, then FID and KID
-#: (KID is unbiased: it can be slightly below 0 when two sets match).
-METRICS = (
-    Column("grecall", "GRecall", 3, "max", r"GRecall$\uparrow$"),
-    Column("col_mesh", "Col_mesh", 3, "min", r"Col$_{\text{mesh}}\downarrow$"),
-    Column("asd", "ASD (m)", 4, "min", r"ASD (m)$\downarrow$"),
-    Column("stability", "Stability", 3, "max", r"Stability$\uparrow$"),
-    Column("fid", "FID", 2, "min", r"FID$\downarrow$"),
-    Column("kid", "KID", 4, "min", r"KID$\downarrow$"),
-)
+def metric_column(spec) -> Column:
+    """The column of a registered metric or set metric (:mod:`spread.metrics.registry`)."""
+    return Column(spec.name, spec.label, spec.digits, spec.better, spec.latex, spec.scale)
+
+
+def metric_columns(names=None, with_set: bool = True) -> list[Column]:
+    """The results tables' metric columns: the selected registered metrics (None: the default four) in the
+    paper's order, then FID and KID (KID is unbiased: it can be slightly below 0 when two sets match)."""
+    from spread.metrics.registry import display_specs
+
+    return [metric_column(s) for s in display_specs(names, with_set)]
+
+
+def columns_of(records: Sequence[dict], with_set: bool = True) -> list[Column]:
+    """The metric columns of every registered metric some record has a value for (default four at least)."""
+    from spread.metrics.registry import METRICS, default_metric_names
+
+    names = default_metric_names()
+    names += [n for n in METRICS.names() if n not in names and any(r.get(n) is not None for r in records)]
+    return metric_columns(names, with_set)
 
 
 def best_rows(records: Sequence[dict], column: Column) -> set[int]:

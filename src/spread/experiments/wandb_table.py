@@ -8,9 +8,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from spread.experiments.tables import METRICS, with_bounds
+from spread.experiments.tables import columns_of, with_bounds
 
-COLUMNS = ("variant", "method", *[c.key for c in METRICS], "still_fraction", "n_scenes", "fid_status", "status")
+
+def table_keys(records: list[dict]) -> list[str]:
+    """The wandb table's columns: the row labels, every metric the rows have (the registry's), counts, status."""
+    return ["variant", "method", *[c.key for c in columns_of(records)], "still_fraction", "n_scenes", "fid_status",
+            "status"]
 
 
 def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Path, logger, name: str | None = None,
@@ -23,7 +27,7 @@ def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Pat
 
     run = init_run(as_logger_config(logger), "ablation", out_dir, config or {}, group=group, name=name)
     try:
-        columns = with_bounds(list(COLUMNS), records)
+        columns = with_bounds(table_keys(records), records)
         table = wandb.Table(columns=columns)
         for r in records:
             table.add_data(*[r.get(c) for c in columns])
@@ -35,7 +39,7 @@ def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Pat
             if figure.exists():
                 payload[f"ablation_figure/{k}"] = wandb.Image(str(figure))
         run.log(payload)
-        run.summary.update({f"{r['variant']}/{key}": r.get(key) for r in records for c in METRICS
+        run.summary.update({f"{r['variant']}/{key}": r.get(key) for r in records for c in columns_of(records)
                             for key in (c.key, f"{c.key}_lo", f"{c.key}_hi") if key in r})
         return run_folder(run)
     finally:

@@ -48,12 +48,19 @@ class SceneMetric(Metric):
     """Base of the SPREAD metrics: sum states, ``update(items, library)`` over scenes or result records.
 
     Subclasses set ``result_type`` (the per-scene record), implement :meth:`evaluate` (scene → record,
-    the per-scene function) and :meth:`accumulate` (record → states).
+    the per-scene function) and :meth:`accumulate` (record → states), and declare ``ratios``: each value
+    ``compute()`` reports that is a pooled ratio of two sum states (value → (numerator state, denominator state)),
+    which is how the bootstrap over scenes asks a metric for its per-scene terms (:meth:`pooled_terms`) without
+    reading its states itself. ``counts`` names sum states reported as integers in ``metrics.json``
+    (``n_<what>`` → state). Display attributes (``column``, ``unit``, ``scale``, ``digits``) are read by
+    :func:`spread.metrics.registry.spec_of_class` for plugins registered by class.
     """
 
     full_state_update = False
     is_differentiable = False
     result_type: type = object
+    ratios: dict[str, tuple[str, str]] = {}
+    counts: dict[str, str] = {}
 
     def _add_sum_state(self, name: str, shape: tuple[int, ...] = (), dtype: torch.dtype = torch.float64) -> None:
         self.add_state(name, default=torch.zeros(shape, dtype=dtype), dist_reduce_fx="sum")
@@ -87,6 +94,27 @@ class SceneMetric(Metric):
             else:
                 raise TypeError(f"{type(self).__name__}.update: expected Scene or {self.result_type.__name__}, "
                                 f"got {type(item).__name__}")
+
+    def values(self, name: str) -> dict[str, float]:
+        """``compute()`` as plain floats (NaN where nothing was measured): ``{name: value}`` for a metric of one
+        value, the dict's own keys for one of several (Stability: ``stability``, ``still_fraction``, ...)."""
+        out = self.compute()
+        if isinstance(out, dict):
+            return {k: float(v) for k, v in out.items()}
+        return {name: float(out)}
+
+    def pooled_terms(self, state: dict) -> dict[str, tuple[float, float]]:
+        """value → (numerator, denominator) of one scene's states (``per_scene.jsonl``'s ``state[name]``), for
+        every value in :attr:`ratios`; the bootstrap resamples scenes and pools these."""
+        try:
+            return {value: (float(state[num]), float(state[den])) for value, (num, den) in self.ratios.items()}
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"{type(self).__name__}: per-scene state without {exc!s} (evaluated with another "
+                             f"version: evaluate again)") from None
+
+    def count_values(self) -> dict[str, int]:
+        """The integer counts this metric reports (:attr:`counts`), from its summed states."""
+        return {key: int(getattr(self, state)) for key, state in self.counts.items()}
 
     def merge_state(self, incoming_state) -> None:
         """Add another metric's (or a ``metric_state`` dict's) sums to this one's, then drop the cached value."""

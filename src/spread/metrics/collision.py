@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio
+from spread.metrics.registry import register_metric
 from spread.metrics.geometry import asset_geometry, fcl_geometry, min_signed_distance, to_local, to_world
 from spread.relations import scene_aabbs
 
@@ -137,6 +138,9 @@ def scene_collisions(scene, library, threshold: float = COLLISION_DEPTH_THRESHOL
     return CollisionResult(scene.scene_id, n, colliding.tolist(), pairs, float(threshold))
 
 
+@register_metric("col_mesh", column="Col_mesh", digits=3, latex=r"Col$_{\text{mesh}}\downarrow$", default=True,
+                 order=20, build=lambda protocol: MeshCollisionRate(protocol.collision_threshold),
+                 description="share of objects in at least one collision deeper than the threshold")
 class MeshCollisionRate(SceneMetric):
     """Col_mesh over many scenes: colliding objects / all objects (lower is better).
 
@@ -146,6 +150,8 @@ class MeshCollisionRate(SceneMetric):
 
     higher_is_better = False
     result_type = CollisionResult
+    ratios = {"col_mesh": ("colliding_objects", "objects")}
+    counts = {"n_colliding_objects": "colliding_objects"}
 
     def __init__(self, threshold: float = COLLISION_DEPTH_THRESHOLD, **kwargs):
         super().__init__(**kwargs)

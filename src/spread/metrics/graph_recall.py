@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio
+from spread.metrics.registry import register_metric
 from spread.relations import scene_spatial_codes
 
 
@@ -50,6 +51,8 @@ def scene_graph_recall(scene, library) -> GraphRecallResult:
     return GraphRecallResult(scene.scene_id, pairs - len(mismatches), pairs, mismatches)
 
 
+@register_metric("grecall", column="GRecall", digits=3, latex=r"GRecall$\uparrow$", default=True, order=10,
+                 description="share of ordered object pairs whose spatial code is the graph's")
 class GraphRecall(SceneMetric):
     """GRecall over many scenes, pair-weighted (higher is better).
 
@@ -59,6 +62,8 @@ class GraphRecall(SceneMetric):
 
     higher_is_better = True
     result_type = GraphRecallResult
+    ratios = {"grecall": ("matches", "pairs")}
+    counts = {"n_graph_pairs": "pairs"}
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio, scene_seed
+from spread.metrics.registry import register_metric
 from spread.relations import scene_spatial_codes
 
 #: Runs per scene.
@@ -106,6 +107,10 @@ def scene_stability(scene, library, runs: int = STABILITY_RUNS, steps: int = STA
     )
 
 
+@register_metric("stability", column="Stability", digits=3, latex=r"Stability$\uparrow$", default=True, order=40,
+                 build=lambda p: PhysicsStability(p.stability_runs, p.stability_steps, p.stability_dt,
+                                                  p.stability_jitter, base_seed=p.seed, physics=p.physics_params()),
+                 description="share of ordered pairs whose spatial code survives the physics runs")
 class PhysicsStability(SceneMetric):
     """Stability over many scenes (higher is better); protocol constants are the defaults, ``base_seed``
     the evaluation's seed (each scene's runs are seeded by ``scene_seed(scene_id, base_seed)``).
@@ -117,18 +122,23 @@ class PhysicsStability(SceneMetric):
 
     higher_is_better = True
     result_type = StabilityResult
+    ratios = {"stability": ("unchanged_pairs", "pairs"), "still_fraction": ("still_objects", "objects")}
 
     def __init__(self, runs: int = STABILITY_RUNS, steps: int = STABILITY_STEPS, dt: float = STABILITY_DT,
-                 jitter: float = STABILITY_JITTER, base_seed: int = 0, **kwargs):
+                 jitter: float = STABILITY_JITTER, base_seed: int = 0, physics=None, **kwargs):
         super().__init__(**kwargs)
         self.runs, self.steps, self.dt, self.jitter = int(runs), int(steps), float(dt), float(jitter)
+        self.physics = physics  # the world's params (engine by type; spread.physics.get_world), None: default
         self.base_seed = int(base_seed)  # the command's seed: a scene's runs use scene_seed(scene_id, base_seed)
         for name in ("unchanged_pairs", "pairs", "objects", "still_objects", "displacement_ok", "rotation_ok"):
             self._add_sum_state(name, dtype=torch.int64)
 
     def evaluate(self, scene, library) -> StabilityResult:
+        from spread.physics import get_world
+
+        world = None if self.physics is None else get_world(self.physics)
         return scene_stability(scene, library, self.runs, self.steps, self.dt, self.jitter,
-                               seed=scene_seed(scene.scene_id, self.base_seed))
+                               seed=scene_seed(scene.scene_id, self.base_seed), world=world)
 
     def accumulate(self, result: StabilityResult) -> None:
         self._add("unchanged_pairs", sum(result.unchanged))

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio
+from spread.metrics.registry import register_metric
 from spread.metrics.geometry import asset_geometry, min_signed_distance, to_local, to_world
 
 
@@ -74,6 +75,8 @@ def scene_support_distance(scene, library) -> SupportDistanceResult:
     return SupportDistanceResult(scene.scene_id, pairs)
 
 
+@register_metric("asd", column="ASD", unit="mm", scale=1000.0, digits=1, latex=r"ASD (mm)$\downarrow$", default=True,
+                 order=30, description="mean |signed distance| of supported objects to their supporters (stored in m)")
 class AverageSupportDistance(SceneMetric):
     """ASD over many scenes, metres, pair-weighted (lower is better).
 
@@ -83,6 +86,8 @@ class AverageSupportDistance(SceneMetric):
 
     higher_is_better = False
     result_type = SupportDistanceResult
+    ratios = {"asd": ("abs_distance_sum", "pairs")}
+    counts = {"n_support_pairs": "pairs"}
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)

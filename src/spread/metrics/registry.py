@@ -1,0 +1,175 @@
+"""The metric registry: every per-scene metric defined once, with what the rest of the platform needs to know.
+
+A :class:`MetricSpec` is a metric's name (its key in ``metrics.json``, ``per_scene.jsonl``, tables, wandb), its
+:class:`~spread.metrics.base.SceneMetric` class and factory, and how it is read: higher or lower is better, the
+bootstrap unit, the table column, its display unit and scale (ASD is stored in metres and shown in mm
+everywhere), digits. The evaluation protocol, its workers, aggregation, intervals, wandb, console tables,
+``spread-report``, ``spread-ablate``, ``spread-compare`` and ``make demo`` iterate :data:`METRICS`.
+
+Adding a metric is one file: a module in ``spread/metrics/`` whose class is decorated with
+:func:`register_metric` (every module of this package is imported when the registry is first read), or, from
+another package, an entry point in the group ``spread.metrics`` naming a ``SceneMetric`` subclass (its class
+attributes ``higher_is_better``, ``column``, ``unit``, ``scale``, ``digits`` fill the spec) or a
+:class:`MetricSpec`. ``spread-evaluate 'metrics=[grecall,<name>]'`` then selects it.
+
+Set-level statistics (FID, KID) are not per-scene metrics: :data:`SET_METRICS` holds only their display.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+from spread.registry import Registry, RegistryError
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    """One registered metric (module docstring).
+
+    name: key in every output. metric: the SceneMetric class. build: ``build(protocol) → metric`` (protocol: the
+    :class:`~spread.evaluation.EvalProtocol`; default ``metric()``). higher_is_better: the ranking. column: table
+    header. unit: display unit ("" for a share). scale: display value = stored value × scale. digits: decimals
+    shown. latex: LaTeX header. default: in the default selection (today's four). order: position in tables.
+    bootstrap_unit: what an interval resamples ("scene": every registered metric is a sum over scenes).
+    description: one line for docs and ``--help``."""
+
+    name: str
+    metric: type
+    build: Callable | None = None
+    higher_is_better: bool = True
+    column: str = ""
+    unit: str = ""
+    scale: float = 1.0
+    digits: int = 3
+    latex: str | None = None
+    default: bool = False
+    order: int = 100
+    bootstrap_unit: str = "scene"
+    description: str = ""
+
+    def create(self, protocol=None):
+        """A fresh metric configured by ``protocol`` (None: the metric's own defaults)."""
+        if self.build is not None and protocol is not None:
+            return self.build(protocol)
+        return self.metric()
+
+    @property
+    def label(self) -> str:
+        """Header with unit, e.g. ``ASD (mm)``."""
+        title = self.column or self.name
+        return f"{title} ({self.unit})" if self.unit else title
+
+    @property
+    def better(self) -> str:
+        return "max" if self.higher_is_better else "min"
+
+    def display(self, value) -> float | None:
+        """A stored value in display units (None stays None)."""
+        return None if value is None else float(value) * self.scale
+
+
+@dataclass(frozen=True)
+class SetMetricSpec:
+    """Display of a set-level statistic (FID, KID): no per-scene states, no interval."""
+
+    name: str
+    column: str
+    digits: int
+    higher_is_better: bool = False
+    latex: str | None = None
+    unit: str = ""
+    scale: float = 1.0
+    order: int = 1000
+
+    @property
+    def label(self) -> str:
+        return self.column
+
+    @property
+    def better(self) -> str:
+        return "max" if self.higher_is_better else "min"
+
+
+def _adapt(name: str, obj) -> MetricSpec:
+    """An entry point's object as a spec: a MetricSpec as it is, a SceneMetric subclass by its class attributes."""
+    from spread.metrics.base import SceneMetric
+
+    if isinstance(obj, MetricSpec):
+        return obj if obj.name == name else MetricSpec(**{**obj.__dict__, "name": name})
+    if isinstance(obj, type) and issubclass(obj, SceneMetric):
+        return spec_of_class(name, obj)
+    raise RegistryError(f"metric entry point '{name}': expected a spread.metrics.base.SceneMetric subclass or a "
+                        f"MetricSpec, got {obj!r}")
+
+
+def spec_of_class(name: str, cls: type, **fields) -> MetricSpec:
+    """A spec from a SceneMetric class's attributes (``higher_is_better``, ``column``, ``unit``, ``scale``,
+    ``digits``, ``latex``, ``description`` or its docstring's first line), ``fields`` overriding them."""
+    doc = (cls.__doc__ or "").strip().splitlines()
+    values = dict(higher_is_better=bool(getattr(cls, "higher_is_better", True)),
+                  column=getattr(cls, "column", "") or name, unit=getattr(cls, "unit", ""),
+                  scale=float(getattr(cls, "scale", 1.0)), digits=int(getattr(cls, "digits", 3)),
+                  latex=getattr(cls, "latex", None), description=getattr(cls, "description", "") or (doc[0] if doc else ""))
+    values.update(fields)
+    return MetricSpec(name=name, metric=cls, **values)
+
+
+METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("spread.metrics",), adapt=_adapt)
+
+SET_METRICS = (
+    SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$"),
+    SetMetricSpec("kid", "KID", 4, latex=r"KID$\downarrow$", order=1001),
+)
+
+
+def register_metric(name: str, **fields) -> Callable[[type], type]:
+    """Class decorator: register a SceneMetric class as metric ``name`` (fields: :class:`MetricSpec`'s)."""
+    def wrap(cls: type) -> type:
+        METRICS.register(name, spec_of_class(name, cls, **fields), origin=f"{cls.__module__}.{cls.__qualname__}")
+        return cls
+    return wrap
+
+
+def metric_spec(name: str) -> MetricSpec:
+    return METRICS.get(name)
+
+
+def ordered(specs) -> list:
+    return sorted(specs, key=lambda s: s.order)
+
+
+def all_metrics() -> list[MetricSpec]:
+    """Every registered metric, in table order."""
+    return ordered(spec for _, spec in METRICS.items())
+
+
+def default_metric_names() -> list[str]:
+    """The default selection (today's four: Col_mesh, GRecall, ASD, Stability), in registration order."""
+    return [name for name, spec in METRICS.items() if spec.default]
+
+
+def selected_metrics(names: Sequence[str] | None = None) -> list[MetricSpec]:
+    """The specs of ``names`` (None: the default selection), in the order given; unknown or repeated names are
+    an error naming them."""
+    names = default_metric_names() if names is None else list(names)
+    if not names:
+        raise RegistryError(f"metrics: choose at least one of {METRICS.names()}")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise RegistryError(f"metrics: {twice} named twice")
+    return [METRICS.get(str(n)) for n in names]
+
+
+def display_specs(names: Sequence[str] | None = None, with_set: bool = True) -> list:
+    """What a results table shows: the selected metrics in table order, then FID and KID."""
+    specs = ordered(selected_metrics(names))
+    return specs + (list(SET_METRICS) if with_set else [])
+
+
+def display_spec(name: str):
+    """The display of a metric or set metric by name (None for neither)."""
+    for spec in SET_METRICS:
+        if spec.name == name:
+            return spec
+    return METRICS.get(name) if name in METRICS else None

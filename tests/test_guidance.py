@@ -370,9 +370,9 @@ def test_paper_schedule_and_gravity_window(lib, model_and_batch):
     seen = []
     original = guidance.step
 
-    def spy(x, gravity=True):
-        seen.append(gravity)
-        return original(x, gravity=gravity)
+    def spy(x, gravity=True, at=None):
+        seen.append("gravity" in guidance.weights(at, gravity))  # the terms acting at this step
+        return original(x, gravity=gravity, at=at)
 
     guidance.step = spy
     model, batch, _ = model_and_batch

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from spread.guidance.terms import GuidanceTerm, register_term
+
 #: Points below the receiving triangle deeper than this (metres) get no penalty (release: linear_max).
 LINEAR_MAX = 1000.0
 
@@ -161,3 +163,20 @@ def collision_loss(world: torch.Tensor, meshes, pairs: TrianglePairs, supports: 
     count = torch.zeros(B, device=device, dtype=world.dtype).index_add_(0, b, torch.ones_like(per_pair))
     total = out.index_add(0, b, per_pair)
     return total / count.clamp_min(1)
+
+
+def _up_boost(grad: torch.Tensor, config) -> torch.Tensor:
+    """The release's tweak: the upward part of the collision step on the normalised-y channel × ``up_boost``."""
+    if config.up_boost == 1.0:
+        return grad
+    y = grad[..., 1]
+    grad = grad.clone()
+    grad[..., 1] = torch.where(y < 0, y * config.up_boost, y)
+    return grad
+
+
+register_term(GuidanceTerm(
+    "collision", lambda ctx: collision_loss(ctx.world, ctx.meshes, ctx.pairs(), ctx.supports, ctx.config.cone_height,
+                                            ctx.detach_cones),
+    weight=lambda config: config.collision, edit=_up_boost,
+    description="G_C: conical distance field on the BVH's triangle pairs between different objects"))

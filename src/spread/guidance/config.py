@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from dataclasses import field
 from typing import Any, Mapping
 
 MODES = ("none", "paper", "refine")
@@ -63,6 +64,9 @@ class GuidanceConfig:
     max_contacts: int = 2048
     #: ``refine``: clip the t = 0 projection to [−1, 1] (what the release's scheduler step does).
     clip: bool = True
+    #: Weights of the other registered terms by name (:mod:`spread.guidance.terms`: plugins, PhyScene's
+    #: ``box_iou``), e.g. ``guidance.terms.box_iou=0.15``; the built-ins are weighed by the fields above.
+    terms: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -77,6 +81,16 @@ class GuidanceConfig:
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"guidance: key '{key}' must be a fraction in [0, 1], got {value!r}")
+        self.terms = {str(k): v for k, v in dict(self.terms or {}).items()}
+        for name, value in self.terms.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"guidance: key 'terms.{name}' must be a finite number ≥ 0, got {value!r}")
+            if value > 0:
+                from spread.guidance.terms import TERMS_REGISTRY
+
+                if name in ("collision", "gravity", "relation"):
+                    raise ValueError(f"guidance: 'terms.{name}': the built-in terms are weighed by guidance.{name}")
+                TERMS_REGISTRY.get(name)  # an unknown term is an error naming the known ones
         for key, low in (("iterations", 0), ("denoise_every", 0), ("inner_steps", 1), ("max_contacts", 1)):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
@@ -85,7 +99,8 @@ class GuidanceConfig:
     @property
     def active(self) -> bool:
         """True when sampling is guided at all: a mode other than ``none`` and some weight > 0."""
-        return self.mode != "none" and (self.collision > 0 or self.gravity > 0 or self.relation > 0)
+        return self.mode != "none" and (self.collision > 0 or self.gravity > 0 or self.relation > 0
+                                        or any(v > 0 for v in self.terms.values()))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import torch
 
+from spread.guidance.terms import GuidanceTerm, register_term
+
 #: Barycentric slack for a vertical ray through a triangle's edge (dimensionless).
 BARY_TOLERANCE = 1e-9
 
@@ -101,3 +103,19 @@ def gravity_loss(gaps: torch.Tensor, mask: torch.Tensor, gap: float, tolerance: 
     r = torch.where(mask, gaps - gap, torch.zeros_like(gaps))
     bad = mask & ((r > tolerance) | (r < 0))
     return torch.where(bad, r.abs(), torch.zeros_like(r)).sum(-1)
+
+
+def _y_only(grad: torch.Tensor, config) -> torch.Tensor:
+    """The release keeps the gravity step on the normalised-y channel only (``gravity_y_only``)."""
+    if not config.gravity_y_only:
+        return grad
+    only_y = torch.zeros_like(grad)
+    only_y[..., 1] = grad[..., 1]
+    return only_y
+
+
+register_term(GuidanceTerm(
+    "gravity", lambda ctx: gravity_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports), ctx.falls,
+                                        ctx.config.gap, ctx.config.tolerance),
+    weight=lambda config: config.gravity, start=lambda config: config.gravity_from, edit=_y_only,
+    description="G_H: vertical gap to the supporter or the floor outside [ε, ε + θ_H]"))

@@ -1,14 +1,15 @@
-"""``SceneGuidance``: the three guidance terms of a batch of scenes and the two guided-sampling modes.
+"""``SceneGuidance``: the registered guidance terms of a batch of scenes and the two guided-sampling modes.
 
 One guidance step on normalised states x (B, N, 9) (translation in [−1, 1] through ``bounds``, rot6d;
 :func:`spread.model.poses.poses_from_state`) is, as in the release,
 
-    x ← x − (λ_C ∇G_C  +  λ_R ∇G_R  +  [gravity on] λ_H ∇G_H)
+    x ← x − Σ_k [k on] λ_k edit_k(∇G_k)      (built-ins: λ_C ∇G_C + λ_H ∇G_H + λ_R ∇G_R)
 
-with each term summed over scenes (so a scene's step never depends on the rest of its batch), the
-release's two tweaks on by default (config): the upward part of the collision step on the
-normalised-y channel is multiplied by ``up_boost`` (3), and the gravity step is kept on the y channel
-only. Padding objects never move.
+over the terms of the registry (:mod:`spread.guidance.terms`) whose weight is > 0, each summed over scenes (so
+a scene's step never depends on the rest of its batch) and switched on by its schedule (gravity from
+``gravity_from``). The release's two tweaks are the built-ins' gradient edits, on by default (config): the
+upward part of the collision step on the normalised-y channel is multiplied by ``up_boost`` (3), and the
+gravity step is kept on the y channel only. Padding objects never move.
 
 ``paper`` mode plugs :meth:`SceneGuidance.x0_hook` into the sampler: at sampling step k of K (from
 ``ceil(start·K)`` on) the predicted x̂_0 takes ``inner_steps`` steps, gravity from ``ceil(gravity_from·K)``.
@@ -27,14 +28,14 @@ from typing import Callable, Sequence
 
 import torch
 
-from spread.guidance.collision import TriangleCollider, TrianglePairs, collision_loss
+from spread.guidance.collision import TriangleCollider, TrianglePairs
 from spread.guidance.config import GuidanceConfig
-from spread.guidance.gravity import gravity_loss, vertical_gaps
 from spread.guidance.meshes import SceneMeshes
-from spread.guidance.relation import relation_loss
+from spread.guidance.terms import TERMS_REGISTRY, TermContext, term_names
 from spread.model.diffusion import StepContext, training_scheduler
 from spread.model.poses import poses_from_state
 
+#: The built-in terms (every registered term: :func:`spread.guidance.terms.term_names`).
 TERMS = ("collision", "gravity", "relation")
 #: Normalised-y channel of a state (translation x, y, z then rot6d).
 Y_CHANNEL = 1
@@ -48,11 +49,13 @@ class SceneGuidance:
     order (they fill the True slots of ``mask``). physical: (B, N, N) physical codes (1 = row supports
     column; padding 3). mask: (B, N) bool. bounds: (6,) translation bounds, metres (stats.json).
     alpha_bar0: ᾱ_0 of the model's training schedule (``refine``'s t = 0 projection; default: the default
-    schedule's).
+    schedule's). welded: (B, N) bool, wall and ceiling mounts: gravity and support (relation) guidance leave
+    them alone (no gap to close, no footprint to be pulled over); default none.
     """
 
     def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,
-                 mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None):
+                 mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None,
+                 welded: torch.Tensor | None = None):
         self.config = GuidanceConfig.from_config(config)
         self.mask = torch.as_tensor(mask).bool().cpu()
         if self.mask.dim() != 2:
@@ -68,6 +71,9 @@ class SceneGuidance:
                              f"got {self.bounds.tolist()}")
         pair = self.mask[:, :, None] & self.mask[:, None, :] & ~torch.eye(N, dtype=torch.bool)
         self.supports = (physical == 1) & pair
+        self.welded = torch.zeros(B, N, dtype=torch.bool) if welded is None else torch.as_tensor(welded).bool().cpu()
+        if tuple(self.welded.shape) != (B, N):
+            raise ValueError(f"guidance: welded must be (B, N) = {(B, N)}, got {tuple(self.welded.shape)}")
         self.meshes = SceneMeshes(library, asset_ids, self.mask)
         self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
         self.detach_cones = detach_cones
@@ -93,11 +99,13 @@ class SceneGuidance:
         hit = self._on.get(key)
         if hit is None:
             hit = self._on[key] = {"mask": self.mask.to(device), "supports": self.supports.to(device),
-                                   "bounds": self.bounds.to(device, dtype)}
+                                   "bounds": self.bounds.to(device, dtype),
+                                   "falls": (self.mask & ~self.welded).to(device),
+                                   "held": (self.supports & ~self.welded[:, None, :]).to(device)}
         return hit
 
     # ---- terms --------------------------------------------------------------------------------------
-    def _detect(self, translation: torch.Tensor, rotation: torch.Tensor, hull: torch.Tensor) -> TrianglePairs:
+    def detect(self, translation: torch.Tensor, rotation: torch.Tensor, hull: torch.Tensor) -> TrianglePairs:
         t0 = time.perf_counter()
         lo = hull.detach().amin(2).cpu().double().numpy()
         hi = hull.detach().amax(2).cpu().double().numpy()
@@ -110,32 +118,29 @@ class SceneGuidance:
         return pairs
 
     def _terms(self, x: torch.Tensor, which: Sequence[str]) -> dict[str, torch.Tensor]:
-        """Per-scene values (B,) of the named terms at states x (differentiable when x requires grad)."""
+        """Per-scene values (B,) of the named registered terms at states x (differentiable when x requires grad)."""
         g = self._graph(x.device, x.dtype)
         translation, rotation = poses_from_state(x, g["bounds"])
         world = self.meshes.pose(translation, rotation)
         hull = self.meshes.hull_points(world)
+        ctx = TermContext(self, x, translation, rotation, world, hull, g)
         out = {}
-        if "collision" in which:
-            pairs = self._detect(translation, rotation, hull)
+        for name in which:
+            term = TERMS_REGISTRY.get(name)
+            if name == "collision":
+                ctx.pairs()  # the BVH's time is counted apart (bvh_s)
             t0 = time.perf_counter()
-            out["collision"] = collision_loss(world, self.meshes, pairs, g["supports"], self.config.cone_height,
-                                              self.detach_cones)
+            out[name] = term.loss(ctx)
             self._stats["penalty_s"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if "gravity" in which:
-            gaps = vertical_gaps(world, hull, self.meshes, g["supports"])
-            out["gravity"] = gravity_loss(gaps, g["mask"], self.config.gap, self.config.tolerance)
-        if "relation" in which:
-            out["relation"] = relation_loss(world, hull, self.meshes, g["supports"])
-        self._stats["penalty_s"] += time.perf_counter() - t0
         return out
 
-    def losses(self, x: torch.Tensor, reduce: bool = True) -> dict[str, torch.Tensor]:
-        """Each term's value at states x (B, N, 9): summed over scenes (``reduce``) or per scene (B,).
+    def losses(self, x: torch.Tensor, reduce: bool = True, which: Sequence[str] | None = None) -> dict[str, torch.Tensor]:
+        """Each term's value at states x (B, N, 9): summed over scenes (``reduce``) or per scene (B,); ``which``:
+        the registered terms' names (default the built-ins and every term the config weighs).
         Differentiable when x requires grad (cones, hulls and hit heights detached; module docs)."""
         self._check(x)
-        values = self._terms(x, TERMS)
+        names = list(which) if which is not None else [*TERMS, *[n for n in self.config.terms if n not in TERMS]]
+        values = self._terms(x, names)
         return {k: v.sum() if reduce else v for k, v in values.items()}
 
     def _check(self, x: torch.Tensor) -> None:
@@ -144,12 +149,32 @@ class SceneGuidance:
                              f"got {tuple(x.shape)}")
 
     # ---- one step -----------------------------------------------------------------------------------
-    def step(self, x: torch.Tensor, gravity: bool = True) -> torch.Tensor:
-        """One guidance step on states x (B, N, 9) (module docstring); returns new states, x untouched."""
+    def weights(self, at: tuple[int, int] | None = None, late: bool = True) -> dict[str, float]:
+        """λ of every registered term that acts now, in registry order: weight > 0 and its schedule started —
+        ``at`` = (index, count) of the loop (a term starting at fraction s acts from index ``ceil(s·count)``), or
+        without ``at``: terms with a start > 0 act when ``late`` (the gravity flag of older callers)."""
+        cfg = self.config
+        out = {}
+        for name in term_names():
+            term = TERMS_REGISTRY.get(name)
+            weight = term.weight_of(cfg)
+            start = term.start_of(cfg)
+            if at is not None:
+                index, count = at
+                on = index >= math.ceil(start * count)
+            else:
+                on = late or start <= 0
+            if weight > 0 and on:
+                out[name] = weight
+        return out
+
+    def step(self, x: torch.Tensor, gravity: bool = True, at: tuple[int, int] | None = None) -> torch.Tensor:
+        """One guidance step on states x (B, N, 9) (module docstring); returns new states, x untouched.
+        ``at``: (index, count) in the loop for the terms' schedules; else ``gravity`` switches the late terms."""
         self._check(x)
         cfg = self.config
-        weights = {"collision": cfg.collision, "relation": cfg.relation, "gravity": cfg.gravity if gravity else 0.0}
-        which = [k for k in TERMS if weights[k] > 0]
+        weights = self.weights(at, gravity)
+        which = list(weights)
         if not which:
             return x
         with torch.enable_grad():
@@ -162,14 +187,9 @@ class SceneGuidance:
                 if not loss.requires_grad:
                     continue
                 (grad,) = torch.autograd.grad(loss, xg, retain_graph=n < len(which) - 1)
-                if name == "collision" and cfg.up_boost != 1.0:
-                    y = grad[..., Y_CHANNEL]
-                    grad = grad.clone()
-                    grad[..., Y_CHANNEL] = torch.where(y < 0, y * cfg.up_boost, y)
-                if name == "gravity" and cfg.gravity_y_only:
-                    only_y = torch.zeros_like(grad)
-                    only_y[..., Y_CHANNEL] = grad[..., Y_CHANNEL]
-                    grad = only_y
+                edit = TERMS_REGISTRY.get(name).edit
+                if edit is not None:
+                    grad = edit(grad, cfg)
                 update = update + weights[name] * grad
             self._stats["penalty_s"] += time.perf_counter() - t0
         self._stats["steps"] += 1
@@ -182,9 +202,8 @@ class SceneGuidance:
         K, k = ctx.num_steps, ctx.index
         if k < math.ceil(self.config.start * K):
             return x0
-        gravity = k >= math.ceil(self.config.gravity_from * K)
         for _ in range(self.config.inner_steps):
-            x0 = self.step(x0, gravity=gravity)
+            x0 = self.step(x0, at=(k, K))
         return x0
 
     def refine(self, x: torch.Tensor, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
@@ -194,7 +213,6 @@ class SceneGuidance:
         keep = self._graph(x.device, x.dtype)["mask"][..., None].to(x.dtype)
         a = self.alpha_bar0
         t_zero = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
-        first_gravity = math.ceil(self.config.gravity_from * n)
         every = self.config.denoise_every
         for it in range(n):
             if every and it % every == 0:
@@ -206,6 +224,6 @@ class SceneGuidance:
                 x = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
                 if self.config.clip:
                     x = x.clamp(-1.0, 1.0)
-            x = self.step(x * keep, gravity=it >= first_gravity)
+            x = self.step(x * keep, at=(it, n))
             self._stats["iterations"] += 1
         return x

@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from spread.guidance.terms import GuidanceTerm, register_term
+
 #: A vertex counts as outside when it is farther than this from the hull (metres; release 1e-6).
 OUTSIDE = 1e-6
 
@@ -73,3 +75,9 @@ def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
     per_pair = (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
     edges = torch.zeros(B, device=world.device, dtype=world.dtype).index_add_(0, b, torch.ones_like(per_pair))
     return out.index_add(0, b, per_pair) / edges.clamp_min(1)
+
+
+register_term(GuidanceTerm(
+    "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held),
+    weight=lambda config: config.relation,
+    description="G_R: supported vertices outside the supporter's xz hull"))

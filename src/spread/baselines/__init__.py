@@ -25,26 +25,17 @@ hyperparameter it saved.
 
 from __future__ import annotations
 
-import importlib
+from spread.baselines.registry import METHODS, MethodSpec, method_names, method_spec, register_method  # noqa: F401
 
-#: method → "module:Class"
-METHODS = {
-    "atiss": "spread.baselines.atiss:ATISS",
-    "diffuscene": "spread.baselines.diffuscene:DiffuScene",
-    "physcene": "spread.baselines.diffuscene:DiffuScene",
-    "instructscene": "spread.baselines.instructscene:InstructScene",
-    "spread": "spread.model.module:SceneDiffusion",
-}
-#: Methods that condition on the relation graph (GRecall is meaningful for them).
-GRAPH_CONDITIONED = ("instructscene", "spread")
+
+def graph_conditioned() -> tuple[str, ...]:
+    """Methods that condition on the relation graph (GRecall is meaningful for them), from the registry."""
+    return tuple(name for name in method_names() if method_spec(name).graph_conditioned)
 
 
 def module_class(method: str):
-    """The LightningModule class of a method name (see :data:`METHODS`)."""
-    if method not in METHODS:
-        raise ValueError(f"unknown method '{method}' (choose from {sorted(METHODS)})")
-    module, name = METHODS[method].split(":")
-    return getattr(importlib.import_module(module), name)
+    """The LightningModule class of a registered method name (:data:`METHODS`; plugins included)."""
+    return method_spec(method).module_class()
 
 
 def checkpoint_method(hparams: dict) -> str:

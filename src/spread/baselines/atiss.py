@@ -37,6 +37,7 @@ from torch import nn
 from spread.baselines import dmll
 from spread.baselines.base import BaselineConfig, BaselineModule, uniform_draws
 from spread.baselines.boxes import Objects, normalize_size, objects_of, poses
+from spread.baselines.registry import MethodSpec, register_method
 
 #: The floor raster covers normalised xz coordinates in [−FLOOR_WINDOW, FLOOR_WINDOW] (rooms reach a little
 #: beyond the outermost object centres, which span [−1, 1]).
@@ -302,3 +303,8 @@ class ATISS(BaselineModule):
             return poses(translation, angle * math.pi, obj.tilt, obj.mask, self.bounds)
         finally:
             network.train(was)
+
+
+register_method(MethodSpec(
+    "atiss", "spread.baselines.atiss:ATISS", label="ATISS", note="autoregressive, no graph", sampling="own",
+    train=("experiment=atiss",), train_quick=("experiment=atiss_quick",), order=10))

@@ -50,6 +50,7 @@ from spread.baselines.boxes import denormalize_size, normalize_size, objects_of,
 from spread.model.diffusion import NOISE_ROWS, Sampler, training_scheduler
 from spread.model.encodings import sinusoidal_embedding
 from spread.model.poses import denormalize
+from spread.baselines.registry import MethodSpec, register_method
 
 #: The noise schedule of DiffuScene and InstructScene (DDPM, T = 1000, linear β 1e-4 … 0.02, ε-prediction).
 LINEAR_SCHEDULE = {"beta_schedule": "linear", "beta_start": 1e-4, "beta_end": 0.02}
@@ -385,3 +386,11 @@ class DiffuScene(BaselineModule):
         x = self.sample_states(batch, sampler, generator, use_ema, guidance)
         obj = objects_of({k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()})
         return poses(x[..., :3], torch.atan2(x[..., 7], x[..., 6]), obj.tilt, obj.mask, self.bounds)
+
+
+register_method(MethodSpec(
+    "diffuscene", "spread.baselines.diffuscene:DiffuScene", label="DiffuScene", note="DDPM over slots, no graph", sampling="own",
+    train=("experiment=diffuscene",), train_quick=("experiment=diffuscene_quick",), order=20))
+register_method(MethodSpec(
+    "physcene", "spread.baselines.diffuscene:DiffuScene", label="DiffuScene + PhyScene guidance",
+    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", sampling="own", order=30))

@@ -41,6 +41,7 @@ from spread.baselines.predicates import PAD, VOCAB, drop_edges, instruct_predica
 from spread.model.diffusion import NOISE_ROWS, Sampler, training_scheduler
 from spread.model.encodings import TimestepEmbedding, sinusoidal_embedding
 from spread.model.poses import denormalize
+from spread.baselines.registry import MethodSpec, register_method
 
 
 @dataclass(frozen=True)
@@ -250,3 +251,9 @@ class InstructScene(BaselineModule):
             return poses(x[..., :3], torch.atan2(x[..., 7], x[..., 6]), obj.tilt, obj.mask, self.bounds)
         finally:
             network.train(was)
+
+
+register_method(MethodSpec(
+    "instructscene", "spread.baselines.instructscene:InstructScene", label="InstructScene (graph-to-layout)",
+    note="SPREAD's graph denoiser without shape tokens, geometry or the physical graph", graph_conditioned=True, sampling="own",
+    train=("experiment=instructscene",), train_quick=("experiment=instructscene_quick",), order=40))

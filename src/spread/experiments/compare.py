@@ -41,23 +41,41 @@ from spread.experiments.ablation import Ablation, Commands, Ledger, Stage
 from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
-from spread.experiments.tables import Column, write_tables
+from spread.experiments.tables import Column, columns_of, write_tables
 from spread.io import file_sha256, write_json_atomic
 
 log = logging.getLogger("spread.compare")
 
+#: The paper's Table 1 rows (the default ``methods``); every registered method can be a row
+#: (:mod:`spread.baselines.registry`: labels, notes, graph conditioning, which checkpoint a method samples).
 METHODS = ("atiss", "diffuscene", "physcene", "instructscene", "spread")
-LABELS = {"atiss": "ATISS", "diffuscene": "DiffuScene", "physcene": "DiffuScene + PhyScene guidance",
-          "instructscene": "InstructScene (graph-to-layout)", "spread": "SPREAD (ours)"}
-#: What a row is, for the caption (the paper's rows, as run here).
-NOTES = {"atiss": "autoregressive, no graph", "diffuscene": "DDPM over slots, no graph",
-         "physcene": "DiffuScene + oriented box-IoU guidance",
-         "instructscene": "SPREAD's graph denoiser without shape tokens, geometry or the physical graph",
-         "spread": "the platform's SceneDiffusion"}
-#: The trained checkpoint each method samples (physcene: derived from DiffuScene's).
-CHECKPOINT_OF = {"atiss": "atiss", "diffuscene": "diffuscene", "physcene": "physcene",
-                 "instructscene": "instructscene", "spread": "spread"}
-TRAINED = ("atiss", "diffuscene", "instructscene", "spread")
+
+
+def registered() -> list[str]:
+    """Every registered method (plugins too), in Table 1's row order."""
+    from spread.baselines.registry import method_names
+
+    return method_names()
+
+
+def spec_of(method: str):
+    from spread.baselines.registry import method_spec
+
+    return method_spec(method)
+
+
+def label(method: str) -> str:
+    return spec_of(method).row_label
+
+
+def trained_from(method: str) -> str:
+    """The trained method whose checkpoint ``method`` samples (physcene: diffuscene's, derived)."""
+    return spec_of(method).trained_from
+
+
+def trained_methods() -> list[str]:
+    """The registered methods that are trained (not derived from another's checkpoint)."""
+    return [m for m in registered() if spec_of(m).checkpoint is None]
 LEDGER = "compare.json"
 TIMES = "compare_times.json"
 TABLE = "table1"
@@ -88,15 +106,17 @@ class CompareSpec:
 
     def __post_init__(self) -> None:
         self.out_dir = Path(self.out_dir)
-        unknown = [m for m in self.methods if m not in METHODS]
+        known = registered()
+        unknown = [m for m in self.methods if m not in known]
         if unknown or not self.methods:
-            raise ValueError(f"methods: unknown or none {unknown or list(self.methods)} (choose from {list(METHODS)})")
-        self.methods = tuple(m for m in METHODS if m in self.methods)
+            raise ValueError(f"methods: unknown or none {unknown or list(self.methods)} (choose from {known})")
+        self.methods = tuple(m for m in known if m in self.methods)
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout: {self.layout!r}, choose from {LAYOUTS}")
+        trained = trained_methods()
         for method, path in self.ckpt.items():
-            if method not in TRAINED:
-                raise ValueError(f"train.ckpt.{method}: only {list(TRAINED)} are trained (physcene derives from "
+            if method not in trained:
+                raise ValueError(f"train.ckpt.{method}: only {trained} are trained (physcene derives from "
                                  f"diffuscene)")
             if path and not Path(path).is_file():
                 raise FileNotFoundError(f"train.ckpt.{method}={path}: no such checkpoint file")
@@ -110,8 +130,8 @@ class CompareSpec:
 
     def trained(self) -> list[str]:
         """The checkpoints the chosen methods need, in order."""
-        need = {"diffuscene" if m == "physcene" else m for m in self.methods}
-        return [t for t in TRAINED if t in need]
+        need = {trained_from(m) for m in self.methods}
+        return [t for t in trained_methods() if t in need]
 
 
 @dataclass
@@ -131,9 +151,12 @@ class CompareResult:
 
 
 class Comparison(Ablation):
-    """The ablation's stage runner (attempt, data and evaluation stages) over :data:`METHODS`."""
+    """The ablation's stage runner (attempt, data and evaluation stages) over the registered methods."""
 
-    checkpoint_of = CHECKPOINT_OF
+    @property
+    def checkpoint_of(self) -> dict[str, str]:
+        """method → the checkpoint it samples (its own; physcene: the derived one)."""
+        return {m: m for m in self.spec.methods}
 
     def __init__(self, spec: CompareSpec, commands: Commands):
         self.spec = spec
@@ -204,20 +227,21 @@ class Comparison(Ablation):
         return out
 
     def rows(self) -> list[dict]:
-        from spread.baselines import GRAPH_CONDITIONED
+        from spread.baselines import graph_conditioned
 
+        GRAPH_CONDITIONED = graph_conditioned()
         rooms = self.room_types()
         suffix = re.compile(r"_k\d+$")  # generated scene <graph>_k<k> (spread.sampling.plan.SAMPLE_NAME) → graph
         records = []
         for m in self.spec.methods:
             ok = self.status.get(f"evaluate/{m}") in ("done", "skipped")
             metrics = json.loads((self.eval_dir(m) / "metrics.json").read_text()) if ok else {}
-            row = {"method_key": m, "method": LABELS[m]}
+            row = {"method_key": m, "method": label(m)}
             measured = metrics.get("grecall")
             row["grecall"] = measured if m in GRAPH_CONDITIONED else None
             row["grecall_measured"] = measured
-            for key in ("col_mesh", "asd", "stability", "fid", "kid", "still_fraction", "n_scenes", "n_objects",
-                        "fid_status"):
+            for key in (*[c.key for c in columns_of([metrics], with_set=False) if c.key != "grecall"], "fid", "kid",
+                        "still_fraction", "n_scenes", "n_objects", "fid_status"):
                 row[key] = metrics.get(key)
             if ok:
                 row.update(ci_columns(row_intervals(metrics, self.eval_dir(m))))
@@ -233,7 +257,7 @@ class Comparison(Ablation):
 
     def failure(self, method: str) -> str:
         """The first error on the method's way to its row (training, derivation, sampling, evaluation)."""
-        trained = "diffuscene" if method == "physcene" else method
+        trained = trained_from(method)
         chain = ["data", f"train/{trained}", *(["derive/physcene"] if method == "physcene" else []),
                  f"sample/{method}", f"evaluate/{method}"]
         for name in chain:
@@ -244,7 +268,7 @@ class Comparison(Ablation):
     def budget(self, method: str) -> dict:
         """Training steps and size, sampler, sampling seconds per scene, CPU seconds of this process."""
         out: dict = {}
-        trained = "diffuscene" if method == "physcene" else method
+        trained = trained_from(method)
         summary = self.train_dir(trained) / "metrics.json"
         if summary.exists():
             out["train_steps"] = json.loads(summary.read_text()).get("global_step")
@@ -280,10 +304,7 @@ class Comparison(Ablation):
             per_room = [Column(f"col_mesh/{room}", f"Col_mesh {room}", 3, "min",
                                rf"Col$_{{\text{{mesh}}}}$ {room}$\downarrow$") for room in rooms]
             return [Column("method", "Method"), *per_room, *fid, time_col]
-        return [Column("method", "Method"), Column("grecall", "GRecall", 3, "max", r"GRecall$\uparrow$"),
-                Column("col_mesh", "Col_mesh", 3, "min", r"Col$_{\text{mesh}}\downarrow$"),
-                Column("asd", "ASD (m)", 4, "min", r"ASD (m)$\downarrow$"),
-                Column("stability", "Stability", 3, "max", r"Stability$\uparrow$"), *fid, time_col]
+        return [Column("method", "Method"), *columns_of(records, with_set=False), *fid, time_col]
 
     def caption(self, records: list[dict]) -> str:
         parts = []
@@ -291,7 +312,7 @@ class Comparison(Ablation):
             steps = r.get("train_steps")
             size = r.get("model_size") or "?"
             trained = f"{size} model, {steps} training steps" if steps is not None else "given checkpoint"
-            parts.append(f"{r['method']}: {trained}; {r.get('sampler', '?')} ({NOTES[r['method_key']]})")
+            parts.append(f"{r['method']}: {trained}; {r.get('sampler', '?')} ({spec_of(r['method_key']).note or 'plugin'})")
         title = self.spec.title or f"Table 1 on {self.spec.dataset.name} ({self.spec.split} graphs, same seeds)"
         return title + ". Budget: " + "; ".join(parts) + ". GRecall is not reported for methods that do not see the graph."
 

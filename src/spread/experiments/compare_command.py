@@ -15,7 +15,7 @@ from spread.experiments.ablation_command import strings
 
 def compare_spec(cfg: DictConfig):
     """The :class:`~spread.experiments.compare.CompareSpec` of a composed ``conf/compare.yaml``."""
-    from spread.experiments.compare import METHODS, TRAINED, CompareSpec
+    from spread.experiments.compare import CompareSpec, registered, spec_of, trained_methods
 
     root = cfg.data.root
     return CompareSpec(
@@ -23,11 +23,13 @@ def compare_spec(cfg: DictConfig):
         split=str(cfg.data.split), methods=tuple(str(m) for m in cfg.methods),
         generate=strings(cfg.data.generate) + strings(cfg.data.get("extra")),
         train=strings(cfg.train.overrides) + strings(cfg.train.get("extra")),
-        train_method={m: strings(cfg.train.get(m)) for m in TRAINED},
+        train_method={m: strings(cfg.train.get(m)) if m in cfg.train else list(spec_of(m).train)
+                      for m in trained_methods()},
         ckpt={k: (None if v in (None, "") else str(v)) for k, v in (cfg.train.get("ckpt") or {}).items()},
         box_guidance=OmegaConf.to_container(cfg.physcene.box_guidance, resolve=True),
         sample=strings(cfg.sample.overrides) + strings(cfg.sample.get("extra")),
-        sample_method={m: strings(cfg.sample.get(m)) for m in METHODS},
+        sample_method={m: strings(cfg.sample.get(m)) if m in cfg.sample else list(spec_of(m).sample)
+                       for m in registered()},
         evaluate=strings(cfg.evaluate.overrides) + strings(cfg.evaluate.get("extra")),
         layout=str(cfg.layout), title=str(cfg.get("title") or ""), group=f"compare_{cfg.name}")
 

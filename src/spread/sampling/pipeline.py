@@ -79,6 +79,19 @@ def guidance_callback(guidance) -> SamplingCallback | None:
     return SamplingCallback(after=guidance.refine)
 
 
+def sampling_kind(model) -> str:
+    """How a model samples, from the method registry (its checkpoint's ``method``: ``pipeline`` through this
+    pipeline's loop and callbacks, or ``own`` through its own ``sample``); a model of no registered method:
+    ``pipeline`` when it has a ``denoiser``."""
+    from spread.baselines.registry import METHODS
+
+    hparams = getattr(model, "hparams", None) or {}
+    method = str(hparams.get("method") or ("spread" if hasattr(model, "denoiser") else ""))
+    if method in METHODS:
+        return METHODS.get(method).sampling
+    return "pipeline" if hasattr(model, "denoiser") else "own"
+
+
 def chain_hooks(hooks: Sequence[Callable]) -> Callable | None:
     """One x̂_0 hook applying ``hooks`` in order (None when there are none)."""
     hooks = [h for h in hooks if h is not None]
@@ -151,7 +164,7 @@ class ScenePipeline:
         """Poses for every source scene (one ``torch.Generator`` per scene: its noise ignores the batch)."""
         batch = self.encode(sources, paths)
         self._last_guidance = None
-        if hasattr(self.model, "denoiser"):
+        if sampling_kind(self.model) == "pipeline":
             x, mask = self.sample_states(batch, generators, self.callbacks(batch, sources))
             poses = self.model.decode(x, mask)
         else:

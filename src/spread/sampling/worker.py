@@ -57,7 +57,8 @@ def checkpoint_data_settings(ckpt: dict, model) -> dict:
     """``num_points`` and point ``seed`` the checkpoint was trained with (its data module's hyperparameters;
     the model's ``num_points`` and seed 0 when it was trained without one)."""
     hp = ckpt.get("datamodule_hyper_parameters") or {}
-    return {"num_points": int(hp.get("num_points", model.config.num_points)), "seed": int(hp.get("seed", 0))}
+    points = hp["num_points"] if "num_points" in hp else model.config.num_points
+    return {"num_points": int(points), "seed": int(hp.get("seed", 0))}
 
 
 def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = "cpu", use_ema: bool = True,

@@ -1,0 +1,154 @@
+"""Extension points from outside the repository (issue 22): ``examples/spread_plugin_example`` — a separate package
+declaring a metric (``spread.metrics``), a guidance term (``spread.guidance``) and a method (``spread.methods``) as
+entry points — is installed with pip into a folder of its own and found by the console scripts as users run them,
+with nothing in the repository edited. Also: the registries' built-ins, and their errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from helpers import FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, make_dataset, train_in_process
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "spread_plugin_example"
+
+
+@pytest.fixture(scope="module")
+def plugin_site(tmp_path_factory) -> Path:
+    """The example package installed by pip (its dist-info carries the entry points) into a fresh folder."""
+    site = tmp_path_factory.mktemp("plugin_site")
+    build = tmp_path_factory.mktemp("plugin_src")
+    shutil.copytree(EXAMPLE, build / "pkg")  # pip builds in the source tree: keep the repository clean
+    proc = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                           "--target", str(site), str(build / "pkg")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    eps = next(site.glob("spread_plugin_example-*.dist-info")) / "entry_points.txt"
+    assert "below_floor" in eps.read_text()
+    return site
+
+
+def hydra_list(key: str, *items: str) -> str:
+    """``key=["a=1","b=2"]``: a Hydra list of override strings, quoted as Hydra's grammar needs."""
+    return f"{key}=[" + ",".join(f'"{i}"' for i in items) + "]"
+
+
+def run_with_plugins(site: Path, name: str, *args: str, ok: bool = True) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONPATH": str(site), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([str(SCRIPTS / name), *args], env=env, capture_output=True, text=True, timeout=900)
+    if ok:
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
+    return proc
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("plugdata"), rooms=10, seed=5, max_objects=6)
+
+
+def sunk_scenes(dataset: Path, out: Path) -> Path:
+    """The test scenes with their first object lowered 10 cm into the floor (known answer: 1 object each)."""
+    from spread.scene import list_scene_files, read_scene, write_scene
+
+    out.mkdir(parents=True)
+    for path in list_scene_files(dataset / "test"):
+        scene = read_scene(path)
+        t = scene.translation.copy()
+        t[0, 1] -= 0.10 + float(t[0, 1])  # centre 10 cm below y = 0: its hull is surely below the floor
+        write_scene(scene.with_poses(t, scene.rotation), out / path.name)
+    return out
+
+
+def test_a_plugin_metric_is_selected_by_name_in_spread_evaluate(plugin_site, dataset, tmp_path):
+    scenes = sunk_scenes(dataset, tmp_path / "scenes")
+    out = tmp_path / "eval"
+    proc = run_with_plugins(plugin_site, "spread-evaluate", f"scenes={scenes}", f"reference={dataset}", f"out_dir={out}",
+                            "metrics=[grecall,below_floor]", "logger=none", "fid.enabled=false", "renders=0",
+                            "progress=false", "ray.num_cpus=1")
+    metrics = json.loads((out / "metrics.json").read_text())
+    n_objects = metrics["n_objects"]
+    n = metrics["n_evaluated"]
+    assert metrics["below_floor"] == pytest.approx(n / n_objects)  # one sunk object per scene
+    assert metrics["below_floor_lo"] <= metrics["below_floor"] <= metrics["below_floor_hi"]
+    assert "col_mesh" not in metrics and metrics["protocol"]["metrics"] == ["grecall", "below_floor"]
+    lines = [json.loads(x) for x in (out / "per_scene.jsonl").read_text().splitlines()]
+    assert all(r["below_floor"] == pytest.approx(1 / r["num_objects"]) for r in lines)
+    assert "Below floor" in proc.stdout  # the console table shows it under its column name
+    # without the plugin installed, the name is refused in one line that lists the known metrics
+    bad = subprocess.run([str(SCRIPTS / "spread-evaluate"), f"scenes={scenes}", f"reference={dataset}",
+                          f"out_dir={tmp_path / 'x'}", "metrics=[grecall,below_floor]", "logger=none"],
+                         env={**os.environ, "WANDB_MODE": "disabled"}, capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "unknown metric 'below_floor'" in bad.stderr and "oob" in bad.stderr
+
+
+@pytest.fixture(scope="module")
+def checkpoint(dataset, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("plugrun") / "run"
+    train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.max_time=null", "trainer.max_steps=2",
+                     *SMALL_MODEL, *FAST_TRAIN)
+    return out / "checkpoints" / "last.ckpt"
+
+
+def scene_files(folder: Path) -> dict:
+    from spread.scene import list_scene_files, read_scene
+
+    return {p.name: read_scene(p) for p in list_scene_files(folder)}
+
+
+def test_a_plugin_guidance_term_is_switched_on_by_name_in_spread_sample(plugin_site, dataset, checkpoint, tmp_path):
+    common = [f"ckpt={checkpoint}", f"data.root={dataset}", *FAST_SAMPLE, "seed=1"]
+    run_with_plugins(plugin_site, "spread-sample", *common, f"out_dir={tmp_path / 'plain'}")
+    run_with_plugins(plugin_site, "spread-sample", *common, f"out_dir={tmp_path / 'pushed'}", "guidance=paper",
+                     "guidance.collision=0", "guidance.gravity=0", "guidance.relation=0", "+guidance.terms.floor_push=0.5")
+    plain, pushed = scene_files(tmp_path / "plain" / "scenes"), scene_files(tmp_path / "pushed" / "scenes")
+    assert plain.keys() == pushed.keys() and plain
+    moved = [not np.allclose(plain[k].translation, pushed[k].translation) for k in plain]
+    assert any(moved)  # only the plugin term has a weight: it is what moved the objects
+    record = json.loads((tmp_path / "pushed" / "sampling.json").read_text())
+    assert record["guidance"]["terms"] == {"floor_push": 0.5}
+
+
+def test_a_plugin_method_is_a_row_of_spread_compare(plugin_site, dataset, tmp_path):
+    from spread.data.stats import load_stats
+
+    bounds = list(load_stats(dataset / "stats.json")["bounds_translations"])
+    ckpt = tmp_path / "jitter.ckpt"
+    torch.save({"hyper_parameters": {"method": "jitter_truth", "bounds": [float(b) for b in bounds], "sigma": 0.02},
+                "state_dict": {"bounds": torch.tensor([float(b) for b in bounds])},
+                "datamodule_hyper_parameters": {"num_points": 32, "seed": 0}}, ckpt)
+    out = tmp_path / "compare"
+    run_with_plugins(plugin_site, "spread-compare", f"data.root={dataset}", f"out_dir={out}", "methods=[jitter_truth]",
+                     f"+train.ckpt.jitter_truth={ckpt}", "logger=none",
+                     hydra_list("sample.overrides", "sampler=ddim50", "seed=0", "samples_per_graph=1", "workers=0",
+                                "renders=0", "progress=false"),
+                     hydra_list("evaluate.overrides", "seed=0", "logger=none", "protocol.stability_runs=1",
+                                "fid.enabled=false", "renders=0", "ray.num_cpus=1", "progress=false"))
+    from spread.experiments.tables import read_csv
+
+    rows = read_csv(out / "table1.csv")
+    assert [r["method_key"] for r in rows] == ["jitter_truth"] and rows[0]["status"] == "ok"
+    assert rows[0]["method"] == "Jittered ground truth" and 0.5 < rows[0]["grecall"] <= 1.0
+
+
+def test_registries_list_the_built_ins_and_name_unknown_entries():
+    from spread.baselines.registry import method_names
+    from spread.guidance.terms import term_names
+    from spread.metrics.registry import METRICS, default_metric_names, selected_metrics
+    from spread.registry import RegistryError
+
+    assert default_metric_names() == ["col_mesh", "grecall", "asd", "stability"]
+    assert {"col_mesh", "grecall", "asd", "stability", "oob"} <= set(METRICS.names())
+    assert METRICS.get("asd").unit == "mm" and METRICS.get("asd").scale == 1000.0
+    assert term_names()[:3] == ["collision", "gravity", "relation"]
+    assert method_names()[:5] == ["atiss", "diffuscene", "physcene", "instructscene", "spread"]
+    with pytest.raises(RegistryError, match="unknown metric 'nope'.*col_mesh"):
+        selected_metrics(["nope"])
+    with pytest.raises(RegistryError, match="named twice"):
+        selected_metrics(["grecall", "grecall"])

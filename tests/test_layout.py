@@ -29,7 +29,7 @@ FLOORS = (
     ("physics", "relations"),
     ("scene",),
     ("assets",),
-    ("io", "safe_load"),
+    ("io", "safe_load", "registry"),
 )
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}
 
@@ -85,3 +85,82 @@ def test_the_checker_sees_a_climbing_import(tmp_path):
     bad = tmp_path / "bad.py"
     bad.write_text("def f():\n    from spread.cli.train import main\n    import spread.experiments.commands\n")
     assert [t for _, t in spread_imports(bad)] == ["cli", "experiments"]
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def module_graph() -> dict[str, set[str]]:
+    """spread module → the spread modules it imports (function-level imports included); ``from p import x``
+    counts as an import of ``p.x`` when that is a module, else of ``p``."""
+    paths = {module_name(p): p for p in ROOT.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in paths.items():
+        edges = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            targets = []
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and node.module.startswith("spread"):
+                subs = [f"{node.module}.{a.name}" for a in node.names if f"{node.module}.{a.name}" in paths]
+                targets = subs or [node.module]
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names if a.name.startswith("spread")]
+            edges |= {t for t in targets if t in paths and t != name}
+        graph[name] = edges
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    import sys
+
+    sys.setrecursionlimit(10_000)
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circle_between_modules_function_level_imports_included():
+    """No module imports (at any depth, inside functions too) a module that imports it back; a package's
+    ``__init__`` re-exporting its modules counts only where one of them imports the package itself back."""
+    graph = module_graph()
+    # a module importing its own package's __init__ (which re-exports it) is a circle too: none is allowed
+    found = circles(graph)
+    assert not found, "import circles:\n" + "\n".join(" ↔ ".join(c) for c in found)
+
+
+def test_the_circle_finder_finds_a_planted_circle_and_the_old_physics_one():
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    graph = module_graph()
+    graph["spread.physics.mjcf"].add("spread.physics.mujoco_world")  # the function-level import issue 22 found
+    assert ["spread.physics.mjcf", "spread.physics.mujoco_world"] in circles(graph) or \
+        any({"spread.physics.mjcf", "spread.physics.mujoco_world"} <= set(c) for c in circles(graph))

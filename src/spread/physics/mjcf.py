@@ -151,7 +151,7 @@ def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False,
     no mass), for viewers and export, coloured by ``colours`` (N, 4) RGBA in [0, 1] if given. ``names``: body
     names (default ``o<index>_<asset_id>``, made safe for XML ids). Masses: the asset records' (kg), inertia from the watertight mesh at uniform density.
     """
-    from spread.physics.mujoco_world import MujocoParams
+    from spread.physics.params import MujocoParams
 
     if up not in ("y", "z"):
         raise ValueError(f"scene_mjcf: up must be 'y' or 'z', got {up!r}")

@@ -16,66 +16,9 @@ MuJoCo is imported only when a world is created.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-
-@dataclass(frozen=True)
-class MujocoParams:
-    """MuJoCo settings of the Stability world (SI units). Chosen so the known answers hold
-    (``tests/test_mujoco.py``) and measured against pybullet (benchmarks/RESULTS.md).
-
-    gravity: m/s² along −up. time_step: s, one internal step (the protocol's 1/60 s is split into
-        ``round(dt / time_step)`` of them, as for pybullet).
-    integrator: ``implicitfast`` (stable with stiff contacts, MuJoCo's recommendation for rigid bodies).
-    solver / iterations / tolerance: the constraint solver (Newton converges in a few iterations).
-    cone: ``pyramidal`` friction cone, as Bullet's default friction pyramid.
-    friction / floor_friction: Coulomb coefficient between two objects / an object and the floor. MuJoCo
-        takes the larger of two geoms' coefficients; the floor has priority, so its value is used as is.
-    torsional_friction / rolling_friction: m, used only with ``condim`` 4 / 6.
-    condim: 3 = sliding friction only (MuJoCo's default).
-    solref / solimp: MuJoCo's soft-contact reference (time constant s, damping ratio) and impedance. The
-        time constant is half MuJoCo's default 0.02 s: measured on ground-truth rooms (benchmarks/RESULTS.md),
-        0.02 s lets resting objects creep (1.7 % of objects moved ≥ 1 cm) where 0.01 s keeps them; a resting
-        body sinks ≈ 0.1 mm into its support. MuJoCo raises it to 2 internal steps when the step is longer
-        (``refsafe``), e.g. to 0.033 s with one internal step of 1/60 s.
-    noslip_iterations: extra iterations of the no-slip solver (0: off).
-    refsafe: MuJoCo raises a contact time constant below 2 internal steps to 2 steps (its default, on).
-    multiccd: several contact points per pair of convex meshes (MuJoCo's default, on): flat faces rest
-        on a face, not on one point.
-    ccd_iterations / ccd_tolerance: the convex collision (GJK/EPA) iteration cap and tolerance, m.
-    threads: threads that step one scene's runs together (``mujoco.rollout``); 1: a plain loop.
-    sleep: MuJoCo's sleeping islands (MuJoCo ≥ 3.4): a group of touching bodies whose every velocity (angular
-        ones times the body's size) stays under ``sleep_tolerance`` m/s for 10 internal steps is frozen and
-        skipped by collision and solver until an awake body touches it. A run whose bodies are all asleep
-        cannot change any more, so it ends there (:meth:`MujocoWorld.simulate`). With sleep on, runs are
-        stepped one after another (``threads`` is not used: the sleep state is not part of a rollout's state).
-    sleep_tolerance: m/s, MuJoCo's default 1e-3.
-    """
-
-    gravity: float = 9.81
-    time_step: float = 1.0 / 240.0
-    integrator: str = "implicitfast"
-    solver: str = "Newton"
-    iterations: int = 50
-    tolerance: float = 1e-8
-    cone: str = "pyramidal"
-    friction: float = 0.6
-    floor_friction: float = 0.6
-    torsional_friction: float = 0.005
-    rolling_friction: float = 1e-4
-    condim: int = 3
-    solref: tuple[float, float] = (0.01, 1.0)
-    solimp: tuple[float, float, float, float, float] = (0.9, 0.95, 0.001, 0.5, 2.0)
-    noslip_iterations: int = 0
-    refsafe: bool = True
-    multiccd: bool = True
-    ccd_iterations: int = 35
-    ccd_tolerance: float = 1e-6
-    threads: int = 1
-    sleep: bool = False
-    sleep_tolerance: float = 1e-3
+from spread.physics.params import MujocoParams  # noqa: F401  (defined beside the other engines' parameters)
 
 
 def _route_warnings(mujoco) -> None:

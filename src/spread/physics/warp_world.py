@@ -39,7 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spread.physics.mujoco_world import MujocoParams, MujocoWorld
+from spread.physics.mujoco_world import MujocoWorld
+from spread.physics.params import MujocoParams
 
 log = logging.getLogger("spread.physics.warp")
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import threading
 
-from spread.physics.mujoco_world import MujocoParams
+from spread.physics.params import MujocoParams
 from spread.physics.params import PhysicsParams
 from spread.physics.warp_world import MujocoWarpParams
 

@@ -31,8 +31,11 @@ from spread.metrics.fid import DEFAULT_FEATURE_MODEL
 #: (``protocol.stability_substeps``), recorded in ``metrics.json``, never the default.
 STABILITY_SUBSTEPS = 4
 
-#: Stability engines (``protocol.physics``).
-PHYSICS_ENGINES = ("pybullet", "mujoco", "mujoco_warp")
+def physics_engines() -> list[str]:
+    """The Stability engines ``protocol.physics`` may name (the registry :mod:`spread.physics.engines`)."""
+    from spread.physics.engines import ENGINES
+
+    return ENGINES.names()
 
 
 
@@ -94,8 +97,8 @@ class EvalProtocol:
                              f"{self.stability_runs}, {self.stability_steps}, {self.stability_substeps}")
         if not self.stability_dt > 0 or self.stability_jitter < 0 or not self.collision_threshold > 0:
             raise ValueError("stability_dt and collision_threshold must be > 0 and stability_jitter ≥ 0")
-        if self.physics not in PHYSICS_ENGINES:
-            raise ValueError(f"protocol.physics must be one of {PHYSICS_ENGINES}, got {self.physics!r}")
+        if self.physics not in physics_engines():
+            raise ValueError(f"protocol.physics must be one of {physics_engines()}, got {self.physics!r}")
         if self.physics_sleep and self.physics != "mujoco":
             raise ValueError(f"protocol.physics_sleep=true needs protocol.physics=mujoco (got {self.physics!r}: "
                              "only C MuJoCo's runs have sleeping islands here)")
@@ -108,13 +111,12 @@ class EvalProtocol:
         :class:`~spread.physics.PhysicsParams`, :class:`~spread.physics.MujocoParams` or
         :class:`~spread.physics.MujocoWarpParams`, defaults with the internal step
         ``stability_dt / stability_substeps`` seconds."""
-        from spread.physics import MujocoParams, MujocoWarpParams, PhysicsParams
+        from spread.physics.engines import ENGINES
 
         step = self.stability_dt / self.stability_substeps
         if self.physics == "mujoco":
-            return MujocoParams(time_step=step, sleep=self.physics_sleep)
-        engine = {"mujoco_warp": MujocoWarpParams}.get(self.physics, PhysicsParams)
-        return engine(time_step=step)
+            return ENGINES.get("mujoco").params(time_step=step, sleep=self.physics_sleep)
+        return ENGINES.get(self.physics).params(time_step=step)
 
     def build_metrics(self) -> dict:
         """Fresh torchmetrics aggregates of the selected :attr:`metrics`, by name, configured by this protocol

@@ -38,7 +38,7 @@ from spread.importers.base import SPLITS, AssetRequest, RoomRef, error_record
 from spread.io import append_jsonl, read_jsonl, write_json_atomic
 
 IMPORTER_VERSION = "spread-import-1"
-SOURCES = ("spread_release", "threed_front")
+SOURCES = ("spread_release", "threed_front")  # the built-in importers (every one: spread.importers.registry)
 
 
 @dataclass
@@ -70,16 +70,13 @@ class ImportConfig:
 
 
 def make_source(cfg: ImportConfig):
-    """The :class:`~spread.importers.base.Source` named by ``cfg.source``."""
-    if cfg.source == "spread_release":
-        from spread.importers.spread_release import SpreadRelease
+    """The :class:`~spread.importers.base.Source` named by ``cfg.source`` (the importer registry,
+    :mod:`spread.importers.registry`: ``spread_release``, ``threed_front`` and plugins)."""
+    from spread.importers.registry import IMPORTERS
 
-        return SpreadRelease(cfg.src, room_type=cfg.room_type, val_fraction=cfg.val_fraction)
-    if cfg.source == "threed_front":
-        from spread.importers.threed_front import ThreedFront
-
-        return ThreedFront(cfg.src, cfg.splits, cfg.room_type, cfg.future_models, cfg.val_fraction)
-    raise ValueError(f"source={cfg.source!r}: expected one of {', '.join(SOURCES)}")
+    if cfg.source not in IMPORTERS:
+        raise ValueError(f"source={cfg.source!r}: expected one of {', '.join(IMPORTERS.names())}")
+    return IMPORTERS.get(cfg.source)(cfg)
 
 
 # ---- worker side ---------------------------------------------------------------------------------

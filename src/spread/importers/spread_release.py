@@ -36,6 +36,7 @@ import numpy as np
 from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record
 from spread.io import read_json_object, safe_name
 from spread.scene import SceneFormatError, load_npz_arrays, reference_scene
+from spread.importers.registry import register_importer
 
 SPLIT_FILE = "train_test_split.json"
 #: Objects whose ``bbox_center`` and mesh bbox centre differ by more than this (metres) are counted.
@@ -149,3 +150,7 @@ class SpreadRelease(Source):
 def read_dataset_stats(path: Path) -> dict | None:
     """The source's ``dataset_stats.txt`` (JSON) or None when absent; errors name the file."""
     return read_json_object(path) if path.is_file() else None
+
+
+register_importer("spread_release", lambda cfg: SpreadRelease(cfg.src, room_type=cfg.room_type,
+                                                              val_fraction=cfg.val_fraction))

@@ -44,6 +44,7 @@ from spread.scene import (
     SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT, SPATIAL_SELF, Scene,
     SceneFormatError, load_npz_arrays,
 )
+from spread.importers.registry import register_importer
 
 ROOM_TYPES = ("bedroom", "livingroom", "diningroom")
 #: InstructScene's predicate vocabulary (index order) → our spatial codes (DESIGN §3).
@@ -286,3 +287,7 @@ class ThreedFront(Source):
 
 
 __all__ = ["ThreedFront", "read_splits", "rotation_y", "error_record"]
+
+
+register_importer("threed_front", lambda cfg: ThreedFront(cfg.src, cfg.splits, cfg.room_type, cfg.future_models,
+                                                          cfg.val_fraction))

@@ -1,6 +1,7 @@
 """One physics world per worker process (Ray task, multiprocessing pool): created on first use.
 
-The engine follows the params: :class:`~spread.physics.PhysicsParams` (or none) gives a pybullet
+The engine follows the params' type (the engine registry, :mod:`spread.physics.engines`; plugins too):
+:class:`~spread.physics.PhysicsParams` (or none) gives a pybullet
 :class:`~spread.physics.world.PhysicsWorld`, :class:`~spread.physics.MujocoParams` a
 :class:`~spread.physics.mujoco_world.MujocoWorld`, :class:`~spread.physics.MujocoWarpParams` (a subclass) a
 :class:`~spread.physics.warp_world.MujocoWarpWorld` (batched runs, GPU or CPU).
@@ -14,8 +15,7 @@ from __future__ import annotations
 import os
 import threading
 
-from spread.physics.params import MujocoParams
-from spread.physics.params import PhysicsParams
+from spread.physics.params import MujocoParams, PhysicsParams
 from spread.physics.warp_world import MujocoWarpParams
 
 _local = threading.local()
@@ -35,17 +35,8 @@ def get_world(params: PhysicsParams | MujocoParams | MujocoWarpParams | None = N
         world.close()
         world = None
     if world is None:
-        if isinstance(params, MujocoWarpParams):
-            from spread.physics.warp_world import MujocoWarpWorld
+        from spread.physics.engines import engine_of
 
-            world = MujocoWarpWorld(params)
-        elif isinstance(params, MujocoParams):
-            from spread.physics.mujoco_world import MujocoWorld
-
-            world = MujocoWorld(params)
-        else:
-            from spread.physics.world import PhysicsWorld
-
-            world = PhysicsWorld(params)
+        world = engine_of(params if params is not None else PhysicsParams()).world_class()(params)
         _local.world, _local.pid = world, os.getpid()
     return world

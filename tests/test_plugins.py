@@ -81,6 +81,14 @@ def test_a_plugin_metric_is_selected_by_name_in_spread_evaluate(plugin_site, dat
     lines = [json.loads(x) for x in (out / "per_scene.jsonl").read_text().splitlines()]
     assert all(r["below_floor"] == pytest.approx(1 / r["num_objects"]) for r in lines)
     assert "Below floor" in proc.stdout  # the console table shows it under its column name
+    # a plugin engine by name: nothing moves in it, so even the sunk scenes keep every relation
+    still = tmp_path / "static"
+    run_with_plugins(plugin_site, "spread-evaluate", f"scenes={scenes}", f"reference={dataset}", f"out_dir={still}",
+                     "metrics=[stability]", "protocol.physics=static", "protocol.stability_runs=2", "logger=none",
+                     "fid.enabled=false", "renders=0", "progress=false", "ray.num_cpus=1")
+    static = json.loads((still / "metrics.json").read_text())
+    assert static["stability"] == 1.0 and static["still_fraction"] == 1.0
+    assert static["protocol"]["physics"] == "static"
     # without the plugin installed, the name is refused in one line that lists the known metrics
     bad = subprocess.run([str(SCRIPTS / "spread-evaluate"), f"scenes={scenes}", f"reference={dataset}",
                           f"out_dir={tmp_path / 'x'}", "metrics=[grecall,below_floor]", "logger=none"],

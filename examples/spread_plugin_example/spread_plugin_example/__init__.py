@@ -8,6 +8,7 @@
   Σ relu(−y) per scene; weighed by ``guidance.terms.floor_push``.
 * ``jitter_truth`` (``spread.methods``): a "method" that returns each conditioning scene's own poses moved by
   N(0, σ) metres — a sanity baseline that needs no training, only a checkpoint holding its hyper-parameters.
+* ``static`` (``spread.physics``): a Stability engine in which nothing moves (``protocol.physics=static``).
 """
 
 from __future__ import annotations
@@ -98,3 +99,49 @@ class JitterTruth(LightningModule):
 
 JITTER_TRUTH = MethodSpec("jitter_truth", JitterTruth, label="Jittered ground truth", sampling="own",
                           graph_conditioned=True, note="ground-truth poses + N(0, σ) on x, z (no training)")
+
+
+# ---- a physics engine ------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StaticParams:
+    """A world in which nothing moves (s): the protocol's plumbing without physics, e.g. to time the rest."""
+
+    time_step: float = 1.0 / 240.0
+
+
+class StaticWorld:
+    """The interface :func:`spread.physics.simulate_runs` drives, with ``step`` a no-op: every object stays where
+    it was put, so Stability is 1 for any scene."""
+
+    def __init__(self, params: StaticParams | None = None):
+        self.params = params or StaticParams()
+        self.time_step = self.params.time_step
+        self._poses = None
+
+    def set_time_step(self, dt: float) -> None:
+        self.time_step = float(dt)
+
+    def load_scene(self, scene, library) -> None:
+        self._poses = (np.asarray(scene.translation, float).copy(), np.asarray(scene.rotation, float).copy())
+
+    def set_poses(self, translation, rotation) -> None:
+        self._poses = (np.asarray(translation, float).copy(), np.asarray(rotation, float).copy())
+
+    def step(self, n: int = 1) -> None:
+        pass
+
+    def poses(self):
+        return self._poses
+
+    def close(self) -> None:
+        self._poses = None
+
+
+def _static_engine():
+    from spread.physics.engines import EngineSpec
+
+    return EngineSpec("static", StaticParams, StaticWorld, "nothing moves (protocol plumbing without physics)")
+
+
+STATIC_ENGINE = _static_engine()

@@ -72,15 +72,43 @@ def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueErro
 def append_jsonl(path: str | os.PathLike, record: dict) -> None:
     """Append one JSON line and fsync it: a killed job keeps every line already appended.
 
-    A torn last line (the process died mid-write) is skipped by :func:`read_jsonl`.
+    A torn last line (the process died mid-write) is skipped by :func:`read_jsonl`. The file is opened
+    without following a symbolic link (``O_NOFOLLOW``): a link planted at ``path`` is refused naming it, and
+    the file it points to is never written.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     line = json.dumps(record) + "\n"
-    with open(path, "a", encoding="utf-8") as fh:
+    fd = open_append_nofollow(path)
+    with os.fdopen(fd, "a", encoding="utf-8") as fh:
         fh.write(line)
         fh.flush()
         os.fsync(fh.fileno())
+
+
+class UnsafeOutputError(OSError):
+    """An output path that is not the platform's to write: a symbolic link, a device, a FIFO."""
+
+
+def open_append_nofollow(path: str | os.PathLike) -> int:
+    """A file descriptor of ``path`` opened for appending (created 0666 − umask when absent), never through a
+    symbolic link and never a device or FIFO: :class:`UnsafeOutputError` naming the file otherwise."""
+    path = Path(path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as exc:
+        if path.is_symlink():
+            raise UnsafeOutputError(f"{path}: a symbolic link (to {os.readlink(path)}); the platform writes its "
+                                    f"run files only as plain files inside the run folder: remove the link") from None
+        raise
+    import stat
+
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise UnsafeOutputError(f"{path}: not a regular file; the platform appends only to plain files")
+    os.set_blocking(fd, True)
+    return fd
 
 
 def read_jsonl(path: str | os.PathLike) -> list[dict]:
@@ -102,15 +130,85 @@ def read_jsonl(path: str | os.PathLike) -> list[dict]:
 
 
 def file_sha256(*paths: str | os.PathLike) -> str:
-    """Hex SHA-256 of the files' bytes, concatenated in order (one file: its ordinary sha256)."""
+    """Hex SHA-256 of the files' bytes, concatenated in order (one file: its ordinary sha256). Each must be a
+    regular file (:func:`check_input_file` without a size limit): a device or FIFO is refused, not read."""
     import hashlib
 
     h = hashlib.sha256()
     for p in paths:
+        check_input_file(p, max_bytes=0)
         with open(p, "rb") as fh:
             for chunk in iter(lambda: fh.read(1 << 20), b""):
                 h.update(chunk)
     return h.hexdigest()
+
+
+class InputFileError(ValueError):
+    """An input that is not safe to read: not a regular file (a device, a FIFO, a folder), a symbolic link
+    that leaves its folder, or larger than the per-file limit. The message names the file and the way out."""
+
+
+#: Environment variable that overrides :data:`DEFAULT_MAX_INPUT_MB` (megabytes; 0 or less: no limit).
+MAX_INPUT_ENV = "SPREAD_MAX_INPUT_MB"
+#: Largest input file (scene ``.npz``, graph) read by default, in MB: a scene of a few hundred objects is
+#: well under 1 MB, so this leaves room for large scenes with precomputed extras.
+DEFAULT_MAX_INPUT_MB = 256.0
+
+
+def max_input_bytes() -> int:
+    """The per-file size limit in bytes (:data:`MAX_INPUT_ENV`, else :data:`DEFAULT_MAX_INPUT_MB`); 0: none."""
+    raw = os.environ.get(MAX_INPUT_ENV, "").strip()
+    try:
+        mb = float(raw) if raw else DEFAULT_MAX_INPUT_MB
+    except ValueError:
+        raise InputFileError(f"{MAX_INPUT_ENV}={raw!r}: not a number of megabytes") from None
+    return int(mb * 2 ** 20) if mb > 0 else 0
+
+
+def _kind(mode: int) -> str:
+    import stat
+
+    for test, name in ((stat.S_ISDIR, "folder"), (stat.S_ISCHR, "character device"),
+                       (stat.S_ISBLK, "block device"), (stat.S_ISFIFO, "FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "socket")):
+        if test(mode):
+            return name
+    return "special file"
+
+
+def check_input_file(path: str | os.PathLike, root: str | os.PathLike | None = None,
+                     max_bytes: int | None = None) -> Path:
+    """``path`` once it is safe to read, else :class:`InputFileError` naming it (before anything is opened,
+    so a FIFO or ``/dev/zero`` never blocks or streams):
+
+    * it exists and is a regular file (a symbolic link to one counts, see ``root``);
+    * a symbolic link must resolve inside ``root`` (a folder; None: no containment check), so a link in a
+      scenes folder cannot pull in ``/dev/zero`` or a file of another tree;
+    * its size is at most ``max_bytes`` (None: :func:`max_input_bytes`; 0: no limit).
+    """
+    import stat
+
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        raise InputFileError(f"{path}: file does not exist") from None
+    if stat.S_ISLNK(st.st_mode):
+        target = path.resolve()
+        if root is not None and not target.is_relative_to(Path(root).resolve()):
+            raise InputFileError(f"{path}: a symbolic link to {target}, outside {root}; refused (copy the file "
+                                 f"into the folder instead of linking it)")
+        try:
+            st = os.stat(path)
+        except OSError as exc:
+            raise InputFileError(f"{path}: a broken symbolic link ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise InputFileError(f"{path}: not a regular file (a {_kind(st.st_mode)}); refused")
+    limit = max_input_bytes() if max_bytes is None else int(max_bytes)
+    if limit > 0 and st.st_size > limit:
+        raise InputFileError(f"{path}: {st.st_size / 2 ** 20:.1f} MB, over the {limit / 2 ** 20:.0f} MB limit for "
+                             f"one input file; set {MAX_INPUT_ENV}=<megabytes> to raise it (0: no limit)")
+    return path
 
 
 #: Characters a :func:`safe_name` keeps as they are (portable file-name characters).

@@ -21,7 +21,7 @@ def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
     """Aggregates (name → metric) with every good record's per-scene states merged in."""
     metrics = protocol.metrics()
     for record in records:
-        if record.get("error"):
+        if not usable(record):
             continue
         for name in METRIC_NAMES:
             metric = metrics[name]
@@ -29,6 +29,16 @@ def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
             metric.merge_state({k: torch.as_tensor(state[k], dtype=getattr(metric, k).dtype)
                                 for k in metric.metric_state})
     return metrics
+
+
+def usable(record: dict) -> bool:
+    """Whether a ``per_scene.jsonl`` record enters the aggregates: no error and a finite state for every metric
+    (a hand-edited or damaged line with a NaN, a string or a missing metric is left out, as a failure)."""
+    from spread.evaluation.work import nonfinite_state
+
+    state = record.get("state")
+    return (not record.get("error") and isinstance(state, dict) and set(METRIC_NAMES) <= set(state)
+            and nonfinite_state(state) is None)
 
 
 def as_float(value) -> float | None:
@@ -41,7 +51,7 @@ def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
     """The four metrics, the still shares and the counts over deduplicated ``records``."""
     metrics = merge_records(records, protocol)
     stability = metrics["stability"].compute()
-    good = [r for r in records if not r.get("error")]
+    good = [r for r in records if usable(r)]
     return {
         "col_mesh": as_float(metrics["col_mesh"].compute()),
         "grecall": as_float(metrics["grecall"].compute()),
@@ -53,6 +63,8 @@ def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
         "n_scenes": len(records),
         "n_evaluated": len(good),
         "n_failed": len(records) - len(good),
+        "n_implausible": sum(r.get("error_type") == "ImplausibleSceneError" for r in records),
+        "n_refused_inputs": sum(r.get("error_type") == "InputFileError" for r in records),
         "n_objects": int(sum(r["num_objects"] for r in good)),
         "n_colliding_objects": int(metrics["col_mesh"].colliding_objects),
         "n_support_pairs": int(metrics["asd"].pairs),

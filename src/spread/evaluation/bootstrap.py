@@ -46,7 +46,9 @@ FEW = 5
 
 def scene_sums(records: Iterable[dict]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """metric → (numerators (n,), denominators (n,)) of the good records (those without ``error``), in order."""
-    good = [r for r in records if not r.get("error")]
+    from spread.evaluation.aggregate import usable
+
+    good = [r for r in records if usable(r)]
     out = {}
     for metric, (block, num, den) in RATIOS.items():
         try:

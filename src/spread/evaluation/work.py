@@ -106,6 +106,18 @@ def scene_states(results: dict, protocol: EvalProtocol) -> dict:
     return states
 
 
+def nonfinite_state(states) -> str | None:
+    """The first ``metric.state`` of a record's ``state`` that is missing, not a number or not finite
+    (NaN, ±inf, or None after :func:`finite_or_none`), or None when every value is a finite number."""
+    for name, state in (states or {}).items():
+        for key, value in (state or {}).items():
+            values = np.asarray(value if value is not None else np.nan, dtype=object).reshape(-1)
+            for v in values:
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                    return f"{name}.{key}"
+    return None
+
+
 def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, extractor=None) -> dict:
     """Every metric of one scene file (module docstring); never raises for a bad scene."""
     from spread.metrics import (
@@ -119,7 +131,7 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
     record = {"scene_id": scene_key(path), "file": str(path), **where_am_i()}
     try:
         record["input_sha256"] = file_sha256(path)  # what this record was measured on (resume compares it)
-    except OSError:
+    except (OSError, ValueError):  # missing, or not a regular file: read_scene below names the problem
         record["input_sha256"] = None
     seconds: dict[str, float] = {}
 
@@ -144,6 +156,11 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         if extractor is not None:
             image = timed("fid_render", fid_render, scene, library)
             features = timed("fid_features", extractor, image[None])[0]
+        states = scene_states(results, protocol)
+        bad = nonfinite_state(states)
+        if bad:
+            raise FloatingPointError(f"{path}: metric state {bad} is not finite; the scene is left out of every "
+                                     f"aggregate")
     except Exception as exc:  # a scene that cannot be measured is reported, and the run goes on
         record.update(error=f"{type(exc).__name__}: {exc}", error_type=type(exc).__name__,
                       traceback=traceback.format_exc(limit=4)[-2000:], seconds=seconds)
@@ -161,7 +178,7 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         "displacement_ok_fraction": sum(stability.displacement_ok) / (stability.num_objects * stability.runs),
         "rotation_ok_fraction": sum(stability.rotation_ok) / (stability.num_objects * stability.runs),
         "details": {name: r.to_dict() for name, r in results.items()},
-        "state": scene_states(results, protocol),
+        "state": states,
         "fid_features": None if features is None else np.asarray(features, np.float64).tolist(),
         "seconds": seconds,
         "error": None,

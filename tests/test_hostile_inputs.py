@@ -1,0 +1,190 @@
+"""Hostile and damaged inputs, round 3 (docs/robustness.md, issue 26): nothing hangs, nothing poisons an
+aggregate, one bad file never stops a run, every refusal names its file, checkpoints load under one policy,
+run folders are the platform's.
+
+Payloads in these tests only create a marker file; the marker must never appear.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spread.io import InputFileError, check_input_file, file_sha256
+from spread.scene import ImplausibleSceneError, SceneFormatError, list_scene_files, read_scene, write_scene
+
+from helpers import FAST_TRAIN, SMALL_MODEL, make_dataset, train_in_process
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("hostile"), rooms=12)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(dataset, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("hostilerun") / "run"
+    train_in_process(out, "experiment=quick", f"data.root={dataset}", "trainer.max_time=null", "trainer.max_steps=2",
+                     *SMALL_MODEL, *FAST_TRAIN)
+    return out / "checkpoints" / "last.ckpt"
+
+
+class within:
+    """Fail (instead of hanging the suite) when the block takes longer than ``seconds``."""
+
+    def __init__(self, seconds: int):
+        self.seconds = seconds
+
+    def __enter__(self):
+        def expire(*_):
+            raise TimeoutError(f"still running after {self.seconds} s")
+
+        self.old = signal.signal(signal.SIGALRM, expire)
+        signal.alarm(self.seconds)
+        self.started = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, self.old)
+        self.elapsed = time.perf_counter() - self.started
+
+
+def write_zip_not_npz(path: Path) -> None:
+    """A zip whose members carry the scene keys' names but are not ``.npy`` files (numpy returns raw bytes)."""
+    with zipfile.ZipFile(path, "w") as z:
+        for key in ("scene_id", "asset_id", "category", "translation", "rotation", "spatial", "physical"):
+            z.writestr(key, b"not an array")
+
+
+def hostile_files(folder: Path, good) -> dict[str, str]:
+    """Plant every kind of bad scene file in ``folder``; returns file stem → words its error must hold."""
+    (folder / "zero.npz").symlink_to("/dev/zero")
+    os.mkfifo(folder / "fifo.npz")
+    write_zip_not_npz(folder / "zipped.npz")
+    far = good.with_poses(good.translation.copy(), good.rotation, scene_id="far")
+    far.translation[0, 0] = 1e30
+    write_scene(far, folder / "far.npz", validate=False)
+    away = good.with_poses(good.translation + np.float32([2e5, 0, 0]), good.rotation, scene_id="away")
+    write_scene(away, folder / "away.npz", validate=False)
+    return {"zero": "symbolic link to /dev/zero", "fifo": "FIFO", "zipped": "not an .npz of arrays",
+            "far": "implausible", "away": "beyond ±1000 m"}
+
+
+# ---- 1. bounded reading ----------------------------------------------------------------------------------
+
+def test_a_dev_zero_link_a_fifo_and_an_oversized_file_are_refused_by_name_within_a_second(tmp_path, monkeypatch):
+    (tmp_path / "zero.npz").symlink_to("/dev/zero")
+    os.mkfifo(tmp_path / "fifo.npz")
+    with within(5) as clock:
+        with pytest.raises(InputFileError, match=r"zero.npz: a symbolic link to /dev/zero, outside"):
+            check_input_file(tmp_path / "zero.npz", root=tmp_path)
+        with pytest.raises(InputFileError, match=r"zero.npz: not a regular file \(a character device\)"):
+            file_sha256(tmp_path / "zero.npz")  # what spread-evaluate hashed for ever
+        with pytest.raises(InputFileError, match=r"fifo.npz: not a regular file \(a FIFO"):
+            file_sha256(tmp_path / "fifo.npz")
+        with pytest.raises(SceneFormatError, match=r"zero.npz.*symbolic link to /dev/zero"):
+            read_scene(tmp_path / "zero.npz")
+    assert clock.elapsed < 1.0
+    big = tmp_path / "big.npz"
+    big.write_bytes(b"\0" * (3 << 20))
+    monkeypatch.setenv("SPREAD_MAX_INPUT_MB", "2")
+    with pytest.raises(InputFileError, match=r"big.npz: 3.0 MB, over the 2 MB limit.*SPREAD_MAX_INPUT_MB"):
+        check_input_file(big)
+    monkeypatch.setenv("SPREAD_MAX_INPUT_MB", "4")
+    assert check_input_file(big) == big
+    inside = tmp_path / "inside.npz"
+    inside.symlink_to(big)  # a link that stays in its folder is followed
+    assert check_input_file(inside, root=tmp_path) == inside
+
+
+def test_a_zip_that_is_not_an_npz_is_refused_naming_the_file(tmp_path):
+    write_zip_not_npz(tmp_path / "zipped.npz")
+    with pytest.raises(SceneFormatError, match=r"zipped.npz.*not an .npz of arrays"):
+        read_scene(tmp_path / "zipped.npz")
+
+
+# ---- 2. physical plausibility at the door -------------------------------------------------------------------
+
+def test_absurd_positions_and_sizes_are_refused_by_name_and_the_bounds_can_be_changed(dataset, tmp_path, monkeypatch):
+    from spread.assets import AssetLibrary
+
+    library = AssetLibrary.load(dataset / "assets")
+    good = read_scene(list_scene_files(dataset / "test")[0], assets=library)
+    far = good.with_poses(good.translation.copy(), good.rotation)
+    far.translation[1, 2] = 1e30
+    with pytest.raises(ImplausibleSceneError, match=r"far.npz: key 'translation': object 1 .* beyond ±1000 m"):
+        write_scene(far, tmp_path / "far.npz")
+    away = good.with_poses(good.translation + np.float32([500, 0, 0]), good.rotation)
+    write_scene(away, tmp_path / "away.npz", validate=False)
+    with pytest.raises(ImplausibleSceneError, match=r"away.npz: key 'translation'.*more than 10 m outside the room"):
+        read_scene(tmp_path / "away.npz")
+    monkeypatch.setenv("SPREAD_MAX_COORDINATE_M", "1e6")
+    monkeypatch.setenv("SPREAD_ROOM_MARGIN_M", "1e6")
+    assert read_scene(tmp_path / "away.npz").num_objects == good.num_objects  # a bound is a setting
+    monkeypatch.delenv("SPREAD_MAX_COORDINATE_M")
+    monkeypatch.delenv("SPREAD_ROOM_MARGIN_M")
+    aid = str(good.asset_id[0])
+    library.records[aid].extents = np.array([1000.0, 0.1, 0.1])  # a mug scaled to 1 km
+    with pytest.raises(ImplausibleSceneError, match=rf"asset '{aid}' is \[1000.0, 0.1, 0.1\] m across.*"
+                                                    rf"SPREAD_MAX_EXTENT_M"):
+        good.validate(assets=library)
+
+
+def test_evaluation_records_every_bad_file_by_name_and_the_asd_stays_the_mean_of_the_plausible_scenes(
+        dataset, tmp_path):
+    """A /dev/zero link, a FIFO, a zip that is not an npz, a coordinate at 1e30 and a room 200 km away in one
+    scenes folder: the run finishes, names each file with its reason, and every metric is the one of the
+    good scenes alone (before: the run hung hashing /dev/zero; with the 1e30 scene alone ASD was 5.8e32 mm)."""
+    from spread.configs import compose
+    from spread.evaluation.aggregate import summary_values
+    from spread.evaluation.protocol import METRIC_NAMES, EvalProtocol
+    from spread.experiments.commands import evaluate
+
+    scenes = tmp_path / "scenes"
+    shutil.copytree(dataset / "test", scenes)
+    good = sorted(p.stem for p in list_scene_files(scenes))
+    expected = hostile_files(scenes, read_scene(list_scene_files(dataset / "test")[0]))
+    overrides = [f"scenes={scenes}", f"reference={dataset}", f"out_dir={tmp_path / 'eval'}", "logger=none",
+                 "protocol.stability_runs=1", "fid.enabled=false", "ray.num_cpus=2", "progress=false", "renders=0",
+                 "bootstrap_resamples=0"]
+    with within(300):
+        result = evaluate(compose("evaluate", overrides))
+    m = result.metrics
+    failed = {f["scene_id"]: f["error"] for f in m["failed"]}
+    assert set(failed) == set(expected)
+    for stem, words in expected.items():
+        assert f"{stem}.npz" in failed[stem] and words in failed[stem], failed[stem]
+    assert m["n_evaluated"] == len(good) and m["n_implausible"] == 2 and m["n_refused_inputs"] == 2
+    alone = summary_values([r for r in result.records if r["scene_id"] in good], EvalProtocol())
+    for name in METRIC_NAMES:
+        assert m[name] == alone[name]
+    assert m["asd"] is not None and 0 <= m["asd"] < 1.0  # metres: a plausible support distance
+
+
+def test_a_mean_over_scenes_never_absorbs_a_non_finite_or_damaged_record(dataset, tmp_path):
+    from spread.evaluation.aggregate import summary_values
+    from spread.evaluation.protocol import EvalProtocol
+    from spread.evaluation.work import evaluate_scene, worker_library
+
+    protocol = EvalProtocol(stability_runs=1)
+    library = worker_library(str(dataset / "assets"))
+    records = [evaluate_scene(p, library, protocol) for p in list_scene_files(dataset / "test")[:2]]
+    clean = summary_values(records, protocol)
+    poisoned = json.loads(json.dumps(records[1]))
+    poisoned["scene_id"] = "poisoned"
+    poisoned["state"]["asd"] = {k: None for k in poisoned["state"]["asd"]}  # a NaN after finite_or_none
+    mangled = json.loads(json.dumps(records[1]))
+    mangled["scene_id"] = "mangled"
+    del mangled["state"]["grecall"]
+    mixed = summary_values([*records, poisoned, mangled], protocol)
+    assert mixed["asd"] == clean["asd"] and mixed["grecall"] == clean["grecall"]
+    assert mixed["n_evaluated"] == 2 and mixed["n_failed"] == 2

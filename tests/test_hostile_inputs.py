@@ -188,3 +188,32 @@ def test_a_mean_over_scenes_never_absorbs_a_non_finite_or_damaged_record(dataset
     mixed = summary_values([*records, poisoned, mangled], protocol)
     assert mixed["asd"] == clean["asd"] and mixed["grecall"] == clean["grecall"]
     assert mixed["n_evaluated"] == 2 and mixed["n_failed"] == 2
+
+
+# ---- 3. one bad file never stops a run ----------------------------------------------------------------------
+
+def test_a_zip_that_is_not_an_npz_in_test_and_train_is_named_skipped_and_the_rest_is_sampled_and_trained_on(
+        dataset, checkpoint, tmp_path):
+    """Before: spread-sample and spread-train stopped with AttributeError: 'bytes' object has no attribute
+    'dtype', naming no file."""
+    from helpers import sample_in_process
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    for split in ("test", "train"):
+        write_zip_not_npz(data / split / "zipped.npz")
+    result = sample_in_process(f"ckpt={checkpoint}", f"data.root={data}", f"out_dir={tmp_path / 'sample'}")
+    good = len(list_scene_files(dataset / "test"))
+    assert result.manifest["graphs"] == good and len(result.files) == good
+    [skipped] = result.manifest["skipped_graphs"]
+    assert skipped["file"] == str(data / "test" / "zipped.npz") and "not an .npz of arrays" in skipped["error"]
+    summary = train_in_process(tmp_path / "run", "experiment=quick", f"data.root={data}", "trainer.max_time=null",
+                               "trainer.max_steps=2", *SMALL_MODEL, *FAST_TRAIN)
+    assert summary["global_step"] == 2
+    [bad] = summary["skipped_scene_files"]["train"]
+    assert bad["file"] == str(data / "train" / "zipped.npz")
+    for path in list_scene_files(data / "val"):
+        write_zip_not_npz(path)  # a split with no usable file is refused, naming it
+    with pytest.raises(ValueError, match=r"val: none of its \d+ scene files is usable"):
+        train_in_process(tmp_path / "run2", "experiment=quick", f"data.root={data}", "trainer.max_steps=2",
+                         *SMALL_MODEL, *FAST_TRAIN)

@@ -102,19 +102,37 @@ class SamplingResult:
 
 def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
     """The split's scene files as conditioning graphs (each read and validated against the library)."""
+    return read_graphs(data_root, split)[0]
+
+
+def read_graphs(data_root: str | Path, split: str) -> tuple[list[Graph], list[dict]]:
+    """(the split's usable scene files as conditioning graphs, one ``{"file", "error"}`` per skipped file):
+    a damaged or implausible file is named and skipped, the others are sampled; none usable is refused."""
     from spread.assets.library import AssetLibrary
-    from spread.scene import list_scene_files, read_scene
+    from spread.scene import SceneFormatError, list_scene_files, read_scene
 
     folder = Path(data_root) / split
     files = list_scene_files(folder) if folder.is_dir() else []
     if not files:
         raise FileNotFoundError(f"{folder}: no scene files to condition on")
     library = AssetLibrary.load(Path(data_root) / "assets")
-    graphs = []
+    graphs, skipped = [], []
     for path in files:
-        scene = read_scene(path, assets=library)
+        try:
+            scene = read_scene(path, assets=library)
+        except SceneFormatError as exc:  # named, counted in sampling.json, and the other graphs are sampled
+            skipped.append({"file": str(path), "error": str(exc)})
+            continue
         graphs.append(Graph(scene.scene_id, str(path), scene.num_objects))
-    return graphs
+    if skipped:
+        import logging
+
+        logging.getLogger("spread.sample").warning("skipped %d of %d graphs: %s", len(skipped), len(files),
+                                                   "; ".join(s["error"] for s in skipped[:3]))
+    if not graphs:
+        raise ValueError(f"{folder}: none of its {len(files)} scene files is a usable graph "
+                         f"(first: {skipped[0]['error']})")
+    return graphs, skipped
 
 
 def guidance_settings(guidance) -> dict | None:
@@ -260,7 +278,7 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
         for old in scenes_dir.glob("*.npz"):
             old.unlink()
     load_checkpoint(cfg.ckpt, mmap=True)  # missing, damaged or unsafe: a clear error before any work
-    graphs = list_graphs(cfg.data.root, cfg.data.split)
+    graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, file_sha256(cfg.ckpt))
     check_fingerprint(out, settings, cfg.resume)
@@ -297,7 +315,8 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
     files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
-        "graphs": len(graphs), "samples": total, "written_this_run": len(written),
+        "graphs": len(graphs), "samples": total,
+        "skipped_graphs": skipped_graphs, "written_this_run": len(written),
         "resumed": total - pending, "redone_unreadable": len(damaged), "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],

@@ -62,8 +62,9 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
             + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
 
 
-def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
-    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values (rank zero only)."""
+def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: dict | None = None) -> dict:
+    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values, the scene files the
+    datasets skipped (split → file, error; rank zero only)."""
     from spread.io import write_json_atomic
 
     last = run_dir / "checkpoints" / "last.ckpt"
@@ -72,6 +73,7 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
         "last_checkpoint": str(last) if last.exists() else None,
         "resumed_from": None if resumed_from is None else str(resumed_from),
         "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+        "skipped_scene_files": skipped or {},
     }
     if trainer.is_global_zero:
         write_json_atomic(run_dir / "metrics.json", summary)
@@ -115,7 +117,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
         log.info("resuming from %s", ckpt_path)
     trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
     save_final_checkpoint(trainer, run_dir, newest)
-    summary = write_summary(trainer, run_dir, ckpt_path)
+    skipped = datamodule.skipped_files() if hasattr(datamodule, "skipped_files") else {}
+    summary = write_summary(trainer, run_dir, ckpt_path, skipped)
     if trainer.is_global_zero:
         print(f"run folder {run_dir}: step {summary['global_step']}, epoch {summary['epoch']}, "
               f"checkpoint {summary['last_checkpoint']}")

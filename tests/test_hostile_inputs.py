@@ -217,3 +217,83 @@ def test_a_zip_that_is_not_an_npz_in_test_and_train_is_named_skipped_and_the_res
     with pytest.raises(ValueError, match=r"val: none of its \d+ scene files is usable"):
         train_in_process(tmp_path / "run2", "experiment=quick", f"data.root={data}", "trainer.max_steps=2",
                          *SMALL_MODEL, *FAST_TRAIN)
+
+
+# ---- 5. checkpoints under one policy --------------------------------------------------------------------------
+
+class Payload:
+    """Unpickling this object creates ``marker`` (what an attacker's ``os.system`` would do instead)."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def edited_checkpoint(source: Path, target: Path, edit) -> Path:
+    import torch
+
+    data = torch.load(source, map_location="cpu", weights_only=True)
+    edit(data)
+    torch.save(data, target)
+    return target
+
+
+def test_spread_train_never_runs_a_payload_even_with_torch_force_no_weights_only_load(
+        dataset, checkpoint, tmp_path, monkeypatch):
+    """Before: Lightning's own load honoured TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 and ran the payload."""
+    from spread.safe_load import UnsafeFileError
+
+    marker = tmp_path / "pwned"
+    evil = edited_checkpoint(checkpoint, tmp_path / "evil.ckpt",
+                             lambda d: d["callbacks"].__setitem__("evil", Payload(marker)))
+    monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+    common = ["experiment=quick", f"data.root={dataset}", "trainer.max_time=null", "trainer.max_steps=3",
+              *SMALL_MODEL, *FAST_TRAIN]
+    with pytest.raises(UnsafeFileError, match="evil.ckpt: refused"):
+        train_in_process(tmp_path / "run", *common, f"ckpt_path={evil}")
+    assert not marker.exists()
+    from spread.training.checkpoints import atomic_checkpoint_io
+
+    with pytest.raises(UnsafeFileError, match="evil.ckpt: refused"):  # Lightning's loader itself, on any path
+        atomic_checkpoint_io().load_checkpoint(evil, weights_only=False)
+    assert not marker.exists()
+    cut = tmp_path / "cut.ckpt"
+    cut.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
+    with pytest.raises(UnsafeFileError, match="cut.ckpt: not a readable checkpoint"):
+        train_in_process(tmp_path / "run", *common, f"ckpt_path={cut}")
+    assert train_in_process(tmp_path / "run", *common, f"ckpt_path={checkpoint}")["global_step"] == 3
+
+
+def test_a_checkpoint_of_another_kind_or_size_is_refused_in_one_line_before_allocation(dataset, checkpoint, tmp_path):
+    from helpers import sample_in_process
+
+    from spread.experiments.ablation import AblationSpec
+    from spread.experiments.compare import CompareSpec
+    from spread.safe_load import CheckpointMismatchError
+
+    atiss = edited_checkpoint(checkpoint, tmp_path / "atiss.ckpt",
+                              lambda d: d["hyper_parameters"].update(method="atiss", variant=None))
+    with pytest.raises(CheckpointMismatchError) as err:
+        AblationSpec(out_dir=tmp_path / "ablate", data_root=dataset, ckpt={"geometry": str(atiss)})
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"train.ckpt.geometry={atiss}: a 'atiss' checkpoint")
+    assert "expected method='spread', variant='geometry'" in message
+    with pytest.raises(CheckpointMismatchError, match=r"train.ckpt.base=.*'spread' geometry.*expected variant='base'"):
+        AblationSpec(out_dir=tmp_path / "ablate", data_root=dataset, ckpt={"base": str(checkpoint)})
+    with pytest.raises(CheckpointMismatchError, match=r"train.ckpt.diffuscene=.*'spread'.*expected method='diffuscene'"):
+        CompareSpec(out_dir=tmp_path / "compare", data_root=dataset, ckpt={"diffuscene": str(checkpoint)})
+    wide = [o.replace("model.config.dim=32", "model.config.dim=48") for o in SMALL_MODEL]
+    with pytest.raises(CheckpointMismatchError, match=r"ckpt_path=.*config.dim=32\); expected config.dim=48"):
+        train_in_process(tmp_path / "run", "experiment=quick", f"data.root={dataset}", "trainer.max_steps=3", *wide,
+                         *FAST_TRAIN, f"ckpt_path={checkpoint}")
+    with pytest.raises(CheckpointMismatchError, match=r"model.init_from=.*'atiss'"):
+        train_in_process(tmp_path / "run2", "experiment=quick", f"data.root={dataset}", "trainer.max_steps=1",
+                         *SMALL_MODEL, *FAST_TRAIN, f"model.init_from={atiss}")
+    huge = edited_checkpoint(checkpoint, tmp_path / "huge.ckpt",
+                             lambda d: d["hyper_parameters"]["config"].update(dim=2_000_000))
+    with within(20):  # before: an attempt to allocate ~600 TB
+        with pytest.raises(CheckpointMismatchError, match=r"huge.ckpt: its hyperparameters build weight .* refused "
+                                                          r"before allocating"):
+            sample_in_process(f"ckpt={huge}", f"data.root={dataset}", f"out_dir={tmp_path / 'out'}")

@@ -135,6 +135,16 @@ def read_graphs(data_root: str | Path, split: str) -> tuple[list[Graph], list[di
     return graphs, skipped
 
 
+def check_checkpoint(path) -> dict:
+    """The checkpoint (tensors memory-mapped) once it reads safely and its weights fit the network its
+    hyperparameters describe (:func:`spread.baselines.check_weight_shapes`: nothing is allocated)."""
+    from spread.baselines import check_weight_shapes, checkpoint_method, module_class
+
+    checkpoint = load_checkpoint(path, mmap=True)
+    check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint, str(path))
+    return checkpoint
+
+
 def guidance_settings(guidance) -> dict | None:
     """The full guidance config of a run, or None when it samples unguided."""
     config = GuidanceConfig.from_config(guidance)
@@ -277,7 +287,7 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
     if not cfg.resume:  # a fresh run: no file of an earlier run may stay beside the new ones
         for old in scenes_dir.glob("*.npz"):
             old.unlink()
-    load_checkpoint(cfg.ckpt, mmap=True)  # missing, damaged or unsafe: a clear error before any work
+    check_checkpoint(cfg.ckpt)  # missing, damaged, unsafe or self-contradictory: a clear error before any work
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, file_sha256(cfg.ckpt))

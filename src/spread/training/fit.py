@@ -62,6 +62,15 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
             + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
 
 
+def check_resume_checkpoint(path: Path, model) -> None:
+    """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
+    another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`)."""
+    from spread.safe_load import checkpoint_identity, expect_checkpoint
+
+    own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
+    expect_checkpoint(path, "ckpt_path", **own)
+
+
 def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: dict | None = None) -> dict:
     """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values, the scene files the
     datasets skipped (split → file, error; rank zero only)."""
@@ -102,6 +111,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
+    if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
+        check_resume_checkpoint(ckpt_path, model)
     newest = CheckpointStep()
     overrides = dict(trainer_overrides or {})
     plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]

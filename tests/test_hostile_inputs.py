@@ -297,3 +297,108 @@ def test_a_checkpoint_of_another_kind_or_size_is_refused_in_one_line_before_allo
         with pytest.raises(CheckpointMismatchError, match=r"huge.ckpt: its hyperparameters build weight .* refused "
                                                           r"before allocating"):
             sample_in_process(f"ckpt={huge}", f"data.root={dataset}", f"out_dir={tmp_path / 'out'}")
+
+
+# ---- 4. / 6. imports: a failing asset takes only its rooms, re-imports keep disk, manifest and splits equal ----
+
+IMPORT_FAST = dict(processes=1, progress=False, renders=0, decomposition="hull", fidelity_samples=200)
+
+
+def add_room_with_a_1e30_vertex(src: Path) -> str:
+    """A fifth release room whose third object is asset Bad_9: a box mesh with one vertex at 1e30."""
+    import trimesh
+
+    import realdata
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    vertices = np.asarray(box.vertices).copy()
+    vertices[0] = [1e30, 0.1, 0.1]
+    bad = trimesh.Scene()
+    bad.add_geometry(trimesh.Trimesh(vertices, box.faces, process=False), node_name="bad")
+    (src / "meshes" / "Bad_9_unpacked.glb").write_bytes(bad.export(file_type="glb"))
+    tag = "ProcTHOR-Test-9-room|bad"
+    (src / tag).mkdir()
+    np.savez(src / tag / "boxes.npz", **realdata.release_boxes("rest", names=["Table_1", "Mug_3", "Bad_9"]))
+    split = json.loads((src / "train_test_split.json").read_text())
+    split["train"].append(tag)
+    (src / "train_test_split.json").write_text(json.dumps(split))
+    return tag
+
+
+def test_an_import_with_a_mesh_vertex_at_1e30_writes_every_good_room_and_records_the_bad_asset(tmp_path):
+    """Before: the asset imported, then the cache build raised QhullError and the whole import stopped
+    (no manifest, no scene)."""
+    import realdata
+    from spread.importers.run import ImportConfig, import_dataset
+
+    src = realdata.release_layout(tmp_path / "src")
+    tag = add_room_with_a_1e30_vertex(src)
+    out = tmp_path / "out"
+    manifest = import_dataset(ImportConfig("spread_release", str(src), str(out), **IMPORT_FAST))
+    assert sum(manifest["counts"].values()) == 4 == len(list(out.glob("*/*.npz")))  # the four good rooms
+    [asset] = manifest["errors"]["assets"]
+    assert asset["asset_id"] == "Bad_9" and asset["file"].endswith("Bad_9_unpacked.glb")
+    assert "implausible" in asset["error"] or "Qhull" in asset["error"]
+    [room] = manifest["errors"]["rooms"]
+    assert room["tag"] == tag and "Bad_9" in room["error"]
+    assert json.loads((out / "manifest.json").read_text())["failed_assets"] == 1
+    from spread.assets import AssetLibrary
+
+    assert "Bad_9" not in AssetLibrary.load(out / "assets").records
+
+
+def test_a_reimport_removes_what_the_new_import_no_longer_has_and_warns_about_an_empty_val_split(tmp_path, capsys):
+    """Before: a room moved from val to test stayed in val too (in two splits), the manifest's counts
+    disagreed with the disk, and an empty val split was not mentioned."""
+    import realdata
+    from spread.importers.run import ImportConfig, import_dataset
+
+    src = realdata.release_layout(tmp_path / "src")
+    out = tmp_path / "out"
+    first = import_dataset(ImportConfig("spread_release", str(src), str(out), **IMPORT_FAST))
+    assert first["counts"] == {"train": 1, "val": 1, "test": 2} and first["warnings"] == []
+    [val_file] = (out / "val").glob("*.npz")
+    moved = str(read_scene(val_file).extras["source_tag"])
+    split = json.loads((src / "train_test_split.json").read_text())
+    split["train"].remove(moved)
+    split["val"].append(moved)  # the release's val list is our test split
+    (src / "train_test_split.json").write_text(json.dumps(split))
+    again = import_dataset(ImportConfig("spread_release", str(src), str(out), **IMPORT_FAST))
+    on_disk = {s: len(list((out / s).glob("*.npz"))) for s in ("train", "val", "test")}
+    assert again["counts"] == on_disk and on_disk["test"] == 3 and not val_file.exists()
+    stems = [p.stem for p in out.glob("*/*.npz")]
+    assert len(stems) == len(set(stems))  # no room in two splits
+    assert again["this_run"]["removed_stale"] == [f"val/{val_file.name}"]
+    assert any("val split has no scenes" in w for w in again["warnings"])
+
+
+def test_a_planted_link_at_the_import_log_is_refused_and_its_target_untouched(tmp_path):
+    """Before: spread-import appended its room lines to whatever out_dir/import/rooms.jsonl pointed to."""
+    import realdata
+    from spread.importers.run import ImportConfig, import_dataset
+    from spread.io import UnsafeOutputError, append_jsonl
+
+    src = realdata.release_layout(tmp_path / "src")
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me\n")
+    out = tmp_path / "out"
+    (out / "import").mkdir(parents=True)
+    (out / "import" / "rooms.jsonl").symlink_to(target)
+    with pytest.raises(UnsafeOutputError, match=r"rooms.jsonl: a symbolic link .*remove the link"):
+        import_dataset(ImportConfig("spread_release", str(src), str(out), **IMPORT_FAST))
+    with pytest.raises(UnsafeOutputError, match=r"rooms.jsonl: a symbolic link"):
+        append_jsonl(out / "import" / "rooms.jsonl", {"tag": "x"})  # every append, not only the import's
+    assert target.read_text() == "keep me\n" and not (out / "train").exists()
+
+
+def test_hydras_command_log_replaces_a_planted_link_and_leaves_its_target_untouched(tmp_path):
+    from helpers import run_script
+
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.log").symlink_to(target)
+    run_script("spread-report", f"runs={tmp_path / 'none'}", f"out_dir={out}", ok=False)
+    assert target.read_text() == "keep me\n"
+    assert (out / "report.log").is_file() and not (out / "report.log").is_symlink()

@@ -242,3 +242,25 @@ def safe_name(text: str) -> str:
         body = "_" + body[1:]
     body = body[:SAFE_NAME_MAX - _HASH_LEN - 1]
     return f"{body}_{digest}"
+
+
+def refuse_links(*paths: str | os.PathLike) -> None:
+    """Before a run writes its files: :class:`UnsafeOutputError` naming the first of ``paths`` that is a
+    symbolic link (a link planted in a run folder would send the run's writes to its target)."""
+    for path in paths:
+        if Path(path).is_symlink():
+            raise UnsafeOutputError(f"{path}: a symbolic link (to {os.readlink(path)}); the platform writes its run "
+                                    f"files only as plain files inside the run folder: remove the link")
+
+
+class RunLogFileHandler(__import__("logging").FileHandler):
+    """Hydra's ``<command>.log`` handler (``conf/hydra/default.yaml``): a symbolic link planted at the log's
+    path is replaced by a plain file (its target is never opened), and the file is opened with ``O_NOFOLLOW``."""
+
+    def _open(self):
+        path = Path(self.baseFilename)
+        if path.is_symlink():
+            path.unlink()
+        fd = open_append_nofollow(path) if "a" in self.mode else os.open(
+            path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
+        return os.fdopen(fd, self.mode, encoding=self.encoding, errors=self.errors)

@@ -87,6 +87,17 @@ PLAUSIBILITY_ENV = {"max_coordinate": "SPREAD_MAX_COORDINATE_M", "room_margin": 
                     "max_extent": "SPREAD_MAX_EXTENT_M"}
 
 
+def check_asset_extents(asset_id: str, extents, source: str, bounds: Plausibility | None = None) -> None:
+    """Raise :class:`ImplausibleSceneError` when an asset's size (metres, per axis) is not finite or over
+    ``bounds.max_extent`` (a mesh with a vertex at 1e30, a mug scaled to a kilometre)."""
+    b = bounds or Plausibility.from_env()
+    extents = np.asarray(extents, np.float64)
+    if not np.isfinite(extents).all() or extents.max() > b.max_extent:
+        raise ImplausibleSceneError(source, None, f"asset '{asset_id}' is {extents.tolist()} m across, over "
+                                                  f"{b.max_extent:g} m: physically implausible, refused (bound set by "
+                                                  f"{PLAUSIBILITY_ENV['max_extent']})")
+
+
 def check_plausible(scene: "Scene", source: str, records=None, bounds: Plausibility | None = None) -> None:
     """Raise :class:`ImplausibleSceneError` (file, key, object, value, the bound and how to change it) when a
     position, the room or an asset's size is outside ``bounds`` (None: :meth:`Plausibility.from_env`)."""

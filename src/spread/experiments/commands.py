@@ -144,6 +144,8 @@ def print_import_summary(manifest: dict, out_dir: str) -> None:
         console.print(f"room {err['tag']}: {err['error']}")
     for err in manifest["errors"]["assets"][:10]:
         console.print(f"asset {err.get('asset_id')}: {err['error']}")
+    for warning in manifest.get("warnings", []):
+        console.print(f"[yellow]warning:[/yellow] {warning}")
 
 
 # ---- export --------------------------------------------------------------------------------------------------

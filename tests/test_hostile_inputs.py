@@ -402,3 +402,55 @@ def test_hydras_command_log_replaces_a_planted_link_and_leaves_its_target_untouc
     run_script("spread-report", f"runs={tmp_path / 'none'}", f"out_dir={out}", ok=False)
     assert target.read_text() == "keep me\n"
     assert (out / "report.log").is_file() and not (out / "report.log").is_symlink()
+
+
+def test_two_scene_files_with_one_inner_id_both_export(dataset, tmp_path):
+    """Before: "2 written" was reported as 1 and the second file overwrote the first."""
+    from spread.export import export_folder
+
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    first, second = list_scene_files(dataset / "test")[:2]
+    shutil.copy(first, scenes / "a.npz")
+    twin = read_scene(second)
+    write_scene(twin.with_poses(twin.translation, twin.rotation, scene_id=read_scene(first).scene_id), scenes / "b.npz")
+    report = export_folder(scenes, dataset / "assets", tmp_path / "out", "mjcf")
+    assert len(report.written) == 2 and not report.failed
+    assert len({Path(p) for p in report.written.values()}) == 2 and all(Path(p).exists() for p in report.written.values())
+    [(file, note)] = report.duplicates.items()
+    assert file == str(scenes / "b.npz") and str(scenes / "a.npz") in note
+    assert json.loads((tmp_path / "out" / "export.json").read_text())["n_written"] == 2
+
+
+def test_two_evaluations_of_one_folder_never_share_a_metrics_json(dataset, tmp_path):
+    """A run folder is locked while a run writes it: a second evaluation (another protocol) is refused at once,
+    naming the running one; once it is done, another protocol is still refused (before: with no lock, a
+    MuJoCo 3-run evaluation's metrics.json carried the pybullet 1-run number)."""
+    import subprocess
+    import sys
+
+    from spread.configs import compose
+    from spread.experiments.commands import evaluate
+    from spread.io import RunFolderBusy
+
+    out = tmp_path / "eval"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom spread.io import run_lock\n"
+        f"with run_lock({str(out)!r}, 'spread-evaluate'):\n    print('held', flush=True)\n    time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        common = [f"scenes={dataset / 'test'}", f"reference={dataset}", f"out_dir={out}", "logger=none",
+                  "fid.enabled=false", "ray.num_cpus=2", "progress=false", "renders=0", "bootstrap_resamples=0"]
+        with within(10), pytest.raises(RunFolderBusy, match=rf"eval: in use by a running spread-evaluate \(pid "
+                                                              rf"{holder.pid}"):
+            evaluate(compose("evaluate", [*common, "protocol.stability_runs=3"]))
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not (out / "metrics.json").exists() and not (out / "per_scene.jsonl").exists()
+    first = evaluate(compose("evaluate", [*common, "protocol.stability_runs=1"]))
+    with pytest.raises(ValueError, match="another protocol"):
+        evaluate(compose("evaluate", [*common, "protocol.stability_runs=3"]))
+    assert json.loads((out / "metrics.json").read_text())["stability"] == first.metrics["stability"]
+    assert json.loads((out / "metrics.json").read_text())["protocol"]["stability_runs"] == 1

@@ -264,3 +264,39 @@ class RunLogFileHandler(__import__("logging").FileHandler):
         fd = open_append_nofollow(path) if "a" in self.mode else os.open(
             path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
         return os.fdopen(fd, self.mode, encoding=self.encoding, errors=self.errors)
+
+
+class RunFolderBusy(RuntimeError):
+    """A run folder another live run is writing (its lock is held); the message names the folder and the run."""
+
+
+#: The lock file of a run folder (:func:`run_lock`).
+LOCK_FILE = ".spread.lock"
+
+
+@contextlib.contextmanager
+def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
+    """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``
+    (released by the kernel when the process ends, so a killed run never leaves a stale lock). A second run
+    on the same folder is refused at once with :class:`RunFolderBusy` naming the holder (command, pid, start),
+    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``)."""
+    import fcntl
+    import time
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_FILE
+    refuse_links(path)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+            raise RunFolderBusy(f"{folder}: in use by a running {holder}; wait for it to finish or use another "
+                                f"out_dir") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{command} (pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
+        yield path
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock

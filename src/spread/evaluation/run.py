@@ -143,7 +143,15 @@ def input_hashes(files: list[Path], keys: list[str], folder: Path) -> tuple[dict
 
 def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
     """Evaluate every scene file of ``cfg.scenes`` (module docstring); ``before_work()`` runs once the checks
-    passed (the command records its config there)."""
+    passed (the command records its config there). The run holds ``out_dir``'s lock
+    (:func:`spread.io.run_lock`): a second evaluation of the same folder is refused while this one runs."""
+    from spread.io import run_lock
+
+    with run_lock(cfg.out_dir, "spread-evaluate"):
+        return _run_evaluation(cfg, before_work)
+
+
+def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
     from spread.scene import list_scene_files
     from tqdm.auto import tqdm
 

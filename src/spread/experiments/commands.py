@@ -174,6 +174,8 @@ def print_export_summary(report) -> None:
           f"{len(report.failed)} failed (see export.json)")
     for scene_id, error in list(report.failed.items())[:10]:
         print(f"  failed {scene_id}: {error}")
+    for file, note in list(getattr(report, "duplicates", {}).items())[:10]:
+        print(f"  duplicate id in {file}: {note}")
 
 
 # ---- train ---------------------------------------------------------------------------------------------------

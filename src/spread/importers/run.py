@@ -249,7 +249,18 @@ def _map(pool, fn, items, desc: str, progress: bool):
 
 
 def import_dataset(cfg: ImportConfig) -> dict:
-    """Run the import (module docstring); returns the manifest written to ``out_dir/manifest.json``."""
+    """Run the import (module docstring); returns the manifest written to ``out_dir/manifest.json``. The
+    import holds ``out_dir``'s lock (:func:`spread.io.run_lock`) once the source has been checked."""
+    from spread.io import run_lock
+
+    if cfg.stats not in ("source", "computed"):
+        raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
+    make_source(cfg)  # fails early (missing split file, bad options) before anything is written
+    with run_lock(cfg.out_dir, "spread-import"):
+        return _import_dataset(cfg)
+
+
+def _import_dataset(cfg: ImportConfig) -> dict:
     from spread.assets import AssetLibrary, AssetRecord
 
     if cfg.stats not in ("source", "computed"):

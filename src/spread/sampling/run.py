@@ -277,7 +277,15 @@ def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: in
 
 def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
     """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring);
-    ``before_work()`` runs once the checks passed (the command records its config there)."""
+    ``before_work()`` runs once the checks passed (the command records its config there). The run holds
+    ``out_dir``'s lock (:func:`spread.io.run_lock`)."""
+    from spread.io import run_lock
+
+    with run_lock(cfg.out_dir, "spread-sample"):
+        return _run_sampling(cfg, before_work)
+
+
+def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
     from tqdm.auto import tqdm
 
     started = time.perf_counter()

@@ -454,3 +454,15 @@ def test_two_evaluations_of_one_folder_never_share_a_metrics_json(dataset, tmp_p
         evaluate(compose("evaluate", [*common, "protocol.stability_runs=3"]))
     assert json.loads((out / "metrics.json").read_text())["stability"] == first.metrics["stability"]
     assert json.loads((out / "metrics.json").read_text())["protocol"]["stability_runs"] == 1
+
+
+# ---- 7. reports -----------------------------------------------------------------------------------------------
+
+def test_a_hand_edited_text_metric_is_shown_invalid_never_with_an_interval():
+    """Before: spread-report printed a hand-edited "grecall": "abc" as "abc ± 0.125"."""
+    from spread.experiments.tables import METRICS
+
+    grecall = next(c for c in METRICS if c.key == "grecall")
+    record = {"grecall": "abc", "grecall_lo": 0.5, "grecall_hi": 0.75}
+    assert grecall.cell(record) == "invalid ('abc')" and grecall.cell(record, latex=True) == "invalid ('abc')"
+    assert grecall.cell({"grecall": 0.6, "grecall_lo": 0.5, "grecall_hi": 0.75}) == "0.600 ± 0.125"

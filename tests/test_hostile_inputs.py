@@ -466,3 +466,26 @@ def test_a_hand_edited_text_metric_is_shown_invalid_never_with_an_interval():
     record = {"grecall": "abc", "grecall_lo": 0.5, "grecall_hi": 0.75}
     assert grecall.cell(record) == "invalid ('abc')" and grecall.cell(record, latex=True) == "invalid ('abc')"
     assert grecall.cell({"grecall": 0.6, "grecall_lo": 0.5, "grecall_hi": 0.75}) == "0.600 ± 0.125"
+
+
+# ---- 8. bounded sampling ----------------------------------------------------------------------------------------
+
+def test_a_graph_above_the_object_limit_is_skipped_by_name_before_any_work_and_the_others_are_sampled(
+        dataset, checkpoint, tmp_path):
+    """The 400-object graph (before: no scene after 10 minutes, and the 7-object graph of its batch blocked
+    with it), tested with the limit: every graph above ``max_objects`` is named and the rest sampled."""
+    from helpers import sample_in_process
+
+    from spread.sampling.run import object_limit
+
+    sizes = {p: read_scene(p).num_objects for p in list_scene_files(dataset / "test")}
+    limit = sorted(sizes.values())[len(sizes) // 2]
+    big = sorted(str(p) for p, n in sizes.items() if n > limit)
+    assert big and len(big) < len(sizes)
+    result = sample_in_process(f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={tmp_path / 'out'}",
+                               f"max_objects={limit}", "batch_size=8")
+    skipped = {s["file"]: s["error"] for s in result.manifest["skipped_graphs"]}
+    assert sorted(skipped) == big and all(f"over the object limit {limit}" in e for e in skipped.values())
+    assert result.manifest["graphs"] == len(sizes) - len(big) == len(result.written)
+    stats = json.loads((dataset / "stats.json").read_text())
+    assert object_limit(dataset, None) == 2 * stats["max_objects"] and object_limit(dataset, 0) is None

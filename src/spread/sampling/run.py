@@ -58,7 +58,10 @@ class SamplingConfig:
     figures: 3D figures of the first samples, of the kinds in ``figure_kinds`` (``card``: 3D view + relation
     matrix, ``physics``: before | after one Stability run); progress: tqdm bar; guidance: a
     :class:`~spread.guidance.GuidanceConfig` (or its mapping / mode name); ray: where the actors run
-    (``ray.num_gpus_per_worker``: GPUs per actor). ``conf/sample.yaml`` overrides these defaults."""
+    (``ray.num_gpus_per_worker``: GPUs per actor); max_objects: largest graph sampled (None: twice the
+    dataset's largest scene, ``stats.json``'s ``max_objects``; 0: no limit) — a larger one is skipped and named
+    before any work (the geometry model's cost grows with the square of the objects, and a graph far beyond
+    what the model was trained on would hold up its batch). ``conf/sample.yaml`` overrides these defaults."""
 
     ckpt: str = MISSING
     data: DataSplit = field(default_factory=DataSplit)
@@ -79,6 +82,7 @@ class SamplingConfig:
     progress: bool = True
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     ray: RaySettings = field(default_factory=RaySettings)
+    max_objects: int | None = None
 
     def __post_init__(self) -> None:  # Python callers may give a sampler name or a guidance mode
         if not isinstance(self.sampler, Sampler) and self.sampler is not MISSING:
@@ -105,9 +109,24 @@ def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
     return read_graphs(data_root, split)[0]
 
 
-def read_graphs(data_root: str | Path, split: str) -> tuple[list[Graph], list[dict]]:
+def object_limit(data_root: str | Path, max_objects: int | None) -> int | None:
+    """The largest graph a run samples (:class:`SamplingConfig` ``max_objects``): the setting, or twice the
+    largest scene of the dataset's ``stats.json`` (None when it does not say); 0 or less: no limit."""
+    if max_objects is not None:
+        return int(max_objects) if int(max_objects) > 0 else None
+    stats = Path(data_root) / "stats.json"
+    if not stats.is_file():
+        return None
+    from spread.io import read_json_object
+
+    largest = read_json_object(stats).get("max_objects")
+    return 2 * int(largest) if isinstance(largest, int) and largest > 0 else None
+
+
+def read_graphs(data_root: str | Path, split: str, max_objects: int | None = None) -> tuple[list[Graph], list[dict]]:
     """(the split's usable scene files as conditioning graphs, one ``{"file", "error"}`` per skipped file):
-    a damaged or implausible file is named and skipped, the others are sampled; none usable is refused."""
+    a damaged or implausible file, or a graph of more than ``max_objects`` objects, is named and skipped,
+    the others are sampled; none usable is refused."""
     from spread.assets.library import AssetLibrary
     from spread.scene import SceneFormatError, list_scene_files, read_scene
 
@@ -122,6 +141,10 @@ def read_graphs(data_root: str | Path, split: str) -> tuple[list[Graph], list[di
             scene = read_scene(path, assets=library)
         except SceneFormatError as exc:  # named, counted in sampling.json, and the other graphs are sampled
             skipped.append({"file": str(path), "error": str(exc)})
+            continue
+        if max_objects is not None and scene.num_objects > max_objects:
+            skipped.append({"file": str(path), "error": f"{path}: {scene.num_objects} objects, over the object limit "
+                                                        f"{max_objects} (set max_objects=<n> to raise it, 0: no limit)"})
             continue
         graphs.append(Graph(scene.scene_id, str(path), scene.num_objects))
     if skipped:
@@ -296,7 +319,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         for old in scenes_dir.glob("*.npz"):
             old.unlink()
     check_checkpoint(cfg.ckpt)  # missing, damaged, unsafe or self-contradictory: a clear error before any work
-    graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split)
+    limit = object_limit(cfg.data.root, cfg.max_objects)
+    graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, file_sha256(cfg.ckpt))
     check_fingerprint(out, settings, cfg.resume)
@@ -319,6 +343,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
             if isinstance(value, (int, float)) and not isinstance(value, bool):
                 guidance_totals[key] = guidance_totals.get(key, 0) + value
         batch_seconds.append(result["seconds"])
+        bar.set_postfix_str(f"batch {len(batch_seconds)}/{len(todo)}", refresh=False)  # progress per batch
         bar.update(len(result["written"]))
 
     runner = {"workers": 0, "mode": "none"}
@@ -334,7 +359,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
         "graphs": len(graphs), "samples": total,
-        "skipped_graphs": skipped_graphs, "written_this_run": len(written),
+        "skipped_graphs": skipped_graphs, "max_objects": limit, "written_this_run": len(written),
         "resumed": total - pending, "redone_unreadable": len(damaged), "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],

@@ -489,3 +489,55 @@ def test_a_graph_above_the_object_limit_is_skipped_by_name_before_any_work_and_t
     assert result.manifest["graphs"] == len(sizes) - len(big) == len(result.written)
     stats = json.loads((dataset / "stats.json").read_text())
     assert object_limit(dataset, None) == 2 * stats["max_objects"] and object_limit(dataset, 0) is None
+
+
+# ---- 9. user errors in one line, no noise -------------------------------------------------------------------------
+
+def run_quietly(name: str, *args: str, timeout: int = 300):
+    """A console script as a user runs it: no HYDRA_FULL_ERROR, wandb disabled."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG")}
+    env["WANDB_MODE"] = "disabled"
+    return subprocess.run([str(Path(sys.executable).parent / name), *args], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_bad_settings_end_in_one_line_before_any_work(tmp_path, monkeypatch):
+    """Before: room.max_objects=0 failed with "low >= high" after the asset library was built; an out_dir that
+    is a file stopped with a traceback from inside Hydra."""
+    from spread.cli.errors import out_dir_problem
+    from spread.procgen.dataset import DatasetConfig, generate_dataset
+    from spread.procgen.room_types import RoomConfig
+
+    with pytest.raises(ValueError, match=r"room.max_objects=0"):
+        generate_dataset(tmp_path / "zero", DatasetConfig(rooms=4, room=RoomConfig(max_objects=0)), progress=False)
+    assert not (tmp_path / "zero" / "assets").exists()
+    proc = run_quietly("spread-generate", f"out_dir={tmp_path / 'gen'}", "rooms=4", "room.max_objects=0")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("spread-generate: room.min_objects=2, room.max_objects=0")
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    proc = run_quietly("spread-evaluate", f"scenes={tmp_path}", f"reference={tmp_path}", f"out_dir={afile}")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == f"spread-evaluate: out_dir={afile}: exists and is not a folder; give a folder path"
+    monkeypatch.setattr(os, "access", lambda path, mode: False)  # a read-only file system, as root cannot chmod away
+    assert "not writable" in out_dir_problem(str(tmp_path))
+    assert "cannot be created" in out_dir_problem(str(tmp_path / "new" / "run"))
+
+
+def test_training_and_ray_print_no_known_third_party_noise(dataset, tmp_path, capfd):
+    from spread.runtime.ray import RaySettings, ray_session
+
+    proc = run_quietly("spread-train", "experiment=quick", f"data.root={dataset}", f"out_dir={tmp_path / 'run'}",
+                       "trainer.max_time=null", "trainer.max_steps=2", "logger=wandb", *SMALL_MODEL, *(o for o in FAST_TRAIN if not o.startswith("logger=")))
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    for noise in ("💡 Tip", "anonymous setting", "log_every_n_steps", "LeafSpec"):
+        assert noise not in out, noise
+    with ray_session(RaySettings(num_cpus=1)):
+        pass
+    captured = capfd.readouterr()
+    assert "Token authentication" not in captured.out + captured.err

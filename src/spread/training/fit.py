@@ -104,6 +104,9 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
+    from spread.runtime.quiet import silence_known_noise
+
+    silence_known_noise()
     route_lightning_logs()
     set_threads(cfg.get("threads"))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)

@@ -541,3 +541,18 @@ def test_training_and_ray_print_no_known_third_party_noise(dataset, tmp_path, ca
         pass
     captured = capfd.readouterr()
     assert "Token authentication" not in captured.out + captured.err
+
+
+def test_every_reader_refuses_a_device_by_name(tmp_path):
+    from spread.data.stats import StatsError, load_stats
+    from spread.safe_load import UnsafeFileError, load_checkpoint, load_npz
+
+    for name in ("stats.json", "boxes.npz", "last.ckpt"):
+        (tmp_path / name).symlink_to("/dev/zero")
+    with within(5):
+        with pytest.raises(StatsError, match=r"stats.json: not a regular file \(a character device\)"):
+            load_stats(tmp_path / "stats.json")
+        with pytest.raises(UnsafeFileError, match=r"boxes.npz: not a regular file"):
+            load_npz(tmp_path / "boxes.npz")
+        with pytest.raises(UnsafeFileError, match=r"last.ckpt: not a regular file"):
+            load_checkpoint(tmp_path / "last.ckpt")

@@ -60,6 +60,11 @@ def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueErro
     """The JSON object in file ``path``; ``error`` naming the file when it is not valid JSON or not an object
     (a missing file raises ``FileNotFoundError`` as ``open`` does: callers that explain it check first)."""
     path = Path(path)
+    if path.exists() or path.is_symlink():  # a device, FIFO or oversized file is refused, not read
+        try:
+            check_input_file(path)
+        except InputFileError as exc:
+            raise error(str(exc)) from None
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as exc:

@@ -27,7 +27,13 @@ def load_npz(path: str | os.PathLike):
     array from it raises :class:`UnsafeFileError` naming the file and the key."""
     import numpy as np
 
+    from spread.io import InputFileError, check_input_file
+
     path = Path(path)
+    try:
+        check_input_file(path)  # a regular file of plausible size: never a device or FIFO
+    except InputFileError as exc:
+        raise UnsafeFileError(str(exc)) from None
     data = np.load(path, allow_pickle=False)
     if not hasattr(data, "files"):
         data.close() if hasattr(data, "close") else None
@@ -76,9 +82,15 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = Fa
     lazily (cheap when only the hyperparameters are wanted)."""
     import torch
 
+    from spread.io import InputFileError, check_input_file
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise FileNotFoundError(f"{path}: no such checkpoint file")
+    try:
+        check_input_file(path, max_bytes=0)  # a regular file (checkpoints may be large: no size limit)
+    except InputFileError as exc:
+        raise UnsafeFileError(str(exc)) from None
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:

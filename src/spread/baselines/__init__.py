@@ -54,9 +54,10 @@ def checkpoint_method(hparams: dict) -> str:
 
 def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> None:
     """Before a network is allocated from a checkpoint's hyperparameters: build it on PyTorch's ``meta``
-    device (no memory) and compare its weights' names and shapes with the file's, so a checkpoint whose
-    config asks for ``dim=2e6`` (terabytes) or whose weights belong to another size is refused in one line
-    (:class:`spread.safe_load.CheckpointMismatchError`). A class that cannot be built on ``meta`` is not checked
+    device (no memory) and compare the shapes of the weights both have, so a checkpoint whose config asks for
+    ``dim=2e6`` (terabytes) or whose weights belong to another size is refused in one line
+    (:class:`spread.safe_load.CheckpointMismatchError`); weights made after construction (a baseline's EMA
+    copy) are left to the strict ``load_state_dict``. A class that cannot be built on ``meta`` is not checked
     here (its strict ``load_state_dict`` still refuses a mismatch, after allocation)."""
     import torch
 
@@ -79,11 +80,10 @@ def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> No
             raise CheckpointMismatchError(
                 f"{source}: its hyperparameters build weight '{name}' of shape {shape}, the file holds {held[name]} "
                 f"(config {hp.get('config', {})}); hyperparameters and weights disagree, refused before allocating")
-    missing, unexpected = sorted(set(shapes) - set(held)), sorted(set(held) - set(shapes))
-    if missing or unexpected:
+    if shapes and not set(shapes) & set(held):
         raise CheckpointMismatchError(
-            f"{source}: {len(missing)} weights missing (first: {missing[:1]}) and {len(unexpected)} unexpected "
-            f"(first: {unexpected[:1]}) for a '{checkpoint_method(hp)}' network of its hyperparameters")
+            f"{source}: none of its {len(held)} weights belongs to the '{checkpoint_method(hp)}' network its "
+            f"hyperparameters describe (first: {sorted(held)[:1]}); refused before allocating")
 
 
 def module_from_checkpoint(checkpoint: dict, map_location="cpu", source: str = "checkpoint"):

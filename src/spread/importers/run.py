@@ -255,19 +255,16 @@ def import_dataset(cfg: ImportConfig) -> dict:
 
     if cfg.stats not in ("source", "computed"):
         raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
-    make_source(cfg)  # fails early (missing split file, bad options) before anything is written
-    with run_lock(cfg.out_dir, "spread-import"):
-        return _import_dataset(cfg)
-
-
-def _import_dataset(cfg: ImportConfig) -> dict:
-    from spread.assets import AssetLibrary, AssetRecord
-
-    if cfg.stats not in ("source", "computed"):
-        raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
-    out = Path(cfg.out_dir)
     source = make_source(cfg)  # fails early (missing split file, bad options) before anything is written
     room_list = source.rooms()
+    with run_lock(cfg.out_dir, "spread-import"):
+        return _import_dataset(cfg, source, room_list)
+
+
+def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
+    from spread.assets import AssetLibrary, AssetRecord
+
+    out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "import" / "rooms.jsonl"
     from spread.io import refuse_links

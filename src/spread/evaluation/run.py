@@ -127,7 +127,8 @@ def write_renders(out: Path, records: list[dict], assets: str, count: int) -> li
 def input_hashes(files: list[Path], keys: list[str], folder: Path) -> tuple[dict[str, str], dict[str, dict]]:
     """(scene key → SHA-256 of its file, scene key → failure record of each file refused before reading: a
     device, a FIFO, a link out of ``folder``, over the size limit; :func:`spread.io.check_input_file`). A
-    refused file's hash is a marker no record carries, so a resume looks at it again."""
+    refused file's hash is the marker ``"refused"``, which its failure record carries too: a resume keeps the
+    record while the file stays refused and evaluates the scene once the file is a readable one."""
     from spread.io import InputFileError, check_input_file
 
     inputs, refused = {}, {}

@@ -299,8 +299,10 @@ def test_a_failing_row_blocks_only_itself(tmp_path):
 
 
 def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):
+    import torch
+
     ckpt = tmp_path / "g.ckpt"
-    ckpt.write_bytes(b"given")
+    torch.save({"hyper_parameters": {"variant": "geometry"}, "state_dict": {}}, ckpt)  # what the +Geometry row needs
     commands = FakeCommands()
     result = run_ablation(spec(tmp_path, variants=("geometry", "guidance"), ckpt={"geometry": str(ckpt)}), commands)
     assert result.stages["train/geometry"] == "given" and "train/base" not in result.stages

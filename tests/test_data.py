@@ -159,9 +159,13 @@ def test_bad_scene_file_fails_with_its_name(root, tmp_path):
     arrays["translation"] = arrays["translation"].copy()
     arrays["translation"][0, 0] = np.nan
     np.savez(tmp_path / "train" / "broken.npz", **arrays)
-    ds = SceneDataset(tmp_path, "train", num_points=M)
-    with pytest.raises(ValueError, match=r"broken\.npz: key 'translation'"):
-        ds[0]
+    with pytest.raises(ValueError, match=r"train: none of its 1 scene files is usable .*broken\.npz: key 'translation'"):
+        SceneDataset(tmp_path, "train", num_points=M)
+    shutil.copy(root / "train" / "train_0.npz", tmp_path / "train" / "train_0.npz")
+    ds = SceneDataset(tmp_path, "train", num_points=M)  # the bad file is skipped and named, the good one kept
+    assert len(ds) == 1 and ds.files[0].name == "train_0.npz"
+    assert [s["file"] for s in ds.skipped] == [str(tmp_path / "train" / "broken.npz")]
+    assert "key 'translation'" in ds.skipped[0]["error"]
 
 
 # ---- collate ---------------------------------------------------------------------------------------

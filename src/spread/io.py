@@ -60,6 +60,11 @@ def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueErro
     """The JSON object in file ``path``; ``error`` naming the file when it is not valid JSON or not an object
     (a missing file raises ``FileNotFoundError`` as ``open`` does: callers that explain it check first)."""
     path = Path(path)
+    if path.exists() or path.is_symlink():  # a device, FIFO or oversized file is refused, not read
+        try:
+            check_input_file(path)
+        except InputFileError as exc:
+            raise error(str(exc)) from None
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
@@ -72,15 +77,43 @@ def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueErro
 def append_jsonl(path: str | os.PathLike, record: dict) -> None:
     """Append one JSON line and fsync it: a killed job keeps every line already appended.
 
-    A torn last line (the process died mid-write) is skipped by :func:`read_jsonl`.
+    A torn last line (the process died mid-write) is skipped by :func:`read_jsonl`. The file is opened
+    without following a symbolic link (``O_NOFOLLOW``): a link planted at ``path`` is refused naming it, and
+    the file it points to is never written.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     line = json.dumps(record) + "\n"
-    with open(path, "a", encoding="utf-8") as fh:
+    fd = open_append_nofollow(path)
+    with os.fdopen(fd, "a", encoding="utf-8") as fh:
         fh.write(line)
         fh.flush()
         os.fsync(fh.fileno())
+
+
+class UnsafeOutputError(OSError):
+    """An output path that is not the platform's to write: a symbolic link, a device, a FIFO."""
+
+
+def open_append_nofollow(path: str | os.PathLike) -> int:
+    """A file descriptor of ``path`` opened for appending (created 0666 − umask when absent), never through a
+    symbolic link and never a device or FIFO: :class:`UnsafeOutputError` naming the file otherwise."""
+    path = Path(path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as exc:
+        if path.is_symlink():
+            raise UnsafeOutputError(f"{path}: a symbolic link (to {os.readlink(path)}); the platform writes its "
+                                    f"run files only as plain files inside the run folder: remove the link") from None
+        raise
+    import stat
+
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise UnsafeOutputError(f"{path}: not a regular file; the platform appends only to plain files")
+    os.set_blocking(fd, True)
+    return fd
 
 
 def read_jsonl(path: str | os.PathLike) -> list[dict]:
@@ -102,15 +135,85 @@ def read_jsonl(path: str | os.PathLike) -> list[dict]:
 
 
 def file_sha256(*paths: str | os.PathLike) -> str:
-    """Hex SHA-256 of the files' bytes, concatenated in order (one file: its ordinary sha256)."""
+    """Hex SHA-256 of the files' bytes, concatenated in order (one file: its ordinary sha256). Each must be a
+    regular file (:func:`check_input_file` without a size limit): a device or FIFO is refused, not read."""
     import hashlib
 
     h = hashlib.sha256()
     for p in paths:
+        check_input_file(p, max_bytes=0)
         with open(p, "rb") as fh:
             for chunk in iter(lambda: fh.read(1 << 20), b""):
                 h.update(chunk)
     return h.hexdigest()
+
+
+class InputFileError(ValueError):
+    """An input that is not safe to read: not a regular file (a device, a FIFO, a folder), a symbolic link
+    that leaves its folder, or larger than the per-file limit. The message names the file and the way out."""
+
+
+#: Environment variable that overrides :data:`DEFAULT_MAX_INPUT_MB` (megabytes; 0 or less: no limit).
+MAX_INPUT_ENV = "SPREAD_MAX_INPUT_MB"
+#: Largest input file (scene ``.npz``, graph) read by default, in MB: a scene of a few hundred objects is
+#: well under 1 MB, so this leaves room for large scenes with precomputed extras.
+DEFAULT_MAX_INPUT_MB = 256.0
+
+
+def max_input_bytes() -> int:
+    """The per-file size limit in bytes (:data:`MAX_INPUT_ENV`, else :data:`DEFAULT_MAX_INPUT_MB`); 0: none."""
+    raw = os.environ.get(MAX_INPUT_ENV, "").strip()
+    try:
+        mb = float(raw) if raw else DEFAULT_MAX_INPUT_MB
+    except ValueError:
+        raise InputFileError(f"{MAX_INPUT_ENV}={raw!r}: not a number of megabytes") from None
+    return int(mb * 2 ** 20) if mb > 0 else 0
+
+
+def _kind(mode: int) -> str:
+    import stat
+
+    for test, name in ((stat.S_ISDIR, "folder"), (stat.S_ISCHR, "character device"),
+                       (stat.S_ISBLK, "block device"), (stat.S_ISFIFO, "FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "socket")):
+        if test(mode):
+            return name
+    return "special file"
+
+
+def check_input_file(path: str | os.PathLike, root: str | os.PathLike | None = None,
+                     max_bytes: int | None = None) -> Path:
+    """``path`` once it is safe to read, else :class:`InputFileError` naming it (before anything is opened,
+    so a FIFO or ``/dev/zero`` never blocks or streams):
+
+    * it exists and is a regular file (a symbolic link to one counts, see ``root``);
+    * a symbolic link must resolve inside ``root`` (a folder; None: no containment check), so a link in a
+      scenes folder cannot pull in ``/dev/zero`` or a file of another tree;
+    * its size is at most ``max_bytes`` (None: :func:`max_input_bytes`; 0: no limit).
+    """
+    import stat
+
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        raise InputFileError(f"{path}: file does not exist") from None
+    if stat.S_ISLNK(st.st_mode):
+        target = path.resolve()
+        if root is not None and not target.is_relative_to(Path(root).resolve()):
+            raise InputFileError(f"{path}: a symbolic link to {target}, outside {root}; refused (copy the file "
+                                 f"into the folder instead of linking it)")
+        try:
+            st = os.stat(path)
+        except OSError as exc:
+            raise InputFileError(f"{path}: a broken symbolic link ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise InputFileError(f"{path}: not a regular file (a {_kind(st.st_mode)}); refused")
+    limit = max_input_bytes() if max_bytes is None else int(max_bytes)
+    if limit > 0 and st.st_size > limit:
+        raise InputFileError(f"{path}: {st.st_size / 2 ** 20:.1f} MB, over the {limit / 2 ** 20:.0f} MB limit for "
+                             f"one input file; set {MAX_INPUT_ENV}=<megabytes> to raise it (0: no limit)")
+    return path
 
 
 #: Characters a :func:`safe_name` keeps as they are (portable file-name characters).
@@ -144,3 +247,61 @@ def safe_name(text: str) -> str:
         body = "_" + body[1:]
     body = body[:SAFE_NAME_MAX - _HASH_LEN - 1]
     return f"{body}_{digest}"
+
+
+def refuse_links(*paths: str | os.PathLike) -> None:
+    """Before a run writes its files: :class:`UnsafeOutputError` naming the first of ``paths`` that is a
+    symbolic link (a link planted in a run folder would send the run's writes to its target)."""
+    for path in paths:
+        if Path(path).is_symlink():
+            raise UnsafeOutputError(f"{path}: a symbolic link (to {os.readlink(path)}); the platform writes its run "
+                                    f"files only as plain files inside the run folder: remove the link")
+
+
+class RunLogFileHandler(__import__("logging").FileHandler):
+    """Hydra's ``<command>.log`` handler (``conf/hydra/default.yaml``): a symbolic link planted at the log's
+    path is replaced by a plain file (its target is never opened), and the file is opened with ``O_NOFOLLOW``."""
+
+    def _open(self):
+        path = Path(self.baseFilename)
+        if path.is_symlink():
+            path.unlink()
+        fd = open_append_nofollow(path) if "a" in self.mode else os.open(
+            path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
+        return os.fdopen(fd, self.mode, encoding=self.encoding, errors=self.errors)
+
+
+class RunFolderBusy(RuntimeError):
+    """A run folder another live run is writing (its lock is held); the message names the folder and the run."""
+
+
+#: The lock file of a run folder (:func:`run_lock`).
+LOCK_FILE = ".spread.lock"
+
+
+@contextlib.contextmanager
+def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
+    """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``
+    (released by the kernel when the process ends, so a killed run never leaves a stale lock). A second run
+    on the same folder is refused at once with :class:`RunFolderBusy` naming the holder (command, pid, start),
+    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``)."""
+    import fcntl
+    import time
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_FILE
+    refuse_links(path)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+            raise RunFolderBusy(f"{folder}: in use by a running {holder}; wait for it to finish or use another "
+                                f"out_dir") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{command} (pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
+        yield path
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock

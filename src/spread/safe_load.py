@@ -27,7 +27,13 @@ def load_npz(path: str | os.PathLike):
     array from it raises :class:`UnsafeFileError` naming the file and the key."""
     import numpy as np
 
+    from spread.io import InputFileError, check_input_file
+
     path = Path(path)
+    try:
+        check_input_file(path)  # a regular file of plausible size: never a device or FIFO
+    except InputFileError as exc:
+        raise UnsafeFileError(str(exc)) from None
     data = np.load(path, allow_pickle=False)
     if not hasattr(data, "files"):
         data.close() if hasattr(data, "close") else None
@@ -76,9 +82,15 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = Fa
     lazily (cheap when only the hyperparameters are wanted)."""
     import torch
 
+    from spread.io import InputFileError, check_input_file
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise FileNotFoundError(f"{path}: no such checkpoint file")
+    try:
+        check_input_file(path, max_bytes=0)  # a regular file (checkpoints may be large: no size limit)
+    except InputFileError as exc:
+        raise UnsafeFileError(str(exc)) from None
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:
@@ -90,4 +102,34 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = Fa
                               f"{type(exc).__name__}: {str(exc)[:200]})") from None
     if not isinstance(checkpoint, dict):
         raise UnsafeFileError(f"{path}: not a checkpoint (a {type(checkpoint).__name__}, expected a dict)")
+    return checkpoint
+
+
+class CheckpointMismatchError(ValueError):
+    """A readable checkpoint that is not the one a command expects (another method, variant or network size);
+    the message is one line: the file, what it holds, what was expected."""
+
+
+def checkpoint_identity(checkpoint: dict) -> dict:
+    """What a checkpoint holds, from its hyperparameters only: ``method`` (no key: ``spread``), ``variant``
+    (SceneDiffusion's base / geometry) and the network sizes of its ``config`` (its integers)."""
+    hp = checkpoint.get("hyper_parameters") or {}
+    config = hp.get("config") if isinstance(hp.get("config"), dict) else {}
+    return {"method": str(hp.get("method") or "spread"), "variant": hp.get("variant"),
+            **{f"config.{k}": v for k, v in config.items() if isinstance(v, int) and not isinstance(v, bool)}}
+
+
+def expect_checkpoint(path: str | os.PathLike, what: str, checkpoint: dict | None = None, **expected) -> dict:
+    """The checkpoint at ``path`` (read with :func:`load_checkpoint`, tensors memory-mapped) once its
+    :func:`checkpoint_identity` matches ``expected`` (keys ``method``, ``variant``, ``config.<size>``);
+    :class:`CheckpointMismatchError` in one line otherwise, before any network is built. ``what`` names the
+    setting that gave the file (``train.ckpt.geometry``)."""
+    checkpoint = checkpoint if checkpoint is not None else load_checkpoint(path, mmap=True)
+    held = checkpoint_identity(checkpoint)
+    wrong = {k: v for k, v in expected.items() if v is not None and held.get(k) != v}
+    if wrong:
+        holds = ", ".join(f"{k}={held.get(k)!r}" for k in wrong)
+        wants = ", ".join(f"{k}={v!r}" for k, v in wrong.items())
+        kind = f"a '{held['method']}'" + (f" {held['variant']}" if held.get("variant") else "")
+        raise CheckpointMismatchError(f"{what}={path}: {kind} checkpoint ({holds}); expected {wants}")
     return checkpoint

@@ -50,6 +50,85 @@ class SceneFormatError(ValueError):
         super().__init__(f"{where}: {problem}")
 
 
+class ImplausibleSceneError(SceneFormatError):
+    """A well-formed scene that is physically absurd (an object kilometres outside its room, a coordinate of
+    1e30, a mug a kilometre across): refused by every reader, counted apart by the runs (:class:`Plausibility`)."""
+
+
+@dataclass(frozen=True)
+class Plausibility:
+    """Sane bounds every scene read or written is held to (metres). ``max_coordinate``: largest |x|, |y|, |z|
+    of a position or room corner; ``room_margin``: how far outside its room's box (``room``) an object's
+    centre may be; ``max_extent``: largest size of an asset along any axis (a library record's ``extents``).
+    Defaults are generous for rooms (generated and 3D-FRONT objects stay within their room by well under a
+    metre); override them with the environment variables of :data:`PLAUSIBILITY_ENV`."""
+
+    max_coordinate: float = 1000.0
+    room_margin: float = 10.0
+    max_extent: float = 50.0
+
+    @classmethod
+    def from_env(cls) -> "Plausibility":
+        values = {}
+        for name, var in PLAUSIBILITY_ENV.items():
+            raw = os.environ.get(var, "").strip()
+            if raw:
+                try:
+                    values[name] = float(raw)
+                except ValueError:
+                    raise ValueError(f"{var}={raw!r}: not a number of metres") from None
+                if not values[name] > 0:
+                    raise ValueError(f"{var}={raw!r}: must be > 0 metres")
+        return cls(**values)
+
+
+#: Environment variables that override a :class:`Plausibility` bound (metres).
+PLAUSIBILITY_ENV = {"max_coordinate": "SPREAD_MAX_COORDINATE_M", "room_margin": "SPREAD_ROOM_MARGIN_M",
+                    "max_extent": "SPREAD_MAX_EXTENT_M"}
+
+
+def check_asset_extents(asset_id: str, extents, source: str, bounds: Plausibility | None = None) -> None:
+    """Raise :class:`ImplausibleSceneError` when an asset's size (metres, per axis) is not finite or over
+    ``bounds.max_extent`` (a mesh with a vertex at 1e30, a mug scaled to a kilometre)."""
+    b = bounds or Plausibility.from_env()
+    extents = np.asarray(extents, np.float64)
+    if not np.isfinite(extents).all() or extents.max() > b.max_extent:
+        raise ImplausibleSceneError(source, None, f"asset '{asset_id}' is {extents.tolist()} m across, over "
+                                                  f"{b.max_extent:g} m: physically implausible, refused (bound set by "
+                                                  f"{PLAUSIBILITY_ENV['max_extent']})")
+
+
+def check_plausible(scene: "Scene", source: str, records=None, bounds: Plausibility | None = None) -> None:
+    """Raise :class:`ImplausibleSceneError` (file, key, object, value, the bound and how to change it) when a
+    position, the room or an asset's size is outside ``bounds`` (None: :meth:`Plausibility.from_env`)."""
+    b = bounds or Plausibility.from_env()
+
+    def fail(key: str, problem: str, var: str) -> None:
+        raise ImplausibleSceneError(source, key, f"{problem}: physically implausible, refused "
+                                                 f"(bound set by {PLAUSIBILITY_ENV[var]})")
+
+    far = np.abs(scene.translation).max(axis=1)
+    if (far > b.max_coordinate).any():
+        i = int(np.argmax(far))
+        fail("translation", f"object {i} is at {scene.translation[i].tolist()} m, beyond ±{b.max_coordinate:g} m",
+             "max_coordinate")
+    if scene.room is not None:
+        if np.abs(scene.room).max() > b.max_coordinate:
+            fail("room", f"room corners {scene.room.tolist()} m reach beyond ±{b.max_coordinate:g} m", "max_coordinate")
+        lo, hi = scene.room[0] - b.room_margin, scene.room[1] + b.room_margin
+        out = ((scene.translation < lo) | (scene.translation > hi)).any(axis=1)
+        if out.any():
+            i = int(np.argmax(out))
+            fail("translation", f"object {i} at {scene.translation[i].tolist()} m is more than {b.room_margin:g} m "
+                                f"outside the room {scene.room.tolist()}", "room_margin")
+    if records is not None:
+        for i, aid in enumerate(scene.asset_id):
+            extents = np.asarray(records[aid].extents, np.float64)
+            if not np.isfinite(extents).all() or extents.max() > b.max_extent:
+                fail("asset_id", f"object {i}'s asset '{aid}' is {extents.tolist()} m across, over "
+                                 f"{b.max_extent:g} m", "max_extent")
+
+
 @dataclass
 class Scene:
     """One scene of N objects (no padding). Shapes and units are those of DESIGN §4."""
@@ -222,6 +301,7 @@ def validate_scene(scene: Scene, source: str, assets: "AssetLibrary | Iterable[s
             for i, (aid, cat) in enumerate(zip(scene.asset_id, scene.category)):
                 if records[aid].category != cat:
                     _fail(source, "category", f"object {i} says '{cat}' but asset '{aid}' is '{records[aid].category}'")
+    check_plausible(scene, source, getattr(assets, "records", None) if assets is not None else None)
 
 
 def write_scene(scene: Scene, path: str | os.PathLike, validate: bool = True) -> Path:
@@ -242,9 +322,15 @@ def read_scene(path: str | os.PathLike, assets: "AssetLibrary | Iterable[str] | 
     """Read and validate one scene file; errors name the file and key."""
     path = Path(path)
     src = str(path)
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         _fail(src, None, "file does not exist")
+    from spread.io import InputFileError, check_input_file
     from spread.safe_load import UnsafeFileError, load_npz
+
+    try:  # a regular file of plausible size (a link to /dev/zero or a FIFO is refused, not read)
+        check_input_file(path, root=path.parent)
+    except InputFileError as exc:
+        raise SceneFormatError(src, None, str(exc).removeprefix(f"{path}: ")) from None
 
     try:
         with load_npz(path) as data:
@@ -258,6 +344,10 @@ def read_scene(path: str | os.PathLike, assets: "AssetLibrary | Iterable[str] | 
 
 def scene_from_arrays(arrays: Mapping[str, np.ndarray], source: str = "<arrays>",
                       assets: "AssetLibrary | Iterable[str] | None" = None, validate: bool = True) -> Scene:
+    for key, value in arrays.items():  # a zip whose members are not .npy files gives raw bytes
+        if not isinstance(value, np.ndarray):
+            _fail(source, key, f"not a numpy array (a {type(value).__name__}): the file is a zip archive but not "
+                               f"an .npz of arrays")
     for key in REQUIRED_KEYS:
         if key not in arrays:
             _fail(source, key, "missing required key")

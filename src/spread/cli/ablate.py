@@ -9,12 +9,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register()
 
 
+@command("spread-ablate")
 @hydra.main(config_path=conf_dir(), config_name="ablate", version_base="1.3")
+@one_line("spread-ablate")
 def main(cfg: DictConfig) -> None:
     from spread.experiments.ablation_command import ablate, print_ablation
 

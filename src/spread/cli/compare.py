@@ -9,12 +9,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register()
 
 
+@command("spread-compare")
 @hydra.main(config_path=conf_dir(), config_name="compare", version_base="1.3")
+@one_line("spread-compare")
 def main(cfg: DictConfig) -> None:
     from spread.experiments.compare_command import compare, print_comparison
 

@@ -9,12 +9,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register("evaluate")
 
 
+@command("spread-evaluate")
 @hydra.main(config_path=conf_dir(), config_name="evaluate", version_base="1.3")
+@one_line("spread-evaluate")
 def main(cfg: DictConfig) -> None:
     from spread.experiments.commands import evaluate, print_evaluation_summary
 

@@ -5,12 +5,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register("generate")
 
 
+@command("spread-generate")
 @hydra.main(config_path=conf_dir(), config_name="generate", version_base="1.3")
+@one_line("spread-generate")
 def main(cfg: DictConfig) -> None:
     from spread.experiments.commands import generate, print_dataset_summary
 

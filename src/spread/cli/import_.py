@@ -6,12 +6,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register("import")
 
 
+@command("spread-import")
 @hydra.main(config_path=conf_dir(), config_name="import", version_base="1.3")
+@one_line("spread-import")
 def main(cfg: DictConfig) -> None:
     from spread.experiments.commands import import_data, print_import_summary
 

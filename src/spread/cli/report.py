@@ -9,12 +9,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register("report")
 
 
+@command("spread-report")
 @hydra.main(config_path=conf_dir(), config_name="report", version_base="1.3")
+@one_line("spread-report")
 def main(cfg: DictConfig) -> None:
     from spread.experiments import RunError, print_report, run_report, runs_argument
     from spread.experiments.commands import record_config

@@ -10,12 +10,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 
 register("sample")
 
 
+@command("spread-sample")
 @hydra.main(config_path=conf_dir(), config_name="sample", version_base="1.3")
+@one_line("spread-sample")
 def main(cfg: DictConfig) -> None:
     from spread.experiments.commands import print_evaluation_summary, print_sampling_summary, sample
 

@@ -8,6 +8,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
+from spread.cli.errors import command, one_line
 from spread.configs import conf_dir, register
 from spread.training.ray_train import with_default_trainer
 
@@ -15,6 +16,7 @@ register()
 
 
 @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
+@one_line("spread-train-ray")
 def _main(cfg: DictConfig) -> None:
     from spread.experiments.commands import record_config
     from spread.training.fit import run_folder
@@ -28,6 +30,7 @@ def _main(cfg: DictConfig) -> None:
           f"Ray checkpoint {None if result.checkpoint is None else result.checkpoint.path}")
 
 
+@command("spread-train-ray")
 def main() -> None:
     sys.argv = with_default_trainer(sys.argv)
     _main()

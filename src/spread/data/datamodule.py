@@ -114,6 +114,10 @@ class SceneDataModule(L.LightningDataModule):
                              f"with a val split (spread-generate writes one from 10 rooms on) or set "
                              f"trainer.limit_val_batches=0")
 
+    def skipped_files(self) -> dict[str, list[dict]]:
+        """split → the scene files its dataset skipped (file, error), for the splits built so far."""
+        return {split: ds.skipped for split, ds in self._datasets.items() if ds.skipped}
+
     def scene_files(self, split: str) -> list:
         from spread.scene import list_scene_files
 

@@ -62,6 +62,28 @@ def load_manifest_categories(path: Path) -> list[str] | None:
     return list(cats)
 
 
+def screen_scene_files(files: list[Path], library) -> tuple[list[Path], list[dict]]:
+    """(the files that read back as valid, plausible scenes of ``library``; one ``{"file", "error"}`` per
+    other one): a damaged, hostile or absurd file is skipped, counted and named in a warning instead of
+    stopping a run mid-epoch (every file is read once here; reading is a few ms per scene)."""
+    good, skipped = [], []
+    for path in files:
+        try:
+            read_scene(path, assets=library)
+        except Exception as exc:  # SceneFormatError names file and key; anything else still names the file
+            message = str(exc) if str(path) in str(exc) else f"{path}: {type(exc).__name__}: {exc}"
+            skipped.append({"file": str(path), "error": message})
+        else:
+            good.append(path)
+    if skipped:
+        import logging
+
+        logging.getLogger("spread.data").warning(
+            "skipped %d of %d scene files in %s: %s", len(skipped), len(files), Path(files[0]).parent,
+            "; ".join(s["error"] for s in skipped[:3]) + (" …" if len(skipped) > 3 else ""))
+    return good, skipped
+
+
 class SceneDataset(torch.utils.data.Dataset):
     """Scenes of ``<root>/<split>`` encoded as tensors (see the module docstring for the keys)."""
 
@@ -85,6 +107,10 @@ class SceneDataset(torch.utils.data.Dataset):
             translation_bounds(self.stats, source=f"{self.root}: bounds")
         self._library = library if library is not None else AssetLibrary.load(self.root / "assets")
         self._library_root = Path(self._library.root)
+        self.files, self.skipped = screen_scene_files(self.files, self._library)
+        if not self.files:
+            raise ValueError(f"{self.root / split}: none of its {len(self.skipped)} scene files is usable "
+                             f"(first: {self.skipped[0]['error']})")
         self.asset_ids: list[str] = sorted(self._library.records)
         self.categories: list[str] = (load_manifest_categories(self.root / "manifest.json")
                                       or list(self._library.categories))

@@ -18,20 +18,28 @@ from spread.evaluation.protocol import EvalProtocol
 
 
 def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
-    """Aggregates (name → metric) of the protocol's metrics with every good record's per-scene states merged in;
-    a record without a selected metric's state is an error naming the scene and the metric."""
+    """Aggregates (name → metric) of the protocol's metrics with every usable record's per-scene states merged in
+    (a record without a finite state of every selected metric is left out, as a failure)."""
     metrics = protocol.build_metrics()
     for record in records:
-        if record.get("error"):
+        if not usable(record, metrics):
             continue
         for name, metric in metrics.items():
-            state = (record.get("state") or {}).get(name)
-            if state is None:
-                raise ValueError(f"per_scene.jsonl: scene '{record.get('scene_id')}' has no '{name}' state (measured "
-                                 f"with another metric selection); evaluate it again")
+            state = record["state"][name]
             metric.merge_state({k: torch.as_tensor(state[k], dtype=getattr(metric, k).dtype)
                                 for k in metric.metric_state})
     return metrics
+
+
+def usable(record: dict, metrics=None) -> bool:
+    """Whether a ``per_scene.jsonl`` record enters the aggregates: no error and a finite state for every metric
+    (``metrics``: the names measured, default the record's own; a hand-edited or damaged line with a NaN, a
+    string or a missing metric is left out, as a failure)."""
+    from spread.evaluation.work import nonfinite_state
+
+    state = record.get("state")
+    return (not record.get("error") and isinstance(state, dict) and set(metrics or state) <= set(state)
+            and nonfinite_state(state) is None)
 
 
 def as_float(value) -> float | None:
@@ -44,11 +52,13 @@ def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
     """Every selected metric's values (its ``compute()``: Stability adds the still shares), the counts of the
     scenes and objects, and each metric's own counts (``n_colliding_objects``, ...) over deduplicated ``records``."""
     metrics = merge_records(records, protocol)
-    good = [r for r in records if not r.get("error")]
+    good = [r for r in records if usable(r, metrics)]
     out: dict = {}
     for name, metric in metrics.items():
         out.update({k: as_float(v) for k, v in metric.values(name).items()})
     out.update({"n_scenes": len(records), "n_evaluated": len(good), "n_failed": len(records) - len(good),
+                "n_implausible": sum(r.get("error_type") == "ImplausibleSceneError" for r in records),
+                "n_refused_inputs": sum(r.get("error_type") == "InputFileError" for r in records),
                 "n_objects": int(sum(r["num_objects"] for r in good))})
     for metric in metrics.values():
         out.update(metric.count_values())

@@ -37,20 +37,19 @@ FEW = 5
 
 
 def scene_sums(records: Iterable[dict], metrics: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """value → (numerators (n,), denominators (n,)) of the good records (those without ``error``), in order, for
-    every pooled-ratio value of ``metrics`` (name → metric; each metric says which of its per-scene states form
-    which value: :meth:`~spread.metrics.base.SceneMetric.pooled_terms`)."""
-    good = [r for r in records if not r.get("error")]
+    """value → (numerators (n,), denominators (n,)) of the usable records (no ``error``, a finite state for every
+    metric: :func:`~spread.evaluation.aggregate.usable`), in order, for every pooled-ratio value of ``metrics``
+    (name → metric; each metric says which of its per-scene states form which value:
+    :meth:`~spread.metrics.base.SceneMetric.pooled_terms`)."""
+    from spread.evaluation.aggregate import usable
+
+    good = [r for r in records if usable(r, metrics)]
     out: dict[str, tuple[list, list]] = {}
     for name, metric in metrics.items():
         for value in metric.ratios:
             out[value] = ([], [])
         for r in good:
-            state = (r.get("state") or {}).get(name)
-            if state is None:
-                raise ValueError(f"per-scene record of '{r.get('scene_id')}' without the '{name}' state; evaluate "
-                                 f"again with this version")
-            for value, (num, den) in metric.pooled_terms(state).items():
+            for value, (num, den) in metric.pooled_terms(r["state"][name]).items():
                 out[value][0].append(num)
                 out[value][1].append(den)
     return {k: (np.array(num, np.float64), np.array(den, np.float64)) for k, (num, den) in out.items()}
@@ -70,12 +69,13 @@ def resample_indices(n: int, resamples: int, seed: int) -> np.ndarray:
 def record_metrics(records: Iterable[dict]) -> dict:
     """name → a registered metric (default settings) for every metric whose states the records carry, in the
     records' order (the pooled-ratio definitions do not depend on the protocol's settings)."""
-    from spread.metrics.registry import default_metric_names, metric_spec
+    from spread.metrics.registry import METRICS, default_metric_names, metric_spec
 
     names: list[str] = []
     for r in records:
-        if not r.get("error"):
-            names += [n for n in (r.get("state") or {}) if n not in names]
+        state = r.get("state")
+        if not r.get("error") and isinstance(state, dict):
+            names += [n for n in state if n not in names and n in METRICS]
     names = names or default_metric_names()  # nothing measured: the default metrics, each without an interval
     return {name: metric_spec(name).create() for name in names}
 
@@ -92,9 +92,12 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
         raise ValueError(f"level must be in (0, 1), got {level}")
     if resamples < 1:
         raise ValueError(f"resamples must be ≥ 1, got {resamples}")
+    from spread.evaluation.aggregate import usable
+
     records = list(records)
-    sums = scene_sums(records, record_metrics(records) if metrics is None else metrics)
-    n = sum(1 for r in records if not r.get("error"))
+    metrics = record_metrics(records) if metrics is None else metrics
+    sums = scene_sums(records, metrics)
+    n = sum(1 for r in records if usable(r, metrics))
     meta = {"method": "percentile", "unit": "scene", "resamples": int(resamples), "level": float(level),
             "seed": int(seed), "n_scenes": n, "measured": {m: int((den > 0).sum()) for m, (_, den) in sums.items()}}
     out: dict = {}

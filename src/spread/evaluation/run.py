@@ -25,7 +25,7 @@ from typing import Callable
 
 from omegaconf import MISSING
 
-from spread.evaluation.aggregate import fid_values, per_room_type_values, summary_values
+from spread.evaluation.aggregate import fid_values, per_room_type_values, summary_values, usable
 from spread.evaluation.bootstrap import RESAMPLES, bootstrap_intervals
 from spread.evaluation.fanout import fan_out, run_tasks
 from spread.evaluation.protocol import EvalProtocol, FIDConfig, versions
@@ -124,9 +124,35 @@ def write_renders(out: Path, records: list[dict], assets: str, count: int) -> li
     return paths
 
 
+def input_hashes(files: list[Path], keys: list[str], folder: Path) -> tuple[dict[str, str], dict[str, dict]]:
+    """(scene key → SHA-256 of its file, scene key → failure record of each file refused before reading: a
+    device, a FIFO, a link out of ``folder``, over the size limit; :func:`spread.io.check_input_file`). A
+    refused file's hash is the marker ``"refused"``, which its failure record carries too: a resume keeps the
+    record while the file stays refused and evaluates the scene once the file is a readable one."""
+    from spread.io import InputFileError, check_input_file
+
+    inputs, refused = {}, {}
+    for f, k in zip(files, keys):
+        try:
+            inputs[k] = file_sha256(check_input_file(f, root=folder))
+        except (InputFileError, OSError) as exc:
+            inputs[k] = "refused"
+            refused[k] = {"scene_id": k, "file": str(f), "node_id": None, "pid": None, "input_sha256": "refused",
+                          "error": f"InputFileError: {exc}", "error_type": "InputFileError"}
+    return inputs, refused
+
+
 def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
     """Evaluate every scene file of ``cfg.scenes`` (module docstring); ``before_work()`` runs once the checks
-    passed (the command records its config there)."""
+    passed (the command records its config there). The run holds ``out_dir``'s lock
+    (:func:`spread.io.run_lock`): a second evaluation of the same folder is refused while this one runs."""
+    from spread.io import run_lock
+
+    with run_lock(cfg.out_dir, "spread-evaluate"):
+        return _run_evaluation(cfg, before_work)
+
+
+def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
     from spread.scene import list_scene_files
     from tqdm.auto import tqdm
 
@@ -150,8 +176,12 @@ def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None
         before_work()
     if not cfg.resume:
         per_scene.unlink(missing_ok=True)
-    inputs = {k: file_sha256(f) for f, k in zip(files, keys)}
+    inputs, refused = input_hashes(files, keys, Path(cfg.scenes))
     finished, changed = load_finished(per_scene, retry_failed=cfg.retry_failed, inputs=inputs)
+    for key, record in refused.items():  # never sent to a worker: recorded here, the run goes on
+        if key not in finished:
+            finished[key] = record
+            append_jsonl(per_scene, record)
     todo = [str(f) for f, k in zip(files, keys) if k not in finished]
     bar = tqdm(total=len(files), initial=len(files) - len(todo), desc="scenes", unit="scene",
                disable=not cfg.progress)
@@ -182,7 +212,8 @@ def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
                               cfg.fid.feature_model))
     metrics.update({
-        "failed": [{"scene_id": r["scene_id"], "error": r["error"]} for r in records if r.get("error")],
+        "failed": [{"scene_id": r["scene_id"], "error": r.get("error") or "unusable record (a non-finite or missing "
+                    "metric state)"} for r in records if not usable(r)],
         "fid_reference_failed": ref_failed,
         "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(),

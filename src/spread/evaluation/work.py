@@ -99,6 +99,18 @@ def where_am_i() -> dict:
     return {"node_id": node, "pid": os.getpid()}
 
 
+def nonfinite_state(states) -> str | None:
+    """The first ``metric.state`` of a record's ``state`` that is missing, not a number or not finite
+    (NaN, ±inf, or None after :func:`finite_or_none`), or None when every value is a finite number."""
+    for name, state in (states or {}).items():
+        for key, value in (state or {}).items():
+            values = np.asarray(value if value is not None else np.nan, dtype=object).reshape(-1)
+            for v in values:
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                    return f"{name}.{key}"
+    return None
+
+
 def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, extractor=None,
                    metrics: dict | None = None) -> dict:
     """Every selected metric of one scene file (module docstring); never raises for a bad scene. ``metrics``:
@@ -111,7 +123,7 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
     record = {"scene_id": scene_key(path), "file": str(path), **where_am_i()}
     try:
         record["input_sha256"] = file_sha256(path)  # what this record was measured on (resume compares it)
-    except OSError:
+    except (OSError, ValueError):  # missing, or not a regular file: read_scene below names the problem
         record["input_sha256"] = None
     seconds: dict[str, float] = {}
 
@@ -129,6 +141,16 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         if extractor is not None:
             image = timed("fid_render", fid_render, scene, library)
             features = timed("fid_features", extractor, image[None])[0]
+        values, states = {}, {}
+        for name, result in results.items():
+            one = protocol_metric(metrics, name)  # a fresh metric that sees this scene only
+            one.update([result])
+            values.update(one.values(name))
+            states[name] = {k: v.tolist() for k, v in one.metric_state.items()}
+        bad = nonfinite_state(states)
+        if bad:
+            raise FloatingPointError(f"{path}: metric state {bad} is not finite; the scene is left out of every "
+                                     f"aggregate")
     except Exception as exc:  # a scene that cannot be measured is reported, and the run goes on
         record.update(error=f"{type(exc).__name__}: {exc}", error_type=type(exc).__name__,
                       traceback=traceback.format_exc(limit=4)[-2000:], seconds=seconds)
@@ -137,13 +159,8 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         "inner_scene_id": scene.scene_id,
         "room_type": str(scene.extras["room_type"]) if "room_type" in scene.extras else None,
         "num_objects": scene.num_objects,
+        **values,
     })
-    states = {}
-    for name, result in results.items():
-        one = protocol_metric(metrics, name)  # a fresh metric that sees this scene only
-        one.update([result])
-        record.update(one.values(name))
-        states[name] = {k: v.tolist() for k, v in one.metric_state.items()}
     record.update({
         "details": {name: r.to_dict() for name, r in results.items()},
         "state": states,

@@ -111,6 +111,10 @@ class AblationSpec:
                 raise ValueError(f"train.ckpt.{variant}: only base and geometry are trained")
             if path and not Path(path).is_file():
                 raise FileNotFoundError(f"train.ckpt.{variant}={path}: no such checkpoint file")
+            if path:  # the file must be the row's kind of model (one line otherwise), before any stage runs
+                from spread.safe_load import expect_checkpoint
+
+                expect_checkpoint(path, f"train.ckpt.{variant}", method="spread", variant=variant)
 
     @property
     def dataset(self) -> Path:

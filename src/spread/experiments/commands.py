@@ -144,6 +144,8 @@ def print_import_summary(manifest: dict, out_dir: str) -> None:
         console.print(f"room {err['tag']}: {err['error']}")
     for err in manifest["errors"]["assets"][:10]:
         console.print(f"asset {err.get('asset_id')}: {err['error']}")
+    for warning in manifest.get("warnings", []):
+        console.print(f"[yellow]warning:[/yellow] {warning}")
 
 
 # ---- export --------------------------------------------------------------------------------------------------
@@ -172,6 +174,8 @@ def print_export_summary(report) -> None:
           f"{len(report.failed)} failed (see export.json)")
     for scene_id, error in list(report.failed.items())[:10]:
         print(f"  failed {scene_id}: {error}")
+    for file, note in list(getattr(report, "duplicates", {}).items())[:10]:
+        print(f"  duplicate id in {file}: {note}")
 
 
 # ---- train ---------------------------------------------------------------------------------------------------

@@ -120,6 +120,10 @@ class CompareSpec:
                                  f"diffuscene)")
             if path and not Path(path).is_file():
                 raise FileNotFoundError(f"train.ckpt.{method}={path}: no such checkpoint file")
+            if path:  # the file must be the row's kind of model (one line otherwise), before any stage runs
+                from spread.safe_load import expect_checkpoint
+
+                expect_checkpoint(path, f"train.ckpt.{method}", method=method)
 
     def named(self, overrides: list[str]) -> list[str]:
         return ([f"experiment_name={self.group}"] if self.group else []) + list(overrides)

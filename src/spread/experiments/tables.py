@@ -46,8 +46,8 @@ class Column:
             return "–"
         if self.digits is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
             return f"{float(value) * self.scale:.{self.digits}f}"
-        if self.digits is not None:
-            return f"invalid ({value!r})"  # a hand-edited or corrupt value is never shown as a number
+        if self.digits is not None:  # a number column holding text (a hand-edited metrics.json): never a number
+            return f"invalid ({str(value)[:20]!r})"
         return str(value)
 
     def half_width(self, record: dict) -> float | None:
@@ -59,9 +59,10 @@ class Column:
 
     def cell(self, record: dict, latex: bool = False) -> str:
         """The printed cell: the value, with ``± half-width`` when the record has an interval for it."""
-        text = self.format(record.get(self.key))
+        value = record.get(self.key)
+        text = self.format(value)
         half = self.half_width(record)
-        if half is None or text == "–" or text.startswith("invalid"):
+        if half is None or text == "–" or not isinstance(value, (int, float)) or isinstance(value, bool):
             return text
         if latex:
             return rf"{text}\,{{\scriptsize$\pm${half:.{self.digits}f}}}"

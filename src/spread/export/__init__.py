@@ -141,16 +141,21 @@ def _umask() -> int:
 
 @dataclass
 class ExportReport:
-    """What :func:`export_folder` did: files written (by scene id) and scenes that failed (id → error)."""
+    """What :func:`export_folder` did: files written (by scene id) and scenes that failed (id → error). A scene
+    whose id another file of the folder already has is exported as ``<id>__<its file stem>`` and listed in
+    ``duplicates`` (no output overwrites another)."""
 
     format: str
     out_dir: str
     written: dict[str, str] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
+    sources: dict[str, str] = field(default_factory=dict)  # exported id → its scene file
+    duplicates: dict[str, str] = field(default_factory=dict)  # scene file → why and under which id it was exported
 
     def to_dict(self) -> dict:
         return {"format": self.format, "out_dir": self.out_dir, "n_written": len(self.written),
-                "n_failed": len(self.failed), "written": self.written, "failed": self.failed}
+                "n_failed": len(self.failed), "written": self.written, "failed": self.failed,
+                "duplicates": self.duplicates}
 
 
 def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir: str | os.PathLike, fmt: str,
@@ -177,7 +182,14 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
     for path in iterator:
         try:
             scene = read_scene(path, assets=library)
+            if str(scene.scene_id) in report.written:  # outputs are named by id: a second one would overwrite
+                first = report.sources[str(scene.scene_id)]
+                renamed = f"{scene.scene_id}__{path.stem}"
+                report.duplicates[str(path)] = (f"scene id '{scene.scene_id}' is also the id of {first}; exported "
+                                                f"as '{renamed}'")
+                scene.scene_id = renamed
             report.written[str(scene.scene_id)] = str(export_scene(scene, library, out_dir, fmt, floor=floor))
+            report.sources[str(scene.scene_id)] = str(path)
         except Exception as exc:  # one bad scene does not stop the export
             report.failed[path.stem] = f"{path}: {type(exc).__name__}: {exc}"
             if os.environ.get("SPREAD_DEBUG"):

@@ -141,6 +141,9 @@ def _asset_job(request: AssetRequest) -> dict:
     cfg = _WORKER["cfg"]
     try:
         record, built = _WORKER["source"].import_asset(Path(cfg.out_dir) / "assets", request, cfg.settings())
+        from spread.scene import check_asset_extents
+
+        check_asset_extents(request.asset_id, record.extents, str(request.path))  # before any room uses it
         return {"asset_id": request.asset_id, "record": record.to_dict(), "built": built,
                 "seconds": time.perf_counter() - started, "error": None}
     except Exception as exc:
@@ -190,6 +193,49 @@ def _room_job(args: tuple[RoomRef, list[AssetRequest], str]) -> dict:
 
 # ---- driver --------------------------------------------------------------------------------------
 
+def build_caches_or_drop(library, requests: dict[str, AssetRequest], build: dict):
+    """(the library without the assets whose geometry cache cannot be built, their error records): a
+    degenerate mesh (Qhull fails on its hull) takes only its rooms with it, not the import. The index is
+    written again when an asset was dropped."""
+    from spread.assets import AssetLibrary
+
+    failed = {}
+    for aid in sorted(library.records):
+        try:
+            library.geometry(aid)
+        except Exception as exc:  # recorded, the import goes on
+            request = requests.get(aid)
+            failed[aid] = {**error_record(None, exc, request.path if request else None), "asset_id": aid}
+    if failed:
+        library = AssetLibrary(library.root, {k: v for k, v in library.records.items() if k not in failed})
+        library.save_index(build=build)
+    return library, failed
+
+
+def remove_stale_scenes(out: Path, history: list[dict], keep: set[Path]) -> list[str]:
+    """Delete the scene files an earlier import wrote (lines of ``rooms.jsonl``) that this import does not
+    have: a room that left the split file, or moved to another split (its old file), so the disk, the
+    manifest and the splits agree and no room is in two splits. Only files named in the log are touched;
+    returns them, relative to ``out``."""
+    removed = []
+    for line in history:
+        split, scene_id = line.get("split"), line.get("scene_id")
+        if split not in SPLITS or not isinstance(scene_id, str):
+            continue
+        path = out / split / f"{scene_id}.npz"
+        if path not in keep and path.name == f"{scene_id}.npz" and path.parent == out / split and path.is_file():
+            path.unlink()
+            removed.append(f"{split}/{path.name}")
+    return sorted(set(removed))
+
+
+def split_warnings(counts: dict[str, int]) -> list[str]:
+    """One warning per split left without scenes (a carved-out val room that failed, a test list whose rooms
+    all failed): the dataset still imports, the manifest and the console say it."""
+    return [f"the {split} split has no scenes after this import" + (" (spread-train validates on val: give it "
+            "rooms or set trainer.limit_val_batches=0)" if split == "val" else "")
+            for split in SPLITS if counts.get(split, 0) == 0]
+
 def _map(pool, fn, items, desc: str, progress: bool):
     from tqdm.auto import tqdm
 
@@ -200,17 +246,29 @@ def _map(pool, fn, items, desc: str, progress: bool):
 
 
 def import_dataset(cfg: ImportConfig) -> dict:
-    """Run the import (module docstring); returns the manifest written to ``out_dir/manifest.json``."""
-    from spread.assets import AssetLibrary, AssetRecord
+    """Run the import (module docstring); returns the manifest written to ``out_dir/manifest.json``. The
+    import holds ``out_dir``'s lock (:func:`spread.io.run_lock`) once the source has been checked."""
+    from spread.io import run_lock
 
     if cfg.stats not in ("source", "computed"):
         raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
-    out = Path(cfg.out_dir)
     source = make_source(cfg)  # fails early (missing split file, bad options) before anything is written
     room_list = source.rooms()
+    with run_lock(cfg.out_dir, "spread-import"):
+        return _import_dataset(cfg, source, room_list)
+
+
+def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
+    from spread.assets import AssetLibrary, AssetRecord
+
+    out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "import" / "rooms.jsonl"
-    done = {r["tag"]: r for r in read_jsonl(log_path) if r.get("ok")}
+    from spread.io import refuse_links
+
+    refuse_links(log_path, out / "manifest.json", out / "stats.json")  # before any work: see spread.io
+    history = read_jsonl(log_path)
+    done = {r["tag"]: r for r in history if r.get("ok")}
     t0 = time.perf_counter()
     processes = max(1, int(cfg.processes))
     pool = mp.get_context("spawn").Pool(processes, initializer=_init_worker, initargs=(cfg,)) if processes > 1 else None
@@ -236,7 +294,9 @@ def import_dataset(cfg: ImportConfig) -> dict:
         library = AssetLibrary(out / "assets", records)
         library.save_index(build={"importer": IMPORTER_VERSION, **source.info()})
         t2 = time.perf_counter()
-        library.build_caches()
+        library, cache_failed = build_caches_or_drop(library, wanted, {"importer": IMPORTER_VERSION, **source.info()})
+        failed_assets.update(cache_failed)
+        records = dict(library.records)
         t_caches = time.perf_counter() - t2
         room_errors = list(room_list.errors)
         failed_refs: list[RoomRef] = []
@@ -279,10 +339,15 @@ def import_dataset(cfg: ImportConfig) -> dict:
     for ref in failed_refs:  # a file left by an earlier run of a room that fails now is not data any more
         done.pop(ref.tag, None)
         (out / ref.split / f"{ref.scene_id}.npz").unlink(missing_ok=True)
+    current = {ref.tag: ref for ref in room_list.rooms}
+    done = {t: r for t, r in done.items() if t in current and r.get("split") == current[t].split}
+    keep = {out / current[t].split / f"{current[t].scene_id}.npz" for t in done}
+    removed = remove_stale_scenes(out, history, keep)
     manifest = write_manifest(out, cfg, source, room_list, library, done, room_errors, failed_assets, asset_results,
                               {"seconds_scan": t_scan, "seconds_assets": t_assets, "seconds_caches": t_caches,
                                "seconds_rooms": t_rooms, "rooms_written": sum(1 for r in results if r["ok"]),
-                               "assets_built": sum(1 for r in asset_results if r["built"])})
+                               "assets_built": sum(1 for r in asset_results if r["built"]),
+                               "removed_stale": removed})
     if cfg.renders > 0:
         from spread.procgen.dataset import write_renders
 
@@ -342,6 +407,7 @@ def write_manifest(out: Path, cfg: ImportConfig, source, room_list, library, don
         "splits": room_list.splits,
         "counts": {s: len(v) for s, v in scenes.items()},
         "room_types": dict(Counter(str(sc.extras["room_type"]) for sc in all_scenes if "room_type" in sc.extras)),
+        "warnings": split_warnings({s: len(v) for s, v in scenes.items()}),
         "failed_rooms": len(room_errors),
         "failed_assets": len(failed_assets),
         "errors": {"rooms": room_errors, "assets": list(failed_assets.values())},

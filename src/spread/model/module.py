@@ -170,7 +170,9 @@ class SceneDiffusion(L.LightningModule):
         file = Path(path)
         if not file.is_file():
             raise FileNotFoundError(f"model.init_from={path}: no such checkpoint file")
-        state = torch.load(file, map_location="cpu", weights_only=True).get("state_dict", {})
+        from spread.safe_load import expect_checkpoint
+
+        state = expect_checkpoint(file, "model.init_from", method="spread").get("state_dict", {})
         prefix = "ema.module."
         source = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix) and not k.endswith("bounds")}
         if not source:

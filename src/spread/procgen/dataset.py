@@ -126,6 +126,15 @@ def check_config(config: DatasetConfig) -> list[str]:
             raise ValueError(f"{key}={value}: a fraction in [0, 1]")
     if config.val_fraction + config.test_fraction > 1.0:
         raise ValueError(f"val_fraction + test_fraction = {config.val_fraction + config.test_fraction} > 1")
+    room = config.room
+    if room.min_objects < 1 or room.max_objects < max(room.min_objects, 2):
+        raise ValueError(f"room.min_objects={room.min_objects}, room.max_objects={room.max_objects}: a room holds "
+                         f"between min_objects (≥ 1) and max_objects (≥ min_objects and ≥ 2) objects")
+    from spread.procgen.room_types import ROOM_TYPES
+
+    if not any(w > 0 and t in ROOM_TYPES for t, w in room.room_types.items()):
+        raise ValueError(f"room.room_types={dict(room.room_types)}: no known room type with a positive weight "
+                         f"(known: {sorted(ROOM_TYPES)})")
     counts = Counter(split_of(i, config) for i in range(config.rooms))
     warnings = []
     for split in ("train", "val", "test"):

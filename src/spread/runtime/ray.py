@@ -38,20 +38,29 @@ class RaySettings:
         return self.address in (None, "", "local")
 
 
+def _start(settings: RaySettings) -> None:
+    import ray
+
+    if settings.starts_cluster:
+        # address="local": always a new private cluster, never one that another process on this machine
+        # started (ray.init() without an address would join the newest one it finds in /tmp/ray)
+        ray.init(address="local", num_cpus=settings.num_cpus, include_dashboard=False,
+                 log_to_driver=settings.log_to_driver, object_store_memory=settings.object_store_memory)
+    else:
+        ray.init(address=settings.address, log_to_driver=settings.log_to_driver)
+
+
 @contextlib.contextmanager
 def ray_session(settings: RaySettings) -> Iterator[dict]:
     """Ray initialised for the block (module docstring); yields ``{"address", "nodes", "cpus"}``."""
     import ray
 
+    from spread.runtime.quiet import quiet_ray_start
+
     owned = not ray.is_initialized()
     if owned:
-        if settings.starts_cluster:
-            # address="local": always a new private cluster, never one that another process on this machine
-            # started (ray.init() without an address would join the newest one it finds in /tmp/ray)
-            ray.init(address="local", num_cpus=settings.num_cpus, include_dashboard=False,
-                     log_to_driver=settings.log_to_driver, object_store_memory=settings.object_store_memory)
-        else:
-            ray.init(address=settings.address, log_to_driver=settings.log_to_driver)
+        with quiet_ray_start():
+            _start(settings)
     try:
         nodes = [n for n in ray.nodes() if n.get("Alive")]
         yield {"address": settings.address or "local", "nodes": len(nodes),

@@ -85,4 +85,5 @@ def lightning_loggers(logger: LoggerConfig, run_dir: Path, group: str, tags: lis
             project=logger.project, name=logger.run_name or f"{group}/{Path(run_dir).name}", save_dir=str(run_dir),
             mode=logger.mode, group=group, job_type="train", tags=[*tags, *logger.tags], config=config,
             log_model=False, id=previous_wandb_id(run_dir) if resuming_here else None))
+        getattr(loggers[0], "_wandb_init", {}).pop("anonymous", None)  # wandb warns about the key (runtime.quiet)
     return loggers

@@ -58,7 +58,10 @@ class SamplingConfig:
     figures: 3D figures of the first samples, of the kinds in ``figure_kinds`` (``card``: 3D view + relation
     matrix, ``physics``: before | after one Stability run); progress: tqdm bar; guidance: a
     :class:`~spread.guidance.GuidanceConfig` (or its mapping / mode name); ray: where the actors run
-    (``ray.num_gpus_per_worker``: GPUs per actor). ``conf/sample.yaml`` overrides these defaults."""
+    (``ray.num_gpus_per_worker``: GPUs per actor); max_objects: largest graph sampled (None: twice the
+    dataset's largest scene, ``stats.json``'s ``max_objects``; 0: no limit) — a larger one is skipped and named
+    before any work (the geometry model's cost grows with the square of the objects, and a graph far beyond
+    what the model was trained on would hold up its batch). ``conf/sample.yaml`` overrides these defaults."""
 
     ckpt: str = MISSING
     data: DataSplit = field(default_factory=DataSplit)
@@ -79,6 +82,7 @@ class SamplingConfig:
     progress: bool = True
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     ray: RaySettings = field(default_factory=RaySettings)
+    max_objects: int | None = None
 
     def __post_init__(self) -> None:  # Python callers may give a sampler name or a guidance mode
         if not isinstance(self.sampler, Sampler) and self.sampler is not MISSING:
@@ -102,19 +106,66 @@ class SamplingResult:
 
 def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
     """The split's scene files as conditioning graphs (each read and validated against the library)."""
+    return read_graphs(data_root, split)[0]
+
+
+def object_limit(data_root: str | Path, max_objects: int | None) -> int | None:
+    """The largest graph a run samples (:class:`SamplingConfig` ``max_objects``): the setting, or twice the
+    largest scene of the dataset's ``stats.json`` (None when it does not say); 0 or less: no limit."""
+    if max_objects is not None:
+        return int(max_objects) if int(max_objects) > 0 else None
+    stats = Path(data_root) / "stats.json"
+    if not stats.is_file():
+        return None
+    from spread.io import read_json_object
+
+    largest = read_json_object(stats).get("max_objects")
+    return 2 * int(largest) if isinstance(largest, int) and largest > 0 else None
+
+
+def read_graphs(data_root: str | Path, split: str, max_objects: int | None = None) -> tuple[list[Graph], list[dict]]:
+    """(the split's usable scene files as conditioning graphs, one ``{"file", "error"}`` per skipped file):
+    a damaged or implausible file, or a graph of more than ``max_objects`` objects, is named and skipped,
+    the others are sampled; none usable is refused."""
     from spread.assets.library import AssetLibrary
-    from spread.scene import list_scene_files, read_scene
+    from spread.scene import SceneFormatError, list_scene_files, read_scene
 
     folder = Path(data_root) / split
     files = list_scene_files(folder) if folder.is_dir() else []
     if not files:
         raise FileNotFoundError(f"{folder}: no scene files to condition on")
     library = AssetLibrary.load(Path(data_root) / "assets")
-    graphs = []
+    graphs, skipped = [], []
     for path in files:
-        scene = read_scene(path, assets=library)
+        try:
+            scene = read_scene(path, assets=library)
+        except SceneFormatError as exc:  # named, counted in sampling.json, and the other graphs are sampled
+            skipped.append({"file": str(path), "error": str(exc)})
+            continue
+        if max_objects is not None and scene.num_objects > max_objects:
+            skipped.append({"file": str(path), "error": f"{path}: {scene.num_objects} objects, over the object limit "
+                                                        f"{max_objects} (set max_objects=<n> to raise it, 0: no limit)"})
+            continue
         graphs.append(Graph(scene.scene_id, str(path), scene.num_objects))
-    return graphs
+    if skipped:
+        import logging
+
+        logging.getLogger("spread.sample").warning("skipped %d of %d graphs: %s", len(skipped), len(files),
+                                                   "; ".join(s["error"] for s in skipped[:3]))
+    if not graphs:
+        raise ValueError(f"{folder}: none of its {len(files)} scene files is a usable graph "
+                         f"(first: {skipped[0]['error']})")
+    return graphs, skipped
+
+
+def check_checkpoint(path) -> dict:
+    """The checkpoint (tensors memory-mapped) once it reads safely and its weights fit the network its
+    hyperparameters describe (:func:`spread.baselines.check_weight_shapes`: nothing is allocated)."""
+    from spread.baselines import check_weight_shapes, checkpoint_method, module_class
+
+    checkpoint = load_checkpoint(path, mmap=True)
+    check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint, str(path))
+    return checkpoint
 
 
 def guidance_settings(guidance) -> dict | None:
@@ -249,7 +300,15 @@ def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: in
 
 def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
     """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring);
-    ``before_work()`` runs once the checks passed (the command records its config there)."""
+    ``before_work()`` runs once the checks passed (the command records its config there). The run holds
+    ``out_dir``'s lock (:func:`spread.io.run_lock`)."""
+    from spread.io import run_lock
+
+    with run_lock(cfg.out_dir, "spread-sample"):
+        return _run_sampling(cfg, before_work)
+
+
+def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
     from tqdm.auto import tqdm
 
     started = time.perf_counter()
@@ -259,8 +318,9 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
     if not cfg.resume:  # a fresh run: no file of an earlier run may stay beside the new ones
         for old in scenes_dir.glob("*.npz"):
             old.unlink()
-    load_checkpoint(cfg.ckpt, mmap=True)  # missing, damaged or unsafe: a clear error before any work
-    graphs = list_graphs(cfg.data.root, cfg.data.split)
+    check_checkpoint(cfg.ckpt)  # missing, damaged, unsafe or self-contradictory: a clear error before any work
+    limit = object_limit(cfg.data.root, cfg.max_objects)
+    graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, file_sha256(cfg.ckpt))
     check_fingerprint(out, settings, cfg.resume)
@@ -283,6 +343,7 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
             if isinstance(value, (int, float)) and not isinstance(value, bool):
                 guidance_totals[key] = guidance_totals.get(key, 0) + value
         batch_seconds.append(result["seconds"])
+        bar.set_postfix_str(f"batch {len(batch_seconds)}/{len(todo)}", refresh=False)  # progress per batch
         bar.update(len(result["written"]))
 
     runner = {"workers": 0, "mode": "none"}
@@ -297,7 +358,8 @@ def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = N
     files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
-        "graphs": len(graphs), "samples": total, "written_this_run": len(written),
+        "graphs": len(graphs), "samples": total,
+        "skipped_graphs": skipped_graphs, "max_objects": limit, "written_this_run": len(written),
         "resumed": total - pending, "redone_unreadable": len(damaged), "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],

@@ -71,7 +71,7 @@ def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = 
     from spread.safe_load import load_checkpoint
 
     checkpoint = load_checkpoint(ckpt)
-    model = module_from_checkpoint(checkpoint, map_location=resolve_device(device)).eval()  # SPREAD or a baseline
+    model = module_from_checkpoint(checkpoint, map_location=resolve_device(device), source=str(ckpt)).eval()  # SPREAD or a baseline
     guided = active_guidance(guidance)
     if guided is not None and not isinstance(model, SceneDiffusion):
         raise ValueError(f"guidance={guided.mode}: SPREAD's guidance needs a SceneDiffusion checkpoint, "

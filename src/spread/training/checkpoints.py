@@ -64,7 +64,7 @@ def save_final_checkpoint(trainer, run_dir: Path, newest: CheckpointStep) -> Non
 
 
 def atomic_checkpoint_io():
-    """A Lightning ``TorchCheckpointIO`` that writes each checkpoint to a temp file beside its target and
+    """A Lightning ``TorchCheckpointIO`` that loads through :func:`spread.safe_load.load_checkpoint` and writes each checkpoint to a temp file beside its target and
     renames it (:func:`spread.io.atomic_path`): a job killed mid-save never leaves a torn ``last.ckpt``, also
     when TMPDIR is on another filesystem than the run folder (where a rename falls back to a copy)."""
     import torch
@@ -79,5 +79,13 @@ def atomic_checkpoint_io():
             Path(path).parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(path) as tmp:
                 torch.save(checkpoint, tmp)
+
+        def load_checkpoint(self, path, map_location=None, weights_only=None):
+            """Every checkpoint Lightning loads (``ckpt_path=``) goes through the platform's loader:
+            ``weights_only=True`` whatever ``weights_only`` or ``TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD`` say, a
+            damaged file named (:func:`spread.safe_load.load_checkpoint`)."""
+            from spread.safe_load import load_checkpoint
+
+            return load_checkpoint(path, map_location="cpu" if map_location is None else map_location)
 
     return AtomicCheckpointIO()

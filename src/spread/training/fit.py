@@ -62,8 +62,18 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
             + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
 
 
-def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
-    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values (rank zero only)."""
+def check_resume_checkpoint(path: Path, model) -> None:
+    """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
+    another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`)."""
+    from spread.safe_load import checkpoint_identity, expect_checkpoint
+
+    own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
+    expect_checkpoint(path, "ckpt_path", **own)
+
+
+def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: dict | None = None) -> dict:
+    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values, the scene files the
+    datasets skipped (split → file, error; rank zero only)."""
     from spread.io import write_json_atomic
 
     last = run_dir / "checkpoints" / "last.ckpt"
@@ -72,6 +82,7 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
         "last_checkpoint": str(last) if last.exists() else None,
         "resumed_from": None if resumed_from is None else str(resumed_from),
         "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+        "skipped_scene_files": skipped or {},
     }
     if trainer.is_global_zero:
         write_json_atomic(run_dir / "metrics.json", summary)
@@ -93,6 +104,9 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
+    from spread.runtime.quiet import silence_known_noise
+
+    silence_known_noise()
     route_lightning_logs()
     set_threads(cfg.get("threads"))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
@@ -100,6 +114,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
+    if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
+        check_resume_checkpoint(ckpt_path, model)
     newest = CheckpointStep()
     overrides = dict(trainer_overrides or {})
     plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]
@@ -115,7 +131,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
         log.info("resuming from %s", ckpt_path)
     trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
     save_final_checkpoint(trainer, run_dir, newest)
-    summary = write_summary(trainer, run_dir, ckpt_path)
+    skipped = datamodule.skipped_files() if hasattr(datamodule, "skipped_files") else {}
+    summary = write_summary(trainer, run_dir, ckpt_path, skipped)
     if trainer.is_global_zero:
         print(f"run folder {run_dir}: step {summary['global_step']}, epoch {summary['epoch']}, "
               f"checkpoint {summary['last_checkpoint']}")

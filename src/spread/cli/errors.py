@@ -1,0 +1,87 @@
+"""User errors in one line, for every console script (docs/robustness.md).
+
+* :func:`command` wraps a script's ``main`` (the Hydra app) and checks an ``out_dir=`` given on the command
+  line *before* Hydra makes the run folder: an existing file, a read-only or unwritable folder is refused in
+  one line (Hydra would stop with a traceback from deep inside itself).
+* :func:`one_line` wraps the task function inside the Hydra app: a bad setting or input (``ValueError``,
+  ``FileNotFoundError``, a refused file or folder) ends the command with ``<command>: <message>`` and exit
+  status 1. ``HYDRA_FULL_ERROR=1`` (or ``SPREAD_DEBUG=1``) shows the full traceback instead.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+
+
+def verbose() -> bool:
+    return any(os.environ.get(v, "") not in ("", "0") for v in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG"))
+
+
+def user_error_types() -> tuple[type[BaseException], ...]:
+    """Exceptions that report a bad setting or input (not a bug): their message is the whole story."""
+    from spread.io import RunFolderBusy, UnsafeOutputError
+
+    return (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
+            RunFolderBusy, UnsafeOutputError)
+
+
+def one_line(name: str):
+    """Decorator of a Hydra task function: user errors become ``SystemExit("<name>: <message>")``."""
+
+    def wrap(task):
+        @functools.wraps(task)
+        def run(*args, **kwargs):
+            from spread.runtime.quiet import silence_known_noise
+
+            silence_known_noise()
+            try:
+                return task(*args, **kwargs)
+            except user_error_types() as exc:
+                if verbose():
+                    raise
+                message = " ".join(str(exc).split()) or type(exc).__name__
+                raise SystemExit(f"{name}: {message} (HYDRA_FULL_ERROR=1 shows the traceback)") from None
+
+        return run
+
+    return wrap
+
+
+def out_dir_problem(value: str) -> str | None:
+    """Why ``out_dir=value`` cannot be a run folder (an existing file, not writable), or None."""
+    path = Path(value).expanduser()
+    if path.exists() or path.is_symlink():
+        if not path.is_dir():
+            return f"out_dir={value}: exists and is not a folder; give a folder path"
+        if not os.access(path, os.W_OK | os.X_OK):
+            return f"out_dir={value}: the folder is not writable (read-only or another user's); give another out_dir"
+        return None
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"out_dir={value}: {parent} is not a folder, so the run folder cannot be made there"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"out_dir={value}: cannot be created, {parent} is not writable (read-only file system or permissions)"
+    return None
+
+
+def command(name: str):
+    """Decorator of a console script's Hydra ``main``: refuse a bad ``out_dir=`` argument before Hydra runs."""
+
+    def wrap(main):
+        @functools.wraps(main)
+        def entry(*args, **kwargs):
+            for arg in sys.argv[1:]:
+                if arg.startswith("out_dir="):
+                    problem = out_dir_problem(arg.split("=", 1)[1])
+                    if problem:
+                        raise SystemExit(f"{name}: {problem}")
+            return main(*args, **kwargs)
+
+        return entry
+
+    return wrap

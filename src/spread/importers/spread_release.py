@@ -47,6 +47,10 @@ class SpreadRelease(Source):
     has none of its own); ``val_fraction``: share of train carved into val when the file has no test list."""
 
     name = "spread_release"
+    #: regions_bbox is the file's own graph: its reading is measured on import (spread.importers.conventions)
+    spatial_from_file = True
+    relations_rule = ("spatial: the file's regions_bbox, in the reading the posed meshes support "
+                      "(manifest relations_convention); physical: the file's relations")
 
     def __init__(self, src: str | Path, room_type: str | None = None, val_fraction: float = 0.05):
         self.src = Path(src)

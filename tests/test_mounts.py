@@ -1,0 +1,97 @@
+"""Mount types (spread.scene: floor, on-object, wall, ceiling): stored in the scene file, read as today from
+older files, and wall/ceiling objects welded to the world by every physics engine (a pendant lamp 2.5 m up
+stays put; the same box without the mount falls)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spread.metrics import scene_stability
+from spread.scene import (
+    MOUNT_CEILING, MOUNT_FLOOR, MOUNT_ON_OBJECT, MOUNT_WALL, SceneFormatError, read_scene, scene_mounts,
+    welded_objects, write_scene,
+)
+from test_mujoco import build_box_library, make_scene
+
+pytest.importorskip("mujoco")
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    return build_box_library(tmp_path_factory.mktemp("mount_lib"))
+
+
+def lamp_room(library, mounted: bool = True):
+    """A cube on the floor, a cube 'pendant lamp' with its centre 2.5 m up (ceiling), a cup 1.5 m up on the
+    wall, and a free cube 2.5 m up (it falls)."""
+    scene = make_scene(library, ["cube", "cube", "cup", "cube"],
+                       [[0.0, 0.15, 0.0], [1.5, 2.5, 0.0], [-1.5, 1.5, 0.0], [0.0, 2.5, 1.5]], scene_id="lamps")
+    if mounted:
+        scene.extras["mount"] = np.array([MOUNT_FLOOR, MOUNT_CEILING, MOUNT_WALL, MOUNT_FLOOR], np.int8)
+    return scene
+
+
+def test_mount_round_trips_and_older_files_read_from_the_support_graph(library, tmp_path):
+    scene = lamp_room(library)
+    back = read_scene(write_scene(scene, tmp_path / "a.npz"))
+    assert scene_mounts(back).tolist() == [MOUNT_FLOOR, MOUNT_CEILING, MOUNT_WALL, MOUNT_FLOOR]
+    assert welded_objects(back).tolist() == [False, True, True, False]
+    old = lamp_room(library, mounted=False)
+    old.physical[0, 3] = 1  # "0 supports 3"
+    old = read_scene(write_scene(old, tmp_path / "old.npz"))
+    assert scene_mounts(old).tolist() == [MOUNT_FLOOR, MOUNT_FLOOR, MOUNT_FLOOR, MOUNT_ON_OBJECT]
+    assert not welded_objects(old).any()
+
+
+def test_a_bad_mount_is_refused_naming_the_key(library, tmp_path):
+    scene = lamp_room(library)
+    scene.extras["mount"] = np.array([0, 3, 7, 0], np.int8)
+    with pytest.raises(SceneFormatError, match="key 'mount'.*object 2 has mount code 7"):
+        write_scene(scene, tmp_path / "bad.npz")
+
+
+def assert_lamps_stay_and_the_free_cube_falls(world, library):
+    result = scene_stability(lamp_room(library), library, runs=2, steps=60, world=world)
+    moved = np.array(result.max_displacement)
+    assert moved[1] == pytest.approx(0.0, abs=1e-6) and moved[2] == pytest.approx(0.0, abs=1e-6)
+    assert moved[3] > 1.0  # 1 s of free fall from 2.5 m: on the floor
+    free = scene_stability(lamp_room(library, mounted=False), library, runs=1, steps=60, world=world)
+    assert free.max_displacement[1] > 1.0 and free.max_displacement[2] > 1.0  # unmounted, they fall
+
+
+def test_pybullet_welds_wall_and_ceiling_mounts(library):
+    from spread.physics import PhysicsWorld
+
+    with PhysicsWorld() as world:
+        assert_lamps_stay_and_the_free_cube_falls(world, library)
+        world.load_scene(lamp_room(library), library)
+        world.unfreeze()  # releasing pinned objects leaves the welded ones welded
+        assert world.frozen == [1, 2]
+
+
+def test_mujoco_welds_wall_and_ceiling_mounts_and_rebuilds_the_model_when_they_move(library):
+    from spread.physics import MujocoWorld
+
+    with MujocoWorld() as world:
+        assert_lamps_stay_and_the_free_cube_falls(world, library)
+        scene = lamp_room(library)
+        world.load_scene(scene, library)
+        assert world.model.nq == 7 * 2  # the two free cubes only
+        compiled = world.models_compiled
+        world.load_scene(lamp_room(library), library)
+        assert world.models_compiled == compiled  # same bodies, same welds: reused
+        scene.translation[1, 0] += 0.5
+        world.load_scene(scene, library)
+        assert world.models_compiled == compiled + 1  # a weld moved: the model is rebuilt
+        t, _ = world.poses()
+        assert np.allclose(t[1], scene.translation[1])
+
+
+@pytest.mark.slow
+def test_mujoco_warp_welds_wall_and_ceiling_mounts(library):
+    pytest.importorskip("mujoco_warp")
+    from spread.physics import MujocoWarpParams, MujocoWarpWorld
+
+    with MujocoWarpWorld(MujocoWarpParams(device="auto")) as world:
+        assert_lamps_stay_and_the_free_cube_falls(world, library)

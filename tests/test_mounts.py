@@ -95,3 +95,31 @@ def test_mujoco_warp_welds_wall_and_ceiling_mounts(library):
 
     with MujocoWarpWorld(MujocoWarpParams(device="auto")) as world:
         assert_lamps_stay_and_the_free_cube_falls(world, library)
+
+
+def test_gravity_guidance_pulls_a_free_lamp_down_and_leaves_a_ceiling_lamp_alone():
+    import tempfile
+
+    import torch
+    from test_guidance import SIZES, guide, run_steps, state
+
+    from spread.assets.assemble import box_asset, library_from_specs
+
+    with tempfile.TemporaryDirectory() as tmp:
+        lib = library_from_specs(tmp, [box_asset(name, size) for name, size in SIZES.items()])
+        x0 = state([[0.0, 0.1, 0.0], [1.0, 2.0, 0.5]])[None].float()  # a block on the floor, a "lamp" 2 m up
+        free = run_steps(guide(lib, ["block", "crate"]), x0, 20)
+        held = run_steps(guide(lib, ["block", "crate"], welded=torch.tensor([[False, True]])), x0, 20)
+    assert free[0, 1, 1] < x0[0, 1, 1] - 0.01  # gravity pulls the unmounted one down (normalised y)
+    assert torch.equal(held[0, 1], x0[0, 1])  # the mounted one stays
+
+
+def test_asd_leaves_out_pairs_whose_supported_object_is_mounted(library):
+    from spread.metrics.support_distance import scene_support_distance
+
+    scene = lamp_room(library)
+    scene.physical[0, 1] = 1  # "the floor cube supports the ceiling lamp": a 2 m gap, were it resting
+    scene.physical[0, 3] = 1  # the free cube 2.2 m above its supporter
+    result = scene_support_distance(scene, library)
+    assert [(p.supporter, p.supported) for p in result.pairs] == [(0, 3)]
+    assert result.pairs[0].min_signed_distance > 2.0

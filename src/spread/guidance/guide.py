@@ -48,11 +48,14 @@ class SceneGuidance:
     order (they fill the True slots of ``mask``). physical: (B, N, N) physical codes (1 = row supports
     column; padding 3). mask: (B, N) bool. bounds: (6,) translation bounds, metres (stats.json).
     alpha_bar0: ᾱ_0 of the model's training schedule (``refine``'s t = 0 projection; default: the default
-    schedule's).
+    schedule's). welded: (B, N) bool, the wall and ceiling mounts (:func:`spread.scene.welded_objects`):
+    gravity and support (relation) guidance leave them alone (no gap to close, no footprint to be pulled
+    over); default none.
     """
 
     def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,
-                 mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None):
+                 mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None,
+                 welded: torch.Tensor | None = None):
         self.config = GuidanceConfig.from_config(config)
         self.mask = torch.as_tensor(mask).bool().cpu()
         if self.mask.dim() != 2:
@@ -68,6 +71,9 @@ class SceneGuidance:
                              f"got {self.bounds.tolist()}")
         pair = self.mask[:, :, None] & self.mask[:, None, :] & ~torch.eye(N, dtype=torch.bool)
         self.supports = (physical == 1) & pair
+        self.welded = torch.zeros(B, N, dtype=torch.bool) if welded is None else torch.as_tensor(welded).bool().cpu()
+        if tuple(self.welded.shape) != (B, N):
+            raise ValueError(f"guidance: welded must be (B, N) = {(B, N)}, got {tuple(self.welded.shape)}")
         self.meshes = SceneMeshes(library, asset_ids, self.mask)
         self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
         self.detach_cones = detach_cones
@@ -93,7 +99,9 @@ class SceneGuidance:
         hit = self._on.get(key)
         if hit is None:
             hit = self._on[key] = {"mask": self.mask.to(device), "supports": self.supports.to(device),
-                                   "bounds": self.bounds.to(device, dtype)}
+                                   "bounds": self.bounds.to(device, dtype),
+                                   "falls": (self.mask & ~self.welded).to(device),
+                                   "held": (self.supports & ~self.welded[:, None, :]).to(device)}
         return hit
 
     # ---- terms --------------------------------------------------------------------------------------
@@ -125,9 +133,9 @@ class SceneGuidance:
         t0 = time.perf_counter()
         if "gravity" in which:
             gaps = vertical_gaps(world, hull, self.meshes, g["supports"])
-            out["gravity"] = gravity_loss(gaps, g["mask"], self.config.gap, self.config.tolerance)
+            out["gravity"] = gravity_loss(gaps, g["falls"], self.config.gap, self.config.tolerance)
         if "relation" in which:
-            out["relation"] = relation_loss(world, hull, self.meshes, g["supports"])
+            out["relation"] = relation_loss(world, hull, self.meshes, g["held"])
         self._stats["penalty_s"] += time.perf_counter() - t0
         return out
 

@@ -123,3 +123,66 @@ def test_asd_leaves_out_pairs_whose_supported_object_is_mounted(library):
     result = scene_support_distance(scene, library)
     assert [(p.supporter, p.supported) for p in result.pairs] == [(0, 3)]
     assert result.pairs[0].min_signed_distance > 2.0
+
+
+# ---- a 3D-FRONT-format room with lamps, imported -------------------------------------------------------
+
+LAMP_CLASSES = ["desk", "pendant_lamp", "ceiling_lamp", "box", "start", "end"]
+
+
+def front_room_with_lamps(root):
+    """(src, splits): three InstructScene-layout rooms (boxes stand in for 3D-FUTURE models): a desk, a box
+    on it, a pendant lamp with its centre 2.5 m up and a flat ceiling lamp at 2.75 m."""
+    import json
+
+    sizes = np.array([[0.5, 0.375, 0.3], [0.2, 0.3, 0.2], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]])  # half extents
+    rows = []
+    for k in range(3):
+        T = np.array([[0.0, 0.375, 0.0], [1.2, 2.5, 0.4 * k], [-1.0, 2.75, 0.5], [0.1, 0.85, 0.0]])
+        tag = f"{k:04d}bbbb-house_Bedroom-{200 + k}"
+        (root / tag).mkdir(parents=True)
+        np.savez(root / tag / "boxes.npz", class_labels=np.eye(len(LAMP_CLASSES))[[0, 1, 2, 3]].astype(np.float32),
+                 translations=T.astype(np.float32), sizes=sizes.astype(np.float32),
+                 angles=np.zeros((4, 1), np.float32), jids=np.array([f"j{i}" for i in range(4)]))
+        rows.append(f"Bedroom-{200 + k},{'test' if k == 2 else 'train'}")
+    (root / "dataset_stats.txt").write_text(json.dumps({"class_labels": LAMP_CLASSES}))
+    (root.parent / "splits.csv").write_text("\n".join(rows) + "\n")
+    return root, root.parent / "splits.csv"
+
+
+@pytest.fixture(scope="module")
+def lamp_front(tmp_path_factory):
+    from spread.assets import AssetLibrary
+    from spread.importers.run import ImportConfig, import_dataset
+
+    root = tmp_path_factory.mktemp("lamps")
+    src, splits = front_room_with_lamps(root / "src")
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(root / "out"), splits=str(splits),
+                                           room_type="bedroom", processes=1, progress=False, renders=0,
+                                           decomposition="hull", fidelity_samples=0))
+    scenes = [read_scene(p) for p in sorted((root / "out").glob("*/*.npz"))]
+    return manifest, scenes, AssetLibrary.load(root / "out" / "assets")
+
+
+def test_threed_front_lamps_are_ceiling_mounts_and_the_box_rests_on_the_desk(lamp_front):
+    manifest, scenes, _ = lamp_front
+    assert len(scenes) == 3
+    for scene in scenes:
+        assert scene_mounts(scene).tolist() == [MOUNT_FLOOR, MOUNT_CEILING, MOUNT_CEILING, MOUNT_ON_OBJECT]
+    counts = manifest["room_counts"]
+    assert (counts["mount_ceiling"], counts["mount_floor"], counts["mount_on_object"], counts["mount_wall"]) == (6, 3, 3, 0)
+
+
+@pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
+def test_ground_truth_room_with_lamps_keeps_its_stability(lamp_front, engine):
+    from spread.physics import MujocoWorld, PhysicsWorld
+
+    _, scenes, library = lamp_front
+    with (PhysicsWorld() if engine == "pybullet" else MujocoWorld()) as world:
+        results = [scene_stability(sc, library, world=world) for sc in scenes]
+        pooled = sum(sum(r.unchanged) for r in results) / sum(r.pairs * r.runs for r in results)
+        assert pooled >= 0.98
+        unmounted = scenes[0].with_poses(scenes[0].translation, scenes[0].rotation)
+        del unmounted.extras["mount"]
+        fallen = scene_stability(unmounted, library, runs=2, world=world)
+        assert min(fallen.max_displacement[1:3]) > 1.0 and fallen.still_fraction <= 0.5  # without, the lamps fall

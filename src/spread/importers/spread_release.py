@@ -19,6 +19,9 @@ canonical mesh is the file's mesh minus its own bbox centre ``c`` (``AssetRecord
 file's ``bbox_center`` is the mesh's bbox centre (as the release intends) the translation is ``T_bbox``.
 The manifest counts objects whose ``bbox_center`` differs from the mesh's by more than 1 mm.
 
+Mounts: from the file's support triples (the root entry's included) and the posed meshes
+(:func:`spread.importers.mounts.release_mounts`; counts ``mount_*`` in the manifest).
+
 Splits. ``train`` and ``val`` are the file's lists. When there is no ``test`` list the authors' held-out
 list — their ``val``, whose tags read ``ProcTHOR-Test-…`` — is the **test** split, and **val** is carved
 from ``train``: the ``max(1, round(val_fraction · n))`` tags with the smallest SHA-256 (independent of
@@ -143,11 +146,18 @@ class SpreadRelease(Source):
         file_centres = np.asarray(arrays["bbox_center"], np.float64)[1:] if "bbox_center" in arrays else offsets
         shift = offsets - file_centres
         scene.translation = (scene.translation.astype(np.float64) + np.einsum("nij,nj->ni", R, shift)).astype(np.float32)
+        from spread.importers.mounts import mount_counts, release_mounts
+        from spread.relations import scene_aabbs
+
+        lo, _ = scene_aabbs(scene.translation, scene.rotation, [str(a) for a in scene.asset_id], library)
+        scene.extras["mount"] = release_mounts(arrays.get("relations", np.zeros((0, 3))), scene.num_objects,
+                                               scene.category, lo[:, 1])
         scene.extras["source_tag"] = np.asarray(ref.tag)
         scene.extras["import_source"] = np.asarray(self.name)
         if self.room_type:
             scene.extras["room_type"] = np.asarray(self.room_type)
-        return scene, {"bbox_center_differs": int((np.linalg.norm(shift, axis=1) > CENTRE_TOLERANCE).sum())}
+        return scene, {"bbox_center_differs": int((np.linalg.norm(shift, axis=1) > CENTRE_TOLERANCE).sum()),
+                       **mount_counts(scene.extras["mount"])}
 
 
 def read_dataset_stats(path: Path) -> dict | None:

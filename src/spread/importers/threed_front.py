@@ -19,6 +19,9 @@ Frames: the projects place a model by ``v_world = R_y(θ) · (s ⊙ v_model − 
 right-handed rotation about +y ([[cos θ, 0, sin θ], [0, 1, 0], [−sin θ, 0, cos θ]]; their row-vector code
 writes its transpose), so ``rotation = R_y(angle)`` and ``translation = translations``.
 
+Mounts: lamp classes hang from the ceiling, wall-hung classes are on the wall, the rest rest on the floor or
+on another object (:func:`spread.importers.mounts.front_mounts`; counts ``mount_*`` in the manifest).
+
 Meshes: with ``future_models=DIR`` each object is ``DIR/<jid>/raw_model.obj`` scaled per axis to
 ``2 · sizes`` (rounded to 1 mm: asset id ``<jid>-<x>x<y>x<z>`` in mm); one decomposition per model is
 reused for every scale. Without it an oriented box of ``2 · sizes`` stands in (asset ``box-<class>-…``)
@@ -281,10 +284,13 @@ class ThreedFront(Source):
                 extras[f"source_{key}"] = np.asarray(str(arrays[key]))
         if "jids" in arrays:
             extras["jids"] = arrays["jids"].astype(str)
+        from spread.importers.mounts import front_mounts, mount_counts
+
+        extras["mount"] = front_mounts([r.category for r in requests], physical, lo[:, 1])
         scene = Scene(ref.scene_id, np.array(ids), np.array([r.category for r in requests]), T.astype(np.float32),
                       R.astype(np.float32), spatial.astype(np.int8), physical, room=np.stack([room_lo, room_hi]),
                       extras=extras)
-        return scene, {"file_spatial": given is not None, **compared}
+        return scene, {"file_spatial": given is not None, **compared, **mount_counts(extras["mount"])}
 
 
 __all__ = ["ThreedFront", "read_splits", "rotation_y", "error_record"]

@@ -186,3 +186,57 @@ def test_ground_truth_room_with_lamps_keeps_its_stability(lamp_front, engine):
         del unmounted.extras["mount"]
         fallen = scene_stability(unmounted, library, runs=2, world=world)
         assert min(fallen.max_displacement[1:3]) > 1.0 and fallen.still_fraction <= 0.5  # without, the lamps fall
+
+
+# ---- exports fix them ----------------------------------------------------------------------------------
+
+def test_urdf_export_loads_mounts_with_a_fixed_base(library, tmp_path):
+    import json
+
+    import pybullet as pb
+
+    from spread.export import export_scene
+    from spread.export.urdf import load_urdf_scene, urdf_scene_poses
+
+    scene = lamp_room(library)
+    folder = export_scene(scene, library, tmp_path, "urdf")
+    info = json.loads((folder / "scene.json").read_text())
+    assert [o["fixed"] for o in info["objects"]] == [False, True, True, False]
+    assert [o["mount"] for o in info["objects"]] == ["floor", "ceiling", "wall", "floor"]
+    client = pb.connect(pb.DIRECT)
+    try:
+        bodies = load_urdf_scene(folder / "scene.json", client)
+        for _ in range(240):
+            pb.stepSimulation(physicsClientId=client)
+        t, _ = urdf_scene_poses(bodies["objects"], client)
+    finally:
+        pb.disconnect(client)
+    assert np.abs(t[1:3] - scene.translation[1:3]).max() < 1e-6  # the lamps stay
+    assert t[3, 1] < 1.0  # the free cube fell
+
+
+def test_mjcf_export_gives_mounts_no_joint(library, tmp_path):
+    import mujoco
+
+    from spread.export import export_scene
+
+    scene = lamp_room(library)
+    model = mujoco.MjModel.from_xml_path(str(export_scene(scene, library, tmp_path, "mjcf")))
+    assert model.body_jntnum[1:].tolist() == [1, 0, 0, 1]
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    start = data.xpos[1:].copy()
+    mujoco.mj_step(model, data, nstep=500)
+    assert np.abs(data.xpos[2:4] - start[1:3]).max() < 1e-9 and data.xpos[4, 2] < start[3, 2] - 1.0  # z-up file
+
+
+def test_usd_export_makes_mounts_kinematic(library, tmp_path):
+    from pxr import Usd, UsdPhysics
+
+    from spread.export import export_scene
+
+    stage = Usd.Stage.Open(str(export_scene(lamp_room(library), library, tmp_path, "usd")))
+    bodies = [p for p in stage.Traverse() if p.HasAPI(UsdPhysics.RigidBodyAPI)]
+    assert [bool(UsdPhysics.RigidBodyAPI(b).GetKinematicEnabledAttr().Get()) for b in bodies] == [False, True, True,
+                                                                                                   False]
+    assert [b.GetAttribute("spread:mount").Get() for b in bodies] == ["floor", "ceiling", "wall", "floor"]

@@ -397,6 +397,9 @@ def write_manifest(out: Path, cfg: ImportConfig, source, room_list, library, don
         "failed_assets": len(failed_assets),
         "errors": {"rooms": room_errors, "assets": list(failed_assets.values())},
         "categories": library.categories,
+        "unknown_asset_categories": sorted({f"{a} -> {c}" for sc in all_scenes if "category_known" in sc.extras
+                                            for a, c, k in zip(sc.asset_id, sc.category, sc.extras["category_known"])
+                                            if not bool(k)}),
         "assets": len(library),
         "meshes": {"closed": sum(1 for r in records if r.source.get("closed")),
                    "open": sum(1 for r in records if r.source and not r.source.get("closed")),

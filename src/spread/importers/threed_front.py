@@ -50,7 +50,7 @@ from spread.scene import (
     SceneFormatError, load_npz_arrays,
 )
 
-ROOM_TYPES = ("bedroom", "livingroom", "diningroom")
+ROOM_TYPES = ("bedroom", "livingroom", "diningroom", "library")  # ATISS ships a split file for each
 #: InstructScene's predicate vocabulary (index order) → our spatial codes (DESIGN §3).
 INSTRUCTSCENE_PREDICATES = {
     0: SPATIAL_ABOVE, 1: SPATIAL_LEFT, 2: SPATIAL_FRONT, 3: SPATIAL_LEFT, 4: SPATIAL_FRONT,

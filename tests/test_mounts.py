@@ -240,3 +240,42 @@ def test_usd_export_makes_mounts_kinematic(library, tmp_path):
     assert [bool(UsdPhysics.RigidBodyAPI(b).GetKinematicEnabledAttr().Get()) for b in bodies] == [False, True, True,
                                                                                                    False]
     assert [b.GetAttribute("spread:mount").Get() for b in bodies] == ["floor", "ceiling", "wall", "floor"]
+
+
+# ---- the model reads the mount ----------------------------------------------------------------------------
+
+def test_the_denoiser_is_conditioned_on_each_objects_mount():
+    import torch
+
+    from spread.configs import model_config
+    from spread.model.config import ModelConfig
+    from spread.model.denoiser import GraphDenoiser
+
+    cfg = model_config("tiny", dim=32, depth=1, heads=2, dim_head=8, edge_dim=16, index_dim=8, shape_dim=16)
+    assert cfg.mount_feature  # new models have it
+    assert not ModelConfig.from_any({"dim": 32}).mount_feature  # a checkpoint's config saved before it: off
+    net = GraphDenoiser(cfg, geometry=False).eval()
+    torch.nn.init.normal_(net.mount_in.weight)  # as after training (it starts at zero: no change at step 0)
+    torch.nn.init.normal_(net.head[-1].weight)
+    B, N = 1, 3
+    args = (torch.randn(B, N, 9), torch.tensor([10]), torch.ones(B, N, dtype=torch.bool),
+            torch.randn(B, N, N, 16), torch.randn(B, N, 4, 16))
+    floor = torch.zeros(B, N, dtype=torch.long)
+    ceiling = floor.clone()
+    ceiling[0, 2] = MOUNT_CEILING
+    with torch.no_grad():
+        a, b = net(*args, mount=floor), net(*args, mount=ceiling)
+    assert (a - b).abs().max() > 1e-4
+    assert "mount_in.weight" not in GraphDenoiser(ModelConfig.from_any({"dim": 32, "heads": 2, "dim_head": 8}),
+                                                  geometry=False).state_dict()
+
+
+def test_samples_keep_their_graphs_mounts(library):
+    from spread.sampling.worker import generated_scene
+
+    class Item:
+        name, k = "s0", 0
+        graph = lamp_room(library)
+
+    scene = generated_scene(Item.graph, Item.graph.translation, Item.graph.rotation, Item(), "test")
+    assert scene_mounts(scene).tolist() == [MOUNT_FLOOR, MOUNT_CEILING, MOUNT_WALL, MOUNT_FLOOR]

@@ -108,3 +108,27 @@ def test_the_default_config_is_the_releases_network():
     assert sd["transformer_blocks.0.graph_layer.cross_attn.to_k.weight"].shape == (512, 768)
     assert len(net.transformer_blocks) == 6 and "transformer_blocks.6.norm1.weight" not in sd
     assert sd["proj_out.1.weight"].shape == (12, 512)
+
+
+def test_the_command_refuses_a_ckpt_of_another_size_naming_the_keys(fixture, tmp_path):
+    from helpers import run_script
+
+    _, weights, keys, _ = fixture
+    path = release_ckpt(tmp_path / "ckpt.pth", weights, keys)  # width 32: not the release's 512
+    proc = run_script("spread-release-ckpt", f"ckpt={path}", ok=False)
+    assert proc.returncode != 0 and "other shapes than the release network" in proc.stderr
+    assert "miche_proj.weight (32, 64) (network: (512, 64))" in proc.stderr
+    proc = run_script("spread-release-ckpt", "ckpt=/nonexistent/ckpt.pth", ok=False)
+    assert proc.returncode != 0 and "No such file" in proc.stderr
+
+
+@pytest.mark.slow
+def test_the_command_loads_a_full_size_release_ckpt(tmp_path):
+    """A ckpt.pth of the release's full size (98 M parameters, ~400 MB): loads with no missing or unexpected keys."""
+    from helpers import run_script
+
+    net = ReleaseNetwork()
+    sd = {f"_orig_mod.network.{k}": v for k, v in net.state_dict().items()}
+    torch.save({"model": sd, "optimizer": {}, "ema_states": {"shadow_params": list(sd.values())}}, tmp_path / "ckpt.pth")
+    proc = run_script("spread-release-ckpt", f"ckpt={tmp_path / 'ckpt.pth'}")
+    assert "no missing or unexpected keys" in proc.stdout and "98,285,724 parameters" in proc.stdout

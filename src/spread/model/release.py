@@ -407,6 +407,12 @@ def load_release_checkpoint(path, config: ReleaseNetworkConfig | dict | None = N
     ckpt = torch.load(path, map_location=map_location, weights_only=True)
     weights = release_state_dict(ckpt, str(path), use_ema)
     net = ReleaseNetwork(config)
+    own = net.state_dict()
+    wrong = [f"{k} {tuple(v.shape)} (network: {tuple(own[k].shape)})" for k, v in weights.items()
+             if k in own and tuple(v.shape) != tuple(own[k].shape)]
+    if wrong:
+        raise ReleaseCheckpointError(f"{path}: {len(wrong)} weights have other shapes than the release network "
+                                     f"({net.config.attn_dim} wide, {net.config.n_layers} blocks): {wrong[:4]}")
     result = net.load_state_dict(weights, strict=False)
     if result.missing_keys or result.unexpected_keys:
         raise ReleaseCheckpointError(f"{path}: the weights do not fit the release network ({net.config.attn_dim} "

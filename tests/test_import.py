@@ -334,18 +334,28 @@ def test_import_command_config_composes_into_the_import_options():
     assert cfg.stats == "source" and cfg.processes == 2 and isinstance(cfg, ImportConfig)
 
 
-def test_instructscene_relations_become_the_spatial_graph(tmp_path):
+def test_threed_front_graph_has_one_rule_and_its_ground_truth_grecall_is_one(tmp_path):
+    """InstructScene's relations.npy is compared with the platform's codes, never mixed into the graph: every
+    pair is the platform's rule (named in the manifest), so ground-truth GRecall is exactly 1."""
+    from spread.metrics.graph_recall import scene_graph_recall
+
     src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
     room = sorted(p for p in src.iterdir() if p.is_dir())[0]  # the resting room
-    # InstructScene's cache: object 1 (the cup) "above" (0) object 0; object 0 "closely right of" (8) object 2
+    # InstructScene's cache: the cup (1) "above" (0) the table (0), as the platform finds; the table "closely
+    # right of" (8) the cube (2), where the platform finds the cube on the table (table below cube)
     np.save(room / "relations.npy", np.array([[1, 0, 0], [0, 8, 2]], np.int64))
-    manifest = import_dataset(ImportConfig("threed_front", str(src), str(tmp_path / "out"), splits=str(splits),
+    out = tmp_path / "out"
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(out), splits=str(splits),
                                            room_type="bedroom", **FAST))
-    (path,) = [p for p in (tmp_path / "out").glob("*/*.npz") if str(read_scene(p).extras["source_tag"]) == room.name]
-    spatial = read_scene(path).spatial
-    assert (spatial[1, 0], spatial[0, 1]) == (4, 5)  # above / below
-    assert (spatial[0, 2], spatial[2, 0]) == (0, 1)  # right of / left of ("closely" dropped)
-    assert manifest["room_counts"]["spatial_pairs_filled"] == 2  # cup–cube, both ways: the platform's codes
+    library = library_of(out)
+    scenes = {str(read_scene(p).extras["source_tag"]): read_scene(p) for p in out.glob("*/*.npz")}
+    spatial = scenes[room.name].spatial
+    assert (spatial[1, 0], spatial[0, 1]) == (4, 5)  # above / below: file and platform agree
+    assert (spatial[0, 2], spatial[2, 0]) == (5, 4)  # the platform's code, not the file's "right of"
+    assert manifest["room_counts"]["file_pairs"] == 4 and manifest["room_counts"]["file_pairs_equal"] == 2
+    assert "platform" in manifest["relations_rule"] and "relations.npy" in manifest["relations_rule"]
+    results = [scene_graph_recall(sc, library) for sc in scenes.values()]
+    assert len(results) == 4 and sum(r.matches for r in results) == sum(r.pairs for r in results) > 0
 
 
 def test_an_imported_threed_front_dataset_trains_samples_evaluates_per_room_type_and_exports(front, tmp_path):

@@ -21,7 +21,9 @@ module registers them with Hydra's ConfigStore, so that the YAML files only choo
   typed and validated — no field is copied by hand. ``spread-train`` instantiates its ``_target_`` nodes.
 
 Registration is per command (:func:`register`), so a light command (``spread-generate``) does not import
-torch to register the model's schema.
+torch to register the model's schema. The command schemas built on demand are still module attributes
+(``spread.configs.ImportCommand`` etc., made by :func:`__getattr__`), so their instances pickle by name: a
+spawn pool or a Ray worker can receive them.
 """
 
 
@@ -180,6 +182,8 @@ def sample_command():
         protocol: EvalProtocol = field(default_factory=EvalProtocol)
         fid: FIDConfig = field(default_factory=FIDConfig)
 
+    _public(EvaluateAfterSampling)
+
     @dataclass
     class SampleCommand(SamplingConfig):
         logger: LoggerConfig = field(default_factory=LoggerConfig)
@@ -190,7 +194,7 @@ def sample_command():
         sweep_dir: str | None = None
         paths: PathsConfig = field(default_factory=PathsConfig)
 
-    return SampleCommand
+    return _public(SampleCommand)
 
 
 @functools.cache
@@ -211,14 +215,14 @@ def evaluate_command():
         experiment_name: str = "evaluate"
         paths: PathsConfig = field(default_factory=PathsConfig)
 
-    return EvaluateCommand
+    return _public(EvaluateCommand)
 
 
 def _with_paths(base: type, name: str) -> type:
     """``base`` (a library record whose fields are a command's keys) plus the run-folder ``paths``."""
     from dataclasses import make_dataclass
 
-    return make_dataclass(name, [("paths", PathsConfig, field(default_factory=PathsConfig))], bases=(base,))
+    return _public(make_dataclass(name, [("paths", PathsConfig, field(default_factory=PathsConfig))], bases=(base,)))
 
 
 @functools.cache
@@ -235,3 +239,26 @@ def export_command():
     from spread.export import ExportConfig
 
     return _with_paths(ExportConfig, "ExportCommand")
+
+
+def _public(cls: type) -> type:
+    """``cls`` (a schema built inside a function) named as an attribute of this module, so that pickle finds
+    it by ``spread.configs.<name>`` (:func:`__getattr__` builds it on first lookup in another process)."""
+    cls.__module__ = __name__
+    cls.__qualname__ = cls.__name__
+    return cls
+
+
+#: Schemas built on demand, by name → the function that builds them (for pickle's lookup by name).
+_ON_DEMAND = {"ImportCommand": "import_command", "ExportCommand": "export_command",
+              "SampleCommand": "sample_command", "EvaluateCommand": "evaluate_command",
+              "EvaluateAfterSampling": "sample_command"}
+
+
+def __getattr__(name: str):
+    if name in _ON_DEMAND:
+        made = globals()[_ON_DEMAND[name]]()
+        if name == "EvaluateAfterSampling":
+            return made.__dataclass_fields__["evaluation"].default_factory
+        return made
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -9,6 +9,12 @@ Codes: ``spatial[i, j]`` says "i is <code> of j" with
 0 right of, 1 left of, 2 in front of, 3 behind, 4 above, 5 below, 6 self (the diagonal);
 ``physical[i, j]`` is 0 none, 1 "i supports j", 2 contact.
 
+Mounts: ``extras["mount"]`` (N,) int8 says how each object is held (:data:`MOUNT_NAMES`): 0 floor (rests on
+the floor), 1 on-object (rests on another object), 2 wall, 3 ceiling (fixed to the building: physics welds
+it to the world, gravity and support guidance and ASD leave it alone). A file without the key (older
+files, generated rooms) reads as today: every object free, floor or on-object from the support graph
+(:func:`scene_mounts`).
+
 Extra arrays (for example ``source`` on generated scenes, or precomputed shape tokens) are kept in
 ``Scene.extras`` and round-trip through the file unchanged.
 """
@@ -33,6 +39,10 @@ NUM_SPATIAL = 7
 PHYSICAL_NAMES = ("none", "support", "contact")
 PHYSICAL_NONE, PHYSICAL_SUPPORT, PHYSICAL_CONTACT = range(3)
 NUM_PHYSICAL = 3
+
+MOUNT_NAMES = ("floor", "on_object", "wall", "ceiling")
+MOUNT_FLOOR, MOUNT_ON_OBJECT, MOUNT_WALL, MOUNT_CEILING = range(4)
+MOUNT_KEY = "mount"
 
 #: Largest |RᵀR − I| entry accepted for a rotation matrix read from a file.
 ROTATION_TOLERANCE = 1e-3
@@ -234,6 +244,20 @@ def support_cycle(supports: np.ndarray) -> list[int]:
     return []
 
 
+def scene_mounts(scene: Scene) -> np.ndarray:
+    """(N,) int8 mount codes of ``scene`` (module docstring): the file's ``mount`` when it has one, else
+    on-object for every object something supports and floor for the others."""
+    if MOUNT_KEY in scene.extras:
+        return np.asarray(scene.extras[MOUNT_KEY], np.int8).reshape(-1)
+    supported = (np.asarray(scene.physical) == PHYSICAL_SUPPORT).any(axis=0)
+    return np.where(supported, MOUNT_ON_OBJECT, MOUNT_FLOOR).astype(np.int8)
+
+
+def welded_objects(scene: Scene) -> np.ndarray:
+    """(N,) bool: the objects fixed to the building (wall or ceiling mounts), which physics welds to the world."""
+    return np.isin(scene_mounts(scene), (MOUNT_WALL, MOUNT_CEILING))
+
+
 def validate_scene(scene: Scene, source: str, assets: "AssetLibrary | Iterable[str] | None" = None) -> None:
     """Check every contract of DESIGN §4; raise :class:`SceneFormatError` naming source, key, problem."""
     n = scene.num_objects
@@ -287,6 +311,14 @@ def validate_scene(scene: Scene, source: str, assets: "AssetLibrary | Iterable[s
     if (ph[diag] != PHYSICAL_NONE).any():
         i = int(np.argmax(ph[diag] != PHYSICAL_NONE))
         _fail(source, "physical", f"object {i} has a physical relation with itself")
+    if MOUNT_KEY in scene.extras:
+        mount = np.asarray(scene.extras[MOUNT_KEY])
+        if mount.shape != (n,) or mount.dtype.kind not in "iu":
+            _fail(source, MOUNT_KEY, f"expected (N,) = ({n},) integer codes, got shape {mount.shape} dtype {mount.dtype}")
+        if ((mount < 0) | (mount >= len(MOUNT_NAMES))).any():
+            i = int(np.argmax((mount < 0) | (mount >= len(MOUNT_NAMES))))
+            _fail(source, MOUNT_KEY, f"object {i} has mount code {mount[i]}, expected 0..{len(MOUNT_NAMES) - 1} "
+                                     f"({', '.join(MOUNT_NAMES)})")
     cycle = support_cycle(ph == PHYSICAL_SUPPORT)
     if cycle:
         _fail(source, "physical", "support cycle " + " → ".join(str(i) for i in cycle)

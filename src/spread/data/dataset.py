@@ -43,7 +43,7 @@ import torch
 from spread.data.points import DEFAULT_NUM_POINTS, asset_points
 from spread.data.rotation import matrix_to_rot6d
 from spread.data.stats import load_stats, normalize_translation, translation_bounds
-from spread.scene import Scene, list_scene_files, read_scene
+from spread.scene import Scene, list_scene_files, read_scene, scene_mounts
 
 
 def load_manifest_categories(path: Path) -> list[str] | None:
@@ -195,6 +195,7 @@ class SceneDataset(torch.utils.data.Dataset):
             "x": torch.from_numpy(np.ascontiguousarray(x, np.float32)),
             "spatial": torch.from_numpy(scene.spatial.astype(np.int64)),
             "physical": torch.from_numpy(scene.physical.astype(np.int64)),
+            "mount": torch.from_numpy(scene_mounts(scene).astype(np.int64)),
             "asset_index": asset_index,
             "shape_index": asset_index + (len(self.asset_ids) if transform >= 4 else 0),
             "category_index": torch.tensor([self._category_index[c] for c in scene.category], dtype=torch.long),

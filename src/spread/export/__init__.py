@@ -12,6 +12,8 @@ mjcf     ``<id>.xml`` (self-contained)           ``mujoco.MjModel.from_xml_path`
                                                  turned by a ``<frame>``), gravity −z
 usd      ``<id>.usda``                           ``pxr.Usd.Stage.Open``; Isaac Sim; y-up stage
 glb      ``<id>.glb``                            viewers (no physics data)
+sceneeval ``<id>/scene_state.json`` + .obj       SceneEval (3dlg-hcvc/SceneEval): its scene-state
+                                                 format, z-up (:mod:`spread.export.sceneeval`)
 =======  ======================================  ===================================================
 
 ``<id>`` is :func:`spread.io.safe_name` of the scene id: one path component whatever the id holds, so
@@ -31,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import MISSING
 
-FORMATS = ("urdf", "mjcf", "usd", "glb")
+FORMATS = ("urdf", "mjcf", "usd", "glb", "sceneeval")
 
 
 @dataclass
@@ -60,7 +62,7 @@ def assets_of(scenes: str | os.PathLike, assets: str | os.PathLike | None) -> Pa
             return candidate
     raise FileNotFoundError(f"no asset library beside scenes={scenes} (looked for ../assets and assets/); "
                             "give assets=DIR")
-SUFFIX = {"urdf": "", "mjcf": ".xml", "usd": ".usda", "glb": ".glb"}
+SUFFIX = {"urdf": "", "mjcf": ".xml", "usd": ".usda", "glb": ".glb", "sceneeval": ""}
 
 
 def scene_colours(scene, palette: str | None = None) -> np.ndarray:
@@ -108,6 +110,10 @@ def export_scene(scene, library, out_dir: str | os.PathLike, fmt: str, floor: bo
         with atomic_path(path) as tmp:
             tmp.unlink()  # pxr creates the layer itself (and refuses an existing file)
             build_usd_stage(scene, library, tmp, colours, floor=floor, floor_rect=floor_rect(scene))
+    elif fmt == "sceneeval":
+        from spread.export.sceneeval import write_sceneeval_scene
+
+        _write_folder(path, lambda tmp: write_sceneeval_scene(scene, library, tmp))
     else:
         from spread.render.export import export_glb
 

@@ -121,7 +121,10 @@ def write_urdf_scene(scene, library, folder: Path, colours: np.ndarray, floor: b
         write_obj(mesh_dir / "visual.obj", mesh.vertices, mesh.faces)
         for h, verts in enumerate(asset_geometry(library, a).hulls):
             write_obj(mesh_dir / f"part_{h:02d}.obj", verts, ConvexHull(verts).simplices)
+    from spread.scene import MOUNT_NAMES, scene_mounts, welded_objects
+
     quats = matrix_to_quat(np.asarray(scene.rotation, np.float64)) if ids else np.zeros((0, 4))
+    mounts, welded = (scene_mounts(scene), welded_objects(scene)) if ids else (np.zeros(0, int), np.zeros(0, bool))
     objects = []
     for i, a in enumerate(ids):
         name = f"{i:03d}_{safe_name(a)}"
@@ -131,9 +134,12 @@ def write_urdf_scene(scene, library, folder: Path, colours: np.ndarray, floor: b
         objects.append({"urdf": f"objects/{name}.urdf", "asset_id": a, "category": str(scene.category[i]),
                         "mass": float(library[a].mass),
                         "position": np.asarray(scene.translation[i], np.float64).tolist(),
-                        "orientation_xyzw": quats[i].tolist()})
+                        "orientation_xyzw": quats[i].tolist(),
+                        "mount": MOUNT_NAMES[int(mounts[i])], "fixed": bool(welded[i])})
     info = {"scene_id": str(scene.scene_id), "up": "y", "units": "metres", "gravity": [0.0, -9.81, 0.0],
             "frame": "link frame = the asset's bbox centre; position/orientation = the scene pose",
+            "fixed": "objects with fixed = true (wall and ceiling mounts) are welded to the world: load them "
+                     "with a fixed base",
             "objects": objects, "floor": None}
     if floor:
         x0, z0, x1, z1 = floor_rect(scene)
@@ -157,7 +163,7 @@ def write_urdf_scene(scene, library, folder: Path, colours: np.ndarray, floor: b
 
 def load_urdf_scene(scene_json: str | Path, client: int) -> dict:
     """Load an exported URDF folder into pybullet client ``client``: gravity, the floor (static), every object
-    at its pose. Returns ``{"objects": [body ids], "floor": id or None}``. Objects are multibody bases (not
+    at its pose (wall and ceiling mounts, ``fixed`` in scene.json, with a fixed base). Returns ``{"objects": [body ids], "floor": id or None}``. Objects are multibody bases (not
     ``useMaximalCoordinates``: pybullet's ``getDynamicsInfo`` misreports their inertial frame, which
     :func:`urdf_scene_poses` needs)."""
     import pybullet as pb
@@ -170,7 +176,7 @@ def load_urdf_scene(scene_json: str | Path, client: int) -> dict:
     if info.get("floor"):
         floor = pb.loadURDF(str(root / info["floor"]["urdf"]), useFixedBase=True, physicsClientId=client)
     bodies = [pb.loadURDF(str(root / o["urdf"]), basePosition=o["position"], baseOrientation=o["orientation_xyzw"],
-                          physicsClientId=client) for o in info["objects"]]
+                          useFixedBase=bool(o.get("fixed", False)), physicsClientId=client) for o in info["objects"]]
     return {"objects": bodies, "floor": floor}
 
 

@@ -7,7 +7,9 @@ platform's frame), default prim ``/World``. Layout::
     /World/PhysicsScene        UsdPhysics.Scene: gravity (0, −1, 0) × 9.81 m/s²
     /World/PhysicsMaterial     UsdPhysics.MaterialAPI: friction 0.6 (static and dynamic), restitution 0
     /World/Floor               Cube scaled to a static box whose top face is y = 0 (collider, no rigid body)
-    /World/Objects/o<k>_<asset>    Xform with RigidBodyAPI + MassAPI, pose = the scene pose (translate, orient)
+    /World/Objects/o<k>_<asset>    Xform with RigidBodyAPI + MassAPI, pose = the scene pose (translate, orient);
+                               wall and ceiling mounts are kinematic (``physics:kinematicEnabled``: welded,
+                               gravity does not move them); ``spread:mount`` names the mount
         Visual                 Mesh: the asset's mesh, coloured by category
         Collision_<j>          a convex part: Cube (cuboid parts) or Mesh with convexHull approximation;
                                CollisionAPI, purpose "guide" (not rendered)
@@ -100,6 +102,9 @@ def build_usd_stage(scene, library, path: str | Path, colours: np.ndarray, floor
         cube.CreateDisplayColorAttr([Gf.Vec3f(0.75, 0.75, 0.75)])
         collider(cube.GetPrim())
 
+    from spread.scene import MOUNT_NAMES, scene_mounts, welded_objects
+
+    mounts, welded = scene_mounts(scene), welded_objects(scene)
     UsdGeom.Scope.Define(stage, "/World/Objects")
     for i, aid in enumerate(str(a) for a in scene.asset_id):
         geom = asset_geometry(library, aid)
@@ -110,7 +115,10 @@ def build_usd_stage(scene, library, path: str | Path, colours: np.ndarray, floor
         prim = body.GetPrim()
         prim.CreateAttribute("spread:asset_id", Sdf.ValueTypeNames.String).Set(aid)
         prim.CreateAttribute("spread:category", Sdf.ValueTypeNames.String).Set(str(scene.category[i]))
-        UsdPhysics.RigidBodyAPI.Apply(prim)
+        prim.CreateAttribute("spread:mount", Sdf.ValueTypeNames.String).Set(MOUNT_NAMES[int(mounts[i])])
+        rigid = UsdPhysics.RigidBodyAPI.Apply(prim)
+        if welded[i]:
+            rigid.CreateKinematicEnabledAttr(True)
         mass_api = UsdPhysics.MassAPI.Apply(prim)
         mass_api.CreateMassAttr(mass)
         mass_api.CreateCenterOfMassAttr(Gf.Vec3f(*geom.com.tolist()))

@@ -49,8 +49,9 @@ class SceneGuidance:
     order (they fill the True slots of ``mask``). physical: (B, N, N) physical codes (1 = row supports
     column; padding 3). mask: (B, N) bool. bounds: (6,) translation bounds, metres (stats.json).
     alpha_bar0: ᾱ_0 of the model's training schedule (``refine``'s t = 0 projection; default: the default
-    schedule's). welded: (B, N) bool, wall and ceiling mounts: gravity and support (relation) guidance leave
-    them alone (no gap to close, no footprint to be pulled over); default none.
+    schedule's). welded: (B, N) bool, the wall and ceiling mounts (:func:`spread.scene.welded_objects`):
+    gravity and support (relation) guidance leave them alone (no gap to close, no footprint to be pulled
+    over); default none.
     """
 
     def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,

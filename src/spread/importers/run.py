@@ -7,7 +7,10 @@ Phases, all in one spawn-context process pool (``processes``; rooms and assets a
 3. **assets**: every asset some readable room needs is imported into ``out_dir/assets`` (mesh cleaned,
    convex decomposition, record; :mod:`spread.assets.imported`), then the library index is written and
    the geometry caches built;
-4. **scenes**: each room whose assets all imported becomes ``out_dir/<split>/<scene_id>.npz`` (the file's
+4. **relations** (sources whose files carry spatial codes): each room's codes are compared with the
+   platform's codes of its posed meshes under every reading (:mod:`spread.importers.conventions`); the
+   dataset's sums choose the reading (``relations.convention``), said on the console and in the manifest;
+5. **scenes**: each room whose assets all imported becomes ``out_dir/<split>/<scene_id>.npz`` (the file's
    own graph; the platform's relations are computed from the posed meshes and compared with it).
 
 Resumable: an asset whose inputs and files are unchanged is not imported again (its sidecar record), a
@@ -35,6 +38,7 @@ from omegaconf import MISSING
 
 from spread import __version__
 from spread.importers.base import SPLITS, AssetRequest, RoomRef, error_record
+from spread.importers.conventions import RelationsOptions
 from spread.io import append_jsonl, read_jsonl, write_json_atomic
 
 IMPORTER_VERSION = "spread-import-1"
@@ -61,6 +65,7 @@ class ImportConfig:
     decomposition_settings: dict = field(default_factory=dict)
     density: float = 400.0
     fidelity_samples: int = 2000
+    relations: RelationsOptions = field(default_factory=RelationsOptions)
 
     def settings(self):
         from spread.assets.imported import ImportSettings
@@ -169,15 +174,32 @@ def agreement(scene, library) -> dict:
             "platform_support": int(our_sup.sum())}
 
 
-def _room_job(args: tuple[RoomRef, list[AssetRequest], str]) -> dict:
+def _readings_job(args: tuple[RoomRef, list[AssetRequest]]) -> dict:
+    """Agreement counts of one room's file spatial codes under every reading (module docstring, phase 4)."""
+    from spread.importers.conventions import reading_counts
+    from spread.relations import scene_spatial_codes
+
+    ref, requests = args
+    try:
+        scene, _ = _WORKER["source"].scene(ref, _library(), requests)
+        platform = scene_spatial_codes(scene.translation, scene.rotation, [str(a) for a in scene.asset_id], _library())
+        return {"tag": ref.tag, "counts": reading_counts(scene.spatial, platform), "error": None}
+    except Exception as exc:  # the room fails again, and is recorded, when it is written
+        return {"tag": ref.tag, "counts": None, "error": error_record(ref.tag, exc, ref.folder)}
+
+
+def _room_job(args: tuple[RoomRef, list[AssetRequest], str, str]) -> dict:
+    from spread.importers.conventions import read_as
     from spread.scene import write_scene
 
-    ref, requests, fingerprint = args
+    ref, requests, fingerprint, reading = args
     cfg = _WORKER["cfg"]
     started = time.perf_counter()
     try:
         library = _library()
         scene, counts = _WORKER["source"].scene(ref, library, requests)
+        if getattr(_WORKER["source"], "spatial_from_file", False):
+            scene.spatial = read_as(scene.spatial, reading).astype(np.int8)
         scene.validate(source=f"room '{ref.tag}' ({ref.folder})", assets=library)
         path = Path(cfg.out_dir) / ref.split / f"{ref.scene_id}.npz"
         write_scene(scene, path)
@@ -252,6 +274,7 @@ def import_dataset(cfg: ImportConfig) -> dict:
 
     if cfg.stats not in ("source", "computed"):
         raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
+    cfg.relations.check()
     source = make_source(cfg)  # fails early (missing split file, bad options) before anything is written
     room_list = source.rooms()
     with run_lock(cfg.out_dir, "spread-import"):
@@ -302,6 +325,10 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         failed_refs: list[RoomRef] = []
         jobs = []
         info = source.info()
+        usable = [ref for ref in room_list.rooms if not scans[ref.tag]["error"]
+                  and not any(req.asset_id in failed_assets for req in scans[ref.tag]["requests"])]
+        conventions = measure_conventions(pool, source, cfg, usable, scans)
+        info = {**info, "spatial_reading": conventions["reading"]}
         for ref in room_list.rooms:
             scan = scans[ref.tag]
             if scan["error"]:
@@ -320,7 +347,7 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
             path = out / ref.split / f"{ref.scene_id}.npz"
             if done.get(ref.tag, {}).get("fingerprint") == fingerprint and path.exists():
                 continue
-            jobs.append((ref, scan["requests"], fingerprint))
+            jobs.append((ref, scan["requests"], fingerprint, conventions["reading"]))
         t3 = time.perf_counter()
         results = _map(pool, _room_job, jobs, "rooms written", cfg.progress)
         t_rooms = time.perf_counter() - t3
@@ -344,7 +371,8 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
     keep = {out / current[t].split / f"{current[t].scene_id}.npz" for t in done}
     removed = remove_stale_scenes(out, history, keep)
     manifest = write_manifest(out, cfg, source, room_list, library, done, room_errors, failed_assets, asset_results,
-                              {"seconds_scan": t_scan, "seconds_assets": t_assets, "seconds_caches": t_caches,
+                              {"relations_convention": conventions,
+                               "seconds_scan": t_scan, "seconds_assets": t_assets, "seconds_caches": t_caches,
                                "seconds_rooms": t_rooms, "rooms_written": sum(1 for r in results if r["ok"]),
                                "assets_built": sum(1 for r in asset_results if r["built"]),
                                "removed_stale": removed})
@@ -353,6 +381,24 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
 
         write_renders(out, library, cfg.renders)
     return manifest
+
+
+def measure_conventions(pool, source, cfg: ImportConfig, rooms: list[RoomRef], scans: dict) -> dict:
+    """Phase 4 (module docstring): the reading of the files' spatial codes, printed; raises
+    :class:`~spread.importers.conventions.ConventionError` (nothing written for the rooms) when none agrees."""
+    from spread.importers.conventions import add_counts, choose_reading
+
+    if not getattr(source, "spatial_from_file", False):
+        return {"reading": "as_stored", "chosen_by": "the platform computes every spatial code (one rule per graph)",
+                "agreement": None, "pairs": 0, "ties": [], "message": None}
+    results = _map(pool, _readings_job, [(ref, scans[ref.tag]["requests"]) for ref in rooms],
+                   "relations measured", cfg.progress)
+    totals: dict = {}
+    for r in results:
+        add_counts(totals, r["counts"])
+    chosen = choose_reading(totals, cfg.relations)
+    print(chosen["message"], flush=True)
+    return chosen
 
 
 def _sum(rows, key) -> int:
@@ -398,6 +444,8 @@ def write_manifest(out: Path, cfg: ImportConfig, source, room_list, library, don
                 for r in asset_results if r["record"] and "decomposition" in r["record"].get("source", {})]
     fidelity = [f for f in fidelity if f is not None]
     records = list(library.records.values())
+    run = dict(run)
+    conventions = run.pop("relations_convention", None)
     n_rooms = run["rooms_written"]
     manifest = {
         "generator": IMPORTER_VERSION,
@@ -412,6 +460,9 @@ def write_manifest(out: Path, cfg: ImportConfig, source, room_list, library, don
         "failed_assets": len(failed_assets),
         "errors": {"rooms": room_errors, "assets": list(failed_assets.values())},
         "categories": library.categories,
+        "unknown_asset_categories": sorted({f"{a} -> {c}" for sc in all_scenes if "category_known" in sc.extras
+                                            for a, c, k in zip(sc.asset_id, sc.category, sc.extras["category_known"])
+                                            if not bool(k)}),
         "assets": len(library),
         "meshes": {"closed": sum(1 for r in records if r.source.get("closed")),
                    "open": sum(1 for r in records if r.source and not r.source.get("closed")),
@@ -420,6 +471,8 @@ def write_manifest(out: Path, cfg: ImportConfig, source, room_list, library, don
                           "hausdorff_m": {"median": float(np.median(fidelity)), "max": float(np.max(fidelity))}
                           if fidelity else None},
         "relations_agreement": agree,
+        "relations_convention": conventions,
+        "relations_rule": getattr(source, "relations_rule", None),
         "room_counts": dict(counts),
         "statistics": dataset_statistics(all_scenes) if all_scenes else None,
         "stats_bounds": stats["bounds_source"] if stats else None,

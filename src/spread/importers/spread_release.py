@@ -19,6 +19,13 @@ canonical mesh is the file's mesh minus its own bbox centre ``c`` (``AssetRecord
 file's ``bbox_center`` is the mesh's bbox centre (as the release intends) the translation is ``T_bbox``.
 The manifest counts objects whose ``bbox_center`` differs from the mesh's by more than 1 mm.
 
+Categories come from a table of the release's asset names, and near-rotations, off-diagonal "self" codes and
+support cycles are repaired and counted rather than refused (:mod:`spread.importers.release_details`); the
+file's triples, "Empty" and root ones included, stay in the scene as ``release_relations``.
+
+Mounts: from the file's support triples (the root entry's included) and the posed meshes
+(:func:`spread.importers.mounts.release_mounts`; counts ``mount_*`` in the manifest).
+
 Splits. ``train`` and ``val`` are the file's lists. When there is no ``test`` list the authors' held-out
 list — their ``val``, whose tags read ``ProcTHOR-Test-…`` — is the **test** split, and **val** is carved
 from ``train``: the ``max(1, round(val_fraction · n))`` tags with the smallest SHA-256 (independent of
@@ -48,6 +55,10 @@ class SpreadRelease(Source):
     has none of its own); ``val_fraction``: share of train carved into val when the file has no test list."""
 
     name = "spread_release"
+    #: regions_bbox is the file's own graph: its reading is measured on import (spread.importers.conventions)
+    spatial_from_file = True
+    relations_rule = ("spatial: the file's regions_bbox, in the reading the posed meshes support "
+                      "(manifest relations_convention); physical: the file's relations")
 
     def __init__(self, src: str | Path, room_type: str | None = None, val_fraction: float = 0.05):
         self.src = Path(src)
@@ -119,9 +130,23 @@ class SpreadRelease(Source):
                 return p
         return None
 
-    def scan(self, ref: RoomRef) -> list[AssetRequest]:
-        file, arrays = self._arrays(ref)
+    def _scene(self, ref: RoomRef):
+        """(file, the file's arrays, its Scene with repairs and table categories, repair counts)."""
+        from spread.importers.release_details import release_category, repair_release_arrays
+
+        file, raw = self._arrays(ref)
+        arrays, repairs = repair_release_arrays(raw)
         scene = reference_scene(arrays, file, ref.scene_id)
+        named = [release_category(str(a)) for a in scene.asset_id]
+        scene.category = np.array([c for c, _ in named])
+        scene.extras["category_known"] = np.array([k for _, k in named])
+        if "relations" in raw and np.size(raw["relations"]):  # every triple, "Empty" and root ones included
+            scene.extras["release_relations"] = np.asarray(raw["relations"]).reshape(-1, 3).astype(np.int64)
+        repairs["unknown_categories"] = int(sum(not k for _, k in named))
+        return file, arrays, scene, repairs
+
+    def scan(self, ref: RoomRef) -> list[AssetRequest]:
+        file, _, scene, _ = self._scene(ref)
         requests = []
         for k, name in enumerate(scene.asset_id.tolist()):
             path = self.mesh_path(name)
@@ -132,19 +157,25 @@ class SpreadRelease(Source):
         return requests
 
     def scene(self, ref: RoomRef, library, requests: list[AssetRequest]):
-        file, arrays = self._arrays(ref)
-        scene = reference_scene(arrays, file, ref.scene_id)
+        file, arrays, scene, repairs = self._scene(ref)
         scene.asset_id = np.array([r.asset_id for r in requests])
         R = scene.rotation.astype(np.float64)
         offsets = np.array([library[r.asset_id].source.get("canonical_offset", [0.0, 0.0, 0.0]) for r in requests])
         file_centres = np.asarray(arrays["bbox_center"], np.float64)[1:] if "bbox_center" in arrays else offsets
         shift = offsets - file_centres
         scene.translation = (scene.translation.astype(np.float64) + np.einsum("nij,nj->ni", R, shift)).astype(np.float32)
+        from spread.importers.mounts import mount_counts, release_mounts
+        from spread.relations import scene_aabbs
+
+        lo, _ = scene_aabbs(scene.translation, scene.rotation, [str(a) for a in scene.asset_id], library)
+        scene.extras["mount"] = release_mounts(arrays.get("relations", np.zeros((0, 3))), scene.num_objects,
+                                               scene.category, lo[:, 1])
         scene.extras["source_tag"] = np.asarray(ref.tag)
         scene.extras["import_source"] = np.asarray(self.name)
         if self.room_type:
             scene.extras["room_type"] = np.asarray(self.room_type)
-        return scene, {"bbox_center_differs": int((np.linalg.norm(shift, axis=1) > CENTRE_TOLERANCE).sum())}
+        return scene, {"bbox_center_differs": int((np.linalg.norm(shift, axis=1) > CENTRE_TOLERANCE).sum()),
+                       **mount_counts(scene.extras["mount"]), **repairs}
 
 
 def read_dataset_stats(path: Path) -> dict | None:

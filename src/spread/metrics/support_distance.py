@@ -6,7 +6,8 @@ surface samples are posed, moved into i's frame, and their signed distances to i
 computed (positive outside, metres). The pair's value is the minimum: ≈ 0 when j rests on i, the gap
 when j floats above it, minus the penetration when j sinks into it. The scene's ASD is the mean of
 |min| over its pairs (exact minimum over the point set, see
-:func:`spread.metrics.geometry.min_signed_distance`).
+:func:`spread.metrics.geometry.min_signed_distance`). Pairs whose supported object is a wall or ceiling
+mount (:func:`spread.scene.welded_objects`: held by the building, not resting) are left out.
 
 Aggregate (:class:`AverageSupportDistance`): Σ|min| / number of pairs over all scenes (pair-weighted),
 metres; scenes without support pairs contribute nothing; NaN before any pair.
@@ -69,9 +70,12 @@ def support_gap(scene, library, supporter: int, supported: int) -> float:
 
 def scene_support_distance(scene, library) -> SupportDistanceResult:
     """ASD of one scene (module docstring); raises on a scene that cannot be measured."""
+    from spread.scene import welded_objects
+
     check_scene(scene, library)
+    welded = welded_objects(scene)
     pairs = [SupportPairDistance(int(i), int(j), support_gap(scene, library, int(i), int(j)))
-             for i, j in scene.support_pairs()]
+             for i, j in scene.support_pairs() if not welded[j]]
     return SupportDistanceResult(scene.scene_id, pairs)
 
 

@@ -32,6 +32,7 @@ class ModelConfig:
     state_bands: int = 8  # Fourier bands of the node state x (9 channels)
     state_max_frequency: float = 32.0
     index_dim: int = 64  # sinusoidal code of the object index (nodes and geometry points)
+    mount_feature: bool = True  # a learned code of each object's mount (floor, on-object, wall, ceiling) on its node
     # shape tokens
     shape_encoder: str = "points"  # "points" (PointCloudTokenizer) | "precomputed" (batch['shape_tokens'])
     shape_tokens: int = 256  # L
@@ -64,7 +65,9 @@ class ModelConfig:
         unknown = set(config) - known
         if unknown:
             raise ValueError(f"ModelConfig: unknown fields {sorted(unknown)}")
-        return cls(**{**dict(config), **overrides})
+        config = dict(config)
+        config.setdefault("mount_feature", False)  # a checkpoint saved before the field had no mount code
+        return cls(**{**config, **overrides})
 
     def to_dict(self) -> dict:
         return asdict(self)

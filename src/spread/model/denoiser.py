@@ -9,7 +9,9 @@ Inputs (B scenes, N objects padded, ``mask`` (B, N) marks the real ones):
 * ``geometry_tokens`` (B, G, dim) or None: the scene's perceiver latents (``geometry`` variant).
 
 Node token: ``Linear([Fourier(x_t), sinusoid(object index)])`` — the paper's "fixed sinusoidal
-encodings → Linear"; the index code is the one the perceiver puts on each object's points.
+encodings → Linear"; the index code is the one the perceiver puts on each object's points — plus, with
+``mount_feature``, a learned code of the object's mount (``mount`` (B, N): floor, on-object, wall, ceiling;
+:func:`spread.scene.scene_mounts`), zero-initialised so a model starts as one without it.
 
 Block (× depth), all pre-norm with AdaLN on the timestep embedding, residual after each sub-layer:
 1. cross-attention of each object to its own shape tokens (real objects only);
@@ -73,6 +75,12 @@ class GraphDenoiser(nn.Module):
         self.cfg, self.geometry = cfg, geometry
         self.time = TimestepEmbedding(cfg.cond_dim)
         self.node_in = nn.Linear(fourier_dim(STATE_DIM, cfg.state_bands) + cfg.index_dim, cfg.dim)
+        self.mount_in = None
+        if cfg.mount_feature:
+            from spread.scene import MOUNT_NAMES
+
+            self.mount_in = nn.Embedding(len(MOUNT_NAMES), cfg.dim)
+            nn.init.zeros_(self.mount_in.weight)
         self.shape_in = nn.Linear(cfg.shape_dim, cfg.dim)
         self.blocks = nn.ModuleList(DenoiserBlock(cfg, geometry) for _ in range(cfg.depth))
         self.norm_out = AdaLayerNorm(cfg.dim, cfg.cond_dim)
@@ -80,19 +88,23 @@ class GraphDenoiser(nn.Module):
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
 
-    def embed_nodes(self, x_t: torch.Tensor) -> torch.Tensor:
+    def embed_nodes(self, x_t: torch.Tensor, mount: torch.Tensor | None = None) -> torch.Tensor:
         B, N, _ = x_t.shape
         index = sinusoidal_embedding(torch.arange(N, device=x_t.device), self.cfg.index_dim).expand(B, N, -1)
         state = fourier_features(x_t, self.cfg.state_bands, self.cfg.state_max_frequency)
-        return self.node_in(torch.cat([state, index.to(state.dtype)], dim=-1))
+        x = self.node_in(torch.cat([state, index.to(state.dtype)], dim=-1))
+        if self.mount_in is not None and mount is not None:
+            x = x + self.mount_in(mount.long()).to(x.dtype)
+        return x
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor,
-                shape_tokens: torch.Tensor, geometry_tokens: torch.Tensor | None = None) -> torch.Tensor:
+                shape_tokens: torch.Tensor, geometry_tokens: torch.Tensor | None = None,
+                mount: torch.Tensor | None = None) -> torch.Tensor:
         if self.geometry and geometry_tokens is None:
             raise ValueError("GraphDenoiser(geometry=True) needs geometry_tokens")
         mask = mask.bool()
         cond = self.time(t)
-        x = self.embed_nodes(x_t)
+        x = self.embed_nodes(x_t, mount)
         shape_tokens = shape_tokens[mask]  # (V, L, shape_dim); projected inside each block's attention
         for block in self.blocks:
             x = block(x, cond, mask, shape_tokens, self.shape_in, edges, geometry_tokens)

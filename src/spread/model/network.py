@@ -40,6 +40,7 @@ class Condition:
     shape_tokens: torch.Tensor  # (B, N, L, shape_dim)
     points: torch.Tensor | None = None  # (B, N, M, 3) canonical, geometry variant
     normals: torch.Tensor | None = None
+    mount: torch.Tensor | None = None  # (B, N) long mount codes (batch["mount"]), when the batch has them
 
 
 def drop_graphs(spatial: torch.Tensor, physical: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -96,7 +97,8 @@ class SceneDenoiser(nn.Module):
         geometry = self.perceiver is not None
         return Condition(mask=mask, spatial=spatial, physical=physical,
                          edges=self.edge_encoder(spatial, physical), shape_tokens=self.shape_encoder(batch),
-                         points=batch["points"] if geometry else None, normals=batch["normals"] if geometry else None)
+                         points=batch["points"] if geometry else None, normals=batch["normals"] if geometry else None,
+                         mount=batch.get("mount"))
 
     def null_condition(self, cond: Condition) -> Condition:
         """The same scenes with both graphs dropped (classifier-free guidance's unconditional branch)."""
@@ -116,4 +118,4 @@ class SceneDenoiser(nn.Module):
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""
         geometry = self.geometry_tokens(x_t, cond) if self.perceiver is not None else None
-        return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry)
+        return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry, mount=cond.mount)

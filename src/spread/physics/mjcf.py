@@ -144,7 +144,9 @@ def _floor_extent(scene) -> tuple[float, float]:
 
 def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False, floor: bool = True,
                names: Sequence[str] | None = None, colours: np.ndarray | None = None) -> str:
-    """MJCF text of ``scene``: a static floor plane (y = 0) and one free body per object at its scene pose.
+    """MJCF text of ``scene``: a static floor plane (y = 0) and one free body per object at its scene pose;
+    wall and ceiling mounts (:func:`spread.scene.welded_objects`) are bodies without a joint (welded to the
+    world at their scene pose), so ``qpos`` holds the free bodies only, in scene order.
 
     ``params``: :class:`~spread.physics.mujoco_world.MujocoParams` (timestep, solver, contact settings);
     defaults if None. ``visual``: also give each body its asset's visual mesh (group 1, no collisions,
@@ -201,13 +203,17 @@ def scene_mjcf(scene, library, params=None, up: str = "y", visual: bool = False,
     if up == "z" and n:
         out.append(f'    <frame name="y_up" quat="{_num(Y_UP_TO_Z_UP)}">')
         indent = "      "
+    from spread.scene import welded_objects
+
+    welded = welded_objects(scene) if n else np.zeros(0, bool)
     quats = matrix_to_wxyz(np.asarray(scene.rotation, np.float64)) if n else np.zeros((0, 4))
     t = np.asarray(scene.translation, np.float64)
     index = {a: k for k, a in enumerate(order)}
     for i, a in enumerate(ids):
         g, k = geoms[a], index[a]
         out.append(f'{indent}<body name={quoteattr(names[i])} pos="{_num(t[i])}" quat="{_num(quats[i])}">')
-        out.append(f'{indent}  <freejoint name={quoteattr(names[i] + "_free")}/>')
+        if not welded[i]:
+            out.append(f'{indent}  <freejoint name={quoteattr(names[i] + "_free")}/>')
         out.append(f'{indent}  <inertial pos="{_num(g.com)}" quat="{_num(matrix_to_wxyz(g.axes))}" '
                    f'mass="{float(masses[i])!r}" diaginertia="{_num(g.inertia_per_kg * masses[i])}"/>')
         for b in range(len(g.box_centre)):

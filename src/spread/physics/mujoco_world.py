@@ -33,6 +33,53 @@ def _route_warnings(mujoco) -> None:
     _route_warnings.done = True
 
 
+class WeldedPoses:
+    """Which objects of a scene are welded (wall and ceiling mounts: bodies without a joint in
+    :func:`~spread.physics.mjcf.scene_mjcf`) and their scene poses; maps Scene poses of all N objects to the
+    free bodies' ``qpos`` (7 per free body: position, wxyz quaternion) and back (welded ones where they are)."""
+
+    def __init__(self, welded: np.ndarray, translation: np.ndarray, rotation: np.ndarray):
+        self.welded = np.asarray(welded, bool)
+        self.translation = np.asarray(translation, np.float64).reshape(-1, 3)[self.welded]
+        self.rotation = np.asarray(rotation, np.float64).reshape(-1, 3, 3)[self.welded]
+
+    @classmethod
+    def of(cls, scene) -> "WeldedPoses":
+        from spread.scene import welded_objects
+
+        return cls(welded_objects(scene), scene.translation, scene.rotation)
+
+    def key(self) -> tuple:
+        """What a compiled model depends on: which objects are welded, and where (their poses are in it)."""
+        return (tuple(np.flatnonzero(self.welded).tolist()), self.translation.round(9).tobytes(),
+                self.rotation.round(9).tobytes())
+
+    def qpos(self, translation: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+        from spread.physics.mjcf import matrix_to_wxyz
+
+        free = ~self.welded
+        t = np.asarray(translation, np.float64).reshape(-1, 3)[free]
+        q = matrix_to_wxyz(np.asarray(rotation, np.float64).reshape(-1, 3, 3)[free])
+        return np.concatenate([t, q], axis=1).ravel()
+
+    def poses(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Scene poses (..., N, 3) / (..., N, 3, 3) of ``qpos`` (..., 7 · free)."""
+        from spread.physics.frames import quat_to_matrix
+
+        qpos = np.asarray(qpos, np.float64)
+        q = qpos.reshape(qpos.shape[:-1] + (-1, 7))
+        xyzw = np.concatenate([q[..., 4:7], q[..., 3:4]], axis=-1)
+        lead = q.shape[:-2]
+        n = len(self.welded)
+        t = np.zeros(lead + (n, 3))
+        R = np.zeros(lead + (n, 3, 3))
+        t[..., ~self.welded, :] = q[..., :3]
+        R[..., ~self.welded, :, :] = quat_to_matrix(xyzw.reshape(-1, 4)).reshape(q.shape[:-1] + (3, 3))
+        t[..., self.welded, :] = self.translation
+        R[..., self.welded, :, :] = self.rotation
+        return t, R
+
+
 class MujocoWorld:
     """MuJoCo model + data of one scene at a time; the floor plane y = 0 and one free body per object.
 
@@ -71,6 +118,7 @@ class MujocoWorld:
         key = self._scene_key(scene, library)
         if key != self._key:
             from spread.physics.mjcf import scene_mjcf
+            from spread.scene import welded_objects
 
             self.model = self._mj.MjModel.from_xml_string(scene_mjcf(scene, library, self.params))
             self.model.opt.timestep = self.time_step
@@ -78,6 +126,7 @@ class MujocoWorld:
             self._datas = []
             self._key = key
             self.models_compiled += 1
+            self.welded = WeldedPoses.of(scene)
         self.set_poses(scene.translation, scene.rotation)
 
     @staticmethod
@@ -85,14 +134,10 @@ class MujocoWorld:
         """Identifies the bodies (not the poses) of a scene: the model can be reused when this is equal."""
         ids = tuple(str(a) for a in scene.asset_id)
         return ids, tuple(library[a].content_hash for a in ids), tuple(float(library[a].mass) for a in ids), \
-            id(library)
+            id(library), WeldedPoses.of(scene).key()
 
     def _qpos(self, translation: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-        from spread.physics.mjcf import matrix_to_wxyz
-
-        t = np.asarray(translation, np.float64).reshape(-1, 3)
-        q = matrix_to_wxyz(np.asarray(rotation, np.float64).reshape(-1, 3, 3))
-        return np.concatenate([t, q], axis=1).ravel()
+        return self.welded.qpos(translation, rotation)
 
     def _check(self, n: int) -> None:
         if self.model is None:
@@ -115,13 +160,8 @@ class MujocoWorld:
         """Current Scene poses: translation (N, 3) bbox centres, rotation (N, 3, 3) world-from-local."""
         return self._poses_of(np.asarray(self.data.qpos))
 
-    @staticmethod
-    def _poses_of(qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        from spread.physics.frames import quat_to_matrix
-
-        q = np.asarray(qpos, np.float64).reshape(qpos.shape[:-1] + (-1, 7))
-        xyzw = np.concatenate([q[..., 4:7], q[..., 3:4]], axis=-1)
-        return q[..., :3].copy(), quat_to_matrix(xyzw.reshape(-1, 4)).reshape(q.shape[:-1] + (3, 3))
+    def _poses_of(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.welded.poses(qpos)
 
     def velocities(self) -> tuple[np.ndarray, np.ndarray]:
         """(linear (N, 3) m/s of each centre of mass, angular (N, 3) rad/s), world frame."""

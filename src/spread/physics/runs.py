@@ -2,7 +2,8 @@
 
 One run: load the scene's bodies afresh (no contact cache carried over from an earlier run or scene),
 place every object at its scene pose plus a translation jitter drawn uniformly from
-[−jitter, +jitter]³ metres (rotations unchanged), all velocities zero, then simulate ``steps`` protocol
+[−jitter, +jitter]³ metres (rotations unchanged; wall and ceiling mounts, welded to the world by every
+engine, are not jittered), all velocities zero, then simulate ``steps`` protocol
 steps of ``dt`` seconds. Accuracy: each protocol step is made of ``substeps = round(dt / time_step)``
 (at least 1) internal Bullet steps of ``dt / substeps`` — 4 steps of 1/240 s for the protocol's 1/60 s
 with the default :class:`~spread.physics.params.PhysicsParams`. Jitters come from
@@ -57,7 +58,10 @@ def simulate_runs(scene, library, runs: int = 10, steps: int = 100, dt: float = 
     n = scene.num_objects
     t0 = np.asarray(scene.translation, np.float64)
     R0 = np.asarray(scene.rotation, np.float64)
+    from spread.scene import welded_objects
+
     offsets = jitter_offsets(runs, n, jitter, seed)
+    offsets[:, welded_objects(scene)] = 0.0  # welded where the scene puts them
     out_t, out_R = np.zeros((runs, n, 3)), np.zeros((runs, n, 3, 3))
     substeps = protocol_substeps(dt, world.params.time_step)
     previous = world.time_step

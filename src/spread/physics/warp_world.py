@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spread.physics.mujoco_world import MujocoWorld
+from spread.physics.mujoco_world import MujocoWorld, WeldedPoses
 from spread.physics.params import MujocoParams
 
 log = logging.getLogger("spread.physics.warp")
@@ -97,14 +97,6 @@ def _warp():
         wp.init()
         _warp.done = True
     return wp, mjw
-
-
-def _qpos(translation: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """Free-joint qpos (7 N,) of Scene poses (N, 3) / (N, 3, 3): the body frame is the Scene's frame."""
-    from spread.physics.mjcf import matrix_to_wxyz
-
-    t = np.asarray(translation, np.float64).reshape(-1, 3)
-    return np.concatenate([t, matrix_to_wxyz(np.asarray(rotation, np.float64).reshape(-1, 3, 3))], axis=1).ravel()
 
 
 def resolve_device(name: str) -> str:
@@ -172,6 +164,7 @@ class MujocoWarpWorld:
         self.model.opt.warn_overflow = 0  # read Data.overflow instead of printing from kernels
         self.model.opt.disableflags |= self._mjw.DisableBit.NATIVECCD  # box–box: C MuJoCo's collider (docstring)
         self.mjm = mjm
+        self.welded = WeldedPoses.of(scene)
         self._buffers = self.buffers(scene)
         self.data, self._data_key, self._graph = None, None, None
         self._key = key
@@ -193,7 +186,7 @@ class MujocoWarpWorld:
         """Upper bound on the contacts of the geom pairs close at ``scene``'s poses (:meth:`buffers`)."""
         mj, m = self._mj, self.mjm
         d = mj.MjData(m)
-        d.qpos[:] = _qpos(scene.translation, scene.rotation)
+        d.qpos[:] = self.welded.qpos(scene.translation, scene.rotation)
         mj.mj_kinematics(m, d)
         dyn = np.flatnonzero((m.geom_bodyid > 0) & ((m.geom_contype | m.geom_conaffinity) > 0))
         aabb = m.geom_aabb.reshape(-1, 2, 3)[dyn]  # local (centre, half extents)
@@ -225,7 +218,7 @@ class MujocoWarpWorld:
             raise ValueError(f"MujocoWarpWorld: {n} poses for a scene of {self.num_objects} objects")
         if runs == 0:
             return np.zeros((0, n, 3)), np.zeros((0, n, 3, 3))
-        qpos = np.stack([_qpos(translation[r], rotation[r]) for r in range(runs)])
+        qpos = np.stack([self.welded.qpos(translation[r], rotation[r]) for r in range(runs)])
         mjw = self._mjw
         buffer_bits = int(mjw.OverflowType.NEFC | mjw.OverflowType.NJMAX_NNZ | mjw.OverflowType.BROADPHASE
                           | mjw.OverflowType.NARROWPHASE | mjw.OverflowType.CCD | mjw.OverflowType.NVMAX)
@@ -256,7 +249,7 @@ class MujocoWarpWorld:
         if not (np.isfinite(final).all() and np.isfinite(qvel).all()):
             raise FloatingPointError(f"MuJoCo Warp simulation of scene '{scene.scene_id}' diverged (non-finite "
                                      f"state); time step {self.time_step} s is too long for these contacts")
-        return MujocoWorld._poses_of(final)
+        return self.welded.poses(final)
 
     def _batch(self, qpos: np.ndarray, nstep: int, nconmax: int, njmax: int, stop_bits: int):
         """Step one world per row of ``qpos`` (runs, nq) from rest for ``nstep`` steps, reading

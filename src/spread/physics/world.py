@@ -169,6 +169,7 @@ class PhysicsWorld:
             self._call("removeBody", body)
         self._bodies = []
         self._frozen = set()
+        self._welded = set()
         self._com, self._axes = np.zeros((0, 3)), np.zeros((0, 3, 3))
         self._mass, self._inertia = np.zeros(0), np.zeros((0, 3))
 
@@ -176,7 +177,11 @@ class PhysicsWorld:
         """Replace the world's bodies by the scene's objects, at rest at the scene's poses.
 
         Masses come from the asset records (kg); ``fixed`` lists object indices made static (pinned).
+        Wall and ceiling mounts (:func:`spread.scene.welded_objects`) are welded: static, and
+        :meth:`unfreeze` leaves them so.
         """
+        from spread.scene import welded_objects
+
         pb, p = self._pb, self.params
         self.clear()
         shapes = [self.body_shape(library, aid) for aid in scene.asset_id]
@@ -202,7 +207,8 @@ class PhysicsWorld:
                        spinningFriction=p.spinning_friction, restitution=p.restitution,
                        linearDamping=0.0, angularDamping=0.0, activationState=sleep)
             self._bodies.append(body)
-        self.freeze(fixed)
+        self._welded = set(np.flatnonzero(welded_objects(scene)).tolist())
+        self.freeze(set(int(i) for i in fixed) | self._welded)
 
     # ---- state -------------------------------------------------------------------------------
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +260,7 @@ class PhysicsWorld:
         """Give frozen objects (all of them by default) their mass and inertia back."""
         for i in list(self._frozen if indices is None else indices):
             i = int(i)
-            if i in self._frozen:
+            if i in self._frozen and i not in getattr(self, "_welded", ()):
                 self._call("changeDynamics", self._bodies[i], -1, mass=float(self._mass[i]),
                            localInertiaDiagonal=self._inertia[i].tolist())
                 self._frozen.discard(i)

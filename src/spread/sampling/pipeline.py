@@ -139,10 +139,17 @@ class ScenePipeline:
             return []
         from spread.guidance import SceneGuidance
 
+        import torch
+
+        from spread.scene import welded_objects
+
         device = self.model.device
+        welded = torch.zeros(batch["mask"].shape, dtype=torch.bool)
+        for b, src in enumerate(sources):
+            welded[b, batch["mask"][b].cpu().bool()] = torch.from_numpy(welded_objects(src))  # the real objects' slots
         guidance = SceneGuidance(self.guidance, self.dataset.library, [list(src.asset_id) for src in sources],
                                  batch["physical"].to(device), batch["mask"].to(device), self.model.network.bounds,
-                                 alpha_bar0=float(self.model.noise_schedule.alphas_cumprod[0]))
+                                 alpha_bar0=float(self.model.noise_schedule.alphas_cumprod[0]), welded=welded)
         self._last_guidance = guidance
         callback = guidance_callback(guidance)
         return [callback] if callback is not None else []

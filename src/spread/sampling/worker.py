@@ -89,6 +89,8 @@ def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray
                     "conditioned_on": np.asarray(source.scene_id)}
     if "room_type" in source.extras:  # evaluation reports per room type (imported 3D-FRONT rooms)
         scene.extras["room_type"] = np.asarray(source.extras["room_type"])
+    if "mount" in source.extras:  # wall and ceiling mounts stay welded when the sample is simulated
+        scene.extras["mount"] = np.asarray(source.extras["mount"])
     return scene
 
 

@@ -29,7 +29,8 @@ FLOORS = (
     ("physics", "relations"),
     ("scene",),
     ("assets",),
-    ("io", "safe_load", "registry"),
+    ("safe_load",),  # checks a checkpoint file with spread.io before loading it
+    ("io", "registry"),
 )
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}
 

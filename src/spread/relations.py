@@ -34,18 +34,18 @@ def spatial_codes(aabb_min, aabb_max):
     """(N, N) int8 spatial codes from world AABBs (N, 3) min and max, metres, y-up.
 
     Accepts numpy arrays (returns numpy) or torch tensors of shape (..., N, 3) (returns a torch
-    int8 tensor of shape (..., N, N)); torch is used by the model side for batched scenes.
+    int8 tensor of shape (..., N, N)); torch is used by the model side for batched scenes. One body for both:
+    only the array constructors differ (:func:`_array_ops`).
     """
-    if not isinstance(aabb_min, np.ndarray):
-        return _spatial_codes_torch(aabb_min, aabb_max)
-    lo = np.asarray(aabb_min, np.float64)
-    hi = np.asarray(aabb_max, np.float64)
-    if lo.shape != hi.shape or lo.shape[-1] != 3:
-        raise ValueError(f"spatial_codes: aabb_min {lo.shape} and aabb_max {hi.shape} must both be (..., N, 3)")
+    ops = _array_ops(aabb_min)
+    lo, hi = ops.float64(aabb_min), ops.float64(aabb_max)
+    if tuple(lo.shape) != tuple(hi.shape) or lo.shape[-1] != 3:
+        raise ValueError(f"spatial_codes: aabb_min {tuple(lo.shape)} and aabb_max {tuple(hi.shape)} must both be "
+                         f"(..., N, 3)")
     c = 0.5 * (lo + hi)
     d = c[..., :, None, :] - c[..., None, :, :]  # c_i − c_j
-    theta = np.arctan2(d[..., 2], d[..., 0])
-    codes = np.full(theta.shape, SPATIAL_LEFT, dtype=np.int8)
+    theta = ops.atan2(d[..., 2], d[..., 0])
+    codes = ops.full_int8(theta, SPATIAL_LEFT)
     q = math.pi / 4
     codes[(theta >= -q) & (theta < q)] = SPATIAL_RIGHT
     codes[(theta >= q) & (theta < 3 * q)] = SPATIAL_FRONT
@@ -55,41 +55,35 @@ def spatial_codes(aabb_min, aabb_max):
     # centre of i inside footprint of j
     i_in_j = ((cx[..., :, None] >= lo[..., None, :, 0]) & (cx[..., :, None] <= hi[..., None, :, 0])
               & (cz[..., :, None] >= lo[..., None, :, 2]) & (cz[..., :, None] <= hi[..., None, :, 2]))
-    stacked = i_in_j | np.swapaxes(i_in_j, -1, -2)
+    stacked = i_in_j | ops.swap_last(i_in_j)
     above = lo[..., :, None, 1] >= hi[..., None, :, 1] - VERTICAL_TOLERANCE
     below = hi[..., :, None, 1] <= lo[..., None, :, 1] + VERTICAL_TOLERANCE
     codes[stacked & above] = SPATIAL_ABOVE
     codes[stacked & below & ~above] = SPATIAL_BELOW
-    n = codes.shape[-1]
-    idx = np.arange(n)
+    idx = ops.arange(codes)
     codes[..., idx, idx] = SPATIAL_SELF
     return codes
 
 
-def _spatial_codes_torch(aabb_min, aabb_max):
+class _Ops(NamedTuple):
+    float64: object
+    atan2: object
+    full_int8: object
+    swap_last: object
+    arange: object
+
+
+def _array_ops(example) -> _Ops:
+    """The few constructors :func:`spatial_codes` needs, for numpy arrays or (lazily imported) torch tensors."""
+    if isinstance(example, np.ndarray) or not hasattr(example, "double"):
+        return _Ops(lambda a: np.asarray(a, np.float64), np.arctan2,
+                    lambda like, v: np.full(like.shape, v, dtype=np.int8), lambda a: np.swapaxes(a, -1, -2),
+                    lambda codes: np.arange(codes.shape[-1]))
     import torch
 
-    lo, hi = aabb_min.double(), aabb_max.double()
-    c = 0.5 * (lo + hi)
-    d = c[..., :, None, :] - c[..., None, :, :]
-    theta = torch.atan2(d[..., 2], d[..., 0])
-    q = math.pi / 4
-    codes = torch.full(theta.shape, SPATIAL_LEFT, dtype=torch.int8, device=theta.device)
-    codes[(theta >= -q) & (theta < q)] = SPATIAL_RIGHT
-    codes[(theta >= q) & (theta < 3 * q)] = SPATIAL_FRONT
-    codes[(theta >= -3 * q) & (theta < -q)] = SPATIAL_BEHIND
-    cx, cz = c[..., 0], c[..., 2]
-    i_in_j = ((cx[..., :, None] >= lo[..., None, :, 0]) & (cx[..., :, None] <= hi[..., None, :, 0])
-              & (cz[..., :, None] >= lo[..., None, :, 2]) & (cz[..., :, None] <= hi[..., None, :, 2]))
-    stacked = i_in_j | i_in_j.transpose(-1, -2)
-    above = lo[..., :, None, 1] >= hi[..., None, :, 1] - VERTICAL_TOLERANCE
-    below = hi[..., :, None, 1] <= lo[..., None, :, 1] + VERTICAL_TOLERANCE
-    codes[stacked & above] = SPATIAL_ABOVE
-    codes[stacked & below & ~above] = SPATIAL_BELOW
-    n = codes.shape[-1]
-    idx = torch.arange(n, device=codes.device)
-    codes[..., idx, idx] = SPATIAL_SELF
-    return codes
+    return _Ops(lambda a: a.double(), torch.atan2,
+                lambda like, v: torch.full(like.shape, v, dtype=torch.int8, device=like.device),
+                lambda a: a.transpose(-1, -2), lambda codes: torch.arange(codes.shape[-1], device=codes.device))
 
 
 def posed_aabbs(translation: np.ndarray, rotation: np.ndarray, local_vertices: list[np.ndarray]):

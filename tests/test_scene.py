@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
+from spread.importers.release_boxes import read_reference_boxes
 from spread.scene import (
-    Scene, SceneFormatError, read_reference_boxes, read_scene, write_scene,
+    Scene, SceneFormatError, read_scene, write_scene,
 )
 
 

@@ -42,7 +42,8 @@ import numpy as np
 
 from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record
 from spread.io import read_json_object, safe_name
-from spread.scene import SceneFormatError, load_npz_arrays, reference_scene
+from spread.importers.release_boxes import reference_scene
+from spread.scene import SceneFormatError, load_npz_arrays
 from spread.importers.registry import register_importer
 
 SPLIT_FILE = "train_test_split.json"

@@ -194,11 +194,35 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     protocol check passed."""
     from spread.evaluation import run_evaluation
     from spread.evaluation.wandb_log import log_evaluation
+    from spread.runtime import mlflow_log
 
     command = to_object(cfg)
-    result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
+    tags = {"spread.seed": command.seed, "spread.scenes": str(command.scenes),
+            "spread.dataset_fingerprint": mlflow_log.dataset_fingerprint(command.reference)}
+    with mlflow_log.tracked(command.logger, "evaluate", command.out_dir, plain(cfg), command.experiment_name,
+                            tags=tags | scenes_lineage(command.scenes)) as run:
+        result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
+        if run is not None:
+            mlflow_log.log_evaluation(run, result.metrics, result.out_dir, result.renders)
     log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg))
     return result
+
+
+def scenes_lineage(scenes) -> dict:
+    """Lineage tags of an evaluation of ``scenes``: a sampling run's ``scenes/`` folder names the sampling
+    run (its :data:`~spread.runtime.mlflow_log.RUN_FILE`) and, through its recorded checkpoint, the training run."""
+    import json
+
+    from spread.runtime.mlflow_log import RUN_FILE, training_lineage
+
+    folder = Path(scenes).parent
+    tags = {}
+    if (folder / RUN_FILE).exists():
+        tags["spread.sampling_run_id"] = json.loads((folder / RUN_FILE).read_text()).get("run_id")
+    manifest = folder / "sampling.json"
+    if manifest.exists():
+        tags |= training_lineage(json.loads(manifest.read_text()).get("ckpt"))
+    return tags
 
 
 def print_evaluation_summary(metrics: dict, out_dir) -> None:
@@ -274,16 +298,25 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     from spread.sampling import run_sampling
     from spread.sampling.wandb_log import log_sampling, sampling_tags
 
+    from spread.runtime import mlflow_log
+    from spread.sampling.mlflow_log import sampling_run_tags
+
     command = to_object(cfg)
     if command.evaluate and command.resume and is_finished_run(command.out_dir):
         print(f"{command.out_dir}: finished earlier (metrics.json exists), skipped")
         return None, None
-    result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
-    evaluation = None
-    if command.evaluate:
-        from spread.evaluation import run_evaluation
+    with mlflow_log.tracked(command.logger if log else None, "sample", command.out_dir, plain(cfg),
+                            command.experiment_name, tags=lambda: sampling_run_tags(command)) as run:
+        result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
+        if run is not None:
+            mlflow_log.log_sampling(run, result.manifest)
+        evaluation = None
+        if command.evaluate:
+            from spread.evaluation import run_evaluation
 
-        evaluation = run_evaluation(evaluation_after_sampling(command))
+            evaluation = run_evaluation(evaluation_after_sampling(command))
+            if run is not None:
+                mlflow_log.log_evaluation(run, evaluation.metrics, evaluation.out_dir, evaluation.renders)
     more = None
     if evaluation is not None:
         from spread.evaluation.wandb_log import log_metrics

@@ -90,6 +90,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     import lightning as L
 
     from spread.runtime.tracking import as_logger_config, lightning_loggers
+    from spread.training.monitors import monitors
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -107,6 +108,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
                                       callbacks=build_callbacks(cfg, run_dir) + [newest, ExactResume(int(cfg.seed)),
+                                                                                 *(monitors() if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)
     if prepare is not None:

@@ -1,0 +1,4 @@
+"""placeholder"""
+
+def main():
+    raise SystemExit("spread-view: not built yet")

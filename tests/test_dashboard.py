@@ -143,3 +143,81 @@ def test_dashboard_serves_the_ui_and_lists_experiments_runs_and_metrics_over_res
 def test_dashboard_refuses_unknown_arguments_by_name():
     proc = subprocess.run([str(SCRIPTS / "spread-dashboard"), "prot=5"], capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and "'prot=5'" in proc.stderr
+
+
+# ---- spread-report's HTML page -------------------------------------------------------------------------------
+
+def test_report_of_a_sampling_run_and_a_training_run_is_one_self_contained_html_page(store, tmp_path):
+    from spread.experiments.report import run_report
+
+    root, uri, train_dir, sample_dir = store
+    result = run_report([str(sample_dir), str(train_dir)], tmp_path / "R")
+    page = (tmp_path / "R" / "report.html").read_text()
+    assert page.startswith("<!DOCTYPE html>") and "Training curves (1 runs)" in page
+    assert "train/loss" in result.html["curves"] and any(k.startswith("lr-") for k in result.html["curves"])
+    metrics = json.loads((sample_dir / "metrics.json").read_text())
+    room = next(iter(metrics["per_room_type"]))
+    assert result.html["room_rows"] == len(metrics["per_room_type"]) and f"<td>{room}</td>" in page
+    from spread.experiments.tables import METRICS
+
+    measured = [c.key for c in METRICS if metrics.get(c.key) is not None]  # one plot each (no weight varies)
+    assert len(measured) >= 3 and result.html["metric_plots"] == len(measured) and result.html["renders"] == 1
+    # self-contained: every image inline, nothing fetched from elsewhere
+    assert page.count('src="data:image/png;base64,') >= 3 and "http" not in page.replace("https://", "")
+    assert "<script" not in page
+    md = (tmp_path / "R" / "report.md").read_text()
+    assert "## Training runs (1)" in md and (tmp_path / "R" / "report_training.csv").exists()
+
+
+def test_spread_report_script_writes_the_html_page_of_a_sampling_run(store, tmp_path):
+    from helpers import run_script
+
+    run_script("spread-report", f"runs={store[3]}", f"out_dir={tmp_path / 'R'}")
+    assert "<h2>Evaluated runs (1)</h2>" in (tmp_path / "R" / "report.html").read_text()
+
+
+def test_report_of_training_runs_only_overlays_their_curves(store, tmp_path):
+    from spread.experiments.html_report import read_curves
+    from spread.experiments.report import run_report
+
+    train_dir = store[2]
+    curves = read_curves(train_dir)
+    assert [s for s, _ in curves["train/loss"]] == sorted(s for s, _ in curves["train/loss"])
+    assert len(curves["train/loss"]) >= 3
+    result = run_report([str(train_dir)], tmp_path / "R")
+    assert result.records == [] and result.html["training_runs"] == 1
+    assert "Evaluated runs" not in (tmp_path / "R" / "report.html").read_text()
+
+
+# ---- spread-view ---------------------------------------------------------------------------------------------
+
+def test_viewer_collects_a_run_with_ground_truth_and_serves_scenes_coloured_by_category(store):
+    from spread.render.palette import category_colour
+    from spread.render.viewer import SceneViewer, collect, object_meshes
+    from spread.scene import read_scene
+
+    sample_dir = store[3]
+    items, library_root = collect(sample_dir)
+    assert len(items) == len(list((sample_dir / "scenes").glob("*.npz"))) >= 1
+    assert all(item.ground_truth is not None and item.ground_truth.exists() for item in items)
+    scene = read_scene(items[0].path)
+    assert read_scene(items[0].ground_truth).scene_id == str(scene.extras["conditioned_on"])
+    viewer = SceneViewer(items, library_root, port=free_port())
+    try:
+        status, page = get(f"http://127.0.0.1:{viewer.server.get_port()}/")
+        assert status == 200 and b"<html" in page.lower()
+        assert viewer.shown == ["/scene", "/ground_truth"]
+        meshes = object_meshes(scene, viewer.library)
+        assert [m[3] for m in meshes] == [category_colour(str(c)) for c in scene.category]
+        assert all(c in viewer.legend.content for c in {str(c) for c in scene.category})
+        viewer.physics.value = True  # the Stability simulation beside it
+        assert viewer.shown == ["/scene", "/ground_truth", "/after"] and "moved" in viewer.info.content
+    finally:
+        viewer.server.stop()
+
+
+def test_viewer_refuses_a_missing_path_by_name(tmp_path):
+    from spread.render.viewer import collect
+
+    with pytest.raises(FileNotFoundError, match="nothing_here"):
+        collect(tmp_path / "nothing_here")

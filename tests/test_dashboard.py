@@ -30,6 +30,7 @@ def store(tmp_path_factory):
     train_dir = root / "train"
     train_in_process(train_dir, "experiment=quick", f"data.root={data}", "trainer.max_time=null",
                      "trainer.max_steps=6", "trainer.log_every_n_steps=1", "trainer.check_val_every_n_epoch=1",
+                     "model.sample_every_n_epochs=1", "model.val_sampler=ddim-4", "model.val_sample_scenes=2",
                      *SMALL_MODEL, *FAST_TRAIN, *logger)
     sample_dir = root / "sample"
     sample(compose("sample", f"ckpt={train_dir / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
@@ -56,7 +57,7 @@ def test_train_and_sample_put_two_runs_with_curves_metrics_tags_and_lineage(stor
     client = MlflowClient(tracking_uri=uri)
     loss = client.get_metric_history(train.info.run_id, "train/loss")
     assert len(loss) >= 3 and len({m.step for m in loss}) == len(loss)  # a curve, one point per logged step
-    assert {"val/loss", "train/grad_norm"} <= set(train.data.metrics)
+    assert {"val/loss", "val/grecall", "train/grad_norm"} <= set(train.data.metrics)
     assert any(k.startswith("lr-") for k in train.data.metrics)
     assert train.data.params["model.variant"] == train.data.tags["spread.variant"]
     assert train.info.status == "FINISHED" and sampled.info.status == "FINISHED"

@@ -260,7 +260,7 @@ h1{font-size:1.4em}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid 
 table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}td,th{border:1px solid #ccc;padding:3px 7px;
 text-align:right}th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
 .grid{display:flex;flex-wrap:wrap;gap:10px}figure{margin:0}figcaption{font-size:0.8em;text-align:center}
-.grid img{max-width:260px;border:1px solid #ccc}.note{color:#555;font-size:0.85em}"""
+img{max-width:100%}.grid img{max-width:260px;border:1px solid #ccc}.note{color:#555;font-size:0.85em}"""
 
 
 def write_html(path: Path, title: str, training: list[Path], records: Sequence[dict], columns: Sequence[Column],

@@ -147,6 +147,7 @@ class SceneViewer:
         self.timeline = None
         self.matrix = None
         self.shown: list[str] = []
+        self.bounds: list = []
         for handle in (self.pick, self.truth, self.physics):
             handle.on_update(lambda _: self.show())
         self.show()
@@ -159,6 +160,13 @@ class SceneViewer:
     def add_group(self, group: str, scene, offset, label: str, poses=None) -> None:
         for name, V, F, colour in object_meshes(scene, self.library, offset, poses):
             self.server.scene.add_mesh_simple(f"/{group}/{name}", V, F, color=colour, flat_shading=True)
+            self.bounds.append((V.min(axis=0), V.max(axis=0)))
+        if scene.room is not None:  # the floor: a grid over the room's footprint (y = 0)
+            lo, hi = np.asarray(scene.room[0], np.float64), np.asarray(scene.room[1], np.float64)
+            self.server.scene.add_grid(f"/{group}/floor", float(hi[0] - lo[0]), float(hi[2] - lo[2]), plane="xz",
+                                       cell_size=0.5, position=(float((lo[0] + hi[0]) / 2 + offset[0]), 0.0,
+                                                                float((lo[2] + hi[2]) / 2)))
+            self.bounds.append((lo + np.asarray(offset), hi + np.asarray(offset)))
         top = max(float(self.library.mesh(str(a)).extents[1]) for a in scene.asset_id) if scene.num_objects else 0
         centre = np.asarray(scene.translation, np.float64).mean(axis=0) if scene.num_objects else np.zeros(3)
         self.server.scene.add_label(f"/{group}/label", label, position=(float(centre[0] + offset[0]),
@@ -173,6 +181,7 @@ class SceneViewer:
         item = self.items[self.pick.value]
         scene = read_scene(item.path)
         self.clear()
+        self.bounds = []
         self.add_group("scene", scene, (0.0, 0.0, 0.0), f"{item.name}")
         step = width_x(scene, self.library) + GAP
         lines = [f"**{item.name}**: {scene.num_objects} objects"]
@@ -198,6 +207,22 @@ class SceneViewer:
         self.matrix = self.server.gui.add_image(relation_matrix_figure(agreement, size=4.0), label="relation matrix",
                                                 format="png")
         self.add_timeline(scene)
+        self.frame()
+
+    def frame(self) -> None:
+        """Point the camera (new clients' and the connected ones') at everything shown, from the front (+z) and
+        above."""
+        if not self.bounds:
+            return
+        lo = np.min([b[0] for b in self.bounds], axis=0)
+        hi = np.max([b[1] for b in self.bounds], axis=0)
+        size = float(np.max(hi - lo))
+        centre = (lo + hi) / 2 + np.array([0.15 * size, 0.0, 0.0])  # the scene left of the side panel
+        position = centre + np.array([0.0, 0.55 * size, 0.7 * size])
+        camera = self.server.initial_camera
+        camera.look_at, camera.position, camera.up = tuple(centre), tuple(position), (0.0, 1.0, 0.0)
+        for client in self.server.get_clients().values():
+            client.camera.look_at, client.camera.position = tuple(centre), tuple(position)
 
     def add_timeline(self, scene) -> None:
         if self.timeline is not None:

@@ -63,20 +63,29 @@ def quiet() -> None:
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
 
+#: MLflow ≥ 3 opens an experiment on its GenAI (traces) pages unless this tag says it trains models.
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+
+
 def experiment_id(client, uri: str, name: str) -> str:
-    """The id of experiment ``name``, created (artifacts under :func:`artifact_root`) when missing."""
+    """The id of experiment ``name``, created (artifacts under :func:`artifact_root`) when missing, and tagged
+    as a model-training experiment (:data:`EXPERIMENT_KIND`: the UI then opens on its runs)."""
     found = client.get_experiment_by_name(name)
-    if found is not None:
-        return found.experiment_id
-    root = artifact_root(uri)
-    try:
-        return client.create_experiment(name, artifact_location=None if root is None else
-                                        Path(root, safe_name(name)).resolve().as_uri())
-    except Exception:  # another process created it meanwhile
-        found = client.get_experiment_by_name(name)
-        if found is None:
-            raise
-        return found.experiment_id
+    if found is None:
+        root = artifact_root(uri)
+        try:
+            exp = client.create_experiment(name, artifact_location=None if root is None else
+                                           Path(root, safe_name(name)).resolve().as_uri())
+        except Exception:  # another process created it meanwhile
+            found = client.get_experiment_by_name(name)
+            if found is None:
+                raise
+            exp = found.experiment_id
+    else:
+        exp = found.experiment_id
+    if found is None or found.tags.get(EXPERIMENT_KIND[0]) != EXPERIMENT_KIND[1]:
+        client.set_experiment_tag(exp, *EXPERIMENT_KIND)
+    return exp
 
 
 def safe_name(name: str) -> str:
@@ -287,6 +296,7 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
                        artifact_location=None if root is None else Path(root, safe_name(group)).resolve().as_uri())
     if rank_zero_only.rank == 0:
         run_id = mlf.run_id  # creates the run now
+        mlf.experiment.set_experiment_tag(mlf.experiment_id, *EXPERIMENT_KIND)
         write_run_file(run_dir, uri, mlf.experiment_id, run_id)
         if previous is None:
             MlflowRun(mlf.experiment, run_id, uri).log_params(flat_params(config))

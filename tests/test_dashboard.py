@@ -222,3 +222,38 @@ def test_viewer_refuses_a_missing_path_by_name(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="nothing_here"):
         collect(tmp_path / "nothing_here")
+
+
+# ---- the MLflow writer on its own ----------------------------------------------------------------------------
+
+def test_a_run_opens_before_the_work_and_a_failure_marks_it_failed(tmp_path):
+    from mlflow import MlflowClient
+
+    from spread.runtime.mlflow_log import RUN_FILE, log_table, tracked
+    from spread.runtime.tracking import LoggerConfig
+
+    logger = LoggerConfig(name="wandb+mlflow", mode="disabled", tracking_uri=str(tmp_path / "store" / "m.db"))
+    assert logger.wandb and logger.mlflow
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'store' / 'm.db'}")
+    with pytest.raises(RuntimeError, match="boom"):
+        with tracked(logger, "sample", tmp_path / "a", {"seed": 3, "guidance": {"collision": 0.01}}, "exp") as run:
+            assert client.get_run(run.run_id).info.status == "RUNNING"  # open while the work runs
+            raise RuntimeError("boom")
+    failed = client.get_run(run.run_id)
+    assert failed.info.status == "FAILED" and failed.data.params == {"seed": "3", "guidance.collision": "0.01"}
+    assert json.loads((tmp_path / "a" / RUN_FILE).read_text())["run_id"] == run.run_id
+    (tmp_path / "t.csv").write_text("variant,grecall\nbase,0.5\n")
+    with tracked(logger, "ablation", tmp_path / "b", {}, "exp") as run:
+        log_table(run, [{"variant": "base", "grecall": 0.5, "n": 3}, {"variant": "geometry", "grecall": None}],
+                  "variant", [tmp_path / "t.csv"])
+    done = client.get_run(run.run_id)
+    assert done.info.status == "FINISHED" and done.data.metrics == {"base/grecall": 0.5, "base/n": 3.0}
+    assert [a.path for a in client.list_artifacts(run.run_id, "table")] == ["table/t.csv"]
+
+
+def test_logger_names_are_checked_and_combined():
+    from spread.runtime.tracking import LoggerConfig
+
+    assert LoggerConfig(name="mlflow").names == ("mlflow",) and not LoggerConfig(name="mlflow").wandb
+    with pytest.raises(ValueError, match="'wandb\\+tensorboard'"):
+        LoggerConfig(name="wandb+tensorboard")

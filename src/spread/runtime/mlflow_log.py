@@ -325,3 +325,15 @@ class tracked:
     def __exit__(self, kind, value, traceback) -> None:
         if self.run is not None:
             self.run.finish(failed=kind is not None)
+
+
+def log_table(run: MlflowRun, records: Iterable[dict], label_key: str, files: Iterable = ()) -> None:
+    """A results table (an ablation's or a comparison's) into ``run``: each row's numeric entries as
+    ``<row label>/<key>`` metrics, and ``files`` (the table's md/csv/tex/png) as artifacts."""
+    values = {}
+    for r in records:
+        label = safe_name(r.get(label_key))
+        values |= {f"{label}/{k}": v for k, v in r.items() if is_number(v)}
+    run.log_metrics(values)
+    for path in files:
+        run.log_artifact(path, "table")

@@ -20,7 +20,8 @@ from helpers import FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     """(folder, store URI, training run folder, sampling run folder): 6 training steps and one sampling run with
-    ``evaluate=true``, both with ``logger=mlflow`` into ``<folder>/mlflow.db``."""
+    ``evaluate=true``, both with ``logger=mlflow`` into ``<folder>/mlflow.db`` (the sampling run to wandb too,
+    offline)."""
     from spread.experiments.commands import sample
 
     root = tmp_path_factory.mktemp("mlstore")
@@ -35,7 +36,8 @@ def store(tmp_path_factory):
     sample_dir = root / "sample"
     sample(compose("sample", f"ckpt={train_dir / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
                    f"out_dir={sample_dir}", *FAST_SAMPLE, "evaluate=true", "evaluation.protocol.stability_runs=1",
-                   "evaluation.fid.enabled=false", "experiment_name=tiny_sample", *logger))
+                   "evaluation.fid.enabled=false", "experiment_name=tiny_sample", *logger,
+                   "logger.name=wandb+mlflow", "logger.mode=offline"))  # and a wandb offline run beside it
     return root, uri, train_dir, sample_dir
 
 
@@ -75,6 +77,22 @@ def test_train_and_sample_put_two_runs_with_curves_metrics_tags_and_lineage(stor
     assert {"metrics.json", "per_scene.jsonl", "renders"} <= artifacts
     assert client.get_experiment(sampled.info.experiment_id).name == "tiny_sample"
     assert (root / "mlartifacts").is_dir()  # artifacts beside the store
+
+
+def test_the_sampling_run_on_wandb_has_a_name_per_room_type_metrics_and_lineage(store):
+    from spread.experiments.runs import read_wandb_file
+
+    root, uri, train_dir, sample_dir = store
+    found = list((sample_dir / "wandb").glob("offline-run-*/*.wandb"))
+    assert len(found) == 1
+    run = read_wandb_file(found[0])
+    metrics = json.loads((sample_dir / "metrics.json").read_text())
+    room = next(iter(metrics["per_room_type"]))
+    assert run["name"] == "sample" and run["summary"]["grecall"] == pytest.approx(metrics["grecall"])
+    assert run["summary"][f"room/{room}/grecall"] == pytest.approx(metrics["per_room_type"][room]["grecall"])
+    lineage = run["config"]["lineage"]
+    assert lineage["spread.training_run_folder"] == str(train_dir.resolve())
+    assert lineage["spread.training_run_id"] == runs_by_job(uri)["train"].info.run_id
 
 
 def free_port() -> int:

@@ -17,6 +17,10 @@ import pytest
 from helpers import FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, train_in_process
 
 
+#: A small library (a quarter less work than all categories): bedrooms, a few kitchens and studies.
+CATEGORIES = ["bed", "nightstand", "wardrobe", "desk", "chair", "dining_table", "kitchen_counter", "shelf", "book", "mug"]
+
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     """(folder, store URI, training run folder, sampling run folder): 6 training steps and one sampling run with
@@ -25,7 +29,7 @@ def store(tmp_path_factory):
     from spread.experiments.commands import sample
 
     root = tmp_path_factory.mktemp("mlstore")
-    data = make_dataset(root / "ds", rooms=8)
+    data = make_dataset(root / "ds", rooms=8, categories=CATEGORIES)
     uri = f"sqlite:///{root}/mlflow.db"
     logger = ["logger=mlflow", f"logger.tracking_uri={uri}"]
     train_dir = root / "train"
@@ -188,6 +192,7 @@ def test_report_of_a_sampling_run_and_a_training_run_is_one_self_contained_html_
     assert "## Training runs (1)" in md and (tmp_path / "R" / "report_training.csv").exists()
 
 
+@pytest.mark.slow  # the console script's start-up (Hydra, imports) is most of it; run_report is tested above
 def test_spread_report_script_writes_the_html_page_of_a_sampling_run(store, tmp_path):
     from helpers import run_script
 
@@ -275,3 +280,13 @@ def test_logger_names_are_checked_and_combined():
     assert LoggerConfig(name="mlflow").names == ("mlflow",) and not LoggerConfig(name="mlflow").wandb
     with pytest.raises(ValueError, match="'wandb\\+tensorboard'"):
         LoggerConfig(name="wandb+tensorboard")
+
+
+def test_the_default_store_is_the_runs_folders_sqlite_file_for_every_command(tmp_path):
+    from spread.runtime.mlflow_log import resolve_tracking_uri
+
+    for command in ("train", "sample", "evaluate", "ablate", "compare"):
+        cfg = compose(command, "logger=mlflow", f"paths.runs_dir={tmp_path / 'runs'}")
+        assert cfg.logger.name == "mlflow" and cfg.logger.tracking_uri == f"sqlite:///{tmp_path / 'runs'}/mlflow.db"
+    assert resolve_tracking_uri(str(tmp_path / "a" / "m.db")) == f"sqlite:///{tmp_path / 'a' / 'm.db'}"
+    assert (tmp_path / "a").is_dir() and resolve_tracking_uri("http://host:5000") == "http://host:5000"

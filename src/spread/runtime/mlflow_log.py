@@ -14,7 +14,8 @@ checkpoint (:func:`training_lineage`, tags ``spread.training_run_id`` and ``spre
 
 Metrics: every numeric entry of ``metrics.json`` (so each metric with its interval, ``<m>_lo``/``<m>_hi``),
 the per-room-type breakdown as ``room/<type>/<entry>``, and ``metrics.json``, ``per_scene.jsonl`` and the
-renders as artifacts (:func:`log_evaluation`).
+renders as artifacts (:func:`log_evaluation`); while a sampling or evaluation run works, MLflow's monitor logs
+its system metrics (``system/*``: CPU, memory, GPU).
 """
 
 from __future__ import annotations
@@ -311,7 +312,7 @@ class tracked:
     def __init__(self, logger, job_type: str, out_dir, config: dict, experiment: str, name: str | None = None,
                  tags=None):
         self.args = (logger, job_type, out_dir, config, experiment, name, tags)
-        self.run = None
+        self.run = self.monitor = None
 
     def __enter__(self) -> MlflowRun | None:
         from spread.runtime.tracking import as_logger_config
@@ -320,11 +321,32 @@ class tracked:
         if as_logger_config(logger).mlflow:
             self.run = open_run(logger, job_type, out_dir, config, experiment, name,
                                 tags() if callable(tags) else tags)
+            self.monitor = system_monitor(self.run)
         return self.run
 
     def __exit__(self, kind, value, traceback) -> None:
         if self.run is not None:
+            if self.monitor is not None:
+                self.monitor.finish()
             self.run.finish(failed=kind is not None)
+
+
+#: Seconds between two samples of the system metrics (CPU, memory, GPU) of a sampling or evaluation run.
+SYSTEM_METRICS_INTERVAL = 10
+
+
+def system_monitor(run: MlflowRun):
+    """MLflow's system-metrics monitor (``system/cpu_utilization_percentage``, memory, GPU, every
+    :data:`SYSTEM_METRICS_INTERVAL` s) on ``run``, started; None where it cannot run (no psutil)."""
+    try:
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        monitor = SystemMetricsMonitor(run.run_id, sampling_interval=SYSTEM_METRICS_INTERVAL,
+                                       tracking_uri=run.uri)
+        monitor.start()
+        return monitor
+    except Exception:  # psutil missing, or the monitor refused: the run goes on without system metrics
+        return None
 
 
 def log_table(run: MlflowRun, records: Iterable[dict], label_key: str, files: Iterable = ()) -> None:

@@ -36,6 +36,7 @@ def store(tmp_path_factory):
     train_in_process(train_dir, "experiment=quick", f"data.root={data}", "trainer.max_time=null",
                      "trainer.max_steps=6", "trainer.log_every_n_steps=1", "trainer.check_val_every_n_epoch=1",
                      "model.sample_every_n_epochs=1", "model.val_sampler=ddim-4", "model.val_sample_scenes=2",
+                     "renders.every_n_epochs=2", "renders.sampler=ddim-4",
                      *SMALL_MODEL, *FAST_TRAIN, *logger)
     sample_dir = root / "sample"
     sample(compose("sample", f"ckpt={train_dir / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
@@ -66,6 +67,8 @@ def test_train_and_sample_put_two_runs_with_curves_metrics_tags_and_lineage(stor
     assert {"val/loss", "val/grecall", "train/grad_norm"} <= set(train.data.metrics)
     assert any(k.startswith("lr-") for k in train.data.metrics)
     assert train.data.params["model.variant"] == train.data.tags["spread.variant"]
+    renders = [a.path for a in client.list_artifacts(train.info.run_id, "renders")]  # sampled every 2 epochs
+    assert renders and renders[0].startswith("renders/epoch0001") and renders[0].endswith(".png")
     assert train.info.status == "FINISHED" and sampled.info.status == "FINISHED"
     # the sampling run: every metric of metrics.json with its interval, the per-room-type breakdown, artifacts
     metrics = json.loads((sample_dir / "metrics.json").read_text())

@@ -144,7 +144,7 @@ def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> 
         return None, []
     fig, ax = figure(figsize=(4.6, 3.3))
     for x, y, lo, hi, name in points:
-        err = [[y - lo], [hi - y]] if lo is not None and hi is not None else None
+        err = [[max(0.0, y - lo)], [max(0.0, hi - y)]] if lo is not None and hi is not None else None
         ax.errorbar([x], [y], yerr=err, fmt="o", ms=4, capsize=3, color="#4c72b0", ecolor="#8c8c8c")
         ax.annotate(name[:24], (x, y), xytext=(4, 3), textcoords="offset points", fontsize=6)
     if weight is None:

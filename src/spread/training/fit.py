@@ -108,7 +108,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
                                       callbacks=build_callbacks(cfg, run_dir) + [newest, ExactResume(int(cfg.seed)),
-                                                                                 *(monitors() if loggers else []),
+                                                                                 *(monitors(cfg.get("renders")) if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)
     if prepare is not None:

@@ -1,6 +1,7 @@
 """Training curves besides the loss: the learning rate (Lightning's ``LearningRateMonitor``, ``lr-AdamW``)
 and the gradient norm (:class:`GradientNorm`, ``train/grad_norm``), added by :func:`spread.training.fit.train`
-whenever a logger is configured."""
+whenever a logger is configured, and sampled scenes as images every few epochs (:mod:`spread.training.renders`,
+the train config's ``renders``)."""
 
 from __future__ import annotations
 
@@ -24,8 +25,14 @@ class GradientNorm(L.Callback):
             pl_module.log("train/grad_norm", torch.stack(grads).norm(2), on_step=True, on_epoch=False)
 
 
-def monitors() -> list:
-    """The callbacks of the module docstring."""
+def monitors(renders: dict | None = None) -> list:
+    """The callbacks of the module docstring, and :class:`~spread.training.renders.SampleRenders` with the
+    train config's ``renders`` settings (none when absent or ``every_n_epochs`` ≤ 0)."""
     from lightning.pytorch.callbacks import LearningRateMonitor
 
-    return [LearningRateMonitor(logging_interval="step"), GradientNorm()]
+    from spread.training.renders import SampleRenders
+
+    out = [LearningRateMonitor(logging_interval="step"), GradientNorm()]
+    if renders and int(renders.get("every_n_epochs", 0)) > 0:
+        out.append(SampleRenders(**dict(renders)))
+    return out

@@ -62,6 +62,14 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
             + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
 
 
+def takes_images(cfg: DictConfig) -> bool:
+    """Whether the run's loggers show images (wandb, MLflow; not the CSV files)."""
+    from spread.runtime.tracking import as_logger_config
+
+    logger = as_logger_config(cfg.logger)
+    return logger.wandb or logger.mlflow
+
+
 def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
     """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values (rank zero only)."""
     from spread.io import write_json_atomic
@@ -108,7 +116,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
                                       callbacks=build_callbacks(cfg, run_dir) + [newest, ExactResume(int(cfg.seed)),
-                                                                                 *(monitors(cfg.get("renders")) if loggers else []),
+                                                                                 *(monitors(cfg.get("renders") if takes_images(cfg) else None) if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)
     if prepare is not None:

@@ -293,3 +293,14 @@ def test_the_default_store_is_the_runs_folders_sqlite_file_for_every_command(tmp
         assert cfg.logger.name == "mlflow" and cfg.logger.tracking_uri == f"sqlite:///{tmp_path / 'runs'}/mlflow.db"
     assert resolve_tracking_uri(str(tmp_path / "a" / "m.db")) == f"sqlite:///{tmp_path / 'a' / 'm.db'}"
     assert (tmp_path / "a").is_dir() and resolve_tracking_uri("http://host:5000") == "http://host:5000"
+
+
+def test_report_takes_the_training_runs_inside_a_folder_beside_its_evaluated_runs(store, tmp_path):
+    """An ablation's or comparison's folder holds both: its evaluated runs make the table, its training runs
+    the curves."""
+    from spread.experiments.html_report import training_folders
+
+    root, _, train_dir, sample_dir = store
+    training, rest = training_folders([str(root)])
+    assert training == [train_dir] and rest == [str(root)]
+    assert training_folders([str(train_dir), str(sample_dir)]) == ([train_dir], [str(sample_dir)])

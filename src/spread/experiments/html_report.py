@@ -46,18 +46,19 @@ def is_training_run(path: Path) -> bool:
 
 
 def training_folders(entries: Sequence[str]) -> tuple[list[Path], list[str]]:
-    """(training run folders, the other entries): an entry (a path or glob) that is a training run folder, or a
-    folder with training runs under it and no evaluation ``metrics.json``, goes to the first list."""
+    """(training run folders, the other entries): an entry (a path or glob) that is a training run folder goes to
+    the first list; a folder with training runs under it (an ablation's, a comparison's) adds them to the first
+    list and stays in the second when it also holds evaluated runs."""
     training, rest = [], []
     for entry in entries:
         paths = [Path(p) for p in sorted(glob.glob(entry))] if glob.has_magic(entry) else [Path(entry)]
         for path in paths:
             if is_training_run(path):
                 training.append(path)
-            elif path.is_dir() and not any(has_evaluation(m) for m in path.rglob("metrics.json")) and \
-                    any(path.rglob("csv/version_*/metrics.csv")):
-                training += sorted({m.parents[2] for m in path.rglob("csv/version_*/metrics.csv")})
-            else:
+                continue
+            nested = sorted({m.parents[2] for m in path.rglob("csv/version_*/metrics.csv")}) if path.is_dir() else []
+            training += [t for t in nested if t not in training]
+            if not nested or any(has_evaluation(m) for m in path.rglob("metrics.json")):
                 rest.append(str(path) if glob.has_magic(entry) else entry)
     return training, rest
 

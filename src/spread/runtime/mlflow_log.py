@@ -273,11 +273,12 @@ def log_sampling(run: MlflowRun, manifest: dict) -> None:
 
 
 def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config: dict, resuming_here: bool):
-    """Lightning's ``MLFlowLogger`` for a training run (experiment ``group``, tags as in :func:`open_run`,
-    the config as params); on rank zero it starts the run now and writes :data:`RUN_FILE`; a run resumed from
-    this folder's checkpoint continues the folder's MLflow run."""
-    from lightning.fabric.utilities.rank_zero import rank_zero_only
+    """Lightning's ``MLFlowLogger`` for a training run (experiment ``group``, tags as in :func:`open_run`, the
+    config as params); a run resumed from this folder's checkpoint continues the folder's MLflow run. The run
+    starts, and :data:`RUN_FILE` is written, on the global rank zero when the fit starts (Lightning logs the
+    model's hyperparameters there), whatever launched the processes."""
     from lightning.pytorch.loggers import MLFlowLogger
+    from lightning.pytorch.utilities import rank_zero_only
 
     quiet()
     uri = resolve_tracking_uri(logger.tracking_uri)
@@ -290,18 +291,36 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
              "spread.method": model.get("method"), "spread.seed": config.get("seed"),
              "spread.dataset_fingerprint": dataset_fingerprint(data.get("root")),
              "spread.run_folder": str(Path(run_dir).resolve())}
-    mlf = MLFlowLogger(experiment_name=group, run_name=logger.run_name or f"{group}/{Path(run_dir).name}",
-                       tracking_uri=uri, tags=common_tags("train", extra) | {f"tag.{t}": "1" for t in
-                                                                            [*tags, *logger.tags]},
-                       log_model=False, run_id=previous,
-                       artifact_location=None if root is None else Path(root, safe_name(group)).resolve().as_uri())
-    if rank_zero_only.rank == 0:
-        run_id = mlf.run_id  # creates the run now
-        mlf.experiment.set_experiment_tag(mlf.experiment_id, *EXPERIMENT_KIND)
-        write_run_file(run_dir, uri, mlf.experiment_id, run_id)
-        if previous is None:
-            MlflowRun(mlf.experiment, run_id, uri).log_params(flat_params(config))
-    return mlf
+
+    class RecordedMLFlowLogger(MLFlowLogger):
+        """Writes :data:`RUN_FILE`, tags the experiment and logs the config once, on rank zero."""
+
+        recorded = False
+
+        def record(self) -> None:
+            if self.recorded:
+                return
+            self.recorded = True
+            run_id = self.run_id  # creates the run
+            self.experiment.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
+            write_run_file(run_dir, uri, self.experiment_id, run_id)
+            if previous is None:
+                MlflowRun(self.experiment, run_id, uri).log_params(flat_params(config))
+
+        @rank_zero_only
+        def log_hyperparams(self, params) -> None:
+            self.record()
+            super().log_hyperparams(params)
+
+        @rank_zero_only
+        def finalize(self, status: str = "success") -> None:
+            self.record()
+            super().finalize(status)
+
+    return RecordedMLFlowLogger(
+        experiment_name=group, run_name=logger.run_name or f"{group}/{Path(run_dir).name}", tracking_uri=uri,
+        tags=common_tags("train", extra) | {f"tag.{t}": "1" for t in [*tags, *logger.tags]}, log_model=False,
+        run_id=previous, artifact_location=None if root is None else Path(root, safe_name(group)).resolve().as_uri())
 
 
 class tracked:

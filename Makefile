@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 export WANDB_MODE ?= offline
 DEMO_DIR ?= demo_out
 
-.PHONY: install demo test test-slow bench clean
+.PHONY: install demo test test-slow browser bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "needs $(PYTHON) (pybullet ships wheels for 3.11)"; exit 1; }
@@ -24,7 +24,13 @@ demo: install
 test: install
 	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
-test-slow: install
+# the browser tests (tests/test_browser.py) drive Debian's headless chromium; installed here when missing
+browser:
+	@command -v chromium >/dev/null || command -v chromium-browser >/dev/null || \
+	  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver; } || \
+	  { echo "needs chromium (Debian: apt-get install chromium chromium-driver) for the browser tests"; exit 1; }
+
+test-slow: install browser
 	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile -m slow
 
 bench: install

@@ -31,6 +31,8 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
     scalars = scalar_metrics(metrics)
     boot = metrics.get("bootstrap") or {}  # the intervals' settings, flat (what spread-report reads back)
     scalars |= {f"ci_{k}": boot[k] for k in ("level", "resamples", "seed") if k in boot}
+    scalars |= {f"room/{room}/{k}": v for room, values in (metrics.get("per_room_type") or {}).items()
+                for k, v in scalar_metrics(values or {}).items()}  # the per-room-type breakdown
     run.log(scalars)
     run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
     by_name = {Path(p).stem: p for p in renders}
@@ -45,10 +47,11 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
 
 
 def log_evaluation(result, logger, group: str | None = None, config: dict | None = None,
-                   tags: list[str] | None = None) -> str | None:
+                   tags: list[str] | None = None, run=None) -> str | None:
     """Log an :class:`~spread.evaluation.run.EvaluationResult` (``job_type=evaluate``) with ``logger`` (a
     :class:`~spread.runtime.tracking.LoggerConfig`); returns the run's folder (None when disabled or when the
-    logger is not wandb). ``config``: the command's config (default: the protocol and inputs)."""
+    logger is not wandb). ``config``: the command's config (default: the protocol and inputs); ``run``: a run
+    opened before the work (else one is opened now); the run is finished."""
     from spread.runtime.tracking import as_logger_config, init_run, run_folder
 
     logger = as_logger_config(logger)
@@ -57,7 +60,8 @@ def log_evaluation(result, logger, group: str | None = None, config: dict | None
     config = config if config is not None else {
         "protocol": result.metrics["protocol"], "scenes": result.metrics["scenes"],
         "reference": result.metrics["reference"], "versions": result.metrics["versions"]}
-    run = init_run(logger, "evaluate", result.out_dir, config, group=group, tags=tags)
+    run = run if run is not None else init_run(logger, "evaluate", result.out_dir, config, group=group, tags=tags,
+                                               name=Path(result.out_dir).name)
     try:
         log_metrics(run, result.metrics, result.records, result.renders)
         return run_folder(run)

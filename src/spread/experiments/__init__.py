@@ -8,6 +8,7 @@ the stages (:mod:`spread.procgen`, :mod:`spread.training`, :mod:`spread.sampling
 | :mod:`~spread.experiments.ablation` | the ablation's stages (generate … table), ledger, resume |
 | :mod:`~spread.experiments.runs` | run folders and wandb offline runs → flat records; ``runs`` argument expansion |
 | :mod:`~spread.experiments.report` | records → comparison table (md/csv) and metric-vs-weight plots |
+| :mod:`~spread.experiments.html_report` | the report as one self-contained HTML page; training runs' curves |
 | :mod:`~spread.experiments.tables` | Markdown / CSV / LaTeX writers, CSV reader (exact round trip) |
 | :mod:`~spread.experiments.plots` | bar plot of the ablation, metric-vs-weight scatter plots (Agg) |
 | :mod:`~spread.experiments.wandb_table` | the ablation table as a wandb Table (offline by default) |

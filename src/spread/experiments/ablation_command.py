@@ -54,15 +54,20 @@ def ablate(cfg: DictConfig):
     set_threads(cfg.get("threads"))
     spec = ablation_spec(cfg)
     record_config(cfg, spec.out_dir)()
-    logger = as_logger_config(cfg.logger)
-    log_table = None
-    if logger.wandb:
-        from spread.experiments.wandb_table import log_ablation
+    from spread.runtime import mlflow_log
 
+    logger = as_logger_config(cfg.logger)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    with mlflow_log.tracked(logger, "ablation", spec.out_dir, config, spec.group, name=f"ablation/{cfg.name}") as run:
         def log_table(records, png):
-            log_ablation(records, png, spec.out_dir, logger, name=f"ablation/{cfg.name}", group=spec.group,
-                         config=OmegaConf.to_container(cfg, resolve=True))
-    return run_ablation(spec, InProcessCommands(), log_table)
+            if logger.wandb:
+                from spread.experiments.wandb_table import log_ablation
+
+                log_ablation(records, png, spec.out_dir, logger, name=f"ablation/{cfg.name}", group=spec.group,
+                             config=config)
+            if run is not None:
+                mlflow_log.log_table(run, records, "variant", sorted(Path(png).parent.glob(Path(png).stem + ".*")))
+        return run_ablation(spec, InProcessCommands(), log_table if logger.wandb or run is not None else None)
 
 
 def console_table(result, title: str):

@@ -198,10 +198,30 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     protocol check passed."""
     from spread.evaluation import run_evaluation
     from spread.evaluation.wandb_log import log_evaluation
+    from spread.runtime import mlflow_log
 
     command = to_object(cfg)
-    result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
-    log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg))
+    tags = {"spread.seed": command.seed, "spread.scenes": str(command.scenes),
+            "spread.dataset_fingerprint": mlflow_log.dataset_fingerprint(command.reference)}
+    lineage = scenes_lineage(command.scenes)
+    wandb_run = None
+    if command.logger.wandb:
+        from spread.runtime.tracking import init_run
+
+        Path(command.out_dir).mkdir(parents=True, exist_ok=True)
+        wandb_run = init_run(command.logger, "evaluate", command.out_dir, plain(cfg) | {"lineage": lineage},
+                             group=command.experiment_name, name=Path(command.out_dir).name)
+    try:
+        with mlflow_log.tracked(command.logger, "evaluate", command.out_dir, plain(cfg), command.experiment_name,
+                                tags=tags | lineage) as run:
+            result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
+            if run is not None:
+                mlflow_log.log_evaluation(run, result.metrics, result.out_dir, result.renders)
+    except BaseException:
+        if wandb_run is not None:
+            wandb_run.finish(exit_code=1)
+        raise
+    log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg), run=wandb_run)
     return result
 
 
@@ -211,6 +231,23 @@ def evaluated_specs(metrics: dict) -> list:
 
     names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
     return ordered(METRICS.get(n) for n in names if n in METRICS)
+
+
+def scenes_lineage(scenes) -> dict:
+    """Lineage tags of an evaluation of ``scenes``: a sampling run's ``scenes/`` folder names the sampling
+    run (its :data:`~spread.runtime.mlflow_log.RUN_FILE`) and, through its recorded checkpoint, the training run."""
+    import json
+
+    from spread.runtime.mlflow_log import RUN_FILE, training_lineage
+
+    folder = Path(scenes).parent
+    tags = {}
+    if (folder / RUN_FILE).exists():
+        tags["spread.sampling_run_id"] = json.loads((folder / RUN_FILE).read_text()).get("run_id")
+    manifest = folder / "sampling.json"
+    if manifest.exists():
+        tags |= training_lineage(json.loads(manifest.read_text()).get("ckpt"))
+    return tags
 
 
 def print_evaluation_summary(metrics: dict, out_dir) -> None:
@@ -278,25 +315,49 @@ def evaluation_after_sampling(command):
         fid=ev.fid, ray=command.ray)
 
 
+def experiment_of(command) -> str:
+    """The experiment (wandb group, MLflow experiment) of a sampling command: ``experiment_name``, and the sweep
+    folder's name after it when a sweep's folder is not named so (two launches of one sweep file into
+    different folders are two experiments)."""
+    name = str(command.experiment_name)
+    folder = Path(str(command.sweep_dir)).name if command.sweep_dir else None
+    return name if not folder or folder == name else f"{name}/{folder}"
+
+
 def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None):
     """``spread-sample``: sample (then, with ``evaluate=true``, evaluate) into ``cfg.out_dir``; returns
     (:class:`~spread.sampling.SamplingResult`, :class:`~spread.evaluation.EvaluationResult` or None). A
     finished sweep point (``evaluate=true``, ``resume=true``, ``metrics.json`` there) is left as it is
     and (None, None) returned. ``log=False``: no wandb run (the ablation logs its table instead)."""
     from spread.experiments.runs import is_finished_run
+    from spread.runtime import mlflow_log
     from spread.sampling import run_sampling
-    from spread.sampling.wandb_log import log_sampling, sampling_tags
+    from spread.sampling.mlflow_log import sampling_run_tags
+    from spread.sampling.wandb_log import log_sampling, open_sampling_run
 
     command = to_object(cfg)
     if command.evaluate and command.resume and is_finished_run(command.out_dir):
         print(f"{command.out_dir}: finished earlier (metrics.json exists), skipped")
         return None, None
-    result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
-    evaluation = None
-    if command.evaluate:
-        from spread.evaluation import run_evaluation
+    experiment = experiment_of(command)
+    wandb_run = open_sampling_run(command, plain(cfg), experiment) if log and command.logger.wandb else None
+    try:
+        with mlflow_log.tracked(command.logger if log else None, "sample", command.out_dir, plain(cfg), experiment,
+                                tags=lambda: sampling_run_tags(command)) as run:
+            result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
+            if run is not None:
+                mlflow_log.log_sampling(run, result.manifest)
+            evaluation = None
+            if command.evaluate:
+                from spread.evaluation import run_evaluation
 
-        evaluation = run_evaluation(evaluation_after_sampling(command))
+                evaluation = run_evaluation(evaluation_after_sampling(command))
+                if run is not None:
+                    mlflow_log.log_evaluation(run, evaluation.metrics, evaluation.out_dir, evaluation.renders)
+    except BaseException:
+        if wandb_run is not None:
+            wandb_run.finish(exit_code=1)
+        raise
     more = None
     if evaluation is not None:
         from spread.evaluation.wandb_log import log_metrics
@@ -305,9 +366,9 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
 
         def more(run):
             log_metrics(run, evaluation.metrics, evaluation.records, renders)
-    if log and command.logger.wandb:
-        log_sampling(result.manifest, command.out_dir, plain(cfg), command.logger, group=command.experiment_name,
-                     tags=sampling_tags(command.ckpt, command.sampler, result.manifest, command.tags), more=more)
+    if wandb_run is not None:
+        log_sampling(result.manifest, command.out_dir, plain(cfg), command.logger, group=experiment, more=more,
+                     run=wandb_run)
     return result, evaluation
 
 

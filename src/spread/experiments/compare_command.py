@@ -44,13 +44,18 @@ def compare(cfg: DictConfig):
     set_threads(cfg.get("threads"))
     spec = compare_spec(cfg)
     record_config(cfg, spec.out_dir)()
+    from spread.runtime import mlflow_log
+
     logger = as_logger_config(cfg.logger)
-    log_table = None
-    if logger.wandb:
+    config = OmegaConf.to_container(cfg, resolve=True)
+    with mlflow_log.tracked(logger, "compare", spec.out_dir, config, spec.group, name=f"table1/{cfg.name}") as run:
         def log_table(records, columns):
-            log_table1(records, columns, spec.out_dir, logger, name=f"table1/{cfg.name}", group=spec.group,
-                       config=OmegaConf.to_container(cfg, resolve=True))
-    return run_comparison(spec, InProcessCommands(), log_table)
+            if logger.wandb:
+                log_table1(records, columns, spec.out_dir, logger, name=f"table1/{cfg.name}", group=spec.group,
+                           config=config)
+            if run is not None:
+                mlflow_log.log_table(run, records, "method_key", sorted(Path(spec.out_dir).glob("table1*.*")))
+        return run_comparison(spec, InProcessCommands(), log_table if logger.wandb or run is not None else None)
 
 
 def print_comparison(result) -> None:

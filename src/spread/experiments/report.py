@@ -8,6 +8,10 @@ Writes into ``out_dir``:
   bounds (``<metric>_lo``, ``<metric>_hi``) and the bootstrap's seed.
 * ``plots/<metric>_vs_<weight>.png``: each metric against each weight, every run a point, the mean per
   weight value joined (:func:`spread.experiments.plots.metric_vs_weight`).
+* ``report.html``: one self-contained page (:mod:`spread.experiments.html_report`): training curves of the
+  training runs among ``runs``, the table, metric-vs-weight plots with interval bars and labelled points,
+  parallel coordinates, per-room-type tables and a grid of the same test graph rendered by each run;
+  ``training.csv`` (and a section of ``report.md``): each training run's last logged values.
 * ``report.json``: what was read, what was skipped (unfinished runs) and the plots with their points.
 """
 
@@ -36,6 +40,7 @@ class ReportResult:
     plots: dict[tuple[str, str], tuple[Path, list]] = field(default_factory=dict)
     tables: dict[str, Path] = field(default_factory=dict)
     unfinished: list[Path] = field(default_factory=list)
+    html: dict = field(default_factory=dict)
 
 
 def report_columns(weights: Sequence[str], metrics: Sequence[Column]) -> list[Column]:
@@ -68,20 +73,31 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metr
                title: str = "") -> ReportResult:
     """Read ``runs`` (paths, globs, sweep folders; :func:`~spread.experiments.runs.find_runs`) and write the
     report (module docstring) into ``out_dir``."""
+    from spread.experiments.html_report import training_folders, write_html, write_training_tables
+
     out = Path(out_dir)
-    records, unfinished = read_runs(runs, weights)
+    training, runs = training_folders([str(runs)] if isinstance(runs, (str, Path)) else [str(r) for r in runs])
+    records, unfinished = read_runs(runs, weights) if runs or not training else ([], [])
     columns = metric_columns(metrics) if metrics is not None else columns_of(records)
     result = ReportResult(records, unfinished=unfinished)
-    result.tables = write_tables(records, report_columns(weights, columns), out / "report",
-                                 caption=title or f"{len(records)} runs", formats=("md", "csv"),
-                                 note=table_note(records))
+    if records or not training:
+        result.tables = write_tables(records, report_columns(weights, columns), out / "report",
+                                     caption=title or f"{len(records)} runs", formats=("md", "csv"),
+                                     note=table_note(records))
+    if training:
+        result.tables |= write_training_tables(training, out / "report", append=bool(records))
     fid_notes = sorted({str(r.get("fid_status")) for r in records if r.get("fid") is None and r.get("fid_status")})
-    for metric in columns:
+    for metric in columns if records else []:
         for weight in weights:
             path = out / "plots" / plot_name(metric.key, weight, weights)
             note = "; ".join(fid_notes)[:200] if metric.key == "fid" else ""
             result.plots[(metric.key, weight)] = (path, metric_vs_weight(records, metric, weight, path, note))
+    result.tables["html"] = out / "report.html"
+    result.html = write_html(out / "report.html", title or f"spread-report: {len(records)} evaluated runs, "
+                             f"{len(training)} training runs", training, records, columns, weights,
+                             note=table_note(records) if records else "")
     write_json_atomic(out / "report.json", {
+        "training_runs": [str(p) for p in training], "html": str(out / "report.html"),
         "runs": [{"run": r["run"], "source": r["source"], "kind": r["kind"]} for r in records],
         "unfinished": [str(p) for p in unfinished],
         "tables": {k: str(v) for k, v in result.tables.items()},
@@ -103,8 +119,9 @@ def print_report(result: ReportResult) -> None:
     from rich.console import Console
 
     console = Console()
-    console.print(result.tables["md"].read_text())
+    if "md" in result.tables:
+        console.print(result.tables["md"].read_text())
     for path in result.unfinished:
         console.print(f"[yellow]skipped (no metrics.json yet): {path}[/yellow]")
-    console.print(f"{len(result.records)} runs; table {result.tables['md']}, {result.tables['csv']}; "
-                  f"{len(result.plots)} plots in {result.tables['md'].parent / 'plots'}")
+    console.print(f"{len(result.records)} runs; table {result.tables.get('md')}, {result.tables.get('csv')}; "
+                  f"{len(result.plots)} plots in {result.tables['html'].parent / 'plots'}; page {result.tables['html']}")

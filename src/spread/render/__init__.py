@@ -14,6 +14,7 @@ Top-down images look straight down −y: +x to the right, +z down the image (see
 | :mod:`~spread.render.physics_view` | a scene after one Stability run |
 | :mod:`~spread.render.figures` | labelled figures of the above (matplotlib, Agg) |
 | :mod:`~spread.render.sheets`, :mod:`~spread.render.export` | PNG files, contact sheets; glb |
+| :mod:`~spread.render.viewer` | ``spread-view``: scenes in an interactive 3D viewer in the browser (viser) |
 """
 from spread.render.camera import Camera, fit_camera  # noqa: F401
 from spread.render.export import build_trimesh_scene, export_glb  # noqa: F401

@@ -6,8 +6,11 @@ Every command logs through here, with one set of conventions so runs line up on 
 mode and weights, ``config`` = the command's whole composed config.
 
 ``logger.name``: ``wandb`` (offline by default: files under ``<run folder>/wandb``, ``wandb sync``
-uploads them later; ``WANDB_MODE`` overrides ``mode``), ``csv`` (Lightning's CSV files; the other commands
-log nothing) or ``none``. Nothing here opens a network connection in the offline and disabled modes.
+uploads them later; ``WANDB_MODE`` overrides ``mode``), ``mlflow`` (a local MLflow store, by default
+``sqlite:///<paths.runs_dir>/mlflow.db``; ``logger.tracking_uri`` points elsewhere; ``spread-dashboard``
+serves its UI; :mod:`spread.runtime.mlflow_log`), ``csv`` (Lightning's CSV files; the other commands
+log nothing) or ``none``. Several at once: ``logger.name=wandb+mlflow``. Nothing here opens a network
+connection in the offline and disabled modes (nor with a local MLflow store).
 """
 
 from __future__ import annotations
@@ -15,27 +18,40 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-NAMES = ("wandb", "csv", "none")
+NAMES = ("wandb", "mlflow", "csv", "none")
 
 
 @dataclass
 class LoggerConfig:
-    """name: ``wandb`` | ``csv`` | ``none``; mode: wandb's mode (``offline``, ``online``, ``disabled``);
-    project: wandb project; run_name: the run's name (None: the command picks one); tags: extra tags."""
+    """name: ``wandb`` | ``mlflow`` | ``csv`` | ``none``, or several joined by ``+`` (``wandb+mlflow``);
+    mode: wandb's mode (``offline``, ``online``, ``disabled``); project: wandb project; run_name: the run's
+    name (None: the command picks one); tags: extra tags; tracking_uri: the MLflow store (None:
+    ``sqlite:///runs/mlflow.db`` under the working directory; ``conf/logger/mlflow.yaml`` sets
+    ``<paths.runs_dir>/mlflow.db``); a plain path is taken as a SQLite file."""
 
     name: str = "wandb"
     mode: str = "offline"
     project: str = "spread"
     run_name: str | None = None
     tags: list[str] = field(default_factory=list)
+    tracking_uri: str | None = None
 
     def __post_init__(self) -> None:
-        if self.name not in NAMES:
-            raise ValueError(f"logger: key 'name' is {self.name!r}, choose from {NAMES}")
+        unknown = [n for n in self.names if n not in NAMES]
+        if unknown or not self.names:
+            raise ValueError(f"logger: key 'name' is {self.name!r}, choose from {NAMES} (several: joined by '+')")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(n.strip() for n in str(self.name).split("+") if n.strip())
 
     @property
     def wandb(self) -> bool:
-        return self.name == "wandb"
+        return "wandb" in self.names
+
+    @property
+    def mlflow(self) -> bool:
+        return "mlflow" in self.names
 
 
 def as_logger_config(logger) -> LoggerConfig:
@@ -72,14 +88,19 @@ def previous_wandb_id(run_dir: Path) -> str | None:
 def lightning_loggers(logger: LoggerConfig, run_dir: Path, group: str, tags: list[str], config: dict,
                       resuming_here: bool = False) -> list:
     """Lightning loggers for a training run: ``wandb`` → WandbLogger (``job_type=train``) + CSVLogger,
-    ``csv`` → CSVLogger, ``none`` → none. The CSV files go to ``csv/version_<n>`` (a resumed run never
+    ``mlflow`` → MLFlowLogger (:func:`spread.runtime.mlflow_log.lightning_logger`) + CSVLogger, ``csv`` →
+    CSVLogger, ``none`` → none. The CSV files go to ``csv/version_<n>`` (a resumed run never
     overwrites); ``resuming_here``: the run continues from this folder's own checkpoint, so it continues
-    this folder's wandb run too (same id)."""
+    this folder's wandb and MLflow runs too (same ids)."""
     from lightning.pytorch.loggers import CSVLogger, WandbLogger
 
-    if logger.name == "none":
+    if set(logger.names) <= {"none"}:
         return []
     loggers = [CSVLogger(save_dir=str(run_dir), name="csv")]
+    if logger.mlflow:
+        from spread.runtime.mlflow_log import lightning_logger
+
+        loggers.insert(0, lightning_logger(logger, run_dir, group, tags, config, resuming_here))
     if logger.wandb:
         loggers.insert(0, WandbLogger(
             project=logger.project, name=logger.run_name or f"{group}/{Path(run_dir).name}", save_dir=str(run_dir),

@@ -23,11 +23,28 @@ def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = 
     return tags + [str(t) for t in (extra or [])]
 
 
+def open_sampling_run(command, config: dict, group: str):
+    """The wandb run of a ``spread-sample`` command, opened before the work: named after its run folder, tags
+    of :func:`sampling_tags` (the guidance from the command), and ``config["lineage"]``: the training run of
+    its checkpoint (:func:`spread.runtime.mlflow_log.training_lineage`: its folder, wandb and MLflow ids)."""
+    from spread.runtime.mlflow_log import training_lineage
+    from spread.runtime.tracking import init_run
+    from spread.sampling.run import guidance_settings
+
+    Path(command.out_dir).mkdir(parents=True, exist_ok=True)
+    tags = sampling_tags(command.ckpt, command.sampler, {"guidance": guidance_settings(command.guidance)},
+                         command.tags)
+    return init_run(command.logger, "sample", command.out_dir, config | {"lineage": training_lineage(command.ckpt)},
+                    group=group, name=Path(command.out_dir).name, tags=tags)
+
+
 def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, group: str | None = None,
-                 tags: list[str] | None = None, more: Callable | None = None) -> str | None:
+                 tags: list[str] | None = None, more: Callable | None = None, run=None) -> str | None:
     """Log a sampling run (``sampling.json``: counts, timings, guidance) with ``logger`` (a
     :class:`~spread.runtime.tracking.LoggerConfig`); ``more(run)`` logs more into the same run (an evaluation
-    of the scenes, say); without it the renders and 3D figures are logged. Returns the run folder (None when not logged)."""
+    of the scenes, say); without it the renders and 3D figures are logged. ``run``: a run opened before the
+    work (:func:`open_sampling_run`), else one is opened now. The run is finished. Returns the run folder
+    (None when not logged)."""
     import wandb
 
     from spread.runtime.tracking import as_logger_config, init_run, run_folder
@@ -35,7 +52,7 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
     logger = as_logger_config(logger)
     if not logger.wandb:
         return None
-    run = init_run(logger, "sample", out_dir, config, group=group, tags=tags)
+    run = run if run is not None else init_run(logger, "sample", out_dir, config, group=group, tags=tags)
     try:
         numbers = {f"sampling/{k}": manifest[k] for k in ("samples", "written_this_run", "seconds",
                                                           "seconds_per_batch", "repaired_rotations")

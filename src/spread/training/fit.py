@@ -71,6 +71,14 @@ def check_resume_checkpoint(path: Path, model) -> None:
     expect_checkpoint(path, "ckpt_path", **own)
 
 
+def takes_images(cfg: DictConfig) -> bool:
+    """Whether the run's loggers show images (wandb, MLflow; not the CSV files)."""
+    from spread.runtime.tracking import as_logger_config
+
+    logger = as_logger_config(cfg.logger)
+    return logger.wandb or logger.mlflow
+
+
 def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: dict | None = None) -> dict:
     """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values, the scene files the
     datasets skipped (split → file, error; rank zero only)."""
@@ -101,6 +109,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     import lightning as L
 
     from spread.runtime.tracking import as_logger_config, lightning_loggers
+    from spread.training.monitors import monitors
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -123,6 +132,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
                                       callbacks=build_callbacks(cfg, run_dir) + [newest, ExactResume(int(cfg.seed)),
+                                                                                 *(monitors(cfg.get("renders") if takes_images(cfg) else None) if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)
     if prepare is not None:

@@ -1,0 +1,57 @@
+"""``spread-view PATH [assets=DIR] [port=8080] [host=127.0.0.1]``: an interactive 3D viewer in the browser for a
+scene file, a folder of them, or a run folder (its ``scenes/``): objects coloured by category with a legend,
+the ground truth beside a generated scene, before / after the Stability simulation, the relation matrix, and
+the guidance iterations as a timeline when the file carries them (:mod:`spread.render.viewer`).
+
+Listens on localhost only; on a cluster, forward the port (``ssh -L 8080:localhost:8080 login-node``).
+Stop it with Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+KEYS = {"assets": None, "port": "8080", "host": "127.0.0.1"}
+
+
+def parse(argv: list[str]) -> tuple[str, dict]:
+    """(the path, ``key=value`` options over :data:`KEYS`); refused by name when unknown or missing."""
+    values, paths = dict(KEYS), []
+    for arg in argv:
+        key, eq, value = arg.partition("=")
+        if not eq:
+            paths.append(arg)
+        elif key in ("path", "scenes", "run"):
+            paths.append(value)
+        elif key in KEYS:
+            values[key] = value
+        else:
+            raise SystemExit(f"spread-view: argument {arg!r}: unknown key (known: path, {', '.join(KEYS)})")
+    if len(paths) != 1:
+        raise SystemExit(f"spread-view: give one scene file, folder or run folder (got {paths or 'none'})")
+    if not str(values["port"]).isdigit():
+        raise SystemExit(f"spread-view: port={values['port']}: not a port number")
+    return paths[0], values
+
+
+def main(argv: list[str] | None = None) -> None:
+    from spread.render.viewer import SceneViewer, collect
+
+    path, values = parse(sys.argv[1:] if argv is None else argv)
+    try:
+        items, library = collect(path, values["assets"])
+    except FileNotFoundError as exc:
+        raise SystemExit(str(exc)) from exc
+    viewer = SceneViewer(items, library, host=values["host"], port=int(values["port"]))
+    print(f"spread-view: {len(items)} scene(s) from {path}; open http://{values['host']}:{viewer.server.get_port()}/ "
+          f"(Ctrl-C stops it)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        viewer.server.stop()
+
+
+if __name__ == "__main__":
+    main()

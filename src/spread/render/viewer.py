@@ -1,0 +1,241 @@
+"""``spread-view``: scenes in an interactive 3D viewer in the browser (viser; ``http://127.0.0.1:<port>/``).
+
+What it shows, for the scene picked in the side panel:
+
+* the scene's objects as their posed meshes (world frame, metres, y up), each coloured by its category (the
+  render palette, :mod:`spread.render.palette`) with the legend in the panel;
+* beside it (+x, one room width and 0.5 m further), the ground truth it was conditioned on, when known: a
+  sampling run's scene names its graph (``conditioned_on``), found in the dataset's split folder
+  (``sampling.json``: ``fingerprint.data_root``, ``split``);
+* on request, the same scene after one Stability simulation (:func:`spread.render.physics_view.after_physics`),
+  again beside it, with how far objects moved;
+* the relation matrix of the scene (its graph's spatial codes against those of its poses,
+  :func:`spread.render.figures.relation_matrix_figure`) and its GRecall;
+* a timeline slider over the guidance iterations when the scene file carries them (extras
+  ``trajectory_translation`` (T, N, 3) and ``trajectory_rotation`` (T, N, 3, 3)).
+
+:func:`collect` reads what to show from a scene file, a folder of them, or a run folder (``scenes/``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from spread.render.palette import DEFAULT_PALETTE, category_colour
+
+#: Gap (metres) between the scene and the copies shown beside it.
+GAP = 0.5
+
+
+@dataclass
+class ViewItem:
+    """One scene to show: its file and, when known, the ground-truth file it was conditioned on."""
+
+    name: str
+    path: Path
+    ground_truth: Path | None = None
+
+
+def library_candidates(path: Path, data_root: Path | None) -> list[Path]:
+    folder = path if path.is_dir() else path.parent
+    out = [folder / "assets", folder.parent / "assets", folder.parent.parent / "assets"]
+    if data_root is not None:
+        out = [data_root / "assets", data_root.parent / "assets", *out]
+    return out
+
+
+def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None) -> tuple[list[ViewItem], Path]:
+    """(the scenes to show, the asset library folder) of a scene file, a folder of scene files or a run
+    folder; errors name the path."""
+    from spread.scene import list_scene_files
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"spread-view: {path}: no such file or folder")
+    data_root, split = None, None
+    if path.is_dir() and (path / "sampling.json").exists():
+        manifest = json.loads((path / "sampling.json").read_text())
+        fingerprint = manifest.get("fingerprint") or {}
+        data_root = Path(fingerprint["data_root"]) if fingerprint.get("data_root") else None
+        split = fingerprint.get("split")
+    scenes_dir = path / "scenes" if (path / "scenes").is_dir() else path
+    files = [path] if path.is_file() else list_scene_files(scenes_dir)
+    if not files:
+        raise FileNotFoundError(f"spread-view: {path}: no scene files (.npz) here or in scenes/")
+    items = []
+    for f in files:
+        truth = None
+        if data_root is not None and split:
+            truth = data_root / split / f"{ground_truth_id(f)}.npz"
+        items.append(ViewItem(f.stem, f, truth if truth is not None and truth.exists() else None))
+    if assets:
+        library = Path(assets)
+    else:
+        library = next((c for c in library_candidates(path, data_root) if (c / "index.json").exists()), None)
+    if library is None or not (library / "index.json").exists():
+        raise FileNotFoundError(f"spread-view: no asset library for {path} (looked beside it and in the dataset); "
+                                "give assets=DIR")
+    return items, library
+
+
+def ground_truth_id(path: Path) -> str:
+    """The graph a generated scene was conditioned on (``conditioned_on``), else its name without ``_k<i>``."""
+    with np.load(path, allow_pickle=False) as data:
+        if "conditioned_on" in data.files:
+            return str(data["conditioned_on"])
+    stem = path.stem
+    head, _, tail = stem.rpartition("_k")
+    return head if head and tail.isdigit() else stem
+
+
+def object_meshes(scene, library, offset=(0.0, 0.0, 0.0), poses=None) -> list[tuple[str, np.ndarray, np.ndarray,
+                                                                                       tuple[int, int, int]]]:
+    """(name ``<i>_<category>``, world vertices (V, 3) float32 shifted by ``offset``, faces (F, 3), RGB) per object;
+    ``poses``: (translation (N, 3), rotation (N, 3, 3)) instead of the scene's own."""
+    t, R = poses if poses is not None else (scene.translation, scene.rotation)
+    out = []
+    for i, (aid, cat) in enumerate(zip(scene.asset_id, scene.category)):
+        mesh = library.mesh(str(aid))
+        V = np.asarray(mesh.vertices, np.float64) @ np.asarray(R[i], np.float64).T + np.asarray(t[i], np.float64)
+        out.append((f"{i}_{cat}", (V + np.asarray(offset)).astype(np.float32), np.asarray(mesh.faces, np.int32),
+                    category_colour(str(cat), DEFAULT_PALETTE)))
+    return out
+
+
+def width_x(scene, library) -> float:
+    from spread.render.perspective import posed_bounds
+
+    lo, hi = posed_bounds(scene, library)
+    if scene.room is not None:
+        lo, hi = np.minimum(lo, scene.room[0]), np.maximum(hi, scene.room[1])
+    return float(hi[0] - lo[0])
+
+
+def legend_html(scene) -> str:
+    from spread.render.figures import legend_entries
+
+    rows = "".join(f'<div><span style="display:inline-block;width:12px;height:12px;margin-right:6px;'
+                   f'background:rgb{tuple(colour)}"></span>{label}</div>'
+                   for label, colour in legend_entries([str(c) for c in scene.category]))
+    return f'<div style="font-size:0.8em">{rows}</div>'
+
+
+class SceneViewer:
+    """The viser server and its panel (module docstring). ``server`` is the :class:`viser.ViserServer`."""
+
+    def __init__(self, items: list[ViewItem], library_root: Path, host: str = "127.0.0.1", port: int = 8080):
+        import viser
+
+        from spread.assets.library import AssetLibrary
+
+        self.items = {item.name: item for item in items}
+        self.library = AssetLibrary.load(library_root)
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction("+y")
+        gui = self.server.gui
+        gui.configure_theme(control_width="large")
+        self.pick = gui.add_dropdown("scene", tuple(self.items), initial_value=items[0].name)
+        self.truth = gui.add_checkbox("ground truth beside", initial_value=True)
+        self.physics = gui.add_checkbox("after Stability (simulate)", initial_value=False)
+        self.info = gui.add_markdown("")
+        self.legend = gui.add_html("")
+        self.timeline = None
+        self.matrix = None
+        self.shown: list[str] = []
+        self.bounds: list = []
+        for handle in (self.pick, self.truth, self.physics):
+            handle.on_update(lambda _: self.show())
+        self.show()
+
+    def clear(self) -> None:
+        for name in self.shown:
+            self.server.scene.remove_by_name(name)
+        self.shown = []
+
+    def add_group(self, group: str, scene, offset, label: str, poses=None) -> None:
+        for name, V, F, colour in object_meshes(scene, self.library, offset, poses):
+            self.server.scene.add_mesh_simple(f"/{group}/{name}", V, F, color=colour, flat_shading=True)
+            self.bounds.append((V.min(axis=0), V.max(axis=0)))
+        if scene.room is not None:  # the floor: a grid over the room's footprint (y = 0)
+            lo, hi = np.asarray(scene.room[0], np.float64), np.asarray(scene.room[1], np.float64)
+            self.server.scene.add_grid(f"/{group}/floor", float(hi[0] - lo[0]), float(hi[2] - lo[2]), plane="xz",
+                                       cell_size=0.5, position=(float((lo[0] + hi[0]) / 2 + offset[0]), 0.0,
+                                                                float((lo[2] + hi[2]) / 2)))
+            self.bounds.append((lo + np.asarray(offset), hi + np.asarray(offset)))
+        top = max(float(self.library.mesh(str(a)).extents[1]) for a in scene.asset_id) if scene.num_objects else 0
+        centre = np.asarray(scene.translation, np.float64).mean(axis=0) if scene.num_objects else np.zeros(3)
+        self.server.scene.add_label(f"/{group}/label", label, position=(float(centre[0] + offset[0]),
+                                                                         float(top + 1.0), float(centre[2])))
+        self.shown.append(f"/{group}")
+
+    def show(self) -> None:
+        from spread.render.figures import relation_matrix_figure
+        from spread.render.relation_matrix import relation_agreement
+        from spread.scene import read_scene
+
+        item = self.items[self.pick.value]
+        scene = read_scene(item.path)
+        self.clear()
+        self.bounds = []
+        self.add_group("scene", scene, (0.0, 0.0, 0.0), f"{item.name}")
+        step = width_x(scene, self.library) + GAP
+        lines = [f"**{item.name}**: {scene.num_objects} objects"]
+        x = step
+        if self.truth.value and item.ground_truth is not None:
+            truth = read_scene(item.ground_truth)
+            self.add_group("ground_truth", truth, (x, 0.0, 0.0), f"ground truth {truth.scene_id}")
+            x += max(step, width_x(truth, self.library) + GAP)
+        elif item.ground_truth is None:
+            lines.append("ground truth: not known for this file")
+        if self.physics.value:
+            from spread.render.physics_view import after_physics
+
+            outcome = after_physics(scene, self.library)
+            self.add_group("after", outcome.after, (x, 0.0, 0.0), "after Stability")
+            lines.append(outcome.caption())
+        agreement = relation_agreement(scene, self.library)
+        lines.append(f"GRecall of its poses: {agreement.matches}/{agreement.pairs} pairs")
+        self.info.content = "\n\n".join(lines)
+        self.legend.content = legend_html(scene)
+        if self.matrix is not None:
+            self.matrix.remove()
+        self.matrix = self.server.gui.add_image(relation_matrix_figure(agreement, size=4.0), label="relation matrix",
+                                                format="png")
+        self.add_timeline(scene)
+        self.frame()
+
+    def frame(self) -> None:
+        """Point the camera (new clients' and the connected ones') at everything shown, from the front (+z) and
+        above."""
+        if not self.bounds:
+            return
+        lo = np.min([b[0] for b in self.bounds], axis=0)
+        hi = np.max([b[1] for b in self.bounds], axis=0)
+        size = float(np.max(hi - lo))
+        centre = (lo + hi) / 2 + np.array([0.15 * size, 0.0, 0.0])  # the scene left of the side panel
+        position = centre + np.array([0.0, 0.55 * size, 0.7 * size])
+        camera = self.server.initial_camera
+        camera.look_at, camera.position, camera.up = tuple(centre), tuple(position), (0.0, 1.0, 0.0)
+        for client in self.server.get_clients().values():
+            client.camera.look_at, client.camera.position = tuple(centre), tuple(position)
+
+    def add_timeline(self, scene) -> None:
+        if self.timeline is not None:
+            self.timeline.remove()
+            self.timeline = None
+        t, R = scene.extras.get("trajectory_translation"), scene.extras.get("trajectory_rotation")
+        if t is None or R is None or len(t) < 2:
+            return
+        self.timeline = self.server.gui.add_slider("guidance iteration", 0, len(t) - 1, 1, len(t) - 1)
+
+        def move(_):
+            self.server.scene.remove_by_name("/scene")
+            k = int(self.timeline.value)
+            self.add_group("scene", scene, (0.0, 0.0, 0.0), f"iteration {k}", poses=(t[k], R[k]))
+
+        self.timeline.on_update(move)

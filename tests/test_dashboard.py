@@ -1,0 +1,306 @@
+"""``logger=mlflow``: a tiny train and a sample + evaluate in one SQLite store, read back through MLflow's
+client and through ``spread-dashboard`` (the real ``mlflow server``) over HTTP on localhost."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from helpers import FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, train_in_process
+
+
+#: A small library (a quarter less work than all categories): bedrooms, a few kitchens and studies.
+CATEGORIES = ["bed", "nightstand", "wardrobe", "desk", "chair", "dining_table", "kitchen_counter", "shelf", "book", "mug"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """(folder, store URI, training run folder, sampling run folder): 6 training steps and one sampling run with
+    ``evaluate=true``, both with ``logger=mlflow`` into ``<folder>/mlflow.db`` (the sampling run to wandb too,
+    offline)."""
+    from spread.experiments.commands import sample
+
+    root = tmp_path_factory.mktemp("mlstore")
+    data = make_dataset(root / "ds", rooms=8, categories=CATEGORIES)
+    uri = f"sqlite:///{root}/mlflow.db"
+    logger = ["logger=mlflow", f"logger.tracking_uri={uri}"]
+    train_dir = root / "train"
+    train_in_process(train_dir, "experiment=quick", f"data.root={data}", "trainer.max_time=null",
+                     "trainer.max_steps=6", "trainer.log_every_n_steps=1", "trainer.check_val_every_n_epoch=1",
+                     "model.sample_every_n_epochs=1", "model.val_sampler=ddim-4", "model.val_sample_scenes=2",
+                     "renders.every_n_epochs=2", "renders.sampler=ddim-4",
+                     *SMALL_MODEL, *FAST_TRAIN, *logger)
+    sample_dir = root / "sample"
+    sample(compose("sample", f"ckpt={train_dir / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
+                   f"out_dir={sample_dir}", *FAST_SAMPLE, "evaluate=true", "evaluation.protocol.stability_runs=1",
+                   "evaluation.fid.enabled=false", "experiment_name=tiny_sample", *logger,
+                   "logger.name=wandb+mlflow", "logger.mode=offline"))  # and a wandb offline run beside it
+    return root, uri, train_dir, sample_dir
+
+
+def runs_by_job(uri: str) -> dict:
+    from mlflow import MlflowClient
+
+    client = MlflowClient(tracking_uri=uri)
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+    return {r.data.tags["spread.job_type"]: r for r in runs}
+
+
+def test_train_and_sample_put_two_runs_with_curves_metrics_tags_and_lineage(store):
+    from mlflow import MlflowClient
+
+    root, uri, train_dir, sample_dir = store
+    runs = runs_by_job(uri)
+    assert set(runs) == {"train", "sample"}
+    train, sampled = runs["train"], runs["sample"]
+    client = MlflowClient(tracking_uri=uri)
+    loss = client.get_metric_history(train.info.run_id, "train/loss")
+    assert len(loss) >= 3 and len({m.step for m in loss}) == len(loss)  # a curve, one point per logged step
+    assert {"val/loss", "val/grecall", "train/grad_norm"} <= set(train.data.metrics)
+    assert any(k.startswith("lr-") for k in train.data.metrics)
+    assert train.data.params["model.variant"] == train.data.tags["spread.variant"]
+    renders = [a.path for a in client.list_artifacts(train.info.run_id, "renders")]  # sampled every 2 epochs
+    assert renders and renders[0].startswith("renders/epoch0001") and renders[0].endswith(".png")
+    assert train.info.status == "FINISHED" and sampled.info.status == "FINISHED"
+    # the sampling run: every metric of metrics.json with its interval, the per-room-type breakdown, artifacts
+    metrics = json.loads((sample_dir / "metrics.json").read_text())
+    assert sampled.data.metrics["grecall"] == pytest.approx(metrics["grecall"])
+    assert sampled.data.metrics["grecall_lo"] <= sampled.data.metrics["grecall"] <= sampled.data.metrics["grecall_hi"]
+    room = next(iter(metrics["per_room_type"]))
+    assert sampled.data.metrics[f"room/{room}/grecall"] == pytest.approx(metrics["per_room_type"][room]["grecall"])
+    assert sampled.data.tags["spread.training_run_id"] == train.info.run_id  # lineage
+    assert sampled.data.tags["spread.sampler"] == "ddim-4" and sampled.data.tags["spread.guidance"] == "none"
+    assert sampled.data.tags["spread.dataset_fingerprint"] == train.data.tags["spread.dataset_fingerprint"]
+    assert sampled.data.params["experiment_name"] == "tiny_sample"
+    artifacts = {a.path for a in client.list_artifacts(sampled.info.run_id)}
+    assert {"metrics.json", "per_scene.jsonl", "renders"} <= artifacts
+    assert client.get_experiment(sampled.info.experiment_id).name == "tiny_sample"
+    assert (root / "mlartifacts").is_dir()  # artifacts beside the store
+
+
+def test_the_sampling_run_on_wandb_has_a_name_per_room_type_metrics_and_lineage(store):
+    from spread.experiments.runs import read_wandb_file
+
+    root, uri, train_dir, sample_dir = store
+    found = list((sample_dir / "wandb").glob("offline-run-*/*.wandb"))
+    assert len(found) == 1
+    run = read_wandb_file(found[0])
+    metrics = json.loads((sample_dir / "metrics.json").read_text())
+    room = next(iter(metrics["per_room_type"]))
+    assert run["name"] == "sample" and run["summary"]["grecall"] == pytest.approx(metrics["grecall"])
+    assert run["summary"][f"room/{room}/grecall"] == pytest.approx(metrics["per_room_type"][room]["grecall"])
+    lineage = run["config"]["lineage"]
+    assert lineage["spread.training_run_folder"] == str(train_dir.resolve())
+    assert lineage["spread.training_run_id"] == runs_by_job(uri)["train"].info.run_id
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def get(url: str, data: dict | None = None):
+    body = None if data is None else json.dumps(data).encode()
+    request = urllib.request.Request(url, data=body, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=10) as response:
+        return response.status, response.read()
+
+
+class Dashboard:
+    """``spread-dashboard`` in its own process group on a free port; :meth:`stop` ends that group."""
+
+    def __init__(self, uri: str):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.proc = subprocess.Popen([str(SCRIPTS / "spread-dashboard"), f"tracking_uri={uri}", f"port={self.port}"],
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            assert self.proc.poll() is None, self.proc.stdout.read()[-3000:]
+            try:
+                if get(self.url + "/health")[0] == 200:
+                    return
+            except OSError:
+                time.sleep(0.5)
+        self.stop()
+        raise AssertionError("spread-dashboard did not answer in 120 s")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+@pytest.fixture(scope="module")
+def dashboard(store):
+    server = Dashboard(store[1])
+    yield server
+    server.stop()
+
+
+def test_dashboard_serves_the_ui_and_lists_experiments_runs_and_metrics_over_rest(store, dashboard):
+    status, page = get(dashboard.url + "/")
+    assert status == 200 and b"<html" in page.lower()
+    status, body = get(dashboard.url + "/api/2.0/mlflow/experiments/search", {"max_results": 100})
+    names = {e["name"] for e in json.loads(body)["experiments"]}
+    assert {"quick", "tiny_sample"} <= names
+    ids = [e["experiment_id"] for e in json.loads(body)["experiments"]]
+    status, body = get(dashboard.url + "/api/2.0/mlflow/runs/search", {"experiment_ids": ids})
+    runs = json.loads(body)["runs"]
+    assert len(runs) == 2
+    metrics = {m["key"] for r in runs for m in r["data"].get("metrics", [])}
+    assert {"grecall", "grecall_lo", "grecall_hi", "train/loss"} <= metrics
+
+
+def test_dashboard_refuses_unknown_arguments_by_name():
+    proc = subprocess.run([str(SCRIPTS / "spread-dashboard"), "prot=5"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "'prot=5'" in proc.stderr
+
+
+# ---- spread-report's HTML page -------------------------------------------------------------------------------
+
+def test_report_of_a_sampling_run_and_a_training_run_is_one_self_contained_html_page(store, tmp_path):
+    from spread.experiments.report import run_report
+
+    root, uri, train_dir, sample_dir = store
+    result = run_report([str(sample_dir), str(train_dir)], tmp_path / "R")
+    page = (tmp_path / "R" / "report.html").read_text()
+    assert page.startswith("<!DOCTYPE html>") and "Training curves (1 runs)" in page
+    assert "train/loss" in result.html["curves"] and any(k.startswith("lr-") for k in result.html["curves"])
+    metrics = json.loads((sample_dir / "metrics.json").read_text())
+    room = next(iter(metrics["per_room_type"]))
+    assert result.html["room_rows"] == len(metrics["per_room_type"]) and f"<td>{room}</td>" in page
+    from spread.experiments.tables import METRICS
+
+    measured = [c.key for c in METRICS if metrics.get(c.key) is not None]  # one plot each (no weight varies)
+    assert len(measured) >= 3 and result.html["metric_plots"] == len(measured) and result.html["renders"] == 1
+    # self-contained: every image inline, nothing fetched from elsewhere
+    assert page.count('src="data:image/png;base64,') >= 3 and "http" not in page.replace("https://", "")
+    assert "<script" not in page
+    md = (tmp_path / "R" / "report.md").read_text()
+    assert "## Training runs (1)" in md and (tmp_path / "R" / "report_training.csv").exists()
+
+
+@pytest.mark.slow  # the console script's start-up (Hydra, imports) is most of it; run_report is tested above
+def test_spread_report_script_writes_the_html_page_of_a_sampling_run(store, tmp_path):
+    from helpers import run_script
+
+    run_script("spread-report", f"runs={store[3]}", f"out_dir={tmp_path / 'R'}")
+    assert "<h2>Evaluated runs (1)</h2>" in (tmp_path / "R" / "report.html").read_text()
+
+
+def test_report_of_training_runs_only_overlays_their_curves(store, tmp_path):
+    from spread.experiments.html_report import read_curves
+    from spread.experiments.report import run_report
+
+    train_dir = store[2]
+    curves = read_curves(train_dir)
+    assert [s for s, _ in curves["train/loss"]] == sorted(s for s, _ in curves["train/loss"])
+    assert len(curves["train/loss"]) >= 3
+    result = run_report([str(train_dir)], tmp_path / "R")
+    assert result.records == [] and result.html["training_runs"] == 1
+    assert "Evaluated runs" not in (tmp_path / "R" / "report.html").read_text()
+
+
+# ---- spread-view ---------------------------------------------------------------------------------------------
+
+def test_viewer_collects_a_run_with_ground_truth_and_serves_scenes_coloured_by_category(store):
+    from spread.render.palette import category_colour
+    from spread.render.viewer import SceneViewer, collect, object_meshes
+    from spread.scene import read_scene
+
+    sample_dir = store[3]
+    items, library_root = collect(sample_dir)
+    assert len(items) == len(list((sample_dir / "scenes").glob("*.npz"))) >= 1
+    assert all(item.ground_truth is not None and item.ground_truth.exists() for item in items)
+    scene = read_scene(items[0].path)
+    assert read_scene(items[0].ground_truth).scene_id == str(scene.extras["conditioned_on"])
+    viewer = SceneViewer(items, library_root, port=free_port())
+    try:
+        status, page = get(f"http://127.0.0.1:{viewer.server.get_port()}/")
+        assert status == 200 and b"<html" in page.lower()
+        assert viewer.shown == ["/scene", "/ground_truth"]
+        meshes = object_meshes(scene, viewer.library)
+        assert [m[3] for m in meshes] == [category_colour(str(c)) for c in scene.category]
+        assert all(c in viewer.legend.content for c in {str(c) for c in scene.category})
+        viewer.physics.value = True  # the Stability simulation beside it
+        assert viewer.shown == ["/scene", "/ground_truth", "/after"] and "moved" in viewer.info.content
+    finally:
+        viewer.server.stop()
+
+
+def test_viewer_refuses_a_missing_path_by_name(tmp_path):
+    from spread.render.viewer import collect
+
+    with pytest.raises(FileNotFoundError, match="nothing_here"):
+        collect(tmp_path / "nothing_here")
+
+
+# ---- the MLflow writer on its own ----------------------------------------------------------------------------
+
+def test_a_run_opens_before_the_work_and_a_failure_marks_it_failed(tmp_path):
+    from mlflow import MlflowClient
+
+    from spread.runtime.mlflow_log import RUN_FILE, log_table, tracked
+    from spread.runtime.tracking import LoggerConfig
+
+    logger = LoggerConfig(name="wandb+mlflow", mode="disabled", tracking_uri=str(tmp_path / "store" / "m.db"))
+    assert logger.wandb and logger.mlflow
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'store' / 'm.db'}")
+    with pytest.raises(RuntimeError, match="boom"):
+        with tracked(logger, "sample", tmp_path / "a", {"seed": 3, "guidance": {"collision": 0.01}}, "exp") as run:
+            assert client.get_run(run.run_id).info.status == "RUNNING"  # open while the work runs
+            raise RuntimeError("boom")
+    failed = client.get_run(run.run_id)
+    assert failed.info.status == "FAILED" and failed.data.params == {"seed": "3", "guidance.collision": "0.01"}
+    assert json.loads((tmp_path / "a" / RUN_FILE).read_text())["run_id"] == run.run_id
+    (tmp_path / "t.csv").write_text("variant,grecall\nbase,0.5\n")
+    with tracked(logger, "ablation", tmp_path / "b", {}, "exp") as run:
+        log_table(run, [{"variant": "base", "grecall": 0.5, "n": 3}, {"variant": "geometry", "grecall": None}],
+                  "variant", [tmp_path / "t.csv"])
+    done = client.get_run(run.run_id)
+    assert done.info.status == "FINISHED" and done.data.metrics == {"base/grecall": 0.5, "base/n": 3.0}
+    assert [a.path for a in client.list_artifacts(run.run_id, "table")] == ["table/t.csv"]
+
+
+def test_logger_names_are_checked_and_combined():
+    from spread.runtime.tracking import LoggerConfig
+
+    assert LoggerConfig(name="mlflow").names == ("mlflow",) and not LoggerConfig(name="mlflow").wandb
+    with pytest.raises(ValueError, match="'wandb\\+tensorboard'"):
+        LoggerConfig(name="wandb+tensorboard")
+
+
+def test_the_default_store_is_the_runs_folders_sqlite_file_for_every_command(tmp_path):
+    from spread.runtime.mlflow_log import resolve_tracking_uri
+
+    for command in ("train", "sample", "evaluate", "ablate", "compare"):
+        cfg = compose(command, "logger=mlflow", f"paths.runs_dir={tmp_path / 'runs'}")
+        assert cfg.logger.name == "mlflow" and cfg.logger.tracking_uri == f"sqlite:///{tmp_path / 'runs'}/mlflow.db"
+    assert resolve_tracking_uri(str(tmp_path / "a" / "m.db")) == f"sqlite:///{tmp_path / 'a' / 'm.db'}"
+    assert (tmp_path / "a").is_dir() and resolve_tracking_uri("http://host:5000") == "http://host:5000"
+
+
+def test_report_takes_the_training_runs_inside_a_folder_beside_its_evaluated_runs(store, tmp_path):
+    """An ablation's or comparison's folder holds both: its evaluated runs make the table, its training runs
+    the curves."""
+    from spread.experiments.html_report import training_folders
+
+    root, _, train_dir, sample_dir = store
+    training, rest = training_folders([str(root)])
+    assert training == [train_dir] and rest == [str(root)]
+    assert training_folders([str(train_dir), str(sample_dir)]) == ([train_dir], [str(sample_dir)])

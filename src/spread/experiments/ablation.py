@@ -161,9 +161,12 @@ class Ledger:
         entry = self.data["stages"].get(name)
         return None if entry is None else entry["inputs"]
 
-    def record(self, name: str, inputs: dict, seconds: float | None) -> None:
+    def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None) -> None:
+        from spread.runtime.fingerprint import run_tags
+
         self.data["stages"][name] = {"inputs": inputs, "seconds": seconds,
-                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "tags": run_tags(),
+                                     **({"redone_because": reason} if reason else {})}
         write_json_atomic(self.path, self.data)
 
 
@@ -189,14 +192,15 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     if not same and not stage.derived:
         raise StageError(f"{stage.folder}: made with other settings (changed: {changed_keys(before, inputs)}); "
                          f"delete that folder or use another out_dir")
+    reason = None if same else f"inputs changed: {', '.join(changed_keys(before, inputs))}"
     if not same:
-        log.info("▶ %s: inputs changed (%s), redoing it from scratch", stage.name, changed_keys(before, inputs))
+        log.info("▶ %s: %s, redoing it from scratch", stage.name, reason)
     started = time.perf_counter()
     stage.run(same)
     if not stage.finished():
         missing = [str(p) for p in stage.outputs if not p.exists()] or ["(incomplete outputs)"]
         raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
-    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3))
+    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), reason)
     return "done"
 
 
@@ -300,7 +304,8 @@ class Ablation:
             self.commands.sample(args)
 
         return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
-                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, self.timed(f"sample/{variant}", run),
+                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt), **self.data_inputs()},
+                     self.timed(f"sample/{variant}", run),
                      complete=lambda: scenes_complete(folder))
 
     def evaluate_stage(self, variant: str) -> Stage:
@@ -315,7 +320,14 @@ class Ablation:
             self.commands.evaluate(args)
 
         return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"],
-                     {"overrides": overrides, "samples": sampling_inputs(samples)}, run)
+                     {"overrides": overrides, "samples": sampling_inputs(samples), **self.data_inputs()}, run)
+
+    def data_inputs(self) -> dict:
+        """What a sample or evaluate stage depends on besides its overrides: the split's data content and the
+        code version of the numbers (:mod:`spread.runtime.fingerprint`)."""
+        from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest
+
+        return {"data_sha256": dataset_digest(self.spec.dataset, [self.spec.split]), "numbers_version": NUMBERS_VERSION}
 
     # ---- running ----
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:

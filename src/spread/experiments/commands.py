@@ -12,6 +12,7 @@ folder (one wandb run holds both). The ``print_*`` functions are the commands' c
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -269,21 +270,35 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     """``spread-sample``: sample (then, with ``evaluate=true``, evaluate) into ``cfg.out_dir``; returns
     (:class:`~spread.sampling.SamplingResult`, :class:`~spread.evaluation.EvaluationResult` or None). A
     finished sweep point (``evaluate=true``, ``resume=true``, ``metrics.json`` there) is left as it is
-    and (None, None) returned. ``log=False``: no wandb run (the ablation logs its table instead)."""
-    from spread.experiments.runs import is_finished_run
+    and (None, None) returned when its fingerprint matches, else redone (:mod:`spread.experiments.points`). ``log=False``: no wandb run (the ablation logs its table instead)."""
     from spread.sampling import run_sampling
     from spread.sampling.wandb_log import log_sampling, sampling_tags
 
     command = to_object(cfg)
-    if command.evaluate and command.resume and is_finished_run(command.out_dir):
-        print(f"{command.out_dir}: finished earlier (metrics.json exists), skipped")
-        return None, None
-    result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
+    before_work = record_config(cfg, command.out_dir, overrides)
+    if command.evaluate:  # a sweep point: re-used only when its fingerprint matches (experiments.points)
+        from spread.experiments.points import check_point, finish_point, start_point
+
+        point = check_point(cfg, command.out_dir, command.resume)
+        if point.reuse:
+            print(f"{command.out_dir}: finished earlier with the same fingerprint, re-used")
+            return None, None
+        if point.reason:
+            print(f"{command.out_dir}: redone from scratch ({point.reason})")
+        command.resume = command.resume and not point.fresh
+        record = before_work
+
+        def before_work():
+            record()
+            start_point(command.out_dir, point)
+    started = time.perf_counter()
+    result = run_sampling(command, before_work=before_work)
     evaluation = None
     if command.evaluate:
         from spread.evaluation import run_evaluation
 
         evaluation = run_evaluation(evaluation_after_sampling(command))
+        finish_point(command.out_dir, round(time.perf_counter() - started, 3))
     more = None
     if evaluation is not None:
         from spread.evaluation.wandb_log import log_metrics

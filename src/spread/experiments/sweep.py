@@ -160,7 +160,9 @@ def preset_params(command: str, fixed: list[str]) -> dict:
     register(command)
     with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
         cfg = hydra_compose(config_name=command, overrides=fixed, return_hydra_config=True)
-    params = OmegaConf.select(cfg, "hydra.sweeper.params") or {}
+    params = OmegaConf.select(cfg, "hydra.sweeper.params")
+    if params is None:
+        return {}
     return {str(k): str(v) for k, v in OmegaConf.to_container(params, resolve=False).items()}
 
 

@@ -9,7 +9,7 @@ the equivalent command line. The stages, under ``out_dir``:
 |---|---|---|---|
 | ``data`` (only when ``data.root`` is not given or does not exist) | spread-generate | ``data/`` | ``manifest.json`` |
 | ``train/<v>``, v = base, geometry (unless given) | spread-train | ``train/<v>/`` | ``metrics.json``, ``last.ckpt`` |
-| ``sample/<v>``, v = base, geometry, guidance | spread-sample | ``samples/<v>/`` | ``sampling.json``, all scenes |
+| ``sample/<v>``, v = base, geometry, guidance, guidance_collision / _gravity / _relation | spread-sample | ``samples/<v>/`` | ``sampling.json``, all scenes |
 | ``evaluate/<v>`` | spread-evaluate | ``eval/<v>/`` | ``metrics.json`` |
 | ``figures`` (``figures: true``) | — | ``ablation_<v>.png``, ``ablation_truth.png`` | the PNGs |
 | ``table`` | — | ``ablation.{md,csv,tex,png}`` (+ wandb table) | the four files |
@@ -20,7 +20,8 @@ the equivalent command line. The stages, under ``out_dir``:
 links them under the table. **Intervals**: every metric cell is value ± half the width of its 95 % bootstrap
 interval over scenes (:mod:`spread.experiments.intervals`); the CSV keeps the bounds and the bootstrap's seed.
 
-``guidance`` samples the ``geometry`` checkpoint with guidance; all three rows sample the same split's
+``guidance`` samples the ``geometry`` checkpoint with guidance, ``guidance_<term>`` with that one term of it
+(the other two weights 0: collision only, gravity only, relation only); all rows sample the same split's
 graphs with the same seed and are evaluated with the same protocol (one override list for all).
 
 **Resume.** Every output above is written atomically at the end of its command, so it exists only for a
@@ -49,11 +50,14 @@ from spread.io import file_sha256, write_json_atomic
 
 log = logging.getLogger("spread.ablate")
 
-VARIANTS = ("base", "geometry", "guidance")
+#: One guidance term at a time (the other two weights 0): row name → the term kept.
+TERMS = {"guidance_collision": "collision", "guidance_gravity": "gravity", "guidance_relation": "relation"}
+VARIANTS = ("base", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.
-LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance"}
+LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance",
+          **{v: f"+Guidance ({t} only)" for v, t in TERMS.items()}}
 #: The checkpoint each row samples.
-CHECKPOINT_OF = {"base": "base", "geometry": "geometry", "guidance": "geometry"}
+CHECKPOINT_OF = {"base": "base", "geometry": "geometry", "guidance": "geometry", **{v: "geometry" for v in TERMS}}
 LEDGER = "ablation.json"
 TABLE = "ablation"
 
@@ -290,7 +294,11 @@ class Ablation:
                      self.timed(f"train/{trained}", run), derived=False)
 
     def sample_lists(self, variant: str) -> list[str]:
-        """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own)."""
+        """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own): the guidance
+        rows add the guidance list; a one-term row then sets the other two weights to 0."""
+        if variant in TERMS:
+            off = [f"guidance.{t}=0.0" for t in TERMS.values() if t != TERMS[variant]]
+            return [*self.spec.sample, *self.spec.guidance, *off]
         return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
 
     def sample_stage(self, variant: str) -> Stage:

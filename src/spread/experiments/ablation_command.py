@@ -47,7 +47,7 @@ def ablation_spec(cfg: DictConfig):
 def ablate(cfg: DictConfig):
     """The ablation of ``cfg``; returns the :class:`~spread.experiments.AblationResult`."""
     from spread.experiments.ablation import run_ablation
-    from spread.experiments.commands import InProcessCommands, record_config
+    from spread.experiments.commands import record_config
     from spread.runtime.tracking import as_logger_config
     from spread.training.fit import set_threads
 
@@ -62,7 +62,25 @@ def ablate(cfg: DictConfig):
         def log_table(records, png):
             log_ablation(records, png, spec.out_dir, logger, name=f"ablation/{cfg.name}", group=spec.group,
                          config=OmegaConf.to_container(cfg, resolve=True))
-    return run_ablation(spec, InProcessCommands(), log_table)
+    seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
+    commands = launcher_commands(cfg)
+    if seeds:
+        from spread.experiments.ablation_seeds import run_seeded_ablation
+
+        return run_seeded_ablation(spec, commands, seeds, log_table)
+    return run_ablation(spec, commands, log_table)
+
+
+def launcher_commands(cfg: DictConfig):
+    """The stages' commands: in this process, or training stages through a launcher (``train.launcher``)."""
+    from spread.experiments.commands import InProcessCommands
+
+    launcher = str(cfg.train.get("launcher") or "inprocess")
+    if launcher == "inprocess":
+        return InProcessCommands()
+    from spread.experiments.launch import LaunchedCommands
+
+    return LaunchedCommands(launcher, int(cfg.train.get("nproc") or 1), int(cfg.train.get("nnodes") or 1))
 
 
 def console_table(result, title: str):

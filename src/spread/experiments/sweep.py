@@ -154,12 +154,16 @@ def preset_params(command: str, fixed: list[str]) -> dict:
     """``hydra.sweeper.params`` of the composed command config (a ``+sweep=...`` preset's grid)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
 
     from spread.configs import conf_dir, register
 
     register(command)
-    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+    if GlobalHydra.instance().is_initialized():
         cfg = hydra_compose(config_name=command, overrides=fixed, return_hydra_config=True)
+    else:
+        with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+            cfg = hydra_compose(config_name=command, overrides=fixed, return_hydra_config=True)
     params = OmegaConf.select(cfg, "hydra.sweeper.params")
     if params is None:
         return {}

@@ -397,7 +397,8 @@ def tiny_ablation(tmp_path_factory):
     torch.set_num_threads(1)
     data = make_dataset(tmp_path_factory.mktemp("abdata"))
     out = tmp_path_factory.mktemp("ablate") / "quick"
-    cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}")
+    cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}",
+                  "variants=[base,geometry,guidance]")  # the one-term rows: tests/test_ablate_seeds.py
     cfg.train.extra = [*SMALL_MODEL, *FAST_TRAIN, "trainer.max_steps=3", "trainer.max_time=null"]
     cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "figures=0", "batch_size=2"]
     cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]

@@ -87,7 +87,7 @@ class AblationSpec:
     out_dir: Path
     data_root: Path | None = None
     split: str = "test"
-    variants: tuple[str, ...] = VARIANTS
+    variants: tuple[str, ...] = ("base", "geometry", "guidance")  # conf/ablate.yaml adds the one-term rows
     generate: list[str] = field(default_factory=list)
     train: list[str] = field(default_factory=list)
     train_variant: dict[str, list[str]] = field(default_factory=dict)

@@ -34,7 +34,8 @@ class SeedColumn(Column):
         half = self.half_width(record)
         boot = "" if half is None else f" (± {half:.{self.digits}f})"
         if latex:
-            return rf"{text}\,{{\scriptsize$\pm${sd:.{self.digits}f}{boot.replace('±', '$\\pm$')}}}"
+            pm = r"$\pm$"
+            return rf"{text}\,{{\scriptsize{pm}{sd:.{self.digits}f}{boot.replace('±', pm)}}}"
         return f"{text} ± {sd:.{self.digits}f}{boot}"
 
 

@@ -69,3 +69,65 @@ spread_submit() {
     "${RAY_CLI:-ray}" job submit --address "${RAY_ADDRESS:-http://127.0.0.1:8265}" \
         --runtime-env-json "{\"env_vars\": {$env}}" ${RAY_SUBMIT_OPTS:-} -- "$entry"
 }
+
+# spread_claim_run OUT RUN_ID: OUT belongs to RUN_ID (OUT/run_id); refuse a folder another run id made, so a new
+# job never resumes (or overwrites) another job's checkpoints.
+spread_claim_run() {
+    local owner
+    if [[ -f "$1/run_id" ]]; then
+        owner=$(cat "$1/run_id")
+        if [[ "$owner" != "$2" ]]; then
+            echo "jobs: $1 belongs to run id $owner, not $2: use a new SPREAD_OUT, or RUN_ID=$owner to resume it" >&2
+            exit 2
+        fi
+    else
+        echo "$2" > "$1/run_id.tmp.$$" && mv -n "$1/run_id.tmp.$$" "$1/run_id" && rm -f "$1/run_id.tmp.$$"
+        [[ "$(cat "$1/run_id")" == "$2" ]] || { echo "jobs: $1 was claimed by run id $(cat "$1/run_id")" >&2; exit 2; }
+    fi
+}
+
+# spread_decide_resume OUT ATTEMPT: the checkpoint this attempt resumes, decided once for every node: the
+# first node to create OUT/.resume/ATTEMPT.lock (mkdir is atomic, also on NFS) writes spread_resume's answer
+# to OUT/.resume/ATTEMPT (atomic rename); the others wait for that file (SPREAD_RESUME_WAIT s, default 600).
+spread_decide_resume() {
+    local dir="$1/.resume" file="$1/.resume/$2" waited=0
+    mkdir -p "$dir"
+    if mkdir "$file.lock" 2>/dev/null; then
+        spread_resume "$1" > "$file.tmp.$$"
+        mv "$file.tmp.$$" "$file"
+    fi
+    while [[ ! -f "$file" ]]; do
+        (( waited++ >= ${SPREAD_RESUME_WAIT:-600} )) && { echo "jobs: no resume decision in $file" >&2; exit 3; }
+        sleep 1
+    done
+    cat "$file"
+}
+
+# spread_job_script: the path of the submitted batch script (sbatch runs a copy from its spool folder), from
+# `scontrol show job`; empty when unknown.
+spread_job_script() {
+    [[ -n "${SLURM_JOB_ID:-}" ]] || return 0
+    scontrol show job "$SLURM_JOB_ID" 2>/dev/null | tr ' ' '\n' | sed -n 's/^Command=//p' | head -n 1
+}
+
+# spread_wait_ray ADDRESS N TIMEOUT: wait until the Ray cluster at ADDRESS has N alive nodes (polled every 2 s);
+# fail after TIMEOUT seconds naming how many came up.
+spread_wait_ray() {
+    local start=$SECONDS alive=0
+    while (( SECONDS - start < $3 )); do
+        alive=$("${SPREAD_PYTHON:-$SPREAD_VENV/bin/python}" - "$1" <<'PY' 2>/dev/null || echo 0
+import sys, ray
+ray.init(address=sys.argv[1], logging_level="ERROR", log_to_driver=False)
+print(sum(1 for n in ray.nodes() if n.get("Alive")))
+PY
+)
+        alive=${alive##*$'\n'}
+        if (( alive >= $2 )); then
+            echo "ray: $alive node(s) alive at $1"
+            return 0
+        fi
+        sleep 2
+    done
+    echo "ray: only $alive of $2 node(s) alive at $1 after $3 s" >&2
+    exit 4
+}

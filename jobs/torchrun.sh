@@ -8,7 +8,12 @@
 #   NNODES          number of nodes (required)
 #   RDZV_ENDPOINT   HOST:PORT of the rendezvous, reachable from every node (required; the host runs the store)
 #   NPROC_PER_NODE  processes per node = devices per node (default 1)
-#   RUN_ID          the rendezvous id and the run folder name (default spread): the same on every node
+#   RUN_ID          the rendezvous id and the run folder name, the same on every node and new for every job
+#                   (required; under SLURM/PBS the job id when unset). A run folder made with another RUN_ID is
+#                   never resumed: resuming means launching again with the same RUN_ID.
+#   ATTEMPT         which launch of RUN_ID this is (default 1; relaunching after a failure: ATTEMPT=2 on every
+#                   node). The checkpoint to resume is decided once per attempt, by the first node to arrive,
+#                   and every node reads that decision ($OUT/.resume/<attempt>), so all ranks load one file.
 #   LOCAL_ADDR      this node's address for the others (default: torchrun looks up the hostname)
 #   MAX_RESTARTS    torchrun's restarts of the whole group after a failure (default 0: relaunch the script,
 #                   which resumes from the run folder's newest checkpoint)
@@ -19,12 +24,15 @@ source "$(dirname "${BASH_SOURCE[0]}")/env.sh"
 : "${NNODES:?set NNODES (number of nodes)}"
 : "${RDZV_ENDPOINT:?set RDZV_ENDPOINT=HOST:PORT (the rendezvous, on one of the nodes)}"
 NPROC_PER_NODE=${NPROC_PER_NODE:-1}
-RUN_ID=${RUN_ID:-spread}
+RUN_ID=${RUN_ID:-${SLURM_JOB_ID:-${PBS_JOBID:-}}}
+: "${RUN_ID:?set RUN_ID (a new id for every job, the same on every node; relaunch with the same id to resume)}"
 OUT=${SPREAD_OUT:-$SPREAD_RUNS/train/torchrun-$RUN_ID}
 mkdir -p "$OUT"
+spread_claim_run "$OUT" "$RUN_ID"
 spread_tmpdir "$OUT"
+export SPREAD_JOB_ID=$RUN_ID
 ARGS=("$@" trainer=ddp "trainer.num_nodes=$NNODES" "trainer.devices=$NPROC_PER_NODE" "out_dir=$OUT")
-spread_default ARGS "ckpt_path=$(spread_resume "$OUT")"
+spread_default ARGS "ckpt_path=$(spread_decide_resume "$OUT" "${ATTEMPT:-1}")"
 
 exec torchrun --nnodes="$NNODES" --nproc-per-node="$NPROC_PER_NODE" --rdzv-backend=c10d \
     --rdzv-endpoint="$RDZV_ENDPOINT" --rdzv-id="$RUN_ID" --max-restarts="${MAX_RESTARTS:-0}" \

@@ -15,6 +15,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import time
@@ -366,13 +367,15 @@ def test_sweep_preset_is_27_jobs_in_distinct_deterministic_folders():
     for job in jobs:
         cfg = compose_hydra("sample", "+sweep=guidance_grid", *job)
         assert cfg.evaluate is True and cfg.guidance.mode == "refine"
-        assert cfg.out_dir == f"{cfg.hydra.sweep.dir}/{cfg.hydra.sweep.subdir}"  # the job's Hydra folder
+        # the point's folder: its weights and short fingerprint; Hydra's own records: this launch's folder
+        assert re.fullmatch(r"runs/sweeps/guidance_grid/c[0-9.e-]+_g[0-9.e-]+_r[0-9.e-]+_[0-9a-f]{8}", cfg.out_dir)
+        assert str(cfg.hydra.sweep.dir).startswith("runs/sweeps/guidance_grid/.launches/")
         folders.append(cfg.out_dir)
     assert len(set(folders)) == 27
     assert "${now" not in str(compose_hydra("sample", "+sweep=guidance_grid", *base).hydra.sweep)
     assert folders[::13] == [compose_hydra("sample", "+sweep=guidance_grid", *job).out_dir for job in jobs[::13]]
     grid = {(c, g, r) for c, g, r in itertools.product([0.0, 0.0075, 0.03], [0.0, 0.001, 0.004], [0.0, 0.001, 0.004])}
-    assert {f"runs/sweeps/guidance_grid/c{c}_g{g}_r{r}" for c, g, r in grid} == set(folders)
+    assert {f"runs/sweeps/guidance_grid/c{c}_g{g}_r{r}" for c, g, r in grid} == {f.rsplit("_", 1)[0] for f in folders}
     # the wandb sweep file: same grid, same command, so a wandb agent's runs land in the same kind of folders
     wandb_sweep = yaml.safe_load((Path(conf_dir()).parent / "sweeps" / "guidance_weights.yaml").read_text())
     values = [wandb_sweep["parameters"][w]["values"] for w in WEIGHTS]
@@ -382,7 +385,8 @@ def test_sweep_preset_is_27_jobs_in_distinct_deterministic_folders():
     fixed = [c.replace("${envvar:SPREAD_CKPT}", "c.ckpt").replace("${envvar:SPREAD_DATA}", "/d") for c in command
              if not c.startswith("${")]
     cfg = compose_hydra("sample", *fixed, "guidance.collision=0.015", "guidance.gravity=0.0", "guidance.relation=0.001")
-    assert cfg.out_dir.endswith("/c0.015_g0.0_r0.001") and cfg.evaluate is True
+    assert re.search(r"/c0.015_g0.0_r0.001_[0-9a-f]{8}$", cfg.out_dir) and cfg.evaluate is True
+    assert cfg.logger.mode == "online"  # a wandb agent's runs report to the controller
 
 
 # ---- end to end -----------------------------------------------------------------------------------------
@@ -397,7 +401,8 @@ def tiny_ablation(tmp_path_factory):
     torch.set_num_threads(1)
     data = make_dataset(tmp_path_factory.mktemp("abdata"))
     out = tmp_path_factory.mktemp("ablate") / "quick"
-    cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}")
+    cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}",
+                  "variants=[base,geometry,guidance]")  # the one-term rows: tests/test_ablate_seeds.py
     cfg.train.extra = [*SMALL_MODEL, *FAST_TRAIN, "trainer.max_steps=3", "trainer.max_time=null"]
     cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "figures=0", "batch_size=2"]
     cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]
@@ -462,28 +467,30 @@ def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
            "renders=0", "progress=false", "logger=none", "evaluation.protocol.stability_runs=1",
            "evaluation.fid.enabled=false", "ray.num_cpus=2"]
     env = {**os.environ, "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "1"}
-    first, second = sweep / "c0.0_g0.001_r0.001", sweep / "c0.015_g0.001_r0.001"
     log = tmp_path / "first_launch.log"
     with open(log, "w") as fh:  # a file, not a pipe: a full pipe would stall the sweep
         proc = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         deadline = time.time() + 300
-        while not (first / "metrics.json").exists() and proc.poll() is None and time.time() < deadline:
+        while not list(sweep.glob("c0.0_g0.001_r0.001_*/metrics.json")) and proc.poll() is None \
+                and time.time() < deadline:
             time.sleep(0.05)
-        assert (first / "metrics.json").exists(), log.read_text()[-3000:]
+        assert list(sweep.glob("c0.0_g0.001_r0.001_*/metrics.json")), log.read_text()[-3000:]
+        first = next(sweep.glob("c0.0_g0.001_r0.001_*"))
         os.killpg(proc.pid, signal.SIGKILL)  # preempted: the sweep and every process it started (its Ray)
         proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert not (second / "metrics.json").exists()
+    assert not list(sweep.glob("c0.015_g0.001_r0.001_*/metrics.json"))
     stamps = {p: p.stat().st_mtime_ns for p in [first / "metrics.json", first / "per_scene.jsonl",
                                                 *sorted((first / "scenes").glob("*.npz"))]}
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps, \
         "spread-sample must skip a run folder whose metrics.json exists (spread.experiments.is_finished_run)"
+    second = next(sweep.glob("c0.015_g0.001_r0.001_*"))
     metrics = json.loads((second / "metrics.json").read_text())
     assert metrics["n_scenes"] == 3 and metrics["n_failed"] == 0
     report = run_report([str(sweep)], tmp_path / "report")

@@ -99,6 +99,9 @@ def register(*commands: str) -> None:
         if name not in COMMANDS:
             raise ValueError(f"unknown command '{name}' (known: {COMMANDS})")
     wanted = set(commands or COMMANDS)
+    from spread.runtime.fingerprint import register_resolvers
+
+    register_resolvers()
     _common()
     if wanted & {"generate", "ablate", "compare"}:
         _generate()

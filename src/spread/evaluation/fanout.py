@@ -29,8 +29,10 @@ def chunks(items: Sequence, size: int) -> list[list]:
 
 def task_options(settings: RaySettings) -> dict:
     """``.options(...)`` of an evaluation task: one CPU, retries on worker death, the scheduling strategy."""
+    from spread.runtime.ray import scheduling_strategy
+
     return {"num_cpus": 1, "max_retries": int(settings.max_retries), "retry_exceptions": False,
-            "scheduling_strategy": settings.scheduling_strategy}
+            "scheduling_strategy": scheduling_strategy(settings)}
 
 
 @dataclass

@@ -9,7 +9,7 @@ the equivalent command line. The stages, under ``out_dir``:
 |---|---|---|---|
 | ``data`` (only when ``data.root`` is not given or does not exist) | spread-generate | ``data/`` | ``manifest.json`` |
 | ``train/<v>``, v = base, geometry (unless given) | spread-train | ``train/<v>/`` | ``metrics.json``, ``last.ckpt`` |
-| ``sample/<v>``, v = base, geometry, guidance | spread-sample | ``samples/<v>/`` | ``sampling.json``, all scenes |
+| ``sample/<v>``, v = base, geometry, guidance, guidance_collision / _gravity / _relation | spread-sample | ``samples/<v>/`` | ``sampling.json``, all scenes |
 | ``evaluate/<v>`` | spread-evaluate | ``eval/<v>/`` | ``metrics.json`` |
 | ``figures`` (``figures: true``) | — | ``ablation_<v>.png``, ``ablation_truth.png`` | the PNGs |
 | ``table`` | — | ``ablation.{md,csv,tex,png}`` (+ wandb table) | the four files |
@@ -20,7 +20,8 @@ the equivalent command line. The stages, under ``out_dir``:
 links them under the table. **Intervals**: every metric cell is value ± half the width of its 95 % bootstrap
 interval over scenes (:mod:`spread.experiments.intervals`); the CSV keeps the bounds and the bootstrap's seed.
 
-``guidance`` samples the ``geometry`` checkpoint with guidance; all three rows sample the same split's
+``guidance`` samples the ``geometry`` checkpoint with guidance, ``guidance_<term>`` with that one term of it
+(the other two weights 0: collision only, gravity only, relation only); all rows sample the same split's
 graphs with the same seed and are evaluated with the same protocol (one override list for all).
 
 **Resume.** Every output above is written atomically at the end of its command, so it exists only for a
@@ -49,11 +50,14 @@ from spread.io import file_sha256, write_json_atomic
 
 log = logging.getLogger("spread.ablate")
 
-VARIANTS = ("base", "geometry", "guidance")
+#: One guidance term at a time (the other two weights 0): row name → the term kept.
+TERMS = {"guidance_collision": "collision", "guidance_gravity": "gravity", "guidance_relation": "relation"}
+VARIANTS = ("base", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.
-LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance"}
+LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance",
+          **{v: f"+Guidance ({t} only)" for v, t in TERMS.items()}}
 #: The checkpoint each row samples.
-CHECKPOINT_OF = {"base": "base", "geometry": "geometry", "guidance": "geometry"}
+CHECKPOINT_OF = {"base": "base", "geometry": "geometry", "guidance": "geometry", **{v: "geometry" for v in TERMS}}
 LEDGER = "ablation.json"
 TABLE = "ablation"
 
@@ -83,7 +87,7 @@ class AblationSpec:
     out_dir: Path
     data_root: Path | None = None
     split: str = "test"
-    variants: tuple[str, ...] = VARIANTS
+    variants: tuple[str, ...] = ("base", "geometry", "guidance")  # conf/ablate.yaml adds the one-term rows
     generate: list[str] = field(default_factory=list)
     train: list[str] = field(default_factory=list)
     train_variant: dict[str, list[str]] = field(default_factory=dict)
@@ -165,9 +169,12 @@ class Ledger:
         entry = self.data["stages"].get(name)
         return None if entry is None else entry["inputs"]
 
-    def record(self, name: str, inputs: dict, seconds: float | None) -> None:
+    def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None) -> None:
+        from spread.runtime.fingerprint import run_tags
+
         self.data["stages"][name] = {"inputs": inputs, "seconds": seconds,
-                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "tags": run_tags(),
+                                     **({"redone_because": reason} if reason else {})}
         write_json_atomic(self.path, self.data)
 
 
@@ -193,14 +200,15 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     if not same and not stage.derived:
         raise StageError(f"{stage.folder}: made with other settings (changed: {changed_keys(before, inputs)}); "
                          f"delete that folder or use another out_dir")
+    reason = None if same else f"inputs changed: {', '.join(changed_keys(before, inputs))}"
     if not same:
-        log.info("▶ %s: inputs changed (%s), redoing it from scratch", stage.name, changed_keys(before, inputs))
+        log.info("▶ %s: %s, redoing it from scratch", stage.name, reason)
     started = time.perf_counter()
     stage.run(same)
     if not stage.finished():
         missing = [str(p) for p in stage.outputs if not p.exists()] or ["(incomplete outputs)"]
         raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
-    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3))
+    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), reason)
     return "done"
 
 
@@ -290,7 +298,11 @@ class Ablation:
                      self.timed(f"train/{trained}", run), derived=False)
 
     def sample_lists(self, variant: str) -> list[str]:
-        """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own)."""
+        """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own): the guidance
+        rows add the guidance list; a one-term row then sets the other two weights to 0."""
+        if variant in TERMS:
+            off = [f"guidance.{t}=0.0" for t in TERMS.values() if t != TERMS[variant]]
+            return [*self.spec.sample, *self.spec.guidance, *off]
         return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
 
     def sample_stage(self, variant: str) -> Stage:
@@ -304,7 +316,8 @@ class Ablation:
             self.commands.sample(args)
 
         return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
-                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt)}, self.timed(f"sample/{variant}", run),
+                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt), **self.data_inputs()},
+                     self.timed(f"sample/{variant}", run),
                      complete=lambda: scenes_complete(folder))
 
     def evaluate_stage(self, variant: str) -> Stage:
@@ -319,7 +332,14 @@ class Ablation:
             self.commands.evaluate(args)
 
         return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"],
-                     {"overrides": overrides, "samples": sampling_inputs(samples)}, run)
+                     {"overrides": overrides, "samples": sampling_inputs(samples), **self.data_inputs()}, run)
+
+    def data_inputs(self) -> dict:
+        """What a sample or evaluate stage depends on besides its overrides: the split's data content and the
+        code version of the numbers (:mod:`spread.runtime.fingerprint`)."""
+        from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest
+
+        return {"data_sha256": dataset_digest(self.spec.dataset, [self.spec.split]), "numbers_version": NUMBERS_VERSION}
 
     # ---- running ----
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:

@@ -47,17 +47,18 @@ def ablation_spec(cfg: DictConfig):
 def ablate(cfg: DictConfig):
     """The ablation of ``cfg``; returns the :class:`~spread.experiments.AblationResult`."""
     from spread.experiments.ablation import run_ablation
-    from spread.experiments.commands import InProcessCommands, record_config
+    from spread.experiments.commands import record_config
+    from spread.runtime import mlflow_log
     from spread.runtime.tracking import as_logger_config
     from spread.training.fit import set_threads
 
     set_threads(cfg.get("threads"))
     spec = ablation_spec(cfg)
     record_config(cfg, spec.out_dir)()
-    from spread.runtime import mlflow_log
-
     logger = as_logger_config(cfg.logger)
     config = OmegaConf.to_container(cfg, resolve=True)
+    seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
+    commands = launcher_commands(cfg)
     with mlflow_log.tracked(logger, "ablation", spec.out_dir, config, spec.group, name=f"ablation/{cfg.name}") as run:
         def log_table(records, png):
             if logger.wandb:
@@ -67,7 +68,25 @@ def ablate(cfg: DictConfig):
                              config=config)
             if run is not None:
                 mlflow_log.log_table(run, records, "variant", sorted(Path(png).parent.glob(Path(png).stem + ".*")))
-        return run_ablation(spec, InProcessCommands(), log_table if logger.wandb or run is not None else None)
+
+        logged = log_table if logger.wandb or run is not None else None
+        if seeds:
+            from spread.experiments.ablation_seeds import run_seeded_ablation
+
+            return run_seeded_ablation(spec, commands, seeds, logged)
+        return run_ablation(spec, commands, logged)
+
+
+def launcher_commands(cfg: DictConfig):
+    """The stages' commands: in this process, or training stages through a launcher (``train.launcher``)."""
+    from spread.experiments.commands import InProcessCommands
+
+    launcher = str(cfg.train.get("launcher") or "inprocess")
+    if launcher == "inprocess":
+        return InProcessCommands()
+    from spread.experiments.launch import LaunchedCommands
+
+    return LaunchedCommands(launcher, int(cfg.train.get("nproc") or 1), int(cfg.train.get("nnodes") or 1))
 
 
 def console_table(result, title: str):

@@ -12,6 +12,7 @@ folder (one wandb run holds both). The ``print_*`` functions are the commands' c
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -328,23 +329,37 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     """``spread-sample``: sample (then, with ``evaluate=true``, evaluate) into ``cfg.out_dir``; returns
     (:class:`~spread.sampling.SamplingResult`, :class:`~spread.evaluation.EvaluationResult` or None). A
     finished sweep point (``evaluate=true``, ``resume=true``, ``metrics.json`` there) is left as it is
-    and (None, None) returned. ``log=False``: no wandb run (the ablation logs its table instead)."""
-    from spread.experiments.runs import is_finished_run
+    and (None, None) returned when its fingerprint matches, else redone (:mod:`spread.experiments.points`).
+    ``log=False``: no wandb or MLflow run (the ablation logs its table instead)."""
     from spread.runtime import mlflow_log
     from spread.sampling import run_sampling
     from spread.sampling.mlflow_log import sampling_run_tags
     from spread.sampling.wandb_log import log_sampling, open_sampling_run
 
     command = to_object(cfg)
-    if command.evaluate and command.resume and is_finished_run(command.out_dir):
-        print(f"{command.out_dir}: finished earlier (metrics.json exists), skipped")
-        return None, None
+    before_work = record_config(cfg, command.out_dir, overrides)
+    if command.evaluate:  # a sweep point: re-used only when its fingerprint matches (experiments.points)
+        from spread.experiments.points import check_point, finish_point, start_point
+
+        point = check_point(cfg, command.out_dir, command.resume)
+        if point.reuse:
+            print(f"{command.out_dir}: finished earlier with the same fingerprint, re-used")
+            return None, None
+        if point.reason:
+            print(f"{command.out_dir}: redone from scratch ({point.reason})")
+        command.resume = command.resume and not point.fresh
+        record = before_work
+
+        def before_work():
+            record()
+            start_point(command.out_dir, point)
+    started = time.perf_counter()
     experiment = experiment_of(command)
     wandb_run = open_sampling_run(command, plain(cfg), experiment) if log and command.logger.wandb else None
     try:
         with mlflow_log.tracked(command.logger if log else None, "sample", command.out_dir, plain(cfg), experiment,
                                 tags=lambda: sampling_run_tags(command)) as run:
-            result = run_sampling(command, before_work=record_config(cfg, command.out_dir, overrides))
+            result = run_sampling(command, before_work=before_work)
             if run is not None:
                 mlflow_log.log_sampling(run, result.manifest)
             evaluation = None
@@ -352,6 +367,7 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
                 from spread.evaluation import run_evaluation
 
                 evaluation = run_evaluation(evaluation_after_sampling(command))
+                finish_point(command.out_dir, round(time.perf_counter() - started, 3))
                 if run is not None:
                     mlflow_log.log_evaluation(run, evaluation.metrics, evaluation.out_dir, evaluation.renders)
     except BaseException:

@@ -44,19 +44,40 @@ def save(fig, path: str | Path, dpi: int = 110) -> Path:
     return Path(path)
 
 
+def error_bars(records: Sequence[dict], key: str, values: list) -> list[list[float]] | None:
+    """(below, above) error lengths per bar: the sd across seeds (``<key>_sd``) where rows have it, else the
+    bootstrap interval (``<key>_lo`` / ``<key>_hi``); None when no row has either."""
+    below, above, found = [], [], False
+    for r, v in zip(records, values):
+        sd, lo, hi = number(r.get(f"{key}_sd")), number(r.get(f"{key}_lo")), number(r.get(f"{key}_hi"))
+        if v is not None and sd is not None:
+            below.append(sd), above.append(sd)
+            found = True
+        elif v is not None and lo is not None and hi is not None:
+            below.append(max(0.0, v - lo)), above.append(max(0.0, hi - v))
+            found = True
+        else:
+            below.append(0.0), above.append(0.0)
+    return [below, above] if found else None
+
+
 def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str | Path, label_key: str = "variant",
                   title: str = "") -> dict[str, list[float | None]]:
-    """Bar plot: a panel per metric column, a bar per record (``n/a`` where the value is null). Returns
-    metric key → the values drawn, in record order."""
+    """Bar plot: a panel per metric column, a bar per record (``n/a`` where the value is null), with error bars
+    (:func:`error_bars`). Returns metric key → the values drawn, in record order (``<key>:error``: the
+    [below, above] error lengths per bar, or None)."""
     fig, axes = figure(1, len(columns), figsize=(2.6 * len(columns), 3.2), squeeze=False)
     names = [str(r.get(label_key)) for r in records]
-    colours = ["#8c8c8c", "#4c72b0", "#dd8452", "#55a868", "#c44e52"]
+    colours = ["#8c8c8c", "#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860"]
     drawn = {}
     for ax, column in zip(axes[0], columns):
         values = [number(r.get(column.key)) for r in records]
         drawn[column.key] = values
         heights = [0.0 if v is None else v for v in values]
-        bars = ax.bar(range(len(names)), heights, color=[colours[i % len(colours)] for i in range(len(names))])
+        errors = error_bars(records, column.key, values)
+        bars = ax.bar(range(len(names)), heights, color=[colours[i % len(colours)] for i in range(len(names))],
+                      yerr=errors, capsize=3 if errors is not None else 0, ecolor="#333333")
+        drawn[f"{column.key}:error"] = None if errors is None else [list(e) for e in zip(*errors)]
         for bar, v in zip(bars, values):
             ax.annotate("n/a" if v is None else column.format(v), (bar.get_x() + bar.get_width() / 2, bar.get_height()),
                         ha="center", va="bottom", fontsize=7)

@@ -68,3 +68,17 @@ def ray_session(settings: RaySettings) -> Iterator[dict]:
     finally:
         if owned:
             ray.shutdown()
+
+
+def scheduling_strategy(settings: RaySettings):
+    """Where a run's tasks and actors go: ``settings.scheduling_strategy``, except inside a placement group
+    (a Ray Tune trial of ``spread-sweep``), where they go into that group's bundles (the trial's reserved
+    CPUs/GPUs; outside them every CPU may be reserved by other trials)."""
+    from ray.util import get_current_placement_group
+
+    group = get_current_placement_group()
+    if group is None:
+        return settings.scheduling_strategy
+    from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
+
+    return PlacementGroupSchedulingStrategy(group, placement_group_capture_child_tasks=True)

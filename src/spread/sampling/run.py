@@ -232,6 +232,7 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
     """Sample the batches on Ray actors (module docstring, step 4)."""
     import ray
 
+    from spread.runtime.ray import scheduling_strategy
     from spread.sampling.worker import SampleWorker
 
     with ray_session(cfg.ray) as cluster:
@@ -239,7 +240,7 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
         actor = ray.remote(SampleWorker).options(
             num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.ray.num_gpus_per_worker,
             max_restarts=cfg.ray.max_retries, max_task_retries=cfg.ray.max_retries,
-            scheduling_strategy=cfg.ray.scheduling_strategy)  # SPREAD: actors over every node
+            scheduling_strategy=scheduling_strategy(cfg.ray))  # SPREAD: actors over every node
         actors = [actor.remote(**worker_arguments(cfg, scenes_dir)) for _ in range(n)]
         queue = list(todo)
         running = {}

@@ -1,0 +1,32 @@
+"""``spread-sweep +sweep=guidance_grid ckpt=... data.root=... max_concurrent=2 out_dir=D``: a sweep on Ray Tune
+(:mod:`spread.experiments.sweep`; keys: ``conf/sweep_run.yaml``). Not a Hydra app: Hydra's sweep syntax on the
+command line is the search space, not a multirun."""
+
+from __future__ import annotations
+
+import sys
+
+
+def main(argv: list[str] | None = None) -> None:
+    from spread.experiments.sweep import parse_arguments, run_sweep
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if any(a in ("-h", "--help") for a in args):
+        from spread.configs import conf_dir
+
+        print(open(f"{conf_dir()}/sweep_run.yaml").read())
+        return
+    try:
+        plan = parse_arguments(args)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from exc
+    result = run_sweep(plan)
+    print(result.md.read_text())
+    print(f"spread-sweep: {len(result.rows)} trials in {result.seconds:.1f} s → {result.csv}")
+    failed = [r for r in result.rows if r.get("status") != "ok"]
+    if failed:
+        raise SystemExit(f"spread-sweep: {len(failed)} trial(s) failed: " + "; ".join(str(r.get("error")) for r in failed))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""``spread-ablate seeds=[0,1,2]``: the ablation once per training seed, and the table across seeds.
+
+Each seed is a whole ablation (:mod:`spread.experiments.ablation`) in ``out_dir/seed<k>/`` whose training,
+sampling and evaluation lists end with ``seed=<k>``; all seeds share one dataset (``data.root``, or the
+first seed generates ``out_dir/data`` and the others use it). Each seed's stages resume on their own.
+
+The table ``out_dir/ablation.{md,csv,tex,png}`` has one row per variant. A cell reads
+``mean ± sd (± h)``: the mean over seeds, the sample standard deviation across seeds (n − 1; 0 with one seed)
+and h, half the width of the bootstrap interval over scenes averaged over the seeds (each seed's interval is
+:mod:`spread.experiments.intervals`'s). The CSV keeps ``<metric>``, ``<metric>_sd``, ``<metric>_lo`` /
+``<metric>_hi`` (the seeds' mean bounds) and ``seeds``; the PNG draws the mean with the sd as error bars.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from spread.experiments.ablation import LABELS, AblationResult, AblationSpec, Commands, run_ablation
+from spread.experiments.tables import METRICS, Column, write_tables
+
+
+@dataclass(frozen=True)
+class SeedColumn(Column):
+    """A metric column of the seeds table: ``mean ± sd (± bootstrap half-width)``."""
+
+    def cell(self, record: dict, latex: bool = False) -> str:
+        text = self.format(record.get(self.key))
+        sd = record.get(f"{self.key}_sd")
+        if text == "–" or sd is None:
+            return text
+        half = self.half_width(record)
+        boot = "" if half is None else f" (± {half:.{self.digits}f})"
+        if latex:
+            pm = r"$\pm$"
+            return rf"{text}\,{{\scriptsize{pm}{sd:.{self.digits}f}{boot.replace('±', pm)}}}"
+        return f"{text} ± {sd:.{self.digits}f}{boot}"
+
+
+def seed_spec(spec: AblationSpec, seed: int) -> AblationSpec:
+    """The ablation of one seed: its own folder, the shared dataset, every list ending with ``seed=<seed>``."""
+    tail = [f"seed={seed}"]
+    return replace(spec, out_dir=spec.out_dir / f"seed{seed}", data_root=spec.dataset,
+                   train=[*spec.train, *tail], sample=[*spec.sample, *tail], evaluate=[*spec.evaluate, *tail],
+                   group=f"{spec.group}_seed{seed}" if spec.group else "")
+
+
+def mean_sd(values: list[float]) -> tuple[float | None, float | None]:
+    if not values:
+        return None, None
+    mean = sum(values) / len(values)
+    sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+    return mean, sd
+
+
+def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
+    """One record per variant over the seeds' records (module docstring)."""
+    variants = [r["variant"] for r in next(iter(per_seed.values()))] if per_seed else []
+    rows = []
+    for variant in variants:
+        mine = [r for records in per_seed.values() for r in records if r["variant"] == variant]
+        ok = [r for r in mine if r.get("status") == "ok"]
+        row = {"variant": variant, "method": LABELS[variant], "seeds": len(ok),
+               "status": "ok" if len(ok) == len(mine) else f"{len(mine) - len(ok)} of {len(mine)} seeds failed"}
+        for c in METRICS:
+            values = [float(r[c.key]) for r in ok if isinstance(r.get(c.key), (int, float))]
+            row[c.key], row[f"{c.key}_sd"] = mean_sd(values)
+            for bound in ("lo", "hi"):
+                bounds = [float(r[f"{c.key}_{bound}"]) for r in ok if isinstance(r.get(f"{c.key}_{bound}"), (int, float))]
+                if bounds and len(bounds) == len(values):
+                    row[f"{c.key}_{bound}"] = sum(bounds) / len(bounds)
+        rows.append(row)
+    return rows
+
+
+def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str = "") -> dict[str, Path]:
+    from spread.experiments.plots import ablation_bars
+
+    columns = [Column("method", "Method"), *[SeedColumn(c.key, c.label, c.digits, c.better, c.latex) for c in METRICS]]
+    caption = title or f"Ablation over training seeds {seeds}"
+    note = (f"Each cell: mean ± sd across {len(seeds)} training seeds {seeds} (sample sd), then (± h): half the "
+            "width of the 95 % bootstrap interval over scenes, averaged over the seeds.")
+    paths = write_tables(rows, columns, stem, caption=caption, label="tab:ablation_seeds", note=note,
+                         csv_keys=["variant", "method", "seeds", *[k for c in METRICS for k in (c.key, f"{c.key}_sd")],
+                                   "status"])
+    ablation_bars(rows, METRICS, stem.with_suffix(".png"), label_key="method", title=caption)
+    return {**paths, "png": stem.with_suffix(".png")}
+
+
+def run_seeded_ablation(spec: AblationSpec, commands: Commands, seeds: list[int], log_table=None) -> AblationResult:
+    """Every seed's ablation, then the table across seeds in ``spec.out_dir``."""
+    started = time.perf_counter()
+    per_seed, stages, errors = {}, {}, {}
+    for seed in seeds:
+        result = run_ablation(seed_spec(spec, seed), commands)
+        per_seed[seed] = result.records
+        stages.update({f"seed{seed}/{k}": v for k, v in result.stages.items()})
+        errors.update({f"seed{seed}/{k}": v for k, v in result.errors.items()})
+    rows = aggregate(per_seed)
+    stem = spec.out_dir / "ablation"
+    tables = write_seed_table(rows, stem, list(seeds), spec.title)
+    if log_table is not None:
+        log_table(rows, tables["png"])
+    return AblationResult(rows, stages, errors, tables, round(time.perf_counter() - started, 3))

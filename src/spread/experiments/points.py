@@ -1,0 +1,93 @@
+"""Sweep points (``spread-sample evaluate=true`` run folders) re-used only when their fingerprint matches.
+
+``out_dir/point.json`` records the point's full fingerprint (:func:`spread.runtime.fingerprint.point_fingerprint`),
+its short name, where it ran (:func:`~spread.runtime.fingerprint.run_tags`), its status (``running`` from the
+moment the work starts, ``finished`` once ``metrics.json`` is written) and, when the folder was redone, why.
+The decision (:func:`check_point`), for a run with ``evaluate=true``:
+
+| folder holds | decision |
+|---|---|
+| ``point.json`` with this fingerprint, ``finished``, and an evaluation ``metrics.json`` | re-use (nothing runs) |
+| ``point.json`` with this fingerprint, not finished | resume (finished scenes and per-scene lines kept) |
+| ``point.json`` with another fingerprint | redo from scratch; ``redone_because`` names the changed keys |
+| ``metrics.json`` but no ``point.json`` (made before fingerprints) | redo from scratch, with that reason |
+| nothing of a run | a fresh run |
+
+``resume=false`` always redoes from scratch.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from spread.io import write_json_atomic
+
+POINT = "point.json"
+
+
+@dataclass
+class PointDecision:
+    """reuse: the finished folder stands; fresh: redo from scratch (``reason`` says why, None for a new folder
+    or ``resume=false``); fingerprint: the full fingerprint of the config."""
+
+    reuse: bool
+    fresh: bool
+    reason: str | None
+    fingerprint: dict
+
+
+def read_point(out_dir) -> dict | None:
+    path = Path(out_dir) / POINT
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
+    """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (module docstring)."""
+    from spread.experiments.runs import is_finished_run
+    from spread.runtime.fingerprint import changed_keys, point_fingerprint
+
+    fingerprint = json.loads(json.dumps(point_fingerprint(cfg), default=str))
+    record = read_point(out_dir)
+    finished = is_finished_run(out_dir)
+    if not resume:
+        return PointDecision(False, True, "resume=false" if finished or record else None, fingerprint)
+    if record is None:
+        if finished:
+            return PointDecision(False, True, "metrics.json has no fingerprint (made before fingerprints)",
+                                 fingerprint)
+        return PointDecision(False, False, None, fingerprint)
+    before = record.get("fingerprint") or {}
+    if before != fingerprint:
+        return PointDecision(False, True, f"changed: {', '.join(changed_keys(before, fingerprint))}", fingerprint)
+    return PointDecision(finished and record.get("status") == "finished", False, None, fingerprint)
+
+
+def start_point(out_dir, decision: PointDecision) -> None:
+    """Before any work: clear a stale result (a redo) and record the point as running."""
+    from spread.runtime.fingerprint import run_tags, short
+
+    out = Path(out_dir)
+    if decision.fresh:
+        for stale in ("metrics.json", POINT):
+            (out / stale).unlink(missing_ok=True)
+    before = read_point(out) or {}
+    write_json_atomic(out / POINT, {
+        "fingerprint": decision.fingerprint, "short": short(decision.fingerprint), "status": "running",
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "tags": run_tags(),
+        "redone_because": decision.reason or before.get("redone_because")})
+
+
+def finish_point(out_dir, seconds: float | None = None) -> dict:
+    """After ``metrics.json`` is written: the record says ``finished`` (and the run's wall seconds)."""
+    out = Path(out_dir)
+    record = read_point(out) or {}
+    record.update(status="finished", finished=time.strftime("%Y-%m-%dT%H:%M:%S"), seconds=seconds)
+    write_json_atomic(out / POINT, record)
+    return record

@@ -1,0 +1,484 @@
+"""``spread-sweep``: a sweep as Ray Tune trials, ``max_concurrent`` at a time, here or on a Ray cluster.
+
+A **trial** is one point: ``spread-sample evaluate=true`` (``command=sample``: sampling + evaluation) or one
+``spread-train`` run (``command=train``), given the sweep's fixed overrides plus the trial's values. The
+command line is ``spread-sample``'s (or ``spread-train``'s) plus the keys of ``conf/sweep_run.yaml``:
+
+* fixed overrides (``ckpt=... data.root=...``) go to every trial;
+* Hydra's sweep syntax makes the search space: a comma list or ``choice(a,b)`` / ``range(0,10,2)`` → a grid
+  (``search=grid``, every combination) or a categorical dimension (``search=random`` / ``optuna``);
+  ``interval(a,b)`` → a uniform dimension (random or Optuna TPE only); a preset's ``hydra.sweeper.params``
+  (``+sweep=guidance_grid``) count as if written on the command line, unless the key is given there.
+
+Each trial's run folder is ``out_dir/points/<values>_<short fingerprint>`` and it is re-used only when its
+fingerprint matches (:mod:`spread.experiments.points`), so a re-launched sweep re-uses every finished point,
+resumes a killed one and redoes only what changed; ``results.csv`` / ``results.md`` are rebuilt from the
+points every time, so an interrupted and re-run sweep ends with the same table as an uninterrupted one.
+
+**Resources.** One Ray session for the whole sweep (``address=null``: a local one with ``num_cpus``;
+``auto`` or ``HOST:PORT``: a cluster). A trial reserves a placement group: an empty head bundle (its GPUs
+with ``trial_gpus``) for the trial process, which samples in-process (``workers=0``), and a bundle of
+``trial_cpus`` CPUs that its evaluation tasks (and sampling actors, with ``workers>0``) use
+(:func:`spread.runtime.ray.scheduling_strategy`). Trial processes are re-used across trials
+(``reuse_actors``): imports, and each Ray worker's per-process caches (the asset library, convex parts,
+physics worlds) stay warm.
+
+**Training sweeps** (``command=train``): each trial trains into its point folder; with ``scheduler=asha`` a
+Lightning callback reports every validation to Tune and ASHA stops the worst trials early.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+COMMANDS = ("sample", "train")
+SEARCHES = ("grid", "random", "optuna")
+#: prepended to every sampling trial (the command line may override them)
+SAMPLE_DEFAULTS = ["workers=0", "progress=false", "figures=0", "evaluate=true"]
+TRAIN_DEFAULTS = ["trainer.enable_progress_bar=false"]
+#: a grid's remaining points go to Tune as one grid over whole points (trial config ``{POINT_KEY: {...}}``)
+POINT_KEY = "point"
+
+
+@dataclass
+class SweepSettings:
+    """The sweep's own keys (``conf/sweep_run.yaml`` documents each)."""
+
+    out_dir: str = "???"
+    command: str = "sample"
+    name: str = "sweep"
+    max_concurrent: int = 1
+    search: str = "grid"
+    num_samples: int = 8
+    search_seed: int = 0
+    metric: str = "grecall"
+    mode: str = "max"
+    address: str | None = None
+    num_cpus: int | None = None
+    trial_cpus: float = 1.0
+    trial_gpus: float = 0.0
+    scheduler: str | None = None
+    asha: dict = field(default_factory=lambda: {"grace_period": 1, "reduction_factor": 2})
+
+    def __post_init__(self) -> None:
+        if self.out_dir in ("???", None, ""):
+            raise ValueError("spread-sweep: out_dir is required (the sweep folder)")
+        if self.command not in COMMANDS:
+            raise ValueError(f"spread-sweep: command={self.command}: choose from {COMMANDS}")
+        if self.search not in SEARCHES:
+            raise ValueError(f"spread-sweep: search={self.search}: choose from {SEARCHES}")
+        if self.mode not in ("min", "max"):
+            raise ValueError(f"spread-sweep: mode={self.mode}: min or max")
+        if self.scheduler not in (None, "asha"):
+            raise ValueError(f"spread-sweep: scheduler={self.scheduler}: null or asha")
+        if int(self.max_concurrent) < 1:
+            raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: at least 1")
+
+
+@dataclass
+class Dimension:
+    """One swept key: ``key`` (as written, with a ``+`` prefix if any), ``values`` (override strings) or an
+    interval ``low``/``high`` (``log`` tag: log-uniform)."""
+
+    key: str
+    values: list[str] | None = None
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+
+
+@dataclass
+class SweepPlan:
+    settings: SweepSettings
+    fixed: list[str]
+    dimensions: list[Dimension]
+
+
+def settings_keys() -> set[str]:
+    return set(SweepSettings.__dataclass_fields__)
+
+
+def default_settings() -> dict:
+    """``conf/sweep_run.yaml``'s values."""
+    from spread.configs import conf_dir
+
+    return OmegaConf.to_container(OmegaConf.load(Path(conf_dir()) / "sweep_run.yaml"), resolve=False)
+
+
+def parse_arguments(argv: list[str]) -> SweepPlan:
+    """Split a ``spread-sweep`` command line (module docstring) into settings, fixed overrides and dimensions."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    own = settings_keys()
+    settings = default_settings()
+    fixed, swept = [], {}
+    for override in parser.parse_overrides([a for a in argv if a.strip()]):
+        key = override.key_or_group
+        if key in own and not override.is_sweep_override():
+            settings[key] = None if override.value() is None else override.value()
+        elif override.is_sweep_override():
+            swept[override.get_key_element()] = dimension(override)
+        else:
+            fixed.append(override.input_line)
+    sweep_settings = SweepSettings(**settings)
+    defaults = SAMPLE_DEFAULTS if sweep_settings.command == "sample" else TRAIN_DEFAULTS
+    fixed = [*defaults, *fixed]
+    given = {o.split("=", 1)[0].lstrip("+~") for o in fixed}
+    for key, values in preset_params(sweep_settings.command, fixed).items():
+        if key.lstrip("+~") not in given and key not in swept:
+            swept[key] = dimension(parser.parse_overrides([f"{key}={values}"])[0])
+    dims = list(swept.values())
+    if sweep_settings.search == "grid" and any(d.values is None for d in dims):
+        bad = [d.key for d in dims if d.values is None]
+        raise ValueError(f"spread-sweep: interval() on {bad} needs search=random or search=optuna")
+    return SweepPlan(sweep_settings, fixed, dims)
+
+
+def dimension(override) -> Dimension:
+    key = override.get_key_element()
+    if override.is_interval_sweep():
+        value = override.value()
+        return Dimension(key, low=float(value.start), high=float(value.end), log="log" in (value.tags or set()))
+    return Dimension(key, values=[str(v) for v in override.sweep_string_iterator()])
+
+
+def preset_params(command: str, fixed: list[str]) -> dict:
+    """``hydra.sweeper.params`` of the composed command config (a ``+sweep=...`` preset's grid)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from spread.configs import conf_dir, register
+
+    register(command)
+    if GlobalHydra.instance().is_initialized():
+        cfg = hydra_compose(config_name=command, overrides=fixed, return_hydra_config=True)
+    else:
+        with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+            cfg = hydra_compose(config_name=command, overrides=fixed, return_hydra_config=True)
+    params = OmegaConf.select(cfg, "hydra.sweeper.params")
+    if params is None:
+        return {}
+    return {str(k): str(v) for k, v in OmegaConf.to_container(params, resolve=False).items()}
+
+
+def search_space(plan: SweepPlan) -> dict:
+    """Ray Tune's param space: one entry per dimension, keyed by the override key."""
+    from ray import tune
+
+    space = {}
+    for d in plan.dimensions:
+        if d.values is not None:
+            space[d.key] = tune.grid_search(d.values) if plan.settings.search == "grid" else tune.choice(d.values)
+        else:
+            space[d.key] = (tune.loguniform if d.log else tune.uniform)(d.low, d.high)
+    return space
+
+
+def trial_overrides(config: dict) -> list[str]:
+    return [f"{k}={format_value(v)}" for k, v in sorted(config.items())]
+
+
+def format_value(v) -> str:
+    return repr(float(v)) if isinstance(v, float) else str(v)
+
+
+def point_name(config: dict) -> str:
+    """A folder-name part for the trial's values: ``collision0.0075_gravity0.001`` (last key component)."""
+    from spread.io import safe_name
+
+    parts = [f"{k.lstrip('+~').split('.')[-1]}{format_value(v)}" for k, v in sorted(config.items())]
+    return safe_name("_".join(parts) or "point")[:120]
+
+
+# ---- trials (run in Ray Tune's trial processes) ----------------------------------------------------------------
+
+def read_metrics(folder: Path) -> dict:
+    """Every metric of an evaluation folder with its interval, the point's seconds and fingerprint."""
+    from spread.evaluation.protocol import METRIC_NAMES
+    from spread.experiments.intervals import ci_columns, row_intervals
+    from spread.experiments.points import read_point
+
+    metrics = json.loads((folder / "metrics.json").read_text())
+    intervals = ci_columns(row_intervals(metrics, folder))
+    row = {}
+    for name in (*METRIC_NAMES, "still_fraction", "fid", "kid"):
+        row[name] = metrics.get(name)
+        for bound in ("lo", "hi"):
+            if f"{name}_{bound}" in intervals:
+                row[f"{name}_{bound}"] = intervals[f"{name}_{bound}"]
+    row.update({k: intervals.get(k) for k in ("ci_level", "ci_resamples", "ci_seed")})
+    point = read_point(folder) or {}
+    row.update(n_scenes=metrics.get("n_scenes"), n_failed=metrics.get("n_failed"), seconds=point.get("seconds"),
+               fingerprint=point.get("short"))
+    return row
+
+
+def sample_trial(config: dict, plan: dict) -> None:
+    """One sampling + evaluation point (module docstring); reports its metrics to Tune."""
+    from ray import tune
+
+    from spread.experiments.commands import sample
+
+    started = time.perf_counter()
+    config = config.get(POINT_KEY, config)
+    folder, cfg, overrides = sample_point(config, plan)
+    result, _ = sample(cfg, overrides=overrides)
+    row = {**read_metrics(folder), "point": folder.name, "reused": result is None,
+           "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()}
+    tune.report(row)
+
+
+def sample_point(config: dict, plan: dict):
+    """(run folder, composed config, overrides) of a sampling point: ``points/<values>_<short fingerprint>``."""
+    from spread.configs import compose
+    from spread.runtime.fingerprint import point_fingerprint, short
+
+    name = point_name(config)
+    overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}",
+                 f"logger.run_name={plan['name']}/{name}"]
+    cfg = compose("sample", [*overrides, "out_dir=unset"])
+    folder = Path(plan["points"]) / f"{name}_{short(point_fingerprint(cfg))}"
+    cfg.out_dir = str(folder)
+    return folder, cfg, [*overrides, f"out_dir={folder}"]
+
+
+def finished_point(config: dict, plan: dict) -> dict | None:
+    """The row of a sampling point whose folder is finished with the same fingerprint (no trial needed)."""
+    from spread.experiments.points import check_point
+
+    folder, cfg, _ = sample_point(config, plan)
+    if not check_point(cfg, folder).reuse:
+        return None
+    return {**{k: parse_number(v) for k, v in config.items()}, **read_metrics(folder), "point": folder.name,
+            "reused": True, "trial_seconds": 0.0, "node": None, "status": "ok"}
+
+
+def node_id() -> str:
+    import ray
+
+    return ray.get_runtime_context().get_node_id()
+
+
+class TuneReport:
+    """Lightning callback: every validation's logged values to Ray Tune (what ASHA compares)."""
+
+    def __new__(cls, metric: str):
+        import lightning as L
+
+        class _Report(L.Callback):
+            def on_validation_end(self, trainer, module):
+                from ray import tune
+
+                if trainer.sanity_checking:
+                    return
+                logged = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
+                if metric in logged:
+                    tune.report({**logged, "step": int(trainer.global_step)})
+
+        return _Report()
+
+
+def train_trial(config: dict, plan: dict) -> None:
+    """One training run into its point folder (fingerprint: the composed config and the data's content)."""
+    from ray import tune
+
+    from spread.configs import compose
+    from spread.experiments.commands import record_config
+    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, digest
+    from spread.training.fit import train as fit
+
+    started = time.perf_counter()
+    name = point_name(config)
+    overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}"]
+    cfg = compose("train", [*overrides, "out_dir=unset"])
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    plain.pop("out_dir", None)
+    root = OmegaConf.select(cfg, "data.root")
+    fp = digest({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
+                 "numbers_version": NUMBERS_VERSION})[:8]
+    folder = Path(plan["points"]) / f"{name}_{fp}"
+    last = folder / "checkpoints" / "last.ckpt"
+    run = [*overrides, f"out_dir={folder}", f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
+    cfg = compose("train", run)
+    done = (folder / "metrics.json").exists()
+    callbacks = [TuneReport(plan["metric"])] if plan.get("scheduler") else []
+    if not done:
+        record_config(cfg, folder, run)()
+        fit(cfg, run_dir=folder, extra_callbacks=callbacks)
+    summary = json.loads((folder / "metrics.json").read_text())
+    logged = {k: v for k, v in (summary.get("logged") or summary).items() if isinstance(v, (int, float))}
+    tune.report({**logged, "point": folder.name, "reused": done, "seconds": round(time.perf_counter() - started, 3),
+                 "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
+
+
+# ---- the sweep ------------------------------------------------------------------------------------------------
+
+@dataclass
+class SweepResult:
+    rows: list[dict]
+    best: dict | None
+    csv: Path
+    md: Path
+    seconds: float
+
+
+def run_sweep(plan: SweepPlan) -> SweepResult:
+    """Run every trial of ``plan`` on Ray Tune and write ``results.csv`` / ``results.md`` (module docstring)."""
+    from ray import tune
+
+    s = plan.settings
+    out = Path(s.out_dir).resolve()
+    (out / "points").mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    trial = sample_trial if s.command == "sample" else train_trial
+    shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
+              "scheduler": s.scheduler}
+    head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
+    resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
+    trainable = tune.with_resources(tune.with_parameters(trial, plan=shared), resources)
+    searcher = None
+    if s.search == "optuna":
+        from ray.tune.search.optuna import OptunaSearch
+
+        searcher = OptunaSearch(metric=s.metric, mode=s.mode, seed=int(s.search_seed))
+    elif s.search == "random":
+        from ray.tune.search import BasicVariantGenerator
+
+        searcher = BasicVariantGenerator(random_state=int(s.search_seed))
+    scheduler = None
+    if s.scheduler == "asha":
+        from ray.tune.schedulers import ASHAScheduler
+
+        scheduler = ASHAScheduler(metric=s.metric, mode=s.mode, time_attr="training_iteration", **dict(s.asha))
+    samples = 1 if s.search == "grid" else int(s.num_samples)
+    space, rows = search_space(plan), []
+    if s.search == "grid" and s.command == "sample":  # finished points are read on the driver, no trial
+        todo = []
+        for config in grid_points(plan):
+            row = finished_point(config, shared)
+            rows.append(row) if row is not None else todo.append(config)
+        space = {POINT_KEY: tune.grid_search(todo)} if todo else None
+    if space is not None:
+        rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out)
+    rows.sort(key=lambda r: tuple(str(r.get(d.key)) for d in plan.dimensions))
+    best = mark_best(rows, s.metric, s.mode)
+    csv_path, md_path = write_results(rows, out, plan, best)
+    return SweepResult(rows, best, csv_path, md_path, round(time.perf_counter() - started, 3))
+
+
+def grid_points(plan: SweepPlan) -> list[dict]:
+    """Every combination of the dimensions' values (a grid)."""
+    import itertools
+
+    keys = [d.key for d in plan.dimensions]
+    return [dict(zip(keys, combo)) for combo in itertools.product(*[d.values for d in plan.dimensions])]
+
+
+def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: int, plan: SweepPlan,
+              out: Path) -> list[dict]:
+    """Run the trials on Ray Tune (one Ray session) and return their rows."""
+    from ray import tune
+
+    from spread.runtime.ray import RaySettings, ray_session
+
+    settings = RaySettings(address=s.address, num_cpus=s.num_cpus, log_to_driver=False)
+    with ray_session(settings):
+        tuner = tune.Tuner(
+            trainable, param_space=space,
+            tune_config=tune.TuneConfig(num_samples=samples, max_concurrent_trials=int(s.max_concurrent),
+                                        search_alg=searcher, scheduler=scheduler, reuse_actors=True),
+            run_config=tune.RunConfig(storage_path=str(out / "tune"), name=s.name, verbose=0,
+                                      failure_config=tune.FailureConfig(max_failures=1)))
+        return [result_row(r, plan) for r in tuner.fit()]
+
+
+def result_row(result, plan: SweepPlan) -> dict:
+    given = result.config.get(POINT_KEY, result.config)
+    config = {d.key: given.get(d.key) for d in plan.dimensions}
+    row = {k: parse_number(v) for k, v in config.items()}
+    metrics = dict(result.metrics or {})
+    for key in list(metrics):
+        if key in ("config", "trial_id", "date", "timestamp", "pid", "hostname", "node_ip", "time_this_iter_s",
+                   "time_total_s", "time_since_restore", "iterations_since_restore", "training_iteration", "done",
+                   "checkpoint_dir_name", "should_checkpoint", "experiment_tag"):
+            metrics.pop(key)
+    row.update(metrics)
+    row["status"] = "error" if result.error else "ok"
+    if result.error:
+        row["error"] = str(result.error).splitlines()[0][:200]
+    return row
+
+
+def parse_number(v):
+    try:
+        return float(v) if isinstance(v, str) and any(c.isdigit() for c in v) else v
+    except ValueError:
+        return v
+
+
+def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
+    scored = [r for r in rows if isinstance(r.get(metric), (int, float))]
+    best = (max if mode == "max" else min)(scored, key=lambda r: r[metric]) if scored else None
+    for r in rows:
+        r["best"] = r is best
+    return best
+
+
+def columns(rows: list[dict], plan: SweepPlan) -> list[str]:
+    keys = [d.key for d in plan.dimensions]
+    seen = []
+    for r in rows:
+        seen += [k for k in r if k not in seen and k not in keys]
+    first = [k for k in ("best", "point", "status") if k in seen]
+    return keys + first + [k for k in seen if k not in first]
+
+
+def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None) -> tuple[Path, Path]:
+    """``results.csv`` (every field) and ``results.md`` (value ± half-width of the interval, best marked)."""
+    from spread.evaluation.protocol import METRIC_NAMES
+    from spread.io import write_text_atomic
+
+    cols = columns(rows, plan)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: "" if r.get(k) is None else r.get(k) for k in cols})
+    write_text_atomic(out / "results.csv", buf.getvalue())
+    metrics = [m for m in (*METRIC_NAMES, "fid", "kid") if any(m in r for r in rows)] or \
+        [plan.settings.metric]
+    keys = [d.key for d in plan.dimensions]
+    head = ["", *keys, *metrics, "seconds", "point"]
+    lines = [f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
+             f"({plan.settings.mode}) marked ★", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = ["★" if r.get("best") else "", *[str(r.get(k)) for k in keys]]
+        for m in metrics:
+            v, lo, hi = r.get(m), r.get(f"{m}_lo"), r.get(f"{m}_hi")
+            cells.append("—" if v is None else f"{v:.4f}" + ("" if lo is None or hi is None else f" ± {(hi - lo) / 2:.4f}"))
+        cells += [f"{r['seconds']:.1f}" if isinstance(r.get("seconds"), (int, float)) else "—", str(r.get("point", ""))]
+        lines.append("| " + " | ".join(cells) + " |")
+    if any(r.get("ci_resamples") for r in rows):
+        lines += ["", "± is half the width of the 95 % percentile bootstrap interval over scenes."]
+    if best is not None:
+        lines += ["", f"Best: {best.get('point')} ({plan.settings.metric} = {best[plan.settings.metric]:.4f})."]
+    write_text_atomic(out / "results.md", "\n".join(lines) + "\n")
+    return out / "results.csv", out / "results.md"
+
+
+def read_results_csv(path) -> list[dict]:
+    """``results.csv`` back as rows (numbers as floats, empty cells as None)."""
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            rows.append({k: (None if v == "" else parse_number(v)) for k, v in r.items()})
+    return rows

@@ -1,0 +1,154 @@
+"""spread-ablate: rows with one guidance term at a time, training seeds (mean ± sd across seeds beside the
+bootstrap interval, error bars), training stages through a launcher (DDP inside an ablation).
+
+Fast: the one-term rows' overrides and the table across seeds with fake commands (known answers); the
+launchers' command lines. Slow: ``seeds=[0,1]`` with every row end to end on tiny data; a training stage as
+2 CPU DDP processes (gloo) through ``train.launcher=local``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+from spread.experiments.ablation import Ablation, AblationSpec, TERMS
+from spread.experiments.ablation_seeds import aggregate, run_seeded_ablation
+from spread.experiments.launch import LaunchedCommands, launch_prefix
+from spread.experiments.tables import read_csv
+
+from helpers import FAST_TRAIN, SMALL_MODEL, compose, make_dataset
+from test_ablate_report import FakeCommands, args, metrics_json
+
+ALL = ("base", "geometry", "guidance", *TERMS)
+
+
+class SeededFakeCommands(FakeCommands):
+    """FakeCommands whose Col_mesh depends on the row and the seed: 0.1 · row index + 0.01 · seed."""
+
+    def evaluate(self, overrides):
+        a = args(overrides)
+        out = Path(a["out_dir"])
+        out.mkdir(parents=True, exist_ok=True)
+        value = 0.1 * ALL.index(out.name) + 0.01 * int(a["seed"])
+        m = {**metrics_json(value, 1 - value), "col_mesh_lo": value - 0.05, "col_mesh_hi": value + 0.05,
+             "bootstrap": {"level": 0.95, "resamples": 1000, "seed": 0, "method": "percentile"}}
+        (out / "metrics.json").write_text(json.dumps(m))
+        self.calls.append(("evaluate", out.name, a["resume"]))
+        return {}
+
+
+def fake_spec(tmp_path, **kw) -> AblationSpec:
+    return AblationSpec(**{**dict(out_dir=tmp_path / "abl", train=["seed=0"], sample=["seed=0"],
+                                  guidance=["guidance=refine", "guidance.gravity=4.0e-3"], evaluate=["seed=0"],
+                                  generate=["rooms=4"], figures=False, variants=ALL), **kw})
+
+
+def test_one_term_rows_keep_only_their_term(tmp_path):
+    ablation = Ablation(fake_spec(tmp_path), FakeCommands())
+    assert ablation.sample_lists("guidance") == ["seed=0", "guidance=refine", "guidance.gravity=4.0e-3"]
+    assert ablation.sample_lists("guidance_collision")[-2:] == ["guidance.gravity=0.0", "guidance.relation=0.0"]
+    assert ablation.sample_lists("guidance_gravity")[-3:] == ["guidance.gravity=4.0e-3", "guidance.collision=0.0",
+                                                              "guidance.relation=0.0"]
+    assert ablation.sample_lists("guidance_relation")[-2:] == ["guidance.collision=0.0", "guidance.gravity=0.0"]
+    assert ablation.sample_lists("base") == ["seed=0"]
+
+
+def test_seeds_table_is_mean_and_sd_across_seeds_beside_the_bootstrap(tmp_path):
+    commands = SeededFakeCommands()
+    result = run_seeded_ablation(fake_spec(tmp_path), commands, [0, 1, 2])
+    assert not result.errors, result.errors
+    assert [r["variant"] for r in result.records] == list(ALL)
+    trains = [c for c in commands.calls if c[0] == "train"]
+    assert len(trains) == 6 and [c for c in commands.calls if c[0] == "generate"] == [commands.calls[0]]  # data once
+    for i, row in enumerate(result.records):
+        assert row["seeds"] == 3 and math.isclose(row["col_mesh"], 0.1 * i + 0.01)  # mean of +0, +0.01, +0.02
+        assert math.isclose(row["col_mesh_sd"], 0.01)  # sample sd of (0, 0.01, 0.02)
+        assert math.isclose(row["col_mesh_hi"] - row["col_mesh_lo"], 0.1)
+    md = (tmp_path / "abl" / "ablation.md").read_text()
+    assert "+Guidance (gravity only)" in md and "0.410 ± 0.010 (± 0.050)" in md and "mean ± sd across 3" in md
+    csv = read_csv(tmp_path / "abl" / "ablation.csv")
+    assert csv[5]["variant"] == "guidance_relation" and math.isclose(csv[5]["col_mesh_sd"], 0.01)
+    for seed in (0, 1, 2):
+        assert (tmp_path / "abl" / f"seed{seed}" / "ablation.csv").exists()
+        assert json.loads((tmp_path / "abl" / f"seed{seed}" / "ablation.json").read_text())["stages"]
+    commands.calls.clear()  # resumed: every seed's stages are finished
+    run_seeded_ablation(fake_spec(tmp_path), commands, [0, 1, 2])
+    assert commands.calls == []
+
+
+def test_error_bars_are_the_sd_across_seeds_else_the_bootstrap(tmp_path):
+    from spread.experiments.plots import ablation_bars
+    from spread.experiments.tables import METRICS
+
+    rows = aggregate({0: [{"variant": "base", "status": "ok", "grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.7}],
+                      1: [{"variant": "base", "status": "ok", "grecall": 0.7, "grecall_lo": 0.6, "grecall_hi": 0.8}]})
+    drawn = ablation_bars(rows, METRICS[:1], tmp_path / "a.png", label_key="method")
+    assert math.isclose(drawn["grecall"][0], 0.6) and math.isclose(drawn["grecall:error"][0][0], math.sqrt(0.02))
+    boot = ablation_bars([{"method": "x", "grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.7}], METRICS[:1],
+                         tmp_path / "b.png", label_key="method")
+    assert [round(e, 6) for e in boot["grecall:error"][0]] == [0.1, 0.2]
+
+
+def test_launchers_command_lines(monkeypatch):
+    assert launch_prefix("local") == [sys.executable, "-m", "spread.cli.train"]
+    torchrun = launch_prefix("torchrun", 2)
+    assert torchrun[0].endswith("torchrun") and "--standalone" in torchrun and "--nproc-per-node=2" in torchrun
+    monkeypatch.setenv("RDZV_ENDPOINT", "node0:29400")
+    monkeypatch.setenv("RUN_ID", "job7")
+    assert "--rdzv-id=job7" in launch_prefix("torchrun", 4, 2) and "--nnodes=2" in launch_prefix("torchrun", 4, 2)
+    assert launch_prefix("srun", 4, 2)[:3] == ["srun", "--nodes=2", "--ntasks-per-node=4"]
+    with pytest.raises(ValueError, match="train.launcher=mpirun"):
+        LaunchedCommands("mpirun")
+
+
+# ---- slow: end to end -------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("seedsdata"))
+
+
+def tiny_cfg(data: Path, out: Path, *more: str):
+    cfg = compose("ablate", "+preset=quick", f"data.root={data}", f"out_dir={out}", "figures=false", *more)
+    cfg.train.extra = [*SMALL_MODEL, *FAST_TRAIN, "trainer.max_steps=2", "trainer.max_time=null",
+                       *cfg.train.extra]
+    cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=0", "figures=0", "batch_size=2",
+                        "guidance.iterations=2"]
+    cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]
+    return cfg
+
+
+@pytest.mark.slow
+def test_two_seeds_with_every_row_end_to_end(data, tmp_path):
+    from spread.experiments.ablation_command import ablate
+
+    result = ablate(tiny_cfg(data, tmp_path / "q", "seeds=[0,1]"))
+    assert result.ok, result.errors
+    assert [r["variant"] for r in result.records] == list(ALL)
+    for r in result.records:
+        assert r["seeds"] == 2 and r["col_mesh_sd"] is not None and r["grecall_lo"] <= r["grecall_hi"]
+    seeds = [json.loads((tmp_path / "q" / f"seed{s}" / "samples" / "guidance_gravity" / "sampling.json").read_text())
+             for s in (0, 1)]
+    assert [m["fingerprint"]["seed"] for m in seeds] == [0, 1]
+    assert seeds[0]["guidance"]["collision"] == 0.0 and seeds[0]["guidance"]["gravity"] == 4.0e-3
+    assert " ± " in (tmp_path / "q" / "ablation.md").read_text()
+
+
+@pytest.mark.slow
+def test_ddp_training_stage_inside_an_ablation(data, tmp_path):
+    """train.launcher=local with trainer=ddp on 2 CPU processes (gloo): the stage completes, rank 0 writes."""
+    from spread.experiments.ablation_command import ablate
+
+    cfg = tiny_cfg(data, tmp_path / "ddp", "variants=[geometry]", "train.launcher=local")
+    cfg.train.extra = [*cfg.train.extra, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
+    result = ablate(cfg)
+    assert result.ok, result.errors
+    log = (tmp_path / "ddp" / "train" / "geometry" / "launch.log").read_text()
+    assert "spread.cli.train" in log and "trainer=ddp" in log
+    summary = json.loads((tmp_path / "ddp" / "train" / "geometry" / "metrics.json").read_text())
+    assert summary.get("world_size", 2) == 2
+    assert result.records[0]["n_scenes"] == 3

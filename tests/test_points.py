@@ -1,0 +1,113 @@
+"""No stale result: a sweep point is re-used only when its full fingerprint matches (spread.experiments.points,
+spread.runtime.fingerprint), its folder carries the short fingerprint, and the reason of a redo is recorded.
+Fake checkpoint and data files (bytes only): the fingerprint reads files, never loads them."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from spread.experiments.points import POINT, check_point, finish_point, start_point
+from spread.runtime.fingerprint import changed_keys, point_fingerprint, run_tags, short
+
+from helpers import compose
+
+
+@pytest.fixture
+def point(tmp_path):
+    ckpt = tmp_path / "m.ckpt"
+    ckpt.write_bytes(b"weights-1")
+    data = tmp_path / "data"
+    (data / "test").mkdir(parents=True)
+    (data / "test" / "a.npz").write_bytes(b"scene-a")
+    (data / "stats.json").write_text("{}")
+    out = tmp_path / "out"
+    base = [f"ckpt={ckpt}", f"data.root={data}", f"out_dir={out}", "evaluate=true", "guidance=refine"]
+    return {"ckpt": ckpt, "data": data, "out": out, "cfg": lambda *more: compose("sample", *base, *more)}
+
+
+def finish(out, decision):
+    start_point(out, decision)
+    (out / "metrics.json").write_text(json.dumps({"col_mesh": 0.1}))
+    finish_point(out, 1.5)
+
+
+def test_a_point_is_reused_only_when_every_input_matches(point):
+    out, cfg = point["out"], point["cfg"]
+    out.mkdir()
+    first = check_point(cfg(), out)
+    assert (first.reuse, first.fresh, first.reason) == (False, False, None)
+    finish(out, first)
+    assert check_point(cfg(), out).reuse
+    record = json.loads((out / POINT).read_text())
+    assert record["status"] == "finished" and record["short"] == short(first.fingerprint)
+    assert set(record["tags"]) >= {"job_id", "world_size", "node_list", "git_sha"}
+    # every input a number depends on is part of the fingerprint
+    for override, key in [("guidance.iterations=7", "guidance.iterations"), ("seed=3", "sampling.seed"),
+                          ("sampler.steps=9", "sampling.sampler.steps"), ("guidance.collision=0.5", "guidance.collision"),
+                          ("evaluation.protocol.stability_runs=1", "evaluation.protocol.stability_runs"),
+                          ("evaluation.fid.enabled=false", "evaluation.fid.enabled"), ("use_ema=false", "sampling.use_ema")]:
+        decision = check_point(cfg(override), out)
+        assert not decision.reuse and decision.fresh and key in decision.reason, (override, decision.reason)
+    # the same settings, other files: another checkpoint's bytes, another scene in the split
+    point["ckpt"].write_bytes(b"weights-2")
+    assert "ckpt_sha256" in check_point(cfg(), out).reason
+    point["ckpt"].write_bytes(b"weights-1")
+    assert check_point(cfg(), out).reuse
+    (point["data"] / "test" / "a.npz").write_bytes(b"scene-a, changed")
+    assert check_point(cfg(), out).reason == "changed: data"
+
+
+def test_a_redo_clears_the_stale_result_and_records_why(point):
+    out, cfg = point["out"], point["cfg"]
+    out.mkdir()
+    finish(out, check_point(cfg(), out))
+    decision = check_point(cfg("guidance.iterations=7"), out)
+    start_point(out, decision)
+    assert not (out / "metrics.json").exists()  # killed now: the next launch cannot take the old numbers
+    record = json.loads((out / POINT).read_text())
+    assert record["status"] == "running" and record["redone_because"] == "changed: guidance.iterations"
+    assert not check_point(cfg("guidance.iterations=7"), out).reuse  # same settings, not finished: resumed
+    assert check_point(cfg("guidance.iterations=7"), out).fresh is False
+
+
+def test_results_made_before_fingerprints_are_redone(point):
+    out, cfg = point["out"], point["cfg"]
+    out.mkdir()
+    (out / "metrics.json").write_text(json.dumps({"col_mesh": 0.1}))
+    decision = check_point(cfg(), out)
+    assert not decision.reuse and decision.fresh and "no fingerprint" in decision.reason
+    assert check_point(cfg(), out, resume=False).fresh
+
+
+def test_unguided_fingerprint_ignores_weights_and_guided_one_keeps_them(point):
+    cfg = point["cfg"]
+    assert point_fingerprint(cfg("guidance=none", "guidance.collision=0.3")) == point_fingerprint(cfg("guidance=none"))
+    assert changed_keys(point_fingerprint(cfg()), point_fingerprint(cfg("guidance.gravity=0.3"))) == ["guidance.gravity"]
+
+
+def test_sweep_point_folders_carry_the_short_fingerprint(point):
+    from test_ablate_report import compose_hydra
+
+    base = ["+sweep=guidance_grid", f"ckpt={point['ckpt']}", f"data.root={point['data']}"]
+    a = compose_hydra("sample", *base)
+    again = compose_hydra("sample", *base)
+    other = compose_hydra("sample", *base, "guidance.iterations=3")
+    assert a.out_dir == again.out_dir and a.out_dir != other.out_dir
+    fp = short(point_fingerprint(compose("sample", *base, f"out_dir={a.out_dir}")))
+    assert a.out_dir.endswith(f"_{fp}") and re.search(r"/c0.0075_g0.001_r0.001_[0-9a-f]{8}$", a.out_dir)
+    # each launch keeps its own Hydra records (multirun.yaml, logs)
+    assert "/.launches/" in str(a.hydra.sweep.dir)
+
+
+def test_run_tags_name_the_slurm_job(monkeypatch):
+    monkeypatch.setenv("SLURM_JOB_ID", "4242")
+    monkeypatch.setenv("SLURM_NTASKS", "8")
+    monkeypatch.setenv("SLURM_JOB_NODELIST", "node[01-02]")
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.delenv("SLURM_ARRAY_TASK_ID", raising=False)
+    tags = run_tags()
+    assert (tags["job_id"], tags["world_size"], tags["node_list"]) == ("4242", 8, "node[01-02]")
+    assert tags["git_sha"] is None or re.fullmatch(r"[0-9a-f]{40}", tags["git_sha"])

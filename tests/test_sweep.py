@@ -1,0 +1,216 @@
+"""``spread-sweep`` (spread.experiments.sweep) and the Hydra multirun sweep: no stale point, ever.
+
+Fast: the command line → settings, fixed overrides and the search space (presets, comma lists, choice/range/
+interval, Optuna); every ``spread-sweep`` line documented in conf/sweep_run.yaml parses; the results table.
+Slow (a dataset, a tiny checkpoint, real sampling and evaluation): the documented Hydra multirun re-launched
+with another ``guidance.iterations`` makes a new point and an identical re-launch re-uses it; ``spread-sweep``
+with two points writes results.csv, re-uses both points on a re-run, and after a kill finishes with the same
+table; Optuna search; a sweep over a two-node ``ray.cluster_utils.Cluster`` uses both nodes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from spread.configs import conf_dir
+from spread.experiments.sweep import (
+    SweepSettings, grid_points, mark_best, parse_arguments, read_results_csv, search_space, write_results,
+)
+
+from helpers import FAST_TRAIN, SCRIPTS, SMALL_MODEL, make_dataset, train_in_process
+
+TWO = ["+sweep=guidance_grid", "guidance.collision=0.0,0.0075", "guidance.gravity=0.001", "guidance.relation=0.001"]
+QUICK = ["guidance.iterations=2", "sampler.steps=4", "batch_size=2", "renders=0", "logger=none",
+         "evaluation.protocol.stability_runs=1", "evaluation.fid.enabled=false"]
+ENV = {**os.environ, "WANDB_MODE": "disabled", "HYDRA_FULL_ERROR": "1", "OMP_NUM_THREADS": "1"}
+
+
+# ---- fast: the command line and the table ------------------------------------------------------------------
+
+def test_preset_grid_and_command_line_lists_make_the_dimensions():
+    plan = parse_arguments(["ckpt=c.ckpt", "data.root=/d", *TWO, "max_concurrent=2", "out_dir=/tmp/x"])
+    assert plan.settings.max_concurrent == 2 and plan.settings.out_dir == "/tmp/x"
+    assert [(d.key, d.values) for d in plan.dimensions] == [("guidance.collision", ["0.0", "0.0075"])]
+    assert "guidance.gravity=0.001" in plan.fixed and "ckpt=c.ckpt" in plan.fixed and "evaluate=true" in plan.fixed
+    assert grid_points(plan) == [{"guidance.collision": "0.0"}, {"guidance.collision": "0.0075"}]
+    # the preset's other weights stay swept unless fixed: 2 × 3 × 3 points
+    plan = parse_arguments(["ckpt=c", "data.root=/d", "+sweep=guidance_grid", "guidance.collision=0.0,0.0075",
+                            "out_dir=/tmp/x"])
+    assert {d.key: len(d.values) for d in plan.dimensions} == {"guidance.collision": 2, "guidance.gravity": 3,
+                                                                "guidance.relation": 3}
+    assert len(grid_points(plan)) == 18 and len(grid_points(parse_arguments(
+        ["ckpt=c", "data.root=/d", "+sweep=guidance_grid", "out_dir=/x"]))) == 27
+
+
+def test_hydra_search_syntax_becomes_tune_distributions():
+    from ray.tune.search.sample import Categorical, Float
+
+    plan = parse_arguments(["ckpt=c", "data.root=/d", "guidance=refine", "guidance.collision=interval(0.0,0.03)",
+                            "guidance.gravity=choice(0.0,0.001)", "guidance.iterations=range(1,4)",
+                            "search=optuna", "num_samples=3", "metric=col_mesh", "mode=min", "out_dir=/x"])
+    space = search_space(plan)
+    assert isinstance(space["guidance.collision"], Float) and space["guidance.collision"].lower == 0.0
+    assert isinstance(space["guidance.gravity"], Categorical) and space["guidance.gravity"].categories == ["0.0", "0.001"]
+    assert space["guidance.iterations"].categories == ["1", "2", "3"]
+    with pytest.raises(ValueError, match=r"interval\(\) on \['guidance.collision'\] needs search=random"):
+        parse_arguments(["ckpt=c", "data.root=/d", "guidance.collision=interval(0.0,0.03)", "out_dir=/x"])
+    with pytest.raises(ValueError, match="out_dir is required"):
+        parse_arguments(["ckpt=c", "data.root=/d"])
+    with pytest.raises(ValueError, match="search=bayes"):
+        SweepSettings(out_dir="/x", search="bayes")
+
+
+def documented_lines(path: Path, command: str) -> list[list[str]]:
+    text = path.read_text()
+    lines = [line.split(command, 1)[1].split("  #")[0] for line in text.splitlines()
+             if line.lstrip("# ").startswith(command + " ")]
+    return [shlex.split(line.replace("CKPT", "c.ckpt").replace("DIR", "/d")) for line in lines]
+
+
+def test_every_documented_spread_sweep_line_parses():
+    lines = documented_lines(Path(conf_dir()) / "sweep_run.yaml", "spread-sweep") \
+        + documented_lines(Path(conf_dir()) / "sweep" / "guidance_grid.yaml", "spread-sweep")
+    assert len(lines) >= 6
+    for args in lines:
+        plan = parse_arguments(args)
+        assert plan.dimensions, args
+
+
+def test_results_table_marks_the_best_point_and_reads_back(tmp_path):
+    plan = parse_arguments(["ckpt=c", "data.root=/d", *TWO, f"out_dir={tmp_path}", "metric=col_mesh", "mode=min"])
+    rows = [{"guidance.collision": 0.0, "grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.6, "col_mesh": 0.3,
+             "seconds": 2.0, "point": "a", "status": "ok"},
+            {"guidance.collision": 0.0075, "grecall": 0.4, "col_mesh": 0.1, "seconds": 3.0, "point": "b", "status": "ok"}]
+    best = mark_best(rows, "col_mesh", "min")
+    assert best["point"] == "b"
+    csv_path, md_path = write_results(rows, tmp_path, plan, best)
+    back = read_results_csv(csv_path)
+    assert [r["guidance.collision"] for r in back] == [0.0, 0.0075] and [r["best"] for r in back] == ["False", "True"]
+    assert back[0]["grecall_lo"] == 0.4 and back[1]["grecall_lo"] is None
+    md = md_path.read_text()
+    assert "| ★ | 0.0075 |" in md and "0.5000 ± 0.1000" in md and "Best: b (col_mesh = 0.1000)" in md
+
+
+# ---- slow: real points ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """12 generated rooms (3 test graphs) and a 2-step checkpoint of the shrunken model."""
+    import torch
+
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("sweepdata")
+    data = make_dataset(root)
+    train_in_process(root / "train", f"data.root={data}", "experiment=quick", *SMALL_MODEL, *FAST_TRAIN,
+                     "trainer.max_steps=2", "trainer.max_time=null")
+    return {"data": data, "ckpt": root / "train" / "checkpoints" / "last.ckpt"}
+
+
+def spread(script: str, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    proc = subprocess.run([str(SCRIPTS / script), *args], env=ENV, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+@pytest.mark.slow
+def test_hydra_multirun_relaunch_redoes_a_changed_point_and_reuses_an_identical_one(tiny, tmp_path):
+    sweep = tmp_path / "grid"
+    args = ["-m", "+sweep=guidance_grid", f"ckpt={tiny['ckpt']}", f"data.root={tiny['data']}", f"sweep_dir={sweep}",
+            "guidance.collision=0.0075", "guidance.gravity=0.001", "guidance.relation=0.001", *QUICK[1:],
+            "workers=0", "progress=false", "ray.num_cpus=1"]
+    spread("spread-sample", *args, "guidance.iterations=2")
+    (first,) = sweep.glob("c0.0075_g0.001_r0.001_*")
+    stamp = (first / "metrics.json").stat().st_mtime_ns
+    again = spread("spread-sample", *args, "guidance.iterations=2")
+    assert "finished earlier with the same fingerprint, re-used" in again.stdout + again.stderr
+    assert (first / "metrics.json").stat().st_mtime_ns == stamp
+    spread("spread-sample", *args, "guidance.iterations=3")
+    points = sorted(sweep.glob("c0.0075_g0.001_r0.001_*"))
+    assert len(points) == 2 and (first / "metrics.json").stat().st_mtime_ns == stamp
+    (new,) = [p for p in points if p != first]
+    record = json.loads((new / "point.json").read_text())
+    assert record["status"] == "finished" and record["fingerprint"]["guidance"]["iterations"] == 3
+    assert json.loads((new / "metrics.json").read_text())["n_scenes"] == 3
+    launches = sorted((sweep / ".launches").iterdir())
+    assert len(launches) == 3 and all((launch / "multirun.yaml").exists() for launch in launches)
+
+
+def sweep_args(tiny, out: Path, *more: str) -> list[str]:
+    return [f"ckpt={tiny['ckpt']}", f"data.root={tiny['data']}", *TWO, *QUICK, "num_cpus=2", f"out_dir={out}", *more]
+
+
+def table(path: Path) -> list[dict]:
+    keep = re.compile(r"^(guidance\.|col_mesh|grecall|asd|stability|still_fraction|point$|best$|n_scenes)")
+    return [{k: v for k, v in r.items() if keep.match(k)} for r in read_results_csv(path)]
+
+
+@pytest.mark.slow
+def test_spread_sweep_two_points_reuse_and_resume_after_a_kill(tiny, tmp_path):
+    out = tmp_path / "D"
+    started = time.perf_counter()
+    spread("spread-sweep", *sweep_args(tiny, out, "max_concurrent=2"))
+    first = time.perf_counter() - started
+    rows = read_results_csv(out / "results.csv")
+    assert [r["guidance.collision"] for r in rows] == [0.0, 0.0075] and "grecall" in rows[0]
+    assert all(r["status"] == "ok" and r["n_scenes"] == 3 and r["grecall_lo"] <= r["grecall"] <= r["grecall_hi"]
+               for r in rows)
+    assert sum(r["best"] == "True" for r in rows) == 1 and "★" in (out / "results.md").read_text()
+    started = time.perf_counter()
+    again = spread("spread-sweep", *sweep_args(tiny, out, "max_concurrent=2"))
+    assert time.perf_counter() - started < 0.6 * first, again.stdout[-2000:]
+    assert all(r["reused"] == "True" for r in read_results_csv(out / "results.csv"))
+    assert table(out / "results.csv") == table(out / "results.csv")
+    # killed after its first point, then run again: the same table as the uninterrupted sweep
+    killed = tmp_path / "K"
+    log = open(tmp_path / "killed.log", "w")
+    proc = subprocess.Popen([str(SCRIPTS / "spread-sweep"), *sweep_args(tiny, killed, "max_concurrent=1")], env=ENV,
+                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.time() + 400
+        while time.time() < deadline and proc.poll() is None and not any(
+                json.loads(p.read_text()).get("status") == "finished" for p in killed.glob("points/*/point.json")):
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not (killed / "results.csv").exists()
+    spread("spread-sweep", *sweep_args(tiny, killed, "max_concurrent=1"))
+    assert table(killed / "results.csv") == table(out / "results.csv")
+
+
+@pytest.mark.slow
+def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
+    """Optuna TPE over an interval on a 2-node ray.cluster_utils.Cluster (one CPU each): both nodes run trials."""
+    from ray.cluster_utils import Cluster
+
+    from spread.experiments.sweep import run_sweep
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    try:
+        plan = parse_arguments([f"ckpt={tiny['ckpt']}", f"data.root={tiny['data']}", "guidance=refine",
+                                "guidance.collision=interval(0.0,0.03)", "guidance.gravity=0.001", *QUICK,
+                                "search=optuna", "num_samples=4", "max_concurrent=2", f"address={cluster.address}",
+                                f"out_dir={tmp_path / 'tpe'}", "metric=col_mesh", "mode=min"])
+        result = run_sweep(plan)
+    finally:
+        import ray
+
+        ray.shutdown()
+        cluster.shutdown()
+    assert len(result.rows) == 4 and all(r["status"] == "ok" for r in result.rows)
+    assert all(0.0 <= r["guidance.collision"] <= 0.03 for r in result.rows)
+    assert len({r["node"] for r in result.rows}) == 2
+    assert result.best is not None and result.best["col_mesh"] == min(r["col_mesh"] for r in result.rows)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from spread.experiments.ablation import LABELS, AblationResult, AblationSpec, Commands, run_ablation
-from spread.experiments.tables import METRICS, Column, write_tables
+from spread.experiments.tables import Column, columns_of, write_tables
 
 
 @dataclass(frozen=True)
@@ -35,8 +35,8 @@ class SeedColumn(Column):
         boot = "" if half is None else f" (± {half:.{self.digits}f})"
         if latex:
             pm = r"$\pm$"
-            return rf"{text}\,{{\scriptsize{pm}{sd:.{self.digits}f}{boot.replace('±', pm)}}}"
-        return f"{text} ± {sd:.{self.digits}f}{boot}"
+            return rf"{text}\,{{\scriptsize{pm}{sd * self.scale:.{self.digits}f}{boot.replace('±', pm)}}}"
+        return f"{text} ± {sd * self.scale:.{self.digits}f}{boot}"
 
 
 def seed_spec(spec: AblationSpec, seed: int) -> AblationSpec:
@@ -59,12 +59,13 @@ def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
     """One record per variant over the seeds' records (module docstring)."""
     variants = [r["variant"] for r in next(iter(per_seed.values()))] if per_seed else []
     rows = []
+    metrics = columns_of([r for records in per_seed.values() for r in records])
     for variant in variants:
         mine = [r for records in per_seed.values() for r in records if r["variant"] == variant]
         ok = [r for r in mine if r.get("status") == "ok"]
         row = {"variant": variant, "method": LABELS[variant], "seeds": len(ok),
                "status": "ok" if len(ok) == len(mine) else f"{len(mine) - len(ok)} of {len(mine)} seeds failed"}
-        for c in METRICS:
+        for c in metrics:
             values = [float(r[c.key]) for r in ok if isinstance(r.get(c.key), (int, float))]
             row[c.key], row[f"{c.key}_sd"] = mean_sd(values)
             for bound in ("lo", "hi"):
@@ -78,14 +79,16 @@ def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
 def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str = "") -> dict[str, Path]:
     from spread.experiments.plots import ablation_bars
 
-    columns = [Column("method", "Method"), *[SeedColumn(c.key, c.label, c.digits, c.better, c.latex) for c in METRICS]]
+    metrics = columns_of(rows)
+    columns = [Column("method", "Method"),
+               *[SeedColumn(c.key, c.label, c.digits, c.better, c.latex, c.scale) for c in metrics]]
     caption = title or f"Ablation over training seeds {seeds}"
     note = (f"Each cell: mean ± sd across {len(seeds)} training seeds {seeds} (sample sd), then (± h): half the "
             "width of the 95 % bootstrap interval over scenes, averaged over the seeds.")
     paths = write_tables(rows, columns, stem, caption=caption, label="tab:ablation_seeds", note=note,
-                         csv_keys=["variant", "method", "seeds", *[k for c in METRICS for k in (c.key, f"{c.key}_sd")],
+                         csv_keys=["variant", "method", "seeds", *[k for c in metrics for k in (c.key, f"{c.key}_sd")],
                                    "status"])
-    ablation_bars(rows, METRICS, stem.with_suffix(".png"), label_key="method", title=caption)
+    ablation_bars(rows, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
 
 

@@ -203,14 +203,14 @@ def point_name(config: dict) -> str:
 
 def read_metrics(folder: Path) -> dict:
     """Every metric of an evaluation folder with its interval, the point's seconds and fingerprint."""
-    from spread.evaluation.protocol import METRIC_NAMES
     from spread.experiments.intervals import ci_columns, row_intervals
     from spread.experiments.points import read_point
+    from spread.metrics.registry import METRICS
 
     metrics = json.loads((folder / "metrics.json").read_text())
     intervals = ci_columns(row_intervals(metrics, folder))
     row = {}
-    for name in (*METRIC_NAMES, "still_fraction", "fid", "kid"):
+    for name in (*[n for n in METRICS.names() if n in metrics], "still_fraction", "fid", "kid"):
         row[name] = metrics.get(name)
         for bound in ("lo", "hi"):
             if f"{name}_{bound}" in intervals:
@@ -444,8 +444,8 @@ def columns(rows: list[dict], plan: SweepPlan) -> list[str]:
 
 def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None) -> tuple[Path, Path]:
     """``results.csv`` (every field) and ``results.md`` (value ± half-width of the interval, best marked)."""
-    from spread.evaluation.protocol import METRIC_NAMES
     from spread.io import write_text_atomic
+    from spread.metrics.registry import METRICS
 
     cols = columns(rows, plan)
     buf = io.StringIO()
@@ -454,7 +454,7 @@ def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | Non
     for r in rows:
         writer.writerow({k: "" if r.get(k) is None else r.get(k) for k in cols})
     write_text_atomic(out / "results.csv", buf.getvalue())
-    metrics = [m for m in (*METRIC_NAMES, "fid", "kid") if any(m in r for r in rows)] or \
+    metrics = [m for m in (*METRICS.names(), "fid", "kid") if any(m in r for r in rows)] or \
         [plan.settings.metric]
     keys = [d.key for d in plan.dimensions]
     head = ["", *keys, *metrics, "seconds", "point"]

@@ -82,7 +82,9 @@ def test_seeds_table_is_mean_and_sd_across_seeds_beside_the_bootstrap(tmp_path):
 
 def test_error_bars_are_the_sd_across_seeds_else_the_bootstrap(tmp_path):
     from spread.experiments.plots import ablation_bars
-    from spread.experiments.tables import METRICS
+    from spread.experiments.tables import metric_columns
+
+    METRICS = metric_columns()
 
     rows = aggregate({0: [{"variant": "base", "status": "ok", "grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.7}],
                       1: [{"variant": "base", "status": "ok", "grecall": 0.7, "grecall_lo": 0.6, "grecall_hi": 0.8}]})

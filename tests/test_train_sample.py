@@ -357,6 +357,25 @@ def test_guided_sampling_by_config_records_guidance(dataset, trained, tmp_path):
     assert max(moved) > 0
 
 
+def test_guidance_record_every_keeps_the_timeline_in_each_sample(dataset, trained, tmp_path):
+    """``guidance.record_every=2`` with 4 refine iterations keeps the states after iterations 0, 2 and 4 in every
+    file (``trajectory_*``, what spread-view plays); the last is the sample itself, the first differs from it."""
+    from spread.render.viewer import scene_timeline
+
+    args = [f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", "renders=0", "guidance=refine",
+            "guidance.iterations=4", "guidance.collision=0.05", "guidance.record_every=2"]
+    run = sample_in_process(*args, f"out_dir={tmp_path / 'timeline'}")
+    for path in run.files:
+        scene = read_scene(path)
+        t, R = scene.extras["trajectory_translation"], scene.extras["trajectory_rotation"]
+        assert t.shape == (3, scene.num_objects, 3) and R.shape == (3, scene.num_objects, 3, 3)
+        np.testing.assert_allclose(t[-1], scene.translation, atol=1e-6)
+        assert len(scene_timeline(scene)) == 3
+    assert np.abs(read_scene(run.files[0]).extras["trajectory_translation"][0] - read_scene(run.files[0]).translation).max() > 0
+    plain = sample_in_process(*args[:-1], f"out_dir={tmp_path / 'none'}")
+    assert "trajectory_translation" not in read_scene(plain.files[0]).extras
+
+
 def test_batch_size_does_not_change_the_samples(dataset, trained, tmp_path):
     """Each sample has its own noise, seeded by (seed, graph, k): with the (deterministic) DDIM sampler, batches of
     1 and of 3 give the same scenes up to float rounding (different padding shapes)."""

@@ -67,6 +67,10 @@ class GuidanceConfig:
     #: Weights of the other registered terms by name (:mod:`spread.guidance.terms`: plugins, PhyScene's
     #: ``box_iou``), e.g. ``guidance.terms.box_iou=0.15``; the built-ins are weighed by the fields above.
     terms: dict[str, float] = field(default_factory=dict)
+    #: Keep the states every this many guidance iterations (``refine``) or guided steps (``paper``), first and
+    #: last included, in each sample's file as ``trajectory_translation`` / ``trajectory_rotation`` (the
+    #: guidance timeline ``spread-view`` plays); 0: none.
+    record_every: int = 0
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -91,7 +95,8 @@ class GuidanceConfig:
                 if name in ("collision", "gravity", "relation"):
                     raise ValueError(f"guidance: 'terms.{name}': the built-in terms are weighed by guidance.{name}")
                 TERMS_REGISTRY.get(name)  # an unknown term is an error naming the known ones
-        for key, low in (("iterations", 0), ("denoise_every", 0), ("inner_steps", 1), ("max_contacts", 1)):
+        for key, low in (("iterations", 0), ("denoise_every", 0), ("inner_steps", 1), ("max_contacts", 1),
+                         ("record_every", 0)):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"guidance: key '{key}' must be an integer ≥ {low}, got {value!r}")

@@ -80,6 +80,8 @@ class SceneGuidance:
         self.detach_cones = detach_cones
         self.alpha_bar0 = float(training_scheduler().alphas_cumprod[0]) if alpha_bar0 is None else float(alpha_bar0)
         self._on: dict[tuple, dict[str, torch.Tensor]] = {}
+        #: states (B, N, 9) kept every ``config.record_every`` iterations or guided steps (the timeline)
+        self.trajectory: list[torch.Tensor] = []
         self.reset_stats()
 
     # ---- bookkeeping --------------------------------------------------------------------------------
@@ -203,9 +205,17 @@ class SceneGuidance:
         K, k = ctx.num_steps, ctx.index
         if k < math.ceil(self.config.start * K):
             return x0
+        self._record(x0, k - math.ceil(self.config.start * K), first=k == math.ceil(self.config.start * K))
         for _ in range(self.config.inner_steps):
             x0 = self.step(x0, at=(k, K))
+        if k == K - 1:
+            self._record(x0, None, last=True)
         return x0
+
+    def _record(self, x: torch.Tensor, index: int | None, first: bool = False, last: bool = False) -> None:
+        every = self.config.record_every
+        if every and (first or last or (index is not None and index % every == 0)):
+            self.trajectory.append(x.detach().clone())
 
     def refine(self, x: torch.Tensor, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
         """``refine`` mode: ``iterations`` × (t = 0 denoising projection with ``eps_fn``, guidance step)."""
@@ -215,6 +225,7 @@ class SceneGuidance:
         a = self.alpha_bar0
         t_zero = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         every = self.config.denoise_every
+        self._record(x, 0, first=True)
         for it in range(n):
             if every and it % every == 0:
                 t0 = time.perf_counter()
@@ -227,4 +238,7 @@ class SceneGuidance:
                     x = x.clamp(-1.0, 1.0)
             x = self.step(x * keep, at=(it, n))
             self._stats["iterations"] += 1
+            if it + 1 < n:
+                self._record(x, it + 1)
+        self._record(x, None, last=True)
         return x

@@ -228,14 +228,23 @@ class SceneViewer:
         if self.timeline is not None:
             self.timeline.remove()
             self.timeline = None
-        t, R = scene.extras.get("trajectory_translation"), scene.extras.get("trajectory_rotation")
-        if t is None or R is None or len(t) < 2:
+        frames = scene_timeline(scene)
+        if len(frames) < 2:
             return
-        self.timeline = self.server.gui.add_slider("guidance iteration", 0, len(t) - 1, 1, len(t) - 1)
+        self.timeline = self.server.gui.add_slider("guidance iteration", 0, len(frames) - 1, 1, len(frames) - 1)
 
         def move(_):
             self.server.scene.remove_by_name("/scene")
             k = int(self.timeline.value)
-            self.add_group("scene", scene, (0.0, 0.0, 0.0), f"iteration {k}", poses=(t[k], R[k]))
+            self.add_group("scene", scene, (0.0, 0.0, 0.0), f"iteration {k}", poses=frames[k])
 
         self.timeline.on_update(move)
+
+
+def scene_timeline(scene) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The guidance timeline a sample file carries (``spread-sample guidance.record_every=k``): (translation (N, 3)
+    metres, rotation (N, 3, 3)) per recorded iteration, first to last; [] without one."""
+    t, R = scene.extras.get("trajectory_translation"), scene.extras.get("trajectory_rotation")
+    if t is None or R is None or len(t) != len(R):
+        return []
+    return [(np.asarray(t[k], np.float64), np.asarray(R[k], np.float64)) for k in range(len(t))]

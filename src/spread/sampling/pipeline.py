@@ -48,6 +48,8 @@ class SampledPoses:
     translation: np.ndarray
     rotation: np.ndarray
     repaired: int
+    #: the guidance timeline (``guidance.record_every``): translation (T, N, 3) metres, rotation (T, N, 3, 3)
+    trajectory: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def repair_rotations(rotation: np.ndarray) -> tuple[np.ndarray, int]:
@@ -178,8 +180,23 @@ class ScenePipeline:
             poses = self.model.sample(batch, sampler=self.sampler, generator=generators, use_ema=self.use_ema)
         self.guidance_stats = dict(self._last_guidance.stats) if self._last_guidance is not None else {}
         translation, rotation = poses.translation.cpu().numpy(), poses.rotation.cpu().numpy()
+        timeline = self.timeline(mask if sampling_kind(self.model) == "pipeline" else None)
         out = []
         for b, src in enumerate(sources):
-            R, repaired = repair_rotations(rotation[b, :src.num_objects])
-            out.append(SampledPoses(translation[b, :src.num_objects], R, repaired))
+            n = src.num_objects
+            R, repaired = repair_rotations(rotation[b, :n])
+            track = None if timeline is None else (timeline[0][:, b, :n], timeline[1][:, b, :n])
+            out.append(SampledPoses(translation[b, :n], R, repaired, track))
         return out
+
+    def timeline(self, mask) -> tuple[np.ndarray, np.ndarray] | None:
+        """The recorded guidance states decoded to poses: translation (T, B, N, 3), rotation (T, B, N, 3, 3)."""
+        guidance = self._last_guidance
+        if mask is None or guidance is None or not guidance.trajectory:
+            return None
+        import torch
+
+        with torch.no_grad():
+            decoded = [self.model.decode(x, mask) for x in guidance.trajectory]
+        return (np.stack([d.translation.cpu().numpy() for d in decoded]),
+                np.stack([d.rotation.cpu().numpy() for d in decoded]))

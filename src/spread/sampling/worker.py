@@ -82,7 +82,7 @@ def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = 
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,
-                    provenance: str) -> Scene:
+                    provenance: str, trajectory=None) -> Scene:
     """The source's objects, graphs and room with new poses and the provenance extras (module docstring)."""
     scene = source.with_poses(translation, rotation, scene_id=item.name)
     scene.extras = {"source": np.asarray(f"{provenance} graph={item.graph.scene_id} k={item.k}"),
@@ -91,6 +91,9 @@ def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray
         scene.extras["room_type"] = np.asarray(source.extras["room_type"])
     if "mount" in source.extras:  # wall and ceiling mounts stay welded when the sample is simulated
         scene.extras["mount"] = np.asarray(source.extras["mount"])
+    if trajectory is not None:  # the guidance timeline (guidance.record_every), for spread-view
+        scene.extras["trajectory_translation"] = np.asarray(trajectory[0], np.float32)
+        scene.extras["trajectory_rotation"] = np.asarray(trajectory[1], np.float32)
     return scene
 
 
@@ -137,7 +140,7 @@ class SampleWorker:
         scenes = []
         for src, item, p in zip(sources, batch.items, poses):
             self.repaired += p.repaired
-            scenes.append(generated_scene(src, p.translation, p.rotation, item, self.provenance))
+            scenes.append(generated_scene(src, p.translation, p.rotation, item, self.provenance, p.trajectory))
         return scenes
 
     def run(self, batch: BatchPlan) -> dict:

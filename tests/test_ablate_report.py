@@ -520,3 +520,12 @@ def test_wandb_ablation_table_carries_the_bounds_and_the_row_figures(tmp_path, m
     assert logged["data"][0][columns.index("ci_seed")] == 4
     images = sorted(p.name.split("_")[0] for p in (folder / "media" / "images" / "ablation_figure").glob("*.png"))
     assert images == ["base", "truth"]
+
+
+def test_an_unguided_run_reports_zero_guidance_weights_not_the_config_defaults():
+    from spread.experiments.runs import first_number
+
+    unguided = [{"guidance": {"mode": "none", "collision": 0.0075, "gravity": 0.001}}]
+    guided = [{"guidance": {"mode": "refine", "collision": 0.0075}}]
+    assert first_number(unguided, "guidance.collision") == 0.0 and first_number(unguided, "guidance.mode") == "none"
+    assert first_number(guided, "guidance.collision") == 0.0075

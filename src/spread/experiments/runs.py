@@ -137,7 +137,10 @@ def sampling_manifests(path: Path, metrics: dict) -> list[Path]:
 
 def first_number(configs: list, key: str):
     """The first value of ``key`` found in ``configs`` (dotted path; ``guidance.x`` also as ``x`` under a
-    ``guidance`` record); numbers as float."""
+    ``guidance`` record); numbers as float. A guidance weight of a run sampled without guidance
+    (``guidance.mode: none``) is 0: the config's default weight was never applied."""
+    if key.startswith("guidance.") and key != "guidance.mode" and first_number(configs, "guidance.mode") == "none":
+        return 0.0
     for config in configs:
         value = select(config, key)
         if value is None and "." in key:  # sampling.json may hold {"guidance": {...}} or the dict itself

@@ -128,6 +128,12 @@ def training_curves(runs: dict[str, dict]) -> tuple[str | None, list[str]]:
 
 # ---- evaluated runs ------------------------------------------------------------------------------------------
 
+def shown(column: Column, value) -> float | None:
+    """A stored value in the column's display unit (ASD: metres → mm, as its header says); None stays None."""
+    v = number(value)
+    return None if v is None else v * column.scale
+
+
 def varying(records: Sequence[dict], key: str) -> bool:
     return len({number(r.get(key)) for r in records if number(r.get(key)) is not None}) > 1
 
@@ -138,9 +144,10 @@ def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> 
     points = []
     for i, r in enumerate(records):
         x = i if weight is None else number(r.get(weight))
-        y = number(r.get(metric.key))
+        y = shown(metric, r.get(metric.key))
         if x is not None and y is not None:
-            points.append((x, y, number(r.get(f"{metric.key}_lo")), number(r.get(f"{metric.key}_hi")), str(r["run"])))
+            points.append((x, y, shown(metric, r.get(f"{metric.key}_lo")), shown(metric, r.get(f"{metric.key}_hi")),
+                           str(r["run"])))
     if not points:
         return None, []
     fig, ax = figure(figsize=(4.6, 3.3))
@@ -288,7 +295,7 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         for r in records:
             row = [r["run"], *[r.get(w) for w in weights]]
             for c in columns:
-                v, lo, hi = number(r.get(c.key)), number(r.get(f"{c.key}_lo")), number(r.get(f"{c.key}_hi"))
+                v, lo, hi = (shown(c, r.get(k)) for k in (c.key, f"{c.key}_lo", f"{c.key}_hi"))
                 row.append(None if v is None else f"{v:.4g}" + (f" [{lo:.4g}, {hi:.4g}]" if lo is not None
                                                                  and hi is not None else ""))
             rows.append([*row, r.get("n_scenes")])
@@ -313,7 +320,7 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         room_rows = []
         for r in records:
             for room, m in (metrics_of(r).get("per_room_type") or {}).items():
-                room_rows.append([r["run"], room, m.get("n_evaluated"), *[m.get(c.key) for c in columns]])
+                room_rows.append([r["run"], room, m.get("n_evaluated"), *[shown(c, m.get(c.key)) for c in columns]])
         held["room_rows"] = len(room_rows)
         if room_rows:
             parts.append("<h2>Per room type</h2>" + table(["run", "room type", "scenes",

@@ -451,6 +451,20 @@ def test_two_evaluations_of_one_folder_never_share_a_metrics_json(dataset, tmp_p
         holder.kill()
         holder.wait()
     assert not (out / "metrics.json").exists() and not (out / "per_scene.jsonl").exists()
+    train_dir = tmp_path / "run"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom spread.io import run_lock\n"
+        f"with run_lock({str(train_dir)!r}, 'spread-train'):\n    print('held', flush=True)\n    time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RunFolderBusy, match=r"run: in use by a running spread-train"):
+            train_in_process(train_dir, "experiment=quick", f"data.root={dataset}", "trainer.max_steps=1",
+                             *SMALL_MODEL, *FAST_TRAIN)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not (train_dir / "checkpoints").exists() and not (train_dir / ".hydra").exists()
     # once the folder is free, a run of another protocol is refused by check_protocol
     # (test_robustness.py::test_a_refused_resume_leaves_the_recorded_config_as_it_was)
 

@@ -181,13 +181,21 @@ def print_export_summary(report) -> None:
 # ---- train ---------------------------------------------------------------------------------------------------
 
 def train(cfg: DictConfig, run_dir: Path | None = None, overrides: list[str] | None = None) -> dict:
-    """``spread-train``: fit into ``run_dir`` (default: Hydra's output folder, else ``cfg.out_dir``)."""
+    """``spread-train``: fit into ``run_dir`` (default: Hydra's output folder, else ``cfg.out_dir``). The launching
+    process holds the folder's run lock (:func:`spread.io.run_lock`; DDP's other ranks, started with
+    ``LOCAL_RANK`` set, do not take it), so a second training run into the same folder is refused."""
+    import contextlib
+    import os
+
+    from spread.io import run_lock
     from spread.training.fit import run_folder
     from spread.training.fit import train as fit
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
-    record_config(cfg, run_dir, overrides)()
-    return fit(cfg, run_dir=run_dir)
+    launcher = os.environ.get("LOCAL_RANK", "0") in ("", "0") and os.environ.get("RANK", "0") in ("", "0")
+    with run_lock(run_dir, "spread-train") if launcher else contextlib.nullcontext():
+        record_config(cfg, run_dir, overrides)()
+        return fit(cfg, run_dir=run_dir)
 
 
 # ---- evaluate ------------------------------------------------------------------------------------------------

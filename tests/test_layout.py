@@ -29,7 +29,7 @@ FLOORS = (
     ("physics", "relations"),
     ("scene",),
     ("assets",),
-    ("safe_load",),  # checks a checkpoint file with spread.io before loading it
+    ("safe_load",),  # loaders that run no code: check their files with io's bounded-read helper
     ("io", "registry"),
 )
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}

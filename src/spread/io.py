@@ -1,14 +1,17 @@
-"""Atomic file writes shared by every part that writes to disk.
+"""Atomic file writes shared by every part that writes to disk, and the checks on what is read and written.
 
 A write goes to a temporary file in the destination folder and is moved into place with
 ``os.replace``, so a reader sees either the old file or the complete new one, never a torn file,
-and a crash mid-write loses nothing that was already there.
+and a crash mid-write loses nothing that was already there. Appends never follow a symbolic link
+(:func:`open_append_nofollow`); an input is checked to be a regular file of plausible size before it is
+read or hashed (:func:`check_input_file`); a run folder is locked while a run writes it (:func:`run_lock`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import tempfile
 from pathlib import Path
@@ -258,7 +261,7 @@ def refuse_links(*paths: str | os.PathLike) -> None:
                                     f"files only as plain files inside the run folder: remove the link")
 
 
-class RunLogFileHandler(__import__("logging").FileHandler):
+class RunLogFileHandler(logging.FileHandler):
     """Hydra's ``<command>.log`` handler (``conf/hydra/default.yaml``): a symbolic link planted at the log's
     path is replaced by a plain file (its target is never opened), and the file is opened with ``O_NOFOLLOW``."""
 

@@ -34,6 +34,7 @@ METHODS = {
     "physcene": "spread.baselines.diffuscene:DiffuScene",
     "instructscene": "spread.baselines.instructscene:InstructScene",
     "spread": "spread.model.module:SceneDiffusion",
+    "release": "spread.model.release_module:ReleaseDiffusion",  # the authors' weights (spread-release-ckpt out=)
 }
 #: Methods that condition on the relation graph (GRecall is meaningful for them).
 GRAPH_CONDITIONED = ("instructscene", "spread")

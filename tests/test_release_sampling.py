@@ -66,6 +66,28 @@ def test_the_import_keeps_what_the_release_network_reads(imported):
     assert scene.extras["release_relations"].tolist() == [[1, 1, 2], [1, 1, 3], [0, 1, 1]]
 
 
+def test_a_converted_checkpoint_loads_by_its_method_and_samples_through_the_sampling_library(fixture, imported,
+                                                                                             tmp_path):
+    """In process (fast): convert, load by the saved method, sample with the spread-sample library path."""
+    from helpers import sample_in_process
+
+    from spread.baselines import load_module
+    from spread.cli.release_ckpt import convert
+    from spread.model.release_module import ReleaseDiffusion
+
+    config, weights, keys, _ = fixture
+    out = tmp_path / "release.ckpt"
+    convert(str(release_ckpt(tmp_path / "ckpt.pth", weights, keys)), str(out), use_ema=False,
+            overrides=network_overrides(config))
+    module = load_module(out)
+    assert isinstance(module, ReleaseDiffusion) and module.hparams.weights == "raw"
+    assert not torch.equal(module.network.state_dict()["proj_out.1.bias"], weights["proj_out.1.bias"])  # raw ≠ EMA
+    result = sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 's'}", "sampler=ddpm",
+                               "sampler.steps=3", "logger=none", "renders=0")
+    assert len(result.files) == 2
+
+
+@pytest.mark.slow
 def test_a_converted_release_ckpt_samples_with_spread_sample_and_scores_with_spread_evaluate(fixture, imported,
                                                                                            tmp_path):
     config, weights, keys, _ = fixture

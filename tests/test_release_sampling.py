@@ -30,7 +30,7 @@ def network_overrides(config) -> list[str]:
     fields = ("attn_dim", "t_dim", "n_heads", "n_layers", "context_dim", "num_freq_bands", "perceiver_depth",
               "num_latents", "cross_heads", "cross_dim_head", "latent_heads", "latent_dim_head", "num_classes",
               "self_per_cross")
-    return [f"model.config.{f}={getattr(config, f)}" for f in fields] + [f"model.num_points={POINTS}"]
+    return [f"model.config.{f}={getattr(config, f)}" for f in fields] + [f"model.config.num_points={POINTS}"]
 
 
 def release_src_with_features(root: Path) -> Path:

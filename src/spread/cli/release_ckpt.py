@@ -53,14 +53,14 @@ def convert(ckpt: str, out: str, use_ema: bool = True, overrides: list[str] = ()
 
     hp = model_hparams(list(overrides))
     hp.update(weights="ema" if use_ema else "raw", source=str(ckpt))
-    net = load_release_checkpoint(ckpt, hp["config"], use_ema=use_ema)
     module = ReleaseDiffusion(**hp)
+    net = load_release_checkpoint(ckpt, module.network.config, use_ema=use_ema)
     module.network.load_state_dict(net.state_dict(), strict=True)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:
         torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict(),
-                    "datamodule_hyper_parameters": {"num_points": int(hp["num_points"]), "seed": 0}}, tmp)
+                    "datamodule_hyper_parameters": {"num_points": module.config.num_points, "seed": 0}}, tmp)
     return module
 
 
@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> None:
         if args["out"]:
             net = convert(args["ckpt"], args["out"], args["use_ema"], args["overrides"]).network
         else:
-            net = load_release_checkpoint(args["ckpt"], model_hparams(args["overrides"])["config"], use_ema=args["use_ema"])
+            config = {k: v for k, v in model_hparams(args["overrides"])["config"].items() if k != "num_points"}
+            net = load_release_checkpoint(args["ckpt"], config, use_ema=args["use_ema"])
     except (ReleaseCheckpointError, FileNotFoundError) as exc:
         raise SystemExit(f"spread-release-ckpt: {exc}") from exc
     c = net.config

@@ -71,7 +71,9 @@ class ReleaseDiffusion(L.LightningModule):
         super().__init__()
         if method != self.method:
             raise ValueError(f"ReleaseDiffusion: hyperparameters are for method '{method}', not 'release'")
-        net_config = ReleaseNetworkConfig(**dict(config or {}))
+        config = dict(config or {})
+        num_points = int(config.pop("num_points", num_points))  # conf/model/release.yaml keeps it in config
+        net_config = ReleaseNetworkConfig(**config)
         bounds = [float(b) for b in bounds]
         if len(bounds) != 6 or not all(hi > lo for lo, hi in zip(bounds[:3], bounds[3:])):
             raise ValueError(f"ReleaseDiffusion: bounds must be [min x, y, z, max x, y, z], got {bounds}")

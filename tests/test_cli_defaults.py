@@ -64,11 +64,11 @@ def test_spread_generate_and_export_at_their_defaults(tmp_path):
     from spread.assets.build import build_library
     from spread.scene import list_scene_files
 
-    build_library(tmp_path / "lib", categories=["dining_table", "chair", "mug", "book"], variants=1, processes=1,
+    build_library(tmp_path / "lib", categories=["dining_table", "chair", "mug"], variants=1, processes=1,
                   progress=False, caches=False)
     data = tmp_path / "rooms"
     run_script("spread-generate", f"out_dir={data}", "rooms=10", "progress=false", "renders=0",
-               f"assets.copy_from={tmp_path / 'lib'}", "room.max_objects=6")
+               f"assets.copy_from={tmp_path / 'lib'}", "room.max_objects=4")
     manifest = json.loads((data / "manifest.json").read_text())
     assert manifest["config"]["processes"] == 2 and not manifest["failed_rooms"]
     test_files = list_scene_files(data / "test")

@@ -380,3 +380,44 @@ def test_an_imported_threed_front_dataset_trains_samples_evaluates_per_room_type
     report = export(compose("export", f"scenes={tmp_path / 'samples' / 'scenes'}", f"assets={data / 'assets'}",
                             "format=mjcf", f"out_dir={tmp_path / 'mjcf'}", "progress=false"))
     assert not report.failed and len(list((tmp_path / "mjcf").glob("*.xml"))) == 2
+
+
+def test_a_class_seen_only_in_test_widens_the_one_hot_and_is_named_unknown(tmp_path):
+    """Upstream's stats come from train + val, its one-hot from all splits: a test-only class ('lamp', column 1
+    here) widens every file. The width comes from the files, the stats' classes are placed by name on the columns
+    train and val use, the extra column is named unknown_1 and listed in the manifest."""
+    src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
+    rooms = sorted(p for p in src.iterdir() if p.is_dir())
+    split_of = dict(line.split(",") for line in splits.read_text().split())
+    test_room = next(r for r in rooms if split_of[r.name.split("-house_")[1]] == "test")
+    for room in rooms:
+        arrays = dict(np.load(room / "boxes.npz"))
+        labels = arrays["class_labels"]  # columns desk, mug, box, start, end → desk, lamp, mug, box, start, end
+        wide = np.concatenate([labels[:, :1], np.zeros((len(labels), 1), labels.dtype), labels[:, 1:]], axis=1)
+        if room == test_room:
+            wide[1] = 0
+            wide[1, 1] = 1  # the mug is of the test-only class
+        np.savez(room / "boxes.npz", **{**arrays, "class_labels": wide})
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(tmp_path / "out"), splits=str(splits),
+                                           room_type="bedroom", **FAST))
+    assert manifest["failed_rooms"] == 0, manifest["errors"]
+    columns = manifest["source"]["class_columns"]
+    assert columns["width"] == 6 and columns["extra"] == ["unknown_1"]
+    assert columns["names"] == ["desk", "unknown_1", "mug", "box", "start", "end"]
+    scenes = {read_scene(p).extras["source_tag"].item(): read_scene(p) for p in (tmp_path / "out").glob("*/*.npz")}
+    assert list(scenes[test_room.name].category) == ["desk", "unknown_1", "box"]
+    assert all(list(s.category) == ["desk", "mug", "box"] for tag, s in scenes.items() if tag != test_room.name)
+
+
+def test_a_one_hot_the_stats_cannot_be_placed_on_is_refused_naming_the_widths(tmp_path):
+    src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
+    for room in sorted(p for p in src.iterdir() if p.is_dir()):
+        arrays = dict(np.load(room / "boxes.npz"))
+        labels = arrays["class_labels"]
+        np.savez(room / "boxes.npz", **{**arrays, "class_labels": np.concatenate([labels, labels[:, :2] * 0], axis=1)})
+    (src / "dataset_stats.txt").write_text(json.dumps({"class_labels": ["desk", "mug", "box", "cup", "start", "end"],
+                                                        "bounds_translations": [-2.0, 0.0, -2.0, 2.0, 1.5, 2.0]}))
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(tmp_path / "out"), splits=str(splits),
+                                           room_type="bedroom", **FAST))
+    assert manifest["failed_rooms"] == 4
+    assert "7 columns" in json.dumps(manifest["errors"]) and "cannot be placed by name" in json.dumps(manifest["errors"])

@@ -6,6 +6,7 @@
 | ``diffuscene`` | :mod:`~spread.baselines.diffuscene` | DDPM over object slots, 1-D UNet with attention |
 | ``physcene`` | :mod:`~spread.baselines.diffuscene` | DiffuScene sampled with oriented box-IoU collision guidance |
 | ``instructscene`` | :mod:`~spread.baselines.instructscene` | graph → layout: graph transformer on a 10-predicate graph |
+| ``release`` | :mod:`~spread.model.release_module` | the SPREAD release's network with the authors' weights (sampling only; ``spread-release-ckpt out=``) |
 
 Each is a LightningModule that trains on :class:`~spread.data.SceneDataModule` batches
 (``spread-train experiment=<method>`` / ``<method>_quick``) and whose ``sample(batch, sampler, generator,

@@ -92,3 +92,7 @@ register_method(MethodSpec(
     "spread", "spread.model.module:SceneDiffusion", label="SPREAD (ours)", note="the platform's SceneDiffusion",
     graph_conditioned=True, train=("experiment=geometry",), train_quick=("experiment=quick", "model.variant=geometry"),
     order=50))
+register_method(MethodSpec(
+    "release", "spread.model.release_module:ReleaseDiffusion", label="SPREAD (authors' weights)",
+    note="the release's network and checkpoint (spread-release-ckpt out=)", sampling="own", graph_conditioned=True,
+    order=60))

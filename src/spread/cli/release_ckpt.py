@@ -1,5 +1,10 @@
-"""``spread-release-ckpt ckpt=PATH [use_ema=true]``: load the SPREAD authors' ``ckpt.pth`` into the release's
-network (:mod:`spread.model.release`) and report it; refuses a file whose weights do not fit, naming the keys."""
+"""``spread-release-ckpt ckpt=PATH [use_ema=true] [out=PATH] [model.<key>=VALUE ...]``: load the SPREAD
+authors' ``ckpt.pth`` into the release's network (``experiment=release``: conf/model/release.yaml, whose keys
+``model.*=`` overrides change, e.g. ``model.bounds=[...]``) and report it; refuses a file whose weights do not
+fit, naming the keys. With ``out=``, also write a platform checkpoint of
+:class:`~spread.model.release_module.ReleaseDiffusion` (``{"hyper_parameters": {"method": "release", ...},
+"state_dict", "datamodule_hyper_parameters"}``, loadable with ``weights_only=True``) that ``spread-sample
+ckpt=OUT`` samples and ``spread-evaluate`` scores."""
 
 from __future__ import annotations
 
@@ -7,18 +12,56 @@ import sys
 
 
 def parse(argv: list[str]) -> dict:
-    """``key=value`` arguments: ``ckpt`` (required) and ``use_ema`` (default true)."""
-    args = {"use_ema": "true"}
+    """``key=value`` arguments: ``ckpt`` (required), ``use_ema`` (default true), ``out``, ``model.*`` overrides."""
+    args = {"use_ema": "true", "out": None, "overrides": []}
     for arg in argv:
         key, sep, value = arg.partition("=")
-        if not sep or key not in ("ckpt", "use_ema"):
-            raise SystemExit(f"spread-release-ckpt: unknown argument {arg!r} (usage: ckpt=PATH [use_ema=true|false])")
+        if sep and key.startswith("model."):
+            args["overrides"].append(arg)
+            continue
+        if not sep or key not in ("ckpt", "use_ema", "out"):
+            raise SystemExit(f"spread-release-ckpt: unknown argument {arg!r} (usage: ckpt=PATH [use_ema=true|false] "
+                             f"[out=PATH] [model.<key>=VALUE ...])")
         args[key] = value
     if "ckpt" not in args:
         raise SystemExit("spread-release-ckpt: ckpt=PATH is required (the release's ckpt.pth)")
     if args["use_ema"].lower() not in ("true", "false"):
         raise SystemExit(f"spread-release-ckpt: use_ema={args['use_ema']!r}: expected true or false")
-    return {"ckpt": args["ckpt"], "use_ema": args["use_ema"].lower() == "true"}
+    args["use_ema"] = args["use_ema"].lower() == "true"
+    return args
+
+
+def model_hparams(overrides: list[str]) -> dict:
+    """``experiment=release``'s model keys (no ``_target_``), with ``model.*`` overrides."""
+    from omegaconf import OmegaConf
+
+    from spread.configs import compose
+
+    cfg = compose("train", ["experiment=release", "data.root=/unused", *overrides])
+    return {k: v for k, v in OmegaConf.to_container(cfg.model, resolve=True).items() if not k.startswith("_")}
+
+
+def convert(ckpt: str, out: str, use_ema: bool = True, overrides: list[str] = ()) -> "object":
+    """Write the platform checkpoint of ``ckpt`` at ``out`` (atomically); returns the ReleaseDiffusion."""
+    from pathlib import Path
+
+    import torch
+
+    from spread.io import atomic_path
+    from spread.model.release import load_release_checkpoint
+    from spread.model.release_module import ReleaseDiffusion
+
+    hp = model_hparams(list(overrides))
+    hp.update(weights="ema" if use_ema else "raw", source=str(ckpt))
+    module = ReleaseDiffusion(**hp)
+    net = load_release_checkpoint(ckpt, module.network.config, use_ema=use_ema)
+    module.network.load_state_dict(net.state_dict(), strict=True)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        torch.save({"hyper_parameters": dict(module.hparams), "state_dict": module.state_dict(),
+                    "datamodule_hyper_parameters": {"num_points": module.config.num_points, "seed": 0}}, tmp)
+    return module
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -26,7 +69,11 @@ def main(argv: list[str] | None = None) -> None:
 
     args = parse(sys.argv[1:] if argv is None else argv)
     try:
-        net = load_release_checkpoint(args["ckpt"], use_ema=args["use_ema"])
+        if args["out"]:
+            net = convert(args["ckpt"], args["out"], args["use_ema"], args["overrides"]).network
+        else:
+            config = {k: v for k, v in model_hparams(args["overrides"])["config"].items() if k != "num_points"}
+            net = load_release_checkpoint(args["ckpt"], config, use_ema=args["use_ema"])
     except (ReleaseCheckpointError, FileNotFoundError) as exc:
         raise SystemExit(f"spread-release-ckpt: {exc}") from exc
     c = net.config
@@ -34,6 +81,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{args['ckpt']}: the release's network, {'EMA' if args['use_ema'] else 'raw'} weights, {params:,} parameters "
           f"(width {c.attn_dim}, {c.n_layers} blocks, {c.num_latents} × {c.attn_dim} perceiver latents, edge width "
           f"{c.attn_dim // 4}); no missing or unexpected keys")
+    if args["out"]:
+        print(f"wrote {args['out']} (method 'release'): spread-sample ckpt={args['out']} data.root=<imported dataset> "
+              f"out_dir=<dir> sampler=ddpm")
 
 
 if __name__ == "__main__":

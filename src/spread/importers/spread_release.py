@@ -21,7 +21,8 @@ The manifest counts objects whose ``bbox_center`` differs from the mesh's by mor
 
 Categories come from a table of the release's asset names, and near-rotations, off-diagonal "self" codes and
 support cycles are repaired and counted rather than refused (:mod:`spread.importers.release_details`); the
-file's triples, "Empty" and root ones included, stay in the scene as ``release_relations``.
+file's triples, "Empty" and root ones included, stay in the scene as ``release_relations``, and its
+``regions_bbox`` as it is (root row and column included) as ``release_regions`` (the release network reads them).
 
 Mounts: from the file's support triples (the root entry's included) and the posed meshes
 (:func:`spread.importers.mounts.release_mounts`; counts ``mount_*`` in the manifest).
@@ -143,6 +144,7 @@ class SpreadRelease(Source):
         scene.extras["category_known"] = np.array([k for _, k in named])
         if "relations" in raw and np.size(raw["relations"]):  # every triple, "Empty" and root ones included
             scene.extras["release_relations"] = np.asarray(raw["relations"]).reshape(-1, 3).astype(np.int64)
+        scene.extras["release_regions"] = np.asarray(raw["regions_bbox"]).astype(np.int64)  # as the file has it, root too
         repairs["unknown_categories"] = int(sum(not k for _, k in named))
         return file, arrays, scene, repairs
 

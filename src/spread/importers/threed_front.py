@@ -127,6 +127,7 @@ class ThreedFront(Source):
         self.object_types = [str(c) for c in self.stats.get("object_types") or []]
         if not self.class_labels and not self.object_types:
             raise ValueError(f"{stats_path}: key 'class_labels' missing or empty")
+        self._columns: dict | None = None  # class_columns(), memoised
 
     def info(self) -> dict:
         return {"source": self.name, "src": str(self.src), "splits": str(self.splits_path),
@@ -134,7 +135,7 @@ class ThreedFront(Source):
                 "future_models": str(self.future_models) if self.future_models else None,
                 "meshes": "3D-FUTURE raw_model.obj scaled to the file's sizes" if self.future_models
                 else "oriented boxes of the file's sizes (no future_models given)",
-                "graph": self.relations_rule}
+                "graph": self.relations_rule, "class_columns": self.class_columns()}
 
     def rooms(self) -> RoomList:
         split_of = read_splits(self.splits_path)
@@ -192,14 +193,74 @@ class ThreedFront(Source):
                                                  f"dtype {arrays['jids'].dtype}")
         return file, arrays
 
+    def class_columns(self) -> dict:
+        """The names of the files' one-hot columns (memoised; in the manifest's ``source``).
+
+        Upstream writes ``dataset_stats.txt`` from train + val but one-hot encodes with train + val + test
+        classes, so a class seen only in test widens every file beyond ``class_labels``. The width is taken
+        from the files (the most common one); when it exceeds the stats' list, the stats' classes are mapped
+        by name onto the columns that train and val rooms use (every stats class occurs there, by how upstream
+        made the list; both lists in the same sorted order), trailing ``start`` / ``end`` onto the last
+        columns, and each remaining column is named ``unknown_<column>`` and listed under ``extra``."""
+        if self._columns is None:
+            self._columns = self._resolve_columns()
+        return self._columns
+
+    def _resolve_columns(self) -> dict:
+        from collections import Counter
+
+        widths: Counter = Counter()
+        used: set[int] = set()
+        for ref in self.rooms().rooms:
+            try:
+                with np.load(Path(ref.folder) / "boxes.npz", allow_pickle=False) as f:
+                    labels = np.asarray(f["class_labels"])
+            except Exception:  # noqa: BLE001  (the room fails on its own, naming its file, when imported)
+                continue
+            if labels.ndim != 2 or not labels.shape[0] or labels.dtype.kind not in "fiub":
+                continue
+            widths[labels.shape[1]] += 1
+            if ref.split in ("train", "val"):
+                used.update(int(i) for i, m in zip(labels.argmax(1), labels.max(1)) if m > 0)
+        stats = self.class_labels or self.object_types
+        width = widths.most_common(1)[0][0] if widths else len(stats)
+        out = {"width": width, "stats_classes": len(stats), "names": None, "extra": [], "error": None}
+        if width in (len(self.class_labels), len(self.object_types)):
+            out["names"] = self.class_labels if len(self.class_labels) == width else self.object_types
+            return out
+        tail = []
+        for token in reversed(stats):
+            if token in ("start", "end") and len(tail) < 2:
+                tail.insert(0, token)
+            else:
+                break
+        real = stats[:len(stats) - len(tail)]
+        n_real = width - len(tail)
+        known = sorted(c for c in used if c < n_real)
+        if width < len(stats) or len(known) != len(real):
+            out["error"] = (f"the files have {width} one-hot columns, dataset_stats.txt {len(self.class_labels)} "
+                            f"class_labels and {len(self.object_types)} object_types; train and val rooms use "
+                            f"{len(known)} of the columns, so the stats' {len(real)} classes cannot be placed by name")
+            return out
+        names = [f"unknown_{c}" for c in range(n_real)] + tail
+        for column, name in zip(known, real):
+            names[column] = name
+        out["names"] = names
+        out["extra"] = [n for c, n in enumerate(names[:n_real]) if c not in set(known)]
+        return out
+
     def categories(self, file: str, labels: np.ndarray) -> list[str]:
         width = labels.shape[1]
         names = self.class_labels if len(self.class_labels) == width else (
             self.object_types if len(self.object_types) == width else None)
+        columns = self.class_columns() if names is None else {"error": None}
+        if names is None and width == columns["width"]:
+            names = columns["names"]
         if names is None:
             raise SceneFormatError(file, "class_labels", f"{width} columns, but dataset_stats.txt has "
                                                          f"{len(self.class_labels)} class_labels and "
-                                                         f"{len(self.object_types)} object_types")
+                                                         f"{len(self.object_types)} object_types"
+                                                         + (f" ({columns['error']})" if columns["error"] else ""))
         index = labels.argmax(1)
         out = []
         for k, i in enumerate(index):

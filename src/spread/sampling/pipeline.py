@@ -177,6 +177,8 @@ class ScenePipeline:
             x, mask = self.sample_states(batch, generators, self.callbacks(batch, sources))
             poses = self.model.decode(x, mask)
         else:
+            if hasattr(self.model, "scene_inputs"):  # arrays the model reads from the source scenes (the release's)
+                batch.update(self.model.scene_inputs(sources, self.dataset.library))
             poses = self.model.sample(batch, sampler=self.sampler, generator=generators, use_ema=self.use_ema)
         self.guidance_stats = dict(self._last_guidance.stats) if self._last_guidance is not None else {}
         translation, rotation = poses.translation.cpu().numpy(), poses.rotation.cpu().numpy()

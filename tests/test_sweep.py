@@ -214,3 +214,17 @@ def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
     assert all(0.0 <= r["guidance.collision"] <= 0.03 for r in result.rows)
     assert len({r["node"] for r in result.rows}) == 2
     assert result.best is not None and result.best["col_mesh"] == min(r["col_mesh"] for r in result.rows)
+
+
+@pytest.mark.slow
+def test_training_sweep_with_asha_reports_each_validation(tiny, tmp_path):
+    from spread.experiments.sweep import run_sweep
+
+    plan = parse_arguments(["command=train", "experiment=quick", f"data.root={tiny['data']}", *SMALL_MODEL,
+                            *FAST_TRAIN, "trainer.max_steps=4", "trainer.max_time=null",
+                            "trainer.check_val_every_n_epoch=1", "model.lr=1e-3,5e-4", "scheduler=asha",
+                            "metric=val/loss", "mode=min", "num_cpus=2", "max_concurrent=2", f"out_dir={tmp_path / 'lr'}"])
+    result = run_sweep(plan)
+    assert [r["model.lr"] for r in result.rows] == [0.0005, 0.001] and all(r["status"] == "ok" for r in result.rows)
+    assert all(isinstance(r["val/loss"], float) for r in result.rows) and result.best is not None
+    assert len(list((tmp_path / "lr" / "points").glob("lr*/checkpoints/last.ckpt"))) == 2

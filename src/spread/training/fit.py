@@ -63,8 +63,10 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
 
 
 def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
-    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values (rank zero only)."""
+    """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values, where it ran (rank zero
+    only)."""
     from spread.io import write_json_atomic
+    from spread.runtime.fingerprint import run_tags
 
     last = run_dir / "checkpoints" / "last.ckpt"
     summary = {
@@ -72,6 +74,7 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None) -> dict:
         "last_checkpoint": str(last) if last.exists() else None,
         "resumed_from": None if resumed_from is None else str(resumed_from),
         "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+        "run": {**run_tags(), "world_size": int(trainer.world_size)},  # job id, nodes, git SHA (runtime.fingerprint)
     }
     if trainer.is_global_zero:
         write_json_atomic(run_dir / "metrics.json", summary)

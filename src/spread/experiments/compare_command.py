@@ -48,7 +48,11 @@ def compare(cfg: DictConfig):
         def log_table(records, columns):
             log_table1(records, columns, spec.out_dir, logger, name=f"table1/{cfg.name}", group=spec.group,
                        config=OmegaConf.to_container(cfg, resolve=True))
-    return run_comparison(spec, InProcessCommands(), log_table)
+    from spread.experiments.ablation_command import launcher_commands
+
+    commands = launcher_commands(cfg) if cfg.get("train") is not None and cfg.train.get("launcher") else \
+        InProcessCommands()  # train.launcher=local|torchrun|srun: training stages as their own processes (DDP)
+    return run_comparison(spec, commands, log_table)
 
 
 def print_comparison(result) -> None:

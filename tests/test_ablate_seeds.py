@@ -152,5 +152,5 @@ def test_ddp_training_stage_inside_an_ablation(data, tmp_path):
     log = (tmp_path / "ddp" / "train" / "geometry" / "launch.log").read_text()
     assert "spread.cli.train" in log and "trainer=ddp" in log
     summary = json.loads((tmp_path / "ddp" / "train" / "geometry" / "metrics.json").read_text())
-    assert summary.get("world_size", 2) == 2
+    assert summary["run"]["world_size"] == 2 and "git_sha" in summary["run"]
     assert result.records[0]["n_scenes"] == 3

@@ -117,8 +117,10 @@ def test_every_documented_command_line_parses():
 
 
 def plugin(name: str) -> bool:
+    """Whether the Hydra launcher plugin behind conf/hydra/launcher/<name>.yaml is installed."""
     import importlib.util
 
+    name = {"parallel": "joblib", "slurm": "submitit"}.get(name, name)
     try:
         return importlib.util.find_spec(f"hydra_plugins.hydra_{name}_launcher") is not None
     except ModuleNotFoundError:

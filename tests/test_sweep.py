@@ -214,3 +214,39 @@ def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
     assert all(0.0 <= r["guidance.collision"] <= 0.03 for r in result.rows)
     assert len({r["node"] for r in result.rows}) == 2
     assert result.best is not None and result.best["col_mesh"] == min(r["col_mesh"] for r in result.rows)
+
+
+@pytest.mark.slow
+def test_training_sweep_with_asha_reports_each_validation(tiny, tmp_path):
+    from spread.experiments.sweep import run_sweep
+
+    plan = parse_arguments(["command=train", "experiment=quick", f"data.root={tiny['data']}", *SMALL_MODEL,
+                            *FAST_TRAIN, "trainer.max_steps=4", "trainer.max_time=null",
+                            "trainer.check_val_every_n_epoch=1", "model.lr=1e-3,5e-4", "scheduler=asha",
+                            "metric=val/loss", "mode=min", "num_cpus=2", "max_concurrent=2", f"out_dir={tmp_path / 'lr'}"])
+    result = run_sweep(plan)
+    assert [r["model.lr"] for r in result.rows] == [0.0005, 0.001] and all(r["status"] == "ok" for r in result.rows)
+    assert all(isinstance(r["val/loss"], float) for r in result.rows) and result.best is not None
+    # a trial that ran to the end reports its point folder; one ASHA stopped early reported a validation only
+    finished = [r for r in result.rows if r.get("point")]
+    assert finished and all((tmp_path / "lr" / "points" / r["point"] / "metrics.json").exists() for r in finished)
+    assert all(r["step"] < 4 for r in result.rows if not r.get("point"))
+
+
+@pytest.mark.slow
+def test_sampling_grows_its_actor_pool_when_nodes_join(tiny, tmp_path, monkeypatch):
+    """The cluster has room for one sampling actor at the start and for two after the first batch (a node
+    joined, as actor_count sees it): the second actor is started and takes the remaining batches."""
+    import spread.sampling.run as run
+    from spread.configs import to_object
+
+    from helpers import FAST_SAMPLE, compose
+
+    sizes = iter([1])
+    real = run.actor_count
+    monkeypatch.setattr(run, "actor_count", lambda cfg, batches: next(sizes, None) or real(cfg, batches))
+    cfg = to_object(compose("sample", *FAST_SAMPLE, f"ckpt={tiny['ckpt']}", f"data.root={tiny['data']}",
+                            f"out_dir={tmp_path / 's'}", "workers=2", "batch_size=1", "ray.num_cpus=2",
+                            "samples_per_graph=2"))
+    result = run.run_sampling(cfg)
+    assert result.manifest["runner"]["workers"] == 2 and len(result.written) == 6

@@ -55,7 +55,12 @@ def compare(cfg: DictConfig):
                            config=config)
             if run is not None:
                 mlflow_log.log_table(run, records, "method_key", sorted(Path(spec.out_dir).glob("table1*.*")))
-        return run_comparison(spec, InProcessCommands(), log_table if logger.wandb or run is not None else None)
+
+        from spread.experiments.ablation_command import launcher_commands
+
+        commands = launcher_commands(cfg) if cfg.get("train") is not None and cfg.train.get("launcher") else \
+            InProcessCommands()  # train.launcher=local|torchrun|srun: training stages as their own processes (DDP)
+        return run_comparison(spec, commands, log_table if logger.wandb or run is not None else None)
 
 
 def print_comparison(result) -> None:

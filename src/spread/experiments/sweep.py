@@ -315,7 +315,7 @@ def train_trial(config: dict, plan: dict) -> None:
         record_config(cfg, folder, run)()
         fit(cfg, run_dir=folder, extra_callbacks=callbacks)
     summary = json.loads((folder / "metrics.json").read_text())
-    logged = {k: v for k, v in (summary.get("logged") or summary).items() if isinstance(v, (int, float))}
+    logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
     tune.report({**logged, "point": folder.name, "reused": done, "seconds": round(time.perf_counter() - started, 3),
                  "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
 

@@ -253,9 +253,15 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
             on_result(ray.get(done[0]))
             if queue:
                 running[a.run.remote(queue.pop(0))] = a
+            if queue and len(actors) < min(int(cfg.workers), len(todo)):  # nodes that joined since the start
+                for _ in range(actor_count(cfg, len(todo)) - len(actors)):
+                    if not queue:
+                        break
+                    actors.append(actor.remote(**worker_arguments(cfg, scenes_dir)))
+                    running[actors[-1].run.remote(queue.pop(0))] = actors[-1]
         for a in actors:
             ray.kill(a)
-    return {"workers": n, "mode": "ray", **cluster}
+    return {"workers": len(actors), "mode": "ray", **cluster}
 
 
 def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: int) -> list[Path]:

@@ -83,6 +83,7 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: di
     """``<run folder>/metrics.json``: final step, epoch, last checkpoint, logged values, the scene files the
     datasets skipped (split → file, error; rank zero only)."""
     from spread.io import write_json_atomic
+    from spread.runtime.fingerprint import run_tags
 
     last = run_dir / "checkpoints" / "last.ckpt"
     summary = {
@@ -91,6 +92,7 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: di
         "resumed_from": None if resumed_from is None else str(resumed_from),
         "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
         "skipped_scene_files": skipped or {},
+        "run": {**run_tags(), "world_size": int(trainer.world_size)},  # job id, nodes, git SHA (runtime.fingerprint)
     }
     if trainer.is_global_zero:
         write_json_atomic(run_dir / "metrics.json", summary)

@@ -157,7 +157,7 @@ def training_lineage(ckpt: str | os.PathLike | None) -> dict[str, str]:
             break
         if (folder / "checkpoints").is_dir() and (folder / ".hydra").is_dir():
             tags["spread.training_run_folder"] = str(folder.resolve())
-    from spread.runtime.tracking import previous_wandb_id
+    from spread.runtime.logger_config import previous_wandb_id
 
     folder = tags.get("spread.training_run_folder")
     wandb_id = previous_wandb_id(Path(folder)) if folder else None
@@ -220,7 +220,7 @@ def is_number(v) -> bool:
 def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, experiment: str,
              name: str | None = None, tags: dict | None = None) -> MlflowRun | None:
     """Start a run (module docstring) in experiment ``experiment``; None when ``logger`` has no ``mlflow``."""
-    from spread.runtime.tracking import as_logger_config
+    from spread.runtime.logger_config import as_logger_config
 
     logger = as_logger_config(logger)
     if not logger.mlflow:
@@ -334,7 +334,7 @@ class tracked:
         self.run = self.monitor = None
 
     def __enter__(self) -> MlflowRun | None:
-        from spread.runtime.tracking import as_logger_config
+        from spread.runtime.logger_config import as_logger_config
 
         logger, job_type, out_dir, config, experiment, name, tags = self.args
         if as_logger_config(logger).mlflow:

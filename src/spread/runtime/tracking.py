@@ -15,52 +15,9 @@ connection in the offline and disabled modes (nor with a local MLflow store).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
-NAMES = ("wandb", "mlflow", "csv", "none")
-
-
-@dataclass
-class LoggerConfig:
-    """name: ``wandb`` | ``mlflow`` | ``csv`` | ``none``, or several joined by ``+`` (``wandb+mlflow``);
-    mode: wandb's mode (``offline``, ``online``, ``disabled``); project: wandb project; run_name: the run's
-    name (None: the command picks one); tags: extra tags; tracking_uri: the MLflow store (None:
-    ``sqlite:///runs/mlflow.db`` under the working directory; ``conf/logger/mlflow.yaml`` sets
-    ``<paths.runs_dir>/mlflow.db``); a plain path is taken as a SQLite file."""
-
-    name: str = "wandb"
-    mode: str = "offline"
-    project: str = "spread"
-    run_name: str | None = None
-    tags: list[str] = field(default_factory=list)
-    tracking_uri: str | None = None
-
-    def __post_init__(self) -> None:
-        unknown = [n for n in self.names if n not in NAMES]
-        if unknown or not self.names:
-            raise ValueError(f"logger: key 'name' is {self.name!r}, choose from {NAMES} (several: joined by '+')")
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return tuple(n.strip() for n in str(self.name).split("+") if n.strip())
-
-    @property
-    def wandb(self) -> bool:
-        return "wandb" in self.names
-
-    @property
-    def mlflow(self) -> bool:
-        return "mlflow" in self.names
-
-
-def as_logger_config(logger) -> LoggerConfig:
-    """A LoggerConfig from itself, a mapping (a Hydra node), or None (``none``)."""
-    if logger is None:
-        return LoggerConfig(name="none")
-    if isinstance(logger, LoggerConfig):
-        return logger
-    return LoggerConfig(**dict(logger))
+from spread.runtime.logger_config import NAMES, LoggerConfig, as_logger_config, previous_wandb_id  # noqa: F401
 
 
 def init_run(logger: LoggerConfig, job_type: str, out_dir: str | Path, config: dict, group: str | None = None,
@@ -77,12 +34,6 @@ def init_run(logger: LoggerConfig, job_type: str, out_dir: str | Path, config: d
 def run_folder(run) -> str | None:
     """The wandb run's folder (None when wandb is disabled)."""
     return None if run.settings.mode == "disabled" else str(getattr(run, "dir", "") or "")
-
-
-def previous_wandb_id(run_dir: Path) -> str | None:
-    """The id of the newest wandb run in ``<run folder>/wandb`` (``latest-run`` → ``…-run-<time>-<id>``)."""
-    latest = Path(run_dir) / "wandb" / "latest-run"
-    return latest.resolve().name.rsplit("-", 1)[-1] if latest.exists() else None
 
 
 def lightning_loggers(logger: LoggerConfig, run_dir: Path, group: str, tags: list[str], config: dict,

@@ -56,14 +56,20 @@ def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> No
     from spread.safe_load import CheckpointMismatchError
 
     hp = dict(checkpoint.get("hyper_parameters") or {})
-    if "bounds" in hp:
-        hp["bounds"] = None  # set_bounds reads values, which meta tensors do not have
-    try:
-        with torch.device("meta"):
-            shapes = {k: tuple(v.shape) for k, v in cls(**hp).state_dict().items()}
-    except CheckpointMismatchError:
-        raise
-    except Exception:  # noqa: BLE001 - not buildable on meta: leave it to load_state_dict
+    shapes = None
+    # as saved first; then without bounds (the platform's set_bounds reads values, which meta tensors lack)
+    for attempt in (hp, {**hp, "bounds": None} if "bounds" in hp else None):
+        if attempt is None:
+            continue
+        try:
+            with torch.device("meta"):
+                shapes = {k: tuple(v.shape) for k, v in cls(**attempt).state_dict().items()}
+            break
+        except CheckpointMismatchError:
+            raise
+        except Exception:  # noqa: BLE001 - not buildable on meta this way
+            continue
+    if shapes is None:  # not buildable on meta: leave it to load_state_dict
         return
     weights = checkpoint.get("state_dict") or {}
     held = {k: tuple(getattr(v, "shape", ())) for k, v in weights.items()}

@@ -403,8 +403,12 @@ def release_state_dict(ckpt: dict, source: str = "ckpt.pth", use_ema: bool = Tru
 def load_release_checkpoint(path, config: ReleaseNetworkConfig | dict | None = None, use_ema: bool = True,
                             map_location="cpu") -> ReleaseNetwork:
     """A :class:`ReleaseNetwork` (eval mode) with the weights of the release's ``ckpt.pth`` at ``path``
-    (read with ``weights_only=True``); raises :class:`ReleaseCheckpointError` naming missing and unexpected keys."""
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    (read by the platform's one loader, :func:`spread.safe_load.load_checkpoint`: ``weights_only=True`` whatever
+    the environment says, a truncated file named); raises :class:`ReleaseCheckpointError` naming missing and
+    unexpected keys."""
+    from spread.safe_load import load_checkpoint
+
+    ckpt = load_checkpoint(path, map_location=map_location)
     weights = release_state_dict(ckpt, str(path), use_ema)
     net = ReleaseNetwork(config)
     own = net.state_dict()

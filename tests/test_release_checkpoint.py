@@ -119,7 +119,7 @@ def test_the_command_refuses_a_ckpt_of_another_size_naming_the_keys(fixture, tmp
     assert proc.returncode != 0 and "other shapes than the release network" in proc.stderr
     assert "miche_proj.weight (32, 64) (network: (512, 64))" in proc.stderr
     proc = run_script("spread-release-ckpt", "ckpt=/nonexistent/ckpt.pth", ok=False)
-    assert proc.returncode != 0 and "No such file" in proc.stderr
+    assert proc.returncode != 0 and "no such checkpoint file" in proc.stderr
 
 
 @pytest.mark.slow

@@ -571,3 +571,22 @@ def test_every_reader_refuses_a_device_by_name(tmp_path):
             load_npz(tmp_path / "boxes.npz")
         with pytest.raises(UnsafeFileError, match=r"last.ckpt: not a regular file"):
             load_checkpoint(tmp_path / "last.ckpt")
+
+
+def test_generate_ablate_and_compare_refuse_a_folder_another_run_is_writing(tmp_path):
+    """spread-generate, spread-ablate and spread-compare hold their out_dir's run lock as the other commands do:
+    while another run holds it, they stop at once naming the holder, before writing anything."""
+    from spread.configs import compose
+    from spread.experiments.ablation_command import ablate
+    from spread.experiments.commands import generate
+    from spread.experiments.compare_command import compare
+    from spread.io import RunFolderBusy, run_lock
+
+    for name, run, overrides in (("generate", generate, ["rooms=2"]),
+                                 ("ablate", ablate, ["+preset=quick", "logger=none"]),
+                                 ("compare", compare, ["+table1=quick", "logger=none"])):
+        folder = tmp_path / name
+        with run_lock(folder, "a test holding the folder"):
+            with pytest.raises(RunFolderBusy, match="a test holding the folder"):
+                run(compose(name, [f"out_dir={folder}", *overrides]))
+        assert sorted(p.name for p in folder.iterdir()) == [".spread.lock"]  # nothing else was written

@@ -54,27 +54,30 @@ def ablate(cfg: DictConfig):
 
     set_threads(cfg.get("threads"))
     spec = ablation_spec(cfg)
-    record_config(cfg, spec.out_dir)()
-    logger = as_logger_config(cfg.logger)
-    config = OmegaConf.to_container(cfg, resolve=True)
-    seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
-    commands = launcher_commands(cfg)
-    with mlflow_log.tracked(logger, "ablation", spec.out_dir, config, spec.group, name=f"ablation/{cfg.name}") as run:
-        def log_table(records, png):
-            if logger.wandb:
-                from spread.experiments.wandb_table import log_ablation
+    from spread.io import run_lock
 
-                log_ablation(records, png, spec.out_dir, logger, name=f"ablation/{cfg.name}", group=spec.group,
-                             config=config)
-            if run is not None:
-                mlflow_log.log_table(run, records, "variant", sorted(Path(png).parent.glob(Path(png).stem + ".*")))
+    with run_lock(spec.out_dir, "spread-ablate"):  # a second spread-ablate on this folder is refused, never mixed
+        record_config(cfg, spec.out_dir)()
+        logger = as_logger_config(cfg.logger)
+        config = OmegaConf.to_container(cfg, resolve=True)
+        seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
+        commands = launcher_commands(cfg)
+        with mlflow_log.tracked(logger, "ablation", spec.out_dir, config, spec.group, name=f"ablation/{cfg.name}") as run:
+            def log_table(records, png):
+                if logger.wandb:
+                    from spread.experiments.wandb_table import log_ablation
 
-        logged = log_table if logger.wandb or run is not None else None
-        if seeds:
-            from spread.experiments.ablation_seeds import run_seeded_ablation
+                    log_ablation(records, png, spec.out_dir, logger, name=f"ablation/{cfg.name}", group=spec.group,
+                                 config=config)
+                if run is not None:
+                    mlflow_log.log_table(run, records, "variant", sorted(Path(png).parent.glob(Path(png).stem + ".*")))
 
-            return run_seeded_ablation(spec, commands, seeds, logged)
-        return run_ablation(spec, commands, logged)
+            logged = log_table if logger.wandb or run is not None else None
+            if seeds:
+                from spread.experiments.ablation_seeds import run_seeded_ablation
+
+                return run_seeded_ablation(spec, commands, seeds, logged)
+            return run_ablation(spec, commands, logged)
 
 
 def launcher_commands(cfg: DictConfig):

@@ -58,11 +58,13 @@ def plain(cfg: DictConfig) -> dict:
 
 def generate(cfg: DictConfig) -> dict:
     """``spread-generate``: the dataset folder ``cfg.out_dir``; returns its manifest."""
+    from spread.io import run_lock
     from spread.procgen.dataset import generate_dataset
 
     command = to_object(cfg)
-    record_in_log_folder(cfg)
-    return generate_dataset(command.out_dir, command, progress=command.progress)
+    with run_lock(command.out_dir, "spread-generate"):  # a second run on the folder is refused, never mixed
+        record_in_log_folder(cfg)
+        return generate_dataset(command.out_dir, command, progress=command.progress)
 
 
 def print_dataset_summary(manifest: dict, out_dir: str) -> None:

@@ -43,24 +43,27 @@ def compare(cfg: DictConfig):
 
     set_threads(cfg.get("threads"))
     spec = compare_spec(cfg)
-    record_config(cfg, spec.out_dir)()
-    from spread.runtime import mlflow_log
+    from spread.io import run_lock
 
-    logger = as_logger_config(cfg.logger)
-    config = OmegaConf.to_container(cfg, resolve=True)
-    with mlflow_log.tracked(logger, "compare", spec.out_dir, config, spec.group, name=f"table1/{cfg.name}") as run:
-        def log_table(records, columns):
-            if logger.wandb:
-                log_table1(records, columns, spec.out_dir, logger, name=f"table1/{cfg.name}", group=spec.group,
-                           config=config)
-            if run is not None:
-                mlflow_log.log_table(run, records, "method_key", sorted(Path(spec.out_dir).glob("table1*.*")))
+    with run_lock(spec.out_dir, "spread-compare"):  # a second spread-compare on this folder is refused, never mixed
+        record_config(cfg, spec.out_dir)()
+        from spread.runtime import mlflow_log
 
-        from spread.experiments.ablation_command import launcher_commands
+        logger = as_logger_config(cfg.logger)
+        config = OmegaConf.to_container(cfg, resolve=True)
+        with mlflow_log.tracked(logger, "compare", spec.out_dir, config, spec.group, name=f"table1/{cfg.name}") as run:
+            def log_table(records, columns):
+                if logger.wandb:
+                    log_table1(records, columns, spec.out_dir, logger, name=f"table1/{cfg.name}", group=spec.group,
+                               config=config)
+                if run is not None:
+                    mlflow_log.log_table(run, records, "method_key", sorted(Path(spec.out_dir).glob("table1*.*")))
 
-        commands = launcher_commands(cfg) if cfg.get("train") is not None and cfg.train.get("launcher") else \
-            InProcessCommands()  # train.launcher=local|torchrun|srun: training stages as their own processes (DDP)
-        return run_comparison(spec, commands, log_table if logger.wandb or run is not None else None)
+            from spread.experiments.ablation_command import launcher_commands
+
+            commands = launcher_commands(cfg) if cfg.get("train") is not None and cfg.train.get("launcher") else \
+                InProcessCommands()  # train.launcher=local|torchrun|srun: training stages as their own processes (DDP)
+            return run_comparison(spec, commands, log_table if logger.wandb or run is not None else None)
 
 
 def print_comparison(result) -> None:

@@ -263,3 +263,16 @@ def test_tiny_comparison_end_to_end_and_resume(tiny_comparison):
     again = tiny_comparison["again"]  # the second run skips every stage and rewrites nothing
     assert again.stages.pop("data") == "given" and set(again.stages.values()) == {"skipped"}, again.stages
     assert again.records == result.records and tiny_comparison["again_seconds"] < 30
+
+
+def test_a_method_without_a_training_recipe_needs_its_checkpoint_given(tmp_path):
+    from spread.experiments.compare import CompareSpec, trained_methods
+
+    assert "release" not in trained_methods()  # the authors' weights: converted, never trained here
+    with pytest.raises(ValueError, match=r"'release' is not trained here.*\+train\.ckpt\.release="):
+        CompareSpec(out_dir=tmp_path, methods=("release",))
+    import torch
+
+    given = tmp_path / "release.ckpt"
+    torch.save({"hyper_parameters": {"method": "release"}, "state_dict": {}}, given)
+    assert CompareSpec(out_dir=tmp_path, methods=("release",), ckpt={"release": str(given)}).trained() == ["release"]

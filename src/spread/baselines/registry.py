@@ -38,6 +38,8 @@ class MethodSpec:
     train: tuple[str, ...] = ()
     train_quick: tuple[str, ...] = ()
     sample: tuple[str, ...] = ()
+    #: False: no training recipe here (the authors' weights): its checkpoint must be given (``train.ckpt.<m>``)
+    trainable: bool = True
     order: int = 100
     extras: dict = field(default_factory=dict)
 
@@ -95,4 +97,4 @@ register_method(MethodSpec(
 register_method(MethodSpec(
     "release", "spread.model.release_module:ReleaseDiffusion", label="SPREAD (authors' weights)",
     note="the release's network and checkpoint (spread-release-ckpt out=)", sampling="own", graph_conditioned=True,
-    order=60))
+    trainable=False, order=60))

@@ -73,9 +73,14 @@ def trained_from(method: str) -> str:
     return spec_of(method).trained_from
 
 
-def trained_methods() -> list[str]:
-    """The registered methods that are trained (not derived from another's checkpoint)."""
+def checkpoint_methods() -> list[str]:
+    """The registered methods that sample a checkpoint of their own (trained here, or given: ``train.ckpt.<m>``)."""
     return [m for m in registered() if spec_of(m).checkpoint is None]
+
+
+def trained_methods() -> list[str]:
+    """The registered methods trained here (a checkpoint of their own and a training recipe)."""
+    return [m for m in checkpoint_methods() if spec_of(m).trainable]
 LEDGER = "compare.json"
 TIMES = "compare_times.json"
 TABLE = "table1"
@@ -113,7 +118,12 @@ class CompareSpec:
         self.methods = tuple(m for m in known if m in self.methods)
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout: {self.layout!r}, choose from {LAYOUTS}")
-        trained = trained_methods()
+        for method in self.methods:
+            source = trained_from(method)
+            if not spec_of(source).trainable and not self.ckpt.get(source):
+                raise ValueError(f"methods: '{method}' is not trained here; give its checkpoint with "
+                                 f"+train.ckpt.{source}=<file> (e.g. spread-release-ckpt ckpt=ckpt.pth out=<file>)")
+        trained = checkpoint_methods()
         for method, path in self.ckpt.items():
             if method not in trained:
                 raise ValueError(f"train.ckpt.{method}: only {trained} are trained (physcene derives from "
@@ -135,7 +145,7 @@ class CompareSpec:
     def trained(self) -> list[str]:
         """The checkpoints the chosen methods need, in order."""
         need = {trained_from(m) for m in self.methods}
-        return [t for t in trained_methods() if t in need]
+        return [t for t in checkpoint_methods() if t in need]
 
 
 @dataclass

@@ -160,3 +160,9 @@ def test_registries_list_the_built_ins_and_name_unknown_entries():
         selected_metrics(["nope"])
     with pytest.raises(RegistryError, match="named twice"):
         selected_metrics(["grecall", "grecall"])
+    from spread.registry import resolve
+
+    assert resolve("spread.metrics.out_of_bounds:OutOfBoundsRate") is METRICS.get("oob").metric
+    assert resolve(len) is len
+    with pytest.raises(RegistryError, match="'spread.metrics'"):
+        resolve("spread.metrics")

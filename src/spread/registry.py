@@ -30,6 +30,17 @@ from typing import Callable, Generic, Iterator, TypeVar
 T = TypeVar("T")
 
 
+def resolve(target):
+    """The object a ``"package.module:attribute"`` string names (imported now), or ``target`` itself when it is not
+    a string; a malformed string is a :class:`RegistryError` naming it."""
+    if not isinstance(target, str):
+        return target
+    module, _, attr = target.partition(":")
+    if not module or not attr:
+        raise RegistryError(f"{target!r}: expected 'package.module:attribute'")
+    return getattr(importlib.import_module(module), attr)
+
+
 class RegistryError(ValueError):
     """An unknown name, a name registered twice, or a plugin that failed to load."""
 

@@ -16,10 +16,9 @@ entry-point group ``spread.methods`` naming a :class:`MethodSpec` (or a Lightnin
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 
-from spread.registry import Registry, RegistryError
+from spread.registry import Registry, RegistryError, resolve
 
 SAMPLING = ("pipeline", "own")
 
@@ -58,10 +57,7 @@ class MethodSpec:
 
     def module_class(self):
         """The LightningModule class (imported on first use)."""
-        if not isinstance(self.target, str):
-            return self.target
-        module, _, name = self.target.partition(":")
-        return getattr(importlib.import_module(module), name)
+        return resolve(self.target)
 
 
 def _adapt(name: str, obj) -> MethodSpec:

@@ -65,10 +65,9 @@ def load_fid_extractor(fid: FIDConfig):
     if not fid.enabled:
         return ExtractorStatus(fid.feature_model, None, 0, "disabled: fid.enabled is false")
     if fid.extractor:
-        import importlib
+        from spread.registry import resolve
 
-        module, _, attr = fid.extractor.partition(":")
-        extractor = getattr(importlib.import_module(module), attr)()
+        extractor = resolve(fid.extractor)()
         dim = int(getattr(extractor, "feature_dim", 0)) or \
             int(np.asarray(extractor(np.full((1, 8, 8, 3), 255, np.uint8))).shape[-1])
         return ExtractorStatus(fid.feature_model, extractor, dim, f"ok: extractor {fid.extractor} ('{fid.feature_model}')")

@@ -11,12 +11,11 @@ entry-point group ``spread.physics`` naming an :class:`EngineSpec`; its world im
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 
 from spread.physics.params import MujocoParams, PhysicsParams
 from spread.physics.warp_world import MujocoWarpParams
-from spread.registry import Registry, RegistryError
+from spread.registry import Registry, RegistryError, resolve
 
 
 @dataclass(frozen=True)
@@ -27,10 +26,7 @@ class EngineSpec:
     description: str = ""
 
     def world_class(self):
-        if not isinstance(self.world, str):
-            return self.world
-        module, _, name = self.world.partition(":")
-        return getattr(importlib.import_module(module), name)
+        return resolve(self.world)
 
 
 def _adapt(name: str, obj) -> EngineSpec:

@@ -73,6 +73,18 @@ def test_a_redo_clears_the_stale_result_and_records_why(point):
     assert check_point(cfg("guidance.iterations=7"), out).fresh is False
 
 
+def test_a_run_killed_between_its_metrics_and_its_record_is_reused_and_its_record_completed(point):
+    out, cfg = point["out"], point["cfg"]
+    out.mkdir()
+    start_point(out, check_point(cfg(), out))
+    (out / "metrics.json").write_text(json.dumps({"col_mesh": 0.1}))  # killed before finish_point
+    assert json.loads((out / POINT).read_text())["status"] == "running"
+    decision = check_point(cfg(), out)
+    assert decision.reuse and not decision.fresh
+    assert json.loads((out / POINT).read_text())["status"] == "finished"
+    assert not check_point(cfg("guidance.iterations=7"), out).reuse  # another fingerprint is still redone
+
+
 def test_results_made_before_fingerprints_are_redone(point):
     out, cfg = point["out"], point["cfg"]
     out.mkdir()

@@ -7,13 +7,15 @@ The decision (:func:`check_point`), for a run with ``evaluate=true``:
 
 | folder holds | decision |
 |---|---|
-| ``point.json`` with this fingerprint, ``finished``, and an evaluation ``metrics.json`` | re-use (nothing runs) |
+| ``point.json`` with this fingerprint and an evaluation ``metrics.json`` | re-use (nothing runs) |
 | ``point.json`` with this fingerprint, not finished | resume (finished scenes and per-scene lines kept) |
 | ``point.json`` with another fingerprint | redo from scratch; ``redone_because`` names the changed keys |
 | ``metrics.json`` but no ``point.json`` (made before fingerprints) | redo from scratch, with that reason |
 | nothing of a run | a fresh run |
 
-``resume=false`` always redoes from scratch.
+``resume=false`` always redoes from scratch. A run killed after its ``metrics.json`` but before its record said
+``finished`` is re-used (and its record completed): ``metrics.json`` is written atomically after every scene of a
+run started with this fingerprint (a redo deletes the old one before any work), so it is this fingerprint's result.
 """
 
 from __future__ import annotations
@@ -66,7 +68,9 @@ def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
     before = record.get("fingerprint") or {}
     if before != fingerprint:
         return PointDecision(False, True, f"changed: {', '.join(changed_keys(before, fingerprint))}", fingerprint)
-    return PointDecision(finished and record.get("status") == "finished", False, None, fingerprint)
+    if finished and record.get("status") != "finished":
+        finish_point(out_dir)
+    return PointDecision(finished, False, None, fingerprint)
 
 
 def start_point(out_dir, decision: PointDecision) -> None:
@@ -88,6 +92,8 @@ def finish_point(out_dir, seconds: float | None = None) -> dict:
     """After ``metrics.json`` is written: the record says ``finished`` (and the run's wall seconds)."""
     out = Path(out_dir)
     record = read_point(out) or {}
-    record.update(status="finished", finished=time.strftime("%Y-%m-%dT%H:%M:%S"), seconds=seconds)
+    record.update(status="finished", finished=time.strftime("%Y-%m-%dT%H:%M:%S"))
+    if seconds is not None or "seconds" not in record:
+        record["seconds"] = seconds
     write_json_atomic(out / POINT, record)
     return record

@@ -123,12 +123,18 @@ def part_sampling(args, library) -> None:
 
     from spread.data import SceneDataset, collate_scenes, load_stats
     from spread.guidance import GuidanceConfig, SceneGuidance
+    from spread.model.diffusion import denoise
     from spread.model.module import SceneDiffusion
+    from spread.sampling.pipeline import guidance_callback
     from spread.sampling.worker import checkpoint_data_settings
 
     if args.ckpt:
-        model = SceneDiffusion.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
-        data = checkpoint_data_settings(torch.load(args.ckpt, map_location="cpu", weights_only=False), model)
+        from spread.baselines import module_from_checkpoint
+        from spread.safe_load import load_checkpoint
+
+        checkpoint = load_checkpoint(args.ckpt)  # weights only: no code runs from the file
+        model = module_from_checkpoint(checkpoint, source=str(args.ckpt)).eval()
+        data = checkpoint_data_settings(checkpoint, model)
     else:
         bounds = load_stats(os.path.join(args.data, "stats.json"))["bounds_translations"]
         from spread.configs import model_config
@@ -155,7 +161,9 @@ def part_sampling(args, library) -> None:
             guidance = SceneGuidance(GuidanceConfig(mode, iterations=args.iterations), library, asset_ids,
                                      batch["physical"], batch["mask"], model.network.bounds)
         t0 = time.perf_counter()
-        model.sample_states(batch, sampler, generator=torch.Generator().manual_seed(0), guidance=guidance)
+        callbacks = [guidance_callback(guidance)] if guidance is not None else []
+        with torch.no_grad():
+            denoise(model.denoising(batch), sampler, torch.Generator().manual_seed(0), callbacks)
         wall = time.perf_counter() - t0
         if guidance is None:
             print(f"| {sampler} | none | {wall / B:.2f} | 0 | 0% | 0% | 100% | 0 | 0 |", flush=True)

@@ -78,7 +78,9 @@ def main() -> None:
     tiny = tiny_model(args.ckpt, args.data)
     data = {"num_points": tiny.config.num_points, "seed": 0}
     if args.ckpt:
-        data = checkpoint_data_settings(torch.load(args.ckpt, map_location="cpu", weights_only=False), tiny)
+        from spread.safe_load import load_checkpoint
+
+        data = checkpoint_data_settings(load_checkpoint(args.ckpt), tiny)  # weights only: no code runs
     batch = test_batch(args.data, args.batch, data["num_points"], data["seed"])
     objects = batch["num_objects"].float()
     print(f"# bench_sampling  {time.strftime('%Y-%m-%d')}  {platform.machine()}  {os.cpu_count()} cores, "

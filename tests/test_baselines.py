@@ -2,8 +2,11 @@
 
 * Each method's own mechanism, by a known answer: ATISS's next-object likelihood does not depend on the
   order of its context; DiffuScene's slot mask hides empty slots from the loss; InstructScene's edge
-  dropout hands the network the padding graph; PhyScene's box-IoU guidance pushes two overlapping boxes
+  dropout hands the network the padding graph; PhyScene's box-IoU guidance term pushes overlapping boxes
   apart. Plus the oriented IoU and InstructScene's predicates on hand-made boxes.
+* One sampling loop: DiffuScene, InstructScene and PhyScene's guidance sample through
+  :func:`spread.model.diffusion.denoise` (PhyScene's guidance a registered term) exactly as their own loops did
+  (``tests/data/one_loop.json``, recorded from those loops before they were removed).
 * The platform path for every method: fast_dev_run through ``spread-train experiment=<m>_quick``, a checkpoint
   that loads back (by its hyperparameters) and samples the same, ``spread-sample`` writing scene files and
   ``spread-evaluate`` scoring all of them with no failure.
@@ -54,10 +57,7 @@ def batch(dataset) -> dict:
 
 @pytest.fixture(scope="module")
 def trained(dataset, tmp_path_factory) -> dict[str, Path]:
-    """method → a checkpoint after 3 training steps of ``experiment=<method>_quick``; physcene derived from
-    DiffuScene's by :func:`spread.baselines.with_box_guidance`."""
-    from spread.baselines import with_box_guidance
-
+    """method → a checkpoint after 3 training steps of ``experiment=<method>_quick``."""
     root = tmp_path_factory.mktemp("blruns")
     out = {}
     for method in METHODS:
@@ -66,7 +66,6 @@ def trained(dataset, tmp_path_factory) -> dict[str, Path]:
                                    "trainer.max_steps=3", "trainer.check_val_every_n_epoch=1", *FAST_TRAIN)
         assert summary["global_step"] == 3 and math.isfinite(summary["metrics"]["val/loss"])
         out[method] = run / "checkpoints" / "last.ckpt"
-    out["physcene"] = with_box_guidance(out["diffuscene"], root / "physcene.ckpt")
     return out
 
 
@@ -104,10 +103,66 @@ def test_model_yaml_presets_match_the_config_classes(method):
     assert compose("train", f"experiment={method}_quick").model.config.name == "tiny"
 
 
-def test_physcene_experiment_is_diffuscene_with_box_guidance():
-    cfg = compose("train", "experiment=physcene_quick")
-    assert cfg.model._target_.endswith("diffuscene.DiffuScene") and cfg.model.method == "physcene"
-    assert dict(cfg.model.box_guidance) == {"weight": 0.15, "clip": 0.1, "last_steps": 10}
+def test_physcene_is_diffuscene_sampled_with_the_box_iou_guidance_term():
+    from spread.baselines import method_spec
+    from spread.guidance import GuidanceConfig
+
+    spec = method_spec("physcene")
+    assert spec.trained_from == "diffuscene" and spec.sampling == "pipeline" and spec.sample == ("guidance=physcene",)
+    cfg = GuidanceConfig.from_config(compose("sample", "ckpt=x", "guidance=physcene").guidance)
+    assert (cfg.mode, cfg.last_steps, cfg.grad_clip, cfg.terms) == ("sample", 10, 0.1, {"box_iou": 0.15})
+    assert (cfg.collision, cfg.gravity, cfg.relation) == (0.0, 0.0, 0.0) and cfg.active
+    assert cfg.first_step(50) == 40 and cfg.first_step(4) == 0
+
+
+def test_an_old_physcene_checkpoint_is_refused_with_the_way_to_sample_it(facts):
+    from spread.baselines.diffuscene import DiffuScene
+
+    with pytest.raises(ValueError, match="guidance=physcene"):
+        DiffuScene("tiny", **facts, method="physcene", box_guidance={"weight": 0.15, "clip": 0.1, "last_steps": 10})
+
+
+def test_diffusion_baselines_sample_through_the_one_loop_as_their_own_loops_did(dataset, batch, facts):
+    """DiffuScene and InstructScene (graph scale 1 and 2) through ``denoise``, and DiffuScene with
+    ``guidance=physcene`` through the guidance term, equal the samples their separate loops and PhyScene's
+    ``BoxGuidance`` made (recorded at commit 1c238c2, same random weights, same batch, DDIM-12)."""
+    import json
+
+    from spread.assets import AssetLibrary
+    from spread.baselines.diffuscene import DiffuScene
+    from spread.baselines.instructscene import InstructScene
+    from spread.guidance import GuidanceConfig, SceneGuidance
+    from spread.sampling.pipeline import guidance_callback
+
+    recorded = json.loads((Path(__file__).parent / "data" / "one_loop.json").read_text())["samples"]
+    gens = lambda: [torch.Generator().manual_seed(i) for i in range(batch["x"].shape[0])]  # noqa: E731
+    torch.manual_seed(0)
+    ds = DiffuScene("tiny", **facts).eval()
+    torch.manual_seed(1)
+    ins = InstructScene("tiny", **facts).eval()
+    with torch.no_grad():
+        for p in list(ds.parameters()) + list(ins.parameters()):
+            p.add_(0.05 * torch.randn_like(p))
+    ds.ema.module.load_state_dict(ds.network.state_dict())
+    ins.ema.module.load_state_dict(ins.network.state_dict())
+    library = AssetLibrary.load(dataset / "assets")
+    names = sorted(library.records)
+    ids = [[names[int(i)] for i in batch["asset_index"][b][batch["mask"][b]]] for b in range(batch["x"].shape[0])]
+    problem = ds.denoising(batch)
+    guidance = SceneGuidance(GuidanceConfig.from_config(compose("sample", "ckpt=x", "guidance=physcene").guidance),
+                             library, ids, batch["physical"], batch["mask"], ds.bounds,
+                             decode=lambda x: tuple(problem.decode(x)), state_dim=problem.state_dim)
+    samples = {"ds": ds.sample(batch, "ddim-12", generator=gens()),
+               "ds_guided": ds.sample(batch, "ddim-12", generator=gens(), callbacks=[guidance_callback(guidance)]),
+               "ins": ins.sample(batch, "ddim-12", generator=gens()),
+               "ins2": ins.sample(batch, "ddim-12", generator=gens(), graph_scale=2.0)}
+    assert guidance.stats["steps"] == 10  # the last 10 of 12 steps
+    for name, poses in samples.items():
+        for part in ("translation", "rotation"):
+            expected = torch.tensor(recorded[f"{name}_{part}"], dtype=torch.float32)
+            torch.testing.assert_close(getattr(poses, part), expected, atol=1e-5, rtol=0, msg=f"{name} {part}")
+    moved = (samples["ds_guided"].translation - samples["ds"].translation).abs().max()
+    assert moved > 1e-4  # the guidance did act (10× the tolerance)
 
 
 # ---- ATISS -------------------------------------------------------------------------------------------
@@ -164,36 +219,41 @@ def test_diffuscene_slot_mask_hides_empty_slots_from_the_loss(batch, facts):
     assert abs(float((counted - loss).detach())) > 1e-3
 
 
-def test_box_iou_guidance_moves_overlapping_boxes_apart(facts):
-    from spread.baselines.box_iou import oriented_iou
-    from spread.baselines.diffuscene import BoxGuidance, DiffuScene
+def test_box_iou_guidance_term_moves_overlapping_boxes_apart_in_x_z_and_heading_only(dataset, batch, facts):
+    """Every object of the batch's scenes stacked near the room's centre: a guidance step of the registered term
+    box_iou on DiffuScene's states lowers the summed box IoU, moves only centre x, z and (cos θ, sin θ), each value
+    by at most the clip, and repeated steps separate the boxes."""
+    from spread.assets import AssetLibrary
+    from spread.baselines.diffuscene import DiffuScene
+    from spread.guidance import GuidanceConfig, SceneGuidance
 
-    model = DiffuScene("tiny", **facts)
-    x = torch.zeros(1, 2, 8 + model.num_classes)
-    x[0, :, 0] = torch.tensor([-0.05, 0.05])  # normalised centres 0.1 apart in x
-    x[0, :, 6] = torch.tensor([1.0, math.cos(0.3)])  # headings 0 and 0.3 rad
-    x[0, :, 7] = torch.tensor([0.0, math.sin(0.3)])
-    sizes = torch.tensor([[[1.0, 0.5, 1.0], [1.0, 0.5, 1.0]]])
-    mask = torch.ones(1, 2, dtype=torch.bool)
-
-    def iou_and_gap(state):
-        boxes = model.boxes(torch.cat([state[..., :3], torch.zeros_like(state[..., :3]), state[..., 6:8]], -1))
-        boxes[..., 3:6] = sizes
-        return float(oriented_iou(boxes[0, 0], boxes[0, 1])), float((boxes[0, 1, :3] - boxes[0, 0, :3]).norm())
-
-    iou0, gap0 = iou_and_gap(x)
-    assert iou0 > 0.5
-    y = model.guidance_step(x, sizes, mask, BoxGuidance())
-    iou1, gap1 = iou_and_gap(y)
-    assert iou1 < iou0 and gap1 > gap0
+    model = DiffuScene("tiny", **facts).eval()
+    problem = model.denoising(batch)
+    known, mask, _ = model.state(batch)
+    x = known.clone()
+    x[..., 0] = 0.02 * torch.arange(x.shape[1])  # centres 2 % of the room apart in x, z = 0: heavy overlap
+    x[..., 2] = 0.0
+    x = x * mask[..., None]
+    library = AssetLibrary.load(dataset / "assets")
+    names = sorted(library.records)
+    ids = [[names[int(i)] for i in batch["asset_index"][b][mask[b]]] for b in range(mask.shape[0])]
+    config = GuidanceConfig("sample", collision=0.0, gravity=0.0, relation=0.0, terms={"box_iou": 0.15},
+                            grad_clip=0.1)
+    guide = SceneGuidance(config, library, ids, batch["physical"], mask, model.bounds,
+                          decode=lambda s: tuple(problem.decode(s)), state_dim=problem.state_dim)
+    loss0 = float(guide.losses(x, which=["box_iou"])["box_iou"])
+    y = guide.step(x)
+    assert float(guide.losses(y, which=["box_iou"])["box_iou"]) < loss0
+    moved = (y - x).abs()
+    assert moved[..., [0, 2, 6, 7]].max() > 0 and moved[..., [0, 2, 6, 7]].max() <= 0.1 + 1e-7
     assert torch.equal(y[..., [1, 3, 4, 5]], x[..., [1, 3, 4, 5]]) and torch.equal(y[..., 8:], x[..., 8:])
-    for _ in range(3):
-        y = model.guidance_step(y, sizes, mask, BoxGuidance())
-    assert iou_and_gap(y)[0] < 0.05 * iou0
+    for _ in range(20):
+        y = guide.step(y)
+    assert float(guide.losses(y, which=["box_iou"])["box_iou"]) < 0.5 * loss0
 
 
 def test_oriented_iou_known_answers_and_gradients():
-    from spread.baselines.box_iou import axis_aligned_iou, oriented_iou
+    from spread.box_geometry import axis_aligned_iou, oriented_iou
 
     def box(x=0.0, y=0.0, z=0.0, theta=0.0, s=(1.0, 1.0, 1.0)):
         return torch.tensor([x, y, z, *s, theta], dtype=torch.float64)
@@ -267,7 +327,7 @@ def test_fast_dev_run(dataset, tmp_path, method):
     assert summary["global_step"] == 1 and math.isfinite(summary["metrics"]["train/loss"])
 
 
-@pytest.mark.parametrize("method", ["atiss", "diffuscene", "instructscene", "physcene"])
+@pytest.mark.parametrize("method", ["atiss", "diffuscene", "instructscene"])
 def test_checkpoint_round_trip_loads_the_method_and_samples_the_same(trained, batch, method):
     from spread.baselines import load_module
 
@@ -285,8 +345,8 @@ def test_checkpoint_round_trip_loads_the_method_and_samples_the_same(trained, ba
     torch.testing.assert_close(R.transpose(-1, -2) @ R, torch.eye(3).expand_as(R), atol=1e-5, rtol=0)
 
 
-def test_spread_sample_refuses_spread_guidance_on_a_baseline(dataset, trained, tmp_path):
-    with pytest.raises(ValueError, match="SceneDiffusion checkpoint"):
+def test_spread_sample_refuses_guidance_for_a_method_that_samples_its_own_way(dataset, trained, tmp_path):
+    with pytest.raises(ValueError, match="samples its own way"):
         sample_in_process(f"ckpt={trained['atiss']}", f"data.root={dataset}", f"out_dir={tmp_path / 's'}",
                           "guidance=refine", "logger=none")
 
@@ -297,10 +357,16 @@ def test_samples_of_every_method_pass_spread_evaluate(dataset, trained, tmp_path
     merged = tmp_path / "all"
     merged.mkdir()
     test_graphs = {read_scene(f).scene_id: read_scene(f) for f in list_scene_files(dataset / "test")}
-    for method, ckpt in trained.items():
+    rows = [(m, ckpt, []) for m, ckpt in trained.items()]
+    rows += [("physcene", trained["diffuscene"], ["guidance=physcene"]),  # PhyScene's row: DiffuScene + its term
+             ("instructscene_refined", trained["instructscene"], ["guidance=refine", "guidance.iterations=2"])]
+    for method, ckpt, extra in rows:
         out = tmp_path / method
-        result = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "logger=none")
+        result = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "logger=none", *extra)
         assert len(result.files) == len(test_graphs) == 3
+        if extra:  # guided through the pipeline's callbacks: the guidance took its steps
+            assert result.manifest["guidance"]["mode"] == {"guidance=physcene": "sample"}.get(extra[0], "refine")
+            assert result.manifest["guidance_totals"]["steps"] > 0
         for f in result.files:
             scene = read_scene(f)
             source = test_graphs[str(scene.extras["conditioned_on"])]
@@ -312,5 +378,5 @@ def test_samples_of_every_method_pass_spread_evaluate(dataset, trained, tmp_path
     metrics = InProcessCommands().evaluate([
         f"scenes={merged}", f"reference={dataset}", f"out_dir={tmp_path / 'eval'}", "protocol.stability_runs=1",
         "ray.num_cpus=2", "progress=false", "renders=0", "logger=none", "fid.enabled=false"])
-    assert metrics["n_scenes"] == 12 and metrics["n_failed"] == 0 and metrics["n_evaluated"] == 12
+    assert metrics["n_scenes"] == 15 and metrics["n_failed"] == 0 and metrics["n_evaluated"] == 15
     assert 0.0 <= metrics["col_mesh"] <= 1.0 and 0.0 <= metrics["grecall"] <= 1.0

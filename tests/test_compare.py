@@ -13,6 +13,7 @@ import torch
 
 from spread.experiments.compare import METHODS, CompareSpec, run_comparison
 from spread.experiments.tables import read_csv
+from spread.io import file_sha256
 from spread.scene import Scene, write_scene
 
 from helpers import FAST_TRAIN, SMALL_MODEL, compose, make_dataset
@@ -65,7 +66,7 @@ class FakeCommands:
         (out / "sampling.json").write_text(json.dumps(
             {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "seed": a["seed"],
                                            "sampler": {"kind": "ddim", "steps": 50}},
-             "guidance": {"mode": "refine"} if "guidance" in a else None,
+             "guidance": guidance_settings(a.get("guidance")),
              "seconds_per_batch": 0.5, "batches_run": 2, "written_this_run": 3}))
 
     def evaluate(self, overrides):
@@ -90,9 +91,17 @@ class FakeCommands:
         return {}
 
 
+def guidance_settings(preset: str | None) -> dict | None:
+    """What spread-sample records in sampling.json for ``guidance=<preset>`` (None: unguided)."""
+    from spread.guidance import GuidanceConfig
+
+    return GuidanceConfig.from_config(compose("sample", "ckpt=x", f"guidance={preset}").guidance).to_dict() \
+        if preset else None
+
+
 def spec(tmp_path: Path, **kw) -> CompareSpec:
     defaults = dict(out_dir=tmp_path / "cmp", train=["seed=0"], generate=["rooms=4"], sample=["seed=0"],
-                    evaluate=["seed=0"], box_guidance={"weight": 0.15, "clip": 0.1, "last_steps": 10},
+                    evaluate=["seed=0"],
                     train_method={"atiss": ["experiment=atiss"], "diffuscene": ["experiment=diffuscene"],
                                   "instructscene": ["experiment=instructscene"], "spread": ["experiment=quick"]},
                     sample_method={"spread": ["guidance=refine"]})
@@ -106,16 +115,16 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
     assert [c[0] for c in commands.calls] == ["generate", *["train"] * 4, *["sample"] * 5, *["evaluate"] * 5]
     assert [c[1] for c in commands.calls if c[0] == "train"] == ["atiss", "diffuscene", "instructscene", "spread"]
     out = tmp_path / "cmp"
-    physcene = torch.load(out / "train" / "physcene.ckpt", weights_only=False)
-    assert physcene["hyper_parameters"] == {"method": "physcene", "box_guidance": {"weight": 0.15, "clip": 0.1,
-                                                                                   "last_steps": 10}}
-    assert physcene["run"] == str(out / "train" / "diffuscene")  # DiffuScene's checkpoint, not a new training
+    # physcene: DiffuScene's checkpoint (no derived file, no training) with its registered guidance preset
+    physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
+    assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")
+    assert physcene["guidance"]["terms"] == {"box_iou": 0.15} and not (out / "train" / "physcene.ckpt").exists()
     rows = {r["method_key"]: r for r in first.records}
     assert list(rows) == list(METHODS) and first.layout == "procthor"
     assert [rows[m]["grecall"] for m in METHODS] == [None, None, None, 0.9, 0.9]  # only graph-conditioned
     assert rows["atiss"]["grecall_measured"] == 0.9 and rows["atiss"]["seconds_per_scene"] == pytest.approx(1 / 3)
     assert rows["spread"]["sampler"] == "ddim-50 + refine guidance" and rows["atiss"]["sampler"] == "one pass per object"
-    assert rows["physcene"]["sampler"] == "ddim-50 + box-IoU guidance" and rows["physcene"]["train_steps"] == 7
+    assert rows["physcene"]["sampler"] == "ddim-50 + box_iou guidance" and rows["physcene"]["train_steps"] == 7
     csv = {r["method_key"]: r for r in read_csv(out / "table1.csv")}
     assert csv["diffuscene"]["col_mesh"] == pytest.approx(0.4) and csv["diffuscene"]["grecall"] is None
     md = (out / "table1.md").read_text()
@@ -140,7 +149,6 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
     run_comparison(spec(tmp_path), commands)  # new DiffuScene weights: both its rows are redone, nothing else
     assert commands.calls == [("sample", "diffuscene", "false"), ("sample", "physcene", "false"),
                               ("evaluate", "diffuscene", "false"), ("evaluate", "physcene", "false")]
-    assert torch.load(out / "train" / "physcene.ckpt", weights_only=False)["run"] == "retrained"
 
 
 def test_a_failing_method_blocks_only_its_row(tmp_path):
@@ -200,7 +208,7 @@ def test_presets_compose_with_one_sampler_for_every_method():
         assert s.methods == METHODS and set(s.train_method) == {"atiss", "diffuscene", "instructscene", "spread"}
         assert any(o.startswith("sampler=") for o in s.sample)  # one sampler for all, in the shared list
         assert not any(o.startswith("sampler") for m in METHODS for o in s.sample_method.get(m, []))
-        assert s.sample_method["spread"][0] == "guidance=refine" and s.box_guidance["weight"] == 0.15
+        assert s.sample_method["spread"][0] == "guidance=refine" and s.sample_method["physcene"] == ["guidance=physcene"]
     quick = compare_spec(compose("compare", "+table1=quick", "data.root=/d", "out_dir=/o"))
     assert quick.train_method["atiss"] == ["experiment=atiss_quick"] and "sampler=ddim50" in quick.sample
 
@@ -252,11 +260,10 @@ def test_tiny_comparison_end_to_end_and_resume(tiny_comparison):
     assert all(n == names[0] for n in names) and len(names[0]) == 3
     seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["seed"] for m in METHODS}
     assert seeds == {0}
-    ckpts = {m: torch.load(p, weights_only=False) for m, p in
-             (("diffuscene", out / "train" / "diffuscene" / "checkpoints" / "last.ckpt"),
-              ("physcene", out / "train" / "physcene.ckpt"))}
-    assert ckpts["physcene"]["hyper_parameters"]["method"] == "physcene"
-    assert all(torch.equal(v, ckpts["physcene"]["state_dict"][k]) for k, v in ckpts["diffuscene"]["state_dict"].items())
+    physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
+    assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")
+    assert physcene["guidance"]["mode"] == "sample" and physcene["guidance"]["terms"] == {"box_iou": 0.15}
+    assert physcene["guidance_totals"]["steps"] > 0  # PhyScene's term stepped DiffuScene's samples
     table = read_csv(out / "table1.csv")
     assert [r["method_key"] for r in table] == list(METHODS)
     assert "InstructScene (graph-to-layout)" in (out / "table1.md").read_text()

@@ -26,7 +26,7 @@ FLOORS = (
     ("model",),
     ("data",),
     ("render",),
-    ("physics", "relations"),
+    ("physics", "relations", "box_geometry"),
     ("scene",),
     ("assets",),
     ("safe_load",),  # loaders that run no code: check their files with io's bounded-read helper

@@ -4,13 +4,14 @@
 |---|---|---|
 | ``atiss`` | :mod:`~spread.baselines.atiss` | autoregressive set transformer, DMLL heads, floor-plan token |
 | ``diffuscene`` | :mod:`~spread.baselines.diffuscene` | DDPM over object slots, 1-D UNet with attention |
-| ``physcene`` | :mod:`~spread.baselines.diffuscene` | DiffuScene sampled with oriented box-IoU collision guidance |
+| ``physcene`` | :mod:`~spread.baselines.diffuscene` | DiffuScene's checkpoint sampled with ``guidance=physcene`` (the guidance term ``box_iou``) |
 | ``instructscene`` | :mod:`~spread.baselines.instructscene` | graph → layout: graph transformer on a 10-predicate graph |
 | ``release`` | :mod:`~spread.model.release_module` | the SPREAD release's network with the authors' weights (sampling only; ``spread-release-ckpt out=``) |
 
 Each is a LightningModule that trains on :class:`~spread.data.SceneDataModule` batches
 (``spread-train experiment=<method>`` / ``<method>_quick``) and whose ``sample(batch, sampler, generator,
-use_ema, guidance, **kw)`` returns :class:`~spread.model.module.Poses` like ``SceneDiffusion.sample``, so
+use_ema, **kw)`` returns :class:`~spread.model.module.Poses` like ``SceneDiffusion.sample``; the diffusion ones
+give ``denoising(batch)`` and sample through the platform's one loop (:func:`spread.model.diffusion.denoise`), so
 ``spread-sample`` writes the same scene files and ``spread-evaluate`` scores them unchanged.
 
 **Same object sets.** A baseline predicts poses for the graph's objects: the class, the box size (from
@@ -102,33 +103,3 @@ def load_module(ckpt_path, map_location="cpu"):
     from spread.safe_load import load_checkpoint
 
     return module_from_checkpoint(load_checkpoint(ckpt_path), map_location, source=str(ckpt_path))
-
-
-def with_box_guidance(ckpt_path, out_path, box_guidance: dict | None = None):
-    """A ``physcene`` checkpoint at ``out_path``: the DiffuScene checkpoint ``ckpt_path`` (same weights) whose
-    samples are guided PhyScene-style (``box_guidance``: :class:`~spread.baselines.diffuscene.BoxGuidance`
-    fields, default PhyScene's). Written atomically; returns the path."""
-    import dataclasses
-    from pathlib import Path
-
-    import torch
-
-    from spread.baselines.diffuscene import BoxGuidance
-    from spread.io import atomic_path
-
-    from spread.safe_load import load_checkpoint
-
-    ckpt = load_checkpoint(ckpt_path)
-    hparams = dict(ckpt.get("hyper_parameters") or {})
-    if checkpoint_method(hparams) not in ("diffuscene", "physcene"):
-        raise ValueError(f"{ckpt_path}: a '{checkpoint_method(hparams)}' checkpoint; box guidance needs DiffuScene")
-    guide = BoxGuidance.from_any(box_guidance if box_guidance is not None else {})
-    if guide is None:
-        raise ValueError(f"box_guidance={box_guidance!r} guides nothing (weight and last_steps must be > 0)")
-    hparams.update(method="physcene", box_guidance=dataclasses.asdict(guide))
-    ckpt["hyper_parameters"] = hparams
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_path) as tmp:
-        torch.save(ckpt, tmp)
-    return out_path

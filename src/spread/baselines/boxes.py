@@ -26,6 +26,7 @@ from typing import NamedTuple, Sequence
 
 import torch
 
+from spread.box_geometry import box_size, rot_y, split_rotation, yaw_of  # noqa: F401 (the baselines' names)
 from spread.data.rotation import rot6d_to_matrix
 from spread.model.poses import denormalize
 
@@ -39,30 +40,6 @@ class Objects(NamedTuple):
     yaw: torch.Tensor  # (B, N) θ in (−π, π]
     tilt: torch.Tensor  # (B, N, 3, 3) rest orientation T (R = R_y(θ)·T)
     size: torch.Tensor  # (B, N, 3) box size, metres (full extents, not half)
-
-
-def rot_y(theta: torch.Tensor) -> torch.Tensor:
-    """(...,) angles → (..., 3, 3) rotations about +y: [[c, 0, s], [0, 1, 0], [−s, 0, c]]."""
-    c, s = torch.cos(theta), torch.sin(theta)
-    zero, one = torch.zeros_like(theta), torch.ones_like(theta)
-    return torch.stack([torch.stack([c, zero, s], -1), torch.stack([zero, one, zero], -1),
-                        torch.stack([-s, zero, c], -1)], -2)
-
-
-def yaw_of(rotation: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotations → (...,) θ of the nearest rotation about y (module docstring)."""
-    return torch.atan2(rotation[..., 0, 2] - rotation[..., 2, 0], rotation[..., 0, 0] + rotation[..., 2, 2])
-
-
-def split_rotation(rotation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(..., 3, 3) → θ (...,) and T = R_y(−θ)·R (..., 3, 3)."""
-    theta = yaw_of(rotation)
-    return theta, rot_y(-theta) @ rotation
-
-
-def box_size(extents: torch.Tensor, tilt: torch.Tensor) -> torch.Tensor:
-    """Axis-aligned size (..., 3) of a canonical box of ``extents`` (..., 3) rotated by ``tilt`` (..., 3, 3)."""
-    return (tilt.abs() @ extents[..., None])[..., 0]
 
 
 def objects_of(batch: dict) -> Objects:

@@ -23,20 +23,16 @@ channels are replaced at every step, so x_t's known part follows q(x_t | x₀)) 
 sin θ) are generated, with the platform's :class:`~spread.model.diffusion.Sampler` on the linear schedule
 (same sampler, budget and seeds as SPREAD). No relation graph: GRecall is not comparable.
 
-PhyScene-style guidance (``box_guidance``; facts from PhyScene/PhyScene ``configs/optimizer/collision.yaml``
-and ``models/optimizer/collision.py``): the collision term is the sum over ordered pairs of distinct objects
-of the **oriented 3D IoU** of their boxes, divided by the object count and scaled by 0.075 × weight 2
-(``weight`` 0.15 here); its gradient on the centre's x, z and on (cos θ, sin θ) only, clipped to ±0.1 per
-value, is subtracted from the state at the last 10 denoising steps (PhyScene: t < 10 of DDPM-1000; here the
-last ``last_steps`` steps of whichever sampler). Differences: each scene's step is its own (PhyScene divides
-by the batch size too), and it is applied to the sampled state after the step rather than to the posterior
-mean before the noise is added (the same for DDIM, σ_t-close for DDPM's last steps). The room-layout and
-reachability terms of PhyScene are off, as in its collision config.
+PhyScene-style guidance is not part of this module: it is the guidance term ``box_iou``
+(:mod:`spread.guidance.box_iou`), which ``guidance=physcene`` switches on for any method that samples through the
+pipeline; the ``physcene`` method (:data:`~spread.baselines.registry.METHODS`) is DiffuScene's checkpoint sampled
+with it. DiffuScene samples through the platform's one loop (:func:`spread.model.diffusion.denoise`):
+:meth:`DiffuScene.denoising` gives its ε-function, its state decoder (centre and heading → poses) and the
+imputation of the known channels.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -45,9 +41,9 @@ from einops import rearrange
 from torch import nn
 
 from spread.baselines.base import BaselineConfig, BaselineModule
-from spread.baselines.box_iou import axis_aligned_iou, oriented_iou, pairwise
+from spread.box_geometry import axis_aligned_iou, pairwise
 from spread.baselines.boxes import denormalize_size, normalize_size, objects_of, poses
-from spread.model.diffusion import NOISE_ROWS, Sampler, training_scheduler
+from spread.model.diffusion import NOISE_ROWS, Denoising, denoise, training_scheduler
 from spread.model.encodings import sinusoidal_embedding
 from spread.model.poses import denormalize
 from spread.baselines.registry import MethodSpec, register_method
@@ -55,8 +51,6 @@ from spread.baselines.registry import MethodSpec, register_method
 #: The noise schedule of DiffuScene and InstructScene (DDPM, T = 1000, linear β 1e-4 … 0.02, ε-prediction).
 LINEAR_SCHEDULE = {"beta_schedule": "linear", "beta_start": 1e-4, "beta_end": 0.02}
 BOX = 8  # centre 3, size 3, cos, sin
-#: State channels PhyScene's guidance moves: centre x, centre z, cos θ, sin θ.
-GUIDED_CHANNELS = (0, 2, 6, 7)
 
 
 @dataclass(frozen=True)
@@ -82,28 +76,6 @@ class DiffuSceneConfig(BaselineConfig):
         """64 channels, 2 levels, instance embedding 32: minutes on a CPU."""
         return cls(**{**dict(name="tiny", dim=64, levels=2, instance_dim=32, attn_heads=2, attn_dim_head=16),
                       **overrides})
-
-
-@dataclass(frozen=True)
-class BoxGuidance:
-    """PhyScene-style collision guidance (module docstring). ``weight`` scales the per-scene loss
-    Σ_{i≠j} IoU_ij / N (PhyScene: 0.075 × 2); ``clip`` bounds each gradient value; ``last_steps``: the
-    final sampling steps it runs at."""
-
-    weight: float = 0.15
-    clip: float = 0.1
-    last_steps: int = 10
-
-    @classmethod
-    def from_any(cls, value) -> "BoxGuidance | None":
-        if value is None or value is False:
-            return None
-        if isinstance(value, BoxGuidance):
-            return value
-        out = cls(**dict(value))
-        if out.weight < 0 or out.clip <= 0 or out.last_steps < 0:
-            raise ValueError(f"box_guidance: weight ≥ 0, clip > 0 and last_steps ≥ 0 required, got {out}")
-        return out if out.weight > 0 and out.last_steps > 0 else None
 
 
 # ---- the 1-D UNet (over slots) --------------------------------------------------------------------------
@@ -258,23 +230,20 @@ class UNet1D(nn.Module):
 # ---- the LightningModule ------------------------------------------------------------------------------
 
 class DiffuScene(BaselineModule):
-    """DiffuScene; with ``box_guidance`` (a mapping of :class:`BoxGuidance` fields) its samples are guided
-    PhyScene-style (the ``physcene`` method: same network, same training)."""
+    """DiffuScene (module docstring). Sampled with ``guidance=physcene`` it is the ``physcene`` row."""
 
     method = "diffuscene"
     config_class = DiffuSceneConfig
 
     def __init__(self, config="tiny", bounds=None, categories=None, size_bounds=None, lr: float = 2e-4,
                  weight_decay: float = 0.0, optimizer: str = "adam", ema_decay: float = 0.0, seed: int = 0,
-                 box_guidance: dict | None = None, lr_step: int = 0, lr_decay: float = 1.0,
-                 method: str = "diffuscene"):
-        guidance = BoxGuidance.from_any(box_guidance)
-        if method not in ("diffuscene", "physcene"):
-            raise ValueError(f"DiffuScene: method must be diffuscene or physcene, got {method!r}")
-        self.method = method
+                 lr_step: int = 0, lr_decay: float = 1.0, method: str = "diffuscene", box_guidance=None):
+        if method == "physcene" or box_guidance:
+            raise ValueError("a 'physcene' checkpoint of an older platform (spread.baselines.with_box_guidance): "
+                             "PhyScene's guidance is now the guidance term box_iou; sample the DiffuScene "
+                             "checkpoint it was derived from with guidance=physcene")
         super().__init__(config, bounds, categories, size_bounds, lr, weight_decay, optimizer, ema_decay, seed,
-                         method=method, box_guidance=None if guidance is None else dataclasses.asdict(guidance),
-                         lr_step=int(lr_step), lr_decay=float(lr_decay))
+                         method=method, lr_step=int(lr_step), lr_decay=float(lr_decay))
         self.noise_schedule = training_scheduler(**LINEAR_SCHEDULE)
 
     def make_network(self) -> nn.Module:
@@ -327,70 +296,41 @@ class DiffuScene(BaselineModule):
         return {"loss": total.mean(), **terms}
 
     # ---- sampling -------------------------------------------------------------------------------------
-    def guidance_loss(self, x: torch.Tensor, sizes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """Per-scene PhyScene collision term (B,): Σ_{i≠j} oriented IoU / N, boxes from states x (centre,
-        cos θ, sin θ) and the known ``sizes`` (B, N, 3) metres."""
-        centre = denormalize(x[..., :3], self.bounds.to(x))
-        yaw = torch.atan2(x[..., 7], x[..., 6] + 1e-12)
-        boxes = torch.cat([centre, sizes.to(x), yaw[..., None]], dim=-1)
-        iou = pairwise(oriented_iou, boxes, mask)
-        return iou.sum((1, 2)) / mask.sum(1).clamp(min=1).to(x.dtype)
+    def denoising(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0) -> Denoising:
+        """The batch's :class:`~spread.model.diffusion.Denoising`: the network's ε̂ over slot states (B, N, 8 + C)
+        on the linear schedule, the known class and size channels imputed into x̂₀ at every step and into the
+        result (module docstring), states decoded to poses (centre and heading; the rest orientation held).
+        The network is used as it is (``eval()`` first); no graph: ``graph_scale`` is ignored."""
+        network = self.sampling_network(use_ema)
+        batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        known, mask, obj = self.state(batch)
+        fixed = torch.zeros(self.state_dim, dtype=torch.bool, device=self.device)
+        fixed[3:6] = True
+        fixed[BOX:] = True
 
-    def guidance_step(self, x: torch.Tensor, sizes: torch.Tensor, mask: torch.Tensor,
-                      guidance: BoxGuidance) -> torch.Tensor:
-        """One PhyScene step: x − clip(weight · ∇ loss, ±clip) on the centre's x, z and (cos θ, sin θ)."""
-        with torch.enable_grad():
-            xg = x.detach().clone().requires_grad_(True)
-            loss = self.guidance_loss(xg, sizes, mask).sum() * guidance.weight
-            (grad,) = torch.autograd.grad(loss, xg)
-        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp(-guidance.clip, guidance.clip)
-        only = torch.zeros_like(grad)
-        only[..., list(GUIDED_CHANNELS)] = grad[..., list(GUIDED_CHANNELS)]
-        return (x - only * mask[..., None].to(x.dtype)).detach()
+        def decode(x):
+            return poses(x[..., :3], torch.atan2(x[..., 7], x[..., 6]), obj.tilt, mask, self.bounds)
 
-    @torch.no_grad()
-    def sample_states(self, batch: dict, sampler=None, generator=None, use_ema: bool = True,
-                      guidance=None) -> torch.Tensor:
-        """Sampled slot states (B, N, 8 + C) with the known class and size channels imputed (module docstring);
-        ``guidance``: :class:`BoxGuidance` fields (None: the module's ``box_guidance``; False: unguided)."""
+        return Denoising(lambda x_t, t: network(x_t, t, mask), mask, decode, self.state_dim, LINEAR_SCHEDULE,
+                         x0_hook=lambda x0, ctx: torch.where(fixed, known, x0),
+                         finish=lambda x: torch.where(fixed, known, x))
+
+    def sample(self, batch: dict, sampler=None, generator=None, use_ema: bool = True, callbacks=(), **kw):
+        """Poses for the batch's object sets (centre and heading sampled, the rest held; module docstring),
+        through the one loop (:func:`~spread.model.diffusion.denoise`) with ``callbacks`` (guidance)."""
         network = self.sampling_network(use_ema)
         was = network.training
         network.eval()
         try:
-            batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-            known, mask, obj = self.state(batch)
-            guide = BoxGuidance.from_any(self.hparams.box_guidance if guidance is None else guidance)
-            fixed = torch.zeros(self.state_dim, dtype=torch.bool, device=self.device)
-            fixed[3:6] = True
-            fixed[BOX:] = True
-
-            def x0_hook(x0, ctx):
-                return torch.where(fixed, known, x0)
-
-            sample_hook = None
-            if guide is not None:
-                def sample_hook(x, ctx):
-                    if ctx.index >= ctx.num_steps - guide.last_steps:
-                        return self.guidance_step(x, obj.size, mask, guide)
-                    return x
-
-            x = Sampler.from_config(sampler).sample(lambda x_t, t: network(x_t, t, mask), mask, generator=generator,
-                                                    x0_hook=x0_hook, sample_hook=sample_hook,
-                                                    state_dim=self.state_dim, schedule=LINEAR_SCHEDULE)
-            return torch.where(fixed, known, x)
+            problem = self.denoising(batch, use_ema)
+            return problem.decode(denoise(problem, sampler, generator, callbacks))
         finally:
             network.train(was)
 
-    def sample(self, batch: dict, sampler=None, generator=None, use_ema: bool = True, guidance=None, **kw):
-        """Poses for the batch's object sets (centre and heading sampled, the rest held; module docstring)."""
-        x = self.sample_states(batch, sampler, generator, use_ema, guidance)
-        obj = objects_of({k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()})
-        return poses(x[..., :3], torch.atan2(x[..., 7], x[..., 6]), obj.tilt, obj.mask, self.bounds)
-
 
 register_method(MethodSpec(
-    "diffuscene", "spread.baselines.diffuscene:DiffuScene", label="DiffuScene", note="DDPM over slots, no graph", sampling="own",
+    "diffuscene", "spread.baselines.diffuscene:DiffuScene", label="DiffuScene", note="DDPM over slots, no graph",
     train=("experiment=diffuscene",), train_quick=("experiment=diffuscene_quick",), order=20))
 register_method(MethodSpec(
     "physcene", "spread.baselines.diffuscene:DiffuScene", label="DiffuScene + PhyScene guidance",
-    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", sampling="own", order=30))
+    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", sample=("guidance=physcene",), order=30))

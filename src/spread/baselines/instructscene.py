@@ -38,7 +38,7 @@ from spread.baselines.base import BaselineConfig, BaselineModule
 from spread.baselines.boxes import normalize_size, objects_of, poses
 from spread.baselines.diffuscene import BOX, LINEAR_SCHEDULE
 from spread.baselines.predicates import PAD, VOCAB, drop_edges, instruct_predicates
-from spread.model.diffusion import NOISE_ROWS, Sampler, training_scheduler
+from spread.model.diffusion import NOISE_ROWS, Denoising, denoise, training_scheduler
 from spread.model.encodings import TimestepEmbedding, sinusoidal_embedding
 from spread.model.poses import denormalize
 from spread.baselines.registry import MethodSpec, register_method
@@ -220,40 +220,47 @@ class InstructScene(BaselineModule):
                  "angle_mse": sq[..., 6:8].sum() / count}
         return {"loss": sum(parts.values()), **parts}
 
-    @torch.no_grad()
-    def sample(self, batch: dict, sampler=None, generator=None, use_ema: bool = True, guidance=None,
-               graph_scale: float = 1.0, **kw):
-        """Poses for the batch's object sets given their graphs (module docstring); ``graph_scale``: the
-        classifier-free guidance scale on the graph; ``guidance`` must be None."""
-        if guidance is not None:
-            raise ValueError("InstructScene: no physics guidance (its layout stage has none)")
+    def denoising(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0) -> Denoising:
+        """The batch's :class:`~spread.model.diffusion.Denoising`: ε̂ over boxes (B, N, 8) given the classes and the
+        predicate graph (``graph_scale`` ≠ 1: classifier-free guidance on the graph), on the linear schedule, the
+        known size channels imputed into x̂₀ at every step, states decoded to poses (centre and heading)."""
+        network = self.sampling_network(use_ema)
+        batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        known, edges, obj = self.boxes_and_graph(batch)
+        cond = network.edge_features(edges)
+        null = network.edge_features(torch.full_like(edges, PAD)) if graph_scale != 1.0 else None
+
+        def eps_fn(x_t, t):
+            eps = network(x_t, t, obj.category, cond, obj.mask)
+            if null is None:
+                return eps
+            eps_null = network(x_t, t, obj.category, null, obj.mask)
+            return eps_null + graph_scale * (eps - eps_null)
+
+        def decode(x):
+            return poses(x[..., :3], torch.atan2(x[..., 7], x[..., 6]), obj.tilt, obj.mask, self.bounds)
+
+        fixed = torch.zeros(BOX, dtype=torch.bool, device=self.device)
+        fixed[3:6] = True
+        return Denoising(eps_fn, obj.mask, decode, BOX, LINEAR_SCHEDULE,
+                         x0_hook=lambda x0, ctx: torch.where(fixed, known, x0))
+
+    def sample(self, batch: dict, sampler=None, generator=None, use_ema: bool = True, graph_scale: float = 1.0,
+               callbacks=(), **kw):
+        """Poses for the batch's object sets given their graphs (module docstring), through the one loop
+        (:func:`~spread.model.diffusion.denoise`) with ``callbacks`` (guidance); ``graph_scale``: the
+        classifier-free guidance scale on the graph."""
         network = self.sampling_network(use_ema)
         was = network.training
         network.eval()
         try:
-            batch = {k: v.to(self.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-            known, edges, obj = self.boxes_and_graph(batch)
-            cond = network.edge_features(edges)
-            null = network.edge_features(torch.full_like(edges, PAD)) if graph_scale != 1.0 else None
-
-            def eps_fn(x_t, t):
-                eps = network(x_t, t, obj.category, cond, obj.mask)
-                if null is None:
-                    return eps
-                eps_null = network(x_t, t, obj.category, null, obj.mask)
-                return eps_null + graph_scale * (eps - eps_null)
-
-            fixed = torch.zeros(BOX, dtype=torch.bool, device=self.device)
-            fixed[3:6] = True
-            x = Sampler.from_config(sampler).sample(eps_fn, obj.mask, generator=generator,
-                                                    x0_hook=lambda x0, ctx: torch.where(fixed, known, x0),
-                                                    state_dim=BOX, schedule=LINEAR_SCHEDULE)
-            return poses(x[..., :3], torch.atan2(x[..., 7], x[..., 6]), obj.tilt, obj.mask, self.bounds)
+            problem = self.denoising(batch, use_ema, graph_scale)
+            return problem.decode(denoise(problem, sampler, generator, callbacks))
         finally:
             network.train(was)
 
 
 register_method(MethodSpec(
     "instructscene", "spread.baselines.instructscene:InstructScene", label="InstructScene (graph-to-layout)",
-    note="SPREAD's graph denoiser without shape tokens, geometry or the physical graph", graph_conditioned=True, sampling="own",
+    note="SPREAD's graph denoiser without shape tokens, geometry or the physical graph", graph_conditioned=True,
     train=("experiment=instructscene",), train_quick=("experiment=instructscene_quick",), order=40))

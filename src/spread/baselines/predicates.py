@@ -34,7 +34,7 @@ import math
 
 import torch
 
-from spread.baselines.box_iou import footprint
+from spread.box_geometry import footprint
 
 PREDICATES = ("above", "left of", "in front of", "closely left of", "closely in front of", "below", "right of",
               "behind", "closely right of", "closely behind")

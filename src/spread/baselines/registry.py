@@ -2,16 +2,18 @@
 
 A :class:`MethodSpec` is a method's name (``spread-compare methods=[...]``, a checkpoint's ``method``
 hyper-parameter), its LightningModule (``"module:Class"``, loaded on demand), its row label and caption note, how it
-samples (``sampling``: ``pipeline`` — :class:`~spread.sampling.ScenePipeline`'s denoising loop with its callbacks
-(guidance), the module giving ``denoiser`` and ``decode`` — or ``own``: the module's ``sample``, as ATISS's
-autoregressive loop and, for now, DiffuScene's and InstructScene's loops with their imputation), whether it sees the relation graph (GRecall is reported
-only then), which trained checkpoint it samples (``checkpoint``: PhyScene samples DiffuScene's), and its training
-recipes (``train``: the paper-size experiment's overrides, ``train_quick``: the CPU one). ``spread-compare``,
+samples (``sampling``: ``pipeline`` — the one denoising loop, :func:`spread.model.diffusion.denoise`, driven by
+:class:`~spread.sampling.ScenePipeline` with its callbacks (guidance), the module giving ``denoising(batch)`` (SPREAD,
+DiffuScene, InstructScene) — or ``own``: the module's ``sample``, as ATISS's autoregressive loop and the release's
+network), whether it sees the relation graph (GRecall is reported only then), which trained checkpoint it samples
+(``checkpoint``: PhyScene samples DiffuScene's), its own sampling overrides (``sample``: PhyScene's
+``guidance=physcene``) and its training recipes (``train``: the paper-size experiment's overrides,
+``train_quick``: the CPU one). ``spread-compare``,
 ``spread-sample`` and checkpoint loading iterate :data:`METHODS`.
 
 A baseline module registers itself (``METHODS.register`` at its end); another package adds a method through the
 entry-point group ``spread.methods`` naming a :class:`MethodSpec` (or a LightningModule class, which becomes a
-``pipeline`` or ``own`` method by whether it has ``denoiser``).
+``pipeline`` or ``own`` method by whether it has ``denoising``).
 """
 
 from __future__ import annotations
@@ -64,7 +66,7 @@ def _adapt(name: str, obj) -> MethodSpec:
     if isinstance(obj, MethodSpec):
         return obj if obj.name == name else MethodSpec(**{**obj.__dict__, "name": name})
     if isinstance(obj, type):
-        sampling = "pipeline" if hasattr(obj, "denoiser") else "own"
+        sampling = "pipeline" if hasattr(obj, "denoising") else "own"
         return MethodSpec(name, obj, label=name, sampling=sampling,
                           graph_conditioned=bool(getattr(obj, "graph_conditioned", False)))
     raise RegistryError(f"method entry point '{name}': expected a MethodSpec or a LightningModule class, got {obj!r}")

@@ -7,12 +7,12 @@ rules and in-process :class:`~spread.experiments.ablation.Commands`), over metho
 |---|---|---|---|
 | ``data`` (only when ``data.root`` is not given or does not exist) | spread-generate | ``data/`` | ``manifest.json`` |
 | ``train/<m>``, m = atiss, diffuscene, instructscene, spread (unless given) | spread-train | ``train/<m>/`` | ``metrics.json``, ``last.ckpt`` |
-| ``derive/physcene`` | :func:`spread.baselines.with_box_guidance` | ``train/physcene.ckpt`` | the file |
 | ``sample/<m>`` | spread-sample | ``samples/<m>/`` | ``sampling.json``, all scenes |
 | ``evaluate/<m>`` | spread-evaluate | ``eval/<m>/`` | ``metrics.json`` |
 | ``table`` | — | ``table1.{md,csv,tex}`` (+ wandb Table) | the three files |
 
-``physcene`` is DiffuScene's checkpoint sampled with PhyScene-style box-IoU guidance (no second training);
+``physcene`` is DiffuScene's checkpoint sampled with PhyScene's guidance (``guidance=physcene``: the registered
+guidance term ``box_iou``; its sample overrides in ``sample.physcene``; no second training, no second checkpoint);
 ``spread`` is the platform's own SceneDiffusion (by default the ``geometry`` model sampled with guidance).
 Every method samples the split's graphs with one shared override list (``sample.overrides``: sampler, seed,
 samples per graph) plus its own (``sample.<m>``); every evaluation shares ``evaluate.overrides``. The ledger is
@@ -42,7 +42,7 @@ from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
 from spread.experiments.tables import Column, columns_of, write_tables
-from spread.io import file_sha256, write_json_atomic
+from spread.io import write_json_atomic
 
 log = logging.getLogger("spread.compare")
 
@@ -69,7 +69,7 @@ def label(method: str) -> str:
 
 
 def trained_from(method: str) -> str:
-    """The trained method whose checkpoint ``method`` samples (physcene: diffuscene's, derived)."""
+    """The trained method whose checkpoint ``method`` samples (physcene: diffuscene's)."""
     return spec_of(method).trained_from
 
 
@@ -90,8 +90,7 @@ LAYOUTS = ("auto", "procthor", "threedfront")
 @dataclass
 class CompareSpec:
     """What to run; override lists are Hydra overrides of the sub-commands' configs (``conf/compare.yaml``
-    documents each). ``ckpt``: trained method → a given checkpoint; ``box_guidance``: the physcene row's
-    :class:`~spread.baselines.diffuscene.BoxGuidance` fields."""
+    documents each). ``ckpt``: trained method → a given checkpoint."""
 
     out_dir: Path
     data_root: Path | None = None
@@ -101,7 +100,6 @@ class CompareSpec:
     train: list[str] = field(default_factory=list)
     train_method: dict[str, list[str]] = field(default_factory=dict)
     ckpt: dict[str, str | None] = field(default_factory=dict)
-    box_guidance: dict = field(default_factory=dict)
     sample: list[str] = field(default_factory=list)
     sample_method: dict[str, list[str]] = field(default_factory=dict)
     evaluate: list[str] = field(default_factory=list)
@@ -126,8 +124,8 @@ class CompareSpec:
         trained = checkpoint_methods()
         for method, path in self.ckpt.items():
             if method not in trained:
-                raise ValueError(f"train.ckpt.{method}: only {trained} are trained (physcene derives from "
-                                 f"diffuscene)")
+                raise ValueError(f"train.ckpt.{method}: only {trained} are trained (physcene samples "
+                                 f"diffuscene's)")
             if path and not Path(path).is_file():
                 raise FileNotFoundError(f"train.ckpt.{method}={path}: no such checkpoint file")
             if path:  # the file must be the row's kind of model (one line otherwise), before any stage runs
@@ -169,8 +167,8 @@ class Comparison(Ablation):
 
     @property
     def checkpoint_of(self) -> dict[str, str]:
-        """method → the checkpoint it samples (its own; physcene: the derived one)."""
-        return {m: m for m in self.spec.methods}
+        """method → the trained method whose checkpoint it samples (its own; physcene: diffuscene's)."""
+        return {m: trained_from(m) for m in self.spec.methods}
 
     def __init__(self, spec: CompareSpec, commands: Commands):
         self.spec = spec
@@ -184,8 +182,6 @@ class Comparison(Ablation):
 
     # ---- folders ----
     def ckpt(self, trained: str) -> Path:
-        if trained == "physcene":
-            return self.out / "train" / "physcene.ckpt"
         given = self.spec.ckpt.get(trained)
         return Path(given) if given else self.train_dir(trained) / "checkpoints" / "last.ckpt"
 
@@ -202,20 +198,11 @@ class Comparison(Ablation):
     def train_lists(self, method: str) -> list[str]:
         return [*self.spec.train, *self.spec.train_method.get(method, [])]
 
-    def derive_stage(self) -> Stage:
-        from spread.baselines import with_box_guidance
-
-        source, target = self.ckpt("diffuscene"), self.ckpt("physcene")
-        inputs = {"diffuscene_sha256": file_sha256(source), "box_guidance": self.spec.box_guidance}
-
-        def run(resume: bool) -> None:
-            log.info("  ≙ spread.baselines.with_box_guidance(%s, %s, %s)", source, target, self.spec.box_guidance)
-            with_box_guidance(source, target, self.spec.box_guidance)
-
-        return Stage("derive/physcene", target.parent, [target], inputs, run)
-
     def sample_lists(self, method: str) -> list[str]:
-        return [*self.spec.sample, *self.spec.sample_method.get(method, [])]
+        """The shared sampling overrides, then the method's own (default: its registered ``sample``, e.g.
+        physcene's ``guidance=physcene``)."""
+        own = self.spec.sample_method.get(method)
+        return [*self.spec.sample, *(list(spec_of(method).sample) if own is None else own)]
 
     # ---- the table ----
     def layout(self) -> str:
@@ -272,8 +259,7 @@ class Comparison(Ablation):
     def failure(self, method: str) -> str:
         """The first error on the method's way to its row (training, derivation, sampling, evaluation)."""
         trained = trained_from(method)
-        chain = ["data", f"train/{trained}", *(["derive/physcene"] if method == "physcene" else []),
-                 f"sample/{method}", f"evaluate/{method}"]
+        chain = ["data", f"train/{trained}", f"sample/{method}", f"evaluate/{method}"]
         for name in chain:
             if self.status.get(name) == "failed":
                 return self.errors[name]
@@ -297,10 +283,7 @@ class Comparison(Ablation):
             data = json.loads(manifest.read_text())
             sampler = data.get("fingerprint", {}).get("sampler") or {}
             out["sampler"] = "one pass per object" if method == "atiss" else f"{sampler.get('kind')}-{sampler.get('steps')}"
-            if data.get("guidance"):
-                out["sampler"] += f" + {data['guidance']['mode']} guidance"
-            if method == "physcene":
-                out["sampler"] += " + box-IoU guidance"
+            out["sampler"] += guidance_label(data.get("guidance"))
             per_batch, batches, written = data.get("seconds_per_batch"), data.get("batches_run"), data.get("written_this_run")
             if per_batch is not None and written:
                 out["seconds_per_scene"] = per_batch * batches / written
@@ -360,10 +343,8 @@ class Comparison(Ablation):
                 self.status[f"train/{t}"] = "given"
             else:
                 self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
-        if "physcene" in spec.methods:
-            self.attempt("derive/physcene", self.derive_stage, ["train/diffuscene"])
         for m in spec.methods:
-            needs = ["data", "derive/physcene" if m == "physcene" else f"train/{m}"]
+            needs = ["data", f"train/{trained_from(m)}"]
             self.attempt(f"sample/{m}", lambda m=m: self.sample_stage(m), needs)
         for m in spec.methods:
             self.attempt(f"evaluate/{m}", lambda m=m: self.evaluate_stage(m), [f"sample/{m}"])
@@ -373,6 +354,17 @@ class Comparison(Ablation):
         tables = {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}
         return CompareResult(records, dict(self.status), dict(self.errors), tables,
                              round(time.perf_counter() - started, 3), self.layout())
+
+
+def guidance_label(guidance: dict | None) -> str:
+    """The caption's words for a row's guidance (its ``sampling.json`` guidance settings): `` + refine guidance``
+    for SPREAD's terms, `` + box_iou guidance`` for PhyScene's term; empty when unguided."""
+    if not guidance:
+        return ""
+    words = [f"{guidance.get('mode')} guidance"] if any(guidance.get(k) for k in ("collision", "gravity", "relation")) \
+        else []
+    words += [f"{name} guidance" for name, weight in (guidance.get("terms") or {}).items() if weight]
+    return "".join(f" + {w}" for w in words)
 
 
 def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> CompareResult:

@@ -26,7 +26,6 @@ def compare_spec(cfg: DictConfig):
         train_method={m: strings(cfg.train.get(m)) if m in cfg.train else list(spec_of(m).train)
                       for m in trained_methods()},
         ckpt={k: (None if v in (None, "") else str(v)) for k, v in (cfg.train.get("ckpt") or {}).items()},
-        box_guidance=OmegaConf.to_container(cfg.physcene.box_guidance, resolve=True),
         sample=strings(cfg.sample.overrides) + strings(cfg.sample.get("extra")),
         sample_method={m: strings(cfg.sample.get(m)) if m in cfg.sample else list(spec_of(m).sample)
                        for m in registered()},

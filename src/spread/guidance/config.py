@@ -8,6 +8,9 @@ Modes (reference notes §3.1, paper §3.4):
            one step ``x̂_0 ← x̂_0 − Σ_k λ_k ∇G_k(x̂_0)`` before the sampler uses it
 ``refine`` the release's behaviour: after sampling, ``iterations`` refinement iterations at t = 0,
            each a denoising projection with the network then the same gradient step
+``sample`` PhyScene's placement: after every sampler step (from ``start`` on, or the last ``last_steps``)
+           the sampled state x_{t−1} takes the gradient step (``guidance=physcene``: its box-IoU term on
+           the last 10 steps, each term's step clipped to ±``grad_clip``)
 ========== ========================================================================================
 
 Weights are the paper's λ (``collision`` 7.5e-3, ``gravity`` 1e-3, ``relation`` 1e-3), applied in
@@ -25,7 +28,7 @@ from dataclasses import dataclass
 from dataclasses import field
 from typing import Any, Mapping
 
-MODES = ("none", "paper", "refine")
+MODES = ("none", "paper", "refine", "sample")
 
 
 @dataclass
@@ -43,8 +46,13 @@ class GuidanceConfig:
     #: ``refine``: the t = 0 denoising projection runs every this many iterations (1 = every one, the
     #: release; 0 = never: guidance steps only). Each projection is one network call on the batch.
     denoise_every: int = 1
-    #: ``paper``: guidance applies from step ``ceil(start · steps)`` on (0 = every step, the equation).
+    #: ``paper`` / ``sample``: guidance applies from step ``ceil(start · steps)`` on (0 = every step, the equation).
     start: float = 0.0
+    #: ``paper`` / ``sample``: when > 0, guidance applies at the last this many sampling steps only (instead of
+    #: ``start``; PhyScene: 10).
+    last_steps: int = 0
+    #: Each term's step λ·∇G is clipped to ±this per value (0 = not clipped; PhyScene: 0.1).
+    grad_clip: float = 0.0
     #: Gravity joins from this fraction of the steps / iterations on (release: 0.5).
     gravity_from: float = 0.5
     #: ``paper``: gradient steps per guided sampling step.
@@ -75,7 +83,7 @@ class GuidanceConfig:
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"guidance: key 'mode' is {self.mode!r}, choose from {MODES}")
-        for key in ("collision", "gravity", "relation", "cone_height", "gap", "tolerance", "up_boost"):
+        for key in ("collision", "gravity", "relation", "cone_height", "gap", "tolerance", "up_boost", "grad_clip"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"guidance: key '{key}' must be a finite number ≥ 0, got {value!r}")
@@ -96,7 +104,7 @@ class GuidanceConfig:
                     raise ValueError(f"guidance: 'terms.{name}': the built-in terms are weighed by guidance.{name}")
                 TERMS_REGISTRY.get(name)  # an unknown term is an error naming the known ones
         for key, low in (("iterations", 0), ("denoise_every", 0), ("inner_steps", 1), ("max_contacts", 1),
-                         ("record_every", 0)):
+                         ("record_every", 0), ("last_steps", 0)):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"guidance: key '{key}' must be an integer ≥ {low}, got {value!r}")
@@ -106,6 +114,13 @@ class GuidanceConfig:
         """True when sampling is guided at all: a mode other than ``none`` and some weight > 0."""
         return self.mode != "none" and (self.collision > 0 or self.gravity > 0 or self.relation > 0
                                         or any(v > 0 for v in self.terms.values()))
+
+    def first_step(self, steps: int) -> int:
+        """The first guided step of a ``paper`` or ``sample`` loop of ``steps`` steps (``last_steps``, else
+        ``start``)."""
+        if self.last_steps > 0:
+            return max(0, steps - self.last_steps)
+        return math.ceil(self.start * steps)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

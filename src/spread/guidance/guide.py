@@ -1,18 +1,22 @@
 """``SceneGuidance``: the registered guidance terms of a batch of scenes and the two guided-sampling modes.
 
-One guidance step on normalised states x (B, N, 9) (translation in [−1, 1] through ``bounds``, rot6d;
-:func:`spread.model.poses.poses_from_state`) is, as in the release,
+One guidance step on normalised states x (B, N, C) — SPREAD's 9-d states (translation in [−1, 1] through
+``bounds``, rot6d; :func:`spread.model.poses.poses_from_state`), or any method's states with its ``decode``
+(DiffuScene's and InstructScene's centre, size, cos θ, sin θ: every term acts on the decoded poses, so each
+method is guided the same way) — is, as in the release,
 
     x ← x − Σ_k [k on] λ_k edit_k(∇G_k)      (built-ins: λ_C ∇G_C + λ_H ∇G_H + λ_R ∇G_R)
 
 over the terms of the registry (:mod:`spread.guidance.terms`) whose weight is > 0, each summed over scenes (so
-a scene's step never depends on the rest of its batch) and switched on by its schedule (gravity from
-``gravity_from``). The release's two tweaks are the built-ins' gradient edits, on by default (config): the
+a scene's step never depends on the rest of its batch), switched on by its schedule (gravity from
+``gravity_from``) and, with ``grad_clip`` > 0, clipped to ±``grad_clip`` per value (PhyScene's clip). The release's two tweaks are the built-ins' gradient edits, on by default (config): the
 upward part of the collision step on the normalised-y channel is multiplied by ``up_boost`` (3), and the
 gravity step is kept on the y channel only. Padding objects never move.
 
 ``paper`` mode plugs :meth:`SceneGuidance.x0_hook` into the sampler: at sampling step k of K (from
-``ceil(start·K)`` on) the predicted x̂_0 takes ``inner_steps`` steps, gravity from ``ceil(gravity_from·K)``.
+``ceil(start·K)`` on, or the last ``last_steps``) the predicted x̂_0 takes ``inner_steps`` steps, gravity from
+``ceil(gravity_from·K)``. ``sample`` mode (:meth:`SceneGuidance.sample_hook`) takes the same steps on the
+sampled state x_{t−1} after the sampler's step (PhyScene's placement).
 ``refine`` mode (:meth:`SceneGuidance.refine`) runs after the sampler: ``iterations`` times, ε̂ =
 eps_fn(x, t = 0), x ← clip((x − √(1−ᾱ_0) ε̂)/√ᾱ_0, ±1) (the denoising projection the release's
 scheduler step takes at t = 0, ᾱ_0 of the training schedule; every ``denoise_every``-th iteration,
@@ -51,12 +55,13 @@ class SceneGuidance:
     alpha_bar0: ᾱ_0 of the model's training schedule (``refine``'s t = 0 projection; default: the default
     schedule's). welded: (B, N) bool, the wall and ceiling mounts (:func:`spread.scene.welded_objects`):
     gravity and support (relation) guidance leave them alone (no gap to close, no footprint to be pulled
-    over); default none.
+    over); default none. decode: ``x (B, N, C) → (translation (B, N, 3) metres, rotation (B, N, 3, 3))``,
+    differentiable, the method's state decoder (default SPREAD's 9-d states through ``bounds``); state_dim: C.
     """
 
     def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,
                  mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None,
-                 welded: torch.Tensor | None = None):
+                 welded: torch.Tensor | None = None, decode: Callable | None = None, state_dim: int = 9):
         self.config = GuidanceConfig.from_config(config)
         self.mask = torch.as_tensor(mask).bool().cpu()
         if self.mask.dim() != 2:
@@ -78,6 +83,7 @@ class SceneGuidance:
         self.meshes = SceneMeshes(library, asset_ids, self.mask)
         self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
         self.detach_cones = detach_cones
+        self.decode, self.state_dim = decode, int(state_dim)
         self.alpha_bar0 = float(training_scheduler().alphas_cumprod[0]) if alpha_bar0 is None else float(alpha_bar0)
         self._on: dict[tuple, dict[str, torch.Tensor]] = {}
         #: states (B, N, 9) kept every ``config.record_every`` iterations or guided steps (the timeline)
@@ -123,7 +129,11 @@ class SceneGuidance:
     def _terms(self, x: torch.Tensor, which: Sequence[str]) -> dict[str, torch.Tensor]:
         """Per-scene values (B,) of the named registered terms at states x (differentiable when x requires grad)."""
         g = self._graph(x.device, x.dtype)
-        translation, rotation = poses_from_state(x, g["bounds"])
+        if self.decode is None:
+            translation, rotation = poses_from_state(x, g["bounds"])
+        else:
+            translation, rotation = self.decode(x)
+            translation, rotation = translation.to(x.dtype), rotation.to(x.dtype)
         world = self.meshes.pose(translation, rotation)
         hull = self.meshes.hull_points(world)
         ctx = TermContext(self, x, translation, rotation, world, hull, g)
@@ -138,7 +148,7 @@ class SceneGuidance:
         return out
 
     def losses(self, x: torch.Tensor, reduce: bool = True, which: Sequence[str] | None = None) -> dict[str, torch.Tensor]:
-        """Each term's value at states x (B, N, 9): summed over scenes (``reduce``) or per scene (B,); ``which``:
+        """Each term's value at states x (B, N, C): summed over scenes (``reduce``) or per scene (B,); ``which``:
         the registered terms' names (default the built-ins and every term the config weighs).
         Differentiable when x requires grad (cones, hulls and hit heights detached; module docs)."""
         self._check(x)
@@ -147,9 +157,9 @@ class SceneGuidance:
         return {k: v.sum() if reduce else v for k, v in values.items()}
 
     def _check(self, x: torch.Tensor) -> None:
-        if x.dim() != 3 or tuple(x.shape[:2]) != tuple(self.mask.shape) or x.shape[-1] != 9:
-            raise ValueError(f"guidance: states must be (B, N, 9) with (B, N) = {tuple(self.mask.shape)}, "
-                             f"got {tuple(x.shape)}")
+        if x.dim() != 3 or tuple(x.shape[:2]) != tuple(self.mask.shape) or x.shape[-1] != self.state_dim:
+            raise ValueError(f"guidance: states must be (B, N, {self.state_dim}) with (B, N) = "
+                             f"{tuple(self.mask.shape)}, got {tuple(x.shape)}")
 
     # ---- one step -----------------------------------------------------------------------------------
     def weights(self, at: tuple[int, int] | None = None, late: bool = True) -> dict[str, float]:
@@ -172,7 +182,7 @@ class SceneGuidance:
         return out
 
     def step(self, x: torch.Tensor, gravity: bool = True, at: tuple[int, int] | None = None) -> torch.Tensor:
-        """One guidance step on states x (B, N, 9) (module docstring); returns new states, x untouched.
+        """One guidance step on states x (B, N, C) (module docstring); returns new states, x untouched.
         ``at``: (index, count) in the loop for the terms' schedules; else ``gravity`` switches the late terms."""
         self._check(x)
         cfg = self.config
@@ -193,7 +203,10 @@ class SceneGuidance:
                 edit = TERMS_REGISTRY.get(name).edit
                 if edit is not None:
                     grad = edit(grad, cfg)
-                update = update + weights[name] * grad
+                grad = weights[name] * grad
+                if cfg.grad_clip > 0:  # PhyScene clips each value of its step
+                    grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp(-cfg.grad_clip, cfg.grad_clip)
+                update = update + grad
             self._stats["penalty_s"] += time.perf_counter() - t0
         self._stats["steps"] += 1
         keep = self._graph(x.device, x.dtype)["mask"][..., None].to(x.dtype)
@@ -202,15 +215,23 @@ class SceneGuidance:
     # ---- the two modes ------------------------------------------------------------------------------
     def x0_hook(self, x0: torch.Tensor, ctx: StepContext) -> torch.Tensor:
         """``paper`` mode: guide the predicted x̂_0 of sampling step ``ctx.index`` of ``ctx.num_steps``."""
+        return self._guide_step(x0, ctx)
+
+    def sample_hook(self, x: torch.Tensor, ctx: StepContext) -> torch.Tensor:
+        """``sample`` mode: guide the sampled state x_{t−1} after sampling step ``ctx.index``."""
+        return self._guide_step(x, ctx)
+
+    def _guide_step(self, x: torch.Tensor, ctx: StepContext) -> torch.Tensor:
         K, k = ctx.num_steps, ctx.index
-        if k < math.ceil(self.config.start * K):
-            return x0
-        self._record(x0, k - math.ceil(self.config.start * K), first=k == math.ceil(self.config.start * K))
+        first = self.config.first_step(K)
+        if k < first:
+            return x
+        self._record(x, k - first, first=k == first)
         for _ in range(self.config.inner_steps):
-            x0 = self.step(x0, at=(k, K))
+            x = self.step(x, at=(k, K))
         if k == K - 1:
-            self._record(x0, None, last=True)
-        return x0
+            self._record(x, None, last=True)
+        return x
 
     def _record(self, x: torch.Tensor, index: int | None, first: bool = False, last: bool = False) -> None:
         every = self.config.record_every

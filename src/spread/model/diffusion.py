@@ -17,7 +17,11 @@ DDIM and DPM-Solver++ use "trailing" timestep spacing (the first step is t = 999
 was trained on near-pure noise; Lin et al. 2024), and DPM-Solver++ clips λ(t) at −5.1 as diffusers
 recommends for the cosine schedule. Each call builds a fresh scheduler (they are stateful).
 
-The loop (:meth:`Sampler.sample`) works on any ``eps_fn(x_t, t) -> ε̂``; the model's closure
+The loop (:meth:`Sampler.sample`) works on any ``eps_fn(x_t, t) -> ε̂``; every diffusion method samples through
+it by one function, :func:`denoise`, which takes a method's :class:`Denoising` (its ε-function, mask, state size,
+training schedule, pose decoder and own per-step edit) and the injected :class:`SamplingCallback` s (guidance,
+per-step edits): SPREAD's model, its validation, DiffuScene, InstructScene and
+:class:`~spread.sampling.ScenePipeline` all call it. For SPREAD the model's closure
 recomputes the geometry features from x_t at every step. Each step it forms the predicted
 x̂_0 = (x_t − √(1−ᾱ_t) ε̂)/√ᾱ_t, clips it to [−1, 1] (``clip_x0``; all 9 channels live there),
 applies ``x0_hook(x̂_0, ctx)`` if given (guidance plugs in here), turns x̂_0 back into the ε the
@@ -127,6 +131,75 @@ class StepContext:
 
 
 Hook = Callable[[torch.Tensor, StepContext], torch.Tensor]
+
+
+@dataclass
+class SamplingCallback:
+    """An injected edit of one batch's sampling: ``x0_hook(x̂_0, ctx) → x̂_0`` at every sampler step (ctx:
+    :class:`StepContext`), ``sample_hook(x_{t−1}, ctx) → x_{t−1}`` after every sampler step, ``after(x, eps_fn)
+    → x`` once after the sampler."""
+
+    x0_hook: Hook | None = None
+    sample_hook: Hook | None = None
+    after: Callable | None = None
+
+
+@dataclass
+class Denoising:
+    """What a diffusion method hands the one loop for a batch (``model.denoising(batch, use_ema, graph_scale)``).
+
+    eps_fn: ``(x_t (B, N, C), t (B,)) → ε̂``; mask: (B, N) bool real objects; state_dim: C; schedule: the config of
+    the method's training noise schedule; decode: ``x (B, N, C) → Poses`` (translation (B, N, 3) metres,
+    rotation (B, N, 3, 3) world-from-local), differentiable in x, so guidance terms defined on poses steer any
+    method — a state's first three channels are the translation normalised by the dataset bounds (the
+    collision boost and gravity's y-only edit act on channel 1); x0_hook: the method's own per-step edit of
+    x̂_0, run before any callback's (DiffuScene's and InstructScene's imputation of the known channels);
+    finish: ``x → x`` after the sampler and every callback (the imputation once more)."""
+
+    eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    mask: torch.Tensor
+    decode: Callable
+    state_dim: int = 9
+    schedule: Mapping | None = None
+    x0_hook: Hook | None = None
+    finish: Callable | None = None
+
+
+def chain_hooks(hooks) -> Hook | None:
+    """One hook applying ``hooks`` (None entries skipped) in order; None when there are none."""
+    hooks = [h for h in hooks if h is not None]
+    if not hooks:
+        return None
+    if len(hooks) == 1:
+        return hooks[0]
+
+    def hook(x, ctx):
+        for h in hooks:
+            x = h(x, ctx)
+        return x
+
+    return hook
+
+
+def denoise(problem: Denoising, sampler, generator=None, callbacks=()) -> torch.Tensor:
+    """The one sampling loop of every diffusion method: the reverse process of ``problem`` (a :class:`Denoising`)
+    with ``sampler`` (a :class:`Sampler` or what :meth:`Sampler.from_config` takes), noise from ``generator``
+    (one per scene: a list), the method's own x̂_0 edit then the ``callbacks``' x̂_0 and sample edits in list
+    order at every step, their ``after`` edits in list order once after the sampler, then ``problem.finish``.
+    Returns the states (B, N, C), zero at padding, autograd off."""
+    callbacks = [c for c in callbacks if c is not None]
+    with torch.no_grad():
+        x = Sampler.from_config(sampler).sample(
+            problem.eps_fn, problem.mask, generator=generator,
+            x0_hook=chain_hooks([problem.x0_hook, *[c.x0_hook for c in callbacks]]),
+            sample_hook=chain_hooks([c.sample_hook for c in callbacks]), state_dim=problem.state_dim,
+            schedule=problem.schedule)
+        for c in callbacks:
+            if c.after is not None:
+                x = c.after(x, problem.eps_fn)
+        if problem.finish is not None:
+            x = problem.finish(x)
+    return x
 
 
 @dataclass

@@ -16,8 +16,9 @@
   replaced by padding codes; ``sample(..., graph_scale=s)`` then mixes ε̂ = ε̂_∅ + s (ε̂_G − ε̂_∅).
 * Validation: ``val/loss`` with seeded noise and timesteps (comparable across epochs); every
   ``sample_every_n_epochs`` epochs (0 = never) the first ``val_sample_scenes`` scenes of the first
-  validation batch are sampled with ``val_sampler`` and scored with graph recall (``val/grecall``,
-  :mod:`spread.model.recall`).
+  validation batch are sampled with ``val_sampler`` — through the one loop every method samples with
+  (:func:`spread.model.diffusion.denoise` on :meth:`SceneDiffusion.denoising`) — and scored with graph recall
+  (``val/grecall``, :mod:`spread.model.recall`).
 * ``bounds`` (stats.json ``bounds_translations``) are needed to pose objects; when not given they are
   read at ``setup`` from the trainer's datamodule folder (``<root>/stats.json``) and saved with the
   checkpoint.
@@ -32,8 +33,8 @@ import lightning as L
 import torch
 
 from spread.model.config import ModelConfig, SceneDiffusionConfig
-from spread.model.diffusion import (Hook, Sampler, check_prediction, epsilon_from_prediction, loss_weights,
-                                    prediction_target, training_scheduler)
+from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, check_prediction, denoise,
+                                    epsilon_from_prediction, loss_weights, prediction_target, training_scheduler)
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser
 from spread.model.poses import poses_from_state
@@ -307,6 +308,17 @@ class SceneDiffusion(L.LightningModule):
 
         return eps_fn, cond.mask
 
+    def denoising(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0) -> Denoising:
+        """The batch's :class:`~spread.model.diffusion.Denoising` for the one sampling loop: :meth:`denoiser`'s
+        ε-function and mask, 9-d states on the model's training schedule, decoded by :meth:`decode`."""
+        eps_fn, mask = self.denoiser(batch, use_ema, graph_scale)
+        return Denoising(eps_fn, mask, lambda x: self.decode(x, mask), 9, self.noise_schedule.config)
+
+    @property
+    def bounds(self) -> torch.Tensor:
+        """(6,) translation bounds [min xyz, max xyz], metres: the normalisation of a state's translation."""
+        return self.network.bounds
+
     def decode(self, x: torch.Tensor, mask: torch.Tensor) -> Poses:
         """Normalised states x (B, N, 9) → :class:`Poses` (metres, world-from-local; 0 / identity at padding)."""
         mask = mask.to(x.device).bool()
@@ -319,14 +331,14 @@ class SceneDiffusion(L.LightningModule):
                       generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
                       sample_hook: Hook | None = None, use_ema: bool = True, graph_scale: float = 1.0) -> torch.Tensor:
         """Normalised states x̂_0 (B, N, 9) for the batch's scenes (graphs, assets, mask); zero at padding.
-        Unguided (validation, quick looks); guided sampling with callbacks is :class:`spread.sampling.ScenePipeline`."""
+        Unguided unless hooks are given (validation, quick looks); guided sampling with the platform's guidance
+        is :class:`spread.sampling.ScenePipeline` (the same loop, :func:`~spread.model.diffusion.denoise`)."""
         network = self.ema.module if use_ema else self.network
         was_training = network.training
         network.eval()
         try:
-            eps_fn, mask = self.denoiser(batch, use_ema, graph_scale)
-            return Sampler.from_config(sampler).sample(eps_fn, mask, generator=generator, x0_hook=x0_hook,
-                                                       sample_hook=sample_hook, schedule=self.noise_schedule.config)
+            return denoise(self.denoising(batch, use_ema, graph_scale), sampler, generator,
+                           [SamplingCallback(x0_hook=x0_hook, sample_hook=sample_hook)])
         finally:
             network.train(was_training)
 

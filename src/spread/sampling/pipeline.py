@@ -1,22 +1,29 @@
 """``ScenePipeline``: conditioning graphs in, posed scenes out — network, sampler, per-step edits and pose
-decoding in one object, as a diffusers pipeline holds its model, scheduler and loop.
+decoding in one object, as a diffusers pipeline holds its model, scheduler and loop. It samples every diffusion
+method the same way (SPREAD's variants, DiffuScene, InstructScene: each gives its batch's
+:class:`~spread.model.diffusion.Denoising`), through the platform's one loop
+(:func:`spread.model.diffusion.denoise`, which model validation uses too).
 
 One call (:meth:`ScenePipeline.__call__`) on a batch of source scenes (the conditioning graphs):
 
 1. **encode** them exactly as in training (:class:`~spread.data.SceneDataset` with the checkpoint's point
    settings) and collate into one padded batch;
-2. **callbacks** for this batch (:meth:`ScenePipeline.callbacks`): per-step edits of the predicted x̂_0
-   (``x0_hook``, run at every sampler step) and edits after the sampler (``after``). Physics guidance is
-   such a callback: ``guidance=paper`` steers x̂_0 at every step, ``guidance=refine`` refines after the
-   sampler (:class:`~spread.guidance.SceneGuidance`, built here with the batch's meshes and support graph);
-3. **sample**: the model's ε-function for the batch (``model.denoiser``: EMA weights, classifier-free
-   ``graph_scale``), the :class:`~spread.model.Sampler`'s reverse process with one noise generator per
-   scene, then the ``after`` callbacks;
-4. **decode** the states to poses (``model.decode``: metres, world-from-local) and **repair** rotations
-   that Gram–Schmidt left degenerate (:func:`repair_rotations`).
+2. the method's **denoising problem** (``model.denoising(batch, use_ema, graph_scale)``: its ε-function with EMA
+   weights and classifier-free ``graph_scale``, mask, state size, training schedule, differentiable pose
+   decoder and its own per-step edit, e.g. DiffuScene's imputation of the known channels);
+3. **callbacks** for this batch (:meth:`ScenePipeline.callbacks`, plus any passed in): per-step edits of the
+   predicted x̂_0 (``x0_hook``) or of the sampled state (``sample_hook``) and edits after the sampler
+   (``after``). Physics guidance is such a callback, for every method alike (its terms act on the decoded
+   poses): ``guidance=paper`` steers x̂_0 at every step, ``guidance=sample`` the sampled state (PhyScene's
+   ``guidance=physcene``), ``guidance=refine`` refines after the sampler
+   (:class:`~spread.guidance.SceneGuidance`, built here with the batch's meshes and support graph);
+4. **sample** with :func:`~spread.model.diffusion.denoise` (the :class:`~spread.model.Sampler`'s reverse process,
+   one noise generator per scene), **decode** the states to poses (metres, world-from-local) and **repair**
+   rotations that Gram–Schmidt left degenerate (:func:`repair_rotations`).
 
-A model without ``denoiser`` (an autoregressive baseline) is asked for poses directly
-(``model.sample(batch, generator=...)``); step callbacks do not apply to it.
+A method that samples its own way (``sampling: own`` in the method registry: ATISS's autoregressive loop, the
+release's network) is asked for poses directly (``model.sample(batch, generator=...)``); step callbacks do not
+apply to it.
 """
 
 from __future__ import annotations
@@ -26,19 +33,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from spread.model.diffusion import SamplingCallback, chain_hooks, denoise  # noqa: F401 (re-exported)
 from spread.scene import Scene
 
 #: A sampled rotation further than this from orthonormal (max |RᵀR − I|) is replaced by its nearest rotation.
 REPAIR_TOLERANCE = 1e-4
-
-
-@dataclass
-class SamplingCallback:
-    """A per-batch edit of the sampling: ``x0_hook(x0, ctx) → x0`` at every sampler step (ctx:
-    :class:`~spread.model.StepContext`), ``after(x, eps_fn) → x`` once after the sampler."""
-
-    x0_hook: Callable | None = None
-    after: Callable | None = None
 
 
 @dataclass
@@ -78,40 +77,28 @@ def guidance_callback(guidance) -> SamplingCallback | None:
         return None
     if config.mode == "paper":
         return SamplingCallback(x0_hook=guidance.x0_hook)
+    if config.mode == "sample":
+        return SamplingCallback(sample_hook=guidance.sample_hook)
     return SamplingCallback(after=guidance.refine)
 
 
 def sampling_kind(model) -> str:
     """How a model samples, from the method registry (its checkpoint's ``method``: ``pipeline`` through this
     pipeline's loop and callbacks, or ``own`` through its own ``sample``); a model of no registered method:
-    ``pipeline`` when it has a ``denoiser``."""
+    ``pipeline`` when it has ``denoising``."""
     from spread.baselines.registry import METHODS
 
     hparams = getattr(model, "hparams", None) or {}
-    method = str(hparams.get("method") or ("spread" if hasattr(model, "denoiser") else ""))
+    method = str(hparams.get("method") or ("spread" if hasattr(model, "denoising") else ""))
     if method in METHODS:
         return METHODS.get(method).sampling
-    return "pipeline" if hasattr(model, "denoiser") else "own"
-
-
-def chain_hooks(hooks: Sequence[Callable]) -> Callable | None:
-    """One x̂_0 hook applying ``hooks`` in order (None when there are none)."""
-    hooks = [h for h in hooks if h is not None]
-    if not hooks:
-        return None
-
-    def hook(x0, ctx):
-        for h in hooks:
-            x0 = h(x0, ctx)
-        return x0
-
-    return hook
+    return "pipeline" if hasattr(model, "denoising") else "own"
 
 
 class ScenePipeline:
     """A trained model, its data encoder, a sampler and a guidance config (module docstring).
 
-    model: a :class:`~spread.model.SceneDiffusion` (or a module with ``denoiser``/``decode``, or ``sample``),
+    model: a :class:`~spread.model.SceneDiffusion`, a baseline, any module with ``denoising`` (or ``sample``),
     in eval mode on its device. dataset: the :class:`~spread.data.SceneDataset` that encodes graphs (its
     asset library gives guidance its meshes). sampler: a :class:`~spread.model.Sampler` or its config.
     guidance: a :class:`~spread.guidance.GuidanceConfig`, its mapping, or None (unguided).
@@ -135,8 +122,10 @@ class ScenePipeline:
         paths = paths or [None] * len(sources)
         return collate_scenes([self.dataset.encode(src, source=path) for src, path in zip(sources, paths)])
 
-    def callbacks(self, batch: dict, sources: Sequence[Scene]) -> list:
-        """This batch's callbacks: physics guidance when the pipeline guides, with the batch's meshes."""
+    def callbacks(self, batch: dict, sources: Sequence[Scene], problem=None) -> list:
+        """This batch's callbacks: physics guidance when the pipeline guides, with the batch's meshes, steering the
+        states of ``problem`` (the method's :class:`~spread.model.diffusion.Denoising`; its decoder gives the
+        terms their poses — SPREAD's 9-d states are decoded by the guidance itself, bit for bit as before)."""
         if self.guidance is None:
             return []
         from spread.guidance import SceneGuidance
@@ -149,40 +138,53 @@ class ScenePipeline:
         welded = torch.zeros(batch["mask"].shape, dtype=torch.bool)
         for b, src in enumerate(sources):
             welded[b, batch["mask"][b].cpu().bool()] = torch.from_numpy(welded_objects(src))  # the real objects' slots
+        state_dim = 9 if problem is None else problem.state_dim
+        # 9-d states are SPREAD's (translation, rot6d): the guidance decodes them itself; others by their method
+        decode = None if state_dim == 9 else (lambda x: tuple(problem.decode(x)))
         guidance = SceneGuidance(self.guidance, self.dataset.library, [list(src.asset_id) for src in sources],
-                                 batch["physical"].to(device), batch["mask"].to(device), self.model.network.bounds,
-                                 alpha_bar0=float(self.model.noise_schedule.alphas_cumprod[0]), welded=welded)
+                                 batch["physical"].to(device), batch["mask"].to(device), self.model.bounds,
+                                 alpha_bar0=float(self.model.noise_schedule.alphas_cumprod[0]), welded=welded,
+                                 decode=decode, state_dim=state_dim)
         self._last_guidance = guidance
         callback = guidance_callback(guidance)
         return [callback] if callback is not None else []
 
-    def sample_states(self, batch: dict, generator=None, callbacks: Sequence[SamplingCallback] = ()):
-        """Normalised states (B, N, 9) of the batch, after the sampler and the ``after`` callbacks."""
+    def sample_states(self, batch: dict, generator=None, callbacks: Sequence[SamplingCallback] = (),
+                      sources: Sequence[Scene] | None = None):
+        """States (B, N, C) after the sampler and every callback, and the mask (B, N); with ``sources`` the
+        pipeline's own callbacks (guidance) run before ``callbacks``."""
+        x, problem = self._sample(batch, generator, callbacks, sources)
+        return x, problem.mask
+
+    def _sample(self, batch, generator, callbacks, sources):
         import torch
 
         with torch.no_grad():
-            eps_fn, mask = self.model.denoiser(batch, self.use_ema, self.graph_scale)
-            x = self.sampler.sample(eps_fn, mask, generator=generator, x0_hook=chain_hooks([c.x0_hook for c in callbacks]),
-                                    schedule=self.model.noise_schedule.config)
-            for c in callbacks:
-                if c.after is not None:
-                    x = c.after(x, eps_fn)
-        return x, mask
+            problem = self.model.denoising(batch, self.use_ema, self.graph_scale)
+        own = self.callbacks(batch, sources, problem) if sources is not None else []
+        return denoise(problem, self.sampler, generator, [*own, *callbacks]), problem
 
-    def __call__(self, sources: Sequence[Scene], generators, paths: Sequence[str] | None = None) -> list[SampledPoses]:
-        """Poses for every source scene (one ``torch.Generator`` per scene: its noise ignores the batch)."""
+    def __call__(self, sources: Sequence[Scene], generators, paths: Sequence[str] | None = None,
+                 callbacks: Sequence[SamplingCallback] = ()) -> list[SampledPoses]:
+        """Poses for every source scene (one ``torch.Generator`` per scene: its noise ignores the batch);
+        ``callbacks``: per-step edits of this call, after the pipeline's guidance."""
+        import torch
+
         batch = self.encode(sources, paths)
         self._last_guidance = None
-        if sampling_kind(self.model) == "pipeline":
-            x, mask = self.sample_states(batch, generators, self.callbacks(batch, sources))
-            poses = self.model.decode(x, mask)
+        pipelined = sampling_kind(self.model) == "pipeline"
+        problem = None
+        if pipelined:
+            x, problem = self._sample(batch, generators, callbacks, sources)
+            with torch.no_grad():
+                poses = problem.decode(x)
         else:
             if hasattr(self.model, "scene_inputs"):  # arrays the model reads from the source scenes (the release's)
                 batch.update(self.model.scene_inputs(sources, self.dataset.library))
             poses = self.model.sample(batch, sampler=self.sampler, generator=generators, use_ema=self.use_ema)
         self.guidance_stats = dict(self._last_guidance.stats) if self._last_guidance is not None else {}
         translation, rotation = poses.translation.cpu().numpy(), poses.rotation.cpu().numpy()
-        timeline = self.timeline(mask if sampling_kind(self.model) == "pipeline" else None)
+        timeline = self.timeline(problem)
         out = []
         for b, src in enumerate(sources):
             n = src.num_objects
@@ -191,14 +193,14 @@ class ScenePipeline:
             out.append(SampledPoses(translation[b, :n], R, repaired, track))
         return out
 
-    def timeline(self, mask) -> tuple[np.ndarray, np.ndarray] | None:
+    def timeline(self, problem) -> tuple[np.ndarray, np.ndarray] | None:
         """The recorded guidance states decoded to poses: translation (T, B, N, 3), rotation (T, B, N, 3, 3)."""
         guidance = self._last_guidance
-        if mask is None or guidance is None or not guidance.trajectory:
+        if problem is None or guidance is None or not guidance.trajectory:
             return None
         import torch
 
         with torch.no_grad():
-            decoded = [self.model.decode(x, mask) for x in guidance.trajectory]
+            decoded = [problem.decode(x) for x in guidance.trajectory]
         return (np.stack([d.translation.cpu().numpy() for d in decoded]),
                 np.stack([d.rotation.cpu().numpy() for d in decoded]))

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spread.sampling.pipeline import ScenePipeline
+from spread.sampling.pipeline import ScenePipeline, sampling_kind
 from spread.sampling.plan import BatchPlan, SampleItem, missing_items
 from spread.scene import Scene
 
@@ -50,7 +50,8 @@ def active_guidance(guidance):
 
 def guidance_label(config) -> str:
     """Short name of an active guidance config: ``refine(c=0.0075,g=0.001,r=0.001)``."""
-    return f"{config.mode}(c={config.collision:g},g={config.gravity:g},r={config.relation:g})"
+    terms = "".join(f",{name}={weight:g}" for name, weight in config.terms.items() if weight > 0)
+    return f"{config.mode}(c={config.collision:g},g={config.gravity:g},r={config.relation:g}{terms})"
 
 
 def checkpoint_data_settings(ckpt: dict, model) -> dict:
@@ -67,15 +68,15 @@ def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = 
     point settings, model in eval mode on ``device``)."""
     from spread.baselines import module_from_checkpoint
     from spread.data import SceneDataset
-    from spread.model.module import SceneDiffusion
     from spread.safe_load import load_checkpoint
 
     checkpoint = load_checkpoint(ckpt)
     model = module_from_checkpoint(checkpoint, map_location=resolve_device(device), source=str(ckpt)).eval()  # SPREAD or a baseline
     guided = active_guidance(guidance)
-    if guided is not None and not isinstance(model, SceneDiffusion):
-        raise ValueError(f"guidance={guided.mode}: SPREAD's guidance needs a SceneDiffusion checkpoint, "
-                         f"{ckpt} is a '{model.hparams.method}' baseline (sample it with guidance=none)")
+    if guided is not None and sampling_kind(model) != "pipeline":
+        raise ValueError(f"guidance={guided.mode}: guidance steers the methods that sample through the pipeline's "
+                         f"loop; {ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
+                         f"(sample it with guidance=none)")
     data = checkpoint_data_settings(checkpoint, model)
     dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
     return ScenePipeline(model, dataset, sampler, guidance, use_ema, graph_scale)

@@ -1,4 +1,9 @@
-"""Box overlaps: axis-aligned 3D IoU (DiffuScene's training term) and oriented 3D IoU (PhyScene's guidance).
+"""Box geometry: headings split from rotations, box sizes, and box overlaps — axis-aligned 3D IoU (DiffuScene's
+training term) and oriented 3D IoU (PhyScene's guidance term, :mod:`spread.guidance.box_iou`).
+
+A full rotation R (world-from-local, y-up) splits as R = R_y(θ)·T (:func:`split_rotation`; θ the y-rotation nearest
+to R, T the rest orientation; :mod:`spread.baselines.boxes` explains the convention); the box of an object is the
+axis-aligned box of its canonical extents after T (:func:`box_size`), turned by θ.
 
 Boxes are (..., 7) tensors ``[centre x, y, z, size x, y, z, θ]`` in metres (full sizes, not half), y up,
 θ the heading about y (:mod:`spread.baselines.boxes`: the box is ``R_y(θ)`` applied to the axis-aligned box
@@ -101,3 +106,27 @@ def pairwise(iou_fn, boxes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     mask = mask.bool()
     pair = mask[..., :, None] & mask[..., None, :] & ~torch.eye(N, dtype=torch.bool, device=boxes.device)
     return torch.where(pair, iou, torch.zeros_like(iou))
+
+
+def rot_y(theta: torch.Tensor) -> torch.Tensor:
+    """(...,) angles → (..., 3, 3) rotations about +y: [[c, 0, s], [0, 1, 0], [−s, 0, c]]."""
+    c, s = torch.cos(theta), torch.sin(theta)
+    zero, one = torch.zeros_like(theta), torch.ones_like(theta)
+    return torch.stack([torch.stack([c, zero, s], -1), torch.stack([zero, one, zero], -1),
+                        torch.stack([-s, zero, c], -1)], -2)
+
+
+def yaw_of(rotation: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotations → (...,) θ of the nearest rotation about y (module docstring)."""
+    return torch.atan2(rotation[..., 0, 2] - rotation[..., 2, 0], rotation[..., 0, 0] + rotation[..., 2, 2])
+
+
+def split_rotation(rotation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3, 3) → θ (...,) and T = R_y(−θ)·R (..., 3, 3)."""
+    theta = yaw_of(rotation)
+    return theta, rot_y(-theta) @ rotation
+
+
+def box_size(extents: torch.Tensor, tilt: torch.Tensor) -> torch.Tensor:
+    """Axis-aligned size (..., 3) of a canonical box of ``extents`` (..., 3) rotated by ``tilt`` (..., 3, 3)."""
+    return (tilt.abs() @ extents[..., None])[..., 0]

@@ -133,3 +133,16 @@ def test_every_command_shares_the_run_folder_policy():
     for name in COMMANDS:
         defaults = yaml.safe_load((CONF / f"{name}.yaml").read_text())["defaults"]
         assert {"hydra": "default"} in defaults and {"paths": "default"} in defaults, name
+
+
+def test_runs_started_by_a_wandb_agent_log_online_and_wandb_mode_wins(monkeypatch):
+    """``wandb agent`` sets WANDB_SWEEP_ID for the runs it starts: they log online so the sweep's controller sees
+    their metrics; WANDB_MODE, when set, decides; otherwise runs stay offline."""
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.delenv("WANDB_SWEEP_ID", raising=False)
+    assert compose("sample", ["ckpt=x"]).logger.mode == "offline"
+    monkeypatch.setenv("WANDB_SWEEP_ID", "abc123")
+    assert compose("sample", ["ckpt=x"]).logger.mode == "online"
+    assert compose("train", ["logger=mlflow"]).logger.mode == "online"
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    assert compose("sample", ["ckpt=x"]).logger.mode == "disabled"

@@ -5,10 +5,21 @@ other. Conventions: :mod:`spread.runtime.tracking`.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 NAMES = ("wandb", "mlflow", "csv", "none")
+
+
+def wandb_mode() -> str:
+    """wandb's mode when the config does not name one (``${wandb_mode:}`` in ``conf/logger/``): ``WANDB_MODE``
+    when set; ``online`` inside a ``wandb agent`` (it sets ``WANDB_SWEEP_ID`` for the runs it starts: their
+    metrics must reach the sweep's controller); else ``offline`` (this platform never needs the network)."""
+    env = os.environ
+    if env.get("WANDB_MODE"):
+        return env["WANDB_MODE"]
+    return "online" if env.get("WANDB_SWEEP_ID") else "offline"
 
 
 @dataclass

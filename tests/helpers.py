@@ -7,6 +7,8 @@
   physics-settled kitchen of ≥ 8 objects and its small library (for physics and export tests);
   ``train_in_process`` /
   ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a subprocess.
+* ``scene_of``: a small hand-made :class:`spread.scene.Scene` from asset ids and poses (the one builder of the
+  tests' scenes).
 """
 
 from __future__ import annotations
@@ -90,3 +92,39 @@ def sample_in_process(*overrides: str):
     from spread.sampling import run_sampling
 
     return run_sampling(to_object(compose("sample", *FAST_SAMPLE, *overrides)))
+
+
+def scene_of(asset_ids, translation, rotation=None, *, library=None, categories=None, spatial=None, physical=None,
+             room=None, scene_id: str = "s", posed_codes: bool = False, extras=None):
+    """A hand-made :class:`spread.scene.Scene` of N objects, in the conventions of DESIGN §3: metres, y-up, floor
+    at y = 0; object i is placed by ``v_world = rotation[i] @ v_local + translation[i]``.
+
+    ``asset_ids`` (N,) ids; ``translation`` (N, 3) metres, the world position of each asset's canonical bbox
+    centre; ``rotation`` (N, 3, 3) world-from-local (None: identity, the asset's canonical orientation).
+    ``categories`` (N,): None takes each asset's category from ``library`` when given, else the asset ids.
+    ``spatial`` (N, N) codes: given ones are kept; else ``posed_codes=True`` computes them from the posed meshes
+    of ``library`` (:func:`spread.relations.scene_spatial_codes`, on the float32 poses the scene stores), and
+    otherwise every pair reads 0 "right of" (a placeholder) with 6 "self" on the diagonal. ``physical`` (N, N)
+    codes, None: no relations. ``room`` (2, 3) min, max corners in metres or None; ``extras`` extra arrays.
+    """
+    import numpy as np
+
+    from spread.relations import scene_spatial_codes
+    from spread.scene import SPATIAL_SELF, Scene
+
+    n = len(asset_ids)
+    if rotation is None:
+        rotation = np.tile(np.eye(3), (n, 1, 1))
+    if categories is None:
+        categories = [library[a].category for a in asset_ids] if library is not None else list(asset_ids)
+    scene = Scene(scene_id, asset_ids, categories, translation, rotation,
+                  np.zeros((n, n), np.int8) if spatial is None else spatial,
+                  np.zeros((n, n), np.int8) if physical is None else physical, room=room, extras=dict(extras or {}))
+    if spatial is None:
+        if posed_codes:
+            if library is None:
+                raise ValueError("scene_of(posed_codes=True) needs the asset library the poses are read with")
+            scene.spatial = scene_spatial_codes(scene.translation, scene.rotation, list(scene.asset_id), library)
+        else:
+            np.fill_diagonal(scene.spatial, SPATIAL_SELF)
+    return scene

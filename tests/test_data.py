@@ -15,8 +15,9 @@ from spread.data import (
     INDEX_PAD, PHYSICAL_PAD, SPATIAL_PAD, SceneDataset, StatsError, collate_scenes, compute_stats,
     denormalize_translation, load_stats, matrix_to_rot6d, normalize_translation, rot6d_to_matrix, save_stats,
 )
-from spread.relations import posed_aabbs, spatial_codes
-from spread.scene import Scene, write_scene
+from spread.scene import write_scene
+
+from helpers import scene_of
 
 M = 64  # points per object in these tests
 CATEGORIES = ["mug", "chair", "dining_table", "lamp"]  # manifest order, deliberately not sorted
@@ -36,12 +37,10 @@ def _scene(lib, rng, scene_id):
     for _ in range(rng.integers(1, 3)):
         ids.append("chair"), t.append([rng.uniform(-2.5, 2.5), 0.45, rng.uniform(-2.5, 2.5)])
         R.append(_yaw(rng.uniform(0, 2 * np.pi)))
-    t, R = np.asarray(t), np.asarray(R)
-    lo, hi = posed_aabbs(t, R, [lib.mesh(a).vertices for a in ids])
     physical = np.zeros((len(ids),) * 2, np.int8)
     physical[0, [k for k, a in enumerate(ids) if a == "mug"]] = 1
-    return Scene(scene_id, ids, [lib.records[a].category for a in ids], t, R, spatial_codes(lo, hi), physical,
-                 room=np.array([[-3, 0, -3], [3, 3, 3]]))
+    return scene_of(ids, t, R, library=lib, posed_codes=True, physical=physical,
+                    room=np.array([[-3, 0, -3], [3, 3, 3]]), scene_id=scene_id)
 
 
 @pytest.fixture(scope="module")

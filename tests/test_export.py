@@ -23,7 +23,8 @@ from spread.physics import displacement_stats
 from spread.relations import scene_spatial_codes
 from spread.scene import write_scene
 
-from test_mujoco import build_box_library, make_scene, settled_box_room
+from helpers import scene_of
+from test_mujoco import build_box_library, settled_box_room
 
 STEPS, DT, SUBSTEPS = 100, 1.0 / 60.0, 4  # 100 steps of 1/60 s, each as 4 internal steps
 
@@ -153,7 +154,7 @@ def test_hostile_scene_ids_write_nothing_outside_out_dir(data, tmp_path, fmt):
     _, library, scene = data
     out = tmp_path / "deep" / "out"
     for k, hostile in enumerate(["../escaped", "/tmp/abs_escape", "a/../../b", "..", "x/y"]):
-        small = make_scene(library, ["box"], [[0.0, 0.1, 0.0]], scene_id=hostile)
+        small = scene_of(["box"], [[0.0, 0.1, 0.0]], library=library, posed_codes=True, scene_id=hostile)
         written = export_scene(small, library, out, fmt)
         assert written.parent == out.resolve()
     outside = [p for p in tmp_path.rglob("*") if out.resolve() not in (p.resolve(), *p.resolve().parents)
@@ -175,7 +176,7 @@ def test_bad_scene_is_reported_and_the_others_exported(data, tmp_path):
     root, library, scene = data
     scenes = tmp_path / "scenes"
     write_scene(scene, scenes / "good.npz")
-    bad = make_scene(library, ["box"], [[0.0, 0.1, 0.0]], scene_id="bad")
+    bad = scene_of(["box"], [[0.0, 0.1, 0.0]], library=library, posed_codes=True, scene_id="bad")
     bad.asset_id = np.array(["no_such_asset"])
     write_scene(bad, scenes / "bad.npz", validate=False)
     report = export_folder(scenes, root / "assets", tmp_path / "out", "mjcf")

@@ -11,13 +11,14 @@ import trimesh
 from spread.export import export_scene
 from spread.export.sceneeval import Y_UP_TO_Z_UP
 from spread.scene import MOUNT_CEILING, MOUNT_FLOOR, MOUNT_ON_OBJECT, write_scene
-from test_mujoco import build_box_library, make_scene
+from helpers import scene_of
+from test_mujoco import build_box_library
 
 
 def room(library):
-    scene = make_scene(library, ["table", "cup", "cube"], [[0.0, 0.375, 0.0], [0.2, 0.8, 0.1], [1.5, 2.5, -0.4]],
-                       rotation=[np.eye(3), np.eye(3), trimesh.transformations.rotation_matrix(0.6, [0, 1, 0])[:3, :3]],
-                       scene_id="se|room")
+    scene = scene_of(["table", "cup", "cube"], [[0.0, 0.375, 0.0], [0.2, 0.8, 0.1], [1.5, 2.5, -0.4]],
+                     [np.eye(3), np.eye(3), trimesh.transformations.rotation_matrix(0.6, [0, 1, 0])[:3, :3]],
+                     library=library, posed_codes=True, scene_id="se|room")
     scene.physical[0, 1] = 1
     scene.extras["mount"] = np.array([MOUNT_FLOOR, MOUNT_ON_OBJECT, MOUNT_CEILING], np.int8)
     scene.room = np.array([[-2.0, 0.0, -1.5], [2.5, 2.7, 1.5]], np.float32)

@@ -22,8 +22,9 @@ from spread.metrics import (
 )
 from spread.metrics import extractors
 from spread.metrics.feature_distances import frechet_distance, kernel_distance
-from spread.relations import scene_spatial_codes
 from spread.scene import Scene, SceneFormatError
+
+from helpers import scene_of
 
 ROOM = np.array([[-2.0, 0.0, -2.0], [2.0, 3.0, 2.0]])
 RIGHT, LEFT, FRONT, BEHIND, ABOVE, BELOW = range(6)
@@ -42,40 +43,27 @@ def library(tmp_path_factory):
     ])
 
 
-def make_scene(library, ids, translation, spatial=None, physical=None, scene_id="s", posed_codes=False):
-    """A scene of unrotated objects; ``posed_codes`` fills ``spatial`` with the codes of the poses."""
-    n = len(ids)
-    T = np.asarray(translation, np.float32)
-    R = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
-    if spatial is None:
-        spatial = scene_spatial_codes(T, R, ids, library) if posed_codes else np.full((n, n), RIGHT, np.int8)
-        np.fill_diagonal(spatial, 6)
-    physical = np.zeros((n, n), np.int8) if physical is None else physical
-    return Scene(scene_id, np.array(ids), np.array([library[a].category for a in ids]), T, R,
-                 np.asarray(spatial, np.int8), physical, room=ROOM)
-
-
 def table_and_book(library, gap, scene_id="tb"):
     physical = np.zeros((2, 2), np.int8)
     physical[0, 1] = 1  # the table supports the book
-    return make_scene(library, ["table", "book"], [[0, 0.375, 0], [0.1, 0.75 + 0.02 + gap, 0.05]],
-                      physical=physical, scene_id=scene_id, posed_codes=True)
+    return scene_of(["table", "book"], [[0, 0.375, 0], [0.1, 0.75 + 0.02 + gap, 0.05]], library=library,
+                    physical=physical, scene_id=scene_id, posed_codes=True, room=ROOM)
 
 
 def tower(library, middle_shift=0.0, scene_id="tower"):
-    return make_scene(library, ["cube"] * 3, [[0, 0.15, 0], [middle_shift, 0.45, 0], [0, 0.75, 0]],
-                      scene_id=scene_id, posed_codes=True)
+    return scene_of(["cube"] * 3, [[0, 0.15, 0], [middle_shift, 0.45, 0], [0, 0.75, 0]], library=library,
+                    scene_id=scene_id, posed_codes=True, room=ROOM)
 
 
 def mixed_scenes(library):
     """Four small scenes with collisions, support pairs and relations to measure."""
     return [
-        make_scene(library, ["unit", "unit", "small"], [[0, 0.5, 0], [0.98, 0.5, 0], [-1.5, 0.1, 0]],
-                   scene_id="m0", posed_codes=True),
+        scene_of(["unit", "unit", "small"], [[0, 0.5, 0], [0.98, 0.5, 0], [-1.5, 0.1, 0]], library=library,
+                 scene_id="m0", posed_codes=True, room=ROOM),
         table_and_book(library, 0.03, scene_id="m1"),
         tower(library, scene_id="m2"),
-        make_scene(library, ["unit", "small", "book"], [[0, 0.5, 0], [0.1, 0.5, 0.05], [1.2, 0.02, 0]],
-                   scene_id="m3"),
+        scene_of(["unit", "small", "book"], [[0, 0.5, 0], [0.1, 0.5, 0.05], [1.2, 0.02, 0]], library=library,
+                 scene_id="m3", room=ROOM),
     ]
 
 
@@ -103,21 +91,24 @@ def test_pruned_minimum_equals_the_brute_force_minimum(library, stop_at):
 
 @pytest.mark.parametrize("overlap, collides", [(0.02, True), (0.005, False)])
 def test_overlapping_unit_boxes(library, overlap, collides):
-    result = scene_collisions(make_scene(library, ["unit", "unit"], [[0, 0.5, 0], [1 - overlap, 0.5, 0]]), library)
+    result = scene_collisions(scene_of(["unit", "unit"], [[0, 0.5, 0], [1 - overlap, 0.5, 0]], library=library,
+                                       room=ROOM), library)
     assert result.colliding == [collides, collides]
     assert result.pairs[0].depth == pytest.approx(overlap, abs=1e-4)
     assert (result.pairs[0].depth > COLLISION_DEPTH_THRESHOLD) == collides
 
 
 def test_small_box_inside_big_box_collides(library):
-    result = scene_collisions(make_scene(library, ["unit", "small"], [[0, 0.5, 0], [0.2, 0.5, 0.1]]), library)
+    result = scene_collisions(scene_of(["unit", "small"], [[0, 0.5, 0], [0.2, 0.5, 0.1]], library=library,
+                                       room=ROOM), library)
     assert result.colliding == [True, True]
     assert result.pairs[0].contained
     assert result.pairs[0].depth >= 0.2  # the small box's distance to the big box's surface
 
 
 def test_collision_rate_counts_objects(library):
-    scene = make_scene(library, ["unit", "unit", "small"], [[0, 0.5, 0], [0.98, 0.5, 0], [-1.5, 0.1, 0]])
+    scene = scene_of(["unit", "unit", "small"], [[0, 0.5, 0], [0.98, 0.5, 0], [-1.5, 0.1, 0]], library=library,
+                     room=ROOM)
     metric = MeshCollisionRate()
     metric.update([scene], library)
     assert float(metric.compute()) == pytest.approx(2 / 3)
@@ -164,7 +155,7 @@ def test_canonical_pairs_recall(library, name):
     offset, code01, code10 = CANONICAL[name]
     base = np.array([0.0, 0.5, 0.0])
     spatial = np.array([[6, code01], [code10, 6]], np.int8)
-    scene = make_scene(library, ["small", "small"], [base + offset, base], spatial=spatial)
+    scene = scene_of(["small", "small"], [base + offset, base], library=library, spatial=spatial, room=ROOM)
     assert scene_graph_recall(scene, library).recall == 1.0
     moved = scene.with_poses(np.array([base - offset, base]), scene.rotation)  # to the other side
     result = scene_graph_recall(moved, library)
@@ -172,9 +163,10 @@ def test_canonical_pairs_recall(library, name):
 
 
 def test_graph_recall_is_pair_weighted(library):
-    three = make_scene(library, ["small"] * 3, [[0, 0.1, 0], [1, 0.1, 0], [2, 0.1, 0]], posed_codes=True)
-    wrong = make_scene(library, ["small"] * 2, [[0, 0.1, 0], [1, 0.1, 0]],
-                       spatial=np.array([[6, FRONT], [BEHIND, 6]]))
+    three = scene_of(["small"] * 3, [[0, 0.1, 0], [1, 0.1, 0], [2, 0.1, 0]], library=library, posed_codes=True,
+                     room=ROOM)
+    wrong = scene_of(["small"] * 2, [[0, 0.1, 0], [1, 0.1, 0]], library=library,
+                     spatial=np.array([[6, FRONT], [BEHIND, 6]]), room=ROOM)
     metric = GraphRecall()
     metric.update([three, wrong], library)
     assert float(metric.compute()) == pytest.approx(6 / 8)
@@ -312,7 +304,7 @@ def random_scenes(library, count, seed, shift=0.0):
         ids = list(rng.choice(["small", "book", "table", "cube"], size=3))
         xz = rng.uniform(-1.2, 0.8, size=(3, 2))
         T = [[x + shift, library[a].extents[1] / 2, z] for a, (x, z) in zip(ids, xz)]
-        scenes.append(make_scene(library, ids, T, scene_id=f"r{seed}_{k}"))
+        scenes.append(scene_of(ids, T, library=library, scene_id=f"r{seed}_{k}", room=ROOM))
     return scenes
 
 
@@ -485,11 +477,11 @@ PER_SCENE = [scene_collisions, scene_graph_recall, scene_support_distance, scene
 
 @pytest.mark.parametrize("fn", PER_SCENE, ids=lambda f: f.__name__)
 def test_bad_scenes_raise_clear_errors(library, fn):
-    missing = make_scene(library, ["unit", "small"], [[0, 0.5, 0], [2, 0.1, 0]])
+    missing = scene_of(["unit", "small"], [[0, 0.5, 0], [2, 0.1, 0]], library=library, room=ROOM)
     missing.asset_id = np.array(["unit", "teapot"])
     with pytest.raises(SceneFormatError, match="teapot"):
         fn(missing, library)
-    nan = make_scene(library, ["unit", "small"], [[0, 0.5, 0], [2, 0.1, 0]])
+    nan = scene_of(["unit", "small"], [[0, 0.5, 0], [2, 0.1, 0]], library=library, room=ROOM)
     nan.translation[1, 0] = np.nan
     with pytest.raises(SceneFormatError, match="translation"):
         fn(nan, library)

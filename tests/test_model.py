@@ -394,8 +394,7 @@ def test_sampler_hooks_and_graph_guidance():
 # ---- Lightning: dataset, fast_dev_run, checkpoints ------------------------------------------------------
 
 def _scene(lib, rng, scene_id):
-    from spread.relations import posed_aabbs, spatial_codes
-    from spread.scene import Scene
+    from helpers import scene_of
 
     def yaw(a):
         return Rotation.from_rotvec([0.0, a, 0.0]).as_matrix()
@@ -408,11 +407,9 @@ def _scene(lib, rng, scene_id):
     for _ in range(rng.integers(1, 3)):
         ids.append("chair"), t.append([rng.uniform(-2.5, 2.5), 0.45, rng.uniform(-2.5, 2.5)])
         R.append(yaw(rng.uniform(0, 2 * np.pi)))
-    t, R = np.asarray(t), np.asarray(R)
-    lo, hi = posed_aabbs(t, R, [lib.mesh(a).vertices for a in ids])
     physical = np.zeros((len(ids),) * 2, np.int8)
     physical[0, [k for k, a in enumerate(ids) if a == "mug"]] = 1
-    return Scene(scene_id, ids, [lib.records[a].category for a in ids], t, R, spatial_codes(lo, hi), physical)
+    return scene_of(ids, t, R, library=lib, posed_codes=True, physical=physical, scene_id=scene_id)
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,8 @@ from spread.scene import (
     MOUNT_CEILING, MOUNT_FLOOR, MOUNT_ON_OBJECT, MOUNT_WALL, SceneFormatError, read_scene, scene_mounts,
     welded_objects, write_scene,
 )
-from test_mujoco import build_box_library, make_scene
+from helpers import scene_of
+from test_mujoco import build_box_library
 
 pytest.importorskip("mujoco")
 
@@ -25,8 +26,9 @@ def library(tmp_path_factory):
 def lamp_room(library, mounted: bool = True):
     """A cube on the floor, a cube 'pendant lamp' with its centre 2.5 m up (ceiling), a cup 1.5 m up on the
     wall, and a free cube 2.5 m up (it falls)."""
-    scene = make_scene(library, ["cube", "cube", "cup", "cube"],
-                       [[0.0, 0.15, 0.0], [1.5, 2.5, 0.0], [-1.5, 1.5, 0.0], [0.0, 2.5, 1.5]], scene_id="lamps")
+    scene = scene_of(["cube", "cube", "cup", "cube"],
+                     [[0.0, 0.15, 0.0], [1.5, 2.5, 0.0], [-1.5, 1.5, 0.0], [0.0, 2.5, 1.5]], library=library,
+                     posed_codes=True, scene_id="lamps")
     if mounted:
         scene.extras["mount"] = np.array([MOUNT_FLOOR, MOUNT_CEILING, MOUNT_WALL, MOUNT_FLOOR], np.int8)
     return scene

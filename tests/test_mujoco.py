@@ -20,8 +20,8 @@ from spread.physics import (
     MujocoParams, MujocoWorld, PhysicsParams, PhysicsWorld, displacement_stats, get_world, simulate_runs,
 )
 from spread.physics.mjcf import asset_geometry, cuboid, scene_mjcf
-from spread.relations import scene_spatial_codes
 from spread.scene import Scene
+from helpers import scene_of
 from test_physics import box_specs
 
 mujoco = pytest.importorskip("mujoco")
@@ -40,15 +40,6 @@ def cylinder_part(radius: float, height: float, sides: int = 16):
 
     return trimesh.creation.cylinder(radius=radius, height=height, sections=sides,
                                      transform=trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-
-
-def make_scene(library, asset_ids, translation, rotation=None, scene_id="s") -> Scene:
-    n = len(asset_ids)
-    R = np.tile(np.eye(3), (n, 1, 1)) if rotation is None else np.asarray(rotation)
-    T = np.asarray(translation, np.float32)
-    spatial = scene_spatial_codes(T, R.astype(np.float32), list(asset_ids), library)
-    return Scene(scene_id, np.array(asset_ids), np.array([library[a].category for a in asset_ids]), T,
-                 R.astype(np.float32), spatial, np.zeros((n, n), np.int8))
 
 
 def build_box_library(root):
@@ -70,10 +61,10 @@ def settled_box_room(library, scene_id="settled") -> Scene:
          [1.3, 0.103, 0], [-1.2, 0.153, 0.5], [0.3, 0.103, 1.2], [0.3, 0.306, 1.2]]
     R = np.stack([np.eye(3), _rot_y(0.3), np.eye(3), np.eye(3), np.eye(3), _rot_y(1.0), np.eye(3), _rot_y(0.2)])
     with PhysicsWorld() as pw:
-        pw.load_scene(make_scene(library, ids, t, R), library)
+        pw.load_scene(scene_of(ids, t, R, library=library, posed_codes=True), library)
         settled = pw.settle()
     assert settled.settled
-    return make_scene(library, ids, settled.translation, settled.rotation, scene_id=scene_id)
+    return scene_of(ids, settled.translation, settled.rotation, library=library, posed_codes=True, scene_id=scene_id)
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +91,8 @@ def test_box_parts_become_box_geoms_and_other_parts_meshes(library):
     assert len(asset_geometry(library, "U").box_centre) == 3 and not asset_geometry(library, "U").hulls
     cup = asset_geometry(library, "cup")
     assert len(cup.box_centre) == 0 and len(cup.hulls) == 1
-    model = mujoco.MjModel.from_xml_string(scene_mjcf(make_scene(library, ["U", "cup"], [[0, 0.15, 0], [1, 0.05, 0]]),
+    model = mujoco.MjModel.from_xml_string(scene_mjcf(scene_of(["U", "cup"], [[0, 0.15, 0], [1, 0.05, 0]],
+                                                               library=library, posed_codes=True),
                                                       library))
     types = model.geom_type[model.geom_bodyid > 0]
     assert (types == mujoco.mjtGeom.mjGEOM_BOX).sum() == 3 and (types == mujoco.mjtGeom.mjGEOM_MESH).sum() == 1
@@ -111,7 +103,7 @@ def test_box_parts_become_box_geoms_and_other_parts_meshes(library):
 def test_bodies_have_the_pybullet_mass_inertia_and_centre_of_mass(world, library):
     t = np.array([[0, 1.0, 0], [1.0, 0.6, -0.5], [-1.0, 0.3, 0.4]])
     R = np.stack([_rot_y(0.3), np.eye(3), _rot_y(-1.2)])
-    scene = make_scene(library, ["L", "U", "cup"], t, R)
+    scene = scene_of(["L", "U", "cup"], t, R, library=library, posed_codes=True)
     world.load_scene(scene, library)
     with PhysicsWorld() as pw:
         pw.load_scene(scene, library)
@@ -135,7 +127,7 @@ def test_pose_round_trip_with_off_centre_mass_and_rotations(world, library):
     n = 5
     t = np.random.default_rng(0).uniform(-1, 1, (n, 3)) + [0, 2, 0]
     R = Rotation.random(n, random_state=1).as_matrix()
-    scene = make_scene(library, ["L", "box", "L", "U", "cup"], t, R)
+    scene = scene_of(["L", "box", "L", "U", "cup"], t, R, library=library, posed_codes=True)
     world.load_scene(scene, library)
     t_back, R_back = world.poses()
     assert np.abs(t_back - scene.translation).max() < 1e-6 and np.abs(R_back - scene.rotation).max() < 1e-6
@@ -148,7 +140,7 @@ def test_pose_round_trip_with_off_centre_mass_and_rotations(world, library):
 
 def test_velocities_are_those_of_the_centre_of_mass(library):
     with MujocoWorld(MujocoParams(gravity=0.0)) as w:
-        w.load_scene(make_scene(library, ["L"], [[0, 2.0, 0]], _rot_y(0.7)[None]), library)
+        w.load_scene(scene_of(["L"], [[0, 2.0, 0]], _rot_y(0.7)[None], library=library, posed_codes=True), library)
         w.data.qvel[:] = [0.1, 0.0, -0.2, 0.5, -1.0, 3.0]  # free joint: body-origin velocity, local angular velocity
         mujoco.mj_forward(w.model, w.data)
         lin, ang = w.velocities()
@@ -160,8 +152,8 @@ def test_velocities_are_those_of_the_centre_of_mass(library):
 
 
 def test_z_up_export_is_the_same_room_turned(library):
-    scene = make_scene(library, ["table", "box"], [[0, TABLE_TOP / 2, 0], [0.2, TABLE_TOP + 0.1, 0.1]],
-                       rotation=np.stack([np.eye(3), _rot_y(0.5)]))
+    scene = scene_of(["table", "box"], [[0, TABLE_TOP / 2, 0], [0.2, TABLE_TOP + 0.1, 0.1]],
+                     np.stack([np.eye(3), _rot_y(0.5)]), library=library, posed_codes=True)
     model = mujoco.MjModel.from_xml_string(scene_mjcf(scene, library, up="z", visual=True))
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
@@ -175,7 +167,7 @@ def test_z_up_export_is_the_same_room_turned(library):
 # ---- dynamics: resting, friction, stacking ------------------------------------------------------------
 
 def test_box_resting_on_floor_stays_and_sinks_under_a_millimetre(world, library):
-    scene = make_scene(library, ["box"], [[0.3, 0.1, -0.2]], _rot_y(0.4)[None])
+    scene = scene_of(["box"], [[0.3, 0.1, -0.2]], _rot_y(0.4)[None], library=library, posed_codes=True)
     world.load_scene(scene, library)
     protocol_steps(world, 100)
     moved = displacement_stats((scene.translation, scene.rotation), world.poses())
@@ -184,7 +176,7 @@ def test_box_resting_on_floor_stays_and_sinks_under_a_millimetre(world, library)
 
 
 def test_dropped_cup_comes_to_rest_upright_on_the_floor(world, library):
-    world.load_scene(make_scene(library, ["cup"], [[0, 0.05 + 0.1, 0]]), library)
+    world.load_scene(scene_of(["cup"], [[0, 0.05 + 0.1, 0]], library=library, posed_codes=True), library)
     protocol_steps(world, 120)
     t, R = world.poses()
     assert abs(t[0, 1] - 0.05) < 1e-3 and np.abs(t[0, [0, 2]]).max() < 2e-3
@@ -195,10 +187,11 @@ def test_dropped_cup_comes_to_rest_upright_on_the_floor(world, library):
 def test_friction_coefficients_are_the_named_pairwise_values(world, library, on_box):
     # a small box pushed at v0 slides v0² / (2 μ g): on the floor (floor_friction) or on a wide base (friction)
     if on_box:
-        scene = make_scene(library, ["table", "small"], [[0, TABLE_TOP / 2, 0], [-0.3, TABLE_TOP + 0.05, 0]])
+        scene = scene_of(["table", "small"], [[0, TABLE_TOP / 2, 0], [-0.3, TABLE_TOP + 0.05, 0]],
+                         library=library, posed_codes=True)
         mu, v0 = world.params.friction, 1.0
     else:
-        scene = make_scene(library, ["small"], [[0, 0.05, 0]])
+        scene = scene_of(["small"], [[0, 0.05, 0]], library=library, posed_codes=True)
         mu, v0 = world.params.floor_friction, 1.0
     world.load_scene(scene, library)
     world.step(10)
@@ -210,7 +203,7 @@ def test_friction_coefficients_are_the_named_pairwise_values(world, library, on_
 
 
 def test_exact_tower_is_stable_over_jittered_runs(world, library):
-    scene = make_scene(library, ["box"] * 3, TOWER)
+    scene = scene_of(["box"] * 3, TOWER, library=library, posed_codes=True)
     runs = simulate_runs(scene, library, runs=10, world=world)
     assert runs.translation.shape == (10, 3, 3) and runs.rotation.shape == (10, 3, 3, 3)
     moved = displacement_stats((scene.translation, scene.rotation), runs)
@@ -218,13 +211,14 @@ def test_exact_tower_is_stable_over_jittered_runs(world, library):
 
 
 def test_tower_without_its_base_falls(world, library):
-    scene = make_scene(library, ["box"] * 2, TOWER[1:])
+    scene = scene_of(["box"] * 2, TOWER[1:], library=library, posed_codes=True)
     runs = simulate_runs(scene, library, runs=2, world=world)
     assert (scene.translation[None, :, 1] - runs.translation[..., 1] > 0.15).all()
 
 
 def test_concave_asset_of_parts_holds_a_box_in_its_gap(world, library):
-    scene = make_scene(library, ["U", "small"], [[0, 0.15, 0], [0, 0.15, 0]])  # the box starts in the gap
+    # the box starts in the gap
+    scene = scene_of(["U", "small"], [[0, 0.15, 0], [0, 0.15, 0]], library=library, posed_codes=True)
     world.load_scene(scene, library)
     protocol_steps(world, 120)
     t, _ = world.poses()
@@ -235,7 +229,8 @@ def test_concave_asset_of_parts_holds_a_box_in_its_gap(world, library):
 # ---- the Stability metric's known answers ---------------------------------------------------------------
 
 def cube_tower(library, shift=0.0, scene_id="tower"):
-    return make_scene(library, ["cube"] * 3, [[0, 0.15, 0], [shift, 0.45, 0], [0, 0.75, 0]], scene_id=scene_id)
+    return scene_of(["cube"] * 3, [[0, 0.15, 0], [shift, 0.45, 0], [0, 0.75, 0]], library=library, posed_codes=True,
+                    scene_id=scene_id)
 
 
 def test_cube_tower_is_stable(world, library):
@@ -266,8 +261,8 @@ def test_tower_shifted_by_half_a_cube_balances_on_an_edge_and_topples_in_some_ru
 def test_cup_over_the_table_edge_tips_only_with_its_centre_past_the_edge(world, library, overhang, tips):
     # the table's edge is x = 0.5; the cup (radius 4 cm) reaches ``overhang`` past it
     x = 0.5 - 0.04 + overhang
-    scene = make_scene(library, ["table", "cup"], [[0, TABLE_TOP / 2, 0], [x, TABLE_TOP + 0.05, 0]],
-                       scene_id=f"cup{overhang}")
+    scene = scene_of(["table", "cup"], [[0, TABLE_TOP / 2, 0], [x, TABLE_TOP + 0.05, 0]], library=library,
+                     posed_codes=True, scene_id=f"cup{overhang}")
     result = scene_stability(scene, library, world=world)
     if tips:  # centre of mass 1.5 cm past the edge: tips and falls off in every run
         assert result.still == [1] * 10 and result.max_rotation[1] > 0.5 and result.max_displacement[1] > 0.3
@@ -278,7 +273,8 @@ def test_cup_over_the_table_edge_tips_only_with_its_centre_past_the_edge(world, 
 def test_box_above_a_smaller_box_with_its_centre_past_the_edge_tips_off_and_loses_its_relation(world, library):
     # the 0.2 m box stands on the 0.1 m box with its centre 3 cm past the small box's edge; it is "above" it (the
     # small box's centre is inside its footprint), tips off and lands beside it: both ordered pairs change
-    scene = make_scene(library, ["small", "box"], [[0, 0.05, 0], [0.08, 0.2, 0]], scene_id="box_on_small")
+    scene = scene_of(["small", "box"], [[0, 0.05, 0], [0.08, 0.2, 0]], library=library, posed_codes=True,
+                     scene_id="box_on_small")
     assert scene.spatial[1, 0] == 4  # above
     result = scene_stability(scene, library, world=world)
     assert result.unchanged == [0] * 10 and result.max_rotation[1] > 0.5
@@ -287,7 +283,8 @@ def test_box_above_a_smaller_box_with_its_centre_past_the_edge_tips_off_and_lose
 def assert_runs_repeat_differ_across_seeds_and_match(world, other, library, runs: int) -> None:
     """``world``'s runs repeat bit for bit with a seed and differ with another; ``other`` (the same model
     stepped another way) gives the same runs bit for bit."""
-    scene = make_scene(library, ["box", "box", "L", "cup"], TOWER[:2] + [[0.6, 0.15, 0], [-0.6, 0.05, 0.2]])
+    scene = scene_of(["box", "box", "L", "cup"], TOWER[:2] + [[0.6, 0.15, 0], [-0.6, 0.05, 0.2]],
+                     library=library, posed_codes=True)
     a = simulate_runs(scene, library, runs=runs, steps=30, seed=7, world=world)
     b = simulate_runs(scene, library, runs=runs, steps=30, seed=7, world=world)
     c = simulate_runs(scene, library, runs=runs, steps=30, seed=8, world=world)
@@ -306,7 +303,7 @@ def test_a_sleeping_box_is_woken_by_a_box_landing_on_it_and_pushed_as_when_awake
     # the 0.1 m box rests on the floor; the 0.2 m box falls from 0.6 m onto its edge (centre 12 cm off), tips off
     # and shoves it ~5 mm. With sleep on, the small box falls asleep first, is woken by the impact, moves as in
     # the awake world and sleeps again
-    scene = make_scene(library, ["small", "box"], [[0, 0.05, 0], [0.12, 0.6, 0]])
+    scene = scene_of(["small", "box"], [[0, 0.05, 0], [0.12, 0.6, 0]], library=library, posed_codes=True)
     final, awake = {}, []
     for sleep in (False, True):
         with MujocoWorld(MujocoParams(sleep=sleep)) as w:
@@ -335,11 +332,12 @@ def test_sleeping_runs_of_a_settled_room_end_early_and_agree_with_awake_runs(lib
 
 
 def assert_model_reused_for_new_poses_and_rebuilt_for_new_bodies(w, library) -> None:
-    scene = make_scene(library, ["box"] * 2, TOWER[:2])
+    scene = scene_of(["box"] * 2, TOWER[:2], library=library, posed_codes=True)
     simulate_runs(scene, library, runs=3, steps=2, world=w)
     simulate_runs(scene.with_poses(scene.translation + 0.01, scene.rotation), library, runs=3, steps=2, world=w)
     assert w.models_compiled == 1
-    simulate_runs(make_scene(library, ["box", "small"], TOWER[:2]), library, runs=1, steps=2, world=w)
+    simulate_runs(scene_of(["box", "small"], TOWER[:2], library=library, posed_codes=True), library, runs=1, steps=2,
+                  world=w)
     assert w.models_compiled == 2
 
 
@@ -371,7 +369,7 @@ def test_protocol_physics_selects_the_engine():
 
 def test_mujoco_cannot_pin_objects(world, library):
     with pytest.raises(NotImplementedError, match="settle"):
-        world.load_scene(make_scene(library, ["box"], [[0, 0.1, 0]]), library, fixed=[0])
+        world.load_scene(scene_of(["box"], [[0, 0.1, 0]], library=library, posed_codes=True), library, fixed=[0])
 
 
 def test_import_does_not_pull_mujoco():
@@ -417,6 +415,6 @@ def test_generated_kitchen_stays_in_mujoco(kitchen):
 
 def test_a_diverging_simulation_raises_instead_of_looking_still(library):
     # MuJoCo's default would reset a diverged simulation to its start, which reads as "nothing moved"
-    scene = make_scene(library, ["box"], [[0, 0.1, 0]])
+    scene = scene_of(["box"], [[0, 0.1, 0]], library=library, posed_codes=True)
     with MujocoWorld(MujocoParams(gravity=float("nan"))) as w, pytest.raises(FloatingPointError, match="diverged"):
         simulate_runs(scene, library, runs=2, steps=5, world=w)

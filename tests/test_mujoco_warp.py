@@ -25,9 +25,10 @@ from spread.physics import (
 pytest.importorskip("mujoco")
 mjw = pytest.importorskip("mujoco_warp")
 
+from helpers import scene_of  # noqa: E402
 from test_mujoco import (  # noqa: E402
     TOWER, assert_model_reused_for_new_poses_and_rebuilt_for_new_bodies,
-    assert_runs_repeat_differ_across_seeds_and_match, build_box_library, cube_tower, make_scene, settled_box_room,
+    assert_runs_repeat_differ_across_seeds_and_match, build_box_library, cube_tower, settled_box_room,
 )
 
 CPU = MujocoWarpParams(device="cpu")
@@ -83,7 +84,8 @@ def test_asking_for_cuda_without_a_gpu_says_so():
 
 
 def test_the_device_model_is_the_c_model_of_the_same_mjcf(world, library):
-    scene = make_scene(library, ["L", "U", "cup"], [[0, 1.0, 0], [1.0, 0.6, -0.5], [-1.0, 0.3, 0.4]])
+    scene = scene_of(["L", "U", "cup"], [[0, 1.0, 0], [1.0, 0.6, -0.5], [-1.0, 0.3, 0.4]],
+                     library=library, posed_codes=True)
     world.load_scene(scene, library)
     with MujocoWorld() as c:
         c.load_scene(scene, library)
@@ -94,9 +96,10 @@ def test_the_device_model_is_the_c_model_of_the_same_mjcf(world, library):
 
 
 def test_buffers_grow_with_the_contacts_of_the_scene(world, library):
-    world.load_scene(make_scene(library, ["box"], [[0, 1.0, 0]]), library)  # in the air: no contact
-    alone = world.buffers(make_scene(library, ["box"], [[0, 1.0, 0]]))
-    tower = make_scene(library, ["box"] * 3, TOWER)
+    # in the air: no contact
+    world.load_scene(scene_of(["box"], [[0, 1.0, 0]], library=library, posed_codes=True), library)
+    alone = world.buffers(scene_of(["box"], [[0, 1.0, 0]], library=library, posed_codes=True))
+    tower = scene_of(["box"] * 3, TOWER, library=library, posed_codes=True)
     world.load_scene(tower, library)
     stacked = world.buffers(tower)
     assert alone == (8 + 16, 4 * (8 + 16))  # no contact: 8 per object and 16
@@ -113,7 +116,7 @@ def test_import_does_not_pull_warp():
 
 @pytest.mark.slow
 def test_box_resting_on_floor_stays_in_every_world(world, library):
-    scene = make_scene(library, ["box"], [[0.3, 0.1, -0.2]])
+    scene = scene_of(["box"], [[0.3, 0.1, -0.2]], library=library, posed_codes=True)
     runs = simulate_runs(scene, library, runs=4, world=world)
     moved = displacement_stats((scene.translation, scene.rotation), runs)
     assert runs.translation.shape == (4, 1, 3) and moved.distance.max() < 1e-3 and moved.angle.max() < 1e-3
@@ -149,7 +152,7 @@ def test_falling_runs_end_like_c_mujoco(world, library):
     # a box with its centre past a smaller box's edge tips off and lands beside it, in both engines at the same place
     # (measured: 1.5 µm apart). A fall amplifies round-off (in generated rooms a toppling book ends up to 17 cm
     # apart, benchmarks/RESULTS.md), so the bound here is the still/moved decision and 1 mm
-    scene = make_scene(library, ["small", "box"], [[0, 0.05, 0], [0.08, 0.2, 0]])
+    scene = scene_of(["small", "box"], [[0, 0.05, 0], [0.08, 0.2, 0]], library=library, posed_codes=True)
     warp = simulate_runs(scene, library, runs=4, world=world)
     with MujocoWorld() as c:
         ref = simulate_runs(scene, library, runs=4, world=c)
@@ -165,7 +168,7 @@ def test_runs_repeat_bit_for_bit_on_cpu_with_or_without_graph_replay_and_differ_
 
 @pytest.mark.slow
 def test_overflowing_contact_buffers_are_grown_and_the_batch_rerun(library, caplog):
-    scene = make_scene(library, ["box"] * 3, TOWER)
+    scene = scene_of(["box"] * 3, TOWER, library=library, posed_codes=True)
     with MujocoWarpWorld(CPU) as w:
         ref = simulate_runs(scene, library, runs=2, steps=20, world=w)
     tiny = MujocoWarpParams(device="cpu", nconmax=2, njmax=8, overflow_retries=4)
@@ -180,7 +183,7 @@ def test_overflowing_contact_buffers_are_grown_and_the_batch_rerun(library, capl
 
 @pytest.mark.slow
 def test_a_diverging_simulation_raises_instead_of_returning_nan(library):
-    scene = make_scene(library, ["box"], [[0, 0.1, 0]])
+    scene = scene_of(["box"], [[0, 0.1, 0]], library=library, posed_codes=True)
     with MujocoWarpWorld(MujocoWarpParams(device="cpu", gravity=float("nan"))) as w, \
             pytest.raises(FloatingPointError, match="diverged"):
         simulate_runs(scene, library, runs=2, steps=5, world=w)

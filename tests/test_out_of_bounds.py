@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from spread.assets.assemble import box_asset, library_from_specs
 from spread.metrics import OutOfBoundsRate, scene_out_of_bounds
-from spread.scene import Scene
+
+from helpers import scene_of
 
 ROOM = np.array([[0.0, 0.0, 0.0], [4.0, 3.0, 3.0]], np.float32)  # floor x ∈ [0, 4], z ∈ [0, 3] metres
 
@@ -20,9 +21,8 @@ def lib(tmp_path_factory):
 
 def crates(translations, rotations=None, room=ROOM, scene_id="s"):
     n = len(translations)
-    R = np.stack([np.eye(3) if r is None else r for r in (rotations or [None] * n)]).astype(np.float32)
-    return Scene(scene_id, ["crate"] * n, ["box"] * n, np.asarray(translations, np.float32), R,
-                 np.full((n, n), 6, np.int8) * np.eye(n, dtype=np.int8), np.zeros((n, n), np.int8), room=room)
+    R = np.stack([np.eye(3) if r is None else r for r in (rotations or [None] * n)])
+    return scene_of(["crate"] * n, translations, R, categories=["box"] * n, room=room, scene_id=scene_id)
 
 
 def test_known_answers_inside_edge_across_and_outside(lib):

@@ -20,7 +20,8 @@ from spread.physics import (
 )
 from spread.physics.frames import body_to_scene, matrix_to_quat, quat_to_matrix, scene_to_body
 from spread.physics.shapes import inset_convex
-from spread.scene import Scene
+
+from helpers import scene_of
 
 pybullet = pytest.importorskip("pybullet")
 
@@ -36,15 +37,6 @@ def _random_rotations(n: int, seed: int) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.random(n, random_state=seed).as_matrix()
-
-
-def make_scene(asset_ids, translation, rotation=None, scene_id="s") -> Scene:
-    n = len(asset_ids)
-    rotation = np.tile(np.eye(3), (n, 1, 1)) if rotation is None else rotation
-    spatial = np.zeros((n, n), np.int8)
-    np.fill_diagonal(spatial, 6)
-    return Scene(scene_id, np.array(asset_ids), np.array(asset_ids), np.array(translation, np.float32),
-                 np.array(rotation, np.float32), spatial, np.zeros((n, n), np.int8))
 
 
 def box_specs() -> list[AssetSpec]:
@@ -83,7 +75,7 @@ TOWER = [[0, 0.1, 0], [0, 0.3, 0], [0, 0.5, 0]]
 # ---- resting, dropping, stacking -------------------------------------------------------------
 
 def test_box_resting_on_floor_stays(world, library):
-    scene = make_scene(["box"], [[0.3, 0.1, -0.2]], _rot_y(0.4)[None])
+    scene = scene_of(["box"], [[0.3, 0.1, -0.2]], _rot_y(0.4)[None])
     world.load_scene(scene, library)
     run_steps(world, 100)
     moved = displacement_stats((scene.translation, scene.rotation), world.poses())
@@ -91,7 +83,7 @@ def test_box_resting_on_floor_stays(world, library):
 
 
 def test_dropped_box_comes_to_rest_on_floor(world, library):
-    world.load_scene(make_scene(["box"], [[0, 0.1 + 0.1, 0]]), library)  # bottom 10 cm above the floor
+    world.load_scene(scene_of(["box"], [[0, 0.1 + 0.1, 0]]), library)  # bottom 10 cm above the floor
     result = world.settle(max_steps=2400)
     assert result.settled
     assert abs(result.translation[0, 1] - 0.1) < 2e-3
@@ -103,10 +95,10 @@ def test_dropped_box_comes_to_rest_on_floor(world, library):
 def test_friction_coefficients_are_the_named_pairwise_values(world, library, pinned_base):
     # a box pushed at v0 slides v0² / (2 μ g) on the floor (μ = floor_friction) or on a pinned box (μ = friction)
     if pinned_base:
-        world.load_scene(make_scene(["box", "small"], [[0, 0.1, 0], [0, 0.25, 0]]), library, fixed=[0])
+        world.load_scene(scene_of(["box", "small"], [[0, 0.1, 0], [0, 0.25, 0]]), library, fixed=[0])
         mu, v0 = world.params.friction, 0.5
     else:
-        world.load_scene(make_scene(["small"], [[0, 0.05, 0]]), library)
+        world.load_scene(scene_of(["small"], [[0, 0.05, 0]]), library)
         mu, v0 = world.params.floor_friction, 1.0
     world.step(10)
     start = world.poses()[0][-1, 0]
@@ -117,7 +109,7 @@ def test_friction_coefficients_are_the_named_pairwise_values(world, library, pin
 
 
 def test_exact_tower_is_stable_over_jittered_runs(world, library):
-    scene = make_scene(["box"] * 3, TOWER)
+    scene = scene_of(["box"] * 3, TOWER)
     runs = simulate_runs(scene, library, runs=10, world=world)
     assert runs.translation.shape == (10, 3, 3) and runs.rotation.shape == (10, 3, 3, 3)
     moved = displacement_stats((scene.translation, scene.rotation), runs)
@@ -125,14 +117,14 @@ def test_exact_tower_is_stable_over_jittered_runs(world, library):
 
 
 def test_tower_with_middle_box_shifted_half_a_width_topples(world, library):
-    scene = make_scene(["box"] * 3, [[0, 0.1, 0], [0.1, 0.3, 0], [0, 0.5, 0]])
+    scene = scene_of(["box"] * 3, [[0, 0.1, 0], [0.1, 0.3, 0], [0, 0.5, 0]])
     runs = simulate_runs(scene, library, runs=3, world=world)
     top = displacement_stats((scene.translation, scene.rotation), runs)
     assert ((top.distance[:, 2] > 0.05) | (top.angle[:, 2] > 0.5)).all()
 
 
 def test_tower_without_its_base_falls(world, library):
-    scene = make_scene(["box"] * 2, TOWER[1:])
+    scene = scene_of(["box"] * 2, TOWER[1:])
     runs = simulate_runs(scene, library, runs=2, world=world)
     drop = scene.translation[None, :, 1] - runs.translation[..., 1]
     assert (drop > 0.15).all()
@@ -140,7 +132,7 @@ def test_tower_without_its_base_falls(world, library):
 
 def test_concave_asset_of_parts_holds_a_box_in_its_gap(world, library):
     # U base on the floor (bbox height 0.3 → centre 0.15); the small box starts inside the gap, 5 cm up
-    scene = make_scene(["U", "small"], [[0, 0.15, 0], [0, 0.15, 0]])
+    scene = scene_of(["U", "small"], [[0, 0.15, 0], [0, 0.15, 0]])
     world.load_scene(scene, library)
     result = world.settle()
     assert result.settled
@@ -151,7 +143,7 @@ def test_concave_asset_of_parts_holds_a_box_in_its_gap(world, library):
 
 def test_settle_with_pinned_furniture(world, library):
     # box 0 hangs in the air, pinned for the settle; box 1 falls onto it
-    scene = make_scene(["box", "small"], [[0, 0.5, 0], [0, 0.8, 0]])
+    scene = scene_of(["box", "small"], [[0, 0.5, 0], [0, 0.8, 0]])
     world.load_scene(scene, library)
     result = world.settle(fixed=[0])
     assert result.settled
@@ -170,7 +162,7 @@ def test_pose_round_trip_with_off_centre_mass_and_rotations(world, library):
     n = 6
     t = np.random.default_rng(0).uniform(-1, 1, (n, 3)) + [0, 2, 0]
     R = _random_rotations(n, seed=1)
-    scene = make_scene(["L", "box", "L", "U", "L", "small"], t, R)
+    scene = scene_of(["L", "box", "L", "U", "L", "small"], t, R)
     world.load_scene(scene, library)
     t_back, R_back = world.poses()
     assert np.abs(t_back - scene.translation).max() < 1e-6
@@ -202,9 +194,9 @@ def test_parts_are_inset_by_bullets_margin():
 
 def test_shapes_created_once_per_asset_per_client(library):
     with PhysicsWorld() as w:
-        w.load_scene(make_scene(["box", "box", "L"], [[0, 0.1, 0], [1, 0.1, 0], [2, 0.15, 0]]), library)
+        w.load_scene(scene_of(["box", "box", "L"], [[0, 0.1, 0], [1, 0.1, 0], [2, 0.15, 0]]), library)
         assert w.shapes_created == 2
-        w.load_scene(make_scene(["L", "small", "box"], [[0, 0.15, 0], [1, 0.05, 0], [2, 0.1, 0]]), library)
+        w.load_scene(scene_of(["L", "small", "box"], [[0, 0.15, 0], [1, 0.05, 0], [2, 0.1, 0]]), library)
         assert w.shapes_created == 3 and w.num_objects == 3
         run_steps(w, 5)  # the shared shapes still simulate after the first scene's bodies were removed
         assert np.isfinite(w.poses()[0]).all()
@@ -213,15 +205,15 @@ def test_shapes_created_once_per_asset_per_client(library):
 def test_same_asset_id_from_another_library_gets_its_own_shape(library, tmp_path):
     bigger = library_from_specs(tmp_path, [box_asset("box", (0.4, 0.4, 0.4))])
     with PhysicsWorld() as w:
-        w.load_scene(make_scene(["box"], [[0, 0.1, 0]]), library)
-        w.load_scene(make_scene(["box"], [[0, 0.2, 0]]), bigger)  # keyed by content hash, not id alone
+        w.load_scene(scene_of(["box"], [[0, 0.1, 0]]), library)
+        w.load_scene(scene_of(["box"], [[0, 0.2, 0]]), bigger)  # keyed by content hash, not id alone
         assert w.shapes_created == 2
         run_steps(w, 30)
         assert abs(w.poses()[0][0, 1] - 0.2) < 1e-3
 
 
 def test_contacts_report_support_between_stacked_boxes(world, library):
-    world.load_scene(make_scene(["box"] * 2, TOWER[:2]), library)
+    world.load_scene(scene_of(["box"] * 2, TOWER[:2]), library)
     contacts = world.contacts(distance=1e-3)
     assert {tuple(p) for p in contacts.pairs()} == {(0, -1), (0, 1)}
     between = (contacts.index_a == 0) & (contacts.index_b == 1)
@@ -239,7 +231,7 @@ def test_contacts_report_support_between_stacked_boxes(world, library):
 
 
 def test_contacts_report_interpenetration(world, library):
-    world.load_scene(make_scene(["box"] * 2, [[0, 0.1, 0], [0.15, 0.1, 0]]), library)  # 5 cm overlap in x
+    world.load_scene(scene_of(["box"] * 2, [[0, 0.1, 0], [0.15, 0.1, 0]]), library)  # 5 cm overlap in x
     contacts = world.contacts()
     pair = (contacts.index_a == 0) & (contacts.index_b == 1)
     assert contacts.penetration[pair].max() == pytest.approx(0.05, abs=2e-3)
@@ -248,7 +240,7 @@ def test_contacts_report_interpenetration(world, library):
 # ---- the Stability protocol --------------------------------------------------------------------
 
 def test_jittered_runs_repeat_with_a_seed_and_differ_across_seeds(world, library):
-    scene = make_scene(["box", "box", "L"], TOWER[:2] + [[0.6, 0.15, 0]])
+    scene = scene_of(["box", "box", "L"], TOWER[:2] + [[0.6, 0.15, 0]])
     a = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=world)
     b = simulate_runs(scene, library, runs=3, steps=30, seed=7, world=world)
     c = simulate_runs(scene, library, runs=3, steps=30, seed=8, world=world)
@@ -273,7 +265,7 @@ def _simulate_in_worker(root: str) -> np.ndarray:
     from spread.assets.library import AssetLibrary
 
     library = AssetLibrary.load(root)
-    scene = make_scene(["box", "box", "small"], TOWER[:2] + [[0.5, 0.05, 0]])
+    scene = scene_of(["box", "box", "small"], TOWER[:2] + [[0.5, 0.05, 0]])
     world = get_world(PhysicsParams())
     assert get_world() is world
     return simulate_runs(scene, library, runs=2, steps=20, seed=3).translation

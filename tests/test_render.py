@@ -8,7 +8,8 @@ from spread.render import (
     PALETTES, TopDownRenderSettings, category_colour, export_glb, hashed_colour, render_before_after,
     render_grid, render_topdown, save_png,
 )
-from spread.scene import Scene
+
+from helpers import scene_of
 
 WHITE = (255, 255, 255)
 ROOM = np.array([[-2.0, 0.0, -2.0], [2.0, 3.0, 2.0]])
@@ -24,22 +25,13 @@ def library(tmp_path_factory):
     ])
 
 
-def make_scene(asset_ids, categories, translations, rotations=None, room=ROOM, scene_id="s"):
-    n = len(asset_ids)
-    rotations = np.stack([np.eye(3)] * n) if rotations is None else np.asarray(rotations)
-    spatial = np.zeros((n, n), np.int8)
-    np.fill_diagonal(spatial, 6)
-    return Scene(scene_id, asset_ids, categories, np.asarray(translations, float), rotations, spatial,
-                 np.zeros((n, n), np.int8), room=room)
-
-
 def yaw(angle):
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
 def test_box_at_plus_x_is_on_the_right_in_its_colour(library):
-    scene = make_scene(["table"], ["dining_table"], [[1.2, 0.375, 0.0]])
+    scene = scene_of(["table"], [[1.2, 0.375, 0.0]], categories=["dining_table"], room=ROOM)
     img = render_topdown(scene, library, TopDownRenderSettings(outline=False))
     assert img.shape == (256, 256, 3) and img.dtype == np.uint8
     colour = np.array(category_colour("dining_table"))
@@ -55,7 +47,7 @@ def test_box_at_plus_x_is_on_the_right_in_its_colour(library):
 
 
 def test_plus_z_points_down_the_image_and_yaw_turns_the_footprint(library):
-    scene = make_scene(["stick"], ["pencil"], [[0.0, 0.025, 1.0]], rotations=[yaw(np.pi / 2)])
+    scene = scene_of(["stick"], [[0.0, 0.025, 1.0]], [yaw(np.pi / 2)], categories=["pencil"], room=ROOM)
     drawn = (render_topdown(scene, library) != 255).any(-1)
     rows, cols = np.flatnonzero(drawn.any(1)), np.flatnonzero(drawn.any(0))
     assert rows.min() > 128, "+z is down the image"
@@ -64,7 +56,8 @@ def test_plus_z_points_down_the_image_and_yaw_turns_the_footprint(library):
 
 def test_object_on_top_covers_the_object_below(library):
     # the tray is listed first but rests on the table: it must still be painted last (highest top)
-    scene = make_scene(["tray", "table"], ["tray", "dining_table"], [[0.3, 0.77, 0.0], [0.0, 0.375, 0.0]])
+    scene = scene_of(["tray", "table"], [[0.3, 0.77, 0.0], [0.0, 0.375, 0.0]], categories=["tray", "dining_table"],
+                     room=ROOM)
     img = render_topdown(scene, library)
     mpp, x0 = 4.5 / 256, -2.25
 
@@ -79,12 +72,12 @@ def test_object_on_top_covers_the_object_below(library):
 
 
 def test_render_is_deterministic_and_bounds_are_explicit(library):
-    scene = make_scene(["table", "tray"], ["dining_table", "tray"], [[0.5, 0.375, -0.5], [0.5, 0.77, -0.5]],
-                       rotations=[yaw(0.3), yaw(1.1)])
+    scene = scene_of(["table", "tray"], [[0.5, 0.375, -0.5], [0.5, 0.77, -0.5]], [yaw(0.3), yaw(1.1)],
+                     categories=["dining_table", "tray"], room=ROOM)
     a, b = render_topdown(scene, library), render_topdown(scene, library)
     assert np.array_equal(a, b)
     settings = TopDownRenderSettings(image_size=64, bounds=(-1, -1, 1, 1), margin=0.0, outline=False)
-    small = render_topdown(make_scene(["table"], ["dining_table"], [[0, 0.375, 0]], room=None), library, settings)
+    small = render_topdown(scene_of(["table"], [[0, 0.375, 0]], categories=["dining_table"]), library, settings)
     assert small.shape == (64, 64, 3)
     assert TopDownRenderSettings.from_dict(settings.to_dict()) == settings
     assert "+z down" in settings.to_dict()["orientation"]
@@ -104,7 +97,7 @@ def test_palette_is_fixed_distinct_and_never_white():
 def test_save_png_grid_and_before_after(library, tmp_path):
     from PIL import Image
 
-    before = make_scene(["table"], ["dining_table"], [[0.0, 0.375, 0.0]])
+    before = scene_of(["table"], [[0.0, 0.375, 0.0]], categories=["dining_table"], room=ROOM)
     after = before.with_poses([[1.0, 0.375, 0.0]], before.rotation)
     pair = render_before_after(before, after, library, pad=4)
     assert pair.shape == (256 + 8, 2 * 256 + 12, 3)
@@ -122,8 +115,8 @@ def test_save_png_grid_and_before_after(library, tmp_path):
 def test_export_glb_round_trip(library, tmp_path):
     import trimesh
 
-    scene = make_scene(["table", "tray"], ["dining_table", "tray"], [[0.5, 0.375, -0.5], [0.5, 0.77, -0.5]],
-                       rotations=[yaw(0.3), yaw(1.1)])
+    scene = scene_of(["table", "tray"], [[0.5, 0.375, -0.5], [0.5, 0.77, -0.5]], [yaw(0.3), yaw(1.1)],
+                     categories=["dining_table", "tray"], room=ROOM)
     path = export_glb(scene, library, tmp_path / "scene.glb")
     loaded = trimesh.load(path)
     nodes = {n: loaded.graph[n] for n in loaded.graph.nodes_geometry}

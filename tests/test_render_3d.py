@@ -18,7 +18,9 @@ from spread.render.camera import box_corners
 from spread.render.figures import _figure, draw_relation_matrix, figure_array
 from spread.render.perspective import FLOOR_LABEL
 from spread.render.relation_matrix import MATCH, MISMATCH, SELF
-from spread.scene import SPATIAL_ABOVE, SPATIAL_LEFT, SPATIAL_RIGHT, Scene
+from spread.scene import SPATIAL_ABOVE, SPATIAL_LEFT, SPATIAL_RIGHT
+
+from helpers import scene_of
 
 ROOM = np.array([[-2.0, 0.0, -2.0], [2.0, 3.0, 2.0]])
 SMALL = PerspectiveSettings(width=160, height=120, supersample=1)
@@ -34,21 +36,9 @@ def library(tmp_path_factory):
     ])
 
 
-def make_scene(asset_ids, categories, translations, room=ROOM, scene_id="s", library=None):
-    """A scene whose graph is the one its poses give (every relation realised)."""
-    from spread.relations import scene_spatial_codes
-
-    n = len(asset_ids)
-    rotations = np.stack([np.eye(3)] * n)
-    translations = np.asarray(translations, float)
-    spatial = scene_spatial_codes(translations, rotations, list(asset_ids), library)
-    return Scene(scene_id, asset_ids, categories, translations, rotations, spatial, np.zeros((n, n), np.int8),
-                 room=room)
-
-
 def table_tray_crate(library, lift=0.0):
-    return make_scene(["table", "tray", "crate"], ["dining_table", "tray", "box"],
-                      [[0.0, 0.375, 0.0], [0.0, 0.77 + lift, 0.0], [1.2, 0.25, 0.8]], library=library)
+    return scene_of(["table", "tray", "crate"], [[0.0, 0.375, 0.0], [0.0, 0.77 + lift, 0.0], [1.2, 0.25, 0.8]],
+                    categories=["dining_table", "tray", "box"], library=library, posed_codes=True, room=ROOM)
 
 
 def cosine(a, b):
@@ -106,8 +96,8 @@ def test_3d_view_has_its_size_and_draws_each_object_in_its_category_colour(libra
 
 
 def test_default_view_puts_plus_x_on_the_right_and_plus_z_nearer_the_bottom(library):
-    scene = make_scene(["crate", "crate", "crate"], ["box", "box", "box"],
-                       [[1.4, 0.25, 0.0], [-1.4, 0.25, 0.0], [0.0, 0.25, 1.4]], library=library)
+    scene = scene_of(["crate", "crate", "crate"], [[1.4, 0.25, 0.0], [-1.4, 0.25, 0.0], [0.0, 0.25, 1.4]],
+                     categories=["box", "box", "box"], library=library, posed_codes=True, room=ROOM)
     _, labels = render_perspective(scene, library, PerspectiveSettings(width=160, height=120, supersample=1,
                                                               azimuth=0.0), return_labels=True)
     centre = [np.argwhere(labels == i).mean(0) for i in range(3)]  # (row, column)

@@ -5,11 +5,14 @@ import pytest
 
 from spread.importers.release_boxes import read_reference_boxes
 from spread.scene import (
-    Scene, SceneFormatError, read_scene, write_scene,
+    SceneFormatError, read_scene, write_scene,
 )
 
+from helpers import scene_of
 
-def make_scene(n=3, seed=0):
+
+def random_scene(n=3, seed=0):
+    """``n`` objects at random poses with random spatial codes, one support pair, a room and a ``source`` extra."""
     rng = np.random.default_rng(seed)
     from scipy.spatial.transform import Rotation
 
@@ -17,16 +20,15 @@ def make_scene(n=3, seed=0):
     np.fill_diagonal(spatial, 6)
     physical = np.zeros((n, n), np.int8)
     physical[0, 1] = 1
-    return Scene(
-        scene_id=f"room_{seed}", asset_id=[f"a{i}" for i in range(n)], category=[f"c{i}" for i in range(n)],
-        translation=rng.normal(size=(n, 3)), rotation=Rotation.random(n, random_state=seed).as_matrix(),
-        spatial=spatial, physical=physical, room=np.array([[-2, 0, -2], [2, 3, 2]]),
-        extras={"source": np.asarray("ckpt=x.ckpt sampler=ddim50 seed=1")},
-    )
+    ids = [f"a{i}" for i in range(n)]
+    return scene_of(ids, rng.normal(size=(n, 3)), Rotation.random(n, random_state=seed).as_matrix(),
+                    categories=[f"c{i}" for i in range(n)], spatial=spatial, physical=physical,
+                    room=np.array([[-2, 0, -2], [2, 3, 2]]), scene_id=f"room_{seed}",
+                    extras={"source": np.asarray("ckpt=x.ckpt sampler=ddim50 seed=1")})
 
 
 def test_round_trip_is_lossless(tmp_path):
-    scene = make_scene()
+    scene = random_scene()
     path = write_scene(scene, tmp_path / "s.npz")
     back = read_scene(path)
     for key, value in scene.to_arrays().items():
@@ -38,9 +40,9 @@ def test_round_trip_is_lossless(tmp_path):
 
 
 def test_write_is_atomic_and_keeps_old_file_on_failure(tmp_path):
-    good = make_scene(seed=1)
+    good = random_scene(seed=1)
     path = write_scene(good, tmp_path / "s.npz")
-    bad = make_scene(seed=2)
+    bad = random_scene(seed=2)
     bad.translation[0, 0] = np.nan
     with pytest.raises(SceneFormatError):
         write_scene(bad, path)
@@ -72,7 +74,7 @@ def _write_raw(path, **arrays):
     ],
 )
 def test_bad_files_name_file_key_and_problem(tmp_path, key, mutate, problem):
-    arrays = make_scene().to_arrays()
+    arrays = random_scene().to_arrays()
     arrays = {k: np.array(v, copy=True) for k, v in arrays.items()}
     mutate(arrays)
     path = _write_raw(tmp_path / "bad.npz", **arrays)
@@ -83,7 +85,7 @@ def test_bad_files_name_file_key_and_problem(tmp_path, key, mutate, problem):
 
 
 def test_unknown_asset_is_rejected(tmp_path):
-    path = write_scene(make_scene(), tmp_path / "s.npz")
+    path = write_scene(random_scene(), tmp_path / "s.npz")
     with pytest.raises(SceneFormatError, match="unknown asset 'a2'"):
         read_scene(path, assets={"a0", "a1"})
     assert read_scene(path, assets={"a0", "a1", "a2"}).num_objects == 3
@@ -147,3 +149,21 @@ def test_atomic_writes_get_normal_file_permissions(tmp_path):
         assert (tmp_path / "m.json").stat().st_mode & 0o777 == 0o644
     finally:
         os.umask(umask)
+
+
+def test_scene_of_gives_identity_rotations_library_categories_and_codes_of_the_poses(tmp_path):
+    """``helpers.scene_of``, the tests' one scene builder, fills what it is not given as its docstring says."""
+    from spread.assets.assemble import box_asset, library_from_specs
+
+    library = library_from_specs(tmp_path / "assets", [box_asset("crate", (1.0, 0.5, 1.0), category="box")])
+    t = [[0.0, 0.25, 0.0], [2.0, 0.25, 0.0]]  # two crates on the floor, 2 m apart along x
+    plain = scene_of(["crate", "crate"], t).validate()
+    assert np.array_equal(plain.rotation, np.tile(np.eye(3), (2, 1, 1)))
+    assert plain.category.tolist() == ["crate", "crate"]  # no library: the ids stand for the categories
+    assert plain.spatial.tolist() == [[6, 0], [0, 6]] and not plain.physical.any() and plain.room is None
+    posed = scene_of(["crate", "crate"], t, library=library, posed_codes=True, room=[[-3, 0, -3], [3, 3, 3]],
+                     scene_id="posed").validate(assets=library)
+    assert posed.category.tolist() == ["box", "box"] and posed.scene_id == "posed"
+    assert posed.spatial.tolist() == [[6, 1], [0, 6]]  # crate 0 (x = 0) is left of crate 1 (x = 2), 1 right of 0
+    with pytest.raises(ValueError, match="library"):
+        scene_of(["crate"], t[:1], posed_codes=True)

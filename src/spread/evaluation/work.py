@@ -29,7 +29,6 @@ from spread.evaluation.protocol import EvalProtocol, FIDConfig
 #: scene — a worker dying mid-run, to be retried by Ray.
 FAULT_MARKER_ENV = "SPREAD_EVAL_FAULT_MARKER"
 
-_LIBRARIES: dict[str, object] = {}
 _EXTRACTORS: dict[tuple, object] = {}
 _METRICS: dict[str, dict] = {}
 
@@ -41,13 +40,11 @@ def scene_key(path: str | os.PathLike) -> str:
 
 
 def worker_library(assets_dir: str):
-    """This process's :class:`~spread.assets.AssetLibrary` of ``assets_dir``, loaded on first use."""
-    from spread.assets import AssetLibrary
+    """This process's :class:`~spread.assets.AssetLibrary` of ``assets_dir``, loaded on first use (the one
+    table of :func:`spread.readonce.asset_library`, shared with sampling in the same process)."""
+    from spread import readonce
 
-    key = str(Path(assets_dir).resolve())
-    if key not in _LIBRARIES:
-        _LIBRARIES[key] = AssetLibrary.load(key)
-    return _LIBRARIES[key]
+    return readonce.asset_library(assets_dir)
 
 
 def worker_extractor(fid: FIDConfig):

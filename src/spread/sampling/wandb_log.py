@@ -11,10 +11,10 @@ from typing import Callable
 def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = None) -> list[str]:
     """Variant (from the checkpoint's hyperparameters, read without loading its weights), sampler and
     guidance tags, plus ``extra``."""
-    from spread.safe_load import load_checkpoint
+    from spread import readonce
     from spread.sampling.worker import sampler_label
 
-    hp = load_checkpoint(ckpt, mmap=True).get("hyper_parameters", {})
+    hp = readonce.checkpoint(ckpt).get("hyper_parameters", {})
     guidance = manifest.get("guidance")
     tags = [str(hp.get("variant") or hp.get("method", "unknown")), sampler_label(sampler)]  # SPREAD variant or baseline
     if guidance:

@@ -61,24 +61,49 @@ def checkpoint_data_settings(ckpt: dict, model) -> dict:
     return {"num_points": int(points), "seed": int(hp.get("seed", 0))}
 
 
-def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = "cpu", use_ema: bool = True,
-                  graph_scale: float = 1.0, guidance=None) -> ScenePipeline:
-    """The pipeline of a ``spread-train`` checkpoint (SceneDiffusion or a baseline) for a dataset's split (encoder with the checkpoint's
-    point settings, model in eval mode on ``device``)."""
+def cached_model(ckpt: str, device: str):
+    """The model of a ``spread-train`` checkpoint (SceneDiffusion or a baseline) in eval mode on ``device``,
+    built once per process from the one read of the file (:mod:`spread.readonce`): a second worker or a
+    second sweep trial in this process re-uses it (sampling never changes its weights)."""
+    from spread import readonce
     from spread.baselines import module_from_checkpoint
-    from spread.data import SceneDataset
-    from spread.model.module import SceneDiffusion
-    from spread.safe_load import load_checkpoint
 
-    checkpoint = load_checkpoint(ckpt)
-    model = module_from_checkpoint(checkpoint, map_location=resolve_device(device), source=str(ckpt)).eval()  # SPREAD or a baseline
-    guided = active_guidance(guidance)
+    device = resolve_device(device)
+    return readonce.memo("model", (readonce.file_key(ckpt), device), lambda: module_from_checkpoint(
+        readonce.checkpoint(ckpt), map_location=device, source=str(ckpt)).eval())
+
+
+def cached_dataset(data_root: str, split: str, num_points: int, seed: int):
+    """The :class:`~spread.data.SceneDataset` encoding a split's graphs (its library and scene files read
+    through :mod:`spread.readonce`), once per process and settings."""
+    from spread import readonce
+    from spread.data import SceneDataset
+
+    root = Path(data_root).resolve()
+    library = readonce.asset_library(root / "assets")
+    parts = [root / split, root / "stats.json"]
+    key = (str(root), split, int(num_points), int(seed), readonce.library_key(library),
+           *[readonce.file_key(p) if p.exists() else str(p) for p in parts])
+    return readonce.memo("dataset", key, lambda: SceneDataset(root, split, library=library, num_points=num_points,
+                                                               seed=seed, reader=readonce.scene))
+
+
+def load_pipeline(cfg) -> ScenePipeline:
+    """The pipeline of a :class:`~spread.sampling.SamplingConfig`: its checkpoint's model (SceneDiffusion or a
+    baseline, in eval mode on ``cfg.device``), an encoder of ``cfg.data``'s split with the checkpoint's point
+    settings, ``cfg.sampler``, ``cfg.guidance``, ``cfg.use_ema``, ``cfg.graph_scale``. The model and the
+    encoder are built once per process (:func:`cached_model`, :func:`cached_dataset`)."""
+    from spread import readonce
+    from spread.model.module import SceneDiffusion
+
+    model = cached_model(cfg.ckpt, cfg.device)
+    guided = active_guidance(cfg.guidance)
     if guided is not None and not isinstance(model, SceneDiffusion):
         raise ValueError(f"guidance={guided.mode}: SPREAD's guidance needs a SceneDiffusion checkpoint, "
-                         f"{ckpt} is a '{model.hparams.method}' baseline (sample it with guidance=none)")
-    data = checkpoint_data_settings(checkpoint, model)
-    dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
-    return ScenePipeline(model, dataset, sampler, guidance, use_ema, graph_scale)
+                         f"{cfg.ckpt} is a '{model.hparams.method}' baseline (sample it with guidance=none)")
+    data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
+    dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"])
+    return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,
@@ -98,35 +123,29 @@ def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray
 
 
 class SampleWorker:
-    """Loads ``ckpt`` once; :meth:`run` samples a batch and writes its missing scene files to ``scenes_dir``.
+    """Builds the pipeline of ``cfg`` (a :class:`~spread.sampling.SamplingConfig`, as it is: Ray pickles the
+    dataclass) once; :meth:`run` samples a batch and writes its missing scene files to ``scenes_dir``.
 
-    ``sampler``: a :class:`~spread.model.Sampler` or its config; ``threads``: torch intra-op threads (None:
-    leave as is); ``use_ema`` / ``graph_scale`` / ``guidance``: as in :class:`ScenePipeline`.
+    ``cfg.threads``: torch intra-op threads (None: leave as is); the rest as in :func:`load_pipeline`.
     """
 
-    def __init__(self, ckpt: str, data_root: str, split: str, scenes_dir: str, sampler, seed: int,
-                 device: str = "cpu", threads: int | None = 1, use_ema: bool = True, graph_scale: float = 1.0,
-                 guidance=None):
+    def __init__(self, cfg, scenes_dir: str | Path):
         import torch
 
-        if threads:
-            torch.set_num_threads(int(threads))
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))
         self.scenes_dir = Path(scenes_dir)
-        self.pipeline = load_pipeline(ckpt, data_root, split, sampler, device, use_ema, graph_scale, guidance)
+        self.pipeline = load_pipeline(cfg)
         guided = self.pipeline.guidance
-        self.provenance = (f"ckpt={ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(seed)}"
+        self.provenance = (f"ckpt={cfg.ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(cfg.seed)}"
                            + (f" guidance={guidance_label(guided)}" if guided else ""))
-        self._sources: dict[str, Scene] = {}
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 
     def source(self, item: SampleItem) -> Scene:
-        """The validated source scene of an item (memoised: a graph's k samples read it once)."""
-        from spread.scene import read_scene
+        """The validated source scene of an item (read once per process: :func:`spread.readonce.scene`)."""
+        from spread import readonce
 
-        path = item.graph.path
-        if path not in self._sources:
-            self._sources[path] = read_scene(path, assets=self.pipeline.dataset.library)
-        return self._sources[path]
+        return readonce.scene(item.graph.path, self.pipeline.dataset.library)
 
     def sample(self, batch: BatchPlan) -> list[Scene]:
         """The generated scenes of every item of ``batch``, in order (nothing written)."""

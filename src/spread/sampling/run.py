@@ -14,7 +14,9 @@
    for the first ``figures`` samples also a 3D scene card (``<name>_3d.png``: the perspective view with its
    category legend and the relation matrix against the conditioning graph) and the scene before | after one
    Stability run (``<name>_physics.png``), see :mod:`spread.render.figures`;
-   ``out_dir/sampling.json``: the settings, counts and timings.
+   ``out_dir/sampling.json``: the settings, counts and timings (``startup_seconds``: from the start to the
+   first batch — checks, graph reads, model load, on Ray the actors' start; near 0 in a warm process,
+   :mod:`spread.readonce`).
 """
 
 from __future__ import annotations
@@ -331,8 +333,11 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     batch_seconds: list[float] = []
     repaired = [0]
     guidance_totals: dict[str, float] = {}
+    startup: list[float] = []  # seconds from the start to the first batch's start (checks, reads, model load)
 
     def on_result(result: dict) -> None:
+        if not startup:
+            startup.append(time.perf_counter() - started - result["seconds"])
         written.extend(result["written"])
         repaired[0] += result["repaired_rotations"]
         for key, value in (result.get("guidance") or {}).items():
@@ -362,6 +367,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "guidance": settings.get("guidance"), "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),
+        "startup_seconds": round(startup[0], 3) if startup else None,
         "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,
         "runner": runner,
     }

@@ -229,3 +229,32 @@ def test_ray_workers_get_the_typed_sampling_config(dataset, ckpt, tmp_path):
         written = read_scene(result.out_dir / "scenes" / f"{scene.scene_id}.npz")
         np.testing.assert_array_equal(scene.translation, written.translation)
         assert str(scene.extras["source"]) == str(written.extras["source"])
+
+
+def test_a_ray_sampling_actor_reads_checkpoint_library_and_each_graph_once(dataset, ckpt, tmp_path):
+    """workers ≥ 1: the actor gets the SamplingConfig as it is and, over all the run's batches, loads the
+    checkpoint once, builds one model, loads the library once and reads each graph of the split once."""
+    import ray
+
+    from spread.configs import to_object
+    from spread.sampling.plan import plan_batches
+    from spread.sampling.run import list_graphs
+    from spread.sampling.worker import SampleWorker
+
+    from helpers import FAST_SAMPLE, compose
+
+    cfg = to_object(compose("sample", *FAST_SAMPLE, *run_args(dataset, ckpt, tmp_path / "ray"), "batch_size=1",
+                            "samples_per_graph=2"))
+    graphs = list_graphs(dataset, "test")
+    batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        actor = ray.remote(SampleWorker).options(num_cpus=1).remote(cfg, tmp_path / "ray" / "scenes")
+        results = ray.get([actor.run.remote(b) for b in batches])
+        reads = ray.get(actor.reads.remote())
+    finally:
+        ray.shutdown()
+    assert sum(len(r["written"]) for r in results) == 2 * len(graphs)
+    assert reads["checkpoint"]["reads"] == 1 and reads["model"]["reads"] == 1 and reads["library"]["reads"] == 1
+    assert reads["scene"]["reads"] == len(graphs), "each graph of the split read once (then kept)"
+    assert reads["scene"]["hits"] >= len(batches), "every batch's graph came from the table"

@@ -147,6 +147,12 @@ class SampleWorker:
 
         return readonce.scene(item.graph.path, self.pipeline.dataset.library)
 
+    def reads(self) -> dict:
+        """This process's reads and hits per kind (:func:`spread.readonce.counts`): what a Ray actor read."""
+        from spread import readonce
+
+        return readonce.counts()
+
     def sample(self, batch: BatchPlan) -> list[Scene]:
         """The generated scenes of every item of ``batch``, in order (nothing written)."""
         import torch

@@ -1,7 +1,10 @@
 """One sampling worker: a checkpoint's :class:`~spread.sampling.pipeline.ScenePipeline`, turning batches into files.
 
 A worker holds one pipeline (model with EMA weights by default, encoder, sampler, guidance) for its whole
-life, so a Ray actor — or the driver itself when ``workers=0`` — pays for loading it once. Conditioning
+life, so a Ray actor — or the driver itself when ``workers=0`` — pays for loading it once; it is built from
+the run's :class:`~spread.sampling.SamplingConfig` as it is (a new sampling option is read here, nowhere
+else). The model, the encoder, the asset library and the graphs are read once per process
+(:mod:`spread.readonce`), so a second run in the same process (the next trial of a sweep) loads nothing. Conditioning
 graphs are encoded exactly as in training: the asset points are sampled with the ``num_points`` and
 ``seed`` of the data module the checkpoint was trained with (Lightning stores its hyperparameters in the
 checkpoint).
@@ -81,7 +84,7 @@ def cached_dataset(data_root: str, split: str, num_points: int, seed: int):
 
     root = Path(data_root).resolve()
     library = readonce.asset_library(root / "assets")
-    parts = [root / split, root / "stats.json"]
+    parts = [root / split, root / "stats.json", root / "manifest.json"]  # the files, bounds, category order
     key = (str(root), split, int(num_points), int(seed), readonce.library_key(library),
            *[readonce.file_key(p) if p.exists() else str(p) for p in parts])
     return readonce.memo("dataset", key, lambda: SceneDataset(root, split, library=library, num_points=num_points,

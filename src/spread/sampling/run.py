@@ -29,8 +29,8 @@ from typing import Callable
 
 from omegaconf import MISSING
 
-from spread.guidance import GuidanceConfig
 from spread import readonce
+from spread.guidance import GuidanceConfig
 from spread.io import write_json_atomic
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session

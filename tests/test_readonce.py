@@ -258,3 +258,35 @@ def test_a_ray_sampling_actor_reads_checkpoint_library_and_each_graph_once(datas
     assert reads["checkpoint"]["reads"] == 1 and reads["model"]["reads"] == 1 and reads["library"]["reads"] == 1
     assert reads["scene"]["reads"] == len(graphs), "each graph of the split read once (then kept)"
     assert reads["scene"]["hits"] >= len(batches), "every batch's graph came from the table"
+
+
+class ColourStats:
+    """A stand-in FID backbone: per image, the mean and sd of each colour channel."""
+
+    feature_dim = 6
+
+    def __call__(self, images):
+        x = np.asarray(images, np.float64).reshape(len(images), -1, 3)
+        return np.concatenate([x.mean(1), x.std(1)], 1)
+
+
+def test_reference_fid_features_are_kept_per_process_until_a_reference_file_changes(dataset, monkeypatch):
+    """The next sweep trial's evaluation in a warm worker renders the reference set again only when one of
+    its files changed."""
+    import spread.metrics
+    from spread.evaluation.protocol import FIDConfig
+    from spread.evaluation.work import reference_fid_state
+
+    renders = Counter()
+    real = spread.metrics.fid_render
+    monkeypatch.setattr(spread.metrics, "fid_render", lambda scene, lib: renders.update([scene.scene_id]) or real(scene, lib))
+    paths = [str(p) for p in sorted((dataset / "test").glob("*.npz"))]
+    fid = FIDConfig(extractor=f"{__name__}:ColourStats", feature_model="colour_stats")
+    first = reference_fid_state(paths, str(dataset / "assets"), fid, 0)
+    again = reference_fid_state(paths, str(dataset / "assets"), fid, 0)
+    assert again is first and sum(renders.values()) == len(paths), "the second evaluation rendered nothing"
+    other_seed = reference_fid_state(paths, str(dataset / "assets"), fid, 1)
+    assert other_seed is not first
+    os.utime(paths[0], ns=(time.time_ns(), time.time_ns() + 10 ** 9))  # a reference file touched
+    reference_fid_state(paths, str(dataset / "assets"), fid, 0)
+    assert sum(renders.values()) == 3 * len(paths)

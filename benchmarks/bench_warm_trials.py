@@ -9,7 +9,8 @@ Per trial (in the order the trials ran, from each point's ``sampling.json`` time
 row: sampling + evaluation), the sampling **start-up** = ``sampling.json`` seconds − seconds per batch × batches
 (checks, graph reads, checkpoint load and hash, model build, renders: none here), the evaluation's seconds, and
 the trial process id. Points: ``guidance.collision`` ∈ {0, 0.0025, 0.005, 0.0075} (``--points``), refine
-guidance with 2 iterations, DDIM with ``--steps`` steps, Stability 1 run, no FID, one torch thread.
+guidance with 2 iterations, DDIM with ``--steps`` steps, Stability 1 run, no FID (``--fid``: with), one torch
+thread.
 """
 
 from __future__ import annotations
@@ -54,14 +55,14 @@ def make(root: Path, rooms: int) -> tuple[Path, Path]:
     return data, run / "checkpoints" / "last.ckpt"
 
 
-def sweep(ckpt: str, data: str, out: Path, points: int, steps: int, src: str | None) -> float:
+def sweep(ckpt: str, data: str, out: Path, points: int, steps: int, src: str | None, fid: bool) -> float:
     env = {**os.environ, "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "1"}
     if src:
         env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     args = [f"ckpt={ckpt}", f"data.root={data}", "guidance=refine", f"guidance.collision={','.join(COLLISION[:points])}",
             "guidance.gravity=0.001", "guidance.relation=0.001", "guidance.iterations=2", f"sampler.steps={steps}",
             "batch_size=4", "renders=0", "logger=none", "threads=1", "evaluation.protocol.stability_runs=1",
-            "evaluation.fid.enabled=false", "max_concurrent=1", "num_cpus=2", f"out_dir={out}"]
+            f"evaluation.fid.enabled={str(fid).lower()}", "max_concurrent=1", "num_cpus=2", f"out_dir={out}"]
     started = time.perf_counter()
     proc = subprocess.run([str(SCRIPTS / "spread-sweep"), *args], env=env, capture_output=True, text=True)
     if proc.returncode:
@@ -95,6 +96,7 @@ def main() -> None:
     parser.add_argument("--before-src", help="the src folder of the code to compare with (PYTHONPATH)")
     parser.add_argument("--points", type=int, default=4)
     parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument("--fid", action="store_true", help="with FID / KID (Inception features, local weights)")
     args = parser.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     if args.make:
@@ -107,7 +109,7 @@ def main() -> None:
     lines = ["| code | trial | trial s | sampling start-up s | evaluation s | trial pid |", "|---|---:|---:|---:|---:|---|"]
     summary = []
     for label, src in codes:
-        wall = sweep(args.ckpt, args.data, root / label.replace(" ", "_"), args.points, args.steps, src)
+        wall = sweep(args.ckpt, args.data, root / label.replace(" ", "_"), args.points, args.steps, src, args.fid)
         rows = trials(root / label.replace(" ", "_"))
         for i, r in enumerate(rows, 1):
             lines.append(f"| {label} | {i} | {r['trial']:.1f} | {r['startup']:.2f} | {r['evaluation']:.1f} | {r['pid']} |")

@@ -97,10 +97,10 @@ def test_sha256_is_the_files_and_is_computed_once(tmp_path, monkeypatch):
     assert file_digest(tmp_path / "none") == f"missing:{tmp_path / 'none'}"
 
 
-def test_a_scene_read_against_a_library_is_kept_and_its_errors_are_not(tmp_path):
+def test_a_scene_read_against_a_library_is_kept_and_its_errors_are_not(dataset, tmp_path):
     from spread.scene import SceneFormatError
 
-    data = make_dataset(tmp_path / "d", rooms=3)
+    data = dataset
     library = readonce.asset_library(data / "assets")
     assert readonce.asset_library(data / "assets") is library
     path = sorted((data / "train").glob("*.npz"))[0]

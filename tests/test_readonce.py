@@ -290,3 +290,29 @@ def test_reference_fid_features_are_kept_per_process_until_a_reference_file_chan
     os.utime(paths[0], ns=(time.time_ns(), time.time_ns() + 10 ** 9))  # a reference file touched
     reference_fid_state(paths, str(dataset / "assets"), fid, 0)
     assert sum(renders.values()) == 3 * len(paths)
+
+
+@pytest.mark.slow
+def test_sweep_trials_in_one_trial_process_load_the_model_once(dataset, ckpt, tmp_path):
+    """spread-sweep, two points one after another: both trials run in one re-used Ray Tune trial process, and
+    the second one loads no checkpoint, builds no model and reads no graph (its sampling.json counts)."""
+    import json
+
+    from spread.experiments.sweep import parse_arguments, run_sweep
+
+    out = tmp_path / "sweep"
+    plan = parse_arguments([f"ckpt={ckpt}", f"data.root={dataset}", "guidance=refine", "guidance.collision=0.0,0.0075",
+                            "guidance.iterations=2", "sampler.steps=4", "batch_size=2", "renders=0", "logger=none",
+                            "evaluation.protocol.stability_runs=1", "evaluation.fid.enabled=false", "max_concurrent=1",
+                            "num_cpus=2", f"out_dir={out}"])
+    result = run_sweep(plan)
+    assert len(result.rows) == 2 and all(r["status"] == "ok" for r in result.rows)
+    assert len({r["trial_pid"] for r in result.rows}) == 1, "the trial process is re-used"
+    manifests = sorted((json.loads(p.read_text()) for p in out.glob("points/*/sampling.json")),
+                       key=lambda m: m["process_reads"]["scene"]["hits"])
+    first, second = (m["process_reads"] for m in manifests)
+    graphs = manifests[0]["graphs"]
+    for kind in ("checkpoint", "model", "library", "dataset"):
+        assert first[kind]["reads"] == second[kind]["reads"] == 1, kind
+    assert first["scene"]["reads"] == second["scene"]["reads"] == graphs
+    assert second["scene"]["hits"] > first["scene"]["hits"]

@@ -15,8 +15,8 @@
    category legend and the relation matrix against the conditioning graph) and the scene before | after one
    Stability run (``<name>_physics.png``), see :mod:`spread.render.figures`;
    ``out_dir/sampling.json``: the settings, counts and timings (``startup_seconds``: from the start to the
-   first batch — checks, graph reads, model load, on Ray the actors' start; near 0 in a warm process,
-   :mod:`spread.readonce`).
+   first batch — checks, graph reads, model load, on Ray the actors' start; near 0 in a warm process;
+   ``process_reads``: this process's reads and hits per kind so far, :func:`spread.readonce.counts`).
 """
 
 from __future__ import annotations
@@ -370,6 +370,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "startup_seconds": round(startup[0], 3) if startup else None,
         "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,
         "runner": runner,
+        "process_reads": readonce.counts(),  # this process's reads and hits so far (a warm process: no new reads)
     }
     write_json_atomic(out / MANIFEST, manifest)
     return SamplingResult(out, files, written, manifest)

@@ -55,7 +55,7 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
     run = run if run is not None else init_run(logger, "sample", out_dir, config, group=group, tags=tags)
     try:
         numbers = {f"sampling/{k}": manifest[k] for k in ("samples", "written_this_run", "seconds",
-                                                          "seconds_per_batch", "repaired_rotations")
+                                                          "seconds_per_batch", "startup_seconds", "repaired_rotations")
                    if isinstance(manifest.get(k), (int, float))}
         numbers |= {f"guidance/{k}": v for k, v in (manifest.get("guidance_totals") or {}).items()}
         run.log(numbers)

@@ -150,6 +150,7 @@ def cmd_eval(args) -> None:
 
     from spread.io import write_text_atomic
     from spread.sampling.pipeline import repair_rotations
+    from spread.sampling.run import DataSplit, SamplingConfig
     from spread.sampling.worker import load_pipeline
 
     torch.set_num_threads(args.threads)
@@ -180,8 +181,9 @@ def cmd_eval(args) -> None:
             if not todo:
                 continue
             t0 = time.perf_counter()
-            pipeline = load_pipeline(str(ckpt), str(args.test), args.split, args.sampler,
-                                     guidance=guidance if "guided" in todo else None, graph_scale=args.graph_scale)
+            pipeline = load_pipeline(SamplingConfig(
+                ckpt=str(ckpt), data=DataSplit(str(args.test), args.split), out_dir=str(out), sampler=args.sampler,
+                device="cpu", guidance=guidance if "guided" in todo else None, graph_scale=args.graph_scale))
             data = pipeline.dataset
             n = min(args.graphs, len(data))
             if n < args.graphs:

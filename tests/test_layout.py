@@ -27,6 +27,7 @@ FLOORS = (
     ("data",),
     ("render",),
     ("physics", "relations", "box_geometry"),
+    ("readonce",),  # per-process memo of checkpoints, libraries, scene files, hashes (read once)
     ("scene",),
     ("assets",),
     ("safe_load",),  # loaders that run no code: check their files with io's bounded-read helper

@@ -62,14 +62,15 @@ def load_manifest_categories(path: Path) -> list[str] | None:
     return list(cats)
 
 
-def screen_scene_files(files: list[Path], library) -> tuple[list[Path], list[dict]]:
+def screen_scene_files(files: list[Path], library, reader=None) -> tuple[list[Path], list[dict]]:
     """(the files that read back as valid, plausible scenes of ``library``; one ``{"file", "error"}`` per
     other one): a damaged, hostile or absurd file is skipped, counted and named in a warning instead of
-    stopping a run mid-epoch (every file is read once here; reading is a few ms per scene)."""
+    stopping a run mid-epoch (every file is read once here; reading is a few ms per scene). ``reader(path,
+    library)``: how a file is read (default :func:`~spread.scene.read_scene`)."""
     good, skipped = [], []
     for path in files:
         try:
-            read_scene(path, assets=library)
+            (reader or read_scene)(path, library)
         except Exception as exc:  # SceneFormatError names file and key; anything else still names the file
             message = str(exc) if str(path) in str(exc) else f"{path}: {type(exc).__name__}: {exc}"
             skipped.append({"file": str(path), "error": message})
@@ -89,7 +90,7 @@ class SceneDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | os.PathLike, split: str, library=None,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, bounds: list[float] | None = None,
-                 cache: bool = False):
+                 cache: bool = False, reader=None):
         from spread.assets.library import AssetLibrary
 
         self.root = Path(root)
@@ -107,7 +108,8 @@ class SceneDataset(torch.utils.data.Dataset):
             translation_bounds(self.stats, source=f"{self.root}: bounds")
         self._library = library if library is not None else AssetLibrary.load(self.root / "assets")
         self._library_root = Path(self._library.root)
-        self.files, self.skipped = screen_scene_files(self.files, self._library)
+        self.reader = reader  # (path, library) → Scene; None: read_scene (spread.readonce.scene: once per process)
+        self.files, self.skipped = screen_scene_files(self.files, self._library, reader)
         if not self.files:
             raise ValueError(f"{self.root / split}: none of its {len(self.skipped)} scene files is usable "
                              f"(first: {self.skipped[0]['error']})")
@@ -144,7 +146,7 @@ class SceneDataset(torch.utils.data.Dataset):
         """The validated Scene record of item ``index`` (kept in memory with ``cache``; callers do not modify it)."""
         scene = self._scenes.get(index)
         if scene is None:
-            scene = read_scene(self.files[index], assets=self.library)
+            scene = (self.reader or read_scene)(self.files[index], self.library)
             if self.cache:
                 self._scenes[index] = scene
         return scene

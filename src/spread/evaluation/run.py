@@ -31,7 +31,7 @@ from spread.evaluation.fanout import fan_out, run_tasks
 from spread.evaluation.protocol import EvalProtocol, FIDConfig, versions
 from spread.evaluation.resume import dedupe, load_finished
 from spread.evaluation.work import (
-    evaluate_chunk, failure_record, load_fid_extractor, reference_fid_state, scene_key, worker_library,
+    evaluate_chunk, failure_record, reference_fid_state, scene_key, worker_extractor, worker_library,
 )
 from spread.io import append_jsonl, file_sha256, read_jsonl, write_json_atomic
 from spread.runtime.ray import RaySettings, ray_session
@@ -95,7 +95,7 @@ def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: st
 
     if not cfg.fid.enabled:
         return None, "disabled: fid.enabled is false", []
-    loaded = load_fid_extractor(cfg.fid)
+    loaded = worker_extractor(cfg.fid)  # loaded once per process (the next run of a sweep trial re-uses it)
     if loaded.extractor is None:
         return None, loaded.status, []
     if len(reference_files) < 2:

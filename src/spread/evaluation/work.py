@@ -7,12 +7,14 @@ fresh metric; the driver sums them with ``merge_state``, as DDP would), seconds 
 ran (Ray node id, process id). A scene that cannot be measured (unreadable file, unknown asset, NaN
 poses, no objects, ...) gives a record with ``error`` (type and message naming the problem) instead.
 
-Per process, kept across tasks: the asset library of each ``assets`` folder, the FID extractor, and the
-pybullet world (:func:`spread.physics.get_world`), so a worker pays for loading them once.
+Per process, kept across tasks (and across the runs of a sweep whose Ray session stays up): the asset library
+of each ``assets`` folder (:mod:`spread.readonce`), the FID extractor, the reference FID states, the metric
+objects and the physics world (:func:`spread.physics.get_world`), so a worker pays for loading them once.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -29,7 +31,6 @@ from spread.evaluation.protocol import EvalProtocol, FIDConfig
 #: scene — a worker dying mid-run, to be retried by Ray.
 FAULT_MARKER_ENV = "SPREAD_EVAL_FAULT_MARKER"
 
-_LIBRARIES: dict[str, object] = {}
 _EXTRACTORS: dict[tuple, object] = {}
 _METRICS: dict[str, dict] = {}
 
@@ -41,13 +42,11 @@ def scene_key(path: str | os.PathLike) -> str:
 
 
 def worker_library(assets_dir: str):
-    """This process's :class:`~spread.assets.AssetLibrary` of ``assets_dir``, loaded on first use."""
-    from spread.assets import AssetLibrary
+    """This process's :class:`~spread.assets.AssetLibrary` of ``assets_dir``, loaded on first use (the one
+    table of :func:`spread.readonce.asset_library`, shared with sampling in the same process)."""
+    from spread import readonce
 
-    key = str(Path(assets_dir).resolve())
-    if key not in _LIBRARIES:
-        _LIBRARIES[key] = AssetLibrary.load(key)
-    return _LIBRARIES[key]
+    return readonce.asset_library(assets_dir)
 
 
 def worker_extractor(fid: FIDConfig):
@@ -225,7 +224,20 @@ def reference_fid_state(paths: Sequence[str], assets_dir: str, fid: FIDConfig, s
     """FID states of reference scenes (the real set): ``{"state": SceneFID.metric_state, "failed": [...]}``.
 
     Scenes that cannot be rendered are listed in ``failed`` (id, error) and left out of the statistics.
+    Kept per process by the files' paths, sizes and mtimes (:mod:`spread.readonce`): a second evaluation
+    against the same reference in a warm worker (the next sweep trial) renders nothing again.
     """
+    from spread import readonce
+
+    try:
+        key = (tuple(readonce.file_key(p) for p in paths), readonce.file_key(Path(assets_dir) / "index.json"),
+               json.dumps(fid.fingerprint(), sort_keys=True), int(seed))
+    except OSError:  # a file gone: computed (and its failure listed) without keeping it
+        return _reference_fid_state(paths, assets_dir, fid, seed)
+    return readonce.memo("fid_reference", key, lambda: _reference_fid_state(paths, assets_dir, fid, seed))
+
+
+def _reference_fid_state(paths: Sequence[str], assets_dir: str, fid: FIDConfig, seed: int) -> dict:
     from spread.metrics import SceneFID, fid_render
     from spread.scene import read_scene
 

@@ -20,8 +20,10 @@ points every time, so an interrupted and re-run sweep ends with the same table a
 with ``trial_gpus``) for the trial process, which samples in-process (``workers=0``), and a bundle of
 ``trial_cpus`` CPUs that its evaluation tasks (and sampling actors, with ``workers>0``) use
 (:func:`spread.runtime.ray.scheduling_strategy`). Trial processes are re-used across trials
-(``reuse_actors``): imports, and each Ray worker's per-process caches (the asset library, convex parts,
-physics worlds) stay warm.
+(``reuse_actors``): imports, the trial process's model, asset library and graphs (:mod:`spread.readonce`:
+a second trial in the process reads none of them again) and each Ray worker's per-process caches (the asset
+library, convex parts, physics worlds, FID reference features) stay warm. A row's ``startup_seconds`` is its
+sampling's time to the first batch, ``trial_pid`` the trial process.
 
 **Training sweeps** (``command=train``): each trial trains into its point folder; with ``scheduler=asha`` a
 Lightning callback reports every validation to Tune and ASHA stops the worst trials early.
@@ -32,6 +34,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -233,7 +236,8 @@ def sample_trial(config: dict, plan: dict) -> None:
     folder, cfg, overrides = sample_point(config, plan)
     result, _ = sample(cfg, overrides=overrides)
     row = {**read_metrics(folder), "point": folder.name, "reused": result is None,
-           "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()}
+           "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id(), "trial_pid": os.getpid(),
+           "startup_seconds": None if result is None else result.manifest.get("startup_seconds")}
     tune.report(row)
 
 

@@ -3,7 +3,7 @@ when everything it was made from is the same (a re-launched sweep never reports 
 
 A **point fingerprint** (:func:`point_fingerprint`) is a plain dict over a ``spread-sample`` config:
 
-* ``ckpt_sha256`` — the checkpoint's bytes (cached per process by path, size and mtime);
+* ``ckpt_sha256`` — the checkpoint's bytes (hashed once per process by path, size and mtime);
 * ``data`` — the dataset's content: the sha256 of every scene file of the conditioning split and of the
   evaluation's reference split, of ``assets/index.json`` and ``stats.json`` (:func:`dataset_digest`);
 * ``sampling`` — sampler, seed, batch size, samples per graph, EMA, graph scale, device, split;
@@ -31,8 +31,6 @@ from pathlib import Path
 #: Bump when a code change changes sampled scenes or metrics (every earlier result is then redone).
 NUMBERS_VERSION = 1
 
-_FILE_CACHE: dict[tuple, str] = {}
-
 
 def canonical(obj) -> str:
     """One JSON text per value (sorted keys, paths and tuples as JSON sees them)."""
@@ -49,22 +47,14 @@ def short(fingerprint: dict, n: int = 8) -> str:
 
 
 def file_digest(path) -> str:
-    """sha256 of a file's bytes (``missing:<path>`` when it is not a file); cached by path, size and mtime."""
+    """sha256 of a file's bytes (``missing:<path>`` when it is not a file); hashed once per process by path,
+    size and mtime (:func:`spread.readonce.file_sha256`, the hash a sampling run records too)."""
+    from spread import readonce
+
     p = Path(str(path))
-    try:
-        st = p.stat()
-    except OSError:
-        return f"missing:{path}"
     if not p.is_file():
         return f"missing:{path}"
-    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _FILE_CACHE:
-        h = hashlib.sha256()
-        with open(p, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-        _FILE_CACHE[key] = h.hexdigest()
-    return _FILE_CACHE[key]
+    return readonce.file_sha256(p)
 
 
 def tree_digest(folder, pattern: str = "*.npz") -> str:

@@ -9,11 +9,11 @@ from __future__ import annotations
 def sampling_run_tags(command) -> dict:
     """Tags of a ``spread-sample`` command (a :class:`~spread.sampling.SamplingConfig` with its extras)."""
     from spread.runtime.mlflow_log import dataset_fingerprint, training_lineage
-    from spread.safe_load import load_checkpoint
+    from spread import readonce
     from spread.sampling.run import guidance_settings
     from spread.sampling.worker import sampler_label
 
-    hp = load_checkpoint(command.ckpt, mmap=True).get("hyper_parameters", {})
+    hp = readonce.checkpoint(command.ckpt).get("hyper_parameters", {})
     guidance = guidance_settings(command.guidance)
     tags = {"spread.variant": hp.get("variant"), "spread.method": hp.get("method", "spread"),
             "spread.sampler": sampler_label(command.sampler), "spread.seed": command.seed,

@@ -14,7 +14,9 @@
    for the first ``figures`` samples also a 3D scene card (``<name>_3d.png``: the perspective view with its
    category legend and the relation matrix against the conditioning graph) and the scene before | after one
    Stability run (``<name>_physics.png``), see :mod:`spread.render.figures`;
-   ``out_dir/sampling.json``: the settings, counts and timings.
+   ``out_dir/sampling.json``: the settings, counts and timings (``startup_seconds``: from the start to the
+   first batch — checks, graph reads, model load, on Ray the actors' start; near 0 in a warm process;
+   ``process_reads``: this process's reads and hits per kind so far, :func:`spread.readonce.counts`).
 """
 
 from __future__ import annotations
@@ -27,11 +29,11 @@ from typing import Callable
 
 from omegaconf import MISSING
 
+from spread import readonce
 from spread.guidance import GuidanceConfig
-from spread.io import file_sha256, write_json_atomic
+from spread.io import write_json_atomic
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session
-from spread.safe_load import load_checkpoint
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, remove_unreadable
 
 MANIFEST = "sampling.json"
@@ -127,18 +129,17 @@ def read_graphs(data_root: str | Path, split: str, max_objects: int | None = Non
     """(the split's usable scene files as conditioning graphs, one ``{"file", "error"}`` per skipped file):
     a damaged or implausible file, or a graph of more than ``max_objects`` objects, is named and skipped,
     the others are sampled; none usable is refused."""
-    from spread.assets.library import AssetLibrary
-    from spread.scene import SceneFormatError, list_scene_files, read_scene
+    from spread.scene import SceneFormatError, list_scene_files
 
     folder = Path(data_root) / split
     files = list_scene_files(folder) if folder.is_dir() else []
     if not files:
         raise FileNotFoundError(f"{folder}: no scene files to condition on")
-    library = AssetLibrary.load(Path(data_root) / "assets")
+    library = readonce.asset_library(Path(data_root) / "assets")
     graphs, skipped = [], []
     for path in files:
         try:
-            scene = read_scene(path, assets=library)
+            scene = readonce.scene(path, library)
         except SceneFormatError as exc:  # named, counted in sampling.json, and the other graphs are sampled
             skipped.append({"file": str(path), "error": str(exc)})
             continue
@@ -160,10 +161,11 @@ def read_graphs(data_root: str | Path, split: str, max_objects: int | None = Non
 
 def check_checkpoint(path) -> dict:
     """The checkpoint (tensors memory-mapped) once it reads safely and its weights fit the network its
-    hyperparameters describe (:func:`spread.baselines.check_weight_shapes`: nothing is allocated)."""
+    hyperparameters describe (:func:`spread.baselines.check_weight_shapes`: nothing is allocated). The one
+    read of the file in this process (:func:`spread.readonce.checkpoint`): the workers build from it."""
     from spread.baselines import check_weight_shapes, checkpoint_method, module_class
 
-    checkpoint = load_checkpoint(path, mmap=True)
+    checkpoint = readonce.checkpoint(path)
     check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint, str(path))
     return checkpoint
 
@@ -196,18 +198,11 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> None:
                          f"use a new out_dir or resume=false")
 
 
-def worker_arguments(cfg: SamplingConfig, scenes_dir: Path) -> dict:
-    return {"ckpt": str(cfg.ckpt), "data_root": str(cfg.data.root), "split": cfg.data.split,
-            "scenes_dir": str(scenes_dir), "sampler": asdict(cfg.sampler), "seed": int(cfg.seed), "device": cfg.device,
-            "threads": cfg.threads, "use_ema": cfg.use_ema, "graph_scale": cfg.graph_scale,
-            "guidance": guidance_settings(cfg.guidance)}
-
-
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
     """Sample the batches in this process with one model."""
     from spread.sampling.worker import SampleWorker
 
-    worker = SampleWorker(**worker_arguments(cfg, scenes_dir))
+    worker = SampleWorker(cfg, scenes_dir)
     for batch in todo:
         on_result(worker.run(batch))
     return {"workers": 1, "mode": "in-process"}
@@ -241,7 +236,7 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
             num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.ray.num_gpus_per_worker,
             max_restarts=cfg.ray.max_retries, max_task_retries=cfg.ray.max_retries,
             scheduling_strategy=scheduling_strategy(cfg.ray))  # SPREAD: actors over every node
-        actors = [actor.remote(**worker_arguments(cfg, scenes_dir)) for _ in range(n)]
+        actors = [actor.remote(cfg, scenes_dir) for _ in range(n)]  # the typed config, pickled as it is
         queue = list(todo)
         running = {}
         for a in actors:
@@ -257,7 +252,7 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
                 for _ in range(actor_count(cfg, len(todo)) - len(actors)):
                     if not queue:
                         break
-                    actors.append(actor.remote(**worker_arguments(cfg, scenes_dir)))
+                    actors.append(actor.remote(cfg, scenes_dir))
                     running[actors[-1].run.remote(queue.pop(0))] = actors[-1]
         for a in actors:
             ray.kill(a)
@@ -266,19 +261,17 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
 
 def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: int) -> list[Path]:
     """Ground truth | generated PNGs of the first ``count`` samples, ``out/renders/<name>.png``."""
-    from spread.assets.library import AssetLibrary
     from spread.render import VIEW_SETTINGS_FLOOR, TopDownRenderSettings, render_before_after, save_png
-    from spread.scene import read_scene
 
     items = [item for b in batches for item in b.items][:max(0, count)]
     if not items:
         return []
-    library = AssetLibrary.load(Path(data_root) / "assets")
+    library = readonce.asset_library(Path(data_root) / "assets")
     settings = TopDownRenderSettings(floor=VIEW_SETTINGS_FLOOR)
     paths = []
     for item in items:
-        generated = read_scene(out / "scenes" / f"{item.name}.npz", assets=library)
-        truth = read_scene(item.graph.path, assets=library)
+        generated = readonce.scene(out / "scenes" / f"{item.name}.npz", library)
+        truth = readonce.scene(item.graph.path, library)
         image = render_before_after(truth, generated, library, settings)
         paths.append(save_png(image, out / "renders" / f"{item.name}.png"))
     return paths
@@ -286,17 +279,15 @@ def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: in
 
 def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: int, kinds, seed: int = 0) -> list[Path]:
     """3D figures of the first ``count`` samples (module docstring, step 5), ``out/renders/<name><suffix>.png``."""
-    from spread.assets.library import AssetLibrary
     from spread.render import before_after_figure, save_png, scene_card_figure
-    from spread.scene import read_scene
 
     items = [item for b in batches for item in b.items][:max(0, count)]
     if not items or not kinds:
         return []
-    library = AssetLibrary.load(Path(data_root) / "assets")
+    library = readonce.asset_library(Path(data_root) / "assets")
     paths = []
     for item in items:
-        generated = read_scene(out / "scenes" / f"{item.name}.npz", assets=library)
+        generated = readonce.scene(out / "scenes" / f"{item.name}.npz", library)
         title = f"{item.name} (graph of {item.graph.scene_id})"
         for kind in kinds:
             image = scene_card_figure(generated, library, title=title) if kind == "card" \
@@ -329,7 +320,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     limit = object_limit(cfg.data.root, cfg.max_objects)
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
-    settings = fingerprint(cfg, file_sha256(cfg.ckpt))
+    settings = fingerprint(cfg, readonce.file_sha256(cfg.ckpt))  # hashed once per process
     check_fingerprint(out, settings, cfg.resume)
     if before_work is not None:
         before_work()
@@ -342,8 +333,11 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     batch_seconds: list[float] = []
     repaired = [0]
     guidance_totals: dict[str, float] = {}
+    startup: list[float] = []  # seconds from the start to the first batch's start (checks, reads, model load)
 
     def on_result(result: dict) -> None:
+        if not startup:
+            startup.append(time.perf_counter() - started - result["seconds"])
         written.extend(result["written"])
         repaired[0] += result["repaired_rotations"]
         for key, value in (result.get("guidance") or {}).items():
@@ -373,8 +367,10 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "guidance": settings.get("guidance"), "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),
+        "startup_seconds": round(startup[0], 3) if startup else None,
         "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,
         "runner": runner,
+        "process_reads": readonce.counts(),  # this process's reads and hits so far (a warm process: no new reads)
     }
     write_json_atomic(out / MANIFEST, manifest)
     return SamplingResult(out, files, written, manifest)

@@ -11,10 +11,10 @@ from typing import Callable
 def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = None) -> list[str]:
     """Variant (from the checkpoint's hyperparameters, read without loading its weights), sampler and
     guidance tags, plus ``extra``."""
-    from spread.safe_load import load_checkpoint
+    from spread import readonce
     from spread.sampling.worker import sampler_label
 
-    hp = load_checkpoint(ckpt, mmap=True).get("hyper_parameters", {})
+    hp = readonce.checkpoint(ckpt).get("hyper_parameters", {})
     guidance = manifest.get("guidance")
     tags = [str(hp.get("variant") or hp.get("method", "unknown")), sampler_label(sampler)]  # SPREAD variant or baseline
     if guidance:
@@ -55,7 +55,7 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
     run = run if run is not None else init_run(logger, "sample", out_dir, config, group=group, tags=tags)
     try:
         numbers = {f"sampling/{k}": manifest[k] for k in ("samples", "written_this_run", "seconds",
-                                                          "seconds_per_batch", "repaired_rotations")
+                                                          "seconds_per_batch", "startup_seconds", "repaired_rotations")
                    if isinstance(manifest.get(k), (int, float))}
         numbers |= {f"guidance/{k}": v for k, v in (manifest.get("guidance_totals") or {}).items()}
         run.log(numbers)

@@ -1,7 +1,10 @@
 """One sampling worker: a checkpoint's :class:`~spread.sampling.pipeline.ScenePipeline`, turning batches into files.
 
 A worker holds one pipeline (model with EMA weights by default, encoder, sampler, guidance) for its whole
-life, so a Ray actor — or the driver itself when ``workers=0`` — pays for loading it once. Conditioning
+life, so a Ray actor — or the driver itself when ``workers=0`` — pays for loading it once; it is built from
+the run's :class:`~spread.sampling.SamplingConfig` as it is (a new sampling option is read here, nowhere
+else). The model, the encoder, the asset library and the graphs are read once per process
+(:mod:`spread.readonce`), so a second run in the same process (the next trial of a sweep) loads nothing. Conditioning
 graphs are encoded exactly as in training: the asset points are sampled with the ``num_points`` and
 ``seed`` of the data module the checkpoint was trained with (Lightning stores its hyperparameters in the
 checkpoint).
@@ -62,24 +65,49 @@ def checkpoint_data_settings(ckpt: dict, model) -> dict:
     return {"num_points": int(points), "seed": int(hp.get("seed", 0))}
 
 
-def load_pipeline(ckpt: str, data_root: str, split: str, sampler, device: str = "cpu", use_ema: bool = True,
-                  graph_scale: float = 1.0, guidance=None) -> ScenePipeline:
-    """The pipeline of a ``spread-train`` checkpoint (SceneDiffusion or a baseline) for a dataset's split (encoder with the checkpoint's
-    point settings, model in eval mode on ``device``)."""
+def cached_model(ckpt: str, device: str):
+    """The model of a ``spread-train`` checkpoint (SceneDiffusion or a baseline) in eval mode on ``device``,
+    built once per process from the one read of the file (:mod:`spread.readonce`): a second worker or a
+    second sweep trial in this process re-uses it (sampling never changes its weights)."""
+    from spread import readonce
     from spread.baselines import module_from_checkpoint
-    from spread.data import SceneDataset
-    from spread.safe_load import load_checkpoint
 
-    checkpoint = load_checkpoint(ckpt)
-    model = module_from_checkpoint(checkpoint, map_location=resolve_device(device), source=str(ckpt)).eval()  # SPREAD or a baseline
-    guided = active_guidance(guidance)
+    device = resolve_device(device)
+    return readonce.memo("model", (readonce.file_key(ckpt), device), lambda: module_from_checkpoint(
+        readonce.checkpoint(ckpt), map_location=device, source=str(ckpt)).eval())
+
+
+def cached_dataset(data_root: str, split: str, num_points: int, seed: int):
+    """The :class:`~spread.data.SceneDataset` encoding a split's graphs (its library and scene files read
+    through :mod:`spread.readonce`), once per process and settings."""
+    from spread import readonce
+    from spread.data import SceneDataset
+
+    root = Path(data_root).resolve()
+    library = readonce.asset_library(root / "assets")
+    parts = [root / split, root / "stats.json", root / "manifest.json"]  # the files, bounds, category order
+    key = (str(root), split, int(num_points), int(seed), readonce.library_key(library),
+           *[readonce.file_key(p) if p.exists() else str(p) for p in parts])
+    return readonce.memo("dataset", key, lambda: SceneDataset(root, split, library=library, num_points=num_points,
+                                                               seed=seed, reader=readonce.scene))
+
+
+def load_pipeline(cfg) -> ScenePipeline:
+    """The pipeline of a :class:`~spread.sampling.SamplingConfig`: its checkpoint's model (SceneDiffusion or a
+    baseline, in eval mode on ``cfg.device``), an encoder of ``cfg.data``'s split with the checkpoint's point
+    settings, ``cfg.sampler``, ``cfg.guidance``, ``cfg.use_ema``, ``cfg.graph_scale``. The model and the
+    encoder are built once per process (:func:`cached_model`, :func:`cached_dataset`)."""
+    from spread import readonce
+
+    model = cached_model(cfg.ckpt, cfg.device)
+    guided = active_guidance(cfg.guidance)
     if guided is not None and sampling_kind(model) != "pipeline":
         raise ValueError(f"guidance={guided.mode}: guidance steers the methods that sample through the pipeline's "
-                         f"loop; {ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
+                         f"loop; {cfg.ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
                          f"(sample it with guidance=none)")
-    data = checkpoint_data_settings(checkpoint, model)
-    dataset = SceneDataset(data_root, split, num_points=data["num_points"], seed=data["seed"])
-    return ScenePipeline(model, dataset, sampler, guidance, use_ema, graph_scale)
+    data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
+    dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"])
+    return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,
@@ -99,35 +127,35 @@ def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray
 
 
 class SampleWorker:
-    """Loads ``ckpt`` once; :meth:`run` samples a batch and writes its missing scene files to ``scenes_dir``.
+    """Builds the pipeline of ``cfg`` (a :class:`~spread.sampling.SamplingConfig`, as it is: Ray pickles the
+    dataclass) once; :meth:`run` samples a batch and writes its missing scene files to ``scenes_dir``.
 
-    ``sampler``: a :class:`~spread.model.Sampler` or its config; ``threads``: torch intra-op threads (None:
-    leave as is); ``use_ema`` / ``graph_scale`` / ``guidance``: as in :class:`ScenePipeline`.
+    ``cfg.threads``: torch intra-op threads (None: leave as is); the rest as in :func:`load_pipeline`.
     """
 
-    def __init__(self, ckpt: str, data_root: str, split: str, scenes_dir: str, sampler, seed: int,
-                 device: str = "cpu", threads: int | None = 1, use_ema: bool = True, graph_scale: float = 1.0,
-                 guidance=None):
+    def __init__(self, cfg, scenes_dir: str | Path):
         import torch
 
-        if threads:
-            torch.set_num_threads(int(threads))
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))
         self.scenes_dir = Path(scenes_dir)
-        self.pipeline = load_pipeline(ckpt, data_root, split, sampler, device, use_ema, graph_scale, guidance)
+        self.pipeline = load_pipeline(cfg)
         guided = self.pipeline.guidance
-        self.provenance = (f"ckpt={ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(seed)}"
+        self.provenance = (f"ckpt={cfg.ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(cfg.seed)}"
                            + (f" guidance={guidance_label(guided)}" if guided else ""))
-        self._sources: dict[str, Scene] = {}
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 
     def source(self, item: SampleItem) -> Scene:
-        """The validated source scene of an item (memoised: a graph's k samples read it once)."""
-        from spread.scene import read_scene
+        """The validated source scene of an item (read once per process: :func:`spread.readonce.scene`)."""
+        from spread import readonce
 
-        path = item.graph.path
-        if path not in self._sources:
-            self._sources[path] = read_scene(path, assets=self.pipeline.dataset.library)
-        return self._sources[path]
+        return readonce.scene(item.graph.path, self.pipeline.dataset.library)
+
+    def reads(self) -> dict:
+        """This process's reads and hits per kind (:func:`spread.readonce.counts`): what a Ray actor read."""
+        from spread import readonce
+
+        return readonce.counts()
 
     def sample(self, batch: BatchPlan) -> list[Scene]:
         """The generated scenes of every item of ``batch``, in order (nothing written)."""

@@ -160,7 +160,9 @@ class AblationSpec(StagesSpec):
 @dataclass
 class Stage:
     """One command run. ``inputs``: what its outputs depend on (compared with the ledger); ``derived``: when
-    the inputs changed, redo it from scratch (else refuse); ``complete``: extra check beyond ``outputs``."""
+    the inputs changed, redo it from scratch (else refuse); ``complete``: extra check beyond ``outputs``;
+    ``exclusive``: it holds Ray actors while it waits for more (sampling with ``workers`` > 0), so concurrent
+    rows run such stages one at a time (:mod:`spread.experiments.stage_pool`)."""
 
     name: str
     folder: Path
@@ -169,6 +171,7 @@ class Stage:
     run: Callable[[bool], object]
     derived: bool = True
     complete: Callable[[], bool] | None = None
+    exclusive: bool = False
 
     def finished(self) -> bool:
         return all(p.exists() for p in self.outputs) and (self.complete is None or self.complete())
@@ -264,6 +267,17 @@ def scenes_complete(folder: Path) -> bool:
     return len(list((folder / "scenes").glob("*.npz"))) >= int(manifest["samples"])
 
 
+def uses_actors(overrides: list[str]) -> bool:
+    """Whether ``spread-sample`` with ``overrides`` samples on Ray actors (``workers`` > 0); True when the
+    overrides do not compose (the command then fails by itself)."""
+    from spread.configs import compose
+
+    try:
+        return int(compose("sample", overrides).workers) > 0
+    except Exception:  # noqa: BLE001 - decided by the command, which names the error
+        return True
+
+
 def sampling_inputs(folder: Path) -> dict:
     """What an evaluation depends on: the sampling fingerprint and the number of samples."""
     manifest = json.loads((folder / "sampling.json").read_text())
@@ -284,6 +298,7 @@ class Ablation:
         self.commands = commands
         self.out = spec.out_dir
         self.ledger = Ledger(self.out / self.ledger_name)
+        self.slot = None  # while rows run concurrently: the stage pool's slot for exclusive stages
         self.status: dict[str, str] = {}
         self.errors: dict[str, str] = {}
 
@@ -359,7 +374,7 @@ class Ablation:
         return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
                      {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt), **self.data_inputs()},
                      self.timed(f"sample/{variant}", run),
-                     complete=lambda: scenes_complete(folder))
+                     complete=lambda: scenes_complete(folder), exclusive=uses_actors(overrides))
 
     def evaluate_stage(self, variant: str) -> Stage:
         folder, samples = self.eval_dir(variant), self.sample_dir(variant)
@@ -409,7 +424,10 @@ class Ablation:
                 self.status[name] = "given"
                 return True
             log.info("▶ %s → %s", name, stage.folder)
-            self.status[name] = run_stage(stage, self.ledger)
+            from spread.experiments.stage_pool import held
+
+            with held(self.slot if stage.exclusive else None):
+                self.status[name] = run_stage(stage, self.ledger)
             return True
         except KeyboardInterrupt:
             raise

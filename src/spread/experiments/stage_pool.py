@@ -6,23 +6,31 @@ another. :func:`run_chains` runs each chain as one Ray task
 (``num_cpus=0``: the task only drives its commands; their sampling actors and evaluation tasks reserve the
 CPUs/GPUs, on any node of the cluster), at most ``max_concurrent`` chains at a time, in the order given.
 
+A stage that holds Ray actors while it waits for more (``Stage.exclusive``: sampling with ``workers`` > 0)
+takes the pool's one **slot** for its work: two such stages side by side could each hold part of the CPUs/GPUs
+and wait for the rest forever. Stages of in-process sampling (``workers=0``) and evaluations (Ray tasks, which
+never hold resources while they wait) run side by side freely.
+
 The ledger stays the driver's: a task decides re-use against a snapshot of the ledger's entries
 (:class:`LedgerView`) and returns what it would record; the driver records it. Each entry carries the wall-clock
 ``started_at`` / ``ended_at`` (Unix seconds) of the stage's work. A task that dies (its worker killed) fails
-its chain's steps that had not reported, and the other chains go on. Workers run in the driver's working
+its chain's steps (a stage's own error is caught in the task and reported like in this process), and the
+other chains go on. Workers run in the driver's working
 directory, so relative ``out_dir`` paths mean the same in both.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+
 Step = tuple  # (name, method: str, key: str, needs: list[str])
 
 
 class LedgerView:
     """A stand-in for :class:`~spread.experiments.ablation.Ledger` inside a task: reads the driver's entries,
-    collects the records (:meth:`replay` writes them in the driver)."""
+    collects the records (:func:`merge` writes them in the driver's ledger)."""
 
     def __init__(self, stages: dict):
         self.data = {"stages": stages}
@@ -37,6 +45,39 @@ class LedgerView:
 
         self.records.append({"name": name, "inputs": inputs, "seconds": seconds, "reason": reason,
                              "tags": run_tags(), **more, "ended_at": more.get("ended_at") or time.time()})
+
+
+class Slot:
+    """A Ray actor lent to one holder at a time (:func:`held`)."""
+
+    def __init__(self):
+        self.holder = None
+
+    def take(self, holder: str) -> bool:
+        if self.holder is None:
+            self.holder = holder
+        return self.holder == holder
+
+    def give_back(self, holder: str) -> None:
+        if self.holder == holder:
+            self.holder = None
+
+
+@contextlib.contextmanager
+def held(slot):
+    """``slot`` held for the block (polled every 0.2 s); ``None``: nothing to hold."""
+    if slot is None:
+        yield
+        return
+    import ray
+
+    me = f"{os.getpid()}:{time.time()}"
+    while not ray.get(slot.take.remote(me)):
+        time.sleep(0.2)
+    try:
+        yield
+    finally:
+        ray.get(slot.give_back.remote(me))
 
 
 def run_chain(runner, chain: list[Step], cwd: str) -> dict:
@@ -72,20 +113,32 @@ def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settin
 
     with ray_session(ray_settings or RaySettings()) as cluster:
         task = ray.remote(num_cpus=0, max_retries=0)(run_chain)
-        queue, running, cwd = list(chains), {}, os.getcwd()
-        while queue or running:
-            while queue and len(running) < int(max_concurrent):
-                chain = queue.pop(0)
-                running[task.remote(runner, chain, cwd)] = chain
-            done, _ = ray.wait(list(running), num_returns=1)
-            chain = running.pop(done[0])
-            try:
-                merge(runner, ray.get(done[0]))
-            except Exception as exc:  # noqa: BLE001 - the task itself died: its steps fail, the rest go on
-                for name, *_ in chain:
-                    runner.status.setdefault(name, "failed")
-                    runner.errors.setdefault(name, f"{name}: its task died: {type(exc).__name__}: {exc}")
+        runner.slot = ray.remote(num_cpus=0)(Slot).remote()
+        try:
+            drive(runner, chains, task, int(max_concurrent))
+        finally:
+            ray.kill(runner.slot)
+            runner.slot = None
     return {"mode": "ray", "max_concurrent": int(max_concurrent), **cluster}
+
+
+def drive(runner, chains: list[list[Step]], task, max_concurrent: int) -> None:
+    """Keep ``max_concurrent`` chain tasks running until every chain has reported."""
+    import ray
+
+    queue, running, cwd = list(chains), {}, os.getcwd()
+    while queue or running:
+        while queue and len(running) < max_concurrent:
+            chain = queue.pop(0)
+            running[task.remote(runner, chain, cwd)] = chain
+        done, _ = ray.wait(list(running), num_returns=1)
+        chain = running.pop(done[0])
+        try:
+            merge(runner, ray.get(done[0]))
+        except Exception as exc:  # noqa: BLE001 - the task itself died: its steps fail, the rest go on
+            for name, *_ in chain:
+                runner.status.setdefault(name, "failed")
+                runner.errors.setdefault(name, f"{name}: its task died: {type(exc).__name__}: {exc}")
 
 
 def merge(runner, result: dict) -> None:

@@ -154,3 +154,62 @@ def test_ddp_training_stage_inside_an_ablation(data, tmp_path):
     summary = json.loads((tmp_path / "ddp" / "train" / "geometry" / "metrics.json").read_text())
     assert summary["run"]["world_size"] == 2 and "git_sha" in summary["run"]
     assert result.records[0]["n_scenes"] == 3
+
+
+# ---- concurrent rows -----------------------------------------------------------------------------------------
+
+class SlowFakeCommands(SeededFakeCommands):
+    """SeededFakeCommands whose sampling takes ``seconds`` (so that concurrent rows visibly overlap)."""
+
+    seconds = 2.5
+
+    def sample(self, overrides):
+        import time
+
+        time.sleep(self.seconds)
+        super().sample(overrides)
+
+
+def test_rows_run_concurrently_through_ray_and_give_the_sequential_table(tmp_path):
+    """max_concurrent=2: two rows' stages overlap in time (ledger timestamps), each stage's record is the
+    driver's ledger, and the table is the one a sequential run writes; a re-run re-uses every stage. Sampling
+    on Ray actors (workers > 0) is one row at a time (two could each hold half the CPUs and wait for the rest)."""
+    import ray
+    from ray import cloudpickle
+
+    from spread.experiments.ablation import run_ablation
+    from spread.experiments.stage_pool import overlap
+    from spread.runtime.ray import RaySettings
+
+    import test_ablate_report
+
+    for module in (sys.modules[__name__], test_ablate_report):  # the fakes travel to the Ray workers by value
+        cloudpickle.register_pickle_by_value(module)
+    rows = dict(variants=("base", "geometry", "guidance"), sample=["seed=0", "workers=0"])
+    sequential = run_ablation(fake_spec(tmp_path / "seq", **rows), SlowFakeCommands())
+    settings = RaySettings(num_cpus=2)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # one session, used as is
+    try:
+        concurrent = run_ablation(fake_spec(tmp_path / "par", max_concurrent=2, ray=settings, **rows),
+                                  SlowFakeCommands())
+        again = run_ablation(fake_spec(tmp_path / "par", max_concurrent=2, ray=settings, **rows), SlowFakeCommands())
+        actors = run_ablation(fake_spec(tmp_path / "actors", max_concurrent=2, ray=settings,
+                                        **{**rows, "sample": ["seed=0", "workers=2"]}), SlowFakeCommands())
+    finally:
+        ray.shutdown()
+    assert sequential.ok and concurrent.ok, concurrent.errors
+    assert set(concurrent.stages.values()) == {"done"}
+    stages = json.loads((tmp_path / "par" / "abl" / "ablation.json").read_text())["stages"]
+    assert overlap(stages, "sample/base", "sample/geometry") > 0, "the first two rows ran at the same time"
+    assert overlap(stages, "sample/base", "evaluate/base") == 0, "a row's evaluation waits for its samples"
+    seq_stages = json.loads((tmp_path / "seq" / "abl" / "ablation.json").read_text())["stages"]
+    assert overlap(seq_stages, "sample/base", "sample/geometry") == 0
+    assert set(stages) == set(seq_stages)
+    assert read_csv(tmp_path / "par" / "abl" / "ablation.csv") == read_csv(tmp_path / "seq" / "abl" / "ablation.csv")
+    assert (tmp_path / "par" / "abl" / "ablation.md").read_text() == (tmp_path / "seq" / "abl" / "ablation.md").read_text()
+    assert set(again.stages.values()) == {"skipped"}
+    assert actors.ok, actors.errors
+    stages = json.loads((tmp_path / "actors" / "abl" / "ablation.json").read_text())["stages"]
+    assert all(overlap(stages, f"sample/{a}", f"sample/{b}") == 0
+               for a, b in [("base", "geometry"), ("base", "guidance"), ("geometry", "guidance")])
+    assert read_csv(tmp_path / "actors" / "abl" / "ablation.csv") == read_csv(tmp_path / "seq" / "abl" / "ablation.csv")

@@ -190,11 +190,17 @@ def test_resume_after_a_torn_line_counts_every_scene_once(cli_run, dataset, scen
     assert comparable(metrics) == comparable(cli_run[1])
 
 
-def test_resume_refuses_lines_of_another_protocol(cli_run, dataset, scenes_dir, tmp_path):
+def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_run, dataset, scenes_dir, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(cli_run[0], out)
-    with pytest.raises(ValueError, match="another protocol"):
-        run_in_process(*args(scenes_dir, dataset, out, "logger=none", "protocol.stability_steps=50"))
+    run_in_process(*args(scenes_dir, dataset, out, "logger=none", "protocol.stability_steps=50"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["redone_because"] == "changed: stability_steps" and metrics["protocol"]["stability_steps"] == 50
+    assert metrics["run"]["resumed"] == 0 and metrics["run"]["evaluated_this_run"] == len(list_scene_files(scenes_dir))
+    assert_each_scene_once(out, scenes_dir)
+    run_in_process(*args(scenes_dir, dataset, out, "logger=none", "protocol.stability_steps=50"))  # identical: resumed
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["redone_because"] is None and again["run"]["evaluated_this_run"] == 0
 
 
 @pytest.mark.parametrize("max_retries", [3, 0])

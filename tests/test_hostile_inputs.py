@@ -465,8 +465,8 @@ def test_two_evaluations_of_one_folder_never_share_a_metrics_json(dataset, tmp_p
         holder.kill()
         holder.wait()
     assert not (train_dir / "checkpoints").exists() and not (train_dir / ".hydra").exists()
-    # once the folder is free, a run of another protocol is refused by check_protocol
-    # (test_robustness.py::test_a_refused_resume_leaves_the_recorded_config_as_it_was)
+    # once the folder is free, a run of another protocol redoes it from scratch (check_protocol)
+    # (test_robustness.py::test_a_relaunch_with_another_protocol_is_redone_and_records_its_own_config)
 
 
 # ---- 7. reports -----------------------------------------------------------------------------------------------

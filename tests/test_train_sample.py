@@ -246,7 +246,7 @@ def test_same_seed_same_files_in_process_as_on_ray(dataset, trained, sampled, tm
     assert not np.allclose(a.translation, b.translation), "another seed, other scenes"
 
 
-def test_resume_skips_done_graphs_and_refuses_other_settings(dataset, trained, tmp_path):
+def test_resume_skips_done_graphs_and_redoes_other_settings_from_scratch(dataset, trained, tmp_path):
     out = tmp_path / "resume"
     args = (f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}", "seed=5")
     first = sample_in_process(*args)
@@ -259,9 +259,31 @@ def test_resume_skips_done_graphs_and_refuses_other_settings(dataset, trained, t
         assert p.read_bytes() == before[p.name][0], "a resampled batch gives the same scenes"
         if p != files[1]:
             assert p.stat().st_mtime_ns == before[p.name][1], "done files are not rewritten"
-    assert sample_in_process(*args).written == []
-    with pytest.raises(ValueError, match="other settings"):
-        sample_in_process(*args[:-1], "seed=6")
+    identical = sample_in_process(*args)
+    assert identical.written == [] and identical.manifest["redone_because"] is None
+    other = sample_in_process(*args[:-1], "seed=6")  # another seed: every file made anew, and the record says why
+    assert sorted(other.written) == sorted(p.stem for p in files)
+    assert other.manifest["redone_because"] == "changed: seed" and other.manifest["resumed"] == 0
+    assert other.manifest["fingerprint"]["seed"] == 6
+    assert any(p.read_bytes() != before[p.name][0] for p in files), "another seed, other scenes"
+    sampler = sample_in_process(*args[:-1], "seed=6", "sampler.steps=3")
+    assert sampler.manifest["redone_because"] == "changed: sampler.steps" and len(sampler.written) == len(files)
+    assert sample_in_process(*args[:-1], "seed=6", "sampler.steps=3").written == [], "identical: resumed"
+
+
+def test_a_folder_sampled_from_other_data_content_is_redone(dataset, trained, tmp_path):
+    """Same data.root, same settings, but the split's scene files changed: the old scenes are not kept."""
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    out = tmp_path / "s"
+    args = (f"ckpt={trained / 'model.ckpt'}", f"data.root={data}", f"out_dir={out}", "renders=0")
+    first = sample_in_process(*args)
+    gone = list_scene_files(data / "test")[0]
+    gone.unlink()
+    again = sample_in_process(*args)
+    assert again.manifest["redone_because"] == "changed: data"
+    assert again.manifest["samples"] == len(first.files) - 1 and len(again.written) == len(first.files) - 1
+    assert not list((out / "scenes").glob(f"{gone.stem}_k*.npz")), "no scene of the removed graph stays"
 
 
 @pytest.mark.parametrize("sampler", ["ddpm", "dpmsolver20"])

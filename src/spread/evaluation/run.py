@@ -3,8 +3,10 @@
 1. List the scene files of ``scenes`` and the reference split ``reference/<split>``; the asset library
    is ``reference/assets``.
 2. Resume: read ``out_dir/per_scene.jsonl`` (deduplicated, compacted; :mod:`~spread.evaluation.resume`)
-   and schedule only the scenes without a line. ``out_dir/protocol.json`` pins the protocol the lines were
-   measured with; resuming with another protocol is refused (mixed lines would be summed silently).
+   and schedule only the scenes without a line. ``out_dir/protocol.json`` pins what the lines were measured
+   with (the protocol, FID settings, the asset library's index, the numbers' code version); a re-launch with
+   another one redoes the folder from scratch and records why in ``metrics.json``
+   (``redone_because: "changed: <keys>"``): mixed lines are never summed, old numbers never reported as new.
 3. Fan the rest out as Ray tasks (:func:`~spread.evaluation.fanout.fan_out`); the driver appends each
    record as it arrives and advances the progress bar.
 4. ``metrics.json`` (atomic) is computed from the file's deduplicated lines of this folder's scenes, so a
@@ -76,17 +78,40 @@ class EvaluationResult:
     out_dir: Path
 
 
-def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool) -> None:
-    """Write ``protocol.json``; refuse to resume lines measured under a different protocol."""
+def measured_with(protocol: EvalProtocol, fid: FIDConfig, assets: str) -> dict:
+    """What a per-scene line depends on besides its scene file (whose sha256 each line carries): the protocol,
+    the FID settings, the asset library's index and :data:`spread.runtime.fingerprint.NUMBERS_VERSION`."""
+    from spread.runtime.fingerprint import NUMBERS_VERSION, file_digest
+
+    return {**protocol.fingerprint(fid), "assets_sha256": file_digest(Path(assets) / "index.json"),
+            "numbers_version": NUMBERS_VERSION}
+
+
+def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool,
+                   assets: str | None = None) -> str | None:
+    """Pin ``protocol.json`` (:func:`measured_with`); returns why the folder is redone from scratch (None: a
+    resume or a new folder): lines measured with anything else are deleted with the old ``metrics.json`` and
+    renders."""
+    from spread.runtime.fingerprint import changed_keys
+
     path = out / PROTOCOL
-    fingerprint = protocol.fingerprint(fid)
-    if resume and path.exists() and (out / PER_SCENE).exists():
-        before = json.loads(path.read_text())
-        if before != json.loads(json.dumps(fingerprint)):
-            changed = sorted(k for k in set(before) | set(fingerprint) if before.get(k) != fingerprint.get(k))
-            raise ValueError(f"{out}: its {PER_SCENE} was measured with another protocol (changed: {changed}); "
-                             f"use a new out_dir or resume=false")
+    fingerprint = json.loads(json.dumps(measured_with(protocol, fid, assets) if assets is not None
+                                        else protocol.fingerprint(fid)))
+    reason = None
+    if resume and (out / PER_SCENE).exists():
+        try:
+            before = json.loads(path.read_text())
+        except (OSError, ValueError):
+            before = None
+        if not isinstance(before, dict):
+            reason = f"its {PER_SCENE} has no readable {PROTOCOL}"
+        elif before != fingerprint:
+            reason = f"changed: {', '.join(changed_keys(before, fingerprint))}"
+    if reason is not None:
+        for old in [out / PER_SCENE, out / METRICS, *(out / "renders").glob("*.png")]:
+            old.unlink(missing_ok=True)
     write_json_atomic(path, fingerprint)
+    return reason
 
 
 def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: str):
@@ -171,7 +196,7 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     ref_dir = Path(cfg.reference) / cfg.reference_split
     reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
     per_scene = out / PER_SCENE
-    check_protocol(out, cfg.protocol, cfg.fid, cfg.resume)
+    redone_because = check_protocol(out, cfg.protocol, cfg.fid, cfg.resume, assets)
     if before_work is not None:
         before_work()
     if not cfg.resume:
@@ -216,7 +241,7 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
                     "metric state)"} for r in records if not usable(r)],
         "fid_reference_failed": ref_failed,
         "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
-        "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(),
+        "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(), "redone_because": redone_because,
         "run": {"evaluated_this_run": len(todo), "resumed": len(files) - len(todo),
                 "skipped_as_done": len(files) - len(todo), "redone_input_changed": len(changed),
                 "tasks": fan.tasks if fan else 0, "split_chunks": fan.split_chunks if fan else 0,

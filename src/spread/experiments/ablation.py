@@ -30,8 +30,17 @@ and what it was made from (checkpoint hash, the sampling fingerprint, the rows).
 whose outputs exist and whose inputs are unchanged; a stage with missing outputs runs again and continues
 what is there (the commands resume themselves: training from ``last.ckpt``, sampling and evaluation skip
 finished scenes); a sampling or evaluation stage whose inputs changed (e.g. a retrained checkpoint) is
-redone from scratch; a training or data stage whose settings changed is refused (delete its folder).
-A failing stage is reported and blocks only the stages that need it; the table is still written.
+redone from scratch; a training or data stage whose settings changed is refused (delete its folder). A
+sampling, evaluation, figures or table stage whose outputs exist but that the ledger does not know is never
+re-used on existence alone: its command runs and re-uses or redoes the folder by its own fingerprint
+(``sampling.json``, ``protocol.json``). A failing stage is reported and blocks only the stages that need it;
+the table is still written.
+
+**Concurrency.** The rows' sample → evaluate chains are independent: with ``max_concurrent`` > 1 they run as
+Ray tasks, that many at a time (:mod:`spread.experiments.stage_pool`; the ledger entries carry each stage's
+``started_at`` / ``ended_at``); ``max_concurrent: 1`` runs them one after another in this process. Training
+stages run before them, in this process or as their own processes through ``train.launcher``
+(:mod:`spread.experiments.launch`).
 """
 
 from __future__ import annotations
@@ -47,6 +56,7 @@ from typing import Callable, Protocol, Sequence
 from spread.experiments.intervals import ci_columns, row_intervals, table_note
 from spread.experiments.tables import Column, columns_of, write_tables
 from spread.io import file_sha256, write_json_atomic
+from spread.runtime.ray import RaySettings
 
 log = logging.getLogger("spread.ablate")
 
@@ -79,25 +89,25 @@ class StageError(RuntimeError):
 
 
 @dataclass
-class AblationSpec:
-    """What to run. Override lists are Hydra overrides of the sub-commands' configs (``conf/ablate.yaml``
-    documents each). ``ckpt``: variant → a given checkpoint (no training); ``data_root``: None → generate
-    into ``out_dir/data``."""
+class StagesSpec:
+    """What an ablation or a comparison shares (:class:`AblationSpec`, :class:`~spread.experiments.compare.CompareSpec`).
+    Override lists are Hydra overrides of the sub-commands' configs; ``ckpt``: trained row → a given checkpoint
+    (no training); ``data_root``: None → generate into ``out_dir/data``; ``group``: wandb group of every stage's
+    run (``experiment_name=<group>``; "" leaves each command's); ``max_concurrent``: rows' sample → evaluate
+    chains at a time (Ray tasks when > 1, on ``ray``: None, a local Ray session)."""
 
     out_dir: Path
     data_root: Path | None = None
     split: str = "test"
-    variants: tuple[str, ...] = ("base", "geometry", "guidance")  # conf/ablate.yaml adds the one-term rows
     generate: list[str] = field(default_factory=list)
     train: list[str] = field(default_factory=list)
-    train_variant: dict[str, list[str]] = field(default_factory=dict)
     ckpt: dict[str, str | None] = field(default_factory=dict)
     sample: list[str] = field(default_factory=list)
-    guidance: list[str] = field(default_factory=list)
     evaluate: list[str] = field(default_factory=list)
     title: str = ""
-    figures: bool = True  # one scene per row in 3D with its relation matrix (ablation_<v>.png)
-    group: str = ""     # wandb group of every stage's run (``experiment_name=<group>``); "" leaves each command's
+    group: str = ""
+    max_concurrent: int = 1
+    ray: RaySettings | None = None
 
     def named(self, overrides: list[str]) -> list[str]:
         """``overrides`` with the wandb group first (so a list can still set its own)."""
@@ -105,20 +115,22 @@ class AblationSpec:
 
     def __post_init__(self) -> None:
         self.out_dir = Path(self.out_dir)
-        unknown = [v for v in self.variants if v not in VARIANTS]
-        if unknown or not self.variants:
-            raise ValueError(f"variants: unknown or none {unknown or list(self.variants)} "
-                             f"(choose from {list(VARIANTS)})")
-        self.variants = tuple(v for v in VARIANTS if v in self.variants)
-        for variant, path in self.ckpt.items():
-            if variant not in ("base", "geometry"):
-                raise ValueError(f"train.ckpt.{variant}: only base and geometry are trained")
-            if path and not Path(path).is_file():
-                raise FileNotFoundError(f"train.ckpt.{variant}={path}: no such checkpoint file")
-            if path:  # the file must be the row's kind of model (one line otherwise), before any stage runs
-                from spread.safe_load import expect_checkpoint
+        if int(self.max_concurrent) < 1:
+            raise ValueError(f"max_concurrent={self.max_concurrent}: at least 1")
 
-                expect_checkpoint(path, f"train.ckpt.{variant}", method="spread", variant=variant)
+    def check_given(self, trained: list[str], method_of: Callable[[str], dict], note: str = "") -> None:
+        """Every given checkpoint names a trained row (``note`` says more when not), exists, and is that row's
+        kind of model (``method_of(row)``: :func:`spread.safe_load.expect_checkpoint`'s keywords) — one line
+        before any stage runs."""
+        from spread.safe_load import expect_checkpoint
+
+        for row, path in self.ckpt.items():
+            if row not in trained:
+                raise ValueError(f"train.ckpt.{row}: only {trained} are trained{note}")
+            if path and not Path(path).is_file():
+                raise FileNotFoundError(f"train.ckpt.{row}={path}: no such checkpoint file")
+            if path:
+                expect_checkpoint(path, f"train.ckpt.{row}", **method_of(row))
 
     @property
     def dataset(self) -> Path:
@@ -126,9 +138,31 @@ class AblationSpec:
 
 
 @dataclass
+class AblationSpec(StagesSpec):
+    """An ablation (:class:`StagesSpec`, ``conf/ablate.yaml`` documents each list): its rows (``variants``),
+    each trained row's own training list, the guidance rows' guidance list, and the row figures."""
+
+    variants: tuple[str, ...] = ("base", "geometry", "guidance")  # conf/ablate.yaml adds the one-term rows
+    train_variant: dict[str, list[str]] = field(default_factory=dict)
+    guidance: list[str] = field(default_factory=list)
+    figures: bool = True  # one scene per row in 3D with its relation matrix (ablation_<v>.png)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        unknown = [v for v in self.variants if v not in VARIANTS]
+        if unknown or not self.variants:
+            raise ValueError(f"variants: unknown or none {unknown or list(self.variants)} "
+                             f"(choose from {list(VARIANTS)})")
+        self.variants = tuple(v for v in VARIANTS if v in self.variants)
+        self.check_given(["base", "geometry"], lambda v: {"method": "spread", "variant": v})
+
+
+@dataclass
 class Stage:
     """One command run. ``inputs``: what its outputs depend on (compared with the ledger); ``derived``: when
-    the inputs changed, redo it from scratch (else refuse); ``complete``: extra check beyond ``outputs``."""
+    the inputs changed, redo it from scratch (else refuse); ``complete``: extra check beyond ``outputs``;
+    ``exclusive``: it holds Ray actors while it waits for more (sampling with ``workers`` > 0), so concurrent
+    rows run such stages one at a time (:mod:`spread.experiments.stage_pool`)."""
 
     name: str
     folder: Path
@@ -137,6 +171,7 @@ class Stage:
     run: Callable[[bool], object]
     derived: bool = True
     complete: Callable[[], bool] | None = None
+    exclusive: bool = False
 
     def finished(self) -> bool:
         return all(p.exists() for p in self.outputs) and (self.complete is None or self.complete())
@@ -169,11 +204,15 @@ class Ledger:
         entry = self.data["stages"].get(name)
         return None if entry is None else entry["inputs"]
 
-    def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None) -> None:
+    def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None,
+               started_at: float | None = None, ended_at: float | None = None, tags: dict | None = None) -> None:
+        """One finished stage; ``started_at`` / ``ended_at``: Unix seconds of its work (None: nothing ran)."""
         from spread.runtime.fingerprint import run_tags
 
         self.data["stages"][name] = {"inputs": inputs, "seconds": seconds,
-                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "tags": run_tags(),
+                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "tags": tags or run_tags(),
+                                     **({"started_at": started_at, "ended_at": ended_at or time.time()}
+                                        if started_at is not None else {}),
                                      **({"redone_because": reason} if reason else {})}
         write_json_atomic(self.path, self.data)
 
@@ -192,7 +231,7 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     inputs = normalised(stage.inputs)
     before = ledger.inputs(stage.name)
     same = before is None or before == inputs
-    if same and stage.finished():
+    if same and stage.finished() and (before is not None or not stage.derived):
         if before is None:
             ledger.record(stage.name, inputs, None)
         log.info("✓ %s: finished earlier (%s), skipped", stage.name, stage.folder)
@@ -203,12 +242,12 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     reason = None if same else f"inputs changed: {', '.join(changed_keys(before, inputs))}"
     if not same:
         log.info("▶ %s: %s, redoing it from scratch", stage.name, reason)
-    started = time.perf_counter()
+    started, started_at = time.perf_counter(), time.time()
     stage.run(same)
     if not stage.finished():
         missing = [str(p) for p in stage.outputs if not p.exists()] or ["(incomplete outputs)"]
         raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
-    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), reason)
+    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), reason, started_at=started_at)
     return "done"
 
 
@@ -217,12 +256,26 @@ def command_line(command: str, overrides: list[str]) -> str:
 
 
 def scenes_complete(folder: Path) -> bool:
-    """Every scene ``sampling.json`` counts is on disk."""
+    """Every scene ``sampling.json`` counts is on disk (a run's pinned ``sampling.json`` counts none until the
+    run ends: not complete)."""
     try:
         manifest = json.loads((folder / "sampling.json").read_text())
     except (OSError, ValueError):
         return False
-    return len(list((folder / "scenes").glob("*.npz"))) >= int(manifest.get("samples", 0))
+    if not isinstance(manifest, dict) or "samples" not in manifest:
+        return False
+    return len(list((folder / "scenes").glob("*.npz"))) >= int(manifest["samples"])
+
+
+def uses_actors(overrides: list[str]) -> bool:
+    """Whether ``spread-sample`` with ``overrides`` samples on Ray actors (``workers`` > 0); True when the
+    overrides do not compose (the command then fails by itself)."""
+    from spread.configs import compose
+
+    try:
+        return int(compose("sample", overrides).workers) > 0
+    except Exception:  # noqa: BLE001 - decided by the command, which names the error
+        return True
 
 
 def sampling_inputs(folder: Path) -> dict:
@@ -237,12 +290,15 @@ class Ablation:
 
     #: the trained checkpoint each row samples from
     checkpoint_of: dict[str, str] = CHECKPOINT_OF
+    #: the ledger's file name under ``out_dir``
+    ledger_name: str = LEDGER
 
-    def __init__(self, spec: AblationSpec, commands: Commands):
+    def __init__(self, spec: StagesSpec, commands: Commands):
         self.spec = spec
         self.commands = commands
         self.out = spec.out_dir
-        self.ledger = Ledger(self.out / LEDGER)
+        self.ledger = Ledger(self.out / self.ledger_name)
+        self.slot = None  # while rows run concurrently: the stage pool's slot for exclusive stages
         self.status: dict[str, str] = {}
         self.errors: dict[str, str] = {}
 
@@ -318,7 +374,7 @@ class Ablation:
         return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
                      {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt), **self.data_inputs()},
                      self.timed(f"sample/{variant}", run),
-                     complete=lambda: scenes_complete(folder))
+                     complete=lambda: scenes_complete(folder), exclusive=uses_actors(overrides))
 
     def evaluate_stage(self, variant: str) -> Stage:
         folder, samples = self.eval_dir(variant), self.sample_dir(variant)
@@ -342,6 +398,19 @@ class Ablation:
         return {"data_sha256": dataset_digest(self.spec.dataset, [self.spec.split]), "numbers_version": NUMBERS_VERSION}
 
     # ---- running ----
+    def worker_state(self, names: list[str]) -> dict:
+        """What the stages ``names`` run in a Ray task changed besides the ledger (a subclass's own records)."""
+        return {}
+
+    def merge_worker_state(self, state: dict) -> None:
+        """Take a task's :meth:`worker_state` into this (the driver's) runner."""
+
+    def run_rows(self, chains: list[list[tuple]]) -> dict:
+        """The rows' independent stage chains (module docstring, *Concurrency*)."""
+        from spread.experiments.stage_pool import run_chains
+
+        return run_chains(self, chains, self.spec.max_concurrent, self.spec.ray)
+
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:
         """Build and run one stage unless a stage it needs failed; record the outcome; True when finished."""
         blocked = [n for n in needs if self.status.get(n) in ("failed", "blocked")]
@@ -355,7 +424,10 @@ class Ablation:
                 self.status[name] = "given"
                 return True
             log.info("▶ %s → %s", name, stage.folder)
-            self.status[name] = run_stage(stage, self.ledger)
+            from spread.experiments.stage_pool import held
+
+            with held(self.slot if stage.exclusive else None):
+                self.status[name] = run_stage(stage, self.ledger)
             return True
         except KeyboardInterrupt:
             raise
@@ -429,10 +501,8 @@ class Ablation:
                 self.status[f"train/{t}"] = "given"
             else:
                 self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
-        for v in spec.variants:
-            self.attempt(f"sample/{v}", lambda v=v: self.sample_stage(v), ["data", f"train/{CHECKPOINT_OF[v]}"])
-        for v in spec.variants:
-            self.attempt(f"evaluate/{v}", lambda v=v: self.evaluate_stage(v), [f"sample/{v}"])
+        self.run_rows([[(f"sample/{v}", "sample_stage", v, ["data", f"train/{CHECKPOINT_OF[v]}"]),
+                        (f"evaluate/{v}", "evaluate_stage", v, [f"sample/{v}"])] for v in spec.variants])
         records = self.rows()
         if spec.figures:
             self.attempt("figures", self.figures_stage, [])

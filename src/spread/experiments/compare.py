@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spread.experiments.ablation import Ablation, Commands, Ledger, Stage
+from spread.experiments.ablation import Ablation, AblationResult, Commands, Stage, StagesSpec
 from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
@@ -88,27 +88,18 @@ LAYOUTS = ("auto", "procthor", "threedfront")
 
 
 @dataclass
-class CompareSpec:
-    """What to run; override lists are Hydra overrides of the sub-commands' configs (``conf/compare.yaml``
-    documents each). ``ckpt``: trained method → a given checkpoint."""
+class CompareSpec(StagesSpec):
+    """A comparison (:class:`~spread.experiments.ablation.StagesSpec`; ``conf/compare.yaml`` documents each
+    list): its rows (``methods``), each trained method's own training list and each method's own sampling list
+    (default: the method's registered ``sample``, physcene's ``guidance=physcene``); ``layout``."""
 
-    out_dir: Path
-    data_root: Path | None = None
-    split: str = "test"
     methods: tuple[str, ...] = METHODS
-    generate: list[str] = field(default_factory=list)
-    train: list[str] = field(default_factory=list)
     train_method: dict[str, list[str]] = field(default_factory=dict)
-    ckpt: dict[str, str | None] = field(default_factory=dict)
-    sample: list[str] = field(default_factory=list)
     sample_method: dict[str, list[str]] = field(default_factory=dict)
-    evaluate: list[str] = field(default_factory=list)
     layout: str = "auto"
-    title: str = ""
-    group: str = ""
 
     def __post_init__(self) -> None:
-        self.out_dir = Path(self.out_dir)
+        super().__post_init__()
         known = registered()
         unknown = [m for m in self.methods if m not in known]
         if unknown or not self.methods:
@@ -121,24 +112,7 @@ class CompareSpec:
             if not spec_of(source).trainable and not self.ckpt.get(source):
                 raise ValueError(f"methods: '{method}' is not trained here; give its checkpoint with "
                                  f"+train.ckpt.{source}=<file> (e.g. spread-release-ckpt ckpt=ckpt.pth out=<file>)")
-        trained = checkpoint_methods()
-        for method, path in self.ckpt.items():
-            if method not in trained:
-                raise ValueError(f"train.ckpt.{method}: only {trained} are trained (physcene samples "
-                                 f"diffuscene's)")
-            if path and not Path(path).is_file():
-                raise FileNotFoundError(f"train.ckpt.{method}={path}: no such checkpoint file")
-            if path:  # the file must be the row's kind of model (one line otherwise), before any stage runs
-                from spread.safe_load import expect_checkpoint
-
-                expect_checkpoint(path, f"train.ckpt.{method}", method=method)
-
-    def named(self, overrides: list[str]) -> list[str]:
-        return ([f"experiment_name={self.group}"] if self.group else []) + list(overrides)
-
-    @property
-    def dataset(self) -> Path:
-        return Path(self.data_root) if self.data_root else self.out_dir / "data"
+        self.check_given(checkpoint_methods(), lambda m: {"method": m}, " (physcene samples diffuscene's)")
 
     def trained(self) -> list[str]:
         """The checkpoints the chosen methods need, in order."""
@@ -147,19 +121,10 @@ class CompareSpec:
 
 
 @dataclass
-class CompareResult:
-    """records: the table's rows; stages: name → status; errors: name → message; tables: format → path."""
+class CompareResult(AblationResult):
+    """:class:`~spread.experiments.ablation.AblationResult` and the table's ``layout``."""
 
-    records: list[dict]
-    stages: dict[str, str]
-    errors: dict[str, str]
-    tables: dict[str, Path]
-    seconds: float
     layout: str = "procthor"
-
-    @property
-    def ok(self) -> bool:
-        return not self.errors
 
 
 class Comparison(Ablation):
@@ -170,13 +135,10 @@ class Comparison(Ablation):
         """method → the trained method whose checkpoint it samples (its own; physcene: diffuscene's)."""
         return {m: trained_from(m) for m in self.spec.methods}
 
+    ledger_name = LEDGER
+
     def __init__(self, spec: CompareSpec, commands: Commands):
-        self.spec = spec
-        self.commands = commands
-        self.out = spec.out_dir
-        self.ledger = Ledger(self.out / LEDGER)
-        self.status: dict[str, str] = {}
-        self.errors: dict[str, str] = {}
+        super().__init__(spec, commands)
         self.times_path = self.out / TIMES
         self.times: dict = json.loads(self.times_path.read_text()) if self.times_path.exists() else {}
 
@@ -193,6 +155,16 @@ class Comparison(Ablation):
             self.times[name] = round(self.times.get(name, 0.0) * resume + time.process_time() - started, 3)
             write_json_atomic(self.times_path, self.times)
         return wrapper
+
+    def worker_state(self, names: list[str]) -> dict:
+        return {"times": {k: self.times[k] for k in names if k in self.times}}
+
+    def merge_worker_state(self, state: dict) -> None:
+        """A chain task's CPU seconds (its worker process's) into ``compare_times.json``."""
+        times = state.get("times") or {}
+        if times:
+            self.times.update(times)
+            write_json_atomic(self.times_path, self.times)
 
     # ---- stages ----
     def train_lists(self, method: str) -> list[str]:
@@ -343,11 +315,8 @@ class Comparison(Ablation):
                 self.status[f"train/{t}"] = "given"
             else:
                 self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
-        for m in spec.methods:
-            needs = ["data", f"train/{trained_from(m)}"]
-            self.attempt(f"sample/{m}", lambda m=m: self.sample_stage(m), needs)
-        for m in spec.methods:
-            self.attempt(f"evaluate/{m}", lambda m=m: self.evaluate_stage(m), [f"sample/{m}"])
+        self.run_rows([[(f"sample/{m}", "sample_stage", m, ["data", f"train/{trained_from(m)}"]),
+                        (f"evaluate/{m}", "evaluate_stage", m, [f"sample/{m}"])] for m in spec.methods])
         records = self.rows()
         self.attempt("table", lambda: self.table_stage(records, log_table), [])
         stem = self.out / TABLE

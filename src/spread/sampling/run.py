@@ -4,9 +4,11 @@
 2. Plan the batches (:mod:`spread.sampling.plan`): per-item seeds from (seed, scene id, k), fixed batches.
 3. Resume: a batch whose files all exist is skipped; a batch missing some is sampled again (same seeds,
    same batch, so the same scenes) and only its missing files are written. ``out_dir/sampling.json`` pins
-   what the files were made with (checkpoint hash, sampler, seed, batching, ...); resuming into a folder
-   made with other settings is refused (the folder would mix two runs silently). ``resume=false`` deletes
-   the folder's scene files first and samples everything.
+   what the files were made with (checkpoint hash, the split's data content, sampler, seed, batching, ...)
+   from before the first file is written; a re-launch into a folder made with other settings (or scene files
+   without a record) redoes it from scratch and records why (``redone_because: "changed: <keys>"``), so a
+   folder never mixes two runs and never passes old scenes off as new ones. ``resume=false`` deletes the
+   folder's scene files first and samples everything.
 4. Fan out: ``workers`` Ray actors (one model each, ``threads`` CPUs and ``num_gpus_per_worker`` GPUs each),
    one batch per task, the next batch to whichever actor finishes first; ``workers=0`` samples in this
    process. Actors that die are restarted and their task retried (``ray.max_retries``).
@@ -177,25 +179,43 @@ def guidance_settings(guidance) -> dict | None:
 
 
 def fingerprint(cfg: SamplingConfig, ckpt_hash: str) -> dict:
-    """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files).
-    Unguided runs carry no ``guidance`` key (so folders sampled before guidance existed still resume)."""
+    """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files), the
+    split's data content included (``data``: :func:`spread.runtime.fingerprint.dataset_digest`, as a sweep
+    point's fingerprint has it; ``data_root``, where it lies, is read by ``spread-view``). Unguided runs carry no ``guidance``
+    key (so folders sampled before guidance existed still resume)."""
+    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest
+
     guidance = guidance_settings(cfg.guidance)
     return ({"guidance": guidance} if guidance else {}) | {
         "ckpt_sha256": ckpt_hash, "sampler": asdict(cfg.sampler), "seed": int(cfg.seed),
         "batch_size": int(cfg.batch_size), "split": cfg.data.split, "use_ema": bool(cfg.use_ema),
-        "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data.root).resolve())}
+        "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data.root).resolve()),
+        "data": dataset_digest(cfg.data.root, [cfg.data.split]), "numbers_version": NUMBERS_VERSION}
 
 
-def check_fingerprint(out: Path, settings: dict, resume: bool) -> None:
-    """Refuse to resume files made with other settings (module docstring, step 3)."""
-    path = out / MANIFEST
-    if not (resume and path.exists() and any((out / "scenes").glob("*.npz"))):
-        return
-    before = json.loads(path.read_text()).get("fingerprint", {})
-    changed = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
-    if changed:
-        raise ValueError(f"{out}: its scenes were sampled with other settings (changed: {changed}); "
-                         f"use a new out_dir or resume=false")
+def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
+    """Resume, or redo from scratch (module docstring, step 3); returns why the folder is redone (None: a
+    resume or a new folder). A redo deletes the folder's scene files, renders and manifest; then (either way)
+    ``sampling.json`` is pinned to ``settings`` (``status: running``) before any file is written, so a run
+    killed mid-way is resumed only by a re-launch with the same settings."""
+    from spread.runtime.fingerprint import changed_keys
+
+    path, scenes = out / MANIFEST, out / "scenes"
+    reason = None
+    if resume and any(scenes.glob("*.npz")):
+        try:
+            before = json.loads(path.read_text()).get("fingerprint")
+        except (OSError, ValueError, AttributeError):
+            before = None
+        if not isinstance(before, dict):
+            reason = f"its scenes have no readable {MANIFEST} fingerprint"
+        elif before != json.loads(json.dumps(settings)):
+            reason = f"changed: {', '.join(changed_keys(before, settings))}"
+    if reason is not None:
+        for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png")]:
+            old.unlink()
+    write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": reason})
+    return reason
 
 
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
@@ -321,7 +341,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
     settings = fingerprint(cfg, readonce.file_sha256(cfg.ckpt))  # hashed once per process
-    check_fingerprint(out, settings, cfg.resume)
+    redone_because = check_fingerprint(out, settings, cfg.resume)
     if before_work is not None:
         before_work()
     damaged = remove_unreadable(batches, scenes_dir)
@@ -369,7 +389,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "seconds": round(time.perf_counter() - started, 3),
         "startup_seconds": round(startup[0], 3) if startup else None,
         "seconds_per_batch": round(sum(batch_seconds) / len(batch_seconds), 4) if batch_seconds else None,
-        "runner": runner,
+        "runner": runner, "redone_because": redone_because,
         "process_reads": readonce.counts(),  # this process's reads and hits so far (a warm process: no new reads)
     }
     write_json_atomic(out / MANIFEST, manifest)

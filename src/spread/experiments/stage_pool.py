@@ -1,0 +1,157 @@
+"""Independent stages of an ablation or comparison at the same time, as Ray tasks (``max_concurrent`` at once).
+
+A **chain** is a list of steps ``(name, method, key, needs)`` that must run in order (a row's ``sample/<v>``
+then its ``evaluate/<v>``; ``runner.<method>(key)`` builds the step's stage); chains are independent of one
+another. :func:`run_chains` runs each chain as one Ray task
+(``num_cpus=0``: the task only drives its commands; their sampling actors and evaluation tasks reserve the
+CPUs/GPUs, on any node of the cluster), at most ``max_concurrent`` chains at a time, in the order given.
+
+A stage that holds Ray actors while it waits for more (``Stage.exclusive``: sampling with ``workers`` > 0)
+takes the pool's one **slot** for its work: two such stages side by side could each hold part of the CPUs/GPUs
+and wait for the rest forever. Stages of in-process sampling (``workers=0``) and evaluations (Ray tasks, which
+never hold resources while they wait) run side by side freely.
+
+The ledger stays the driver's: a task decides re-use against a snapshot of the ledger's entries
+(:class:`LedgerView`) and returns what it would record; the driver records it. Each entry carries the wall-clock
+``started_at`` / ``ended_at`` (Unix seconds) of the stage's work. A task that dies (its worker killed) fails
+its chain's steps (a stage's own error is caught in the task and reported like in this process), and the
+other chains go on. Workers run in the driver's working
+directory, so relative ``out_dir`` paths mean the same in both.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+
+Step = tuple  # (name, method: str, key: str, needs: list[str])
+
+
+class LedgerView:
+    """A stand-in for :class:`~spread.experiments.ablation.Ledger` inside a task: reads the driver's entries,
+    collects the records (:func:`merge` writes them in the driver's ledger)."""
+
+    def __init__(self, stages: dict):
+        self.data = {"stages": stages}
+        self.records: list[dict] = []
+
+    def inputs(self, name: str) -> dict | None:
+        entry = self.data["stages"].get(name)
+        return None if entry is None else entry["inputs"]
+
+    def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None, **more) -> None:
+        from spread.runtime.fingerprint import run_tags
+
+        self.records.append({"name": name, "inputs": inputs, "seconds": seconds, "reason": reason,
+                             "tags": run_tags(), **more, "ended_at": more.get("ended_at") or time.time()})
+
+
+class Slot:
+    """A Ray actor lent to one holder at a time (:func:`held`)."""
+
+    def __init__(self):
+        self.holder = None
+
+    def take(self, holder: str) -> bool:
+        if self.holder is None:
+            self.holder = holder
+        return self.holder == holder
+
+    def give_back(self, holder: str) -> None:
+        if self.holder == holder:
+            self.holder = None
+
+
+@contextlib.contextmanager
+def held(slot):
+    """``slot`` held for the block (polled every 0.2 s); ``None``: nothing to hold."""
+    if slot is None:
+        yield
+        return
+    import ray
+
+    me = f"{os.getpid()}:{time.time()}"
+    while not ray.get(slot.take.remote(me)):
+        time.sleep(0.2)
+    try:
+        yield
+    finally:
+        ray.get(slot.give_back.remote(me))
+
+
+def run_chain(runner, chain: list[Step], cwd: str) -> dict:
+    """One chain in a Ray task: every step through ``runner.attempt`` against a view of the ledger."""
+    os.chdir(cwd)
+    runner.ledger = LedgerView(runner.ledger.data["stages"])
+    names = [step[0] for step in chain]
+    for step in chain:
+        attempt(runner, *step)
+    return {"status": {n: runner.status[n] for n in names if n in runner.status},
+            "errors": {n: runner.errors[n] for n in names if n in runner.errors},
+            "records": runner.ledger.records, "state": runner.worker_state(names)}
+
+
+def attempt(runner, name: str, method: str, key: str, needs: list[str]) -> bool:
+    return runner.attempt(name, lambda: getattr(runner, method)(key), needs)
+
+
+def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settings=None) -> dict:
+    """Run ``chains`` (module docstring) for ``runner`` (an :class:`~spread.experiments.ablation.Ablation`):
+    one after another in this process when ``max_concurrent`` ≤ 1 (all chains' first steps, then their
+    second steps), else as Ray tasks. Returns ``{"mode", "max_concurrent", ...}`` (the cluster when on Ray)."""
+    chains = [c for c in chains if c]
+    if int(max_concurrent) <= 1 or len(chains) <= 1:
+        for depth in range(max((len(c) for c in chains), default=0)):
+            for chain in chains:
+                if depth < len(chain):
+                    attempt(runner, *chain[depth])
+        return {"mode": "sequential", "max_concurrent": 1}
+    import ray
+
+    from spread.runtime.ray import RaySettings, ray_session
+
+    with ray_session(ray_settings or RaySettings()) as cluster:
+        task = ray.remote(num_cpus=0, max_retries=0)(run_chain)
+        runner.slot = ray.remote(num_cpus=0)(Slot).remote()
+        try:
+            drive(runner, chains, task, int(max_concurrent))
+        finally:
+            ray.kill(runner.slot)
+            runner.slot = None
+    return {"mode": "ray", "max_concurrent": int(max_concurrent), **cluster}
+
+
+def drive(runner, chains: list[list[Step]], task, max_concurrent: int) -> None:
+    """Keep ``max_concurrent`` chain tasks running until every chain has reported."""
+    import ray
+
+    queue, running, cwd = list(chains), {}, os.getcwd()
+    while queue or running:
+        while queue and len(running) < max_concurrent:
+            chain = queue.pop(0)
+            running[task.remote(runner, chain, cwd)] = chain
+        done, _ = ray.wait(list(running), num_returns=1)
+        chain = running.pop(done[0])
+        try:
+            merge(runner, ray.get(done[0]))
+        except Exception as exc:  # noqa: BLE001 - the task itself died: its steps fail, the rest go on
+            for name, *_ in chain:
+                runner.status.setdefault(name, "failed")
+                runner.errors.setdefault(name, f"{name}: its task died: {type(exc).__name__}: {exc}")
+
+
+def merge(runner, result: dict) -> None:
+    """A chain's outcome into the driver: statuses, errors, ledger entries, the runner's own state."""
+    runner.status.update(result["status"])
+    runner.errors.update(result["errors"])
+    for record in result["records"]:
+        runner.ledger.record(**record)
+    runner.merge_worker_state(result["state"])
+
+
+def overlap(entries: dict, a: str, b: str) -> float:
+    """Seconds during which ledger entries ``a`` and ``b`` ran at the same time (0 when one after the other)."""
+    ea, eb = entries[a], entries[b]
+    return max(0.0, min(ea["ended_at"], eb["ended_at"]) - max(ea["started_at"], eb["started_at"]))
+

@@ -169,7 +169,9 @@ def test_one_in_process_run_reads_checkpoint_graphs_and_library_once(dataset, ck
     assert result.manifest["runner"]["mode"] == "in-process" and len(result.written) == len(graphs)
     assert result.manifest["renders"] and result.manifest["figures"], "the renders read the graphs too"
     assert dict(readers["ckpt"]) == {str(ckpt.resolve()): 1}, "one load: the check, the hyperparameters, the model"
-    assert dict(readers["sha256"]) == {str(ckpt.resolve()): 1}
+    hashed = dict(readers["sha256"])  # the checkpoint, and the data content the fingerprint holds: each once
+    assert hashed[str(ckpt.resolve())] == 1 and set(hashed.values()) == {1}
+    assert set(graphs) <= set(hashed), "the split's content is part of the sampling fingerprint"
     assert dict(readers["library"]) == {str((dataset / "assets").resolve()): 1}
     assert {p: readers["scene"][p] for p in graphs} == {p: 1 for p in graphs}, "each graph read once"
     assert readers["model"]["model"] == 1

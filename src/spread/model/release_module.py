@@ -25,8 +25,9 @@ plus the release's placeholder at index 0 (mask 1, zero point features):
 
 Sampling: the platform's :class:`~spread.model.Sampler` over the release's schedule (1000 cosine steps,
 ε-prediction, x̂_0 clipped to ±1, fixed-small variance): ``sampler=ddpm`` is the release's 1000 ancestral
-steps. The release's 100 guided refinement iterations are not run (SPREAD's guidance needs a SceneDiffusion
-checkpoint). Decoded poses are the platform's: translation = T + R · (canonical offset − file bbox centre),
+steps, through the platform's one loop (:func:`spread.model.diffusion.denoise`). The release's 100 guided
+refinement iterations are not run (its states (B, N + 1, 12) carry the placeholder, which the guidance terms do not
+model: the method samples its own way, ``guidance=`` is refused). Decoded poses are the platform's: translation = T + R · (canonical offset − file bbox centre),
 so the file's frame and the library's canonical frame agree (see :mod:`spread.importers.spread_release`).
 """
 

@@ -411,6 +411,20 @@ class Ablation:
 
         return run_chains(self, chains, self.spec.max_concurrent, self.spec.ray)
 
+    def finished_already(self, name: str, method: str, key: str, needs: list[str]) -> bool:
+        """True when the row step ``(name, method, key, needs)`` would be skipped: the ledger holds it with the
+        inputs it has now and its outputs are there (so a re-run of a finished table starts no Ray session)."""
+        if any(self.status.get(n) in ("failed", "blocked") for n in needs):
+            return False
+        try:
+            stage = getattr(self, method)(key)
+        except Exception:  # noqa: BLE001 - attempt() will report it
+            return False
+        if stage is None:
+            return False
+        before = self.ledger.inputs(stage.name)
+        return before is not None and before == normalised(stage.inputs) and stage.finished()
+
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:
         """Build and run one stage unless a stage it needs failed; record the outcome; True when finished."""
         blocked = [n for n in needs if self.status.get(n) in ("failed", "blocked")]

@@ -100,7 +100,14 @@ def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settin
     """Run ``chains`` (module docstring) for ``runner`` (an :class:`~spread.experiments.ablation.Ablation`):
     one after another in this process when ``max_concurrent`` ≤ 1 (all chains' first steps, then their
     second steps), else as Ray tasks. Returns ``{"mode", "max_concurrent", ...}`` (the cluster when on Ray)."""
-    chains = [c for c in chains if c]
+    pending = []
+    for chain in (c for c in chains if c):  # steps finished earlier with these inputs are skipped here, no Ray
+        rest = list(chain)
+        while rest and int(max_concurrent) > 1 and runner.finished_already(*rest[0]):
+            attempt(runner, *rest.pop(0))
+        if rest:
+            pending.append(rest)
+    chains = pending
     if int(max_concurrent) <= 1 or len(chains) <= 1:
         for depth in range(max((len(c) for c in chains), default=0)):
             for chain in chains:

@@ -181,9 +181,7 @@ def test_one_in_process_run_reads_checkpoint_graphs_and_library_once(dataset, ck
 def test_a_second_run_in_the_same_process_reads_nothing_again_and_samples_the_same(dataset, ckpt, tmp_path, readers):
     first = sample_in_process(*run_args(dataset, ckpt, tmp_path / "a"))
     before = {k: Counter(v) for k, v in readers.items()}
-    started = time.perf_counter()
     second = sample_in_process(*run_args(dataset, ckpt, tmp_path / "b"))
-    assert time.perf_counter() - started < 60
     graphs = {str(p.resolve()) for p in (dataset / "test").glob("*.npz")}
     for kind in ("ckpt", "sha256", "library", "model"):
         assert readers[kind] == before[kind], f"{kind} read again by the second run"

@@ -12,12 +12,25 @@ folder (one wandb run holds both). The ``print_*`` functions are the commands' c
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from spread.configs import to_object
+
+
+@contextlib.contextmanager
+def failed_on_error(wandb_run):
+    """The body of a command's wandb run (None: no run): if it raises, the run is finished as failed (exit code 1)
+    before the error goes on."""
+    try:
+        yield
+    except BaseException:
+        if wandb_run is not None:
+            wandb_run.finish(exit_code=1)
+        raise
 
 
 def save_config(cfg: DictConfig, folder: Path, overrides: list[str]) -> None:
@@ -223,16 +236,12 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
         Path(command.out_dir).mkdir(parents=True, exist_ok=True)
         wandb_run = init_run(command.logger, "evaluate", command.out_dir, plain(cfg) | {"lineage": lineage},
                              group=command.experiment_name, name=Path(command.out_dir).name)
-    try:
+    with failed_on_error(wandb_run):
         with mlflow_log.tracked(command.logger, "evaluate", command.out_dir, plain(cfg), command.experiment_name,
                                 tags=tags | lineage) as run:
             result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
             if run is not None:
                 mlflow_log.log_evaluation(run, result.metrics, result.out_dir, result.renders)
-    except BaseException:
-        if wandb_run is not None:
-            wandb_run.finish(exit_code=1)
-        raise
     log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg), run=wandb_run)
     return result
 
@@ -367,7 +376,7 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     started = time.perf_counter()
     experiment = experiment_of(command)
     wandb_run = open_sampling_run(command, plain(cfg), experiment) if log and command.logger.wandb else None
-    try:
+    with failed_on_error(wandb_run):
         with mlflow_log.tracked(command.logger if log else None, "sample", command.out_dir, plain(cfg), experiment,
                                 tags=lambda: sampling_run_tags(command)) as run:
             result = run_sampling(command, before_work=before_work)
@@ -381,10 +390,6 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
                 finish_point(command.out_dir, round(time.perf_counter() - started, 3))
                 if run is not None:
                     mlflow_log.log_evaluation(run, evaluation.metrics, evaluation.out_dir, evaluation.renders)
-    except BaseException:
-        if wandb_run is not None:
-            wandb_run.finish(exit_code=1)
-        raise
     more = None
     if evaluation is not None:
         from spread.evaluation.wandb_log import log_metrics

@@ -29,11 +29,10 @@ apply to it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from spread.model.diffusion import SamplingCallback, chain_hooks, denoise  # noqa: F401 (re-exported)
 from spread.scene import Scene
 
 #: A sampled rotation further than this from orthonormal (max |RᵀR − I|) is replaced by its nearest rotation.
@@ -72,6 +71,8 @@ def repair_rotations(rotation: np.ndarray) -> tuple[np.ndarray, int]:
 def guidance_callback(guidance) -> SamplingCallback | None:
     """The callback of a :class:`~spread.guidance.SceneGuidance`: ``paper`` mode edits x̂_0 at every step,
     ``refine`` mode refines after the sampler; None when it does not guide (mode ``none``, no weight > 0)."""
+    from spread.model.diffusion import SamplingCallback
+
     config = guidance.config
     if not config.active:
         return None
@@ -158,6 +159,8 @@ class ScenePipeline:
 
     def _sample(self, batch, generator, callbacks, sources):
         import torch
+
+        from spread.model.diffusion import denoise
 
         with torch.no_grad():
             problem = self.model.denoising(batch, self.use_ema, self.graph_scale)

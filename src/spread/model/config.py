@@ -50,6 +50,10 @@ class ModelConfig:
     point_max_frequency: float = 32.0
     # data
     num_points: int = 2000  # M
+    # how the geometry features' exact nearest other-object point is searched (the same answer every way):
+    # "pruned" (object pruning, Python loop over point blocks: best on CPU), "dense" (one operator: a Triton kernel
+    # on CUDA, brute force on CPU for small problems), "auto" (dense on CUDA, pruned on CPU)
+    nearest: str = "auto"
 
     @classmethod
     def from_any(cls, config: "Mapping[str, Any] | ModelConfig | None" = None, **overrides) -> "ModelConfig":

@@ -14,59 +14,115 @@ Output (B, N, M, 4) = [p in the object's canonical frame (x, y, z, metres), d]. 
 (``mask`` False) have all-zero features and are never anyone's neighbour. A real object with no other
 real object in its scene gets ``d = no_neighbour_distance``.
 
-The search (:mod:`spread.model.nearest`) is exact, batched over scenes on the inputs' device, in
-float32 whatever autocast says, with memory bounded by chunking. It runs without autograd; the final
-gather is differentiable, so gradients reach translation and rotation through the chosen pairs (as
-for any nearest-neighbour loss).
+What does not depend on the poses — the masked canonical points and normals, which objects have a neighbour,
+optionally a Morton order of each object's points — is a :class:`PointCloud`, made once per sample
+(:func:`prepare_points`; the network keeps it in its :class:`~spread.model.network.Condition` for all the
+denoising steps); :func:`signed_distances` is the per-step work: pose, search, sign.
+
+The search is exact, batched over scenes on the inputs' device, in float32 whatever autocast says: ``search``
+``pruned`` (:mod:`spread.model.nearest`: object pruning, best on CPU) or ``dense`` (:mod:`spread.model.nearest_dense`:
+one operator, a Triton kernel on CUDA). It runs without autograd; the final gather is differentiable, so
+gradients reach translation and rotation through the chosen pairs (as for any nearest-neighbour loss).
 """
 
 from __future__ import annotations
 
-import torch
-from einops import rearrange, repeat
+from dataclasses import dataclass
 
-from spread.model.nearest import CHUNK_ELEMENTS, nearest_other_point
+import torch
+
+from spread.model.nearest import CHUNK_ELEMENTS, morton_order, nearest_other_point
 from spread.model.poses import pose_points
 
 #: Signed distance (metres) given to points of an object that has no other real object in its scene.
 NO_NEIGHBOUR_DISTANCE = 10.0
+#: ``ModelConfig.nearest``: how the nearest other-object point is searched.
+SEARCHES = ("auto", "pruned", "dense")
+
+
+def resolve_search(search: str, device: torch.device) -> str:
+    """``auto`` → the fastest exact search for ``device``: ``dense`` on CUDA (one kernel), ``pruned`` on CPU."""
+    if search not in SEARCHES:
+        raise ValueError(f"model.config.nearest: unknown search '{search}' (choose from {SEARCHES})")
+    if search == "auto":
+        return "dense" if torch.device(device).type == "cuda" else "pruned"
+    return search
+
+
+@dataclass
+class PointCloud:
+    """The pose-independent part of a batch's geometry (module docstring). points, normals: (B, N, M, 3) float32
+    canonical frame, zero at padding objects; valid (B, N) bool; has_other (B, N) bool (another real object in
+    the scene); count (B, 1) real objects."""
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    valid: torch.Tensor
+    has_other: torch.Tensor
+    count: torch.Tensor
+
+
+def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask: torch.Tensor,
+                   morton: bool = False) -> PointCloud:
+    """The :class:`PointCloud` of canonical points and normals (B, N, M, 3) of objects ``mask`` (B, N). ``morton``
+    puts each object's points in Morton order of their canonical coordinates (the same points, reordered: the
+    dense search then skips most of its tiles; the features are the same set)."""
+    valid = mask.bool()
+    keep = valid[..., None, None]
+    # padding objects: everything zeroed first, so junk (even NaN) there cannot leak anywhere
+    p_local = torch.where(keep, points_local.float(), 0.0)
+    n_local = torch.where(keep, normals_local.float(), 0.0)
+    if morton:
+        order = morton_order(p_local)[..., None].expand(-1, -1, -1, 3)
+        p_local, n_local = p_local.gather(2, order), n_local.gather(2, order)
+    count = valid.sum(1, keepdim=True)
+    return PointCloud(p_local, n_local, valid, (count - valid.long()) > 0, count.clamp(min=1))
+
+
+def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: torch.Tensor, search: str = "pruned",
+                     chunk: int | None = None, max_elements: int = CHUNK_ELEMENTS, prune: bool = True,
+                     no_neighbour_distance: float = NO_NEIGHBOUR_DISTANCE) -> torch.Tensor:
+    """(B, N, M) signed nearest-other-object distance d of every point of ``cloud`` posed by translation (B, N, 3)
+    metres and rotation (B, N, 3, 3) world-from-local; 0 at padding objects. ``search``: ``pruned`` | ``dense``
+    (``auto`` resolved by the caller: :func:`resolve_search`); chunk / max_elements / prune: see
+    :func:`spread.model.nearest.nearest_other_point` (speed and memory, never the result)."""
+    B, N, M, _ = cloud.points.shape
+    valid = cloud.valid
+    with torch.autocast(device_type=cloud.points.device.type, enabled=False):
+        R = torch.where(valid[..., None, None], rotation.float(), 0.0)
+        t = torch.where(valid[..., None], translation.float(), 0.0)
+        # scene-centred world frame: distances are unchanged and the float32 search keeps more digits
+        t = torch.where(valid[..., None], t - t.sum(1, keepdim=True) / cloud.count[..., None], 0.0)
+        world = pose_points(cloud.points, t, R)  # (B, N, M, 3)
+        with torch.no_grad():
+            if search == "dense":
+                from spread.model.nearest_dense import nearest_dense_search
+
+                nearest = nearest_dense_search(world.detach(), valid)
+            else:
+                nearest = nearest_other_point(world.detach(), cloud.points, t.detach(), R.detach(), valid,
+                                              chunk=chunk, max_elements=max_elements, prune=prune)
+        world_flat = world.reshape(B, N * M, 3)
+        normals_flat = torch.einsum("bnij,bnmj->bnmi", R, cloud.normals).reshape(B, N * M, 3)
+        index = nearest[..., None].expand(B, N * M, 3)
+        diff = world_flat - world_flat.gather(1, index)
+        dist = torch.linalg.vector_norm(diff, dim=-1)
+        outside = (diff * normals_flat.gather(1, index)).sum(-1) >= 0
+        signed = torch.where(outside, dist, -dist).view(B, N, M)
+        return torch.where(cloud.has_other[..., None], signed, no_neighbour_distance) * valid[..., None]
 
 
 def signed_chamfer_features(points_local: torch.Tensor, normals_local: torch.Tensor, translation: torch.Tensor,
                             rotation: torch.Tensor, mask: torch.Tensor, chunk: int | None = None,
-                            max_elements: int = CHUNK_ELEMENTS, prune: bool = True,
+                            max_elements: int = CHUNK_ELEMENTS, prune: bool = True, search: str = "pruned",
                             no_neighbour_distance: float = NO_NEIGHBOUR_DISTANCE) -> torch.Tensor:
     """(B, N, M, 4) = [canonical xyz, signed NN distance to other objects] (see module docstring).
 
     points_local, normals_local: (B, N, M, 3) canonical frame (metres; unit normals).
     translation (B, N, 3) metres, rotation (B, N, 3, 3) world-from-local; mask (B, N) bool.
-    chunk / max_elements / prune: see :func:`spread.model.nearest.nearest_other_point` (they change
-    speed and memory, never the result).
+    search / chunk / max_elements / prune: see :func:`signed_distances` (speed and memory, never the result).
     """
-    B, N, M, _ = points_local.shape
-    valid = mask.bool()
-    with torch.autocast(device_type=points_local.device.type, enabled=False):
-        # padding objects: everything zeroed first, so junk (even NaN) there cannot leak anywhere
-        keep = valid[..., None, None]
-        p_local = torch.where(keep, points_local.float(), 0.0)
-        n_local = torch.where(keep, normals_local.float(), 0.0)
-        R = torch.where(keep, rotation.float(), 0.0)
-        t = torch.where(valid[..., None], translation.float(), 0.0)
-        # scene-centred world frame: distances are unchanged and the float32 matmul keeps more digits
-        count = valid.sum(1, keepdim=True).clamp(min=1)
-        t = torch.where(valid[..., None], t - (t.sum(1) / count)[:, None, :], 0.0)
-        world = pose_points(p_local, t, R)  # (B, N, M, 3)
-        with torch.no_grad():
-            nearest = nearest_other_point(world.detach(), p_local, t.detach(), R.detach(), valid,
-                                          chunk=chunk, max_elements=max_elements, prune=prune)
-        world_flat = rearrange(world, "b n m c -> b (n m) c")
-        normals_flat = rearrange(torch.einsum("bnij,bnmj->bnmi", R, n_local), "b n m c -> b (n m) c")
-        index = repeat(nearest, "b k -> b k c", c=3)
-        diff = world_flat - world_flat.gather(1, index)
-        dist = torch.linalg.vector_norm(diff, dim=-1)
-        outside = (diff * normals_flat.gather(1, index)).sum(-1) >= 0
-        signed = rearrange(torch.where(outside, dist, -dist), "b (n m) -> b n m", n=N)
-        has_other = (valid.sum(1, keepdim=True) - valid.long()) > 0  # (B, N)
-        signed = torch.where(has_other[..., None], signed, torch.full_like(signed, no_neighbour_distance))
-        features = torch.cat([p_local, signed[..., None]], dim=-1)
-        return features * valid[..., None, None]
+    cloud = prepare_points(points_local, normals_local, mask)
+    d = signed_distances(cloud, translation, rotation, resolve_search(search, points_local.device), chunk,
+                         max_elements, prune, no_neighbour_distance)
+    return torch.cat([cloud.points, d[..., None]], dim=-1)

@@ -20,9 +20,9 @@ from torch import nn
 from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser
-from spread.model.geometry import signed_chamfer_features
+from spread.model.geometry import PointCloud, prepare_points, resolve_search, signed_distances
 from spread.model.graph_attention import EdgeEncoder
-from spread.model.perceiver import GeometryPerceiver
+from spread.model.perceiver import GeometryPerceiver, StaticTokens
 from spread.model.poses import poses_from_state
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
 
@@ -38,9 +38,10 @@ class Condition:
     physical: torch.Tensor  # (B, N, N) long
     edges: torch.Tensor  # (B, N, N, edge_dim)
     shape_tokens: torch.Tensor  # (B, N, L, shape_dim)
-    points: torch.Tensor | None = None  # (B, N, M, 3) canonical, geometry variant
-    normals: torch.Tensor | None = None
+    cloud: PointCloud | None = None  # geometry variant: the canonical points and normals, masked (once per sample)
+    static: StaticTokens | None = None  # geometry variant: the perceiver's pose-independent token channels
     mount: torch.Tensor | None = None  # (B, N) long mount codes (batch["mount"]), when the batch has them
+    search: str = "pruned"  # the nearest-point search (ModelConfig.nearest, resolved for the batch's device)
 
 
 def drop_graphs(spatial: torch.Tensor, physical: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,11 +95,15 @@ class SceneDenoiser(nn.Module):
         spatial, physical = batch["spatial"].long(), batch["physical"].long()
         if drop_graph is not None:
             spatial, physical = drop_graphs(spatial, physical, drop_graph)
-        geometry = self.perceiver is not None
-        return Condition(mask=mask, spatial=spatial, physical=physical,
-                         edges=self.edge_encoder(spatial, physical), shape_tokens=self.shape_encoder(batch),
-                         points=batch["points"] if geometry else None, normals=batch["normals"] if geometry else None,
-                         mount=batch.get("mount"))
+        cond = Condition(mask=mask, spatial=spatial, physical=physical, edges=self.edge_encoder(spatial, physical),
+                         shape_tokens=self.shape_encoder(batch), mount=batch.get("mount"))
+        if self.perceiver is not None:
+            cond.search = resolve_search(getattr(self.config, "nearest", "pruned"), mask.device)
+            # sampling: each object's points in Morton order once, so the dense search skips most tiles
+            cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
+                                        morton=cond.search == "dense" and not self.training)
+            cond.static = self.perceiver.static(cond.cloud.points, mask)
+        return cond
 
     def null_condition(self, cond: Condition) -> Condition:
         """The same scenes with both graphs dropped (classifier-free guidance's unconditional branch)."""
@@ -112,8 +117,8 @@ class SceneDenoiser(nn.Module):
             raise RuntimeError("SceneDenoiser: translation bounds are not set "
                                "(call set_bounds(stats['bounds_translations']))")
         translation, rotation = poses_from_state(x_t.float(), self.bounds)
-        features = signed_chamfer_features(cond.points, cond.normals, translation, rotation, cond.mask)
-        return self.perceiver(features.to(x_t.dtype), cond.mask)
+        distance = signed_distances(cond.cloud, translation, rotation, cond.search)
+        return self.perceiver(distance.to(x_t.dtype), cond.static)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""

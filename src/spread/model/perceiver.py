@@ -1,8 +1,10 @@
 """Geometry perceiver: signed chamfer point features of the whole scene → a few scene-level tokens.
 
-Input: ``features`` (B, N, M, 4) from :func:`spread.model.geometry.signed_chamfer_features`
-([canonical xyz (m), signed distance (m)]) and ``mask`` (B, N). Output: (B, num_latents, dim) tokens,
-shared by the scene (as the release: 256 latents for all objects), that every object node attends to.
+Input: the signed distances (B, N, M) of :func:`spread.model.geometry.signed_distances` (metres) and the
+sample's :class:`StaticTokens` (what does not change between denoising steps: the canonical points' Fourier
+features, the object-index codes, the key mask; :meth:`GeometryPerceiver.static`, made once per sample). Output:
+(B, num_latents, dim) tokens, shared by the scene (as the release: 256 latents for all objects), that every
+object node attends to.
 
 Point token (one per point of every real object, padding objects' points are masked out of the
 attention), all fixed encodings concatenated and fed to the cross-attention's key/value projection:
@@ -22,6 +24,8 @@ poses, and the denoiser's adaptive norms read the tokens.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from einops import rearrange, repeat
 from torch import nn
@@ -33,15 +37,36 @@ from spread.model.layers import Attention, FeedForward
 DISTANCE_SCALES = (0.01, 0.05, 0.25)
 
 
-def point_tokens(features: torch.Tensor, num_bands: int, max_frequency: float, index_dim: int) -> torch.Tensor:
-    """(B, N, M, 4) chamfer features → (B, N·M, point_token_dim(...)) fixed encodings (module docstring)."""
-    B, N, M, _ = features.shape
-    xyz, d = features[..., :3], features[..., 3:4]
-    squashed = [torch.tanh(d / s) for s in DISTANCE_SCALES]
-    index = sinusoidal_embedding(torch.arange(N, device=features.device), index_dim)  # (N, E)
-    index = repeat(index, "n e -> b n m e", b=B, m=M)
-    tokens = torch.cat([fourier_features(xyz, num_bands, max_frequency), d, *squashed, index], dim=-1)
-    return rearrange(tokens, "b n m c -> b (n m) c")
+@dataclass
+class StaticTokens:
+    """The pose-independent channels of the point tokens, made once per sample: ``xyz`` (B, N·M, F) Fourier
+    features of the canonical points, ``index`` (B, N·M, E) the object-index code, ``key_mask`` (B, N·M) the
+    points of real objects."""
+
+    xyz: torch.Tensor
+    index: torch.Tensor
+    key_mask: torch.Tensor
+
+
+def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_frequency: float,
+                  index_dim: int) -> StaticTokens:
+    """:class:`StaticTokens` of canonical points (B, N, M, 3) (zero at padding objects) and ``mask`` (B, N)."""
+    B, N, M, _ = points.shape
+    index = sinusoidal_embedding(torch.arange(N, device=points.device), index_dim)  # (N, E)
+    return StaticTokens(rearrange(fourier_features(points, num_bands, max_frequency), "b n m c -> b (n m) c"),
+                        repeat(index, "n e -> b (n m) e", b=B, m=M),
+                        repeat(mask.bool(), "b n -> b (n m)", m=M))
+
+
+def point_tokens(distance: torch.Tensor, static: StaticTokens, scales: torch.Tensor | None = None) -> torch.Tensor:
+    """Signed distances (B, N, M) and the sample's :class:`StaticTokens` → (B, N·M, point_token_dim(...)) tokens
+    [Fourier(xyz), d, tanh(d / s) for s in DISTANCE_SCALES, index code] (module docstring); ``scales``: the
+    DISTANCE_SCALES as a tensor on the device (made here when not given)."""
+    d = rearrange(distance, "b n m -> b (n m) 1")
+    if scales is None:
+        scales = torch.tensor(DISTANCE_SCALES, device=d.device)
+    scales = scales.to(d.dtype)
+    return torch.cat([static.xyz.to(d.dtype), d, torch.tanh(d / scales), static.index.to(d.dtype)], dim=-1)
 
 
 def point_token_dim(num_bands: int, index_dim: int) -> int:
@@ -71,14 +96,18 @@ class GeometryPerceiver(nn.Module):
                                for _ in range(self_per_cross)]),
             ]))
         self.norm_out = nn.LayerNorm(dim)
+        self.register_buffer("distance_scales", torch.tensor(DISTANCE_SCALES), persistent=False)
 
-    def forward(self, features: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        B, N, M, _ = features.shape
-        tokens = point_tokens(features, self.num_bands, self.max_frequency, self.index_dim)
-        key_mask = repeat(mask.bool(), "b n -> b (n m)", m=M)
-        z = repeat(self.latents, "l d -> b l d", b=B)
+    def static(self, points: torch.Tensor, mask: torch.Tensor) -> StaticTokens:
+        """The sample's :class:`StaticTokens` (canonical points (B, N, M, 3), zero at padding; mask (B, N))."""
+        return static_tokens(points, mask, self.num_bands, self.max_frequency, self.index_dim)
+
+    def forward(self, distance: torch.Tensor, static: StaticTokens) -> torch.Tensor:
+        """Signed distances (B, N, M) (metres) of the sample's points → scene tokens (B, num_latents, dim)."""
+        tokens = point_tokens(distance, static, self.distance_scales)
+        z = repeat(self.latents, "l d -> b l d", b=distance.shape[0])
         for norm_z, norm_ctx, cross, norm_ff, ff, self_layers in self.layers:
-            z = z + cross(norm_z(z), norm_ctx(tokens), key_mask=key_mask)
+            z = z + cross(norm_z(z), norm_ctx(tokens), key_mask=static.key_mask)
             z = z + ff(norm_ff(z))
             for norm_a, attn, norm_f, ff_self in self_layers:
                 z = z + attn(norm_a(z))

@@ -1,6 +1,6 @@
 """A recorded SPREAD network: what the model computed before its GPU rewrite (issue 29), kept as numbers.
 
-``python tests/model_fixture.py`` (run once, on the code before the rewrite) wrote ``tests/data/model_outputs.json``:
+``python tests/model_fixture.py`` (run once, on the code before the rewrite: commit 35871fd) wrote ``tests/data/model_outputs.json``:
 for each variant, the names and shapes of the network's parameters as they were then, and, for weights drawn from
 a seed in that order, the network's ε̂ on a fixed batch at three timesteps and the states of a DDIM-10 sampling run.
 ``tests/test_gpu_paths.py`` draws the same weights into today's network (old checkpoints load through the layout
@@ -42,11 +42,11 @@ def batch(seed: int = 0) -> dict:
 
 
 def seeded_state(names_shapes, seed: int = 1) -> dict:
-    """Weights drawn in the recorded order (N(0, 0.2²); LayerNorm-like 1-d weights around 1)."""
+    """Weights drawn in the recorded order (N(0, 0.05²); LayerNorm-like 1-d weights around 1)."""
     g = torch.Generator().manual_seed(seed)
     state = {}
     for name, shape in names_shapes:
-        value = torch.randn(shape, generator=g) * 0.2
+        value = torch.randn(shape, generator=g) * 0.05
         if name.endswith("norm.weight") or ".norm_" in name and name.endswith("weight") and len(shape) == 1:
             value = value + 1.0
         state[name] = value

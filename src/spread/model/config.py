@@ -46,6 +46,7 @@ class ModelConfig:
     perceiver_self_per_cross: int = 2
     perceiver_cross_heads: int = 1
     perceiver_cross_dim_head: int = 64
+    perceiver_dropout: float = 0.0  # the release's perceiver has none (reference §2.3); the graph blocks use `dropout`
     point_bands: int = 6  # Fourier bands of canonical xyz (metres)
     point_max_frequency: float = 32.0
     # data

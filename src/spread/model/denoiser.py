@@ -15,7 +15,9 @@ encodings → Linear"; the index code is the one the perceiver puts on each obje
 
 Block (× depth), all pre-norm with AdaLN on the timestep embedding, residual after each sub-layer:
 1. cross-attention of each object to its own shape tokens (real objects only);
-2. cross-attention of every object to the scene's geometry tokens (``geometry`` variant only);
+2. cross-attention of every object to the scene's geometry tokens (``geometry`` variant only; the geometry
+   tokens' keys/values and this sub-layer's AdaLN modulation are computed for all blocks in one product each:
+   ``geometry_kv``, ``geometry_mod``; checkpoints with them per block load into it);
 3. graph attention over the real objects, edge features as logit bias and message term;
 4. GEGLU feed-forward.
 
@@ -27,6 +29,7 @@ output of a real object.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from spread.model.config import ModelConfig
@@ -43,8 +46,9 @@ class DenoiserBlock(nn.Module):
         dim, cond = cfg.dim, cfg.cond_dim
         self.norm_shape = AdaLayerNorm(dim, cond)
         self.shape_attn = Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout)
-        self.norm_geometry = AdaLayerNorm(dim, cond) if geometry else None
-        self.geometry_attn = (Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout)
+        # geometry: the modulation and the keys/values are the denoiser's, computed for every block at once
+        self.norm_geometry = nn.LayerNorm(dim, elementwise_affine=False) if geometry else None
+        self.geometry_attn = (Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout, kv="given")
                               if geometry else None)
         self.norm_graph = AdaLayerNorm(dim, cond)
         self.graph_attn = GraphAttention(dim, cfg.edge_dim, cond, heads=cfg.heads, dim_head=cfg.dim_head,
@@ -53,16 +57,19 @@ class DenoiserBlock(nn.Module):
         self.ff = FeedForward(dim, cfg.ff_mult, cfg.dropout)
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor, mask: torch.Tensor, shape_tokens: torch.Tensor,
-                shape_in: nn.Linear, edges: torch.Tensor, geometry: torch.Tensor | None) -> torch.Tensor:
+                shape_in: nn.Linear, edges: torch.Tensor, geometry: tuple | None) -> torch.Tensor:
         """x (B, N, dim); cond (B, cond_dim); shape_tokens (V, L, shape_dim) of the V real objects in
-        ``mask`` order, projected by ``shape_in``; edges (B, N, N, edge_dim); geometry (B, G, dim) or None."""
+        ``mask`` order, projected by ``shape_in``; edges (B, N, N, edge_dim); geometry: None or this block's
+        (keys/values (B, G, 2·heads·dim_head) of the scene's geometry tokens, 1 + scale (B, dim), shift (B, dim))."""
         h = self.norm_shape(x, cond)
         update = torch.zeros_like(x)
         attended = self.shape_attn(h[mask][:, None, :], shape_tokens, context_proj=shape_in)
         update[mask] = attended[:, 0].to(update.dtype)
         x = x + update
         if self.geometry_attn is not None:
-            x = x + self.geometry_attn(self.norm_geometry(x, cond), geometry)
+            kv, scale, shift = geometry
+            h = torch.addcmul(shift[:, None, :], self.norm_geometry(x), scale[:, None, :])  # AdaLN
+            x = x + self.geometry_attn(h, kv=kv)
         x = x + self.graph_attn(self.norm_graph(x, cond), edges, mask, cond)
         return x + self.ff(self.norm_ff(x, cond))
 
@@ -83,6 +90,13 @@ class GraphDenoiser(nn.Module):
             nn.init.zeros_(self.mount_in.weight)
         self.shape_in = nn.Linear(cfg.shape_dim, cfg.dim)
         self.blocks = nn.ModuleList(DenoiserBlock(cfg, geometry) for _ in range(cfg.depth))
+        if geometry:  # every block's AdaLN modulation and keys/values of the geometry tokens, in one product each
+            inner = cfg.heads * cfg.dim_head
+            self.geometry_kv = nn.Linear(cfg.dim, cfg.depth * 2 * inner, bias=False)
+            self.geometry_mod = nn.Linear(cfg.cond_dim, cfg.depth * 2 * cfg.dim)
+            nn.init.zeros_(self.geometry_mod.weight)
+            nn.init.zeros_(self.geometry_mod.bias)
+            self.register_load_state_dict_pre_hook(_legacy_geometry_layout)
         self.norm_out = AdaLayerNorm(cfg.dim, cfg.cond_dim)
         self.head = nn.Sequential(nn.Linear(cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, STATE_DIM))
         nn.init.zeros_(self.head[-1].weight)
@@ -97,6 +111,14 @@ class GraphDenoiser(nn.Module):
             x = x + self.mount_in(mount.long()).to(x.dtype)
         return x
 
+    def geometry_inputs(self, tokens: torch.Tensor, cond: torch.Tensor) -> list[tuple]:
+        """Per block: (keys/values of the geometry tokens (B, G, 2·heads·dim_head), 1 + scale, shift (B, dim)) of its
+        geometry cross-attention's AdaLN — each computed for all blocks in one product."""
+        depth, dim = len(self.blocks), self.cfg.dim
+        kv = self.geometry_kv(tokens).chunk(depth, dim=-1)
+        scale, shift = self.geometry_mod(F.silu(cond)).view(-1, depth, 2, dim).unbind(2)
+        return list(zip(kv, (scale + 1).unbind(1), shift.unbind(1)))
+
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor,
                 shape_tokens: torch.Tensor, geometry_tokens: torch.Tensor | None = None,
                 mount: torch.Tensor | None = None) -> torch.Tensor:
@@ -106,7 +128,24 @@ class GraphDenoiser(nn.Module):
         cond = self.time(t)
         x = self.embed_nodes(x_t, mount)
         shape_tokens = shape_tokens[mask]  # (V, L, shape_dim); projected inside each block's attention
-        for block in self.blocks:
-            x = block(x, cond, mask, shape_tokens, self.shape_in, edges, geometry_tokens)
+        geometry = self.geometry_inputs(geometry_tokens, cond) if self.geometry else [None] * len(self.blocks)
+        for block, block_geometry in zip(self.blocks, geometry):
+            x = block(x, cond, mask, shape_tokens, self.shape_in, edges, block_geometry)
         eps = self.head(self.norm_out(x, cond))
         return eps * mask[..., None]
+
+
+def _legacy_geometry_layout(module, state_dict, prefix, *args) -> None:
+    """Load hook: a checkpoint with an AdaLN and a ``to_kv`` in each block's geometry attention
+    (``blocks.i.norm_geometry.to_scale_shift.1``, ``blocks.i.geometry_attn.to_kv``) → the stacked
+    ``geometry_mod`` and ``geometry_kv`` (the same function)."""
+    head = f"{prefix}blocks."
+    if f"{prefix}geometry_kv.weight" in state_dict or f"{head}0.geometry_attn.to_kv.weight" not in state_dict:
+        return
+    depth = len(module.blocks)
+    kv = [state_dict.pop(f"{head}{i}.geometry_attn.to_kv.weight") for i in range(depth)]
+    weight = [state_dict.pop(f"{head}{i}.norm_geometry.to_scale_shift.1.weight") for i in range(depth)]
+    bias = [state_dict.pop(f"{head}{i}.norm_geometry.to_scale_shift.1.bias") for i in range(depth)]
+    state_dict[f"{prefix}geometry_kv.weight"] = torch.cat(kv, 0)
+    state_dict[f"{prefix}geometry_mod.weight"] = torch.cat(weight, 0)
+    state_dict[f"{prefix}geometry_mod.bias"] = torch.cat(bias, 0)

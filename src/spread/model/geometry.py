@@ -52,18 +52,20 @@ def resolve_search(search: str, device: torch.device) -> str:
 @dataclass
 class PointCloud:
     """The pose-independent part of a batch's geometry (module docstring). points, normals: (B, N, M, 3) float32
-    canonical frame, zero at padding objects; valid (B, N) bool; has_other (B, N) bool (another real object in
-    the scene); count (B, 1) real objects."""
+    canonical frame, zero at padding objects; valid (B, N) bool; has_other (B, N, 1) bool (another real object in
+    the scene); fill (B, N, 1) float32, the distance of an object without a neighbour (``no_neighbour_distance``
+    for a lone real object, 0 for padding); count (B, 1) real objects."""
 
     points: torch.Tensor
     normals: torch.Tensor
     valid: torch.Tensor
     has_other: torch.Tensor
+    fill: torch.Tensor
     count: torch.Tensor
 
 
 def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask: torch.Tensor,
-                   morton: bool = False) -> PointCloud:
+                   morton: bool = False, no_neighbour_distance: float = NO_NEIGHBOUR_DISTANCE) -> PointCloud:
     """The :class:`PointCloud` of canonical points and normals (B, N, M, 3) of objects ``mask`` (B, N). ``morton``
     puts each object's points in Morton order of their canonical coordinates (the same points, reordered: the
     dense search then skips most of its tiles; the features are the same set)."""
@@ -76,23 +78,27 @@ def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask
         order = morton_order(p_local)[..., None].expand(-1, -1, -1, 3)
         p_local, n_local = p_local.gather(2, order), n_local.gather(2, order)
     count = valid.sum(1, keepdim=True)
-    return PointCloud(p_local, n_local, valid, (count - valid.long()) > 0, count.clamp(min=1))
+    has_other = (valid & ((count - valid.long()) > 0))[..., None]
+    fill = (valid[..., None] & ~has_other).float() * no_neighbour_distance
+    return PointCloud(p_local, n_local, valid, has_other, fill, count.clamp(min=1))
 
 
 def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: torch.Tensor, search: str = "pruned",
-                     chunk: int | None = None, max_elements: int = CHUNK_ELEMENTS, prune: bool = True,
-                     no_neighbour_distance: float = NO_NEIGHBOUR_DISTANCE) -> torch.Tensor:
+                     chunk: int | None = None, max_elements: int = CHUNK_ELEMENTS, prune: bool = True) -> torch.Tensor:
     """(B, N, M) signed nearest-other-object distance d of every point of ``cloud`` posed by translation (B, N, 3)
-    metres and rotation (B, N, 3, 3) world-from-local; 0 at padding objects. ``search``: ``pruned`` | ``dense``
-    (``auto`` resolved by the caller: :func:`resolve_search`); chunk / max_elements / prune: see
-    :func:`spread.model.nearest.nearest_other_point` (speed and memory, never the result)."""
+    metres and rotation (B, N, 3, 3) world-from-local (finite everywhere, padding objects too); the cloud's
+    ``fill`` for objects without a neighbour, 0 at padding. ``search``: ``pruned`` | ``dense`` (``auto`` resolved by
+    the caller: :func:`resolve_search`); chunk / max_elements / prune: see
+    :func:`spread.model.nearest.nearest_other_point` (speed and memory, never the result).
+
+    The pruned search compares distances in the ``‖q‖² − 2p·q`` form, so its scenes are centred first (fewer
+    float32 digits lost); the dense one measures differences, which need no centring."""
     B, N, M, _ = cloud.points.shape
     valid = cloud.valid
     with torch.autocast(device_type=cloud.points.device.type, enabled=False):
-        R = torch.where(valid[..., None, None], rotation.float(), 0.0)
-        t = torch.where(valid[..., None], translation.float(), 0.0)
-        # scene-centred world frame: distances are unchanged and the float32 search keeps more digits
-        t = torch.where(valid[..., None], t - t.sum(1, keepdim=True) / cloud.count[..., None], 0.0)
+        R, t = rotation.float(), translation.float()
+        if search != "dense":  # scene-centred world frame: distances are unchanged
+            t = t - (t * valid[..., None]).sum(1, keepdim=True) / cloud.count[..., None]
         world = pose_points(cloud.points, t, R)  # (B, N, M, 3)
         with torch.no_grad():
             if search == "dense":
@@ -102,14 +108,14 @@ def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: tor
             else:
                 nearest = nearest_other_point(world.detach(), cloud.points, t.detach(), R.detach(), valid,
                                               chunk=chunk, max_elements=max_elements, prune=prune)
-        world_flat = world.reshape(B, N * M, 3)
+        world_flat = world.view(B, N * M, 3)
         normals_flat = torch.einsum("bnij,bnmj->bnmi", R, cloud.normals).reshape(B, N * M, 3)
         index = nearest[..., None].expand(B, N * M, 3)
         diff = world_flat - world_flat.gather(1, index)
         dist = torch.linalg.vector_norm(diff, dim=-1)
-        outside = (diff * normals_flat.gather(1, index)).sum(-1) >= 0
-        signed = torch.where(outside, dist, -dist).view(B, N, M)
-        return torch.where(cloud.has_other[..., None], signed, no_neighbour_distance) * valid[..., None]
+        # the sign of (p − q)·n_q, +0 for a zero product (adding +0.0 turns −0.0 into +0.0): outside, as documented
+        signed = torch.copysign(dist, (diff * normals_flat.gather(1, index)).sum(-1) + 0.0)
+        return torch.where(cloud.has_other, signed.view(B, N, M), cloud.fill)
 
 
 def signed_chamfer_features(points_local: torch.Tensor, normals_local: torch.Tensor, translation: torch.Tensor,
@@ -122,7 +128,10 @@ def signed_chamfer_features(points_local: torch.Tensor, normals_local: torch.Ten
     translation (B, N, 3) metres, rotation (B, N, 3, 3) world-from-local; mask (B, N) bool.
     search / chunk / max_elements / prune: see :func:`signed_distances` (speed and memory, never the result).
     """
-    cloud = prepare_points(points_local, normals_local, mask)
-    d = signed_distances(cloud, translation, rotation, resolve_search(search, points_local.device), chunk,
-                         max_elements, prune, no_neighbour_distance)
+    cloud = prepare_points(points_local, normals_local, mask, no_neighbour_distance=no_neighbour_distance)
+    valid = cloud.valid
+    # padding objects' poses may be anything (even NaN): identity at the origin instead
+    t = torch.where(valid[..., None], translation.float(), 0.0)
+    R = torch.where(valid[..., None, None], rotation.float(), torch.eye(3, device=rotation.device))
+    d = signed_distances(cloud, t, R, resolve_search(search, points_local.device), chunk, max_elements, prune)
     return torch.cat([cloud.points, d[..., None]], dim=-1)

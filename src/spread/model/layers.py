@@ -49,11 +49,21 @@ class FeedForward(nn.Module):
         return self.proj_out(a * F.gelu(gate))
 
 
+#: How an :class:`Attention` gets its keys and values.
+KV_SOURCES = ("context", "self", "given")
+
+
 class Attention(nn.Module):
     """Multi-head attention of queries x (B, Nq, dim) over a context (B, Nk, context_dim) (self if None).
 
-    ``key_mask`` (B, Nk) bool marks the keys that may be attended to (True = real). Every query must
+    ``key_mask`` (B, Nk) bool marks the keys that may be attended to (True = real); ``key_bias`` (B, 1, 1, Nk) is
+    the same as an additive float mask (0 or −inf), made once when several layers share the keys. Every query must
     have at least one real key. Output (B, Nq, dim).
+
+    ``kv`` says where keys and values come from: ``context`` (``to_kv`` on the context), ``self`` (self-attention
+    only: one ``to_qkv`` projection of x — one matrix product instead of two; checkpoints with separate
+    ``to_q``/``to_kv`` load into it) or ``given`` (the caller passes the projected ``kv`` (B, Nk, 2·heads·dim_head),
+    e.g. computed for several layers in one product).
 
     ``context_proj`` (a Linear shared by several layers, e.g. the shape-token projection) makes the
     keys and values ``to_kv(context_proj(context))``; it is computed as one Linear with the composed
@@ -62,25 +72,56 @@ class Attention(nn.Module):
     """
 
     def __init__(self, dim: int, context_dim: int | None = None, heads: int = 8, dim_head: int = 64,
-                 dropout: float = 0.0):
+                 dropout: float = 0.0, kv: str = "context"):
         super().__init__()
+        if kv not in KV_SOURCES:
+            raise ValueError(f"Attention: kv must be one of {KV_SOURCES}, got '{kv}'")
         inner = heads * dim_head
-        self.heads = heads
-        self.to_q = nn.Linear(dim, inner, bias=False)
-        self.to_kv = nn.Linear(context_dim or dim, 2 * inner, bias=False)
+        self.heads, self.kv = heads, kv
+        if kv == "self":
+            self.to_qkv = nn.Linear(dim, 3 * inner, bias=False)
+            self.register_load_state_dict_pre_hook(_fuse_legacy_qkv)
+        else:
+            self.to_q = nn.Linear(dim, inner, bias=False)
+        if kv == "context":
+            self.to_kv = nn.Linear(context_dim or dim, 2 * inner, bias=False)
         self.to_out = nn.Sequential(nn.Linear(inner, dim), nn.Dropout(dropout))
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None, key_mask: torch.Tensor | None = None,
-                context_proj: nn.Linear | None = None) -> torch.Tensor:
-        context = x if context is None else context
-        q = rearrange(self.to_q(x), "b n (h d) -> b h n d", h=self.heads)
-        if context_proj is None:
-            kv = self.to_kv(context)
+                context_proj: nn.Linear | None = None, kv: torch.Tensor | None = None,
+                key_bias: torch.Tensor | None = None) -> torch.Tensor:
+        if self.kv == "self":
+            q, k, v = rearrange(self.to_qkv(x), "b n (three h d) -> three b h n d", three=3, h=self.heads)
         else:
-            weight = self.to_kv.weight @ context_proj.weight
-            bias = None if context_proj.bias is None else self.to_kv.weight @ context_proj.bias
-            kv = F.linear(context, weight, bias)
-        k, v = rearrange(kv, "b n (two h d) -> two b h n d", two=2, h=self.heads)
-        mask = None if key_mask is None else rearrange(key_mask, "b k -> b 1 1 k")
+            q = rearrange(self.to_q(x), "b n (h d) -> b h n d", h=self.heads)
+            if self.kv == "context":
+                context = x if context is None else context
+                if context_proj is None:
+                    kv = self.to_kv(context)
+                else:
+                    weight = self.to_kv.weight @ context_proj.weight
+                    bias = None if context_proj.bias is None else self.to_kv.weight @ context_proj.bias
+                    kv = F.linear(context, weight, bias)
+            elif kv is None:
+                raise ValueError("Attention(kv='given') needs kv=")
+            k, v = rearrange(kv, "b n (two h d) -> two b h n d", two=2, h=self.heads)
+        mask = key_bias
+        if mask is None and key_mask is not None:
+            mask = rearrange(key_mask, "b k -> b 1 1 k")
+        if mask is not None and mask.is_floating_point() and mask.dtype != q.dtype:
+            mask = mask.to(q.dtype)
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
         return self.to_out(rearrange(out, "b h n d -> b n (h d)"))
+
+
+def key_bias(key_mask: torch.Tensor) -> torch.Tensor:
+    """(B, Nk) bool real keys → the additive mask (B, 1, 1, Nk) float32: 0 for real keys, −inf for the rest."""
+    zero = torch.zeros((), device=key_mask.device)
+    return torch.where(key_mask, zero, float("-inf"))[:, None, None, :]
+
+
+def _fuse_legacy_qkv(module, state_dict, prefix, *args) -> None:
+    """Load hook of a self-attention: a checkpoint's separate ``to_q`` and ``to_kv`` weights become ``to_qkv``."""
+    q, kv = f"{prefix}to_q.weight", f"{prefix}to_kv.weight"
+    if q in state_dict and kv in state_dict and f"{prefix}to_qkv.weight" not in state_dict:
+        state_dict[f"{prefix}to_qkv.weight"] = torch.cat([state_dict.pop(q), state_dict.pop(kv)], 0)

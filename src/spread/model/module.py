@@ -36,7 +36,7 @@ from spread.model.config import ModelConfig, SceneDiffusionConfig
 from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, check_prediction, denoise,
                                     epsilon_from_prediction, loss_weights, prediction_target, training_scheduler)
 from spread.model.ema import EMA
-from spread.model.network import SceneDenoiser
+from spread.model.network import SceneDenoiser, upgrade_state_dict
 from spread.model.poses import poses_from_state
 from spread.model.recall import graph_recall
 
@@ -176,6 +176,7 @@ class SceneDiffusion(L.LightningModule):
         state = expect_checkpoint(file, "model.init_from", method="spread").get("state_dict", {})
         prefix = "ema.module."
         source = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix) and not k.endswith("bounds")}
+        source = upgrade_state_dict(self.network, source)  # a checkpoint of an older layout, in today's names
         if not source:
             raise ValueError(f"model.init_from={path}: no EMA weights ('{prefix}*') in its state_dict")
         own = self.network.state_dict()

@@ -18,12 +18,12 @@ import torch
 from torch import nn
 
 from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
+from spread.data.rotation import rot6d_to_matrix
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser
 from spread.model.geometry import PointCloud, prepare_points, resolve_search, signed_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
-from spread.model.poses import poses_from_state
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
 
 VARIANTS = ("base", "geometry")
@@ -42,6 +42,19 @@ class Condition:
     static: StaticTokens | None = None  # geometry variant: the perceiver's pose-independent token channels
     mount: torch.Tensor | None = None  # (B, N) long mount codes (batch["mount"]), when the batch has them
     search: str = "pruned"  # the nearest-point search (ModelConfig.nearest, resolved for the batch's device)
+    pose_scale: torch.Tensor | None = None  # geometry variant: (3,) metres per unit of normalised translation
+    pose_offset: torch.Tensor | None = None  # (3,) metres at normalised 0
+
+
+def upgrade_state_dict(network: nn.Module, state: dict) -> dict:
+    """A copy of ``state`` (a state dict of ``network``, keys relative to it) with an older layout's keys renamed as
+    ``load_state_dict`` would (every module's load hooks: fused self-attention projections, the perceiver's and the
+    denoiser's stacked geometry weights), for callers that match keys themselves."""
+    state = dict(state)
+    for name, module in network.named_modules():
+        for hook in module._load_state_dict_pre_hooks.values():
+            hook(state, f"{name}." if name else "", {}, True, [], [], [])
+    return state
 
 
 def drop_graphs(spatial: torch.Tensor, physical: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -77,7 +90,8 @@ class SceneDenoiser(nn.Module):
             self.perceiver = GeometryPerceiver(
                 config.dim, config.num_latents, config.perceiver_depth, config.perceiver_self_per_cross,
                 config.perceiver_cross_heads, config.perceiver_cross_dim_head, config.heads, config.dim_head,
-                config.ff_mult, config.point_bands, config.point_max_frequency, config.index_dim, config.dropout)
+                config.ff_mult, config.point_bands, config.point_max_frequency, config.index_dim,
+                config.perceiver_dropout)
         self.denoiser = GraphDenoiser(config, geometry=variant == "geometry")
         self.register_buffer("bounds", torch.full((6,), float("nan")))
         if bounds is not None:
@@ -103,6 +117,8 @@ class SceneDenoiser(nn.Module):
             cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
                                         morton=cond.search == "dense" and not self.training)
             cond.static = self.perceiver.static(cond.cloud.points, mask)
+            lo, hi = self.bounds[:3], self.bounds[3:]  # denormalisation as one multiply-add per step
+            cond.pose_scale, cond.pose_offset = (hi - lo) / 2, (hi + lo) / 2
         return cond
 
     def null_condition(self, cond: Condition) -> Condition:
@@ -116,8 +132,9 @@ class SceneDenoiser(nn.Module):
         if not torch.isfinite(self.bounds).all():
             raise RuntimeError("SceneDenoiser: translation bounds are not set "
                                "(call set_bounds(stats['bounds_translations']))")
-        translation, rotation = poses_from_state(x_t.float(), self.bounds)
-        distance = signed_distances(cond.cloud, translation, rotation, cond.search)
+        x = x_t.float()
+        translation = torch.addcmul(cond.pose_offset, x[..., :3], cond.pose_scale)  # denormalize(x, bounds)
+        distance = signed_distances(cond.cloud, translation, rot6d_to_matrix(x[..., 3:9]), cond.search)
         return self.perceiver(distance.to(x_t.dtype), cond.static)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:

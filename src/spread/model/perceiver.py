@@ -24,14 +24,16 @@ poses, and the denoiser's adaptive norms read the tokens.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from einops import rearrange, repeat
 from torch import nn
 
 from spread.model.encodings import fourier_dim, fourier_features, sinusoidal_embedding
-from spread.model.layers import Attention, FeedForward
+from spread.model.layers import Attention, FeedForward, key_bias
 
 #: Length scales (metres) of the squashed signed-distance channels.
 DISTANCE_SCALES = (0.01, 0.05, 0.25)
@@ -40,12 +42,12 @@ DISTANCE_SCALES = (0.01, 0.05, 0.25)
 @dataclass
 class StaticTokens:
     """The pose-independent channels of the point tokens, made once per sample: ``xyz`` (B, N·M, F) Fourier
-    features of the canonical points, ``index`` (B, N·M, E) the object-index code, ``key_mask`` (B, N·M) the
-    points of real objects."""
+    features of the canonical points, ``index`` (B, N·M, E) the object-index code, ``key_bias`` (B, 1, 1, N·M) the
+    additive attention mask of the points (0 for real objects' points, −inf for padding)."""
 
     xyz: torch.Tensor
     index: torch.Tensor
-    key_mask: torch.Tensor
+    key_bias: torch.Tensor
 
 
 def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_frequency: float,
@@ -55,7 +57,7 @@ def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_
     index = sinusoidal_embedding(torch.arange(N, device=points.device), index_dim)  # (N, E)
     return StaticTokens(rearrange(fourier_features(points, num_bands, max_frequency), "b n m c -> b (n m) c"),
                         repeat(index, "n e -> b (n m) e", b=B, m=M),
-                        repeat(mask.bool(), "b n -> b (n m)", m=M))
+                        key_bias(repeat(mask.bool(), "b n -> b (n m)", m=M)))
 
 
 def point_tokens(distance: torch.Tensor, static: StaticTokens, scales: torch.Tensor | None = None) -> torch.Tensor:
@@ -74,7 +76,14 @@ def point_token_dim(num_bands: int, index_dim: int) -> int:
 
 
 class GeometryPerceiver(nn.Module):
-    """Chamfer features (B, N, M, 4), mask (B, N) → scene geometry tokens (B, num_latents, dim)."""
+    """Signed distances (B, N, M) + the sample's :class:`StaticTokens` → scene geometry tokens (B, num_latents, dim).
+
+    The point tokens are the largest tensor of the step (B·N·M tokens): each cross-attention's pre-LayerNorm and
+    key/value projection of them are computed for all ``depth`` cross-attentions at once — one normalisation
+    (the LayerNorm without its affine part) and one matrix product whose weights fold in each layer's LayerNorm
+    scale and shift (``context_scale``, ``context_shift`` (depth, C), ``context_kv`` (depth, 2·heads·dim_head, C)):
+    ``to_kv(LN(x)·w + b) = (W·diag(w))·LN(x) + W·b``, the same function. Checkpoints with one LayerNorm and
+    ``to_kv`` per layer load into it."""
 
     def __init__(self, dim: int, num_latents: int = 256, depth: int = 4, self_per_cross: int = 2,
                  cross_heads: int = 1, cross_dim_head: int = 64, heads: int = 8, dim_head: int = 64,
@@ -84,32 +93,68 @@ class GeometryPerceiver(nn.Module):
         self.num_bands, self.max_frequency, self.index_dim = num_bands, max_frequency, index_dim
         context_dim = point_token_dim(num_bands, index_dim)
         self.latents = nn.Parameter(torch.randn(num_latents, dim) * 0.02)
+        self.context_norm = nn.LayerNorm(context_dim, elementwise_affine=False)
+        self.context_scale = nn.Parameter(torch.ones(depth, context_dim))
+        self.context_shift = nn.Parameter(torch.zeros(depth, context_dim))
+        self.context_kv = nn.Parameter(torch.empty(depth, 2 * cross_heads * cross_dim_head, context_dim))
+        for weight in self.context_kv.data:  # each layer's as nn.Linear initialises its weight
+            nn.init.kaiming_uniform_(weight, a=math.sqrt(5))
         self.layers = nn.ModuleList()
         for _ in range(depth):
             self.layers.append(nn.ModuleList([
-                nn.LayerNorm(dim), nn.LayerNorm(context_dim),
-                Attention(dim, context_dim, heads=cross_heads, dim_head=cross_dim_head, dropout=dropout),
+                nn.LayerNorm(dim),
+                Attention(dim, heads=cross_heads, dim_head=cross_dim_head, dropout=dropout, kv="given"),
                 nn.LayerNorm(dim), FeedForward(dim, ff_mult, dropout),
                 nn.ModuleList([nn.ModuleList([nn.LayerNorm(dim), Attention(dim, heads=heads, dim_head=dim_head,
-                                                                           dropout=dropout),
+                                                                           dropout=dropout, kv="self"),
                                               nn.LayerNorm(dim), FeedForward(dim, ff_mult, dropout)])
                                for _ in range(self_per_cross)]),
             ]))
         self.norm_out = nn.LayerNorm(dim)
         self.register_buffer("distance_scales", torch.tensor(DISTANCE_SCALES), persistent=False)
+        self.register_load_state_dict_pre_hook(_legacy_layout)
 
     def static(self, points: torch.Tensor, mask: torch.Tensor) -> StaticTokens:
         """The sample's :class:`StaticTokens` (canonical points (B, N, M, 3), zero at padding; mask (B, N))."""
         return static_tokens(points, mask, self.num_bands, self.max_frequency, self.index_dim)
 
+    def context(self, tokens: torch.Tensor) -> torch.Tensor:
+        """Keys and values (B, K, depth·2·heads·dim_head) of every cross-attention for point tokens (B, K, C)."""
+        depth, width, channels = self.context_kv.shape
+        weight = (self.context_kv * self.context_scale[:, None, :]).reshape(depth * width, channels)
+        bias = torch.einsum("lkc,lc->lk", self.context_kv, self.context_shift).reshape(depth * width)
+        return F.linear(self.context_norm(tokens), weight.to(tokens.dtype), bias.to(tokens.dtype))
+
     def forward(self, distance: torch.Tensor, static: StaticTokens) -> torch.Tensor:
         """Signed distances (B, N, M) (metres) of the sample's points → scene tokens (B, num_latents, dim)."""
-        tokens = point_tokens(distance, static, self.distance_scales)
+        kv = self.context(point_tokens(distance, static, self.distance_scales)).chunk(len(self.layers), dim=-1)
         z = repeat(self.latents, "l d -> b l d", b=distance.shape[0])
-        for norm_z, norm_ctx, cross, norm_ff, ff, self_layers in self.layers:
-            z = z + cross(norm_z(z), norm_ctx(tokens), key_mask=static.key_mask)
+        for (norm_z, cross, norm_ff, ff, self_layers), layer_kv in zip(self.layers, kv):
+            z = z + cross(norm_z(z), kv=layer_kv, key_bias=static.key_bias)
             z = z + ff(norm_ff(z))
             for norm_a, attn, norm_f, ff_self in self_layers:
                 z = z + attn(norm_a(z))
                 z = z + ff_self(norm_f(z))
         return self.norm_out(z)
+
+
+def _legacy_layout(module, state_dict, prefix, *args) -> None:
+    """Load hook: a checkpoint of the layout with one context LayerNorm and ``to_kv`` per cross-attention
+    (``layers.i.{0 norm_z, 1 norm_ctx, 2 cross, 3 norm_ff, 4 ff, 5 self}``) → the stacked context weights and
+    ``layers.i.{0 norm_z, 1 cross, 2 norm_ff, 3 ff, 4 self}``."""
+    if f"{prefix}context_kv" in state_dict or f"{prefix}layers.0.2.to_kv.weight" not in state_dict:
+        return
+    depth = len(module.layers)
+    head = f"{prefix}layers."
+    scale, shift, kv = [], [], []
+    for i in range(depth):
+        scale.append(state_dict.pop(f"{head}{i}.1.weight"))
+        shift.append(state_dict.pop(f"{head}{i}.1.bias"))
+        kv.append(state_dict.pop(f"{head}{i}.2.to_kv.weight"))
+    for key in [k for k in state_dict if k.startswith(head)]:
+        layer, part, rest = key[len(head):].split(".", 2)
+        if part in ("2", "3", "4", "5"):
+            state_dict[f"{head}{layer}.{int(part) - 1}.{rest}"] = state_dict.pop(key)
+    state_dict[f"{prefix}context_scale"] = torch.stack(scale)
+    state_dict[f"{prefix}context_shift"] = torch.stack(shift)
+    state_dict[f"{prefix}context_kv"] = torch.stack(kv)

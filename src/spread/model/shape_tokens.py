@@ -52,7 +52,7 @@ class PointCloudTokenizer(ShapeEncoder):
         self.norm_points = nn.LayerNorm(width)
         self.cross = Attention(width, heads=heads, dim_head=width // heads)
         self.norm_self = nn.LayerNorm(width)
-        self.self_attn = Attention(width, heads=heads, dim_head=width // heads)
+        self.self_attn = Attention(width, heads=heads, dim_head=width // heads, kv="self")
         self.norm_ff = nn.LayerNorm(width)
         self.ff = FeedForward(width, mult=2)
         self.out = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, token_dim))

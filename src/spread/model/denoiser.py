@@ -40,6 +40,11 @@ from spread.model.layers import AdaLayerNorm, Attention, FeedForward
 STATE_DIM = 9
 
 
+def real_objects(mask: torch.Tensor) -> torch.Tensor:
+    """(V,) flat indices into B·N of the real objects of ``mask`` (B, N), in ``mask`` order (one host read)."""
+    return mask.bool().flatten().nonzero().squeeze(1)
+
+
 class DenoiserBlock(nn.Module):
     def __init__(self, cfg: ModelConfig, geometry: bool):
         super().__init__()
@@ -57,15 +62,16 @@ class DenoiserBlock(nn.Module):
         self.ff = FeedForward(dim, cfg.ff_mult, cfg.dropout)
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor, mask: torch.Tensor, shape_tokens: torch.Tensor,
-                shape_in: nn.Linear, edges: torch.Tensor, geometry: tuple | None) -> torch.Tensor:
-        """x (B, N, dim); cond (B, cond_dim); shape_tokens (V, L, shape_dim) of the V real objects in
-        ``mask`` order, projected by ``shape_in``; edges (B, N, N, edge_dim); geometry: None or this block's
-        (keys/values (B, G, 2·heads·dim_head) of the scene's geometry tokens, 1 + scale (B, dim), shift (B, dim))."""
+                shape_in: nn.Linear, edges: torch.Tensor, geometry: tuple | None, real: torch.Tensor) -> torch.Tensor:
+        """x (B, N, dim); cond (B, cond_dim); shape_tokens (V, L, shape_dim) of the V real objects (flat indices
+        ``real`` (V,) into B·N, in ``mask`` order), projected by ``shape_in``; edges (B, N, N, edge_dim); geometry:
+        None or this block's (keys/values (B, G, 2·heads·dim_head) of the scene's geometry tokens, 1 + scale (B, dim),
+        shift (B, dim))."""
         h = self.norm_shape(x, cond)
-        update = torch.zeros_like(x)
-        attended = self.shape_attn(h[mask][:, None, :], shape_tokens, context_proj=shape_in)
-        update[mask] = attended[:, 0].to(update.dtype)
-        x = x + update
+        attended = self.shape_attn(h.flatten(0, 1).index_select(0, real)[:, None, :], shape_tokens,
+                                   context_proj=shape_in)
+        update = torch.zeros_like(x).flatten(0, 1).index_copy(0, real, attended[:, 0].to(x.dtype))
+        x = x + update.view_as(x)
         if self.geometry_attn is not None:
             kv, scale, shift = geometry
             h = torch.addcmul(shift[:, None, :], self.norm_geometry(x), scale[:, None, :])  # AdaLN
@@ -121,16 +127,19 @@ class GraphDenoiser(nn.Module):
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor,
                 shape_tokens: torch.Tensor, geometry_tokens: torch.Tensor | None = None,
-                mount: torch.Tensor | None = None) -> torch.Tensor:
+                mount: torch.Tensor | None = None, real: torch.Tensor | None = None) -> torch.Tensor:
+        """ε̂ (B, N, 9). ``real`` (V,): the flat indices of the real objects in B·N (:func:`real_objects`), made once
+        per sample so that a step reads no tensor value on the host; found from ``mask`` when not given."""
         if self.geometry and geometry_tokens is None:
             raise ValueError("GraphDenoiser(geometry=True) needs geometry_tokens")
         mask = mask.bool()
+        real = real_objects(mask) if real is None else real
         cond = self.time(t)
         x = self.embed_nodes(x_t, mount)
-        shape_tokens = shape_tokens[mask]  # (V, L, shape_dim); projected inside each block's attention
+        shape_tokens = shape_tokens.flatten(0, 1).index_select(0, real)  # (V, L, shape_dim), projected in each block
         geometry = self.geometry_inputs(geometry_tokens, cond) if self.geometry else [None] * len(self.blocks)
         for block, block_geometry in zip(self.blocks, geometry):
-            x = block(x, cond, mask, shape_tokens, self.shape_in, edges, block_geometry)
+            x = block(x, cond, mask, shape_tokens, self.shape_in, edges, block_geometry, real)
         eps = self.head(self.norm_out(x, cond))
         return eps * mask[..., None]
 

@@ -202,6 +202,27 @@ def denoise(problem: Denoising, sampler, generator=None, callbacks=()) -> torch.
     return x
 
 
+def ddpm_step(scheduler: DDPMScheduler, eps: torch.Tensor, t: int, x: torch.Tensor,
+              noise: torch.Tensor | None) -> torch.Tensor:
+    """diffusers' ``DDPMScheduler.step`` (ε-prediction, no clipping: our loop clips x̂_0 itself) with the step's
+    noise given (None: the last, noiseless step), its arithmetic as diffusers does it — the same host scalars in
+    the same order — so the states are the ones ``scheduler.step(..., generator=...)`` gives for that noise."""
+    prev_t = scheduler.previous_timestep(t)
+    alpha_prod_t = scheduler.alphas_cumprod[t]
+    alpha_prod_t_prev = scheduler.alphas_cumprod[prev_t] if prev_t >= 0 else scheduler.one
+    beta_prod_t = 1 - alpha_prod_t
+    beta_prod_t_prev = 1 - alpha_prod_t_prev
+    current_alpha_t = alpha_prod_t / alpha_prod_t_prev
+    current_beta_t = 1 - current_alpha_t
+    pred_original_sample = (x - beta_prod_t ** (0.5) * eps) / alpha_prod_t ** (0.5)
+    pred_original_sample_coeff = (alpha_prod_t_prev ** (0.5) * current_beta_t) / beta_prod_t
+    current_sample_coeff = current_alpha_t ** (0.5) * beta_prod_t_prev / beta_prod_t
+    prev = pred_original_sample_coeff * pred_original_sample + current_sample_coeff * x
+    if t > 0 and noise is not None:
+        prev = prev + (scheduler._get_variance(t) ** 0.5) * noise
+    return prev
+
+
 @dataclass
 class Sampler:
     """A reverse process over the training schedule: ``kind`` ∈ SAMPLER_KINDS, ``steps`` (default
@@ -266,26 +287,37 @@ class Sampler:
         if self.num_steps > scheduler.config.num_train_timesteps:
             raise ValueError(f"sampler steps {self.num_steps} > the model's {scheduler.config.num_train_timesteps} "
                              f"training timesteps")
-        scheduler.set_timesteps(self.num_steps, device=device)
-        alphas = scheduler.alphas_cumprod.to(device=device, dtype=torch.float64)
-        if isinstance(generator, (list, tuple)):  # one generator per scene: a scene's noise ignores its batch
-            if len(generator) != mask.shape[0]:
-                raise ValueError(f"Sampler.sample: {len(generator)} generators for a batch of {mask.shape[0]}")
-            rows = max(mask.shape[1], NOISE_ROWS)  # a fixed-size draw: the same first rows at any padding
-            x = torch.stack([torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:mask.shape[1]]
+        # the schedule stays on the host: a step's coefficients are host numbers, so no step reads the device
+        scheduler.set_timesteps(self.num_steps)
+        timesteps = [int(t) for t in scheduler.timesteps]
+        alphas = scheduler.alphas_cumprod.double()
+        B, N = mask.shape
+        per_scene = isinstance(generator, (list, tuple))
+        if per_scene:  # one generator per scene: a scene's noise ignores its batch
+            if len(generator) != B:
+                raise ValueError(f"Sampler.sample: {len(generator)} generators for a batch of {B}")
+            rows = max(N, NOISE_ROWS)  # a fixed-size draw: the same first rows at any padding
+            x = torch.stack([torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:N]
                              .to(device) for g in generator])
             generator = list(generator)
         else:
             noise_device = generator.device if generator is not None else device
             x = torch.randn((*mask.shape, state_dim), generator=generator, device=noise_device, dtype=dtype)
         x = x.to(device) * keep
-        extra = {"eta": self.eta} if self.kind == "ddim" else {}
-        timesteps = scheduler.timesteps
+        # ancestral samplers' per-step noise, drawn up front in the order the scheduler would draw it (per scene:
+        # after its x_T, one (1, N, C) draw per noisy step) and moved to the device once
+        ancestral = self.kind == "ddpm" or (self.kind == "ddim" and self.eta > 0)
+        noise = None
+        if ancestral and per_scene:
+            noisy = [i for i, t in enumerate(timesteps) if self.kind == "ddim" or t > 0]
+            drawn = torch.stack([torch.cat([torch.randn((1, N, state_dim), generator=g, device=g.device, dtype=dtype)
+                                            for _ in noisy]) for g in generator], 1) if noisy else None
+            noise = {} if drawn is None else dict(zip(noisy, drawn.to(device).unbind(0)))
         for index, t in enumerate(timesteps):
-            t_batch = torch.full((mask.shape[0],), int(t), device=device, dtype=torch.long)
+            t_batch = torch.full((B,), t, device=device, dtype=torch.long)
             eps = eps_fn(x, t_batch).to(dtype) * keep
-            a = float(alphas[int(t)])
-            ctx = StepContext(index, len(timesteps), int(t), x, eps, mask, a)
+            a = float(alphas[t])
+            ctx = StepContext(index, len(timesteps), t, x, eps, mask, a)
             if self.clip_x0 or x0_hook is not None:
                 x0 = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
                 if self.clip_x0:
@@ -293,7 +325,14 @@ class Sampler:
                 if x0_hook is not None:
                     x0 = x0_hook(x0, ctx)
                 eps = (x - a ** 0.5 * x0) / (1 - a) ** 0.5 * keep
-            x = scheduler.step(eps, t, x, generator=generator, **extra).prev_sample.to(dtype) * keep
+            if noise is not None and self.kind == "ddpm":
+                x = ddpm_step(scheduler, eps, t, x, noise.get(index))
+            elif noise is not None:
+                x = scheduler.step(eps, t, x, eta=self.eta, variance_noise=noise[index]).prev_sample
+            else:
+                extra = {"eta": self.eta} if self.kind == "ddim" else {}
+                x = scheduler.step(eps, t, x, generator=generator, **extra).prev_sample
+            x = x.to(dtype) * keep
             if sample_hook is not None:
                 x = sample_hook(x, ctx) * keep
         return x

@@ -25,18 +25,26 @@ class EMA(nn.Module):
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
 
     def current_decay(self) -> float:
-        n = int(self.num_updates)
+        n = self._count()
         return min(self.decay, (1 + n) / (10 + n)) if self.warmup else self.decay
+
+    def _count(self) -> int:
+        """Updates so far, kept on the host too: read from the buffer once (after a load), not at every step."""
+        if getattr(self, "_host_count", None) is None or self._host_version != self.num_updates._version:
+            self._host_count, self._host_version = int(self.num_updates), self.num_updates._version
+        return self._host_count
 
     @torch.no_grad()
     def update(self, model: nn.Module) -> None:
         weight = 1.0 - self.current_decay()
+        self._host_count += 1
         ema_params = list(self.module.parameters())
         params = [p.detach().to(e.dtype) for e, p in zip(ema_params, model.parameters())]
         torch._foreach_lerp_(ema_params, params, weight)
         for e, b in zip(self.module.buffers(), model.buffers()):
             e.copy_(b)
         self.num_updates += 1
+        self._host_version = self.num_updates._version
 
     def forward(self, *args, **kwargs):
         return self.module(*args, **kwargs)

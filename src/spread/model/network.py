@@ -20,7 +20,7 @@ from torch import nn
 from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.data.rotation import rot6d_to_matrix
 from spread.model.config import ModelConfig
-from spread.model.denoiser import GraphDenoiser
+from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.model.geometry import PointCloud, prepare_points, resolve_search, signed_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
@@ -44,6 +44,7 @@ class Condition:
     search: str = "pruned"  # the nearest-point search (ModelConfig.nearest, resolved for the batch's device)
     pose_scale: torch.Tensor | None = None  # geometry variant: (3,) metres per unit of normalised translation
     pose_offset: torch.Tensor | None = None  # (3,) metres at normalised 0
+    real: torch.Tensor | None = None  # (V,) flat indices of the real objects in B·N (so no step reads the mask)
 
 
 def upgrade_state_dict(network: nn.Module, state: dict) -> dict:
@@ -110,8 +111,11 @@ class SceneDenoiser(nn.Module):
         if drop_graph is not None:
             spatial, physical = drop_graphs(spatial, physical, drop_graph)
         cond = Condition(mask=mask, spatial=spatial, physical=physical, edges=self.edge_encoder(spatial, physical),
-                         shape_tokens=self.shape_encoder(batch), mount=batch.get("mount"))
+                         shape_tokens=self.shape_encoder(batch), mount=batch.get("mount"), real=real_objects(mask))
         if self.perceiver is not None:
+            if not torch.isfinite(self.bounds).all():
+                raise RuntimeError("SceneDenoiser: translation bounds are not set "
+                                   "(call set_bounds(stats['bounds_translations']))")
             cond.search = resolve_search(getattr(self.config, "nearest", "pruned"), mask.device)
             # sampling: each object's points in Morton order once, so the dense search skips most tiles
             cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
@@ -129,9 +133,6 @@ class SceneDenoiser(nn.Module):
 
     def geometry_tokens(self, x_t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
-        if not torch.isfinite(self.bounds).all():
-            raise RuntimeError("SceneDenoiser: translation bounds are not set "
-                               "(call set_bounds(stats['bounds_translations']))")
         x = x_t.float()
         translation = torch.addcmul(cond.pose_offset, x[..., :3], cond.pose_scale)  # denormalize(x, bounds)
         distance = signed_distances(cond.cloud, translation, rot6d_to_matrix(x[..., 3:9]), cond.search)
@@ -140,4 +141,5 @@ class SceneDenoiser(nn.Module):
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""
         geometry = self.geometry_tokens(x_t, cond) if self.perceiver is not None else None
-        return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry, mount=cond.mount)
+        return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry, mount=cond.mount,
+                             real=cond.real)

@@ -20,6 +20,17 @@ from collections import Counter
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+#: Operators whose result the host must read before it can go on (the output's size or value): each one stalls the
+#: host until the device has caught up. Counted apart as ``syncs`` (those that also launch are counted there too).
+HOST_READS = frozenset({"_local_scalar_dense", "nonzero", "masked_select", "_unique2", "unique_dim",
+                        "unique_consecutive"})
+
+
+def _bool_indexing(name: str, args) -> bool:
+    """``x[mask]`` / ``x[mask] = v``: indexing by a boolean tensor finds its True entries on the host."""
+    if name not in ("index", "index_put", "index_put_") or len(args) < 2:
+        return False
+    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] or ()))
 #: Operators that allocate or alias without running a kernel (beyond those whose schema says they are views).
 METADATA_ONLY = frozenset({
     "detach", "alias", "_unsafe_view", "lift_fresh", "empty", "empty_like", "empty_strided", "_reshape_alias",
@@ -40,7 +51,7 @@ def is_kernel(func) -> bool:
 
 class OperatorCounter(TorchDispatchMode):
     """``with OperatorCounter() as c: ...`` then ``c.total`` (kernel operators), ``c.by_name`` (Counter of
-    operator names), ``c.syncs`` (host reads: ``.item()``, ``bool(tensor)``, …)."""
+    operator names), ``c.syncs`` (host reads: ``.item()``, ``bool(tensor)``, ``nonzero``, boolean indexing, …)."""
 
     def __init__(self):
         super().__init__()
@@ -49,9 +60,9 @@ class OperatorCounter(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func._schema.name.split("::")[-1]
-        if name == "_local_scalar_dense":
+        if name in HOST_READS or _bool_indexing(name, args):
             self.syncs += 1
-        elif is_kernel(func):
+        if is_kernel(func):
             self.by_name[f"{func._schema.name.split('::')[0]}::{name}"] += 1
         return func(*args, **(kwargs or {}))
 

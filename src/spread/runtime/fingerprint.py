@@ -127,7 +127,9 @@ def point_fingerprint(cfg) -> dict:
         "data": dataset_digest(root, [split, reference]) if root else None,
         "sampling": {"sampler": _get(cfg, "sampler"), "seed": _get(cfg, "seed"), "batch_size": _get(cfg, "batch_size"),
                      "samples_per_graph": _get(cfg, "samples_per_graph"), "use_ema": _get(cfg, "use_ema"),
-                     "graph_scale": _get(cfg, "graph_scale"), "device": _get(cfg, "device"), "split": split},
+                     "graph_scale": _get(cfg, "graph_scale"), "device": _get(cfg, "device"), "split": split,
+                     # bf16 sampling changes the numbers (float32, the default, keeps older fingerprints)
+                     **({"precision": str(_get(cfg, "precision"))} if str(_get(cfg, "precision", "32")) != "32" else {})},
         "guidance": guidance if guided else None,
         "evaluation": {"evaluate": evaluate, "reference_split": reference,
                        "protocol": _get(cfg, "evaluation.protocol") if evaluate else None,

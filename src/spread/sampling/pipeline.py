@@ -35,6 +35,9 @@ import numpy as np
 
 from spread.scene import Scene
 
+#: The network's arithmetic while sampling: float32 throughout, or bfloat16 autocast (the geometry features and the
+#: sampler's update stay float32).
+PRECISIONS = ("32", "bf16")
 #: A sampled rotation further than this from orthonormal (max |RᵀR − I|) is replaced by its nearest rotation.
 REPAIR_TOLERANCE = 1e-4
 
@@ -105,15 +108,19 @@ class ScenePipeline:
     guidance: a :class:`~spread.guidance.GuidanceConfig`, its mapping, or None (unguided).
     """
 
-    def __init__(self, model, dataset, sampler, guidance=None, use_ema: bool = True, graph_scale: float = 1.0):
+    def __init__(self, model, dataset, sampler, guidance=None, use_ema: bool = True, graph_scale: float = 1.0,
+                 cuda_graph: bool = False, precision: str = "32"):
         from spread.guidance import GuidanceConfig
         from spread.model import Sampler
 
+        if precision not in PRECISIONS:
+            raise ValueError(f"sampling precision must be one of {PRECISIONS}, got '{precision}'")
         self.model, self.dataset = model, dataset
         self.sampler = Sampler.from_config(sampler)
         config = GuidanceConfig.from_config(guidance)
         self.guidance = config if config.active else None
         self.use_ema, self.graph_scale = bool(use_ema), float(graph_scale)
+        self.cuda_graph, self.precision = bool(cuda_graph), str(precision)
         self.guidance_stats: dict = {}
 
     def encode(self, sources: Sequence[Scene], paths: Sequence[str] | None = None) -> dict:
@@ -164,8 +171,32 @@ class ScenePipeline:
 
         with torch.no_grad():
             problem = self.model.denoising(batch, self.use_ema, self.graph_scale)
+        problem = self.on_device(problem)
         own = self.callbacks(batch, sources, problem) if sources is not None else []
         return denoise(problem, self.sampler, generator, [*own, *callbacks]), problem
+
+    def on_device(self, problem):
+        """The problem's ε-function in the pipeline's ``precision`` (``bf16``: autocast on the model's device) and,
+        with ``cuda_graph`` on a CUDA device, captured once and replayed every step
+        (:class:`~spread.model.capture.GraphedStep`)."""
+        import dataclasses
+
+        import torch
+
+        fn = problem.eps_fn
+        device = problem.mask.device
+        if self.precision == "bf16":
+            inner = fn
+
+            def fn(x, t):
+                # no autocast weight cache: a CUDA graph records the casts with the rest of the call
+                with torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False):
+                    return inner(x, t).float()
+        if self.cuda_graph and device.type == "cuda":
+            from spread.model.capture import GraphedStep
+
+            fn = GraphedStep(fn)
+        return problem if fn is problem.eps_fn else dataclasses.replace(problem, eps_fn=fn)
 
     def __call__(self, sources: Sequence[Scene], generators, paths: Sequence[str] | None = None,
                  callbacks: Sequence[SamplingCallback] = ()) -> list[SampledPoses]:

@@ -107,7 +107,8 @@ def load_pipeline(cfg) -> ScenePipeline:
                          f"(sample it with guidance=none)")
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
     dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"])
-    return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale)
+    return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,
+                         cuda_graph=cfg.cuda_graph, precision=cfg.precision)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,

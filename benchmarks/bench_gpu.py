@@ -1,0 +1,333 @@
+"""The paper-size model on a GPU: kernel launches per step (always, on CPU) and, where CUDA is present, training
+s/step, sampling s/scene and the nearest-point kernel. One table. Fits a short GPU slot (docs/gpu.md: what a bare
+GPU machine lacks and how to carry it).
+
+    python benchmarks/bench_gpu.py                       # counts on CPU; + every CUDA row when a GPU is there
+    python benchmarks/bench_gpu.py --data ROOMS          # + the guided pipeline rows (a dataset folder: meshes)
+    python benchmarks/bench_gpu.py --quick               # small sizes (a CPU check of the script itself)
+    python benchmarks/bench_gpu.py --skip-counts --json out.json
+
+Rows:
+
+* **ops / …** — kernel operators (:mod:`spread.model.opcount`: every dispatched ATen operator that computes, views
+  and metadata left out; a custom operator such as the dense nearest search counts once: its CUDA implementation is
+  one kernel) of the paper config (``ModelConfig()``, M = 2,000, ``nearest=dense``) at batch 16 × 20 objects, CPU
+  tensors: one denoising step (the network call with the batch's condition made once per sample; and with the
+  sampler's update), one training step (loss forward + backward), base and +Geometry; the +Geometry denoising step
+  at 10 and 40 objects (growth). ``syncs``: host reads of tensor values inside the network call.
+* **train s/step** — CUDA, paper size, batch 16 × 20 × 2,000 synthetic rooms (6 m square, boxes with surface samples)
+  already on the device, bf16 autocast, fused AdamW, gradient clipping at 1 and the EMA update, as ``spread-train``
+  runs them (Lightning's own overhead and data loading not included); median of timed steps after warm-up.
+* **nearest** — the dense kernel against the pruned search on the same posed points (B = 16 and 64): ms per call,
+  the share of differing indices that are not ties and the largest feature difference.
+* **sample s/scene** — CUDA, DDIM-50 at batch 64 synthetic rooms: eager float32, CUDA graph float32, CUDA graph bf16;
+  with ``--data``: the platform's ``ScenePipeline`` on the dataset's graphs (64 per batch) with the release's recipe
+  (DDPM-1000 + ``guidance=refine``, 100 iterations, paper weights) and the paper's (DDIM-50 + ``guidance=paper``),
+  CUDA graph + bf16. The network has random weights (paper size, untrained): samples interpenetrate more than a
+  trained model's, so the guidance rows are an upper bound of its collision work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+BOUNDS = [-3.0, 0.0, -3.0, 3.0, 2.5, 3.0]
+
+
+def synthetic_batch(B: int, N: int, M: int, seed: int = 0, device="cpu") -> dict:
+    """B rooms of N boxes (0.2–1.2 m) on a 6 m floor, M surface samples each (bench_model's rooms)."""
+    from bench_model import synthetic_batch as rooms
+
+    return {k: v.to(device) for k, v in rooms(B, N, M, seed).items()}
+
+
+def model(variant: str, M: int, device="cpu", nearest: str = "dense", **overrides):
+    import torch
+
+    from spread.model import ModelConfig
+    from spread.model.module import SceneDiffusion
+
+    torch.manual_seed(0)
+    return SceneDiffusion(variant, ModelConfig(num_points=M, nearest=nearest, **overrides), bounds=BOUNDS).to(device)
+
+
+# ---- kernel operators (CPU) ---------------------------------------------------------------------------------------
+def counts(B: int, N: int, M: int, quick: bool) -> dict:
+    import torch
+
+    from spread.model import Sampler
+    from spread.model.opcount import OperatorCounter
+
+    out = {}
+    for variant in ("base", "geometry"):
+        m = model(variant, M)
+        net = m.ema.module.eval()
+        batch = synthetic_batch(B, N, M)
+        t = torch.full((B,), 500)
+        with torch.no_grad():
+            cond = net.condition(batch)
+            net(batch["x"], t, cond)  # warm (first-call setup)
+            with OperatorCounter() as c:
+                net(batch["x"], t, cond)
+        out[f"ops/denoise/{variant}"], out[f"syncs/denoise/{variant}"] = c.total, c.syncs
+        # a whole step of the sampling loop: the network call + the sampler's update (DDIM, averaged over 5 steps)
+        sampler = Sampler("ddim", 5)
+        calls = {"n": 0}
+
+        def eps_fn(x, tt):
+            calls["n"] += 1
+            return net(x, tt, cond)
+
+        with torch.no_grad(), OperatorCounter() as c2:
+            sampler.sample(eps_fn, batch["mask"], generator=[torch.Generator().manual_seed(i) for i in range(B)])
+        out[f"ops/sampling_step/{variant}"] = round(c2.total / calls["n"], 1)
+        m.train()
+        timesteps = torch.linspace(50, 950, B).long()
+
+        def train_step():
+            loss = m.training_loss(batch, timesteps=timesteps)
+            loss.backward()
+            m.zero_grad(set_to_none=True)  # (no kernel: the optimiser's zero_grad, outside the count's operators)
+
+        train_step()
+        with OperatorCounter() as c3:
+            train_step()
+        out[f"ops/train/{variant}"] = c3.total
+        print(f"  counted {variant}", flush=True)
+    for kind in ("denoise", "sampling_step", "train"):
+        out[f"ops/{kind}/ratio"] = round(out[f"ops/{kind}/geometry"] / out[f"ops/{kind}/base"], 3)
+    for n in ((4, 8) if quick else (10, 40)):
+        net = model("geometry", M).ema.module.eval()
+        batch = synthetic_batch(B if not quick else 2, n, M)
+        with torch.no_grad():
+            cond = net.condition(batch)
+            with OperatorCounter() as c:
+                net(batch["x"], torch.full((batch["x"].shape[0],), 500), cond)
+        out[f"ops/denoise/geometry/{n}_objects"] = c.total
+    return out
+
+
+# ---- CUDA ---------------------------------------------------------------------------------------------------------
+def cuda_time(fn, warmup: int, steps: int) -> tuple[float, list[float]]:
+    """Median seconds of ``fn()`` over ``steps`` timed calls after ``warmup``; all times."""
+    import torch
+
+    for _ in range(warmup):
+        fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        fn()
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times
+
+
+def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool) -> dict:
+    import torch
+
+    out = {}
+    rows = [("base", "dense"), ("geometry", "dense")] + ([] if compile_step else [("geometry", "pruned")])
+    for variant, nearest in rows:
+        m = model(variant, M, "cuda", nearest=nearest)
+        m.train()
+        batch = synthetic_batch(B, N, M, device="cuda")
+        params = [p for p in m.network.parameters() if p.requires_grad]
+        opt = torch.optim.AdamW(params, lr=1e-4, weight_decay=1e-4, fused=True)
+        loss_fn = torch.compile(m.training_loss) if compile_step else m.training_loss
+
+        def step():
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                loss = loss_fn(batch)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 1.0, foreach=True)
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+            m.ema.update(m.network)
+
+        torch.cuda.reset_peak_memory_stats()
+        n = steps if nearest == "dense" else max(2, steps // 4)
+        median, _ = cuda_time(step, 3, n)
+        name = variant + ("" if nearest == "dense" else " (pruned search)") + (" compiled" if compile_step else "")
+        out[f"train/{name}/s_per_step"] = round(median, 4)
+        out[f"train/{name}/peak_GiB"] = round(torch.cuda.max_memory_allocated() / 2 ** 30, 2)
+        print(f"  train {name}: {median:.4f} s/step", flush=True)
+        del m, opt, batch
+        torch.cuda.empty_cache()
+    out["train/ratio"] = round(out["train/geometry/s_per_step"] / out["train/base/s_per_step"], 3) \
+        if "train/geometry/s_per_step" in out else None
+    return out
+
+
+def nearest_rows(N: int, M: int) -> dict:
+    import torch
+
+    from spread.model.geometry import prepare_points, signed_distances
+    from spread.model.poses import poses_from_state
+
+    out = {}
+    for B in (16, 64):
+        batch = synthetic_batch(B, N, M, seed=3, device="cuda")
+        cloud = prepare_points(batch["points"], batch["normals"], batch["mask"], morton=True)
+        t, R = poses_from_state(batch["x"], torch.tensor(BOUNDS, device="cuda"))
+        for search in ("dense", "pruned"):
+            ms, _ = cuda_time(lambda: signed_distances(cloud, t, R, search), 1, 3 if search == "dense" else 1)
+            out[f"nearest/B{B}/{search}_ms"] = round(ms * 1000, 2)
+        dense = signed_distances(cloud, t, R, "dense")
+        pruned = signed_distances(cloud, t, R, "pruned")
+        out[f"nearest/B{B}/max_feature_diff"] = float((dense - pruned).abs().max())
+        print(f"  nearest B{B}: dense {out[f'nearest/B{B}/dense_ms']} ms, pruned {out[f'nearest/B{B}/pruned_ms']} ms, "
+              f"max |Δd| {out[f'nearest/B{B}/max_feature_diff']:.2e}", flush=True)
+    return out
+
+
+def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
+    import torch
+
+    from spread.model import Sampler
+    from spread.model.diffusion import denoise
+    from spread.sampling.pipeline import ScenePipeline
+
+    out = {}
+    m = model("geometry", M, "cuda").eval()
+    batch = synthetic_batch(B, N, M, device="cuda")
+    sampler = Sampler("ddim", steps)
+    states = {}
+    for name, graph, precision in (("eager fp32", False, "32"), ("graph fp32", True, "32"), ("graph bf16", True, "bf16")):
+        pipe = ScenePipeline(m, None, sampler, cuda_graph=graph, precision=precision)
+        with torch.no_grad():
+            problem = pipe.on_device(m.denoising(batch))
+
+        def run():
+            gens = [torch.Generator().manual_seed(i) for i in range(B)]
+            return denoise(problem, sampler, gens)
+
+        median, _ = cuda_time(run, 1, 2)
+        states[name] = run()
+        out[f"sample/ddim{steps}/{name}/s_per_scene"] = round(median / B, 4)
+        print(f"  DDIM-{steps} {name}: {median / B:.4f} s/scene ({median:.2f} s per batch of {B})", flush=True)
+        if name == "graph bf16":  # no step may read the device on the host
+            torch.cuda.set_sync_debug_mode("error")
+            try:
+                run()
+                out["sample/host_syncs_in_loop"] = 0
+            except RuntimeError as err:
+                out["sample/host_syncs_in_loop"] = f"sync: {str(err).splitlines()[0][:80]}"
+            finally:
+                torch.cuda.set_sync_debug_mode(0)
+    out["sample/graph_vs_eager_max_diff"] = float((states["graph fp32"] - states["eager fp32"]).abs().max())
+    out["sample/bf16_vs_fp32_max_diff"] = float((states["graph bf16"] - states["eager fp32"]).abs().max())
+    return out
+
+
+def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
+    import torch
+
+    from spread.assets.library import AssetLibrary
+    from spread.data import SceneDataset
+    from spread.data.stats import load_stats
+    from spread.model import ModelConfig
+    from spread.model.module import SceneDiffusion
+    from spread.sampling.pipeline import ScenePipeline
+
+    out = {}
+    library = AssetLibrary.load(data / "assets")
+    M = 2000 if not quick else 64
+    from spread.scene import read_scene
+
+    files = [f for split in ("test", "val", "train") for f in sorted((data / split).glob("*.npz"))]
+    dataset = SceneDataset(data, "test", library=library, num_points=M)  # the encoder (graphs, points)
+    scenes = [read_scene(f, assets=library) for f in files[:B]]
+    while len(scenes) < B:
+        scenes += scenes[:B - len(scenes)]
+    torch.manual_seed(0)
+    config = ModelConfig(num_points=M) if not quick else ModelConfig(num_points=M, dim=64, depth=2, num_latents=16)
+    m = SceneDiffusion("geometry", config, bounds=load_stats(data / "stats.json")["bounds_translations"])
+    m = m.to("cuda" if torch.cuda.is_available() else "cpu").eval()
+    # the release's recipe in two parts: DDPM-1000 (the network's 1000 steps), then refine iterations measured on a
+    # DDIM-2 sample (as interpenetrating as an untrained network's DDPM-1000 output) and scaled to 100
+    refine_iterations = 3 if quick else 10
+    recipes = [("ddpm1000 unguided", "ddpm-10" if quick else "ddpm", {"mode": "none"}),
+               (f"ddim2+refine{refine_iterations}", "ddim-2", {"mode": "refine", "iterations": refine_iterations}),
+               ("ddim10+paper", "ddim-3" if quick else "ddim-10", {"mode": "paper"})]
+    for name, sampler, guidance in recipes:
+        pipe = ScenePipeline(m, dataset, sampler, guidance, cuda_graph=True, precision="bf16")
+        gens = [torch.Generator().manual_seed(i) for i in range(len(scenes))]
+        t0 = time.perf_counter()
+        pipe(scenes, gens)
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+        seconds = time.perf_counter() - t0
+        stats = pipe.guidance_stats
+        out[f"pipeline/{name}/s_per_scene"] = round(seconds / len(scenes), 4)
+        if stats:
+            out[f"pipeline/{name}/guidance"] = {k: round(v, 2) if isinstance(v, float) else v for k, v in stats.items()}
+        print(f"  {name}: {seconds / len(scenes):.4f} s/scene ({seconds:.1f} s per batch of {len(scenes)}); "
+              f"guidance {stats}", flush=True)
+    unguided = out["pipeline/ddpm1000 unguided/s_per_scene"]
+    refine = out[f"pipeline/ddim2+refine{refine_iterations}/s_per_scene"]
+    out["pipeline/ddpm1000+refine100 (estimate)/s_per_scene"] = round(unguided + refine * 100 / refine_iterations, 3)
+    return out
+
+
+def table(results: dict) -> str:
+    lines = ["| measurement | value |", "|---|---|"]
+    for key, value in results.items():
+        lines.append(f"| {key} | {value} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes: a check of the script itself")
+    ap.add_argument("--data", type=Path, help="a dataset folder: adds the guided pipeline rows")
+    ap.add_argument("--skip-counts", action="store_true")
+    ap.add_argument("--only", nargs="*", default=None, help="CUDA parts: train nearest sample pipeline")
+    ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args()
+
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    B, N, M = (2, 6, 64) if args.quick else (16, 20, 2000)
+    results = {"date": time.strftime("%Y-%m-%d"), "machine": platform.node(), "torch": torch.__version__,
+               "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}
+    t_start = time.perf_counter()
+    if not args.skip_counts:
+        print("operator counts (CPU tensors) ...", flush=True)
+        results |= counts(B, N, M, args.quick)
+    parts = args.only or ["train", "nearest", "sample", "pipeline"]
+    if torch.cuda.is_available():
+        torch.backends.cuda.matmul.allow_tf32 = False  # float32 means float32 (the kernel's comparisons too)
+        if "train" in parts:
+            results |= train_rows(B, N, M, 4 if args.quick else 10, False)
+            if args.compile:
+                results |= train_rows(B, N, M, 4 if args.quick else 10, True)
+        if "nearest" in parts:
+            results |= nearest_rows(N, M)
+        if "sample" in parts:
+            results |= sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50)
+    if args.data is not None and "pipeline" in parts:
+        results |= pipeline_rows(args.data, 4 if args.quick else 64, args.quick)
+    results["bench_seconds"] = round(time.perf_counter() - t_start, 1)
+    print(table(results))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("WANDB_MODE", "disabled")
+    main()

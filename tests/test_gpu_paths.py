@@ -1,0 +1,247 @@
+"""The GPU paths (issue 29), checked on CPU: the dense nearest search (torch, and its Triton kernel under Triton's
+interpreter) finds what the pruned search finds, the lean network computes what the network computed before the
+rewrite (recorded outputs, old checkpoints load), a step launches few kernels and reads nothing on the host, and the
+sampling loop's states are diffusers' to the bit."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from model_fixture import FIXTURE, network, outputs, seeded_state
+from spread.model.geometry import prepare_points, signed_chamfer_features, signed_distances
+from spread.model.nearest import nearest_other_point
+from spread.model.nearest_dense import nearest_dense_search
+
+BOUNDS = [-3.0, 0.0, -3.0, 3.0, 2.5, 3.0]
+
+
+def scenes(sizes=(7, 3, 1, 5), n_max=8, m=70, seed=0, spread=1.2):
+    """Random boxes-ish point clouds: scenes of the given sizes (a lone object, padding), posed close together."""
+    g = torch.Generator().manual_seed(seed)
+    B = len(sizes)
+    mask = torch.arange(n_max)[None, :] < torch.tensor(sizes)[:, None]
+    points = (torch.rand(B, n_max, m, 3, generator=g) - 0.5) * 0.6
+    normals = torch.nn.functional.normalize(torch.randn(B, n_max, m, 3, generator=g), dim=-1)
+    t = (torch.rand(B, n_max, 3, generator=g) - 0.5) * 2 * spread
+    R = torch.from_numpy(Rotation.random(B * n_max, random_state=seed).as_matrix()).float().view(B, n_max, 3, 3)
+    return points, normals, t, R, mask
+
+
+def distances_of(world, index):
+    flat = world.reshape(world.shape[0], -1, 3)
+    return (flat - flat.gather(1, index[..., None].expand(-1, -1, 3))).norm(dim=-1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dense_search_finds_the_pruned_searchs_nearest_points_but_exact_ties(seed):
+    points, normals, t, R, mask = scenes(seed=seed)
+    world = torch.einsum("bnij,bnmj->bnmi", R, points) + t[:, :, None]
+    dense = nearest_dense_search(world, mask)
+    pruned = nearest_other_point(world, points, t, R, mask)
+    full = nearest_other_point(world, points, t, R, mask, prune=False)
+    real = mask[:, :, None].expand(-1, -1, points.shape[2]).reshape(mask.shape[0], -1)
+    lone = (mask.sum(1) == 1)[:, None].expand_as(real)
+    keep = real & ~lone
+    d_dense, d_pruned = distances_of(world, dense), distances_of(world, pruned)
+    differ = (dense != pruned) & keep
+    assert torch.allclose(d_dense[keep], d_pruned[keep], atol=1e-6), "same nearest distance everywhere"
+    assert (differ.sum() <= 0.001 * keep.sum()), "indices differ only at (near-)ties"
+    assert ((dense != full) & keep).sum() <= 0.001 * keep.sum()
+    owner = dense.div(points.shape[2], rounding_mode="floor")
+    own = torch.arange(real.shape[1])[None].div(points.shape[2], rounding_mode="floor")
+    assert (owner != own)[keep].all(), "never a point of the query's own object"
+    assert mask.gather(1, owner.clamp(max=mask.shape[1] - 1))[keep].all(), "never a padding object"
+
+
+def test_dense_features_equal_the_pruned_features_within_1e_5():
+    points, normals, t, R, mask = scenes(sizes=(6, 4, 2), n_max=7, m=90, seed=4, spread=0.6)
+    a = signed_chamfer_features(points, normals, t, R, mask, search="pruned")
+    b = signed_chamfer_features(points, normals, t, R, mask, search="dense")
+    assert (a - b).abs().max() < 1e-5
+    assert (a[..., 3] < 0).any(), "penetrating points occur (both signs checked)"
+    # the network's path: a per-sample cloud in Morton order gives the same set of features, reordered
+    cloud = prepare_points(points, normals, mask, morton=True)
+    d = signed_distances(cloud, t, R, "dense")
+    ref = signed_distances(prepare_points(points, normals, mask), t, R, "pruned")
+    assert torch.allclose(d.sort(-1).values, ref.sort(-1).values, atol=1e-5)
+
+
+def test_the_triton_kernel_matches_brute_force_under_the_interpreter(tmp_path):
+    """The CUDA kernel's code, run by Triton's interpreter on CPU tensors (TRITON_INTERPRET=1 must be set before
+    the kernel is defined: a process of its own), against the exact torch brute force."""
+    pytest.importorskip("triton")
+    script = tmp_path / "kernel.py"
+    script.write_text(
+        "import torch\n"
+        "from spread.model.nearest_dense import nearest_dense_search, _brute_force, triton_available\n"
+        "from spread.model.nearest import morton_order\n"
+        "assert triton_available(torch.device('cpu'))\n"
+        "g = torch.Generator().manual_seed(0)\n"
+        "B, N, M = 3, 5, 45\n"  # N·M = 225: tiles straddle objects, a ragged last tile
+        "mask = torch.tensor([[1, 1, 1, 1, 1], [1, 1, 0, 0, 0], [1, 0, 0, 0, 0]], dtype=torch.bool)\n"
+        "pts = (torch.rand(B, N, M, 3, generator=g) - 0.5) * 0.5 + torch.rand(B, N, 1, 3, generator=g) * 2\n"
+        "order = morton_order(pts)[..., None].expand(-1, -1, -1, 3)\n"
+        "for world in (pts, pts.gather(2, order)):\n"
+        "    got = nearest_dense_search(world, mask)\n"
+        "    vp = mask[:, :, None].expand(B, N, M).reshape(B, N * M)\n"
+        "    ref = _brute_force(world.reshape(B, N * M, 3), vp, M)\n"
+        "    keep = vp & (mask.sum(1, keepdim=True) > 1)\n"
+        "    flat = world.reshape(B, N * M, 3)\n"
+        "    d = lambda i: (flat - flat.gather(1, i[..., None].expand(-1, -1, 3))).norm(dim=-1)\n"
+        "    assert torch.equal(d(got)[keep], d(ref)[keep]), (d(got) - d(ref)).abs().max()\n"
+        "    assert ((got != ref) & keep).sum() == 0\n"
+        "print('kernel ok')\n")
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0 and "kernel ok" in done.stdout, done.stderr[-2000:]
+
+
+def _recorded_network(variant):
+    recorded = json.loads(FIXTURE.read_text())[variant]
+    net = network(variant)
+    net.load_state_dict({**seeded_state(recorded["parameters"]), "bounds": net.bounds})  # the old layout's names
+    return net, recorded
+
+
+@pytest.mark.parametrize("variant", ["base", "geometry"])
+def test_the_network_computes_what_it_computed_before_the_rewrite(variant):
+    """tests/data/model_outputs.json was written by the code before the GPU rewrite (commit 35871fd): weights in
+    its parameter layout load into today's (fused projections, stacked geometry weights) and give the same ε̂ and
+    the same DDIM-10 samples (float rounding: the folded LayerNorm and the fused AdaLN round differently)."""
+    net, recorded = _recorded_network(variant)
+    now = outputs(net)
+    for key in ("eps_10", "eps_500", "eps_990", "ddim10"):
+        assert torch.allclose(torch.tensor(now[key]), torch.tensor(recorded[key]), atol=1e-5, rtol=0), key
+
+
+def test_old_checkpoints_convert_and_new_ones_round_trip():
+    from spread.model.network import upgrade_state_dict
+
+    net, recorded = _recorded_network("geometry")
+    old_names = {name for name, _ in recorded["parameters"]}
+    new_state = net.state_dict()
+    assert "perceiver.context_kv" in new_state and "denoiser.geometry_kv.weight" in new_state
+    assert not any(k.endswith("to_q.weight") and ".perceiver." in k and ".4." in k for k in new_state)
+    upgraded = upgrade_state_dict(net, seeded_state(recorded["parameters"]))
+    assert set(upgraded) == set(new_state) - {"bounds"} and not (old_names - set(new_state)) <= set()
+    for key, value in upgraded.items():
+        assert torch.equal(value, new_state[key]), key
+    again = network("geometry")
+    again.load_state_dict(new_state)  # today's layout loads as it is
+    assert all(torch.equal(a, b) for a, b in zip(again.state_dict().values(), new_state.values()))
+
+
+def test_a_denoising_step_reads_nothing_on_the_host_and_launches_a_fixed_number_of_kernels():
+    """The paper config's widths at a small batch: the step's operators do not depend on the number of objects (no
+    Python loop over objects, blocks or points), +Geometry stays near base (the issue's target is ≤ 1.5×; the
+    whole sampling step — network + sampler update — meets it, the network call alone is 1.53×: RESULTS.md), and no
+    operator reads a tensor value on the host."""
+    from spread.model import ModelConfig, Sampler
+    from spread.model.module import SceneDiffusion
+    from spread.model.opcount import OperatorCounter
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_model import synthetic_batch
+
+    def count(variant, n, sampler=False):
+        torch.manual_seed(0)
+        net = SceneDiffusion(variant, ModelConfig(num_points=24, nearest="dense"), bounds=BOUNDS).ema.module.eval()
+        batch = synthetic_batch(2, n, 24)
+        with torch.no_grad():
+            cond = net.condition(batch)
+            with OperatorCounter() as c:
+                if sampler:
+                    Sampler("ddim", 2).sample(lambda x, t: net(x, t, cond), batch["mask"],
+                                              generator=[torch.Generator().manual_seed(i) for i in range(2)])
+                else:
+                    net(batch["x"], torch.full((2,), 500), cond)
+        return c.total / (2 if sampler else 1), c.syncs
+
+    base, base_syncs = count("base", 10)
+    geo10, syncs = count("geometry", 10)
+    geo40, _ = count("geometry", 40)
+    step_base, _ = count("base", 10, sampler=True)
+    step_geo, _ = count("geometry", 10, sampler=True)
+    assert syncs == 0 and base_syncs == 0
+    assert geo40 <= 1.1 * geo10
+    assert geo10 / base <= 1.55 and step_geo / step_base <= 1.5
+
+
+def test_the_sampling_loop_gives_diffusers_states_to_the_bit():
+    """The loop keeps its schedule on the host and draws ancestral noise up front (per scene, in the order diffusers
+    would); its states equal a loop that calls diffusers' ``scheduler.step`` with the generators each step."""
+    from spread.model import Sampler
+    from spread.model.diffusion import NOISE_ROWS
+
+    B, N = 3, 5
+    mask = torch.ones(B, N, dtype=torch.bool)
+    mask[2, 3:] = False
+    W = torch.randn(9, 9, generator=torch.Generator().manual_seed(0)) * 0.3
+
+    def eps_fn(x, t):
+        return torch.tanh(x @ W) * (1 + t[:, None, None] / 1000)
+
+    def reference(sampler):  # the loop before the rewrite, as it was
+        keep = mask[..., None].float()
+        scheduler = sampler.scheduler()
+        scheduler.set_timesteps(sampler.num_steps)
+        gens = [torch.Generator().manual_seed(i) for i in range(B)]
+        x = torch.stack([torch.randn((max(N, NOISE_ROWS), 9), generator=g)[:N] for g in gens]) * keep
+        extra = {"eta": sampler.eta} if sampler.kind == "ddim" else {}
+        for t in scheduler.timesteps:
+            eps = eps_fn(x, torch.full((B,), int(t))) * keep
+            a = float(scheduler.alphas_cumprod[int(t)])
+            x0 = ((x - (1 - a) ** 0.5 * eps) / a ** 0.5).clamp(-1, 1)
+            eps = (x - a ** 0.5 * x0) / (1 - a) ** 0.5 * keep
+            x = scheduler.step(eps, t, x, generator=gens, **extra).prev_sample * keep
+        return x
+
+    for sampler in (Sampler("ddpm", 1000), Sampler("ddpm", 30), Sampler("ddim", 20, eta=0.6), Sampler("ddim", 20),
+                    Sampler("dpmsolver++", 12)):
+        got = sampler.sample(eps_fn, mask, generator=[torch.Generator().manual_seed(i) for i in range(B)])
+        assert torch.equal(got, reference(sampler)), sampler
+
+
+def test_ema_counts_its_updates_on_the_host_and_rereads_a_loaded_count():
+    from torch import nn
+
+    from spread.model.ema import EMA
+
+    m = nn.Linear(2, 2)
+    ema = EMA(m, 0.999)
+    for _ in range(3):
+        ema.update(m)
+    assert int(ema.num_updates) == 3 and ema.current_decay() == pytest.approx(4 / 13)
+    other = EMA(m, 0.999)
+    other.load_state_dict(ema.state_dict())
+    assert other.current_decay() == pytest.approx(4 / 13)
+    other.update(m)
+    assert int(other.num_updates) == 4 and other.current_decay() == pytest.approx(5 / 14)
+
+
+def test_bf16_and_cuda_graph_settings_sample_on_cpu_and_bf16_stays_close(tmp_path):
+    """``cuda_graph`` is ignored off CUDA; ``precision=bf16`` autocasts the network (float32 geometry features):
+    close to float32, not equal."""
+    from spread.model.diffusion import denoise
+    from spread.model.module import SceneDiffusion
+    from spread.sampling.pipeline import ScenePipeline
+    from model_fixture import CONFIG, batch
+    from spread.model import ModelConfig
+
+    model = SceneDiffusion("geometry", ModelConfig(**CONFIG), bounds=BOUNDS).eval()
+    recorded = json.loads(FIXTURE.read_text())["geometry"]  # weights that make samples move (a fresh head is zero)
+    model.ema.module.load_state_dict({**seeded_state(recorded["parameters"]), "bounds": model.ema.module.bounds})
+    b = batch()
+    states = {}
+    for precision in ("32", "bf16"):
+        pipe = ScenePipeline(model, None, "ddim-5", cuda_graph=True, precision=precision)
+        problem = pipe.on_device(model.denoising(b))
+        states[precision] = denoise(problem, pipe.sampler, [torch.Generator().manual_seed(i) for i in range(3)])
+    assert torch.isfinite(states["bf16"]).all()
+    assert 0 < (states["bf16"] - states["32"]).abs().max() < 0.1
+    with pytest.raises(ValueError, match="precision"):
+        ScenePipeline(model, None, "ddim-5", precision="fp8")

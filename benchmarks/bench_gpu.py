@@ -133,11 +133,12 @@ def cuda_time(fn, warmup: int, steps: int) -> tuple[float, list[float]]:
     return statistics.median(times), times
 
 
-def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool) -> dict:
+def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: bool = False,
+               pruned: bool = False) -> dict:
     import torch
 
     out = {}
-    rows = [("base", "dense"), ("geometry", "dense")] + ([] if compile_step else [("geometry", "pruned")])
+    rows = [("base", "dense"), ("geometry", "dense")] + ([("geometry", "pruned")] if pruned else [])
     for variant, nearest in rows:
         m = model(variant, M, "cuda", nearest=nearest)
         m.train()
@@ -158,6 +159,8 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool) -> dict:
         torch.cuda.reset_peak_memory_stats()
         n = steps if nearest == "dense" else max(2, steps // 4)
         median, _ = cuda_time(step, 3, n)
+        if profile:
+            print(profile_step(step), flush=True)
         name = variant + ("" if nearest == "dense" else " (pruned search)") + (" compiled" if compile_step else "")
         out[f"train/{name}/s_per_step"] = round(median, 4)
         out[f"train/{name}/peak_GiB"] = round(torch.cuda.max_memory_allocated() / 2 ** 30, 2)
@@ -170,25 +173,59 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool) -> dict:
 
 
 def nearest_rows(N: int, M: int) -> dict:
+    """Each CUDA kernel and the pruned search against exact brute force (torch, on the GPU) at B = 2, then times."""
     import torch
 
-    from spread.model.geometry import prepare_points, signed_distances
-    from spread.model.poses import poses_from_state
+    from spread.model.geometry import prepare_points
+    from spread.model.nearest import nearest_other_point
+    from spread.model.nearest_dense import _brute_force, nearest_dense_search
+    from spread.model.poses import pose_points, poses_from_state
 
     out = {}
-    for B in (16, 64):
+
+    def posed(B):
         batch = synthetic_batch(B, N, M, seed=3, device="cuda")
         cloud = prepare_points(batch["points"], batch["normals"], batch["mask"], morton=True)
         t, R = poses_from_state(batch["x"], torch.tensor(BOUNDS, device="cuda"))
-        for search in ("dense", "pruned"):
-            ms, _ = cuda_time(lambda: signed_distances(cloud, t, R, search), 1, 3 if search == "dense" else 1)
-            out[f"nearest/B{B}/{search}_ms"] = round(ms * 1000, 2)
-        dense = signed_distances(cloud, t, R, "dense")
-        pruned = signed_distances(cloud, t, R, "pruned")
-        out[f"nearest/B{B}/max_feature_diff"] = float((dense - pruned).abs().max())
-        print(f"  nearest B{B}: dense {out[f'nearest/B{B}/dense_ms']} ms, pruned {out[f'nearest/B{B}/pruned_ms']} ms, "
-              f"max |Δd| {out[f'nearest/B{B}/max_feature_diff']:.2e}", flush=True)
+        return pose_points(cloud.points, t, R), cloud, t, R, batch["mask"]
+
+    def dist(world, index):
+        flat = world.reshape(world.shape[0], -1, 3)
+        return (flat - flat.gather(1, index[..., None].expand(-1, -1, 3))).norm(dim=-1)
+
+    world, cloud, t, R, mask = posed(2)
+    vp = mask[:, :, None].expand(-1, -1, M).reshape(2, -1)
+    reference = dist(world, _brute_force(world.reshape(2, -1, 3), vp, M))
+    searches = {"kernel objects": lambda w: nearest_dense_search(w, mask),
+                "kernel tiles": lambda w: nearest_dense_search(w, mask),
+                "pruned": lambda w: nearest_other_point(w, cloud.points, t, R, mask)}
+    for name, search in searches.items():
+        os.environ["SPREAD_NEAREST_KERNEL"] = name.split()[-1]
+        d = dist(world, search(world))
+        out[f"nearest/{name}/max_diff_vs_brute_force"] = float((d - reference).abs().max())
+        out[f"nearest/{name}/points_off_by_1e-6"] = int(((d - reference).abs() > 1e-6).sum())
+    for B in (16, 64):
+        world, cloud, t, R, mask = posed(B)
+        for name, search in searches.items():
+            if B == 64 and name != "kernel objects":
+                continue
+            os.environ["SPREAD_NEAREST_KERNEL"] = name.split()[-1]
+            ms, _ = cuda_time(lambda: search(world), 1, 3 if name != "pruned" else 1)
+            out[f"nearest/B{B}/{name}_ms"] = round(ms * 1000, 2)
+    os.environ["SPREAD_NEAREST_KERNEL"] = "objects"
+    print("  " + ", ".join(f"{k}={v}" for k, v in out.items()), flush=True)
     return out
+
+
+def profile_step(step) -> str:
+    """The top CUDA kernels of one call of ``step`` (torch.profiler), one line each."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        step()
+        torch.cuda.synchronize()
+    return prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=8, max_name_column_width=50)
 
 
 def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
@@ -212,7 +249,7 @@ def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
             gens = [torch.Generator().manual_seed(i) for i in range(B)]
             return denoise(problem, sampler, gens)
 
-        median, _ = cuda_time(run, 1, 2)
+        median, _ = cuda_time(run, 1, 1)
         states[name] = run()
         out[f"sample/ddim{steps}/{name}/s_per_scene"] = round(median / B, 4)
         print(f"  DDIM-{steps} {name}: {median / B:.4f} s/scene ({median:.2f} s per batch of {B})", flush=True)
@@ -256,10 +293,10 @@ def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
     m = m.to("cuda" if torch.cuda.is_available() else "cpu").eval()
     # the release's recipe in two parts: DDPM-1000 (the network's 1000 steps), then refine iterations measured on a
     # DDIM-2 sample (as interpenetrating as an untrained network's DDPM-1000 output) and scaled to 100
-    refine_iterations = 3 if quick else 10
+    refine_iterations = 3
     recipes = [("ddpm1000 unguided", "ddpm-10" if quick else "ddpm", {"mode": "none"}),
                (f"ddim2+refine{refine_iterations}", "ddim-2", {"mode": "refine", "iterations": refine_iterations}),
-               ("ddim10+paper", "ddim-3" if quick else "ddim-10", {"mode": "paper"})]
+               ("ddim3+paper", "ddim-3", {"mode": "paper"})]
     for name, sampler, guidance in recipes:
         pipe = ScenePipeline(m, dataset, sampler, guidance, cuda_graph=True, precision="bf16")
         gens = [torch.Generator().manual_seed(i) for i in range(len(scenes))]
@@ -294,6 +331,7 @@ def main() -> None:
     ap.add_argument("--skip-counts", action="store_true")
     ap.add_argument("--only", nargs="*", default=None, help="CUDA parts: train nearest sample pipeline")
     ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
+    ap.add_argument("--profile", action="store_true", help="print the top CUDA kernels of one training step")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args()
@@ -313,7 +351,7 @@ def main() -> None:
     if torch.cuda.is_available():
         torch.backends.cuda.matmul.allow_tf32 = False  # float32 means float32 (the kernel's comparisons too)
         if "train" in parts:
-            results |= train_rows(B, N, M, 4 if args.quick else 10, False)
+            results |= train_rows(B, N, M, 4 if args.quick else 10, False, profile=args.profile)
             if args.compile:
                 results |= train_rows(B, N, M, 4 if args.quick else 10, True)
         if "nearest" in parts:

@@ -2,19 +2,19 @@
 
 Same problem as :mod:`spread.model.nearest` — for each of the P = N·M posed points of a scene, the index of the
 nearest point that belongs to another real object of the same scene — as one custom operator,
-``torch.ops.spread.nearest_dense(points, valid, points_per_object)``:
+``torch.ops.spread.nearest_dense(points, boxes, valid, points_per_object)``:
 
-* **CUDA** (with Triton, which ships with torch on Linux): one Triton kernel. A program takes ``BLOCK_Q``
-  consecutive query points of one scene and keeps, per query, the smallest squared distance and its key index
-  while it walks the scene's keys in tiles of ``BLOCK_K``: first a strided subset (every ``STRIDE``-th key: a
-  cheap upper bound for every query), then every tile, computing its BLOCK_Q × BLOCK_K distances only where the
-  tile's box (of its real keys, from the keys it loaded: 1/BLOCK_Q of the distance work) can still hold a nearer
-  point than the worst current best of the program's queries; a tile wholly in the queries' own object is
-  skipped too. Distances are
-  computed exactly as differences, ``dx² + dy² + dz²`` in float32 (no ``‖q‖² − 2p·q`` cancellation); exact ties go
-  to the smaller key index (torch's ``argmin`` rule). When the points of each object are in a spatially coherent
-  order (Morton order: :func:`spread.model.nearest.morton_order`, done once per sample by the network) the
-  tiles are compact surface patches and most are skipped; the answer never depends on it.
+* **CUDA** (with Triton, which ships with torch on Linux): one Triton kernel. A program takes ``BLOCK_Q`` query
+  points of one object of one scene and keeps, per query, the nearest candidate as one int64 (the float32 bits of d²,
+  monotonic for d² ≥ 0, above the key's index: one ``min`` gives the nearest point and, among exact ties, the
+  smallest index — torch's ``argmin`` rule). It first visits every ``STRIDE``-th key of the scene (an upper bound
+  for every query), then, object by object, every tile of ``BLOCK_K`` consecutive points of another real object
+  whose box (``boxes``: :func:`tile_boxes`, four torch operators before the launch) can still hold a point nearer
+  than the worst current best of the program's queries; only those tiles' BLOCK_Q × BLOCK_K distances are computed.
+  Distances are differences, ``dx² + dy² + dz²`` in float32 (no ``‖q‖² − 2p·q`` cancellation). When each object's
+  points are in a spatially coherent order (Morton order: :func:`spread.model.nearest.morton_order`, done once per
+  sample by the network) the tiles are compact surface patches and most are skipped; the answer never depends on
+  it. (``SPREAD_NEAREST_KERNEL=tiles`` runs the first version of the kernel, for comparison.)
 * **CPU** (and CUDA without Triton): the same exact arithmetic in torch, all objects of all scenes at once per
   chunk of queries (``max_elements`` bounds a chunk's distance block) for small problems; beyond
   ``BRUTE_FORCE_LIMIT`` distances the exact pruned search of :mod:`spread.model.nearest` (the answer is the same,
@@ -35,6 +35,9 @@ BLOCK_K = 64
 STRIDE = 16
 #: Relative slack on the culling test (float32 rounding of the box distance can never drop the nearest tile).
 CULL_SLACK = 1e-5
+#: The CUDA kernel: "objects" (a program per tile of one object's points; other objects' tiles skipped by their
+#: boxes) or "tiles" (the first version: tiles over the flat point list, boxes from the loaded keys).
+KERNEL = "objects"
 #: CPU: larger problems (B·P² distances) go through the pruned exact search instead of brute force.
 BRUTE_FORCE_LIMIT = 1 << 28
 #: CPU: entries of one chunk's distance block.
@@ -162,7 +165,75 @@ def _triton_kernel():
                 arg = tl.where(better, a, arg)
         tl.store(out_ptr + b * P + qi, arg.to(tl.int64), mask=qm)
 
-    _KERNEL = (triton, nearest_kernel)
+    @triton.jit
+    def objects_kernel(pts_ptr, box_ptr, valid_ptr, out_ptr, N, M, KT, QT,
+                       BQ: tl.constexpr, BK: tl.constexpr, S: tl.constexpr, SLACK: tl.constexpr):
+        pid = tl.program_id(0)
+        b = tl.program_id(1).to(tl.int64)
+        o = pid // QT
+        r = (pid % QT) * BQ + tl.arange(0, BQ)  # the program's query points, all of object o
+        qm = r < M
+        P = N * M
+        qi = o * M + r
+        base = pts_ptr + b * P * 3
+        vbase = valid_ptr + b * N
+        qx = tl.load(base + qi * 3 + 0, mask=qm, other=0.0)
+        qy = tl.load(base + qi * 3 + 1, mask=qm, other=0.0)
+        qz = tl.load(base + qi * 3 + 2, mask=qm, other=0.0)
+        inf = float("inf")
+        qlox = tl.min(tl.where(qm, qx, inf), 0)
+        qloy = tl.min(tl.where(qm, qy, inf), 0)
+        qloz = tl.min(tl.where(qm, qz, inf), 0)
+        qhix = tl.max(tl.where(qm, qx, -inf), 0)
+        qhiy = tl.max(tl.where(qm, qy, -inf), 0)
+        qhiz = tl.max(tl.where(qm, qz, -inf), 0)
+        # a candidate is one int64: the float32 bits of d² (monotonic for d² ≥ 0) above the key index, so one min
+        # gives the nearest point and, among equal distances, the smallest index
+        none = tl.full([BQ], 0x7F800000, tl.int64) << 32  # d² = inf, index 0
+        best = none
+        # pass 1: every S-th key of the scene, an upper bound for every query
+        for k0 in range(0, P, BK * S):
+            ki = k0 + tl.arange(0, BK) * S
+            km = ki < P
+            kobj = ki // M
+            kval = km & (kobj != o) & (tl.load(vbase + kobj, mask=km, other=0) != 0)
+            kx = tl.load(base + ki * 3 + 0, mask=km, other=0.0)
+            ky = tl.load(base + ki * 3 + 1, mask=km, other=0.0)
+            kz = tl.load(base + ki * 3 + 2, mask=km, other=0.0)
+            dx = qx[:, None] - kx[None, :]
+            dy = qy[:, None] - ky[None, :]
+            dz = qz[:, None] - kz[None, :]
+            d2 = tl.where(kval[None, :], dx * dx + dy * dy + dz * dz, inf)
+            key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki.to(tl.int64)[None, :]
+            best = tl.minimum(best, tl.min(key, 1))
+        # pass 2: every tile of every other real object whose box can still hold a nearer point
+        if tl.load(vbase + o) != 0:
+            for j in range(0, N):
+                if (j != o) & (tl.load(vbase + j) != 0):
+                    worst = tl.max(tl.where(qm, (best >> 32).to(tl.int32).to(tl.float32, bitcast=True), 0.0), 0)
+                    for kt in range(0, KT):
+                        box = box_ptr + ((b * N + j) * KT + kt) * 6
+                        gx = tl.maximum(tl.maximum(tl.load(box + 0) - qhix, qlox - tl.load(box + 3)), 0.0)
+                        gy = tl.maximum(tl.maximum(tl.load(box + 1) - qhiy, qloy - tl.load(box + 4)), 0.0)
+                        gz = tl.maximum(tl.maximum(tl.load(box + 2) - qhiz, qloz - tl.load(box + 5)), 0.0)
+                        if gx * gx + gy * gy + gz * gz <= worst * (1.0 + SLACK):
+                            rk = kt * BK + tl.arange(0, BK)
+                            km = rk < M
+                            ki = j * M + rk
+                            kx = tl.load(base + ki * 3 + 0, mask=km, other=0.0)
+                            ky = tl.load(base + ki * 3 + 1, mask=km, other=0.0)
+                            kz = tl.load(base + ki * 3 + 2, mask=km, other=0.0)
+                            dx = qx[:, None] - kx[None, :]
+                            dy = qy[:, None] - ky[None, :]
+                            dz = qz[:, None] - kz[None, :]
+                            d2 = tl.where(km[None, :], dx * dx + dy * dy + dz * dz, inf)
+                            key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki.to(tl.int64)[None, :]
+                            best = tl.minimum(best, tl.min(key, 1))
+                            worst = tl.max(tl.where(qm, (best >> 32).to(tl.int32).to(tl.float32, bitcast=True),
+                                                    0.0), 0)
+        tl.store(out_ptr + b * P + qi, best & 0xFFFFFFFF, mask=qm)
+
+    _KERNEL = (triton, nearest_kernel, objects_kernel)
     return _KERNEL
 
 
@@ -176,25 +247,33 @@ def triton_available(device: torch.device) -> bool:
     return _triton_kernel() is not None
 
 
-def _run_triton(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
-    triton, kernel = _triton_kernel()
+def _run_triton(points: torch.Tensor, boxes: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
+    import os
+
+    triton, tiles_kernel, objects_kernel = _triton_kernel()
     B, P, _ = points.shape
+    N, M = valid.shape[1], points_per_object
     out = torch.empty(B, P, dtype=torch.long, device=points.device)
-    grid = (triton.cdiv(P, BLOCK_Q), B)
-    kernel[grid](points.contiguous(), valid.to(torch.int8).contiguous(), out, P, points_per_object, valid.shape[1],
-                 BQ=BLOCK_Q, BK=BLOCK_K, S=STRIDE, SLACK=CULL_SLACK)
+    valid8 = valid.to(torch.int8).contiguous()
+    if os.environ.get("SPREAD_NEAREST_KERNEL", KERNEL) == "tiles":  # the first kernel (kept for comparison)
+        tiles_kernel[(triton.cdiv(P, BLOCK_Q), B)](points.contiguous(), valid8, out, P, M, N, BQ=BLOCK_Q, BK=BLOCK_K,
+                                                  S=STRIDE, SLACK=CULL_SLACK)
+        return out
+    QT = triton.cdiv(M, BLOCK_Q)
+    objects_kernel[(N * QT, B)](points.contiguous(), boxes.contiguous(), valid8, out, N, M, boxes.shape[2], QT,
+                                BQ=BLOCK_Q, BK=BLOCK_K, S=STRIDE, SLACK=CULL_SLACK)
     return out
 
 
 @torch.library.custom_op("spread::nearest_dense", mutates_args=())
-def nearest_dense(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
+def nearest_dense(points: torch.Tensor, boxes: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
     """(B, P) int64: for each point of ``points`` (B, P = N·M, 3) float32, the flat index of the nearest point of
     another real object of its scene (object of point k: k // points_per_object; ``valid`` (B, N) bool real
-    objects).
+    objects; ``boxes`` (B, N, KT, 6): :func:`tile_boxes`, what the kernel skips tiles by).
     Points of padding objects, and of objects alone in their scene, get an arbitrary index."""
     valid = valid.bool()
     if triton_available(points.device):
-        return _run_triton(points.float(), valid, points_per_object)
+        return _run_triton(points.float(), boxes.float(), valid, points_per_object)
     B, P, _ = points.shape
     if B * P * P > BRUTE_FORCE_LIMIT and points.device.type == "cpu":
         return _pruned(points, valid, points_per_object)
@@ -203,7 +282,7 @@ def nearest_dense(points: torch.Tensor, valid: torch.Tensor, points_per_object: 
 
 
 @nearest_dense.register_fake
-def _(points, valid, points_per_object):
+def _(points, boxes, valid, points_per_object):
     return points.new_empty(points.shape[:2], dtype=torch.long)
 
 
@@ -211,4 +290,14 @@ def nearest_dense_search(world: torch.Tensor, valid: torch.Tensor) -> torch.Tens
     """(B, N·M) flat nearest other-object index for posed points ``world`` (B, N, M, 3) and real objects ``valid``
     (B, N): the one operator."""
     B, N, M, _ = world.shape
-    return torch.ops.spread.nearest_dense(world.reshape(B, N * M, 3), valid.bool(), M)
+    return torch.ops.spread.nearest_dense(world.reshape(B, N * M, 3), tile_boxes(world), valid.bool(), M)
+
+
+def tile_boxes(world: torch.Tensor, block: int = BLOCK_K) -> torch.Tensor:
+    """(B, N, KT, 6) [min xyz, max xyz] of each object's tiles of ``block`` consecutive points (the last tile padded
+    by repeating the object's last point, which leaves its box unchanged) of posed points (B, N, M, 3)."""
+    B, N, M, _ = world.shape
+    KT = -(-M // block)
+    padded = world if KT * block == M else torch.cat([world, world[:, :, -1:].expand(B, N, KT * block - M, 3)], 2)
+    tiles = padded.view(B, N, KT, block, 3)
+    return torch.cat([tiles.amin(3), tiles.amax(3)], -1)

@@ -65,6 +65,10 @@ def test_train_and_sample_put_two_runs_with_curves_metrics_tags_and_lineage(stor
     loss = client.get_metric_history(train.info.run_id, "train/loss")
     assert len(loss) >= 3 and len({m.step for m in loss}) == len(loss)  # a curve, one point per logged step
     assert {"val/loss", "val/grecall", "train/grad_norm"} <= set(train.data.metrics)
+    # throughput beside the loss (issue 29): steps and scenes per second, the loader's share of the wall time
+    speed = {k: train.data.metrics[k] for k in ("perf/steps_per_s", "perf/scenes_per_s", "perf/data_wait_share")}
+    assert speed["perf/steps_per_s"] > 0 and speed["perf/scenes_per_s"] >= speed["perf/steps_per_s"]
+    assert 0 <= speed["perf/data_wait_share"] < 1
     assert any(k.startswith("lr-") for k in train.data.metrics)
     assert train.data.params["model.variant"] == train.data.tags["spread.variant"]
     renders = [a.path for a in client.list_artifacts(train.info.run_id, "renders")]  # sampled every 2 epochs

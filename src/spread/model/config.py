@@ -121,3 +121,6 @@ class SceneDiffusionConfig:
     lr_schedule: str = "constant"
     lr_final_ratio: float = 0.1
     init_from: str | None = None
+    #: torch.compile the training loss (forward and backward of the ε-network; the nearest search stays one
+    #: opaque operator). The first steps compile (minutes at paper size); then far fewer launches per step.
+    compile: bool = False

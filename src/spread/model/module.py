@@ -102,7 +102,7 @@ class SceneDiffusion(L.LightningModule):
                  prediction: str = ARGS.prediction, loss_weighting: str = ARGS.loss_weighting,
                  min_snr_gamma: float = ARGS.min_snr_gamma, lr_warmup_steps: int = ARGS.lr_warmup_steps,
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
-                 init_from: str | None = ARGS.init_from):
+                 init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile):
         super().__init__()
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
@@ -119,7 +119,7 @@ class SceneDiffusion(L.LightningModule):
             "val_sample_scenes": val_sample_scenes, "seed": seed, "prediction": prediction,
             "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
             "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
-            "init_from": None if init_from is None else str(init_from),
+            "init_from": None if init_from is None else str(init_from), "compile": bool(compile),
         })
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
@@ -230,7 +230,12 @@ class SceneDiffusion(L.LightningModule):
         return masked_mse(output, target, mask, weights)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        loss = self.training_loss(batch)
+        loss_fn = self.training_loss
+        if self.hparams.get("compile", False):
+            if getattr(self, "_compiled_loss", None) is None:
+                self._compiled_loss = torch.compile(self.training_loss)
+            loss_fn = self._compiled_loss
+        loss = loss_fn(batch)
         self.log("train/loss", loss, batch_size=batch["x"].shape[0], prog_bar=True)
         return loss
 

@@ -167,7 +167,7 @@ def _triton_kernel():
 
     @triton.jit
     def objects_kernel(pts_ptr, box_ptr, valid_ptr, out_ptr, N, M, KT, QT,
-                       BQ: tl.constexpr, BK: tl.constexpr, S: tl.constexpr, SLACK: tl.constexpr):
+                       BQ: tl.constexpr, BK: tl.constexpr, S: tl.constexpr, SLACK: tl.constexpr, KTP: tl.constexpr):
         pid = tl.program_id(0)
         b = tl.program_id(1).to(tl.int64)
         o = pid // QT
@@ -206,12 +206,24 @@ def _triton_kernel():
             d2 = tl.where(kval[None, :], dx * dx + dy * dy + dz * dz, inf)
             key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki.to(tl.int64)[None, :]
             best = tl.minimum(best, tl.min(key, 1))
-        # pass 2: every tile of every other real object whose box can still hold a nearer point
+        # pass 2: every tile of every other real object whose box can still hold a nearer point; an object whose
+        # tiles are all out of reach (one vector test of its KT boxes) is passed over whole
+        tiles = tl.arange(0, KTP)
         if tl.load(vbase + o) != 0:
             for j in range(0, N):
                 if (j != o) & (tl.load(vbase + j) != 0):
                     worst = tl.max(tl.where(qm, (best >> 32).to(tl.int32).to(tl.float32, bitcast=True), 0.0), 0)
-                    for kt in range(0, KT):
+                    boxes = box_ptr + ((b * N + j) * KT + tiles) * 6
+                    tm = tiles < KT
+                    vx = tl.maximum(tl.maximum(tl.load(boxes + 0, mask=tm, other=inf) - qhix,
+                                               qlox - tl.load(boxes + 3, mask=tm, other=-inf)), 0.0)
+                    vy = tl.maximum(tl.maximum(tl.load(boxes + 1, mask=tm, other=inf) - qhiy,
+                                               qloy - tl.load(boxes + 4, mask=tm, other=-inf)), 0.0)
+                    vz = tl.maximum(tl.maximum(tl.load(boxes + 2, mask=tm, other=inf) - qhiz,
+                                               qloz - tl.load(boxes + 5, mask=tm, other=-inf)), 0.0)
+                    near = tl.min(vx * vx + vy * vy + vz * vz, 0)
+                    kt_end = tl.where(near <= worst * (1.0 + SLACK), KT, 0)
+                    for kt in range(0, kt_end):
                         box = box_ptr + ((b * N + j) * KT + kt) * 6
                         gx = tl.maximum(tl.maximum(tl.load(box + 0) - qhix, qlox - tl.load(box + 3)), 0.0)
                         gy = tl.maximum(tl.maximum(tl.load(box + 1) - qhiy, qloy - tl.load(box + 4)), 0.0)
@@ -261,7 +273,8 @@ def _run_triton(points: torch.Tensor, boxes: torch.Tensor, valid: torch.Tensor, 
         return out
     QT = triton.cdiv(M, BLOCK_Q)
     objects_kernel[(N * QT, B)](points.contiguous(), boxes.contiguous(), valid8, out, N, M, boxes.shape[2], QT,
-                                BQ=BLOCK_Q, BK=BLOCK_K, S=STRIDE, SLACK=CULL_SLACK)
+                                BQ=BLOCK_Q, BK=BLOCK_K, S=STRIDE, SLACK=CULL_SLACK,
+                                KTP=triton.next_power_of_2(boxes.shape[2]))
     return out
 
 

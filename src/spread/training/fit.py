@@ -99,6 +99,19 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: di
     return summary
 
 
+def feed_the_device(trainer, datamodule) -> None:
+    """On a GPU, batches come from pinned memory (asynchronous copies) and, when ``data.num_workers`` is 0, a warning
+    says that loading runs in the training loop (``perf/data_wait_share`` shows its cost)."""
+    accelerator = type(getattr(trainer, "accelerator", None)).__name__.lower()
+    if "cuda" not in accelerator and "gpu" not in accelerator:
+        return
+    if hasattr(datamodule, "pin_memory"):
+        datamodule.pin_memory = True
+    if getattr(datamodule, "num_workers", 1) == 0:
+        log.warning("training on a GPU with data.num_workers=0: batches are built in the training loop; "
+                    "data.num_workers=4 data.persistent_workers=true builds them beside it")
+
+
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
           extra_callbacks: list | None = None, prepare: Callable | None = None,
           resume_from: Path | None = None) -> dict:
@@ -139,6 +152,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
                                       plugins=plugins, **overrides)
     if prepare is not None:
         trainer = prepare(trainer)
+    feed_the_device(trainer, datamodule)
     if ckpt_path is not None:
         log.info("resuming from %s", ckpt_path)
     trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))

@@ -239,6 +239,8 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     metrics.update({
         "failed": [{"scene_id": r["scene_id"], "error": r.get("error") or "unusable record (a non-finite or missing "
                     "metric state)"} for r in records if not usable(r)],
+        "failed_metrics": [{"scene_id": r["scene_id"], "metric": name, "error": error} for r in records if usable(r)
+                           for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
         "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(), "redone_because": redone_because,

@@ -318,7 +318,15 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
         console.print(note.replace("± is half the width of the", "interval: the"), soft_wrap=True)
     console.print(f"fid_status: {metrics['fid_status']}")
     for f in metrics["failed"][:10]:
-        console.print(f"failed {f['scene_id']}: {f['error']}")
+        console.print(f"failed {f['scene_id']}: {f['error']}", markup=False)
+    failures = {k: v for k, v in (metrics.get("metric_failures") or {}).items() if v}
+    if failures:
+        console.print("metric failures (those scenes are left out of that metric only): "
+                      + ", ".join(f"{k} on {v} scene(s)" for k, v in failures.items()), markup=False)
+        for f in (metrics.get("failed_metrics") or [])[:10]:
+            console.print(f"  {f['metric']} failed on {f['scene_id']}: {f['error']}", markup=False)
+    for name, why in (metrics.get("invalid_values") or {}).items():
+        console.print(f"{name}: no value ({why})", markup=False)
 
 
 # ---- sample --------------------------------------------------------------------------------------------------

@@ -13,6 +13,13 @@ attributes ``higher_is_better``, ``column``, ``unit``, ``scale``, ``digits`` fil
 :class:`MetricSpec`. ``spread-evaluate 'metrics=[grecall,<name>]'`` then selects it.
 
 Set-level statistics (FID, KID) are not per-scene metrics: :data:`SET_METRICS` holds only their display.
+
+**A metric reports only its own names** (:func:`own_names`: its name, its ``ratios`` and ``reports`` values, its
+``counts``), which share one namespace with the fields of ``per_scene.jsonl`` records and ``metrics.json``. A
+metric whose names collide with those fields (:data:`RESERVED_NAMES`, and the patterns of
+:func:`reserved_reason`: ``n_*`` is for counts, ``*_lo``/``*_hi`` for intervals) or with another metric's is
+refused when it registers (a plugin: listed as failed, the others load), so no plugin can overwrite GRecall in
+``metrics.json`` or the ``scene_id`` of every record.
 """
 
 from __future__ import annotations
@@ -115,7 +122,67 @@ def spec_of_class(name: str, cls: type, **fields) -> MetricSpec:
     return MetricSpec(name=name, metric=cls, **values)
 
 
-METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("spread.metrics",), adapt=_adapt)
+#: Fields of a ``per_scene.jsonl`` record besides its metrics' values (``spread.evaluation.work``).
+RECORD_FIELDS = frozenset({
+    "scene_id", "file", "node_id", "pid", "input_sha256", "error", "error_type", "traceback", "seconds",
+    "inner_scene_id", "room_type", "num_objects", "details", "state", "fid_features", "metric_errors"})
+#: Fields of ``metrics.json`` besides its metrics' values, and of the rows that reports and sweeps build from it.
+SUMMARY_FIELDS = frozenset({
+    "n_scenes", "n_evaluated", "n_failed", "n_implausible", "n_refused_inputs", "n_objects", "n_metric_failures",
+    "per_room_type", "bootstrap", "fid", "kid", "fid_status", "fid_feature_model", "fid_num_generated",
+    "fid_num_reference", "kid_subsets", "kid_subset_size", "failed", "metric_failures", "failed_metrics", "fid_reference_failed",
+    "invalid_values", "scenes", "reference", "reference_split", "protocol", "versions", "redone_because", "run",
+    "source", "kind", "variant", "method", "method_key", "status", "point", "reused", "best", "trial_seconds",
+    "node", "trial_pid", "startup_seconds", "fingerprint", "ci_level", "ci_resamples", "ci_seed", "ci_few"})
+#: Names no metric may report (module docstring).
+RESERVED_NAMES = RECORD_FIELDS | SUMMARY_FIELDS
+
+
+def reserved_reason(name: str, count: bool = False) -> str | None:
+    """Why ``name`` may not be a metric's value (``count=False``) or count (``count=True``) name, or None."""
+    if name in RECORD_FIELDS:
+        return "a field of every per_scene.jsonl record"
+    if name in SUMMARY_FIELDS:
+        return "a field of metrics.json"
+    if name.endswith(("_lo", "_hi", "_sd")):
+        return "the '_lo'/'_hi'/'_sd' suffixes name a metric's interval and spread"
+    if name.startswith(("fid_", "kid_")):
+        return "the 'fid_'/'kid_' prefixes belong to the set-level FID and KID"
+    if count and not name.startswith("n_"):
+        return "a count's name starts with 'n_'"
+    if not count and name.startswith("n_"):
+        return "the 'n_' prefix names counts"
+    return None
+
+
+def own_names(spec: MetricSpec) -> tuple[set[str], set[str]]:
+    """(value names, count names) a metric reports: its name, the values of its ``ratios`` and ``reports`` (what
+    ``compute()`` returns), and its ``counts``."""
+    cls = spec.metric
+    values = {spec.name, *dict(getattr(cls, "ratios", {}) or {}), *tuple(getattr(cls, "reports", ()) or ())}
+    return values, set(dict(getattr(cls, "counts", {}) or {}))
+
+
+def check_spec(name: str, spec, others: dict) -> None:
+    """:class:`RegistryError` when ``spec`` may not be registered as ``name`` (module docstring): a name of its
+    is reserved, or another metric reports it."""
+    if not isinstance(spec, MetricSpec):
+        raise RegistryError(f"metric '{name}': expected a MetricSpec, got {type(spec).__name__}")
+    values, counts = own_names(spec)
+    for names, count in ((values, False), (counts, True)):
+        for n in sorted(names):
+            why = reserved_reason(str(n), count)
+            if why:
+                raise RegistryError(f"metric '{name}' refused: it would report '{n}', which is {why}; rename it")
+    for other, held in others.items():
+        clash = sorted((values | counts) & set().union(*own_names(held)))
+        if clash:
+            raise RegistryError(f"metric '{name}' refused: it would report {clash}, which metric '{other}' reports; "
+                                f"rename it")
+
+
+METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("spread.metrics",), adapt=_adapt,
+                                         check=check_spec)
 
 SET_METRICS = (
     SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$"),

@@ -24,6 +24,7 @@ refused when it registers (a plugin: listed as failed, the others load), so no p
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -39,7 +40,9 @@ class MetricSpec:
     header. unit: display unit ("" for a share). scale: display value = stored value × scale. digits: decimals
     shown. latex: LaTeX header. default: in the default selection (today's four). order: position in tables.
     bootstrap_unit: what an interval resamples ("scene": every registered metric is a sum over scenes).
-    description: one line for docs and ``--help``."""
+    description: one line for docs and ``--help``. bounds: (low, high) of a valid stored value (None: a share,
+    ``unit`` "", lies in [0, 1]; any other metric only needs to be finite): tables show a value outside them as
+    invalid, never as the best."""
 
     name: str
     metric: type
@@ -54,6 +57,14 @@ class MetricSpec:
     order: int = 100
     bootstrap_unit: str = "scene"
     description: str = ""
+    bounds: tuple[float, float] | None = None
+
+    @property
+    def valid_range(self) -> tuple[float, float] | None:
+        """(low, high) of a valid stored value: :attr:`bounds`, else [0, 1] for a share (``unit`` "")."""
+        if self.bounds is not None:
+            return (float(self.bounds[0]), float(self.bounds[1]))
+        return (0.0, 1.0) if not self.unit else None
 
     def create(self, protocol=None):
         """A fresh metric configured by ``protocol`` (None: the metric's own defaults)."""
@@ -88,6 +99,7 @@ class SetMetricSpec:
     unit: str = ""
     scale: float = 1.0
     order: int = 1000
+    valid_range: tuple[float, float] | None = None
 
     @property
     def label(self) -> str:
@@ -117,7 +129,8 @@ def spec_of_class(name: str, cls: type, **fields) -> MetricSpec:
     values = dict(higher_is_better=bool(getattr(cls, "higher_is_better", True)),
                   column=getattr(cls, "column", "") or name, unit=getattr(cls, "unit", ""),
                   scale=float(getattr(cls, "scale", 1.0)), digits=int(getattr(cls, "digits", 3)),
-                  latex=getattr(cls, "latex", None), description=getattr(cls, "description", "") or (doc[0] if doc else ""))
+                  latex=getattr(cls, "latex", None), description=getattr(cls, "description", "") or (doc[0] if doc else ""),
+                  bounds=getattr(cls, "bounds", None))
     values.update(fields)
     return MetricSpec(name=name, metric=cls, **values)
 
@@ -185,7 +198,7 @@ METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("
                                          check=check_spec)
 
 SET_METRICS = (
-    SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$"),
+    SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$", valid_range=(0.0, math.inf)),
     SetMetricSpec("kid", "KID", 4, latex=r"KID$\downarrow$", order=1001),
 )
 

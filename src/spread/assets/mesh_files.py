@@ -72,6 +72,12 @@ def _read_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """All triangle geometry of the file, posed by the scene graph, concatenated: (V, 3), (F, 3)."""
     import trimesh
 
+    from spread.io import InputFileError, check_input_file
+
+    try:
+        check_input_file(path)  # a FIFO or device is refused by name, never opened
+    except InputFileError as exc:
+        raise MeshFileError(path, str(exc).removeprefix(f"{path}: ")) from None
     try:
         loaded = trimesh.load(str(path), force="scene", process=False)
     except Exception as exc:  # trimesh raises many types for broken files

@@ -35,7 +35,7 @@ from spread.evaluation.resume import dedupe, load_finished
 from spread.evaluation.work import (
     evaluate_chunk, failure_record, reference_fid_state, scene_key, worker_extractor, worker_library,
 )
-from spread.io import append_jsonl, file_sha256, read_jsonl, write_json_atomic
+from spread.io import append_jsonl, file_sha256, read_json, read_jsonl, write_json_atomic
 from spread.runtime.ray import RaySettings, ray_session
 
 PER_SCENE = "per_scene.jsonl"
@@ -100,7 +100,7 @@ def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bo
     reason = None
     if resume and (out / PER_SCENE).exists():
         try:
-            before = json.loads(path.read_text())
+            before = read_json(path)
         except (OSError, ValueError):
             before = None
         if not isinstance(before, dict):

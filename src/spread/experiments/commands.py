@@ -257,17 +257,17 @@ def evaluated_specs(metrics: dict) -> list:
 def scenes_lineage(scenes) -> dict:
     """Lineage tags of an evaluation of ``scenes``: a sampling run's ``scenes/`` folder names the sampling
     run (its :data:`~spread.runtime.mlflow_log.RUN_FILE`) and, through its recorded checkpoint, the training run."""
-    import json
+    from spread.io import read_json
 
     from spread.runtime.mlflow_log import RUN_FILE, training_lineage
 
     folder = Path(scenes).parent
     tags = {}
     if (folder / RUN_FILE).exists():
-        tags["spread.sampling_run_id"] = json.loads((folder / RUN_FILE).read_text()).get("run_id")
+        tags["spread.sampling_run_id"] = read_json(folder / RUN_FILE).get("run_id")
     manifest = folder / "sampling.json"
     if manifest.exists():
-        tags |= training_lineage(json.loads(manifest.read_text()).get("ckpt"))
+        tags |= training_lineage(read_json(manifest).get("ckpt"))
     return tags
 
 

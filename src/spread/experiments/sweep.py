@@ -134,7 +134,10 @@ def default_settings() -> dict:
     """``conf/sweep_run.yaml``'s values."""
     from spread.configs import conf_dir
 
-    return OmegaConf.to_container(OmegaConf.load(Path(conf_dir()) / "sweep_run.yaml"), resolve=False)
+    from spread.io import read_text_checked
+
+    return OmegaConf.to_container(OmegaConf.create(read_text_checked(Path(conf_dir()) / "sweep_run.yaml")),
+                                  resolve=False)
 
 
 def parse_arguments(argv: list[str]) -> SweepPlan:

@@ -189,8 +189,10 @@ def parse_cell(text: str):
 
 def read_csv(path: str | Path) -> list[dict]:
     """Records of a CSV written by :func:`write_csv` (cells parsed by :func:`parse_cell`)."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        return [{k: parse_cell(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+    from spread.io import read_text_checked
+
+    text = read_text_checked(path)
+    return [{k: parse_cell(v) for k, v in row.items()} for row in csv.DictReader(io.StringIO(text, newline=""))]
 
 
 def write_csv(records: Sequence[dict], keys: Sequence[str], path: str | Path) -> Path:

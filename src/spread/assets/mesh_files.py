@@ -79,7 +79,7 @@ def _read_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     except InputFileError as exc:
         raise MeshFileError(path, str(exc).removeprefix(f"{path}: ")) from None
     try:
-        loaded = trimesh.load(str(path), force="scene", process=False)
+        loaded = trimesh.load(str(path), force="scene", process=False)  # checked: check_input_file above
     except Exception as exc:  # trimesh raises many types for broken files
         raise MeshFileError(path, f"unreadable mesh file ({type(exc).__name__}: {exc})") from exc
     try:

@@ -383,11 +383,12 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
 
     s = plan.settings
     out = Path(s.out_dir).resolve()
-    (out / "points").mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     trial = sample_trial if s.command == "sample" else train_trial
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
               "scheduler": s.scheduler}
+    check_inert_dimensions(plan, shared)  # before anything is written
+    (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
     trainable = tune.with_resources(tune.with_parameters(trial, plan=shared), resources)
@@ -406,7 +407,6 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
 
         scheduler = ASHAScheduler(metric=s.metric, mode=s.mode, time_attr="training_iteration", **dict(s.asha))
     samples = 1 if s.search == "grid" else int(s.num_samples)
-    check_inert_dimensions(plan, shared)
     space, rows = search_space(plan), []
     if s.search == "grid" and s.command == "sample":  # finished points are read on the driver, no trial
         todo = []

@@ -178,6 +178,7 @@ def test_metric_names_that_collide_with_record_fields_or_other_metrics_are_refus
     from spread.metrics.registry import METRICS, spec_of_class
     from spread.registry import RegistryError
 
+    METRICS.load()  # the built-ins and installed plugins first: a name is checked against all of them
     _sys.path.insert(0, str(PLUGIN))
     try:
         honest = importlib.import_module("hostile_metrics").Honest

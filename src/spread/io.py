@@ -120,10 +120,12 @@ def open_append_nofollow(path: str | os.PathLike) -> int:
 
 
 def read_jsonl(path: str | os.PathLike) -> list[dict]:
-    """Read a JSON-lines file, skipping a torn final line left by a killed writer."""
+    """Read a JSON-lines file, skipping a torn final line left by a killed writer (a regular file: a FIFO or
+    device is refused by :func:`check_input_file`, without a size limit)."""
     path = Path(path)
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         return []
+    check_input_file(path, max_bytes=0)
     out = []
     with open(path, encoding="utf-8") as fh:
         for line in fh:
@@ -164,13 +166,18 @@ DEFAULT_MAX_INPUT_MB = 256.0
 
 
 def max_input_bytes() -> int:
-    """The per-file size limit in bytes (:data:`MAX_INPUT_ENV`, else :data:`DEFAULT_MAX_INPUT_MB`); 0: none."""
+    """The per-file size limit in bytes (:data:`MAX_INPUT_ENV`, else :data:`DEFAULT_MAX_INPUT_MB`); 0: none (the
+    variable is 0, negative or ``inf``)."""
+    import math
+
     raw = os.environ.get(MAX_INPUT_ENV, "").strip()
     try:
         mb = float(raw) if raw else DEFAULT_MAX_INPUT_MB
     except ValueError:
         raise InputFileError(f"{MAX_INPUT_ENV}={raw!r}: not a number of megabytes") from None
-    return int(mb * 2 ** 20) if mb > 0 else 0
+    if math.isnan(mb):
+        raise InputFileError(f"{MAX_INPUT_ENV}={raw!r}: not a number of megabytes")
+    return int(mb * 2 ** 20) if 0 < mb < math.inf else 0
 
 
 def _kind(mode: int) -> str:
@@ -217,6 +224,31 @@ def check_input_file(path: str | os.PathLike, root: str | os.PathLike | None = N
         raise InputFileError(f"{path}: {st.st_size / 2 ** 20:.1f} MB, over the {limit / 2 ** 20:.0f} MB limit for "
                              f"one input file; set {MAX_INPUT_ENV}=<megabytes> to raise it (0: no limit)")
     return path
+
+
+def read_text_checked(path: str | os.PathLike, root: str | os.PathLike | None = None,
+                      max_bytes: int | None = None) -> str:
+    """The UTF-8 text of ``path`` once :func:`check_input_file` passed it (the one door every reader of a run's
+    or a user's text file goes through: a FIFO, a device or a link out of ``root`` is refused, never opened)."""
+    return Path(check_input_file(path, root, max_bytes)).read_text(encoding="utf-8")
+
+
+def read_bytes_checked(path: str | os.PathLike, root: str | os.PathLike | None = None,
+                       max_bytes: int | None = None) -> bytes:
+    """The bytes of ``path`` once :func:`check_input_file` passed it."""
+    return Path(check_input_file(path, root, max_bytes)).read_bytes()
+
+
+def read_json(path: str | os.PathLike, root: str | os.PathLike | None = None):
+    """The JSON value in ``path`` once :func:`check_input_file` passed it (``ValueError`` naming the file when it
+    is not JSON; a missing file raises ``FileNotFoundError`` as ``open`` does)."""
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        return json.loads(read_text_checked(path, root))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
 
 
 #: Characters a :func:`safe_name` keeps as they are (portable file-name characters).
@@ -295,7 +327,15 @@ def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_FILE
     refuse_links(path)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0), 0o666)
+    import stat
+
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise UnsafeOutputError(f"{path}: the run folder's lock is not a regular file (a {_kind(mode)}); remove it, "
+                                f"the platform makes its own")
+    os.set_blocking(fd, True)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

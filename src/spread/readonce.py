@@ -6,8 +6,11 @@ and the asset library four times. Here each is read on first use and kept for th
 the driver, a Ray actor, a Ray task worker, a Ray Tune trial process re-used across trials — so a second
 use, or a second trial in the same process, reads nothing.
 
-An entry's key is what it was read from: the file's resolved path, size and modification time (ns), plus
-the arguments that change the result. A file changed on disk (other size or mtime) is read again; a read
+An entry's key is what it was read from: the file's identity and content stamp — its resolved path, device,
+inode, size, modification time and status-change time (ns) — plus the arguments that change the result. A
+file changed on disk is read again: rewritten (another size, mtime or ctime), or replaced by another file (another
+inode), even one of the same size whose mtime was set back (``touch -d``, ``cp -p``, ``rsync -t``: the kernel sets
+ctime to now on every write and every ``utime``, and no program can set it back); a read
 that raises is not kept (the next call reads, and raises, again). Each kind of entry lives in its own
 bounded table (least recently used dropped first, :data:`LIMITS`). Callers must not modify what they get:
 the same object is handed to every caller of the process.
@@ -40,11 +43,12 @@ def enabled() -> bool:
     return os.environ.get(ENV, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
-def file_key(path: str | os.PathLike) -> tuple[str, int, int]:
-    """(resolved path, size in bytes, mtime in ns) of a file; ``OSError`` when it cannot be stat'ed."""
+def file_key(path: str | os.PathLike) -> tuple[str, int, int, int, int, int]:
+    """(resolved path, device, inode, size in bytes, mtime in ns, ctime in ns) of a file (module docstring);
+    ``OSError`` when it cannot be stat'ed."""
     p = Path(path).resolve()
     st = p.stat()
-    return str(p), int(st.st_size), int(st.st_mtime_ns)
+    return str(p), int(st.st_dev), int(st.st_ino), int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns)
 
 
 def memo(kind: str, key: Hashable, load: Callable[[], object]):

@@ -16,8 +16,11 @@ Entries come from three places, loaded on first use:
    for instance);
 3. ``register`` calls at run time (tests, notebooks).
 
-A plugin that fails to load does not take the others with it: its name is listed with the error, and asking
-for it raises that error.
+A plugin that fails to load does not take the others with it — whatever it raises on import, ``SystemExit``
+included (only ``KeyboardInterrupt`` goes through) — and neither does one refused by the registry's ``check`` (a
+metric named like a field of ``metrics.json``) or one whose name a built-in already holds: its name is listed
+with the error (:meth:`Registry.failed`), a :class:`PluginWarning` says so on the console, and asking for it
+raises that error.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import pkgutil
+import warnings
 from typing import Callable, Generic, Iterator, TypeVar
 
 T = TypeVar("T")
@@ -45,18 +49,25 @@ class RegistryError(ValueError):
     """An unknown name, a name registered twice, or a plugin that failed to load."""
 
 
+class PluginWarning(UserWarning):
+    """A plugin (entry point) that was not loaded: the message names it and why; the others are loaded."""
+
+
 class Registry(Generic[T]):
     """Entries of one kind by name (module docstring).
 
     kind: what the entries are, for messages ("metric"); group: the entry-point group (``spread.metrics``);
     packages: modules whose submodules define built-in entries (imported on first use); adapt:
-    ``adapt(name, obj) → entry`` for what an entry point's object is when it is not an entry yet.
+    ``adapt(name, obj) → entry`` for what an entry point's object is when it is not an entry yet; check:
+    ``check(name, entry, others)`` raising :class:`RegistryError` for an entry that may not be registered (others:
+    the entries registered so far, name → entry), run by every :meth:`register`.
     """
 
     def __init__(self, kind: str, group: str, packages: tuple[str, ...] = (),
-                 adapt: Callable[[str, object], T] | None = None):
+                 adapt: Callable[[str, object], T] | None = None,
+                 check: Callable[[str, T, dict], None] | None = None):
         self.kind, self.group, self.packages = kind, group, tuple(packages)
-        self.adapt = adapt
+        self.adapt, self.check = adapt, check
         self._entries: dict[str, T] = {}
         self._origin: dict[str, str] = {}
         self._failed: dict[str, str] = {}
@@ -71,6 +82,8 @@ class Registry(Generic[T]):
         if name in self._entries and not replace and self._entries[name] is not entry:
             raise RegistryError(f"{self.kind} '{name}' is registered twice ({self._origin.get(name) or 'built-in'} "
                                 f"and {origin or 'built-in'})")
+        if self.check is not None:
+            self.check(name, entry, {k: v for k, v in self._entries.items() if k != name})
         self._entries[name] = entry
         self._origin[name] = origin
         self._failed.pop(name, None)
@@ -90,18 +103,32 @@ class Registry(Generic[T]):
             for package in self.packages:
                 self._import_package(package)
             for ep in importlib.metadata.entry_points(group=self.group):
-                if ep.name in self._entries:
-                    continue
                 origin = f"entry point '{ep.name} = {ep.value}' ({ep.dist.name if ep.dist else 'unknown'})"
+                if ep.name in self._entries:  # a built-in (or an earlier plugin) keeps its name
+                    if self._origin.get(ep.name) == origin:  # the same entry point seen twice
+                        continue
+                    held = self._origin.get(ep.name) or f"the built-in {self.kind}"
+                    self._fail(ep.name, f"{origin} not loaded: the name '{ep.name}' is taken by {held}; rename the "
+                                        f"plugin")
+                    continue
                 try:
                     obj = ep.load()
                     entry = self.adapt(ep.name, obj) if self.adapt is not None else obj
                     self.register(ep.name, entry, origin)
-                except Exception as exc:  # one broken plugin never hides the rest
-                    self._failed[ep.name] = f"{origin} failed to load: {type(exc).__name__}: {exc}"
+                except KeyboardInterrupt:
+                    raise
+                except BaseException as exc:  # SystemExit too: one broken plugin never stops the command
+                    detail = str(exc) if str(exc) else "(no message)"
+                    self._fail(ep.name, f"{origin} failed to load: {type(exc).__name__}: {detail}")
             self._loaded = True
         finally:
             self._loading = False
+
+    def _fail(self, name: str, reason: str) -> None:
+        """List plugin ``name`` as failed with ``reason`` and say so once on the console."""
+        if name not in self._failed:
+            warnings.warn(f"{self.kind} plugin '{name}': {reason}", PluginWarning, stacklevel=3)
+        self._failed.setdefault(name, reason)
 
     @staticmethod
     def _import_package(package: str) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 
 from spread.assets.library import AssetLibrary, AssetRecord, RestPose, SupportSurface, parts_bytes
 from spread.assets.stability import stable_rest_poses
-from spread.io import write_bytes_atomic
+from spread.io import read_bytes_checked, write_bytes_atomic
 
 #: Most faces allowed on an asset's visual mesh.
 MAX_FACES = 5000
@@ -71,7 +71,7 @@ def union_mesh(parts: Sequence) -> "object":
 
 def _write_if_changed(path: Path, data: bytes) -> None:
     """Write ``data`` atomically unless ``path`` already holds exactly these bytes."""
-    if path.exists() and path.stat().st_size == len(data) and path.read_bytes() == data:
+    if path.is_file() and path.stat().st_size == len(data) and read_bytes_checked(path, max_bytes=0) == data:
         return
     write_bytes_atomic(path, data)
 

@@ -36,7 +36,7 @@ import numpy as np
 from spread.assets.library import (
     AssetRecord, RestPose, load_parts, parts_bytes, reusable_record, write_record_sidecar,
 )
-from spread.io import file_sha256, write_bytes_atomic, write_json_atomic
+from spread.io import file_sha256, read_bytes_checked, read_json, write_bytes_atomic, write_json_atomic
 
 #: Bump when the files written for unchanged inputs change.
 IMPORT_VERSION = 1
@@ -92,7 +92,7 @@ def cached_decomposition(root: Path, mesh, settings: ImportSettings) -> tuple[li
     npz, meta = root / "decompositions" / f"{key[:32]}.npz", root / "decompositions" / f"{key[:32]}.json"
     if npz.exists() and meta.exists():
         try:
-            return load_parts(npz), json.loads(meta.read_text())
+            return load_parts(npz), read_json(meta)
         except (OSError, ValueError, KeyError):
             pass  # torn cache: decompose again
     dec = convex_decomposition(mesh, method=settings.decomposition, **settings.decomposition_settings)
@@ -109,7 +109,7 @@ def parts_volume(parts) -> float:
 
 
 def _write_if_changed(path: Path, data: bytes) -> None:
-    if path.exists() and path.stat().st_size == len(data) and path.read_bytes() == data:
+    if path.is_file() and path.stat().st_size == len(data) and read_bytes_checked(path, max_bytes=0) == data:
         return
     write_bytes_atomic(path, data)
 

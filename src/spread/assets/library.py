@@ -29,7 +29,7 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from spread.io import atomic_path, read_json_object, write_json_atomic
+from spread.io import atomic_path, read_json, read_json_object, write_json_atomic
 
 LIBRARY_VERSION = 1
 #: Surface samples stored per asset in its cache (the issue asks for at least 2,000).
@@ -168,7 +168,7 @@ def reusable_record(root: str | os.PathLike, asset_id: str, fingerprint: str) ->
     from spread.io import file_sha256
 
     try:
-        data = json.loads(_sidecar(Path(root), asset_id).read_text())
+        data = read_json(_sidecar(Path(root), asset_id))
         if data.get("fingerprint", data.get("spec_fingerprint")) != fingerprint:  # spec_…: older libraries
             return None
         rec = AssetRecord.from_dict(data["record"])
@@ -231,7 +231,9 @@ def save_parts(path: str | os.PathLike, parts: Sequence["object"]) -> None:
 def load_parts(path: str | os.PathLike) -> list["object"]:
     import trimesh
 
-    with np.load(path, allow_pickle=False) as data:
+    from spread.safe_load import load_npz
+
+    with load_npz(path) as data:
         V, F = data["vertices"], data["faces"]
         vc, fc = data["vertex_counts"], data["face_counts"]
     out, vo, fo = [], 0, 0
@@ -320,7 +322,9 @@ class AssetLibrary:
                 path = self.root / rec.mesh_file
                 if not path.exists():
                     raise AssetError(f"{path}: mesh file of asset '{asset_id}' is missing")
-                m = trimesh.load(path, force="mesh", process=False)
+                from spread.io import check_input_file
+
+                m = trimesh.load(check_input_file(path, root=self.root), force="mesh", process=False)
                 self._meshes[asset_id] = trimesh.Trimesh(m.vertices, m.faces, process=False)
             return self._meshes[asset_id]
 
@@ -353,7 +357,9 @@ class AssetLibrary:
         cache = None
         if path.exists():
             try:
-                with np.load(path, allow_pickle=False) as d:
+                from spread.safe_load import load_npz
+
+                with load_npz(path) as d:
                     cache = AssetGeometryCache(d["surface_points"], d["surface_normals"], d["xz_hull"])
             except Exception:
                 cache = None  # torn or stale cache: rebuild

@@ -72,8 +72,14 @@ def _read_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """All triangle geometry of the file, posed by the scene graph, concatenated: (V, 3), (F, 3)."""
     import trimesh
 
+    from spread.io import InputFileError, check_input_file
+
     try:
-        loaded = trimesh.load(str(path), force="scene", process=False)
+        check_input_file(path)  # a FIFO or device is refused by name, never opened
+    except InputFileError as exc:
+        raise MeshFileError(path, str(exc).removeprefix(f"{path}: ")) from None
+    try:
+        loaded = trimesh.load(str(path), force="scene", process=False)  # checked: check_input_file above
     except Exception as exc:  # trimesh raises many types for broken files
         raise MeshFileError(path, f"unreadable mesh file ({type(exc).__name__}: {exc})") from exc
     try:

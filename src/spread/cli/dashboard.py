@@ -5,7 +5,10 @@ runs, parallel coordinates over a sweep).
 It runs the real ``mlflow server`` with that backend store (default ``sqlite:///<paths.runs_dir>/mlflow.db``,
 the store ``conf/logger/mlflow.yaml`` writes to) and prints the URL. It listens on localhost only; on a
 cluster, run it on the login node and forward the port (``ssh -L 5000:localhost:5000 login-node``,
-jobs/README.md). Stop it with Ctrl-C.
+jobs/README.md). Another host needs ``allow_remote=true`` (the UI has no authentication: a warning says so).
+Before it starts, the port (1–65535, free), the host and the store (a regular SQLite file that opens: not
+corrupt, truncated or locked; no ``?``, ``#`` or ``%`` in its path) are checked: otherwise it exits non-zero
+in one line (:mod:`spread.cli.serve`). Stop it with Ctrl-C.
 """
 
 from __future__ import annotations
@@ -13,7 +16,8 @@ from __future__ import annotations
 import os
 import sys
 
-KEYS = {"tracking_uri": None, "port": "5000", "host": "127.0.0.1", "paths.runs_dir": "runs", "workers": "1"}
+KEYS = {"tracking_uri": None, "port": "5000", "host": "127.0.0.1", "paths.runs_dir": "runs", "workers": "1",
+        "allow_remote": "false"}
 
 
 def parse(argv: list[str]) -> dict:
@@ -24,21 +28,22 @@ def parse(argv: list[str]) -> dict:
         if not eq or key.lstrip("+") not in KEYS:
             raise SystemExit(f"spread-dashboard: argument {arg!r}: expected key=value with key in {sorted(KEYS)}")
         values[key.lstrip("+")] = value
-    if not values["port"].isdigit():
-        raise SystemExit(f"spread-dashboard: port={values['port']}: not a port number")
+    if not values["workers"].isdigit() or not 1 <= int(values["workers"]) <= 64:
+        raise SystemExit(f"spread-dashboard: workers={values['workers']}: expected 1 to 64")
     return values
 
 
 def server_command(values: dict) -> tuple[list[str], str]:
-    """(the ``mlflow server`` command line, the store URI); creates the store when it does not exist yet."""
-    from spread.runtime.mlflow_log import artifact_root, quiet, resolve_tracking_uri
+    """(the ``mlflow server`` command line, the store URI); creates the store when it does not exist yet; a store
+    that cannot be opened is one line naming it."""
+    from spread.runtime.mlflow_log import StoreError, artifact_root, open_store, resolve_tracking_uri
 
-    uri = resolve_tracking_uri(values["tracking_uri"] or f"sqlite:///{values['paths.runs_dir']}/mlflow.db")
-    if uri.startswith("sqlite:///"):
-        from mlflow import MlflowClient
-
-        quiet()
-        MlflowClient(tracking_uri=uri).search_experiments(max_results=1)  # creates the tables of a new store
+    try:
+        uri = resolve_tracking_uri(values["tracking_uri"] or f"sqlite:///{values['paths.runs_dir']}/mlflow.db")
+        if uri.startswith("sqlite:///"):
+            open_store(uri)  # creates the tables of a new store; names a corrupt, truncated or locked one
+    except (StoreError, OSError) as exc:
+        raise SystemExit(f"spread-dashboard: {' '.join(str(exc).split())}") from None
     command = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", uri, "--host", values["host"],
                "--port", values["port"], "--workers", values["workers"]]
     root = artifact_root(uri)
@@ -48,7 +53,11 @@ def server_command(values: dict) -> tuple[list[str], str]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from spread.cli.serve import check_host, check_port
+
     values = parse(sys.argv[1:] if argv is None else argv)
+    check_host("spread-dashboard", values["host"], values["allow_remote"])
+    values["port"] = str(check_port("spread-dashboard", values["port"], values["host"]))
     command, uri = server_command(values)
     print(f"spread-dashboard: store {uri}\nspread-dashboard: open http://{values['host']}:{values['port']}/ "
           f"(Ctrl-C stops it)", flush=True)

@@ -22,11 +22,12 @@ before it runs.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+from spread.io import read_json
 
 #: (metric key, label, scale, digits) of the printed table
 def rows(metrics: dict) -> list[tuple[str, str, float, int]]:
@@ -126,9 +127,9 @@ def main(argv: list[str] | None = None) -> None:
         *evaluate)
     run(script("spread-evaluate"), f"scenes={samples / 'scenes'}", f"reference={data}",
         f"out_dir={out / 'eval_generated'}", *evaluate, resume)
-    truth, generated = (json.loads((out / name / "metrics.json").read_text())
+    truth, generated = (read_json(out / name / "metrics.json")
                         for name in ("eval_truth", "eval_generated"))
-    steps = json.loads((train / "metrics.json").read_text())["global_step"]
+    steps = read_json(train / "metrics.json")["global_step"]
     console = Console()
     console.print()
     console.print(comparison_table(truth, generated, f"test split: ground truth vs the cpu_hour recipe "

@@ -14,14 +14,19 @@ def main(argv: list[str] | None = None) -> None:
     if any(a in ("-h", "--help") for a in args):
         from spread.configs import conf_dir
 
-        print(open(f"{conf_dir()}/sweep_run.yaml").read())
+        from spread.io import read_text_checked
+
+        print(read_text_checked(f"{conf_dir()}/sweep_run.yaml"))
         return
     try:
         plan = parse_arguments(args)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from exc
-    result = run_sweep(plan)
-    print(result.md.read_text())
+        result = run_sweep(plan)
+    except ValueError as exc:  # a bad setting, refused before any trial: one line
+        message = " ".join(str(exc).split())
+        raise SystemExit(message if message.startswith("spread-sweep") else f"spread-sweep: {message}") from None
+    from spread.io import read_text_checked
+
+    print(read_text_checked(result.md))
     print(f"spread-sweep: {len(result.rows)} trials in {result.seconds:.1f} s → {result.csv}")
     failed = [r for r in result.rows if r.get("status") != "ok"]
     if failed:

@@ -3,8 +3,10 @@ scene file, a folder of them, or a run folder (its ``scenes/``): objects coloure
 the ground truth beside a generated scene, before / after the Stability simulation, the relation matrix, and
 the guidance iterations as a timeline when the file carries them (:mod:`spread.render.viewer`).
 
-Listens on localhost only; on a cluster, forward the port (``ssh -L 8080:localhost:8080 login-node``).
-Stop it with Ctrl-C.
+Listens on localhost only; on a cluster, forward the port (``ssh -L 8080:localhost:8080 login-node``); another
+host needs ``allow_remote=true`` (no authentication: a warning says so). The port (1–65535, free) and host are
+checked before it starts, and every scene file is checked before it is opened (a FIFO or device among the
+scenes is named and left out): otherwise it exits non-zero in one line. Stop it with Ctrl-C.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from __future__ import annotations
 import sys
 import time
 
-KEYS = {"assets": None, "port": "8080", "host": "127.0.0.1"}
+KEYS = {"assets": None, "port": "8080", "host": "127.0.0.1", "allow_remote": "false"}
 
 
 def parse(argv: list[str]) -> tuple[str, dict]:
@@ -30,20 +32,25 @@ def parse(argv: list[str]) -> tuple[str, dict]:
             raise SystemExit(f"spread-view: argument {arg!r}: unknown key (known: path, {', '.join(KEYS)})")
     if len(paths) != 1:
         raise SystemExit(f"spread-view: give one scene file, folder or run folder (got {paths or 'none'})")
-    if not str(values["port"]).isdigit():
-        raise SystemExit(f"spread-view: port={values['port']}: not a port number")
     return paths[0], values
 
 
 def main(argv: list[str] | None = None) -> None:
+    from spread.cli.serve import check_host, check_port
     from spread.render.viewer import SceneViewer, collect
 
     path, values = parse(sys.argv[1:] if argv is None else argv)
+    check_host("spread-view", values["host"], values["allow_remote"])
+    port = check_port("spread-view", values["port"], values["host"])
+    refused: list[str] = []
     try:
-        items, library = collect(path, values["assets"])
-    except FileNotFoundError as exc:
-        raise SystemExit(str(exc)) from exc
-    viewer = SceneViewer(items, library, host=values["host"], port=int(values["port"]))
+        items, library = collect(path, values["assets"], refused)
+    except (FileNotFoundError, ValueError) as exc:
+        message = " ".join(str(exc).split())
+        raise SystemExit(message if message.startswith("spread-view") else f"spread-view: {message}") from None
+    for why in refused:
+        print(f"spread-view: not shown: {why}", file=sys.stderr, flush=True)
+    viewer = SceneViewer(items, library, host=values["host"], port=port)
     print(f"spread-view: {len(items)} scene(s) from {path}; open http://{values['host']}:{viewer.server.get_port()}/ "
           f"(Ctrl-C stops it)", flush=True)
     try:

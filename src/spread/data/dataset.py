@@ -33,7 +33,6 @@ worker process that gets a pickled copy reloads the library lazily from its fold
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -43,6 +42,7 @@ import torch
 from spread.data.points import DEFAULT_NUM_POINTS, asset_points
 from spread.data.rotation import matrix_to_rot6d
 from spread.data.stats import load_stats, normalize_translation, translation_bounds
+from spread.io import read_json
 from spread.scene import Scene, list_scene_files, read_scene, scene_mounts
 
 
@@ -50,10 +50,7 @@ def load_manifest_categories(path: Path) -> list[str] | None:
     """The ``categories`` list of ``manifest.json``, or None when the file or key is absent."""
     if not path.exists():
         return None
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    manifest = read_json(path)  # a file that is not JSON, or not a regular file, is a ValueError naming it
     cats = manifest.get("categories") if isinstance(manifest, dict) else None
     if cats is None:
         return None

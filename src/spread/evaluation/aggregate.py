@@ -3,7 +3,9 @@
 Every good record carries its scene's metric states (``record["state"][name]``: the sums one scene adds);
 the driver builds fresh aggregates from the protocol and ``merge_state``s each record into them — the same
 summation DDP's ``sync`` does across ranks — so the result does not depend on how scenes were split over
-workers, nodes or resumed runs. FID and KID: the generated set's features come from the records
+workers, nodes or resumed runs. A metric that failed on a scene (the record's ``metric_errors``) leaves that
+scene out of its own aggregate only; a record that is damaged (an ``error``, a missing state no ``metric_errors``
+explains, a non-finite state) is out of every aggregate (:func:`usable`, :func:`usable_for`). FID and KID: the generated set's features come from the records
 (``fid_features``), the reference set's statistics from states merged in by the caller.
 """
 
@@ -18,48 +20,71 @@ from spread.evaluation.protocol import EvalProtocol
 
 
 def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
-    """Aggregates (name → metric) of the protocol's metrics with every usable record's per-scene states merged in
-    (a record without a finite state of every selected metric is left out, as a failure)."""
+    """Aggregates (name → metric) of the protocol's metrics with every record's per-scene states merged in where
+    the record is usable for that metric (:func:`usable_for`)."""
     metrics = protocol.build_metrics()
     for record in records:
-        if not usable(record, metrics):
-            continue
         for name, metric in metrics.items():
-            state = record["state"][name]
-            metric.merge_state({k: torch.as_tensor(state[k], dtype=getattr(metric, k).dtype)
-                                for k in metric.metric_state})
+            if usable_for(record, name, metrics):
+                state = record["state"][name]
+                metric.merge_state({k: torch.as_tensor(state[k], dtype=getattr(metric, k).dtype)
+                                    for k in metric.metric_state})
     return metrics
 
 
 def usable(record: dict, metrics=None) -> bool:
-    """Whether a ``per_scene.jsonl`` record enters the aggregates: no error and a finite state for every metric
-    (``metrics``: the names measured, default the record's own; a hand-edited or damaged line with a NaN, a
-    string or a missing metric is left out, as a failure)."""
+    """Whether a ``per_scene.jsonl`` record is an evaluated scene that enters the aggregates: no error, and for every
+    metric (``metrics``: the names measured, default the record's own) a finite state or a failure the record
+    declares (``metric_errors``); a hand-edited or damaged line with a NaN, a string or a missing metric is left
+    out of every aggregate, as a failed scene."""
     from spread.evaluation.work import nonfinite_state
 
-    state = record.get("state")
-    return (not record.get("error") and isinstance(state, dict) and set(metrics or state) <= set(state)
-            and nonfinite_state(state) is None)
+    state, declared = record.get("state"), record.get("metric_errors") or {}
+    if record.get("error") or not isinstance(state, dict) or not isinstance(declared, dict):
+        return False
+    names = list(metrics or state)
+    if any(n not in state and n not in declared for n in names):
+        return False
+    measured = {n: state[n] for n in names if n in state and n not in declared}
+    return bool(measured) and nonfinite_state(measured) is None
+
+
+def usable_for(record: dict, name: str, metrics=None) -> bool:
+    """Whether ``record`` enters metric ``name``'s aggregate: :func:`usable`, and ``name`` did not fail on it."""
+    return usable(record, metrics) and name in record["state"] and name not in (record.get("metric_errors") or {})
 
 
 def as_float(value) -> float | None:
-    """A 0-d tensor or number as a float, None for NaN (nothing was measured)."""
+    """A 0-d tensor or number as a float, None for NaN (nothing measured) and ±inf (never a result)."""
     x = float(value)
-    return None if np.isnan(x) else x
+    return None if not np.isfinite(x) else x
 
 
 def summary_values(records: list[dict], protocol: EvalProtocol) -> dict:
     """Every selected metric's values (its ``compute()``: Stability adds the still shares), the counts of the
-    scenes and objects, and each metric's own counts (``n_colliding_objects``, ...) over deduplicated ``records``."""
+    scenes and objects, each metric's own counts (``n_colliding_objects``, ...) and its failures
+    (``metric_failures``: name → scenes it failed on) over deduplicated ``records``. A metric whose pooled
+    ``compute()`` is not a value of its own (:meth:`~spread.metrics.base.SceneMetric.values`) reports null, with
+    why under ``invalid_values``."""
+    from spread.metrics.base import MetricOutputError
+
     metrics = merge_records(records, protocol)
     good = [r for r in records if usable(r, metrics)]
     out: dict = {}
+    invalid = {}
     for name, metric in metrics.items():
-        out.update({k: as_float(v) for k, v in metric.values(name).items()})
+        try:
+            out.update({k: as_float(v) for k, v in metric.values(name).items()})
+        except MetricOutputError as exc:
+            out[name], invalid[name] = None, str(exc)
+    failures = {name: sum(name in (r.get("metric_errors") or {}) for r in good) for name in metrics}
     out.update({"n_scenes": len(records), "n_evaluated": len(good), "n_failed": len(records) - len(good),
                 "n_implausible": sum(r.get("error_type") == "ImplausibleSceneError" for r in records),
                 "n_refused_inputs": sum(r.get("error_type") == "InputFileError" for r in records),
-                "n_objects": int(sum(r["num_objects"] for r in good))})
+                "n_objects": int(sum(r["num_objects"] for r in good)),
+                "n_metric_failures": sum(failures.values()), "metric_failures": failures})
+    if invalid:
+        out["invalid_values"] = invalid
     for metric in metrics.values():
         out.update(metric.count_values())
     return out

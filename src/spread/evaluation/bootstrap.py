@@ -37,18 +37,20 @@ FEW = 5
 
 
 def scene_sums(records: Iterable[dict], metrics: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """value → (numerators (n,), denominators (n,)) of the usable records (no ``error``, a finite state for every
-    metric: :func:`~spread.evaluation.aggregate.usable`), in order, for every pooled-ratio value of ``metrics``
-    (name → metric; each metric says which of its per-scene states form which value:
-    :meth:`~spread.metrics.base.SceneMetric.pooled_terms`)."""
-    from spread.evaluation.aggregate import usable
+    """value → (numerators (n,), denominators (n,)) of the records usable for its metric (no ``error``, finite
+    states, the metric did not fail on the scene: :func:`~spread.evaluation.aggregate.usable_for`), in order, for
+    every pooled-ratio value of ``metrics`` (name → metric; each metric says which of its per-scene states form
+    which value: :meth:`~spread.metrics.base.SceneMetric.pooled_terms`)."""
+    from spread.evaluation.aggregate import usable_for
 
-    good = [r for r in records if usable(r, metrics)]
+    records = list(records)
     out: dict[str, tuple[list, list]] = {}
     for name, metric in metrics.items():
         for value in metric.ratios:
             out[value] = ([], [])
-        for r in good:
+        for r in records:
+            if not usable_for(r, name, metrics):
+                continue
             for value, (num, den) in metric.pooled_terms(r["state"][name]).items():
                 out[value][0].append(num)
                 out[value][1].append(den)
@@ -73,9 +75,10 @@ def record_metrics(records: Iterable[dict]) -> dict:
 
     names: list[str] = []
     for r in records:
-        state = r.get("state")
+        state, failed = r.get("state"), r.get("metric_errors")
         if not r.get("error") and isinstance(state, dict):
-            names += [n for n in state if n not in names and n in METRICS]
+            measured = [*state, *(failed if isinstance(failed, dict) else ())]
+            names += [n for n in measured if n not in names and n in METRICS]
     names = names or default_metric_names()  # nothing measured: the default metrics, each without an interval
     return {name: metric_spec(name).create() for name in names}
 
@@ -101,11 +104,15 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
     meta = {"method": "percentile", "unit": "scene", "resamples": int(resamples), "level": float(level),
             "seed": int(seed), "n_scenes": n, "measured": {m: int((den > 0).sum()) for m, (_, den) in sums.items()}}
     out: dict = {}
-    index = resample_indices(n, resamples, seed) if n else None
+    indices: dict[int, np.ndarray] = {}  # one draw per scene count: every metric measured on all n scenes shares it
     quantiles = [(1 - level) / 2, (1 + level) / 2]
     for metric, (num, den) in sums.items():
         lo = hi = None
-        if n and not math.isnan(pooled(num, den)):
+        m = len(num)  # scenes this metric was measured on (fewer than n where it failed on some)
+        if m and not math.isnan(pooled(num, den)):
+            if m not in indices:
+                indices[m] = resample_indices(m, resamples, seed)
+            index = indices[m]
             nb, db = num[index].sum(axis=1), den[index].sum(axis=1)
             ok = db > 0
             if ok.any():

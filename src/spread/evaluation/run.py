@@ -35,7 +35,7 @@ from spread.evaluation.resume import dedupe, load_finished
 from spread.evaluation.work import (
     evaluate_chunk, failure_record, reference_fid_state, scene_key, worker_extractor, worker_library,
 )
-from spread.io import append_jsonl, file_sha256, read_jsonl, write_json_atomic
+from spread.io import append_jsonl, file_sha256, read_json, read_jsonl, write_json_atomic
 from spread.runtime.ray import RaySettings, ray_session
 
 PER_SCENE = "per_scene.jsonl"
@@ -100,7 +100,7 @@ def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bo
     reason = None
     if resume and (out / PER_SCENE).exists():
         try:
-            before = json.loads(path.read_text())
+            before = read_json(path)
         except (OSError, ValueError):
             before = None
         if not isinstance(before, dict):
@@ -239,6 +239,8 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     metrics.update({
         "failed": [{"scene_id": r["scene_id"], "error": r.get("error") or "unusable record (a non-finite or missing "
                     "metric state)"} for r in records if not usable(r)],
+        "failed_metrics": [{"scene_id": r["scene_id"], "metric": name, "error": error} for r in records if usable(r)
+                           for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
         "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(), "redone_because": redone_because,

@@ -111,8 +111,14 @@ def nonfinite_state(states) -> str | None:
 
 def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, extractor=None,
                    metrics: dict | None = None) -> dict:
-    """Every selected metric of one scene file (module docstring); never raises for a bad scene. ``metrics``:
-    this process's metric objects (``protocol.build_metrics()``), whose ``evaluate`` measures the scene."""
+    """Every selected metric of one scene file (module docstring); never raises for a bad scene or metric.
+    ``metrics``: this process's metric objects (``protocol.build_metrics()``), whose ``evaluate`` measures the scene.
+
+    Metrics are isolated from each other: each gets its own read-only copy of the scene (:func:`read_only_copy`:
+    a metric that moves objects raises instead, and can never change what the next one sees), and a metric that
+    raises, reports a name that is not its own, a non-number or ±inf, a non-finite state, or details that are not
+    JSON fails for this scene alone: ``metric_errors[name]`` says why, its values and state are left out, and the
+    other metrics' stand (:func:`measure`). A scene whose every metric failed is a failed scene (``error``)."""
     from spread.metrics import fid_render
     from spread.scene import read_scene
 
@@ -132,27 +138,26 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         return out
 
     metrics = protocol.build_metrics() if metrics is None else metrics
+    values, states, details, failures = {}, {}, {}, {}
     try:
         scene = timed("read", read_scene, path, assets=library)
-        results = {name: timed(name, metric.evaluate, scene, library) for name, metric in metrics.items()}
+        for name in metrics:
+            outcome = timed(name, measure, metrics, name, scene, library)
+            if isinstance(outcome, str):
+                failures[name] = outcome
+            else:
+                values.update(outcome[0])
+                states[name], details[name] = outcome[1], outcome[2]
+        if not states:
+            raise RuntimeError("every metric failed: " + "; ".join(f"{k}: {v}" for k, v in failures.items()))
         features = None
         if extractor is not None:
             image = timed("fid_render", fid_render, scene, library)
             features = timed("fid_features", extractor, image[None])[0]
-        values, states = {}, {}
-        for name, result in results.items():
-            one = protocol_metric(metrics, name)  # a fresh metric that sees this scene only
-            one.update([result])
-            values.update(one.values(name))
-            states[name] = {k: v.tolist() for k, v in one.metric_state.items()}
-        bad = nonfinite_state(states)
-        if bad:
-            raise FloatingPointError(f"{path}: metric state {bad} is not finite; the scene is left out of every "
-                                     f"aggregate")
     except Exception as exc:  # a scene that cannot be measured is reported, and the run goes on
         record.update(error=f"{type(exc).__name__}: {exc}", error_type=type(exc).__name__,
                       traceback=traceback.format_exc(limit=4)[-2000:], seconds=seconds)
-        return record
+        return finite_or_none(record)
     record.update({
         "inner_scene_id": scene.scene_id,
         "room_type": str(scene.extras["room_type"]) if "room_type" in scene.extras else None,
@@ -160,13 +165,48 @@ def evaluate_scene(path: str | os.PathLike, library, protocol: EvalProtocol, ext
         **values,
     })
     record.update({
-        "details": {name: r.to_dict() for name, r in results.items()},
+        "details": details,
         "state": states,
         "fid_features": None if features is None else np.asarray(features, np.float64).tolist(),
         "seconds": seconds,
         "error": None,
     })
+    if failures:
+        record["metric_errors"] = failures
     return finite_or_none(record)
+
+
+def read_only_copy(scene):
+    """A copy of ``scene`` whose arrays cannot be written (a metric measures it; it never edits what the next
+    metric or the FID render sees)."""
+    copy = scene.with_poses(scene.translation, scene.rotation)
+    for array in (copy.asset_id, copy.category, copy.translation, copy.rotation, copy.spatial, copy.physical,
+                  copy.room, *copy.extras.values()):
+        if isinstance(array, np.ndarray):
+            array.flags.writeable = False
+    return copy
+
+
+def measure(metrics: dict, name: str, scene, library) -> tuple[dict, dict, dict] | str:
+    """(values, state, details) of metric ``name`` on ``scene`` (its own read-only copy), or why it failed, in
+    one line naming the metric (:func:`evaluate_scene`)."""
+    try:
+        result = metrics[name].evaluate(read_only_copy(scene), library)
+        one = protocol_metric(metrics, name)  # a fresh metric that sees this scene only
+        one.update([result])
+        values = one.values(name)  # only its own names, numbers, never ±inf (SceneMetric.values)
+        state = {k: v.tolist() for k, v in one.metric_state.items()}
+        bad = nonfinite_state({name: state})
+        if bad:
+            raise FloatingPointError(f"metric state {bad} is not finite")
+        detail = finite_or_none(result.to_dict())
+        try:
+            json.dumps(detail, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"its to_dict() is not JSON ({exc})") from None
+    except (Exception, SystemExit) as exc:  # this metric fails for this scene; the others stand
+        return f"{type(exc).__name__}: {str(exc)[:500] or '(no message)'}"
+    return values, state, detail
 
 
 def protocol_metric(metrics: dict, name: str):
@@ -224,7 +264,7 @@ def reference_fid_state(paths: Sequence[str], assets_dir: str, fid: FIDConfig, s
     """FID states of reference scenes (the real set): ``{"state": SceneFID.metric_state, "failed": [...]}``.
 
     Scenes that cannot be rendered are listed in ``failed`` (id, error) and left out of the statistics.
-    Kept per process by the files' paths, sizes and mtimes (:mod:`spread.readonce`): a second evaluation
+    Kept per process while the files are unchanged (:mod:`spread.readonce`): a second evaluation
     against the same reference in a warm worker (the next sweep trial) renders nothing again.
     """
     from spread import readonce

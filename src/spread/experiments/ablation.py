@@ -55,7 +55,7 @@ from typing import Callable, Protocol, Sequence
 
 from spread.experiments.intervals import ci_columns, row_intervals, table_note
 from spread.experiments.tables import Column, columns_of, write_tables
-from spread.io import file_sha256, write_json_atomic
+from spread.io import file_sha256, read_json, write_json_atomic
 from spread.runtime.ray import RaySettings
 
 log = logging.getLogger("spread.ablate")
@@ -198,7 +198,7 @@ class Ledger:
 
     def __init__(self, path: Path):
         self.path = path
-        self.data = json.loads(path.read_text()) if path.exists() else {"stages": {}}
+        self.data = read_json(path) if path.exists() else {"stages": {}}
 
     def inputs(self, name: str) -> dict | None:
         entry = self.data["stages"].get(name)
@@ -259,7 +259,7 @@ def scenes_complete(folder: Path) -> bool:
     """Every scene ``sampling.json`` counts is on disk (a run's pinned ``sampling.json`` counts none until the
     run ends: not complete)."""
     try:
-        manifest = json.loads((folder / "sampling.json").read_text())
+        manifest = read_json(folder / "sampling.json")
     except (OSError, ValueError):
         return False
     if not isinstance(manifest, dict) or "samples" not in manifest:
@@ -280,7 +280,7 @@ def uses_actors(overrides: list[str]) -> bool:
 
 def sampling_inputs(folder: Path) -> dict:
     """What an evaluation depends on: the sampling fingerprint and the number of samples."""
-    manifest = json.loads((folder / "sampling.json").read_text())
+    manifest = read_json(folder / "sampling.json")
     return {"fingerprint": manifest.get("fingerprint"), "samples": manifest.get("samples"),
             "guidance": manifest.get("guidance")}
 
@@ -456,7 +456,7 @@ class Ablation:
         records = []
         for v in self.spec.variants:
             path = self.eval_dir(v) / "metrics.json"
-            metrics = json.loads(path.read_text()) if self.status.get(f"evaluate/{v}") in ("done", "skipped") else {}
+            metrics = read_json(path) if self.status.get(f"evaluate/{v}") in ("done", "skipped") else {}
             row = {"variant": v, "method": LABELS[v], **{c.key: metrics.get(c.key) for c in columns_of([metrics])}}
             row.update({"still_fraction": metrics.get("still_fraction"), "n_scenes": metrics.get("n_scenes"),
                         "n_objects": metrics.get("n_objects"), "fid_status": metrics.get("fid_status"),

@@ -29,7 +29,7 @@ class SeedColumn(Column):
     def cell(self, record: dict, latex: bool = False) -> str:
         text = self.format(record.get(self.key))
         sd = record.get(f"{self.key}_sd")
-        if text == "–" or sd is None:
+        if text == "–" or sd is None or self.valid(record.get(self.key)) is None:
             return text
         half = self.half_width(record)
         boot = "" if half is None else f" (± {half:.{self.digits}f})"
@@ -81,7 +81,7 @@ def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str 
 
     metrics = columns_of(rows)
     columns = [Column("method", "Method"),
-               *[SeedColumn(c.key, c.label, c.digits, c.better, c.latex, c.scale) for c in metrics]]
+               *[SeedColumn(c.key, c.label, c.digits, c.better, c.latex, c.scale, c.bounds) for c in metrics]]
     caption = title or f"Ablation over training seeds {seeds}"
     note = (f"Each cell: mean ± sd across {len(seeds)} training seeds {seeds} (sample sd), then (± h): half the "
             "width of the 95 % bootstrap interval over scenes, averaged over the seeds.")

@@ -257,17 +257,17 @@ def evaluated_specs(metrics: dict) -> list:
 def scenes_lineage(scenes) -> dict:
     """Lineage tags of an evaluation of ``scenes``: a sampling run's ``scenes/`` folder names the sampling
     run (its :data:`~spread.runtime.mlflow_log.RUN_FILE`) and, through its recorded checkpoint, the training run."""
-    import json
+    from spread.io import read_json
 
     from spread.runtime.mlflow_log import RUN_FILE, training_lineage
 
     folder = Path(scenes).parent
     tags = {}
     if (folder / RUN_FILE).exists():
-        tags["spread.sampling_run_id"] = json.loads((folder / RUN_FILE).read_text()).get("run_id")
+        tags["spread.sampling_run_id"] = read_json(folder / RUN_FILE).get("run_id")
     manifest = folder / "sampling.json"
     if manifest.exists():
-        tags |= training_lineage(json.loads(manifest.read_text()).get("ckpt"))
+        tags |= training_lineage(read_json(manifest).get("ckpt"))
     return tags
 
 
@@ -318,7 +318,15 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
         console.print(note.replace("± is half the width of the", "interval: the"), soft_wrap=True)
     console.print(f"fid_status: {metrics['fid_status']}")
     for f in metrics["failed"][:10]:
-        console.print(f"failed {f['scene_id']}: {f['error']}")
+        console.print(f"failed {f['scene_id']}: {f['error']}", markup=False)
+    failures = {k: v for k, v in (metrics.get("metric_failures") or {}).items() if v}
+    if failures:
+        console.print("metric failures (those scenes are left out of that metric only): "
+                      + ", ".join(f"{k} on {v} scene(s)" for k, v in failures.items()), markup=False)
+        for f in (metrics.get("failed_metrics") or [])[:10]:
+            console.print(f"  {f['metric']} failed on {f['scene_id']}: {f['error']}", markup=False)
+    for name, why in (metrics.get("invalid_values") or {}).items():
+        console.print(f"{name}: no value ({why})", markup=False)
 
 
 # ---- sample --------------------------------------------------------------------------------------------------

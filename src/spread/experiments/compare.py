@@ -29,7 +29,6 @@ taken) and its sampler.
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 import time
@@ -42,7 +41,7 @@ from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
 from spread.experiments.tables import Column, columns_of, write_tables
-from spread.io import write_json_atomic
+from spread.io import read_json, read_text_checked, write_json_atomic
 
 log = logging.getLogger("spread.compare")
 
@@ -140,7 +139,7 @@ class Comparison(Ablation):
     def __init__(self, spec: CompareSpec, commands: Commands):
         super().__init__(spec, commands)
         self.times_path = self.out / TIMES
-        self.times: dict = json.loads(self.times_path.read_text()) if self.times_path.exists() else {}
+        self.times: dict = read_json(self.times_path) if self.times_path.exists() else {}
 
     # ---- folders ----
     def ckpt(self, trained: str) -> Path:
@@ -182,7 +181,7 @@ class Comparison(Ablation):
             return self.spec.layout
         manifest = self.spec.dataset / "manifest.json"
         try:
-            source = str(json.loads(manifest.read_text()).get("source", ""))
+            source = str(read_json(manifest).get("source", ""))
         except (OSError, ValueError):
             source = ""
         return "threedfront" if re.search(r"3d-?front", source, re.IGNORECASE) else "procthor"
@@ -208,7 +207,7 @@ class Comparison(Ablation):
         records = []
         for m in self.spec.methods:
             ok = self.status.get(f"evaluate/{m}") in ("done", "skipped")
-            metrics = json.loads((self.eval_dir(m) / "metrics.json").read_text()) if ok else {}
+            metrics = read_json(self.eval_dir(m) / "metrics.json") if ok else {}
             row = {"method_key": m, "method": label(m)}
             measured = metrics.get("grecall")
             row["grecall"] = measured if m in GRAPH_CONDITIONED else None
@@ -243,16 +242,16 @@ class Comparison(Ablation):
         trained = trained_from(method)
         summary = self.train_dir(trained) / "metrics.json"
         if summary.exists():
-            out["train_steps"] = json.loads(summary.read_text()).get("global_step")
+            out["train_steps"] = read_json(summary).get("global_step")
         config = self.train_dir(trained) / ".hydra" / "config.yaml"
         if config.exists():
             import yaml
 
-            cfg = yaml.safe_load(config.read_text()) or {}
+            cfg = yaml.safe_load(read_text_checked(config)) or {}
             out["model_size"] = ((cfg.get("model") or {}).get("config") or {}).get("name")
         manifest = self.sample_dir(method) / "sampling.json"
         if manifest.exists():
-            data = json.loads(manifest.read_text())
+            data = read_json(manifest)
             sampler = data.get("fingerprint", {}).get("sampler") or {}
             out["sampler"] = "one pass per object" if method == "atiss" else f"{sampler.get('kind')}-{sampler.get('steps')}"
             out["sampler"] += guidance_label(data.get("guidance"))

@@ -54,7 +54,9 @@ def print_comparison(result) -> None:
     console.print()
     md = result.tables.get("md")
     if md is not None and md.exists():
-        console.print(md.read_text())
+        from spread.io import read_text_checked
+
+        console.print(read_text_checked(md), markup=False)
     console.print(f"layout {result.layout}; {result.seconds / 60:.1f} min")
     console.print("stages: " + ", ".join(f"{k} {v}" for k, v in result.stages.items()))
     console.print("table: " + ", ".join(str(p) for p in result.tables.values()))

@@ -15,6 +15,11 @@ Sections, each drawn only when its runs have the data:
 * **per room type**: each run's ``per_room_type`` breakdown of ``metrics.json``;
 * **renders**: the same test graph as rendered by each run (the first render name the runs share).
 
+Every file is read through :func:`spread.io.check_input_file` (a FIFO, a device or a link out of its run folder
+is skipped by name, ``held["refused"]``, never opened), and a render is embedded only when it is a PNG (PIL
+verifies it) whose real path lies inside its run folder (:func:`embeddable_png`): the page is shared, so it never
+carries bytes of any other file.
+
 A **training run folder** is one with ``csv/version_*/metrics.csv`` (Lightning's CSV logger, which
 ``spread-train`` always writes unless ``logger=none``): :func:`training_folders` picks them out of the
 ``runs`` argument, the other entries are evaluation runs (:mod:`spread.experiments.runs`).
@@ -70,21 +75,34 @@ def has_evaluation(path: Path) -> bool:
     return is_eval_metrics(path)
 
 
-def read_curves(folder: Path) -> dict[str, list[tuple[float, float]]]:
-    """Curve name → (step, value) points of a training run, over all its ``csv/version_<n>`` launches."""
+def read_curves(folder: Path, refused: list | None = None) -> dict[str, list[tuple[float, float]]]:
+    """Curve name → (step, value) points of a training run, over all its ``csv/version_<n>`` launches (a file
+    :func:`~spread.io.check_input_file` refuses is skipped, and named in ``refused``)."""
+    from spread.io import InputFileError, read_text_checked
+
     curves: dict[str, dict[float, float]] = {}
-    versions = sorted(folder.glob("csv/version_*/metrics.csv"), key=lambda p: int(p.parent.name.split("_")[-1]))
+    versions = sorted(folder.glob("csv/version_*/metrics.csv"), key=lambda p: version_number(p.parent.name))
     for path in versions:
-        with path.open(newline="") as f:
-            for row in csv.DictReader(f):
-                step = number(to_float(row.get("step")))
-                if step is None:
-                    continue
-                for key, text in row.items():
-                    value = number(to_float(text))
-                    if key not in ("step", "epoch") and value is not None:
-                        curves.setdefault(key, {})[step] = value
+        try:
+            text = read_text_checked(path, root=folder)
+        except (InputFileError, OSError, UnicodeDecodeError) as exc:
+            if refused is not None:
+                refused.append(f"{path}: {exc}" if str(path) not in str(exc) else str(exc))
+            continue
+        for row in csv.DictReader(io.StringIO(text, newline="")):
+            step = number(to_float(row.get("step")))
+            if step is None:
+                continue
+            for key, cell in row.items():
+                value = number(to_float(cell))
+                if key not in ("step", "epoch") and value is not None:
+                    curves.setdefault(key, {})[step] = value
     return {k: sorted(v.items()) for k, v in curves.items()}
+
+
+def version_number(name: str) -> int:
+    tail = name.split("_")[-1]
+    return int(tail) if tail.isdigit() else -1
 
 
 def to_float(text):
@@ -129,8 +147,9 @@ def training_curves(runs: dict[str, dict]) -> tuple[str | None, list[str]]:
 # ---- evaluated runs ------------------------------------------------------------------------------------------
 
 def shown(column: Column, value) -> float | None:
-    """A stored value in the column's display unit (ASD: metres → mm, as its header says); None stays None."""
-    v = number(value)
+    """A stored value in the column's display unit (ASD: metres → mm, as its header says); None for a missing or
+    invalid one (not finite, outside the column's bounds: :meth:`~spread.experiments.tables.Column.valid`)."""
+    v = column.valid(value)
     return None if v is None else v * column.scale
 
 
@@ -207,27 +226,67 @@ def parallel_coordinates(records: Sequence[dict], axes_keys: Sequence[str]) -> s
 
 
 def metrics_of(record: dict) -> dict:
+    """The run's ``metrics.json`` ({} when it is not a run folder's, or the file is refused or not JSON)."""
+    from spread.io import read_json_object
+
     path = Path(record.get("source", "")) / "metrics.json"
     if record.get("kind") != "folder" or not path.exists():
         return {}
-    return json.loads(path.read_text())
+    try:
+        return read_json_object(path)
+    except (OSError, ValueError):
+        return {}
 
 
-def renders_of(record: dict) -> dict[str, Path]:
-    """Render name → PNG of an evaluated run: its own ``renders/``, else its sampling run's."""
+def embeddable_png(path: Path, run: Path) -> str | None:
+    """Why ``path`` may not be embedded in the page (None: it may): it must be a regular file whose real path is
+    inside the run folder ``run`` (:func:`~spread.io.check_input_file`, and no linked ``renders/`` folder either),
+    of plausible size, and a PNG that PIL can verify."""
+    from PIL import Image
+
+    from spread.io import InputFileError, check_input_file, read_bytes_checked
+
+    try:
+        check_input_file(path, root=run)
+        if not path.resolve().is_relative_to(run.resolve()):
+            return f"{path}: resolves to {path.resolve()}, outside the run folder {run}; not embedded"
+        data = read_bytes_checked(path, root=run)
+        if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+            return f"{path}: not a PNG file; not embedded"
+        with Image.open(io.BytesIO(data)) as image:
+            image.verify()
+    except InputFileError as exc:
+        return f"{exc}; not embedded"
+    except Exception as exc:  # PIL's errors for a damaged PNG, an unreadable file
+        return f"{path}: not a readable PNG ({type(exc).__name__}: {exc}); not embedded"
+    return None
+
+
+def renders_of(record: dict, refused: list | None = None) -> dict[str, Path]:
+    """Render name → PNG of an evaluated run: its own ``renders/``, else its sampling run's; only PNGs inside
+    the folder they belong to (:func:`embeddable_png`; the others are named in ``refused``)."""
     folder = Path(record.get("source", ""))
     metrics = metrics_of(record)
     found = {}
-    for renders in (folder / "renders", Path(str(metrics.get("scenes") or folder / "x")).parent / "renders"):
-        if renders.is_dir():
-            found |= {p.stem: p for p in sorted(renders.glob("*.png")) if p.stem not in found}
+    for run in (folder, Path(str(metrics.get("scenes") or folder / "x")).parent):
+        renders = run / "renders"
+        if not renders.is_dir():
+            continue
+        for p in sorted(renders.glob("*.png")):
+            if p.stem in found:
+                continue
+            why = embeddable_png(p, run)
+            if why is None:
+                found[p.stem] = p
+            elif refused is not None:
+                refused.append(why)
     return found
 
 
-def render_grid(records: Sequence[dict]) -> tuple[str | None, dict[str, Path]]:
+def render_grid(records: Sequence[dict], refused: list | None = None) -> tuple[str | None, dict[str, Path]]:
     """(the render name shown, run → its PNG): the first name all runs with renders share, else each run's first
     render."""
-    by_run = {str(r["run"]): renders_of(r) for r in records}
+    by_run = {str(r["run"]): renders_of(r, refused) for r in records}
     by_run = {k: v for k, v in by_run.items() if v}
     if not by_run:
         return None, {}
@@ -277,10 +336,10 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
     from spread.io import atomic_path
 
     parts = [f"<h1>{html.escape(title)}</h1>"]
-    held = {}
+    held: dict = {"refused": []}
     if training:
-        runs = {f.name if f.name not in [g.name for g in training if g != f] else str(f): read_curves(f)
-                for f in training}
+        runs = {f.name if f.name not in [g.name for g in training if g != f] else str(f):
+                read_curves(f, held["refused"]) for f in training}
         data, keys = training_curves(runs)
         held["training_runs"], held["curves"] = len(runs), keys
         parts.append(f"<h2>Training curves ({len(runs)} runs)</h2>")
@@ -296,6 +355,9 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
             row = [r["run"], *[r.get(w) for w in weights]]
             for c in columns:
                 v, lo, hi = (shown(c, r.get(k)) for k in (c.key, f"{c.key}_lo", f"{c.key}_hi"))
+                if v is None and r.get(c.key) is not None:  # there, but not a valid value: say so, never a number
+                    row.append(c.format(r.get(c.key)))
+                    continue
                 row.append(None if v is None else f"{v:.4g}" + (f" [{lo:.4g}, {hi:.4g}]" if lo is not None
                                                                  and hi is not None else ""))
             rows.append([*row, r.get("n_scenes")])
@@ -325,13 +387,18 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         if room_rows:
             parts.append("<h2>Per room type</h2>" + table(["run", "room type", "scenes",
                                                             *[c.label + c.arrow for c in columns]], room_rows))
-        name, renders = render_grid(records)
+        name, renders = render_grid(records, held["refused"])
         held["renders"] = len(renders)
         if renders:
-            figures = "".join(f"<figure>{img(base64.b64encode(p.read_bytes()).decode(), run)}"
+            from spread.io import read_bytes_checked
+
+            figures = "".join(f"<figure>{img(base64.b64encode(read_bytes_checked(p)).decode(), run)}"
                               f"<figcaption>{html.escape(run)}</figcaption></figure>" for run, p in renders.items())
             parts.append(f"<h2>Renders: {html.escape(name or 'first render of each run')}</h2>"
                          f'<div class="grid">{figures}</div>')
+    if held["refused"]:
+        parts.append("<h2>Files not read</h2><ul>" + "".join(f"<li>{html.escape(why)}</li>"
+                                                              for why in held["refused"]) + "</ul>")
     page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>'
             f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>")
     with atomic_path(path) as tmp:
@@ -356,8 +423,10 @@ def write_training_tables(training: Sequence[Path], stem: Path, append: bool) ->
     keys, rows = training_rows(training)
     columns = [Column("run", "run"), Column("last_step", "last step", None),
                *[Column(k, f"last {k}", 4) for k in keys]]
+    from spread.io import read_text_checked
+
     md = Path(stem).with_suffix(".md")
-    before = md.read_text() + "\n" if append and md.exists() else ""
+    before = read_text_checked(md) + "\n" if append and md.exists() else ""
     write_text_atomic(md, before + f"## Training runs ({len(rows)})\n\n" + markdown_table(rows, columns) + "\n")
     return {"md": md, "training_csv": write_csv(rows, ["run", "last_step", *keys, "source"],
                                                 Path(f"{stem}_training.csv"))}

@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from spread.io import write_json_atomic
+from spread.io import read_json, write_json_atomic
 
 POINT = "point.json"
 
@@ -44,7 +44,7 @@ class PointDecision:
 def read_point(out_dir) -> dict | None:
     path = Path(out_dir) / POINT
     try:
-        data = json.loads(path.read_text())
+        data = read_json(path)
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) else None

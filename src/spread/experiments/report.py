@@ -25,7 +25,7 @@ from spread.experiments.intervals import table_note
 from spread.experiments.plots import metric_vs_weight
 from spread.experiments.runs import read_runs
 from spread.experiments.tables import Column, columns_of, metric_column, write_tables
-from spread.io import write_json_atomic
+from spread.io import read_text_checked, write_json_atomic
 
 #: The guidance weights of DESIGN §5's sweeps, as config keys.
 WEIGHTS = ("guidance.collision", "guidance.gravity", "guidance.relation")
@@ -100,6 +100,7 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metr
         "training_runs": [str(p) for p in training], "html": str(out / "report.html"),
         "runs": [{"run": r["run"], "source": r["source"], "kind": r["kind"]} for r in records],
         "unfinished": [str(p) for p in unfinished],
+        "refused": result.html.get("refused", []),
         "tables": {k: str(v) for k, v in result.tables.items()},
         "plots": [{"metric": m, "weight": w, "png": str(p), "points": pts}
                   for (m, w), (p, pts) in result.plots.items()],
@@ -120,8 +121,10 @@ def print_report(result: ReportResult) -> None:
 
     console = Console()
     if "md" in result.tables:
-        console.print(result.tables["md"].read_text())
+        console.print(read_text_checked(result.tables["md"]), markup=False)
     for path in result.unfinished:
         console.print(f"[yellow]skipped (no metrics.json yet): {path}[/yellow]")
+    for why in result.html.get("refused", []):
+        console.print(f"not read: {why}", markup=False, soft_wrap=True)
     console.print(f"{len(result.records)} runs; table {result.tables.get('md')}, {result.tables.get('csv')}; "
                   f"{len(result.plots)} plots in {result.tables['html'].parent / 'plots'}; page {result.tables['html']}")

@@ -26,7 +26,7 @@ from typing import Iterable
 
 from spread.experiments.intervals import ci_columns, row_intervals
 from spread.experiments.tables import CI_SETTINGS
-from spread.io import read_json_object
+from spread.io import read_bytes_checked, read_json_object, read_text_checked
 
 #: ``metrics.json`` keys copied into a record besides every registered metric's (:func:`record_metrics`).
 RECORD_EXTRAS = ("fid", "kid", "still_fraction", "n_scenes", "n_objects", "n_failed", "fid_status")
@@ -69,7 +69,7 @@ def is_evaluation(metrics: dict) -> bool:
 
 def is_eval_metrics(path: Path) -> bool:
     try:
-        return is_evaluation(json.loads(path.read_text()))
+        return is_evaluation(read_json_object(path))
     except (OSError, ValueError):
         return False
 
@@ -114,9 +114,9 @@ def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
     if hydra.exists():
         from omegaconf import OmegaConf
 
-        configs.append(OmegaConf.to_container(OmegaConf.load(hydra), resolve=False))
+        configs.append(OmegaConf.to_container(OmegaConf.create(read_text_checked(hydra)), resolve=False))
     for sampling in sampling_manifests(path, metrics):
-        manifest = json.loads(sampling.read_text())
+        manifest = read_json_object(sampling, RunError)
         configs += [manifest, manifest.get("fingerprint") or {}]
     record = {"run": path.name, "source": str(path), "kind": "folder"}
     for key in weights:
@@ -154,7 +154,7 @@ def first_number(configs: list, key: str):
 
 def wandb_records(path: Path) -> list[bytes]:
     """The raw records of a ``.wandb`` file (LevelDB log framing; module docstring)."""
-    data = path.read_bytes()
+    data = read_bytes_checked(path, max_bytes=0)
     if data[:4] != b":W&B":
         raise RunError(f"{path}: not a wandb run file (bad header)")
     out, pending, pos = [], b"", WANDB_HEADER
@@ -224,10 +224,11 @@ def read_wandb_run(path: str | Path, weights: Iterable[str]) -> dict:
     if (files / "wandb-summary.json").exists():  # older wandb: plain files
         from omegaconf import OmegaConf
 
-        raw = OmegaConf.to_container(OmegaConf.load(files / "config.yaml")) if (files / "config.yaml").exists() else {}
+        raw = OmegaConf.to_container(OmegaConf.create(read_text_checked(files / "config.yaml"))) \
+            if (files / "config.yaml").exists() else {}
         config = {k: v.get("value") if isinstance(v, dict) and "value" in v else v for k, v in raw.items()}
         run = {"id": path.name.rsplit("-", 1)[-1], "name": None, "config": config,
-               "summary": json.loads((files / "wandb-summary.json").read_text())}
+               "summary": read_json_object(files / "wandb-summary.json", RunError)}
     else:
         found = sorted(path.glob("*.wandb"))
         if not found:
@@ -255,7 +256,7 @@ def search(folder: Path) -> tuple[list[Path], list[Path], list[Path]]:
     for metrics in sorted(folder.rglob("metrics.json")):
         if is_eval_metrics(metrics):
             runs.append(metrics.parent)
-            scenes = json.loads(metrics.read_text()).get("scenes")
+            scenes = read_json_object(metrics).get("scenes")
             if scenes:
                 evaluated.add(Path(str(scenes)).parent.resolve())
     inside = tuple(runs)

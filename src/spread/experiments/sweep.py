@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import csv
 import io
-import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -83,6 +83,28 @@ class SweepSettings:
             raise ValueError(f"spread-sweep: scheduler={self.scheduler}: null or asha")
         if int(self.max_concurrent) < 1:
             raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: at least 1")
+        if isinstance(self.num_samples, bool) or not isinstance(self.num_samples, int) or self.num_samples < 1:
+            raise ValueError(f"spread-sweep: num_samples={self.num_samples}: a whole number ≥ 1 (Ray Tune reads -1 "
+                             f"as 'for ever')")
+        for key, low in (("trial_cpus", 0.0), ("trial_gpus", 0.0)):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or value < low or (key == "trial_cpus" and value <= 0):
+                raise ValueError(f"spread-sweep: {key}={value}: expected a number "
+                                 f"{'> 0' if key == 'trial_cpus' else '≥ 0'}")
+        if self.num_cpus is not None and (isinstance(self.num_cpus, bool) or not isinstance(self.num_cpus, int)
+                                          or self.num_cpus < 1):
+            raise ValueError(f"spread-sweep: num_cpus={self.num_cpus}: null or a whole number ≥ 1")
+        if not str(self.name).strip():
+            raise ValueError("spread-sweep: name is empty")
+
+    @property
+    def folder_name(self) -> str:
+        """:attr:`name` as one safe path component (:func:`spread.io.safe_name`): Ray Tune's records go to
+        ``out_dir/tune/<folder_name>``, inside ``out_dir`` whatever the name (``../../x`` included)."""
+        from spread.io import safe_name
+
+        return safe_name(str(self.name))
 
 
 @dataclass
@@ -112,7 +134,10 @@ def default_settings() -> dict:
     """``conf/sweep_run.yaml``'s values."""
     from spread.configs import conf_dir
 
-    return OmegaConf.to_container(OmegaConf.load(Path(conf_dir()) / "sweep_run.yaml"), resolve=False)
+    from spread.io import read_text_checked
+
+    return OmegaConf.to_container(OmegaConf.create(read_text_checked(Path(conf_dir()) / "sweep_run.yaml")),
+                                  resolve=False)
 
 
 def parse_arguments(argv: list[str]) -> SweepPlan:
@@ -139,10 +164,25 @@ def parse_arguments(argv: list[str]) -> SweepPlan:
         if key.lstrip("+~") not in given and key not in swept:
             swept[key] = dimension(parser.parse_overrides([f"{key}={values}"])[0])
     dims = list(swept.values())
+    check_dimensions(dims)
     if sweep_settings.search == "grid" and any(d.values is None for d in dims):
         bad = [d.key for d in dims if d.values is None]
         raise ValueError(f"spread-sweep: interval() on {bad} needs search=random or search=optuna")
     return SweepPlan(sweep_settings, fixed, dims)
+
+
+def check_dimensions(dims: list[Dimension]) -> None:
+    """``ValueError`` naming the first dimension with no value (``range(0,0)``) or an empty or inverted interval
+    (``interval(1,0)``; a log interval needs low > 0)."""
+    for d in dims:
+        if d.values is not None and not d.values:
+            raise ValueError(f"spread-sweep: {d.key}: the sweep over it has no value (e.g. range(0,0)); give at least "
+                             f"one")
+        if d.values is None:
+            if not (math.isfinite(d.low) and math.isfinite(d.high)) or not d.low < d.high:
+                raise ValueError(f"spread-sweep: {d.key}=interval({d.low:g},{d.high:g}): expected finite low < high")
+            if d.log and d.low <= 0:
+                raise ValueError(f"spread-sweep: {d.key}: a log interval needs low > 0, got {d.low:g}")
 
 
 def dimension(override) -> Dimension:
@@ -208,9 +248,10 @@ def read_metrics(folder: Path) -> dict:
     """Every metric of an evaluation folder with its interval, the point's seconds and fingerprint."""
     from spread.experiments.intervals import ci_columns, row_intervals
     from spread.experiments.points import read_point
+    from spread.io import read_json_object
     from spread.metrics.registry import METRICS
 
-    metrics = json.loads((folder / "metrics.json").read_text())
+    metrics = read_json_object(folder / "metrics.json")
     intervals = ci_columns(row_intervals(metrics, folder))
     row = {}
     for name in (*[n for n in METRICS.names() if n in metrics], "still_fraction", "fid", "kid"):
@@ -297,6 +338,7 @@ def train_trial(config: dict, plan: dict) -> None:
 
     from spread.configs import compose
     from spread.experiments.commands import record_config
+    from spread.io import read_json_object
     from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, digest
     from spread.training.fit import train as fit
 
@@ -318,7 +360,7 @@ def train_trial(config: dict, plan: dict) -> None:
     if not done:
         record_config(cfg, folder, run)()
         fit(cfg, run_dir=folder, extra_callbacks=callbacks)
-    summary = json.loads((folder / "metrics.json").read_text())
+    summary = read_json_object(folder / "metrics.json")
     logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
     tune.report({**logged, "point": folder.name, "reused": done, "seconds": round(time.perf_counter() - started, 3),
                  "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
@@ -341,11 +383,12 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
 
     s = plan.settings
     out = Path(s.out_dir).resolve()
-    (out / "points").mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     trial = sample_trial if s.command == "sample" else train_trial
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
               "scheduler": s.scheduler}
+    check_inert_dimensions(plan, shared)  # before anything is written
+    (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
     trainable = tune.with_resources(tune.with_parameters(trial, plan=shared), resources)
@@ -379,6 +422,61 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     return SweepResult(rows, best, csv_path, md_path, round(time.perf_counter() - started, 3))
 
 
+#: Most points composed to find a swept key that changes nothing (beyond: each key is probed at the others' first
+#: values only).
+PROBE_POINTS = 64
+
+
+def probe_values(d: Dimension) -> list:
+    """Values of ``d`` that :func:`check_inert_dimensions` composes: every listed value (at most 4: the first, the
+    last and two between), or an interval's two ends."""
+    if d.values is None:
+        return [d.low, d.high]
+    values = list(d.values)
+    return values if len(values) <= 4 else [values[0], values[len(values) // 3], values[2 * len(values) // 3],
+                                            values[-1]]
+
+
+def check_inert_dimensions(plan: SweepPlan, shared: dict) -> None:
+    """Before any trial of a sampling sweep: ``ValueError`` naming a swept key none of whose values changes a
+    point's fingerprint (:func:`spread.runtime.fingerprint.point_fingerprint`, what a sampled-and-evaluated result
+    depends on) whatever the other keys' values: every value would repeat the same run, and the table would star
+    one of identical rows. A guidance weight while guidance is off is the usual case."""
+    import itertools
+
+    from spread.runtime.fingerprint import point_fingerprint, short
+
+    dims = plan.dimensions
+    if plan.settings.command != "sample" or not any(len(probe_values(d)) > 1 for d in dims):
+        return
+    probes = [probe_values(d) for d in dims]
+    if math.prod(len(v) for v in probes) <= PROBE_POINTS:
+        combos = list(itertools.product(*probes))
+    else:  # each key alone, the others at their first values
+        base = tuple(v[0] for v in probes)
+        combos = [base[:i] + (v,) + base[i + 1:] for i, values in enumerate(probes) for v in values]
+    guided, prints = set(), {}
+    for combo in combos:
+        config = {d.key: v for d, v in zip(dims, combo)}
+        fingerprint = point_fingerprint(sample_point(config, shared)[1])
+        prints[combo] = short(fingerprint)
+        guided.add(fingerprint.get("guidance") is not None)
+    for i, d in enumerate(dims):
+        if len(probes[i]) < 2:
+            continue
+        groups: dict[tuple, set] = {}
+        for combo, fp in prints.items():
+            groups.setdefault(combo[:i] + combo[i + 1:], set()).add((combo[i], fp))
+        varied = [g for g in groups.values() if len({v for v, _ in g}) > 1]
+        if varied and all(len({fp for _, fp in g}) == 1 for g in varied):
+            hint = (" (guidance is off in every point — guidance.mode none or every weight 0 — so its settings are "
+                    "not used: switch it on, e.g. guidance=refine)" if guided == {False} else "")
+            shown = [format_value(v) for v in probes[i]]
+            raise ValueError(f"spread-sweep: {d.key}: its values {shown} give every point the same fingerprint (what "
+                             f"a sampled and evaluated result depends on){hint}; every value would repeat the same "
+                             f"run — remove the key from the sweep or sweep something that changes the result")
+
+
 def grid_points(plan: SweepPlan) -> list[dict]:
     """Every combination of the dimensions' values (a grid)."""
     import itertools
@@ -395,14 +493,33 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
     from spread.runtime.ray import RaySettings, ray_session
 
     settings = RaySettings(address=s.address, num_cpus=s.num_cpus, log_to_driver=False)
+    storage = out / "tune"
+    if not (storage / s.folder_name).resolve().is_relative_to(out.resolve()):  # safe_name makes this impossible
+        raise ValueError(f"spread-sweep: name={s.name}: Ray Tune's folder would leave out_dir={out}")
     with ray_session(settings):
+        check_resources(s)
         tuner = tune.Tuner(
             trainable, param_space=space,
             tune_config=tune.TuneConfig(num_samples=samples, max_concurrent_trials=int(s.max_concurrent),
                                         search_alg=searcher, scheduler=scheduler, reuse_actors=True),
-            run_config=tune.RunConfig(storage_path=str(out / "tune"), name=s.name, verbose=0,
+            run_config=tune.RunConfig(storage_path=str(storage), name=s.folder_name, verbose=0,
                                       failure_config=tune.FailureConfig(max_failures=1)))
         return [result_row(r, plan) for r in tuner.fit()]
+
+
+def check_resources(s: SweepSettings) -> None:
+    """In the sweep's Ray session, before any trial: ``ValueError`` when no live node holds a trial's bundle
+    (``trial_cpus`` CPUs; ``trial_gpus`` GPUs), which Ray Tune would wait for for ever."""
+    import ray
+
+    nodes = [n.get("Resources") or {} for n in ray.nodes() if n.get("Alive")]
+    for key, resource in (("trial_cpus", "CPU"), ("trial_gpus", "GPU")):
+        wanted = float(getattr(s, key))
+        largest = max((float(n.get(resource, 0)) for n in nodes), default=0.0)
+        if wanted > largest:
+            raise ValueError(f"spread-sweep: {key}={wanted:g}: no node of the Ray cluster has that many {resource}s "
+                             f"(the largest has {largest:g}, over {len(nodes)} node(s)); a trial would never start — "
+                             f"lower {key} or add nodes")
 
 
 def result_row(result, plan: SweepPlan) -> dict:
@@ -430,7 +547,14 @@ def parse_number(v):
 
 
 def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
-    scored = [r for r in rows if isinstance(r.get(metric), (int, float))]
+    """The best row by ``metric`` (marked ``best``); only a valid value competes (finite, inside the metric's
+    bounds: :meth:`spread.experiments.tables.Column.valid`)."""
+    from spread.experiments.tables import Column, metric_column
+    from spread.metrics.registry import display_spec
+
+    spec = display_spec(metric)
+    column = metric_column(spec) if spec is not None else Column(metric, metric, 4, mode)
+    scored = [r for r in rows if column.valid(r.get(metric)) is not None]
     best = (max if mode == "max" else min)(scored, key=lambda r: r[metric]) if scored else None
     for r in rows:
         r["best"] = r is best
@@ -464,13 +588,20 @@ def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | Non
     head = ["", *keys, *metrics, "seconds", "point"]
     lines = [f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
              f"({plan.settings.mode}) marked ★", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    from spread.experiments.tables import Column, markdown_cell, metric_column
+    from spread.metrics.registry import display_spec
+
+    cols_of = {m: metric_column(display_spec(m)) if display_spec(m) is not None else Column(m, m, 4) for m in metrics}
     for r in rows:
         cells = ["★" if r.get("best") else "", *[str(r.get(k)) for k in keys]]
         for m in metrics:
             v, lo, hi = r.get(m), r.get(f"{m}_lo"), r.get(f"{m}_hi")
+            if v is not None and cols_of[m].valid(v) is None:  # not a finite value inside the metric's bounds
+                cells.append(cols_of[m].format(v))
+                continue
             cells.append("—" if v is None else f"{v:.4f}" + ("" if lo is None or hi is None else f" ± {(hi - lo) / 2:.4f}"))
         cells += [f"{r['seconds']:.1f}" if isinstance(r.get("seconds"), (int, float)) else "—", str(r.get("point", ""))]
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(markdown_cell(c) for c in cells) + " |")
     if any(r.get("ci_resamples") for r in rows):
         lines += ["", "± is half the width of the 95 % percentile bootstrap interval over scenes."]
     if best is not None:
@@ -481,8 +612,9 @@ def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | Non
 
 def read_results_csv(path) -> list[dict]:
     """``results.csv`` back as rows (numbers as floats, empty cells as None)."""
+    from spread.io import read_text_checked
+
     rows = []
-    with open(path, newline="") as fh:
-        for r in csv.DictReader(fh):
-            rows.append({k: (None if v == "" else parse_number(v)) for k, v in r.items()})
+    for r in csv.DictReader(io.StringIO(read_text_checked(path), newline="")):
+        rows.append({k: (None if v == "" else parse_number(v)) for k, v in r.items()})
     return rows

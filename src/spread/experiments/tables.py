@@ -28,7 +28,10 @@ from spread.io import write_text_atomic
 class Column:
     """key: record key; label: header; digits: decimals printed (None: as is); better: "max", "min" or
     None (which value is bold in LaTeX and marked in Markdown); latex: header in LaTeX (default label);
-    scale: printed value = stored value × scale (a display unit: ASD m → mm), CSV keeps the stored value."""
+    scale: printed value = stored value × scale (a display unit: ASD m → mm), CSV keeps the stored value;
+    bounds: (low, high) of a valid stored value of a number column (None: any finite number). A value that is not
+    a finite number inside them (a hand-edited ``Infinity`` or ``1e308`` GRecall) prints as ``invalid (...)``,
+    with no interval, and is never the best."""
 
     key: str
     label: str
@@ -36,33 +39,43 @@ class Column:
     better: str | None = None
     latex: str | None = None
     scale: float = 1.0
+    bounds: tuple[float, float] | None = None
 
     @property
     def arrow(self) -> str:
         return {"max": " ↑", "min": " ↓"}.get(self.better or "", "")
 
+    def valid(self, value) -> float | None:
+        """``value`` as a float when it is a finite number inside :attr:`bounds`, else None."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+            return None
+        lo, hi = self.bounds if self.bounds is not None else (-math.inf, math.inf)
+        return float(value) if lo <= float(value) <= hi else None
+
     def format(self, value) -> str:
         if value is None or (isinstance(value, float) and math.isnan(value)):
             return "–"
-        if self.digits is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
+        if self.digits is not None and self.valid(value) is not None:
             return f"{float(value) * self.scale:.{self.digits}f}"
-        if self.digits is not None:  # a number column holding text (a hand-edited metrics.json): never a number
-            return f"invalid ({str(value)[:20]!r})"
+        if self.digits is not None:  # text, ±inf or out of range (a hand-edited metrics.json): never a number
+            return f"invalid ({str(value)[:20]!r})" if isinstance(value, str) else f"invalid ({value!r:.20})"
         return str(value)
 
     def half_width(self, record: dict) -> float | None:
-        """Half the width of the record's interval for this column, None without one."""
+        """Half the width of the record's interval for this column, None without one (or for an invalid value)."""
         lo, hi = record.get(f"{self.key}_lo"), record.get(f"{self.key}_hi")
-        if self.digits is None or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi)):
+        if self.digits is None or self.valid(record.get(self.key)) is None:
             return None
-        return None if math.isnan(lo) or math.isnan(hi) else (float(hi) - float(lo)) / 2 * self.scale
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in (lo, hi)):
+            return None
+        return (float(hi) - float(lo)) / 2 * self.scale
 
     def cell(self, record: dict, latex: bool = False) -> str:
         """The printed cell: the value, with ``± half-width`` when the record has an interval for it."""
         value = record.get(self.key)
         text = self.format(value)
         half = self.half_width(record)
-        if half is None or text == "–" or not isinstance(value, (int, float)) or isinstance(value, bool):
+        if half is None or text == "–" or self.valid(value) is None:
             return text
         if latex:
             return rf"{text}\,{{\scriptsize$\pm${half:.{self.digits}f}}}"
@@ -71,7 +84,7 @@ class Column:
 
 def metric_column(spec) -> Column:
     """The column of a registered metric or set metric (:mod:`spread.metrics.registry`)."""
-    return Column(spec.name, spec.label, spec.digits, spec.better, spec.latex, spec.scale)
+    return Column(spec.name, spec.label, spec.digits, spec.better, spec.latex, spec.scale, spec.valid_range)
 
 
 def metric_columns(names=None, with_set: bool = True) -> list[Column]:
@@ -93,22 +106,28 @@ def columns_of(records: Sequence[dict], with_set: bool = True) -> list[Column]:
 
 def best_rows(records: Sequence[dict], column: Column) -> set[int]:
     """Indices of the rows holding the best value of ``column`` (ties all count; none without ``better``)."""
-    values = [(i, r.get(column.key)) for i, r in enumerate(records)]
-    values = [(i, float(v)) for i, v in values if isinstance(v, (int, float)) and not isinstance(v, bool)
-              and not math.isnan(float(v))]
+    values = [(i, column.valid(r.get(column.key))) for i, r in enumerate(records)]
+    values = [(i, v) for i, v in values if v is not None]
     if column.better not in ("max", "min") or len(values) < 2:
         return set()
     best = (max if column.better == "max" else min)(v for _, v in values)
     return {i for i, v in values if v == best}
 
 
+def markdown_cell(text) -> str:
+    """``text`` as one Markdown table cell: ``|`` escaped, line breaks as spaces (a run folder named ``a|b``
+    stays one cell)."""
+    return " ".join(str(text).replace("\\", "\\\\").replace("|", "\\|").split())
+
+
 def markdown_table(records: Sequence[dict], columns: Sequence[Column]) -> str:
-    """A GitHub Markdown table; the best value of each ranked column is bold."""
+    """A GitHub Markdown table; the best value of each ranked column is bold; every cell escaped
+    (:func:`markdown_cell`)."""
     best = {c.key: best_rows(records, c) for c in columns}
-    lines = ["| " + " | ".join(c.label + c.arrow for c in columns) + " |",
+    lines = ["| " + " | ".join(markdown_cell(c.label + c.arrow) for c in columns) + " |",
              "|" + "|".join("---" if c.digits is None else "---:" for c in columns) + "|"]
     for i, r in enumerate(records):
-        cells = [c.cell(r) for c in columns]
+        cells = [markdown_cell(c.cell(r)) for c in columns]
         cells = [f"**{s}**" if i in best[c.key] else s for s, c in zip(cells, columns)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -170,8 +189,10 @@ def parse_cell(text: str):
 
 def read_csv(path: str | Path) -> list[dict]:
     """Records of a CSV written by :func:`write_csv` (cells parsed by :func:`parse_cell`)."""
-    with open(path, newline="", encoding="utf-8") as fh:
-        return [{k: parse_cell(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+    from spread.io import read_text_checked
+
+    text = read_text_checked(path)
+    return [{k: parse_cell(v) for k, v in row.items()} for row in csv.DictReader(io.StringIO(text, newline=""))]
 
 
 def write_csv(records: Sequence[dict], keys: Sequence[str], path: str | Path) -> Path:

@@ -29,6 +29,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from spread.io import read_json
+
 #: Thickness of the exported floor box, metres (its top face is y = 0).
 FLOOR_THICKNESS = 0.1
 #: The floor box reaches this far beyond the room (or the objects), metres.
@@ -169,7 +171,7 @@ def load_urdf_scene(scene_json: str | Path, client: int) -> dict:
     import pybullet as pb
 
     scene_json = Path(scene_json)
-    info = json.loads(scene_json.read_text())
+    info = read_json(scene_json)
     root = scene_json.parent
     pb.setGravity(*info["gravity"], physicsClientId=client)
     floor = None

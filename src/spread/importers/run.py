@@ -39,7 +39,7 @@ from omegaconf import MISSING
 from spread import __version__
 from spread.importers.base import SPLITS, AssetRequest, RoomRef, error_record
 from spread.importers.conventions import RelationsOptions
-from spread.io import append_jsonl, read_jsonl, write_json_atomic
+from spread.io import append_jsonl, check_input_file, read_jsonl, write_json_atomic
 
 IMPORTER_VERSION = "spread-import-1"
 SOURCES = ("spread_release", "threed_front")  # the built-in importers (every one: spread.importers.registry)
@@ -116,7 +116,7 @@ def folder_hash(folder: str | Path) -> str:
     if folder.is_dir():
         for path in sorted(p for p in folder.iterdir() if p.is_file()):
             h.update(path.name.encode() + b"\0")
-            with open(path, "rb") as fh:
+            with open(check_input_file(path, max_bytes=0), "rb") as fh:
                 for chunk in iter(lambda: fh.read(1 << 20), b""):
                     h.update(chunk)
     return h.hexdigest()

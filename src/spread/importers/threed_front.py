@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from spread.importers.base import SPLITS, AssetRequest, RoomList, RoomRef, Source, carve_val, error_record
-from spread.io import read_json_object, safe_name
+from spread.io import check_input_file, read_json_object, read_text_checked, safe_name
+from spread.safe_load import load_npz
 from spread.scene import (
     SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT, SPATIAL_SELF, Scene,
     SceneFormatError, load_npz_arrays,
@@ -74,7 +75,9 @@ def read_splits(path: Path) -> dict[str, str]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: splits file missing (lines 'RoomId,train|val|test')")
     out: dict[str, str] = {}
-    with open(path, newline="") as fh:
+    import io
+
+    with io.StringIO(read_text_checked(path), newline="") as fh:
         for line_no, row in enumerate(csv.reader(fh), start=1):
             row = [c.strip() for c in row]
             if not row or not any(row):
@@ -213,7 +216,7 @@ class ThreedFront(Source):
         used: set[int] = set()
         for ref in self.rooms().rooms:
             try:
-                with np.load(Path(ref.folder) / "boxes.npz", allow_pickle=False) as f:
+                with load_npz(Path(ref.folder) / "boxes.npz") as f:
                     labels = np.asarray(f["class_labels"])
             except Exception:  # noqa: BLE001  (the room fails on its own, naming its file, when imported)
                 continue
@@ -296,7 +299,7 @@ class ThreedFront(Source):
         if not path.is_file():
             return None
         try:
-            rel = np.load(path, allow_pickle=False)
+            rel = np.load(check_input_file(path), allow_pickle=False)
         except ValueError as exc:
             raise SceneFormatError(str(path), None, f"unreadable or an object array (refused): {exc}") from exc
         codes = np.full((n, n), -1, np.int64)

@@ -21,6 +21,7 @@ of scenes (no library needed), which is how a driver accumulates what workers co
 from __future__ import annotations
 
 import hashlib
+import math
 from typing import Any, Iterable, Sequence
 
 import torch
@@ -38,6 +39,10 @@ def check_scene(scene: Scene, library) -> None:
     validate_scene(scene, source=f"scene '{scene.scene_id}'", assets=library)
 
 
+class MetricOutputError(ValueError):
+    """A metric that reported something it may not (another name, not a number, ±inf); names the metric."""
+
+
 def scene_seed(scene_id: str, base_seed: int = 0) -> int:
     """A 32-bit seed from the scene id (sha256), so per-scene randomness does not depend on worker order."""
     digest = hashlib.sha256(f"{int(base_seed)}:{scene_id}".encode("utf-8")).digest()
@@ -51,7 +56,9 @@ class SceneMetric(Metric):
     the per-scene function) and :meth:`accumulate` (record → states), and declare ``ratios``: each value
     ``compute()`` reports that is a pooled ratio of two sum states (value → (numerator state, denominator state)),
     which is how the bootstrap over scenes asks a metric for its per-scene terms (:meth:`pooled_terms`) without
-    reading its states itself. ``counts`` names sum states reported as integers in ``metrics.json``
+    reading its states itself. ``reports`` names any other value ``compute()`` returns (Stability's
+    ``displacement_ok_fraction``): a metric reports its name, its ``ratios`` and its ``reports``, nothing else
+    (:meth:`values` refuses any other key). ``counts`` names sum states reported as integers in ``metrics.json``
     (``n_<what>`` → state). Display attributes (``column``, ``unit``, ``scale``, ``digits``) are read by
     :func:`spread.metrics.registry.spec_of_class` for plugins registered by class.
     """
@@ -60,6 +67,7 @@ class SceneMetric(Metric):
     is_differentiable = False
     result_type: type = object
     ratios: dict[str, tuple[str, str]] = {}
+    reports: tuple[str, ...] = ()
     counts: dict[str, str] = {}
 
     def _add_sum_state(self, name: str, shape: tuple[int, ...] = (), dtype: torch.dtype = torch.float64) -> None:
@@ -97,11 +105,27 @@ class SceneMetric(Metric):
 
     def values(self, name: str) -> dict[str, float]:
         """``compute()`` as plain floats (NaN where nothing was measured): ``{name: value}`` for a metric of one
-        value, the dict's own keys for one of several (Stability: ``stability``, ``still_fraction``, ...)."""
+        value, the dict's own keys for one of several (Stability: ``stability``, ``still_fraction``, ...).
+        :class:`MetricOutputError` naming the metric when ``compute()`` returns a name that is not its own
+        (``name``, :attr:`ratios`, :attr:`reports`: another metric's ``grecall``, a record's ``scene_id``), a
+        value that is not a number, or ±inf."""
         out = self.compute()
-        if isinstance(out, dict):
-            return {k: float(v) for k, v in out.items()}
-        return {name: float(out)}
+        own = {name, *self.ratios, *self.reports}
+        items = out.items() if isinstance(out, dict) else [(name, out)]
+        values = {}
+        for key, value in items:
+            if key not in own:
+                raise MetricOutputError(f"metric '{name}': compute() returned {key!r}, which is not one of its own "
+                                        f"names {sorted(own)} (declare it in 'ratios' or 'reports')")
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                raise MetricOutputError(f"metric '{name}': compute() returned {type(value).__name__} for {key!r}, "
+                                        f"not a number") from None
+            if math.isinf(number):
+                raise MetricOutputError(f"metric '{name}': compute() returned {number} for {key!r}")
+            values[key] = number
+        return values
 
     def pooled_terms(self, state: dict) -> dict[str, tuple[float, float]]:
         """value → (numerator, denominator) of one scene's states (``per_scene.jsonl``'s ``state[name]``), for

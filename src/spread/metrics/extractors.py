@@ -95,8 +95,10 @@ def inception_weights() -> Path | None:
 
 
 def file_sha1(path: Path) -> str:
+    from spread.io import check_input_file
+
     digest = hashlib.sha1()
-    with open(path, "rb") as f:
+    with open(check_input_file(path, max_bytes=0), "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()

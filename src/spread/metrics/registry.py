@@ -13,10 +13,18 @@ attributes ``higher_is_better``, ``column``, ``unit``, ``scale``, ``digits`` fil
 :class:`MetricSpec`. ``spread-evaluate 'metrics=[grecall,<name>]'`` then selects it.
 
 Set-level statistics (FID, KID) are not per-scene metrics: :data:`SET_METRICS` holds only their display.
+
+**A metric reports only its own names** (:func:`own_names`: its name, its ``ratios`` and ``reports`` values, its
+``counts``), which share one namespace with the fields of ``per_scene.jsonl`` records and ``metrics.json``. A
+metric whose names collide with those fields (:data:`RESERVED_NAMES`, and the patterns of
+:func:`reserved_reason`: ``n_*`` is for counts, ``*_lo``/``*_hi`` for intervals) or with another metric's is
+refused when it registers (a plugin: listed as failed, the others load), so no plugin can overwrite GRecall in
+``metrics.json`` or the ``scene_id`` of every record.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -32,7 +40,9 @@ class MetricSpec:
     header. unit: display unit ("" for a share). scale: display value = stored value × scale. digits: decimals
     shown. latex: LaTeX header. default: in the default selection (today's four). order: position in tables.
     bootstrap_unit: what an interval resamples ("scene": every registered metric is a sum over scenes).
-    description: one line for docs and ``--help``."""
+    description: one line for docs and ``--help``. bounds: (low, high) of a valid stored value (None: a share,
+    ``unit`` "", lies in [0, 1]; any other metric only needs to be finite): tables show a value outside them as
+    invalid, never as the best."""
 
     name: str
     metric: type
@@ -47,6 +57,14 @@ class MetricSpec:
     order: int = 100
     bootstrap_unit: str = "scene"
     description: str = ""
+    bounds: tuple[float, float] | None = None
+
+    @property
+    def valid_range(self) -> tuple[float, float] | None:
+        """(low, high) of a valid stored value: :attr:`bounds`, else [0, 1] for a share (``unit`` "")."""
+        if self.bounds is not None:
+            return (float(self.bounds[0]), float(self.bounds[1]))
+        return (0.0, 1.0) if not self.unit else None
 
     def create(self, protocol=None):
         """A fresh metric configured by ``protocol`` (None: the metric's own defaults)."""
@@ -81,6 +99,7 @@ class SetMetricSpec:
     unit: str = ""
     scale: float = 1.0
     order: int = 1000
+    valid_range: tuple[float, float] | None = None
 
     @property
     def label(self) -> str:
@@ -110,15 +129,76 @@ def spec_of_class(name: str, cls: type, **fields) -> MetricSpec:
     values = dict(higher_is_better=bool(getattr(cls, "higher_is_better", True)),
                   column=getattr(cls, "column", "") or name, unit=getattr(cls, "unit", ""),
                   scale=float(getattr(cls, "scale", 1.0)), digits=int(getattr(cls, "digits", 3)),
-                  latex=getattr(cls, "latex", None), description=getattr(cls, "description", "") or (doc[0] if doc else ""))
+                  latex=getattr(cls, "latex", None), description=getattr(cls, "description", "") or (doc[0] if doc else ""),
+                  bounds=getattr(cls, "bounds", None))
     values.update(fields)
     return MetricSpec(name=name, metric=cls, **values)
 
 
-METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("spread.metrics",), adapt=_adapt)
+#: Fields of a ``per_scene.jsonl`` record besides its metrics' values (``spread.evaluation.work``).
+RECORD_FIELDS = frozenset({
+    "scene_id", "file", "node_id", "pid", "input_sha256", "error", "error_type", "traceback", "seconds",
+    "inner_scene_id", "room_type", "num_objects", "details", "state", "fid_features", "metric_errors"})
+#: Fields of ``metrics.json`` besides its metrics' values, and of the rows that reports and sweeps build from it.
+SUMMARY_FIELDS = frozenset({
+    "n_scenes", "n_evaluated", "n_failed", "n_implausible", "n_refused_inputs", "n_objects", "n_metric_failures",
+    "per_room_type", "bootstrap", "fid", "kid", "fid_status", "fid_feature_model", "fid_num_generated",
+    "fid_num_reference", "kid_subsets", "kid_subset_size", "failed", "metric_failures", "failed_metrics", "fid_reference_failed",
+    "invalid_values", "scenes", "reference", "reference_split", "protocol", "versions", "redone_because", "run",
+    "source", "kind", "variant", "method", "method_key", "status", "point", "reused", "best", "trial_seconds",
+    "node", "trial_pid", "startup_seconds", "fingerprint", "ci_level", "ci_resamples", "ci_seed", "ci_few"})
+#: Names no metric may report (module docstring).
+RESERVED_NAMES = RECORD_FIELDS | SUMMARY_FIELDS
+
+
+def reserved_reason(name: str, count: bool = False) -> str | None:
+    """Why ``name`` may not be a metric's value (``count=False``) or count (``count=True``) name, or None."""
+    if name in RECORD_FIELDS:
+        return "a field of every per_scene.jsonl record"
+    if name in SUMMARY_FIELDS:
+        return "a field of metrics.json"
+    if name.endswith(("_lo", "_hi", "_sd")):
+        return "the '_lo'/'_hi'/'_sd' suffixes name a metric's interval and spread"
+    if name.startswith(("fid_", "kid_")):
+        return "the 'fid_'/'kid_' prefixes belong to the set-level FID and KID"
+    if count and not name.startswith("n_"):
+        return "a count's name starts with 'n_'"
+    if not count and name.startswith("n_"):
+        return "the 'n_' prefix names counts"
+    return None
+
+
+def own_names(spec: MetricSpec) -> tuple[set[str], set[str]]:
+    """(value names, count names) a metric reports: its name, the values of its ``ratios`` and ``reports`` (what
+    ``compute()`` returns), and its ``counts``."""
+    cls = spec.metric
+    values = {spec.name, *dict(getattr(cls, "ratios", {}) or {}), *tuple(getattr(cls, "reports", ()) or ())}
+    return values, set(dict(getattr(cls, "counts", {}) or {}))
+
+
+def check_spec(name: str, spec, others: dict) -> None:
+    """:class:`RegistryError` when ``spec`` may not be registered as ``name`` (module docstring): a name of its
+    is reserved, or another metric reports it."""
+    if not isinstance(spec, MetricSpec):
+        raise RegistryError(f"metric '{name}': expected a MetricSpec, got {type(spec).__name__}")
+    values, counts = own_names(spec)
+    for names, count in ((values, False), (counts, True)):
+        for n in sorted(names):
+            why = reserved_reason(str(n), count)
+            if why:
+                raise RegistryError(f"metric '{name}' refused: it would report '{n}', which is {why}; rename it")
+    for other, held in others.items():
+        clash = sorted((values | counts) & set().union(*own_names(held)))
+        if clash:
+            raise RegistryError(f"metric '{name}' refused: it would report {clash}, which metric '{other}' reports; "
+                                f"rename it")
+
+
+METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("spread.metrics",), adapt=_adapt,
+                                         check=check_spec)
 
 SET_METRICS = (
-    SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$"),
+    SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$", valid_range=(0.0, math.inf)),
     SetMetricSpec("kid", "KID", 4, latex=r"KID$\downarrow$", order=1001),
 )
 

@@ -123,6 +123,7 @@ class PhysicsStability(SceneMetric):
     higher_is_better = True
     result_type = StabilityResult
     ratios = {"stability": ("unchanged_pairs", "pairs"), "still_fraction": ("still_objects", "objects")}
+    reports = ("displacement_ok_fraction", "rotation_ok_fraction")
 
     def __init__(self, runs: int = STABILITY_RUNS, steps: int = STABILITY_STEPS, dt: float = STABILITY_DT,
                  jitter: float = STABILITY_JITTER, base_seed: int = 0, physics=None, **kwargs):

@@ -80,7 +80,8 @@ def scene_support_distance(scene, library) -> SupportDistanceResult:
 
 
 @register_metric("asd", column="ASD", unit="mm", scale=1000.0, digits=1, latex=r"ASD (mm)$\downarrow$", default=True,
-                 order=30, description="mean |signed distance| of supported objects to their supporters (stored in m)")
+                 order=30, bounds=(0.0, float("inf")),
+                 description="mean |signed distance| of supported objects to their supporters (stored in m)")
 class AverageSupportDistance(SceneMetric):
     """ASD over many scenes, metres, pair-weighted (lower is better).
 

@@ -8,7 +8,6 @@ Resumable: rooms whose file exists are not generated again; every file is writte
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import time
 from collections import Counter
@@ -18,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from spread import __version__
-from spread.io import write_json_atomic
+from spread.io import read_json, write_json_atomic
 from spread.procgen.room import HullCache, generate_room
 from spread.procgen.room_types import RoomConfig
 from spread.procgen.settle import SettleConfig
@@ -282,4 +281,4 @@ def load_manifest(root: str | Path) -> dict:
     path = Path(root) / "manifest.json"
     if not path.exists():
         raise FileNotFoundError(f"{path}: no manifest (is {root} a dataset folder made by spread-generate?)")
-    return json.loads(path.read_text())
+    return read_json(path)

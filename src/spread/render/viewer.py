@@ -19,7 +19,6 @@ What it shows, for the scene picked in the side panel:
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,24 +48,41 @@ def library_candidates(path: Path, data_root: Path | None) -> list[Path]:
     return out
 
 
-def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None) -> tuple[list[ViewItem], Path]:
+def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
+            refused: list | None = None) -> tuple[list[ViewItem], Path]:
     """(the scenes to show, the asset library folder) of a scene file, a folder of scene files or a run
-    folder; errors name the path."""
+    folder; errors name the path. Every file goes through :func:`spread.io.check_input_file` before it is opened:
+    a FIFO, a device or a link out of the folder among the scenes is left out and named in ``refused`` (a
+    named file that is refused is an error)."""
+    from spread.io import InputFileError, check_input_file, read_json_object
     from spread.scene import list_scene_files
 
     path = Path(path)
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         raise FileNotFoundError(f"spread-view: {path}: no such file or folder")
     data_root, split = None, None
     if path.is_dir() and (path / "sampling.json").exists():
-        manifest = json.loads((path / "sampling.json").read_text())
+        manifest = read_json_object(path / "sampling.json")
         fingerprint = manifest.get("fingerprint") or {}
         data_root = Path(fingerprint["data_root"]) if fingerprint.get("data_root") else None
         split = fingerprint.get("split")
     scenes_dir = path / "scenes" if (path / "scenes").is_dir() else path
-    files = [path] if path.is_file() else list_scene_files(scenes_dir)
+    if not path.is_dir():
+        try:
+            files = [check_input_file(path)]
+        except InputFileError as exc:
+            raise InputFileError(f"spread-view: {exc}") from None
+    else:
+        files = []
+        for f in list_scene_files(scenes_dir):
+            try:
+                files.append(check_input_file(f, root=scenes_dir))
+            except InputFileError as exc:
+                if refused is not None:
+                    refused.append(str(exc))
     if not files:
-        raise FileNotFoundError(f"spread-view: {path}: no scene files (.npz) here or in scenes/")
+        raise FileNotFoundError(f"spread-view: {path}: no readable scene files (.npz) here or in scenes/"
+                                + (f" ({len(refused)} refused: {refused[0]})" if refused else ""))
     items = []
     for f in files:
         truth = None
@@ -85,9 +101,14 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None) ->
 
 def ground_truth_id(path: Path) -> str:
     """The graph a generated scene was conditioned on (``conditioned_on``), else its name without ``_k<i>``."""
-    with np.load(path, allow_pickle=False) as data:
-        if "conditioned_on" in data.files:
-            return str(data["conditioned_on"])
+    from spread.safe_load import load_npz
+
+    try:
+        with load_npz(path) as data:
+            if "conditioned_on" in data.files:
+                return str(data["conditioned_on"])
+    except (OSError, ValueError):  # not an npz of arrays: the viewer names the problem when it shows the file
+        pass
     stem = path.stem
     head, _, tail = stem.rpartition("_k")
     return head if head and tail.isdigit() else stem

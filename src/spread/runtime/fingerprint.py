@@ -3,7 +3,7 @@ when everything it was made from is the same (a re-launched sweep never reports 
 
 A **point fingerprint** (:func:`point_fingerprint`) is a plain dict over a ``spread-sample`` config:
 
-* ``ckpt_sha256`` — the checkpoint's bytes (hashed once per process by path, size and mtime);
+* ``ckpt_sha256`` — the checkpoint's bytes (hashed once per process while the file is unchanged: :mod:`spread.readonce`);
 * ``data`` — the dataset's content: the sha256 of every scene file of the conditioning split and of the
   evaluation's reference split, of ``assets/index.json`` and ``stats.json`` (:func:`dataset_digest`);
 * ``sampling`` — sampler, seed, batch size, samples per graph, EMA, graph scale, device, split;
@@ -47,8 +47,8 @@ def short(fingerprint: dict, n: int = 8) -> str:
 
 
 def file_digest(path) -> str:
-    """sha256 of a file's bytes (``missing:<path>`` when it is not a file); hashed once per process by path,
-    size and mtime (:func:`spread.readonce.file_sha256`, the hash a sampling run records too)."""
+    """sha256 of a file's bytes (``missing:<path>`` when it is not a file); hashed once per process while the
+    file is unchanged (:func:`spread.readonce.file_sha256`, the hash a sampling run records too)."""
     from spread import readonce
 
     p = Path(str(path))

@@ -26,6 +26,8 @@ import subprocess
 from pathlib import Path
 from typing import Iterable
 
+from spread.io import read_bytes_checked, read_json_object
+
 #: The file in a run folder that names the run's MLflow run.
 RUN_FILE = "mlflow_run.json"
 #: Environment variables that carry a scheduler's job id (the first one set wins).
@@ -33,18 +35,63 @@ JOB_ID_VARIABLES = ("SLURM_JOB_ID", "PBS_JOBID", "LSB_JOBID", "JOB_ID", "RAY_JOB
 MAX_PARAM_CHARS = 6000  # MLflow's limit on a param value
 
 
+class StoreError(ValueError):
+    """An MLflow store that cannot be used (a path the URI would misread, a corrupt, truncated or locked file);
+    the message is one line naming the store."""
+
+
+#: Characters a SQLite store's path may not hold: SQLAlchemy's URL would read them as a query (``?``), a
+#: fragment (``#``) or an escape (``%``), and the store would be elsewhere than printed.
+URI_SPECIAL = "?#%"
+
+
 def resolve_tracking_uri(uri: str | None) -> str:
     """The store's URI: None → ``sqlite:///<cwd>/runs/mlflow.db``; a plain path → a SQLite file; a relative
-    ``sqlite:///`` path is made absolute (the commands may run in other folders). Creates the file's folder."""
+    ``sqlite:///`` path is made absolute (the commands may run in other folders). Creates the file's folder.
+    A SQLite path holding one of :data:`URI_SPECIAL` is refused (:class:`StoreError`)."""
     uri = str(uri) if uri else "runs/mlflow.db"
     if "://" not in uri:
         uri = f"sqlite:///{uri}"
     if uri.startswith("sqlite:///"):
+        odd = sorted({c for c in uri[len("sqlite:///"):] if c in URI_SPECIAL})
+        if odd:
+            raise StoreError(f"MLflow store {uri[len('sqlite:///'):]}: the path holds {' '.join(odd)}, which a "
+                             f"store URI reads as a query, fragment or escape (the store would be written "
+                             f"elsewhere); use a folder without them (paths.runs_dir=..., logger.tracking_uri=...)")
         path = Path(uri[len("sqlite:///"):]).expanduser()
         path = path if path.is_absolute() else Path.cwd() / path
         path.parent.mkdir(parents=True, exist_ok=True)
         uri = f"sqlite:///{path.resolve()}"
     return uri
+
+
+def open_store(uri: str):
+    """An ``MlflowClient`` of store ``uri`` once the store answers (a new SQLite store gets its tables); a SQLite
+    file that is not a regular file, is corrupt, truncated or locked is :class:`StoreError` in one line naming it."""
+    from mlflow import MlflowClient
+
+    quiet()
+    if uri.startswith("sqlite:///"):
+        from spread.io import InputFileError, check_input_file
+
+        path = Path(uri[len("sqlite:///"):])
+        if path.exists() or path.is_symlink():
+            try:
+                check_input_file(path, max_bytes=0)
+            except InputFileError as exc:
+                raise StoreError(f"MLflow store {exc}") from None
+    try:
+        client = MlflowClient(tracking_uri=uri)
+        client.search_experiments(max_results=1)  # opens the store: creates a new one's tables, reads an old one
+    except Exception as exc:
+        text = " ".join(str(exc).split()).split(" [SQL:")[0]
+        cause = exc.__cause__ or exc.__context__
+        detail = f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
+        if cause is not None and str(cause) and str(cause)[:80] not in text:
+            detail += f" ({type(cause).__name__}: {' '.join(str(cause).split()).split(' [SQL:')[0][:200]})"
+        raise StoreError(f"MLflow store {uri}: cannot be opened — {detail}; a corrupt or truncated file must be "
+                         f"moved away, a locked one waits for the process that holds it") from None
+    return client
 
 
 def artifact_root(uri: str) -> str | None:
@@ -128,7 +175,7 @@ def dataset_fingerprint(root: str | os.PathLike | None) -> str | None:
     if not root or not Path(root).is_dir():
         return None
     manifest = Path(root) / "manifest.json"
-    text = manifest.read_bytes() if manifest.exists() else \
+    text = read_bytes_checked(manifest) if manifest.exists() else \
         "\n".join(sorted(str(p.relative_to(root)) for p in Path(root).rglob("*.npz"))).encode()
     return hashlib.sha256(text).hexdigest()[:16]
 
@@ -151,7 +198,7 @@ def training_lineage(ckpt: str | os.PathLike | None) -> dict[str, str]:
     for folder in (Path(ckpt).parent, Path(ckpt).parent.parent):
         record = folder / RUN_FILE
         if record.exists():
-            info = json.loads(record.read_text())
+            info = read_json_object(record)
             tags = {"spread.training_run_id": info.get("run_id"), "spread.training_experiment_id":
                     info.get("experiment_id"), "spread.training_run_folder": str(folder.resolve())}
             break
@@ -225,11 +272,8 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
     logger = as_logger_config(logger)
     if not logger.mlflow:
         return None
-    from mlflow import MlflowClient
-
-    quiet()
     uri = resolve_tracking_uri(logger.tracking_uri)
-    client = MlflowClient(tracking_uri=uri)
+    client = open_store(uri)
     exp = experiment_id(client, uri, experiment or "Default")
     all_tags = common_tags(job_type, tags) | {f"tag.{t}": "1" for t in logger.tags}
     run = client.create_run(exp, tags=all_tags, run_name=logger.run_name or name or Path(out_dir).name)
@@ -282,8 +326,9 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
 
     quiet()
     uri = resolve_tracking_uri(logger.tracking_uri)
+    open_store(uri)  # a store that cannot be opened is one line naming it, before the fit
     record = Path(run_dir) / RUN_FILE
-    previous = json.loads(record.read_text()).get("run_id") if resuming_here and record.exists() else None
+    previous = read_json_object(record).get("run_id") if resuming_here and record.exists() else None
     root = artifact_root(uri)
     data = (config.get("data") or {}) if isinstance(config, dict) else {}
     model = (config.get("model") or {}) if isinstance(config, dict) else {}

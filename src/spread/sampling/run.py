@@ -33,7 +33,7 @@ from omegaconf import MISSING
 
 from spread import readonce
 from spread.guidance import GuidanceConfig
-from spread.io import write_json_atomic
+from spread.io import read_json, write_json_atomic
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, remove_unreadable
@@ -210,7 +210,7 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
     reason = None
     if resume and any(scenes.glob("*.npz")):
         try:
-            before = json.loads(path.read_text()).get("fingerprint")
+            before = read_json(path).get("fingerprint")
         except (OSError, ValueError, AttributeError):
             before = None
         if not isinstance(before, dict):

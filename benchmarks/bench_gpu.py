@@ -18,8 +18,8 @@ Rows:
 * **train s/step** — CUDA, paper size, batch 16 × 20 × 2,000 synthetic rooms (6 m square, boxes with surface samples)
   already on the device, bf16 autocast, fused AdamW, gradient clipping at 1 and the EMA update, as ``spread-train``
   runs them (Lightning's own overhead and data loading not included); median of timed steps after warm-up.
-* **nearest** — the dense kernel against the pruned search on the same posed points (B = 16 and 64): ms per call,
-  the share of differing indices that are not ties and the largest feature difference.
+* **nearest** — the dense search kernel and the pruned search against exact brute force (torch on the GPU) at B = 2
+  (largest distance difference, points off by more than 1 µm), then ms per call at B = 16 and 64.
 * **sample s/scene** — CUDA, DDIM-50 at batch 64 synthetic rooms: eager float32, CUDA graph float32, CUDA graph bf16;
   with ``--data``: the platform's ``ScenePipeline`` on the dataset's graphs (64 per batch) with the release's recipe
   (DDPM-1000 + ``guidance=refine``, 100 iterations, paper weights) and the paper's (DDIM-50 + ``guidance=paper``),
@@ -196,23 +196,19 @@ def nearest_rows(N: int, M: int) -> dict:
     world, cloud, t, R, mask = posed(2)
     vp = mask[:, :, None].expand(-1, -1, M).reshape(2, -1)
     reference = dist(world, _brute_force(world.reshape(2, -1, 3), vp, M))
-    searches = {"kernel objects": lambda w: nearest_dense_search(w, mask),
-                "kernel tiles": lambda w: nearest_dense_search(w, mask),
+    searches = {"kernel": lambda w: nearest_dense_search(w, mask),
                 "pruned": lambda w: nearest_other_point(w, cloud.points, t, R, mask)}
     for name, search in searches.items():
-        os.environ["SPREAD_NEAREST_KERNEL"] = name.split()[-1]
         d = dist(world, search(world))
         out[f"nearest/{name}/max_diff_vs_brute_force"] = float((d - reference).abs().max())
         out[f"nearest/{name}/points_off_by_1e-6"] = int(((d - reference).abs() > 1e-6).sum())
     for B in (16, 64):
         world, cloud, t, R, mask = posed(B)
         for name, search in searches.items():
-            if B == 64 and name != "kernel objects":
+            if B == 64 and name != "kernel":
                 continue
-            os.environ["SPREAD_NEAREST_KERNEL"] = name.split()[-1]
             ms, _ = cuda_time(lambda: search(world), 1, 3 if name != "pruned" else 1)
             out[f"nearest/B{B}/{name}_ms"] = round(ms * 1000, 2)
-    os.environ["SPREAD_NEAREST_KERNEL"] = "objects"
     print("  " + ", ".join(f"{k}={v}" for k, v in out.items()), flush=True)
     return out
 

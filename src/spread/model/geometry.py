@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from spread.model.nearest import CHUNK_ELEMENTS, morton_order, nearest_other_point
+from spread.data.rotation import rot6d_to_matrix
 from spread.model.poses import pose_points
 
 #: Signed distance (metres) given to points of an object that has no other real object in its scene.
@@ -62,6 +63,7 @@ class PointCloud:
     has_other: torch.Tensor
     fill: torch.Tensor
     count: torch.Tensor
+    no_neighbour: float = NO_NEIGHBOUR_DISTANCE
 
 
 def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask: torch.Tensor,
@@ -80,26 +82,35 @@ def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask
     count = valid.sum(1, keepdim=True)
     has_other = (valid & ((count - valid.long()) > 0))[..., None]
     fill = (valid[..., None] & ~has_other).float() * no_neighbour_distance
-    return PointCloud(p_local, n_local, valid, has_other, fill, count.clamp(min=1))
+    return PointCloud(p_local, n_local, valid, has_other, fill, count.clamp(min=1), float(no_neighbour_distance))
 
 
 def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: torch.Tensor, search: str = "pruned",
                      chunk: int | None = None, max_elements: int = CHUNK_ELEMENTS, prune: bool = True) -> torch.Tensor:
     """(B, N, M) signed nearest-other-object distance d of every point of ``cloud`` posed by translation (B, N, 3)
     metres and rotation (B, N, 3, 3) world-from-local (finite everywhere, padding objects too); the cloud's
-    ``fill`` for objects without a neighbour, 0 at padding. ``search``: ``pruned`` | ``dense`` (``auto`` resolved by
-    the caller: :func:`resolve_search`); chunk / max_elements / prune: see
-    :func:`spread.model.nearest.nearest_other_point` (speed and memory, never the result).
+    ``no_neighbour`` for an object alone in its scene, 0 at padding. ``search``: ``pruned`` | ``dense`` (``auto``
+    resolved by the caller: :func:`resolve_search`); chunk / max_elements / prune: see
+    :func:`spread.model.nearest.nearest_other_point` (speed and memory, never the result). Differentiable in
+    translation and rotation through the chosen pairs.
 
     The pruned search compares distances in the ``‖q‖² − 2p·q`` form, so its scenes are centred first (fewer
-    float32 digits lost); the dense one measures differences, which need no centring."""
+    float32 digits lost); the dense one measures differences, which need no centring. Without a gradient to keep,
+    the dense search signs the distances itself (one operator: :mod:`spread.model.nearest_dense`)."""
     B, N, M, _ = cloud.points.shape
     valid = cloud.valid
     with torch.autocast(device_type=cloud.points.device.type, enabled=False):
         R, t = rotation.float(), translation.float()
+        keep_graph = torch.is_grad_enabled() and (R.requires_grad or t.requires_grad)
         if search != "dense":  # scene-centred world frame: distances are unchanged
             t = t - (t * valid[..., None]).sum(1, keepdim=True) / cloud.count[..., None]
         world = pose_points(cloud.points, t, R)  # (B, N, M, 3)
+        normals = torch.einsum("bnij,bnmj->bnmi", R, cloud.normals)
+        if search == "dense" and not keep_graph:
+            from spread.model.nearest_dense import tile_boxes
+
+            _, d = torch.ops.spread.signed_nearest(world, normals, tile_boxes(world), valid, cloud.no_neighbour)
+            return d.view(B, N, M)
         with torch.no_grad():
             if search == "dense":
                 from spread.model.nearest_dense import nearest_dense_search
@@ -109,13 +120,29 @@ def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: tor
                 nearest = nearest_other_point(world.detach(), cloud.points, t.detach(), R.detach(), valid,
                                               chunk=chunk, max_elements=max_elements, prune=prune)
         world_flat = world.view(B, N * M, 3)
-        normals_flat = torch.einsum("bnij,bnmj->bnmi", R, cloud.normals).reshape(B, N * M, 3)
+        normals_flat = normals.reshape(B, N * M, 3)
         index = nearest[..., None].expand(B, N * M, 3)
         diff = world_flat - world_flat.gather(1, index)
         dist = torch.linalg.vector_norm(diff, dim=-1)
         # the sign of (p − q)·n_q, +0 for a zero product (adding +0.0 turns −0.0 into +0.0): outside, as documented
         signed = torch.copysign(dist, (diff * normals_flat.gather(1, index)).sum(-1) + 0.0)
         return torch.where(cloud.has_other, signed.view(B, N, M), cloud.fill)
+
+
+def state_distances(cloud: PointCloud, states: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor,
+                    search: str = "pruned") -> torch.Tensor:
+    """:func:`signed_distances` of the poses of node states (B, N, 9) — normalised translation, denormalised as
+    ``offset + x·scale`` (metres), and rot6d — as the network computes them at every denoising step (no gradient):
+    with the dense search, two operators (pose, signed search: :mod:`spread.model.nearest_dense`)."""
+    B, N, M, _ = cloud.points.shape
+    x = states.float()
+    if search == "dense":
+        from spread.model.nearest_dense import BLOCK_K
+
+        world, normals, boxes = torch.ops.spread.pose_states(x, offset, scale, cloud.points, cloud.normals, BLOCK_K)
+        _, d = torch.ops.spread.signed_nearest(world, normals, boxes, cloud.valid, cloud.no_neighbour)
+        return d.view(B, N, M)
+    return signed_distances(cloud, torch.addcmul(offset, x[..., :3], scale), rot6d_to_matrix(x[..., 3:9]), search)
 
 
 def signed_chamfer_features(points_local: torch.Tensor, normals_local: torch.Tensor, translation: torch.Tensor,

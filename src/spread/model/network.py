@@ -18,10 +18,9 @@ import torch
 from torch import nn
 
 from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
-from spread.data.rotation import rot6d_to_matrix
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser, real_objects
-from spread.model.geometry import PointCloud, prepare_points, resolve_search, signed_distances
+from spread.model.geometry import PointCloud, prepare_points, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
@@ -133,9 +132,7 @@ class SceneDenoiser(nn.Module):
 
     def geometry_tokens(self, x_t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
-        x = x_t.float()
-        translation = torch.addcmul(cond.pose_offset, x[..., :3], cond.pose_scale)  # denormalize(x, bounds)
-        distance = signed_distances(cond.cloud, translation, rot6d_to_matrix(x[..., 3:9]), cond.search)
+        distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search)
         return self.perceiver(distance.to(x_t.dtype), cond.static)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:

@@ -10,6 +10,7 @@ table; Optuna search; a sweep over a two-node ``ray.cluster_utils.Cluster`` uses
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -179,14 +180,24 @@ def test_spread_sweep_two_points_reuse_and_resume_after_a_kill(tiny, tmp_path):
         while time.time() < deadline and proc.poll() is None and not any(
                 json.loads(p.read_text()).get("status") == "finished" for p in killed.glob("points/*/point.json")):
             time.sleep(0.2)
-        os.killpg(proc.pid, signal.SIGKILL)
+        os.kill(proc.pid, signal.SIGKILL)  # the driver alone, as `kill -9 <pid>`: its Ray processes stay
         proc.wait(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert not (killed / "results.csv").exists()
+    record = json.loads((killed / ".ray-session.json").read_text())
+    from spread.runtime.ray import leftover_processes
+
+    left = leftover_processes(record)
+    assert left, "the killed driver's raylet and GCS are still running"
     spread("spread-sweep", *sweep_args(tiny, killed, "max_concurrent=1"))
     assert table(killed / "results.csv") == table(out / "results.csv")
+    assert not [p for p in left if os.path.exists(f"/proc/{p}") and record["session_dir"] in
+                open(f"/proc/{p}/cmdline").read()], "the relaunch stopped every process of the killed run"
+    assert not (killed / ".ray-session.json").exists()
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
 
 
 @pytest.mark.slow

@@ -218,7 +218,7 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
         append_jsonl(per_scene, record)
         bar.update(1)
 
-    with ray_session(cfg.ray) as cluster:
+    with ray_session(cfg.ray, owner=out) as cluster:
         fan = fan_out(todo, cfg.chunk_size, cfg.ray, evaluate_chunk, (assets, cfg.protocol, cfg.fid), on_record,
                       failure_record) if todo else None
         fid, fid_status, ref_failed = reference_fid(cfg, reference_files, assets)

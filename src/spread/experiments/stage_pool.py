@@ -118,7 +118,7 @@ def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settin
 
     from spread.runtime.ray import RaySettings, ray_session
 
-    with ray_session(ray_settings or RaySettings()) as cluster:
+    with ray_session(ray_settings or RaySettings(), owner=getattr(runner, "out", None)) as cluster:
         task = ray.remote(num_cpus=0, max_retries=0)(run_chain)
         runner.slot = ray.remote(num_cpus=0)(Slot).remote()
         try:

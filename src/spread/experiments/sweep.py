@@ -496,7 +496,7 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
     storage = out / "tune"
     if not (storage / s.folder_name).resolve().is_relative_to(out.resolve()):  # safe_name makes this impossible
         raise ValueError(f"spread-sweep: name={s.name}: Ray Tune's folder would leave out_dir={out}")
-    with ray_session(settings):
+    with ray_session(settings, owner=out):
         check_resources(s)
         tuner = tune.Tuner(
             trainable, param_space=space,

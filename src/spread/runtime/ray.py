@@ -8,13 +8,32 @@
 
 Workers must import ``spread`` and read the scene and dataset folders: on a real cluster, install the
 project on every node and keep the folders on a shared filesystem.
+
+**Clean stops.** A started cluster is this run's: SIGTERM (and SIGINT) inside the session end the command through
+the same ``finally`` that stops it. When the session has an ``owner`` folder (the command's output folder), the
+started cluster is recorded there (``.ray-session.json``: the driver's pid, Ray's session folder, the pids of its
+raylet, GCS and helpers) and the record is removed at the end. A driver killed outright (SIGKILL) cannot stop its
+cluster (its raylet and GCS die with it, the raylet's agents and busy workers do not); its record stays, and the next
+session on the same folder first stops what that record names — processes whose command line names the recorded
+session folder, and processes started by the recorded raylet (``RAY_RAYLET_PID`` in their environment) that still
+write into that folder — never a process found by its name. SIGTERM, then SIGKILL after
+``STOP_GRACE`` seconds (a raylet may ignore SIGTERM).
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import signal
+import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator
+
+#: Name of the record of a started cluster in its owner folder.
+RECORD = ".ray-session.json"
+#: Seconds between SIGTERM and SIGKILL when stopping a killed run's leftover processes.
+STOP_GRACE = 3.0
 
 
 @dataclass
@@ -50,24 +69,175 @@ def _start(settings: RaySettings) -> None:
         ray.init(address=settings.address, log_to_driver=settings.log_to_driver)
 
 
+def _cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:  # checked: a procfs file, not a user input
+            return f.read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _parent(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:  # checked: a procfs file, not a user input
+            return int(f.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return _cmdline(pid) != "" or os.path.exists(f"/proc/{pid}")
+
+
+def _raylet_of(pid: int) -> int | None:
+    """The ``RAY_RAYLET_PID`` a process was started with (Ray's agents and workers), or None."""
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as f:  # checked: a procfs file, not a user input
+            for item in f.read().split(b"\0"):
+                if item.startswith(b"RAY_RAYLET_PID="):
+                    return int(item.split(b"=", 1)[1])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _writes_into(pid: int, folder: str) -> bool:
+    """Whether one of the process's open files lies in ``folder`` (a Ray process keeps its session's logs open)."""
+    try:
+        return any(os.readlink(f"/proc/{pid}/fd/{fd}").startswith(folder) for fd in os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return False
+
+
+def leftover_processes(record: dict) -> list[int]:
+    """The pids of a recorded cluster still running: processes whose command line names the recorded session
+    folder (raylet, GCS, helpers), and processes started by the recorded raylet (``RAY_RAYLET_PID``: the dashboard
+    and runtime-env agents, workers, which rename themselves ``ray::…``) that still write into that folder."""
+    session = str(record.get("session_dir") or "")
+    if not session or not os.path.isdir("/proc"):
+        return []
+    raylets = {int(p) for p in (record.get("pids") or {}).get("raylet", [])}
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or int(entry) == os.getpid():
+            continue
+        pid = int(entry)
+        if session in _cmdline(pid) or (_raylet_of(pid) in raylets and _writes_into(pid, session)):
+            found.append(pid)
+    return sorted(found)
+
+
+def stop_processes(pids: list[int], grace: float = STOP_GRACE) -> list[int]:
+    """SIGTERM ``pids``, then SIGKILL those alive after ``grace`` seconds; returns the pids signalled."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        alive = [p for p in pids if _alive(p)]
+        for p in alive:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(p, sig)
+        deadline = time.monotonic() + (grace if sig == signal.SIGTERM else 1.0)
+        while time.monotonic() < deadline and any(_alive(p) for p in alive):
+            time.sleep(0.05)
+            for p in alive:  # reap our own children (a cluster this process started earlier)
+                with contextlib.suppress(ChildProcessError, OSError):
+                    os.waitpid(p, os.WNOHANG)
+    return pids
+
+
+def stop_leftover(owner: Path) -> list[int]:
+    """Stop what a killed run's cluster left running (the record in ``owner``, module docstring); the record goes.
+    Returns the pids stopped."""
+    from spread.io import read_json
+
+    path = Path(owner) / RECORD
+    if not path.is_file():
+        return []
+    try:
+        record = read_json(path)
+    except (OSError, ValueError):
+        record = {}
+    pids = leftover_processes(record) if isinstance(record, dict) else []
+    if pids:
+        import logging
+
+        logging.getLogger("spread.ray").warning(
+            "stopping %d process(es) of Ray session %s, left running by a killed run (driver pid %s) in %s",
+            len(pids), record.get("session_dir"), record.get("driver_pid"), owner)
+        stop_processes(pids)
+    path.unlink(missing_ok=True)
+    return pids
+
+
+def _record(owner: Path) -> None:
+    import ray
+
+    from spread.io import write_json_atomic
+
+    node = ray._private.worker._global_node
+    pids = {kind: [int(p.process.pid) for p in procs if p.process is not None]
+            for kind, procs in node.all_processes.items()}
+    write_json_atomic(Path(owner) / RECORD, {"driver_pid": os.getpid(), "session_dir": node.get_session_dir_path(),
+                                              "pids": pids, "started": time.time()})
+
+
+def _terminate(signum, frame):
+    raise SystemExit(128 + signum)
+
+
 @contextlib.contextmanager
-def ray_session(settings: RaySettings) -> Iterator[dict]:
-    """Ray initialised for the block (module docstring); yields ``{"address", "nodes", "cpus"}``."""
+def _stop_on_signals() -> Iterator[None]:
+    """SIGTERM raises SystemExit(143) in the main thread for the block (SIGINT already raises KeyboardInterrupt),
+    so a terminated command runs its ``finally`` blocks and stops its cluster (set again after ``ray.init``, which
+    installs its own)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Iterator[dict]:
+    """Ray initialised for the block (module docstring); yields ``{"address", "nodes", "cpus"}``. ``owner``: the
+    command's output folder, where a started cluster is recorded (and a killed predecessor's stopped)."""
     import ray
 
     from spread.runtime.quiet import quiet_ray_start
 
     owned = not ray.is_initialized()
-    if owned:
-        with quiet_ray_start():
-            _start(settings)
-    try:
-        nodes = [n for n in ray.nodes() if n.get("Alive")]
-        yield {"address": settings.address or "local", "nodes": len(nodes),
-               "cpus": float(sum(n.get("Resources", {}).get("CPU", 0.0) for n in nodes))}
-    finally:
+    recorded = owned and settings.starts_cluster and owner is not None
+    if recorded:
+        Path(owner).mkdir(parents=True, exist_ok=True)
+        stop_leftover(Path(owner))
+    with _stop_on_signals():
         if owned:
-            ray.shutdown()
+            with quiet_ray_start():
+                _start(settings)
+            if recorded:
+                _record(Path(owner))
+            import threading
+
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGTERM, _terminate)
+        try:
+            nodes = [n for n in ray.nodes() if n.get("Alive")]
+            yield {"address": settings.address or "local", "nodes": len(nodes),
+                   "cpus": float(sum(n.get("Resources", {}).get("CPU", 0.0) for n in nodes))}
+        finally:
+            if owned:
+                ray.shutdown()
+            if recorded:
+                (Path(owner) / RECORD).unlink(missing_ok=True)
 
 
 def scheduling_strategy(settings: RaySettings):

@@ -256,7 +256,7 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
     from spread.runtime.ray import scheduling_strategy
     from spread.sampling.worker import SampleWorker
 
-    with ray_session(cfg.ray) as cluster:
+    with ray_session(cfg.ray, owner=scenes_dir.parent) as cluster:
         n = actor_count(cfg, len(todo))
         actor = ray.remote(SampleWorker).options(
             num_cpus=max(1, cfg.threads or 1), num_gpus=cfg.ray.num_gpus_per_worker,

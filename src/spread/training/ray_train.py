@@ -137,7 +137,7 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     )
     ray_settings = RaySettings(address=settings.address, num_cpus=settings.num_cpus,
                                log_to_driver=settings.log_to_driver)
-    with ray_session(ray_settings):
+    with ray_session(ray_settings, owner=run_dir):
         result = trainer.fit()
     if result.error is not None:
         raise result.error

@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "needs $(PYTHON) (pybullet ships wheels for 3.11)"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev,gpu-physics]'  # gpu-physics: MuJoCo Warp, so its tests run too
+	$(BIN)/pip install --quiet -e '.[dev,gpu-physics,launchers]'  # gpu-physics: MuJoCo Warp, so its tests run too; launchers: hydra/launcher=parallel|slurm
 	touch $(STAMP)
 
 install: $(STAMP)

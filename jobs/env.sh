@@ -86,6 +86,23 @@ spread_claim_run() {
     fi
 }
 
+# spread_attempt OUT: which launch of OUT's run this is, counted here, not by the user. Attempt n is decided once
+# (OUT/.resume/n) and marked started (OUT/.resume/n.started) by spread-train once every node has met (after the
+# rendezvous, so a node of the same launch always arrives before the mark): a launch finding the newest attempt
+# not started joins it, else it is attempt n+1. ATTEMPT=<n> still overrides.
+spread_attempt() {
+    local dir="$1/.resume" n=0 f
+    for f in "$dir"/[0-9]*; do
+        [[ -e "$f" ]] || continue
+        f=${f##*/}; f=${f%%.*}
+        [[ "$f" =~ ^[0-9]+$ ]] && (( f > n )) && n=$f
+    done
+    if (( n == 0 )); then echo 1
+    elif [[ -e "$dir/$n.started" ]]; then echo $(( n + 1 ))
+    else echo "$n"
+    fi
+}
+
 # spread_decide_resume OUT ATTEMPT: the checkpoint this attempt resumes, decided once for every node: the
 # first node to create OUT/.resume/ATTEMPT.lock (mkdir is atomic, also on NFS) writes spread_resume's answer
 # to OUT/.resume/ATTEMPT (atomic rename); the others wait for that file (SPREAD_RESUME_WAIT s, default 600).

@@ -146,3 +146,18 @@ def test_runs_started_by_a_wandb_agent_log_online_and_wandb_mode_wins(monkeypatc
     assert compose("train", ["logger=mlflow"]).logger.mode == "online"
     monkeypatch.setenv("WANDB_MODE", "disabled")
     assert compose("sample", ["ckpt=x"]).logger.mode == "disabled"
+
+
+def test_the_parallel_and_slurm_hydra_launchers_are_installed_and_compose():
+    """``hydra/launcher=parallel`` (joblib) and ``=slurm`` (submitit) resolve: `make` installs the launchers extra."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from spread.configs import conf_dir, register
+
+    register("sample")
+    with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
+        for launcher, target in (("parallel", "JoblibLauncher"), ("slurm", "SlurmLauncher")):
+            cfg = hydra_compose("sample", ["hydra/launcher=" + launcher, "ckpt=c", "data.root=d"],
+                                return_hydra_config=True)
+            assert cfg.hydra.launcher._target_.endswith(target)

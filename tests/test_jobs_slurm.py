@@ -155,3 +155,38 @@ def test_slurm_ray_waits_for_its_nodes_with_a_port_and_temp_dir_per_job(stand_in
     assert len(polls) >= 4  # 2 alive nodes after the 4th poll: it waited for readiness
     assert calls(log, "spread-sample ")[0].endswith("ray.address=node0:20777 progress=false")
     assert time.perf_counter() - started < 60
+
+
+def test_the_slurm_scripts_outside_slurm_say_to_submit_them_with_sbatch(stand_ins):
+    env = {k: v for k, v in stand_ins["env"].items() if not k.startswith("SLURM")}
+    for name in ("slurm_train.sbatch", "slurm_ray.sbatch"):
+        done = subprocess.run(["bash", str(JOBS / name), "experiment=quick"], env=env, capture_output=True, text=True,
+                              timeout=60)
+        assert done.returncode == 2 and "submit it with sbatch" in done.stderr, done.stderr
+        assert "unbound variable" not in done.stderr
+
+
+def test_torchrun_counts_its_attempts_itself(stand_ins):
+    """A relaunch with the same RUN_ID after an attempt that started training is attempt 2 (it resumes the newest
+    checkpoint, decided afresh); a relaunch after one that never started (the rendezvous failed) joins it."""
+    tmp, log = stand_ins["tmp"], stand_ins["log"]
+    env = {k: v for k, v in stand_ins["env"].items() if not k.startswith("SLURM")}
+    env.update(NNODES="1", RDZV_ENDPOINT="node0:29400", RUN_ID="wf2")
+    run = tmp / "runs" / "train" / "torchrun-wf2"
+
+    def launch():
+        done = subprocess.run(["bash", str(JOBS / "torchrun.sh"), "experiment=quick"], env=env, capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 0, done.stdout + done.stderr
+        return done.stdout, calls(log, "torchrun ")[-1]
+
+    out, call = launch()
+    assert "attempt 1" in out and call.endswith("ckpt_path=null")
+    out, call = launch()  # attempt 1 never marked started (the stand-in torchrun trains nothing): joined
+    assert "attempt 1" in out and call.endswith("ckpt_path=null")
+    (run / ".resume" / "1.started").touch()  # what spread-train does once every process runs
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.ckpt").write_text("a")
+    out, call = launch()
+    assert "attempt 2" in out and call.endswith(f"ckpt_path={run}/checkpoints/last.ckpt")
+    assert (run / ".resume" / "2").read_text().strip() == f"{run}/checkpoints/last.ckpt"

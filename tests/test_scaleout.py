@@ -200,6 +200,40 @@ def test_torchrun_two_nodes_train_the_same_weights_and_rank_zero_writes_one_chec
     assert left == [], "checkpoint temp files (TMPDIR) are renamed into place"
 
 
+def test_torchrun_relaunched_with_the_same_run_id_resumes_its_newest_checkpoint(dataset, tmp_path):
+    """jobs/torchrun.sh with 2 gloo processes (tiny), launched twice with one RUN_ID and no ATTEMPT: the launcher
+    counts the second attempt, which resumes the first's last.ckpt (the step continues from 3 to 5); Lightning
+    writes no last-v1.ckpt; the log names the file resumed. A plain spread-train into the same folder without
+    resuming is refused, and fresh=true moves the run aside."""
+    out = tmp_path / "run"
+    env = jobs_env(out, NNODES="1", NPROC_PER_NODE="2", RDZV_ENDPOINT=f"127.0.0.1:{free_port()}", RUN_ID="wf1",
+                   LOCAL_ADDR="127.0.0.1")
+    launch = ["bash", str(ROOT / "jobs" / "torchrun.sh"), *TRAIN, f"data.root={dataset}", "trainer.accelerator=cpu"]
+    first = subprocess.run([*launch, "trainer.max_steps=3"], env=env, capture_output=True, text=True, timeout=400)
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    assert "attempt 1" in first.stdout and (out / ".resume" / "1.started").exists()
+    env["RDZV_ENDPOINT"] = f"127.0.0.1:{free_port()}"
+    again = subprocess.run([*launch, "trainer.max_steps=5"], env=env, capture_output=True, text=True, timeout=400)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    last = out / "checkpoints" / "last.ckpt"
+    assert "attempt 2" in again.stdout and f"spread-train: resuming {last}" in again.stdout
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["resumed_from"] == str(last) and summary["global_step"] == 5
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["last.ckpt"], "no last-v1.ckpt"
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == 5
+    # the same folder by hand, without resuming: refused, naming both ways on; fresh=true moves the run aside
+    plain = [str(SCRIPTS / "spread-train"), *TRAIN, f"data.root={dataset}", f"out_dir={out}", "trainer.max_steps=2",
+             "logger=none"]
+    refused = subprocess.run(plain, env=script_env(), capture_output=True, text=True, timeout=300)
+    assert refused.returncode != 0 and "holds a training run already" in refused.stderr + refused.stdout
+    assert "ckpt_path=last" in refused.stderr + refused.stdout and "fresh=true" in refused.stderr + refused.stdout
+    fresh = subprocess.run([*plain, "fresh=true"], env=script_env(), capture_output=True, text=True, timeout=300)
+    assert fresh.returncode == 0, fresh.stdout[-3000:] + fresh.stderr[-3000:]
+    moved = list((out / "previous").glob("*/checkpoints/last.ckpt"))
+    assert len(moved) == 1 and torch.load(moved[0], map_location="cpu", weights_only=False)["global_step"] == 5
+    assert json.loads((out / "metrics.json").read_text())["global_step"] == 2
+
+
 def assert_two_ranks_one_checkpoint(out: Path, probe: Path, steps: int) -> None:
     ranks = [torch.load(probe / f"rank{r}.pt", map_location="cpu", weights_only=False) for r in (0, 1)]
     assert [r["world_size"] for r in ranks] == [2, 2] and {r["node_rank"] for r in ranks} == {0, 1}

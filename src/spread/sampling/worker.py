@@ -51,6 +51,22 @@ def active_guidance(guidance):
     return config if config.active else None
 
 
+def warn_graph_guidance(guided, model, ckpt) -> None:
+    """A warning when relation (support-graph) guidance steers a method that was not trained with the graphs (the
+    registry's ``graph_conditioned``): the guidance then pulls towards supports the network never saw."""
+    if guided is None or float(getattr(guided, "relation", 0.0) or 0.0) <= 0:
+        return
+    from spread.baselines.registry import METHODS
+
+    method = str((getattr(model, "hparams", None) or {}).get("method") or "spread")
+    if method in METHODS and not METHODS.get(method).graph_conditioned:
+        import warnings
+
+        warnings.warn(f"guidance.relation={guided.relation:g}: relation guidance pulls the objects towards the "
+                      f"support graph, but {ckpt} is a '{method}' checkpoint, not trained with the graphs "
+                      f"(set guidance.relation=0 to steer it by collision and gravity only)", UserWarning, stacklevel=2)
+
+
 def guidance_label(config) -> str:
     """Short name of an active guidance config: ``refine(c=0.0075,g=0.001,r=0.001)``."""
     terms = "".join(f",{name}={weight:g}" for name, weight in config.terms.items() if weight > 0)
@@ -105,6 +121,7 @@ def load_pipeline(cfg) -> ScenePipeline:
         raise ValueError(f"guidance={guided.mode}: guidance steers the methods that sample through the pipeline's "
                          f"loop; {cfg.ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
                          f"(sample it with guidance=none)")
+    warn_graph_guidance(guided, model, cfg.ckpt)
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
     dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"])
     return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,

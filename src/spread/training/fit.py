@@ -99,6 +99,47 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: di
     return summary
 
 
+HISTORY = ("checkpoints", "metrics.json", "clock.jsonl", "csv")
+
+
+def one_history(cfg: DictConfig, run_dir: Path, ckpt_path: Path | None) -> None:
+    """A run folder holds one training history. Starting a new run (or resuming another run's checkpoint) in a folder
+    that holds one is refused, naming the folder and the two ways on: resume it (``ckpt_path=last``) or start over
+    with ``fresh=true``, which moves the old history to ``previous/<time>/`` (rank 0 alone decides)."""
+    import os
+    import shutil
+    import time
+
+    if os.environ.get("RANK", "0") != "0":
+        return
+    held = sorted((run_dir / "checkpoints").glob("*.ckpt")) + sorted(run_dir.glob("hpc_ckpt_*.ckpt"))
+    if not held:
+        return
+    here = {(run_dir / "checkpoints").resolve(), run_dir.resolve()}
+    if ckpt_path is not None and ckpt_path.resolve().parent in here:
+        return
+    if not cfg.get("fresh", False):
+        raise SystemExit(f"spread-train: {run_dir} holds a training run already ({held[-1].name}): resume it with "
+                         f"ckpt_path=last, or start over with fresh=true (moves it to {run_dir / 'previous'}/<time>)")
+    aside = run_dir / "previous" / time.strftime("%Y-%m-%d_%H-%M-%S")
+    aside.mkdir(parents=True, exist_ok=True)
+    for name in [*HISTORY, *(p.name for p in run_dir.glob("hpc_ckpt_*.ckpt"))]:
+        if (run_dir / name).exists():
+            shutil.move(str(run_dir / name), str(aside / name))
+    log.warning("fresh=true: the run that was in %s is now in %s", run_dir, aside)
+
+
+def mark_attempt_started() -> None:
+    """A launcher's attempt (jobs/torchrun.sh: ``SPREAD_ATTEMPT_MARK``) is marked started once every process runs,
+    so the launcher's next launch counts a new attempt (jobs/env.sh ``spread_attempt``)."""
+    import os
+
+    mark = os.environ.get("SPREAD_ATTEMPT_MARK")
+    if mark:
+        Path(mark).parent.mkdir(parents=True, exist_ok=True)
+        Path(mark).touch()
+
+
 def feed_the_device(trainer, datamodule) -> None:
     """On a GPU, batches come from pinned memory (asynchronous copies) and, when ``data.num_workers`` is 0, a warning
     says that loading runs in the training loop (``perf/data_wait_share`` shows its cost)."""
@@ -135,6 +176,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     set_threads(cfg.get("threads"))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     ckpt_path = Path(resume_from) if resume_from is not None else resolve_ckpt_path(cfg, run_dir)
+    one_history(cfg, run_dir, ckpt_path)
+    mark_attempt_started()
     resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
@@ -153,13 +196,14 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     if prepare is not None:
         trainer = prepare(trainer)
     feed_the_device(trainer, datamodule)
-    if ckpt_path is not None:
-        log.info("resuming from %s", ckpt_path)
+    if ckpt_path is not None and trainer.is_global_zero:
+        print(f"spread-train: resuming {ckpt_path}", flush=True)
     trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
     save_final_checkpoint(trainer, run_dir, newest)
     skipped = datamodule.skipped_files() if hasattr(datamodule, "skipped_files") else {}
     summary = write_summary(trainer, run_dir, ckpt_path, skipped)
     if trainer.is_global_zero:
+        resumed = f", resumed from {summary['resumed_from']}" if summary["resumed_from"] else ""
         print(f"run folder {run_dir}: step {summary['global_step']}, epoch {summary['epoch']}, "
-              f"checkpoint {summary['last_checkpoint']}")
+              f"checkpoint {summary['last_checkpoint']}{resumed}")
     return summary

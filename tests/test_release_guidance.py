@@ -209,3 +209,67 @@ def test_release_mode_differs_from_the_platforms_refine_on_the_same_start(fixtur
             out[mode] = g.refine(x0, problem.eps_fn).numpy()
     assert pose_error(fixture, out["refine"], out["release"]) > 1e-3
 
+
+
+# ---- the release's terms on known answers (box assets; SPREAD's 9-d states, no placeholder)
+
+@pytest.fixture(scope="module")
+def boxes(tmp_path_factory):
+    from spread.assets.assemble import box_asset, library_from_specs
+
+    return library_from_specs(tmp_path_factory.mktemp("release_terms"), [
+        box_asset("table", (1.0, 0.75, 0.7)), box_asset("cup", (0.08, 0.1, 0.08)), box_asset("post", (0.2, 2.0, 0.2))])
+
+
+def box_guidance(library, ids, physical=None):
+    n = len(ids)
+    physical = torch.zeros(1, n, n, dtype=torch.long) if physical is None else physical
+    return SceneGuidance({"mode": "release"}, library, [ids], physical, torch.ones(1, n, dtype=torch.bool),
+                         torch.tensor([-3.0, 0.0, -3.0, 3.0, 2.5, 3.0]))
+
+
+def box_states(translation, rotation=None) -> torch.Tensor:
+    from spread.data import matrix_to_rot6d
+
+    t = torch.tensor(translation, dtype=torch.float64)[None]
+    R = torch.eye(3, dtype=torch.float64).expand(1, len(translation), 3, 3) if rotation is None else \
+        torch.as_tensor(rotation, dtype=torch.float64)[None]
+    lo, hi = torch.tensor([-3.0, 0.0, -3.0]), torch.tensor([3.0, 2.5, 3.0])
+    return torch.cat([2 * (t - lo) / (hi - lo) - 1, matrix_to_rot6d(R)], -1)
+
+
+def test_release_gravity_casts_one_ray_from_each_box_centre_to_any_other_object(boxes):
+    """A table 1 mm up (in the band: 0), a cup 5 cm above its top (0.05 − ε), a cup resting 1 mm above the top but
+    with its centre beyond the table's edge: the release's ray misses the table, so it is measured to the floor
+    (0.752 − ε) — the release's quirk, where the platform's gravity holds it at its supporter (supports ignored).
+    To 1e-7 m: the box assets' vertices are stored in float32."""
+    g = box_guidance(boxes, ["table", "cup", "cup"])
+    x = box_states([[0.0, 0.376, 0.0], [0.1, 0.751 + 0.05 + 0.05, 0.0], [0.52, 0.751 + 0.001 + 0.05, 0.0]])
+    value = float(g.losses(x, which=["gravity"])["gravity"])
+    assert value == pytest.approx((0.05 - 5e-4) + (0.752 - 5e-4), abs=1e-7)
+
+
+def test_release_relation_keeps_the_supporters_first_hull_vertices(boxes):
+    """The post (a 0.2 × 2 × 0.2 m box) supports the cup. First evaluation upright: its xz hull is four of its
+    corners, chosen then and kept. Laid on its side afterwards, those four corners' new positions — not the lying
+    post's hull — are the footprint the cup is measured against, as in the release."""
+    from spread.guidance.release import hull_distance
+    from spread.model.poses import poses_from_state
+
+    physical = torch.zeros(1, 2, 2, dtype=torch.long)
+    physical[0, 0, 1] = 1
+    g = box_guidance(boxes, ["post", "cup"], physical)
+    cup_far = [0.9, 0.3, 0.0]  # 0.9 m along the lying post: over it, but outside a 0.2 × 0.2 footprint at one end
+    upright = box_states([[0.0, 1.0, 0.0], cup_far])
+    assert float(g.losses(upright, which=["relation"])["relation"]) > 0
+    kept = g.cache[("release_hull", 0, 0)].clone()
+    lying = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # 90° about z
+    x = box_states([[0.0, 0.1, 0.0], cup_far], torch.stack([lying, torch.eye(3, dtype=torch.float64)]))
+    value = float(g.losses(x, which=["relation"])["relation"])
+    assert torch.equal(g.cache[("release_hull", 0, 0)], kept)  # not recomputed
+    world = g.meshes.pose(*poses_from_state(x, g.bounds))
+    cup = world[0, 1, :8][:, [0, 2]]
+    d_kept = hull_distance(cup, world[0, 0, kept][:, [0, 2]])
+    assert value == pytest.approx(float(d_kept.sum() / (d_kept > 1e-6).sum()), rel=1e-12)
+    fresh = box_guidance(boxes, ["post", "cup"], physical)
+    assert float(fresh.losses(x, which=["relation"])["relation"]) == 0.0  # the lying post's own hull covers the cup

@@ -140,52 +140,47 @@ def relation_loss(ctx) -> torch.Tensor:
     return torch.stack([torch.stack(p).mean() if p else zero for p in per_scene])
 
 
-def ray_down(origins: torch.Tensor, triangles: torch.Tensor, owner: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """Nearest hit distance (B, N) of rays from origins (B, N, 3) straight down against triangles (B, T, 3, 3) of
-    other objects (``owner`` (B, T) object index, ``valid`` (B, T) real faces); c_y where nothing is hit. The
-    release's Möller–Trumbore with its tolerances; differentiable in the origins."""
+def ray_down(origins: torch.Tensor, triangles: torch.Tensor, owner: torch.Tensor) -> torch.Tensor:
+    """Nearest hit distance (N,) of rays from origins (N, 3) straight down against triangles (T, 3, 3) of other
+    objects (``owner`` (T,): the object index of each); c_y where nothing is hit. The release's Möller–Trumbore with
+    its tolerances; differentiable in the origins."""
     d = origins.new_tensor([0.0, -1.0, 0.0])
-    v0 = triangles[:, None, :, 0]  # (B, 1, T, 3)
-    e1, e2 = triangles[:, None, :, 1] - v0, triangles[:, None, :, 2] - v0
+    v0 = triangles[None, :, 0]  # (1, T, 3)
+    e1, e2 = triangles[None, :, 1] - v0, triangles[None, :, 2] - v0
     p = torch.linalg.cross(d.expand_as(e2), e2, dim=-1)
     det = (e1 * p).sum(-1)
     parallel = det.abs() < RAY_EPS
     inv = torch.where(parallel, 0.0 * det, 1.0 / torch.where(parallel, torch.ones_like(det), det))
-    s = origins[:, :, None, :] - v0  # (B, N, T, 3)
+    s = origins[:, None, :] - v0  # (N, T, 3)
     u = (s * p).sum(-1) * inv
     q = torch.linalg.cross(s, e1.expand_as(s), dim=-1)
     v = (q * d).sum(-1) * inv
     t = (e2 * q).sum(-1) * inv
-    N = origins.shape[1]
-    other = owner[:, None, :] != torch.arange(N, device=origins.device)[None, :, None]
-    hit = other & valid[:, None, :] & ~parallel & (u >= -RAY_EPS) & (v >= -RAY_EPS) & (u + v <= 1 + RAY_EPS) & (t > RAY_EPS)
+    other = owner[None, :] != torch.arange(len(origins), device=origins.device)[:, None]
+    hit = other & ~parallel & (u >= -RAY_EPS) & (v >= -RAY_EPS) & (u + v <= 1 + RAY_EPS) & (t > RAY_EPS)
     nearest = torch.where(hit, t, torch.full_like(t, torch.inf)).amin(-1)
-    return torch.where(torch.isinf(nearest), origins[..., 1], nearest)
+    return torch.where(torch.isinf(nearest), origins[:, 1], nearest)
 
 
 def gravity_loss(ctx) -> torch.Tensor:
-    """The release's G_H per scene (B,) (module docstring)."""
+    """The release's G_H per scene (B,) (module docstring); one scene at a time, over its real objects' faces."""
     world = ctx.world
     t = ctx.meshes.tensors(world.device, world.dtype)
-    vmask = t["vmask"][..., None]
-    lo = torch.where(vmask, world, torch.full_like(world, torch.inf)).amin(2)
-    hi = torch.where(vmask, world, torch.full_like(world, -torch.inf)).amax(2)
-    real = ctx.mask
-    lo = torch.where(real[..., None], lo, torch.zeros_like(lo))
-    hi = torch.where(real[..., None], hi, torch.zeros_like(hi))
-    centre = (hi + lo) / 2.0
-    height = centre[..., 1] - lo[..., 1]
-    B, N, F = t["faces"].shape[:3]
-    faces = t["faces"].reshape(B, N * F, 3)
-    owner = torch.arange(N, device=world.device).repeat_interleave(F)[None].expand(B, -1)
-    flat = world.reshape(B, -1, 3)
-    V = world.shape[2]
-    corners = faces + (owner * V)[..., None]
-    triangles = torch.gather(flat, 1, corners.reshape(B, -1, 1).expand(-1, -1, 3)).reshape(B, N * F, 3, 3)
-    valid = t["fvalid"].reshape(B, N * F) & real.repeat_interleave(F, dim=1)
-    r = ray_down(centre, triangles.detach(), owner, valid) - height - ctx.config.gap
-    bad = real & ((r > ctx.config.tolerance) | (r < 0))
-    return torch.where(bad, r.abs(), 0.0 * r).sum(-1)
+    out = []
+    for b in range(world.shape[0]):
+        real = torch.nonzero(ctx.mask[b]).flatten()
+        w, vmask = world[b, real], t["vmask"][b, real][..., None]  # (n, V, 3), (n, V, 1)
+        lo = torch.where(vmask, w, torch.full_like(w, torch.inf)).amin(1)
+        hi = torch.where(vmask, w, torch.full_like(w, -torch.inf)).amax(1)
+        centre = (hi + lo) / 2.0
+        height = centre[:, 1] - lo[:, 1]
+        k, f = torch.nonzero(t["fvalid"][b, real], as_tuple=True)  # each real object's faces
+        corners = t["faces"][b, real][k, f]  # (T, 3)
+        triangles = w[k[:, None], corners].detach()  # (T, 3, 3)
+        r = ray_down(centre, triangles, k) - height - ctx.config.gap
+        bad = (r > ctx.config.tolerance) | (r < 0)
+        out.append(torch.where(bad, r.abs(), 0.0 * r).sum())
+    return torch.stack(out)
 
 
 #: The release's three terms, under the built-ins' names, weights, schedules and gradient edits.

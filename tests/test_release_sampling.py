@@ -93,6 +93,9 @@ def test_a_converted_checkpoint_loads_by_its_method_and_samples_through_the_samp
     assert totals["iterations"] == totals["network_calls"] == 3 * batches and totals["steps"] == 3 * batches
     for a, b in zip(result.files, guided.files):  # same seed, same sampler: guidance moved the objects
         assert not np.allclose(read_scene(a).translation, read_scene(b).translation)
+    with pytest.raises(ValueError, match="cuda_graph=false"):  # its point features read the mask on the host
+        sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'c'}", "cuda_graph=true",
+                          "logger=none", "renders=0")
     with pytest.raises(ValueError, match="graph_scale"):  # the release has no classifier-free graph guidance
         sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'c'}", "graph_scale=2",
                           "logger=none", "renders=0")

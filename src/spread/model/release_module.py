@@ -81,6 +81,8 @@ class ReleaseDiffusion(L.LightningModule):
     normalised with; ``weights``: "ema" or "raw" (which of the file's weights were converted)."""
 
     method = "release"
+    #: its point features loop over each scene's real objects on the host: no CUDA-graph capture (sampling.cuda_graph)
+    cuda_graph_capturable = False
 
     def __init__(self, config: dict | None = None, bounds: Sequence[float] = tuple(RELEASE_BOUNDS),
                  num_points: int = 1000, weights: str = "ema", source: str | None = None, method: str = "release"):

@@ -117,6 +117,10 @@ class ScenePipeline:
 
         if precision not in PRECISIONS:
             raise ValueError(f"sampling precision must be one of {PRECISIONS}, got '{precision}'")
+        if cuda_graph and not getattr(model, "cuda_graph_capturable", True):
+            raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
+                             f"step cannot be captured as a CUDA graph (it reads the batch on the host at every step); "
+                             f"sample it with cuda_graph=false")
         self.model, self.dataset = model, dataset
         self.sampler = Sampler.from_config(sampler)
         config = GuidanceConfig.from_config(guidance)

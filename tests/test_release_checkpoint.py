@@ -26,6 +26,11 @@ FIXTURE = Path(__file__).parent / "data" / "release_network_fixture.npz"
 
 @pytest.fixture(scope="module")
 def fixture():
+    return network_fixture()
+
+
+def network_fixture():
+    """(config, weights, key order, all arrays) of the network fixture."""
     with np.load(FIXTURE, allow_pickle=False) as f:
         data = {k: f[k] for k in f.files}
     cfg = json.loads(str(data["config"]))

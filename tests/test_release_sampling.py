@@ -1,7 +1,8 @@
 """The authors' checkpoint through the platform's commands: ``spread-release-ckpt out=`` converts a ``ckpt.pth``
 (here the reduced-size fixture weights of tests/data/release_network_fixture.npz in the release's format) into a
 platform checkpoint; ``spread-sample`` samples it on a dataset imported from the release layout (with the
-file's shape tokens and surface points) and ``spread-evaluate`` scores the samples."""
+file's shape tokens and surface points), ``guidance=paper`` adding the authors' 100 refinement iterations, and
+``spread-evaluate`` scores the samples."""
 
 from __future__ import annotations
 
@@ -85,9 +86,19 @@ def test_a_converted_checkpoint_loads_by_its_method_and_samples_through_the_samp
     result = sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 's'}", "sampler=ddpm",
                                "sampler.steps=3", "logger=none", "renders=0")
     assert len(result.files) == 2
-    with pytest.raises(ValueError, match="samples its own way"):  # the release's guidance is not run
-        sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'g'}", "guidance=refine",
-                          "logger=none")
+    # guidance=paper on the authors' network: their refinement after the sampler (here 3 iterations per batch)
+    guided = sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'g'}", "sampler=ddpm",
+                               "sampler.steps=3", "logger=none", "renders=0", "guidance=paper", "guidance.iterations=3")
+    totals, batches = guided.manifest["guidance_totals"], guided.manifest["batches_run"]
+    assert totals["iterations"] == totals["network_calls"] == 3 * batches and totals["steps"] == 3 * batches
+    for a, b in zip(result.files, guided.files):  # same seed, same sampler: guidance moved the objects
+        assert not np.allclose(read_scene(a).translation, read_scene(b).translation)
+    with pytest.raises(ValueError, match="cuda_graph=false"):  # its point features read the mask on the host
+        sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'c'}", "cuda_graph=true",
+                          "logger=none", "renders=0")
+    with pytest.raises(ValueError, match="graph_scale"):  # the release has no classifier-free graph guidance
+        sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'c'}", "graph_scale=2",
+                          "logger=none", "renders=0")
     with pytest.raises(RuntimeError, match="ships no training code"):  # spread-train experiment=release
         module.setup("fit")
 
@@ -128,6 +139,32 @@ def test_a_converted_release_ckpt_samples_with_spread_sample_and_scores_with_spr
     metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert metrics["n_evaluated"] == 2 and metrics["n_failed"] == 0
     assert 0.0 <= metrics["grecall"] <= 1.0
+
+
+def test_spread_sample_guidance_paper_runs_the_authors_pipeline_on_a_converted_checkpoint(fixture, imported, tmp_path):
+    """The console script as a user types it: the release's DDPM (strided here) then its 100 refinement iterations
+    with its own terms (mode ``release``: spread.guidance.release), the placeholder never guided, poses valid."""
+    from spread.cli.release_ckpt import convert
+
+    config, weights, keys, _ = fixture
+    out = tmp_path / "release.ckpt"
+    convert(str(release_ckpt(tmp_path / "ckpt.pth", weights, keys)), str(out), use_ema=True,
+            overrides=network_overrides(config))
+    samples = tmp_path / "samples"
+    proc = run_script("spread-sample", f"ckpt={out}", f"data.root={imported}", f"out_dir={samples}", "sampler=ddpm",
+                      "sampler.steps=3", "guidance=paper", "workers=0", "batch_size=2", "renders=0", "figures=0",
+                      "progress=false", "logger=none")
+    manifest = json.loads((samples / "sampling.json").read_text())
+    assert manifest["guidance"]["mode"] == "paper" and manifest["guidance"]["iterations"] == 100
+    totals = manifest["guidance_totals"]
+    assert totals["iterations"] == totals["network_calls"] == 100 and totals["steps"] == 100  # one batch
+    files = sorted((samples / "scenes").glob("*.npz"))
+    assert len(files) == 2, proc.stdout
+    for f in files:
+        scene = read_scene(f)
+        assert np.isfinite(scene.translation).all()
+        R = scene.rotation.astype(np.float64)
+        assert np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() < 1e-4
 
 
 def test_the_samples_depend_on_the_shape_tokens_and_the_file_frame(fixture, imported):

@@ -4,8 +4,8 @@ A :class:`MethodSpec` is a method's name (``spread-compare methods=[...]``, a ch
 hyper-parameter), its LightningModule (``"module:Class"``, loaded on demand), its row label and caption note, how it
 samples (``sampling``: ``pipeline`` — the one denoising loop, :func:`spread.model.diffusion.denoise`, driven by
 :class:`~spread.sampling.ScenePipeline` with its callbacks (guidance), the module giving ``denoising(batch)`` (SPREAD,
-DiffuScene, InstructScene) — or ``own``: the module's ``sample``, as ATISS's autoregressive loop and the release's
-network), whether it sees the relation graph (GRecall is reported only then), which trained checkpoint it samples
+DiffuScene, InstructScene, the release's network) — or ``own``: the module's ``sample``, as ATISS's autoregressive
+loop), whether it sees the relation graph (GRecall is reported only then), which trained checkpoint it samples
 (``checkpoint``: PhyScene samples DiffuScene's), its own sampling overrides (``sample``: PhyScene's
 ``guidance=physcene``) and its training recipes (``train``: the paper-size experiment's overrides,
 ``train_quick``: the CPU one). ``spread-compare``,
@@ -94,5 +94,5 @@ register_method(MethodSpec(
     order=50))
 register_method(MethodSpec(
     "release", "spread.model.release_module:ReleaseDiffusion", label="SPREAD (authors' weights)",
-    note="the release's network and checkpoint (spread-release-ckpt out=)", sampling="own", graph_conditioned=True,
+    note="the release's network and checkpoint (spread-release-ckpt out=)", graph_conditioned=True,
     trainable=False, order=60))

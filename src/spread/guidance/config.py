@@ -11,6 +11,10 @@ Modes (reference notes §3.1, paper §3.4):
 ``sample`` PhyScene's placement: after every sampler step (from ``start`` on, or the last ``last_steps``)
            the sampled state x_{t−1} takes the gradient step (``guidance=physcene``: its box-IoU term on
            the last 10 steps, each term's step clipped to ±``grad_clip``)
+``release`` the authors' code as released: ``refine``'s loop with the release's own three terms
+           (:mod:`spread.guidance.release`: its cone frames, its one-ray gravity against every other
+           object, its support hulls fixed at the first iteration); what ``guidance=paper`` runs for the
+           authors' checkpoint (``method: release``)
 ========== ========================================================================================
 
 Weights are the paper's λ (``collision`` 7.5e-3, ``gravity`` 1e-3, ``relation`` 1e-3), applied in
@@ -28,7 +32,7 @@ from dataclasses import dataclass
 from dataclasses import field
 from typing import Any, Mapping
 
-MODES = ("none", "paper", "refine", "sample")
+MODES = ("none", "paper", "refine", "sample", "release")
 
 
 @dataclass

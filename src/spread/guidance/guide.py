@@ -21,6 +21,9 @@ sampled state x_{t−1} after the sampler's step (PhyScene's placement).
 eps_fn(x, t = 0), x ← clip((x − √(1−ᾱ_0) ε̂)/√ᾱ_0, ±1) (the denoising projection the release's
 scheduler step takes at t = 0, ᾱ_0 of the training schedule; every ``denoise_every``-th iteration,
 1 = always as the release), then one step, gravity from ``ceil(gravity_from·iterations)``.
+``release`` mode is ``refine``'s loop with the release's own terms (:mod:`spread.guidance.release`) in place of the
+built-in collision, gravity and relation. States may carry ``lead`` entries before the objects (the release's
+placeholder at index 0): the projection denoises them, no term sees them, no step moves them.
 :attr:`SceneGuidance.stats` records where the time went.
 """
 
@@ -35,7 +38,8 @@ import torch
 from spread.guidance.collision import TriangleCollider, TrianglePairs
 from spread.guidance.config import GuidanceConfig
 from spread.guidance.meshes import SceneMeshes
-from spread.guidance.terms import TERMS_REGISTRY, TermContext, term_names
+from spread.guidance.release import RELEASE_TERMS
+from spread.guidance.terms import TERMS_REGISTRY, GuidanceTerm, TermContext, term_names
 from spread.model.diffusion import StepContext, training_scheduler
 from spread.model.poses import poses_from_state
 
@@ -57,11 +61,14 @@ class SceneGuidance:
     gravity and support (relation) guidance leave them alone (no gap to close, no footprint to be pulled
     over); default none. decode: ``x (B, N, C) → (translation (B, N, 3) metres, rotation (B, N, 3, 3))``,
     differentiable, the method's state decoder (default SPREAD's 9-d states through ``bounds``); state_dim: C.
+    lead: entries before the objects in every state (states (B, lead + N, C); the release's placeholder: 1),
+    which ``decode`` drops: the projection of ``refine`` denoises them, no step moves them.
     """
 
     def __init__(self, config, library, asset_ids: Sequence[Sequence[str]], physical: torch.Tensor,
                  mask: torch.Tensor, bounds, detach_cones: bool = True, alpha_bar0: float | None = None,
-                 welded: torch.Tensor | None = None, decode: Callable | None = None, state_dim: int = 9):
+                 welded: torch.Tensor | None = None, decode: Callable | None = None, state_dim: int = 9,
+                 lead: int = 0):
         self.config = GuidanceConfig.from_config(config)
         self.mask = torch.as_tensor(mask).bool().cpu()
         if self.mask.dim() != 2:
@@ -83,10 +90,14 @@ class SceneGuidance:
         self.meshes = SceneMeshes(library, asset_ids, self.mask)
         self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
         self.detach_cones = detach_cones
-        self.decode, self.state_dim = decode, int(state_dim)
+        self.decode, self.state_dim, self.lead = decode, int(state_dim), int(lead)
+        if self.lead < 0 or (self.lead and decode is None):
+            raise ValueError(f"guidance: lead {lead}: leading entries need the method's decode, which drops them")
+        #: what a term keeps across the steps of this batch (the release's first-iteration hulls)
+        self.cache: dict = {}
         self.alpha_bar0 = float(training_scheduler().alphas_cumprod[0]) if alpha_bar0 is None else float(alpha_bar0)
         self._on: dict[tuple, dict[str, torch.Tensor]] = {}
-        #: states (B, N, 9) kept every ``config.record_every`` iterations or guided steps (the timeline)
+        #: states (B, lead + N, C) kept every ``config.record_every`` iterations or guided steps (the timeline)
         self.trajectory: list[torch.Tensor] = []
         self.reset_stats()
 
@@ -107,13 +118,22 @@ class SceneGuidance:
         key = (str(device), dtype)
         hit = self._on.get(key)
         if hit is None:
+            lead = torch.ones(self.mask.shape[0], self.lead, dtype=torch.bool)
             hit = self._on[key] = {"mask": self.mask.to(device), "supports": self.supports.to(device),
+                                   "moves": torch.cat([~lead, self.mask], 1).to(device),  # what a step moves
+                                   "states": torch.cat([lead, self.mask], 1).to(device),  # what the loop keeps
                                    "bounds": self.bounds.to(device, dtype),
                                    "falls": (self.mask & ~self.welded).to(device),
                                    "held": (self.supports & ~self.welded[:, None, :]).to(device)}
         return hit
 
     # ---- terms --------------------------------------------------------------------------------------
+    def term(self, name: str) -> GuidanceTerm:
+        """The registered term ``name``; in ``release`` mode the release's own collision, gravity and relation."""
+        if self.config.mode == "release" and name in RELEASE_TERMS:
+            return RELEASE_TERMS[name]
+        return TERMS_REGISTRY.get(name)
+
     def detect(self, translation: torch.Tensor, rotation: torch.Tensor, hull: torch.Tensor) -> TrianglePairs:
         t0 = time.perf_counter()
         lo = hull.detach().amin(2).cpu().double().numpy()
@@ -139,7 +159,7 @@ class SceneGuidance:
         ctx = TermContext(self, x, translation, rotation, world, hull, g)
         out = {}
         for name in which:
-            term = TERMS_REGISTRY.get(name)
+            term = self.term(name)
             if name == "collision":
                 ctx.pairs()  # the BVH's time is counted apart (bvh_s)
             t0 = time.perf_counter()
@@ -157,9 +177,11 @@ class SceneGuidance:
         return {k: v.sum() if reduce else v for k, v in values.items()}
 
     def _check(self, x: torch.Tensor) -> None:
-        if x.dim() != 3 or tuple(x.shape[:2]) != tuple(self.mask.shape) or x.shape[-1] != self.state_dim:
-            raise ValueError(f"guidance: states must be (B, N, {self.state_dim}) with (B, N) = "
-                             f"{tuple(self.mask.shape)}, got {tuple(x.shape)}")
+        B, N = self.mask.shape
+        if x.dim() != 3 or tuple(x.shape[:2]) != (B, self.lead + N) or x.shape[-1] != self.state_dim:
+            shape = f"(B, N, {self.state_dim})" if not self.lead else f"(B, {self.lead} + N, {self.state_dim})"
+            raise ValueError(f"guidance: states must be {shape} with (B, N) = {(B, N)}"
+                             f"{f' (leading entries: {self.lead})' if self.lead else ''}, got {tuple(x.shape)}")
 
     # ---- one step -----------------------------------------------------------------------------------
     def weights(self, at: tuple[int, int] | None = None, late: bool = True) -> dict[str, float]:
@@ -169,7 +191,7 @@ class SceneGuidance:
         cfg = self.config
         out = {}
         for name in term_names():
-            term = TERMS_REGISTRY.get(name)
+            term = self.term(name)
             weight = term.weight_of(cfg)
             start = term.start_of(cfg)
             if at is not None:
@@ -200,7 +222,7 @@ class SceneGuidance:
                 if not loss.requires_grad:
                     continue
                 (grad,) = torch.autograd.grad(loss, xg, retain_graph=n < len(which) - 1)
-                edit = TERMS_REGISTRY.get(name).edit
+                edit = self.term(name).edit
                 if edit is not None:
                     grad = edit(grad, cfg)
                 grad = weights[name] * grad
@@ -209,7 +231,7 @@ class SceneGuidance:
                 update = update + grad
             self._stats["penalty_s"] += time.perf_counter() - t0
         self._stats["steps"] += 1
-        keep = self._graph(x.device, x.dtype)["mask"][..., None].to(x.dtype)
+        keep = self._graph(x.device, x.dtype)["moves"][..., None].to(x.dtype)
         return (x - torch.nan_to_num(update, nan=0.0, posinf=0.0, neginf=0.0) * keep).detach()
 
     # ---- the two modes ------------------------------------------------------------------------------
@@ -239,11 +261,17 @@ class SceneGuidance:
             self.trajectory.append(x.detach().clone())
 
     def refine(self, x: torch.Tensor, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
-        """``refine`` mode: ``iterations`` × (t = 0 denoising projection with ``eps_fn``, guidance step)."""
+        """``refine`` (and ``release``) mode: ``iterations`` × (t = 0 denoising projection with ``eps_fn``,
+        guidance step)."""
         self._check(x)
         n = self.config.iterations
-        keep = self._graph(x.device, x.dtype)["mask"][..., None].to(x.dtype)
+        keep = self._graph(x.device, x.dtype)["states"][..., None].to(x.dtype)
         a = self.alpha_bar0
+        if x.dtype != torch.float64:  # as the release's scheduler step: √ᾱ_0, √(1 − ᾱ_0) of its float32 ᾱ_0, in float32
+            a32 = torch.tensor(a, dtype=torch.float32)
+            root_a, root_b = float(a32 ** 0.5), float((1 - a32) ** 0.5)
+        else:
+            root_a, root_b = a ** 0.5, (1 - a) ** 0.5
         t_zero = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         every = self.config.denoise_every
         self._record(x, 0, first=True)
@@ -254,7 +282,7 @@ class SceneGuidance:
                     eps = eps_fn(x, t_zero).to(x.dtype) * keep
                 self._stats["network_s"] += time.perf_counter() - t0
                 self._stats["network_calls"] += 1
-                x = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
+                x = (x - root_b * eps) / root_a
                 if self.config.clip:
                     x = x.clamp(-1.0, 1.0)
             x = self.step(x * keep, at=(it, n))

@@ -154,7 +154,9 @@ class Denoising:
     method — a state's first three channels are the translation normalised by the dataset bounds (the
     collision boost and gravity's y-only edit act on channel 1); x0_hook: the method's own per-step edit of
     x̂_0, run before any callback's (DiffuScene's and InstructScene's imputation of the known channels);
-    finish: ``x → x`` after the sampler and every callback (the imputation once more)."""
+    finish: ``x → x`` after the sampler and every callback (the imputation once more); lead: entries before the
+    objects in every state (the SPREAD release's placeholder at index 0: states (B, 1 + N, C), ``mask`` True there):
+    the loop denoises them, ``decode`` drops them (poses (B, N, ...)), guidance never moves them."""
 
     eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
     mask: torch.Tensor
@@ -163,6 +165,7 @@ class Denoising:
     schedule: Mapping | None = None
     x0_hook: Hook | None = None
     finish: Callable | None = None
+    lead: int = 0
 
 
 def chain_hooks(hooks) -> Hook | None:

@@ -23,25 +23,32 @@ plus the release's placeholder at index 0 (mask 1, zero point features):
   codes with 7 (padding) for the placeholder's row and column;
 * the image cross-attention fed zeros, as the release does (``use_image: false``).
 
-Sampling: the platform's :class:`~spread.model.Sampler` over the release's schedule (1000 cosine steps,
-ε-prediction, x̂_0 clipped to ±1, fixed-small variance): ``sampler=ddpm`` is the release's 1000 ancestral
-steps, through the platform's one loop (:func:`spread.model.diffusion.denoise`). The release's 100 guided
-refinement iterations are not run (its states (B, N + 1, 12) carry the placeholder, which the guidance terms do not
-model: the method samples its own way, ``guidance=`` is refused). Decoded poses are the platform's: translation = T + R · (canonical offset − file bbox centre),
-so the file's frame and the library's canonical frame agree (see :mod:`spread.importers.spread_release`).
+Sampling: through the platform's one loop (:func:`spread.model.diffusion.denoise`) like every diffusion method:
+:meth:`ReleaseDiffusion.denoising` gives the batch's :class:`~spread.model.diffusion.Denoising` — the network's
+ε-function over states (B, 1 + N, 12) whose index 0 is the placeholder (``lead=1``: denoised with the objects, dropped
+by ``decode``, never moved by guidance), the release's schedule (1000 cosine steps, ε-prediction, x̂_0 clipped to
+±1, fixed-small variance: ``sampler=ddpm`` is the release's 1000 ancestral steps). Decoded poses are the platform's:
+translation = T + R · (canonical offset − file bbox centre), so the file's frame and the library's canonical frame
+agree (see :mod:`spread.importers.spread_release`); guidance terms act on them, for the real objects only.
+
+Guidance: ``guidance=paper`` runs what the authors run after the sampler — their 100 refinement iterations at t = 0
+with their own terms, gravity in the later half (``guidance.mode=release``, :mod:`spread.guidance.release`,
+:meth:`ReleaseDiffusion.resolve_guidance`): ``spread-sample ckpt=release.ckpt sampler=ddpm guidance=paper`` is the
+authors' pipeline. The other modes (``refine``, ``sample``, ``release``) run as asked, with the platform's terms.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
 import lightning as L
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from spread.data.rotation import rot6d_to_matrix
-from spread.model.diffusion import Denoising, denoise
+from spread.model.diffusion import Denoising, denoise, training_scheduler
 from spread.model.module import Poses
 from spread.model.release import ReleaseNetwork, ReleaseNetworkConfig
 
@@ -51,6 +58,14 @@ RELEASE_BOUNDS = [-10.743414729014988, -0.004465443312673229, -8.645766256492678
 #: The release's diffusion schedule (diffusers DDPMScheduler: squaredcos_cap_v2, 1000 steps, ε).
 RELEASE_SCHEDULE = {"num_train_timesteps": 1000, "beta_schedule": "squaredcos_cap_v2", "prediction_type": "epsilon"}
 EDGE_NONE, REGION_PAD, REGION_SELF = 3, 7, 6
+
+
+def release_rotation(rot6d: torch.Tensor) -> torch.Tensor:
+    """(..., 6) → (..., 3, 3) by Gram–Schmidt as the release computes it (norms without an added epsilon)."""
+    b1 = F.normalize(rot6d[..., :3], dim=-1)
+    a2 = rot6d[..., 3:6]
+    b2 = F.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
+    return torch.stack([b1, b2, torch.linalg.cross(b1, b2, dim=-1)], dim=-1)
 
 
 @dataclass
@@ -66,6 +81,8 @@ class ReleaseDiffusion(L.LightningModule):
     normalised with; ``weights``: "ema" or "raw" (which of the file's weights were converted)."""
 
     method = "release"
+    #: its point features loop over each scene's real objects on the host: no CUDA-graph capture (sampling.cuda_graph)
+    cuda_graph_capturable = False
 
     def __init__(self, config: dict | None = None, bounds: Sequence[float] = tuple(RELEASE_BOUNDS),
                  num_points: int = 1000, weights: str = "ema", source: str | None = None, method: str = "release"):
@@ -82,6 +99,18 @@ class ReleaseDiffusion(L.LightningModule):
                                    "num_points": int(num_points), "weights": str(weights), "source": source})
         self.config = ReleaseData(int(num_points))
         self.network = ReleaseNetwork(net_config)
+        self.noise_schedule = training_scheduler(**RELEASE_SCHEDULE)
+
+    @property
+    def bounds(self) -> torch.Tensor:
+        """(6,) the translation bounds [min xyz, max xyz] the release's boxes are normalised by, metres."""
+        return torch.tensor(self.hparams.bounds, dtype=torch.float32, device=self.device)
+
+    @staticmethod
+    def resolve_guidance(config):
+        """The guidance this method runs for ``config`` (a GuidanceConfig): the paper's guidance is, for the authors'
+        network, the authors' refinement (mode ``release``, same weights and schedule); other modes as asked."""
+        return dataclasses.replace(config, mode="release") if config.mode == "paper" else config
 
     def setup(self, stage: str | None = None) -> None:
         if stage == "fit":
@@ -145,7 +174,7 @@ class ReleaseDiffusion(L.LightningModule):
         x (B, N+1, 12) normalised boxes; points/normals (B, N, P, 3) in the file's object frames."""
         B, N, P, _ = points.shape
         T = self.denormalise(x[:, 1:, :3])
-        R = rot6d_to_matrix(x[:, 1:, 6:12])
+        R = release_rotation(x[:, 1:, 6:12])
         world = torch.einsum("bnij,bnpj->bnpi", R, points) + T[:, :, None]
         wn = torch.einsum("bnij,bnpj->bnpi", R, normals)
         sd = torch.zeros(B, N, P, dtype=x.dtype, device=x.device)
@@ -166,12 +195,16 @@ class ReleaseDiffusion(L.LightningModule):
         return (t + 1.0) / 2.0 * (bounds[3:] - bounds[:3]) + bounds[:3]
 
     # ---- sampling -----------------------------------------------------------------------------------------
-    def sample(self, batch: dict, sampler=None, generator=None, use_ema: bool = True, guidance=None, **kw) -> Poses:
-        """Poses (translation (B, N, 3) metres, rotation (B, N, 3, 3)) for the batch's scenes; ``batch`` needs
-        the ``release`` inputs of :meth:`scene_inputs` (the sampling pipeline adds them). ``use_ema`` is
-        fixed at conversion (``hparams.weights``)."""
+    def denoising(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0) -> Denoising:
+        """The batch's :class:`~spread.model.diffusion.Denoising` (module docstring): states (B, 1 + N, 12) with the
+        placeholder at index 0 (``lead=1``), decoded to the real objects' poses. ``batch`` needs the ``release``
+        inputs of :meth:`scene_inputs` (the sampling pipeline adds them); ``use_ema`` is fixed at conversion
+        (``hparams.weights``); the release has no classifier-free graph guidance (``graph_scale`` must be 1)."""
         if "release" not in batch:
-            raise ValueError("ReleaseDiffusion.sample: the batch has no 'release' inputs (scene_inputs)")
+            raise ValueError("ReleaseDiffusion: the batch has no 'release' inputs (scene_inputs)")
+        if float(graph_scale) != 1.0:
+            raise ValueError(f"ReleaseDiffusion: graph_scale={graph_scale}: the release has no classifier-free graph "
+                             f"guidance (its cfg_scale path does not run); sample with graph_scale=1")
         r = {k: (v.to(self.device) if isinstance(v, torch.Tensor) else v) for k, v in batch["release"].items()}
         mask = batch["mask"].to(self.device).bool()
         B, N = mask.shape
@@ -183,17 +216,24 @@ class ReleaseDiffusion(L.LightningModule):
             normals = batch["normals"].to(self.device)
         tokens = torch.cat([torch.zeros_like(r["shape_tokens"][:, :1]), r["shape_tokens"]], dim=1)
         net = self.network.eval()
+        dtype = next(net.parameters()).dtype
 
-        def eps_fn(x, t):
-            pc = self.point_features(x, points, normals, mask.float())
-            return net(x, pc, tokens, r["edges"], r["regions"], t, None, mask1.float())
+        def eps_fn(x, t):  # in the network's precision (guidance may keep float64 states)
+            xn = x.to(dtype)
+            pc = self.point_features(xn, points.to(dtype), normals.to(dtype), mask.to(dtype))
+            return net(xn, pc, tokens.to(dtype), r["edges"], r["regions"], t, None, mask1.to(dtype)).to(x.dtype)
 
         def decode(x):  # the placeholder (index 0) dropped
-            R = rot6d_to_matrix(x[:, 1:, 6:12])
-            T = self.denormalise(x[:, 1:, :3]) + torch.einsum("bnij,bnj->bni", R, r["shift"])
-            eye = torch.eye(3, device=self.device).expand(B, N, 3, 3)
+            R = release_rotation(x[:, 1:, 6:12])
+            T = self.denormalise(x[:, 1:, :3]) + torch.einsum("bnij,bnj->bni", R, r["shift"].to(x.dtype))
+            eye = torch.eye(3, device=x.device, dtype=R.dtype).expand(B, N, 3, 3)
             keep = mask[..., None]
             return Poses(torch.where(keep, T, 0.0), torch.where(keep[..., None], R, eye))
 
-        # the platform's one loop; the method samples its own way only in that it needs the scenes' release inputs
-        return decode(denoise(Denoising(eps_fn, mask1, decode, 12, RELEASE_SCHEDULE), sampler or "ddpm", generator))
+        return Denoising(eps_fn, mask1, decode, 12, RELEASE_SCHEDULE, lead=1)
+
+    def sample(self, batch: dict, sampler=None, generator=None, use_ema: bool = True, **kw) -> Poses:
+        """Unguided poses (translation (B, N, 3) metres, rotation (B, N, 3, 3)) of the batch's scenes through the one
+        loop (default sampler: the release's 1000 DDPM steps); guided sampling goes through the pipeline."""
+        problem = self.denoising(batch, use_ema)
+        return problem.decode(denoise(problem, sampler or "ddpm", generator))

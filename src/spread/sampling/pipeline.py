@@ -21,9 +21,11 @@ One call (:meth:`ScenePipeline.__call__`) on a batch of source scenes (the condi
    one noise generator per scene), **decode** the states to poses (metres, world-from-local) and **repair**
    rotations that Gram–Schmidt left degenerate (:func:`repair_rotations`).
 
-A method that samples its own way (``sampling: own`` in the method registry: ATISS's autoregressive loop, the
-release's network) is asked for poses directly (``model.sample(batch, generator=...)``); step callbacks do not
-apply to it.
+A method that samples its own way (``sampling: own`` in the method registry: ATISS's autoregressive loop) is asked
+for poses directly (``model.sample(batch, generator=...)``); step callbacks do not apply to it. A model that reads
+more of the source scenes than the batch encoding carries (the SPREAD release's network: its shape tokens, points and
+graphs) adds them with ``scene_inputs(sources, library)``; one that realises a guidance mode its own way says so with
+``resolve_guidance(config)`` (the release: ``guidance=paper`` is the authors' refinement, mode ``release``).
 """
 
 from __future__ import annotations
@@ -115,9 +117,15 @@ class ScenePipeline:
 
         if precision not in PRECISIONS:
             raise ValueError(f"sampling precision must be one of {PRECISIONS}, got '{precision}'")
+        if cuda_graph and not getattr(model, "cuda_graph_capturable", True):
+            raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
+                             f"step cannot be captured as a CUDA graph (it reads the batch on the host at every step); "
+                             f"sample it with cuda_graph=false")
         self.model, self.dataset = model, dataset
         self.sampler = Sampler.from_config(sampler)
         config = GuidanceConfig.from_config(guidance)
+        if config.active and hasattr(model, "resolve_guidance"):  # the method's own realisation of a mode
+            config = model.resolve_guidance(config)
         self.guidance = config if config.active else None
         self.use_ema, self.graph_scale = bool(use_ema), float(graph_scale)
         self.cuda_graph, self.precision = bool(cuda_graph), str(precision)
@@ -152,7 +160,7 @@ class ScenePipeline:
         guidance = SceneGuidance(self.guidance, self.dataset.library, [list(src.asset_id) for src in sources],
                                  batch["physical"].to(device), batch["mask"].to(device), self.model.bounds,
                                  alpha_bar0=float(self.model.noise_schedule.alphas_cumprod[0]), welded=welded,
-                                 decode=decode, state_dim=state_dim)
+                                 decode=decode, state_dim=state_dim, lead=0 if problem is None else problem.lead)
         self._last_guidance = guidance
         callback = guidance_callback(guidance)
         return [callback] if callback is not None else []
@@ -205,6 +213,8 @@ class ScenePipeline:
         import torch
 
         batch = self.encode(sources, paths)
+        if hasattr(self.model, "scene_inputs"):  # arrays the model reads from the source scenes (the release's)
+            batch.update(self.model.scene_inputs(sources, self.dataset.library))
         self._last_guidance = None
         pipelined = sampling_kind(self.model) == "pipeline"
         problem = None
@@ -213,8 +223,6 @@ class ScenePipeline:
             with torch.no_grad():
                 poses = problem.decode(x)
         else:
-            if hasattr(self.model, "scene_inputs"):  # arrays the model reads from the source scenes (the release's)
-                batch.update(self.model.scene_inputs(sources, self.dataset.library))
             poses = self.model.sample(batch, sampler=self.sampler, generator=generators, use_ema=self.use_ema)
         self.guidance_stats = dict(self._last_guidance.stats) if self._last_guidance is not None else {}
         translation, rotation = poses.translation.cpu().numpy(), poses.rotation.cpu().numpy()

@@ -63,10 +63,10 @@ class FakeCommands:
         (out / "scenes").mkdir(parents=True, exist_ok=True)
         for g in ROOMS:
             (out / "scenes" / f"{g}_k0.npz").write_bytes(b"x")
+        guidance = guidance_config(a.get("guidance"))
         (out / "sampling.json").write_text(json.dumps(
-            {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "seed": a["seed"],
-                                           "sampler": {"kind": "ddim", "steps": 50}},
-             "guidance": guidance_settings(a.get("guidance")),
+            {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "sampling": {"seed": a["seed"]}},
+             "sampler": "ddim-50", "guidance": guidance.fingerprint(), "guidance_label": guidance.label,
              "seconds_per_batch": 0.5, "batches_run": 2, "written_this_run": 3}))
 
     def evaluate(self, overrides):
@@ -91,12 +91,11 @@ class FakeCommands:
         return {}
 
 
-def guidance_settings(preset: str | None) -> dict | None:
-    """What spread-sample records in sampling.json for ``guidance=<preset>`` (None: unguided)."""
-    from spread.guidance import GuidanceConfig
+def guidance_config(preset: str | None):
+    """The typed guidance of ``guidance=<preset>`` (None: unguided), as spread-sample parses it."""
+    from spread.configs import to_object
 
-    return GuidanceConfig.from_config(compose("sample", "ckpt=x", f"guidance={preset}").guidance).to_dict() \
-        if preset else None
+    return to_object(compose("sample", "ckpt=x", "data.root=x", "out_dir=x", f"guidance={preset or 'none'}")).guidance
 
 
 def spec(tmp_path: Path, **kw) -> CompareSpec:
@@ -118,13 +117,15 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
     # physcene: DiffuScene's checkpoint (no derived file, no training) with its registered guidance preset
     physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
     assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")
-    assert physcene["guidance"]["terms"] == {"box_iou": 0.15} and not (out / "train" / "physcene.ckpt").exists()
+    assert physcene["guidance"]["box_iou"] == 0.15 and not (out / "train" / "physcene.ckpt").exists()
+    assert "collision" not in physcene["guidance"]  # SPREAD's terms do not act: not part of its identity
     rows = {r["method_key"]: r for r in first.records}
     assert list(rows) == list(METHODS) and first.layout == "procthor"
     assert [rows[m]["grecall"] for m in METHODS] == [None, None, None, 0.9, 0.9]  # only graph-conditioned
     assert rows["atiss"]["grecall_measured"] == 0.9 and rows["atiss"]["seconds_per_scene"] == pytest.approx(1 / 3)
-    assert rows["spread"]["sampler"] == "ddim-50 + refine guidance" and rows["atiss"]["sampler"] == "one pass per object"
-    assert rows["physcene"]["sampler"] == "ddim-50 + box_iou guidance" and rows["physcene"]["train_steps"] == 7
+    assert rows["spread"]["sampler"] == "ddim-50 + guidance refine(collision=0.0075,gravity=0.001,relation=0.001)"
+    assert rows["atiss"]["sampler"] == "one pass per object" and rows["physcene"]["train_steps"] == 7
+    assert rows["physcene"]["sampler"] == "ddim-50 + guidance sample(box_iou=0.15,last_steps=10,grad_clip=0.1)"
     csv = {r["method_key"]: r for r in read_csv(out / "table1.csv")}
     assert csv["diffuscene"]["col_mesh"] == pytest.approx(0.4) and csv["diffuscene"]["grecall"] is None
     md = (out / "table1.md").read_text()
@@ -254,15 +255,15 @@ def test_tiny_comparison_end_to_end_and_resume(tiny_comparison):
         assert r["n_scenes"] == 3 and 0.0 <= r["col_mesh"] <= 1.0 and 0.0 <= r["stability"] <= 1.0, (m, r)
         assert r["seconds_per_scene"] > 0 and r["train_steps"] == 3 and r["sample_cpu_s"] > 0
         assert (r["grecall"] is None) == (m in ("atiss", "diffuscene", "physcene"))
-    assert rows["atiss"]["model_size"] == "tiny" and rows["spread"]["sampler"] == "ddim-4 + refine guidance"
+    assert rows["atiss"]["model_size"] == "tiny" and rows["spread"]["sampler"].startswith("ddim-4 + guidance refine(")
     # same graphs and seeds for every method; physcene samples DiffuScene's weights with guidance
     names = [sorted(p.name for p in (out / "samples" / m / "scenes").glob("*.npz")) for m in METHODS]
     assert all(n == names[0] for n in names) and len(names[0]) == 3
-    seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["seed"] for m in METHODS}
+    seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["sampling"]["seed"] for m in METHODS}
     assert seeds == {0}
     physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
     assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")
-    assert physcene["guidance"]["mode"] == "sample" and physcene["guidance"]["terms"] == {"box_iou": 0.15}
+    assert physcene["guidance"]["mode"] == "sample" and physcene["guidance"]["box_iou"] == 0.15
     assert physcene["guidance_totals"]["steps"] > 0  # PhyScene's term stepped DiffuScene's samples
     table = read_csv(out / "table1.csv")
     assert [r["method_key"] for r in table] == list(METHODS)

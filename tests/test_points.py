@@ -57,7 +57,7 @@ def test_a_point_is_reused_only_when_every_input_matches(point):
     point["ckpt"].write_bytes(b"weights-1")
     assert check_point(cfg(), out).reuse
     (point["data"] / "test" / "a.npz").write_bytes(b"scene-a, changed")
-    assert check_point(cfg(), out).reason == "changed: data"
+    assert check_point(cfg(), out).reason == "changed: data, evaluation.reference"  # the split is the reference too
 
 
 def test_a_redo_clears_the_stale_result_and_records_why(point):

@@ -97,7 +97,7 @@ def test_results_table_marks_the_best_point_and_reads_back(tmp_path):
     assert [r["guidance.collision"] for r in back] == [0.0, 0.0075] and [r["best"] for r in back] == ["False", "True"]
     assert back[0]["grecall_lo"] == 0.4 and back[1]["grecall_lo"] is None
     md = md_path.read_text()
-    assert "| ★ | 0.0075 |" in md and "0.5000 ± 0.1000" in md and "Best: b (col_mesh = 0.1000)" in md
+    assert "| ★ | 0.0075 |" in md and "0.500 ± 0.100" in md and "Best: b (col_mesh = 0.1000)" in md
 
 
 # ---- slow: real points ---------------------------------------------------------------------------------------

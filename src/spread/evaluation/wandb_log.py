@@ -10,11 +10,12 @@ from pathlib import Path
 
 def table_columns(metrics: dict) -> list[str]:
     """Per-scene table columns (besides ``scene_id`` and ``render``), as in ``per_scene.jsonl``: the object count,
-    every value of the metrics the evaluation selected (its protocol's ``metrics``), the error."""
+    every value (:attr:`~spread.metrics.registry.MetricSpec.values`) of the metrics the evaluation selected (its
+    protocol's ``metrics``), the error."""
     from spread.metrics.registry import METRICS
 
     names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
-    values = [v for n in names for v in ([n, "still_fraction"] if n == "stability" else [n])]
+    values = [v.name for n in names if n in METRICS for v in METRICS.get(n).values]
     return ["num_objects", *values, "error"]
 
 

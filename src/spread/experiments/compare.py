@@ -41,7 +41,7 @@ from spread.experiments.ablation import Ablation, AblationResult, Commands, Stag
 from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
-from spread.experiments.tables import Column, columns_of, write_tables
+from spread.experiments.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
 from spread.io import write_json_atomic
 
 log = logging.getLogger("spread.compare")
@@ -213,8 +213,8 @@ class Comparison(Ablation):
             measured = metrics.get("grecall")
             row["grecall"] = measured if m in GRAPH_CONDITIONED else None
             row["grecall_measured"] = measured
-            for key in (*[c.key for c in columns_of([metrics], with_set=False) if c.key != "grecall"], "fid", "kid",
-                        "still_fraction", "n_scenes", "n_objects", "fid_status"):
+            for key in (*[c.key for c in columns_of([metrics], hidden=True) if c.key != "grecall"],
+                        "n_scenes", "n_objects", "fid_status"):
                 row[key] = metrics.get(key)
             if ok:
                 row.update(ci_columns(row_intervals(metrics, self.eval_dir(m))))
@@ -253,9 +253,9 @@ class Comparison(Ablation):
         manifest = self.sample_dir(method) / "sampling.json"
         if manifest.exists():
             data = json.loads(manifest.read_text())
-            sampler = data.get("fingerprint", {}).get("sampler") or {}
-            out["sampler"] = "one pass per object" if method == "atiss" else f"{sampler.get('kind')}-{sampler.get('steps')}"
-            out["sampler"] += guidance_label(data.get("guidance"))
+            guidance = data.get("guidance_label") or "none"
+            out["sampler"] = "one pass per object" if method == "atiss" else str(data.get("sampler"))
+            out["sampler"] += "" if guidance == "none" else f" + guidance {guidance}"
             per_batch, batches, written = data.get("seconds_per_batch"), data.get("batches_run"), data.get("written_this_run")
             if per_batch is not None and written:
                 out["seconds_per_scene"] = per_batch * batches / written
@@ -266,14 +266,17 @@ class Comparison(Ablation):
         return out
 
     def columns(self, layout: str, records: list[dict]) -> list[Column]:
+        from dataclasses import replace
+
         time_col = Column("seconds_per_scene", "s / scene", 3, "min", r"s / scene$\downarrow$")
-        fid = [Column("fid", "FID", 2, "min", r"FID$\downarrow$"), Column("kid", "KID", 4, "min", r"KID$\downarrow$")]
         if layout == "threedfront":
             rooms = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith("col_mesh/")})
-            per_room = [Column(f"col_mesh/{room}", f"Col_mesh {room}", 3, "min",
-                               rf"Col$_{{\text{{mesh}}}}$ {room}$\downarrow$") for room in rooms]
-            return [Column("method", "Method"), *per_room, *fid, time_col]
-        return [Column("method", "Method"), *columns_of(records, with_set=False), *fid, time_col]
+            col_mesh = value_column("col_mesh")
+            per_room = [replace(col_mesh, key=f"col_mesh/{room}", label=f"{col_mesh.label} {room}",
+                                latex=(col_mesh.latex or col_mesh.label).replace(r"\downarrow$", "$") + rf" {room}$\downarrow$")
+                        for room in rooms]
+            return [Column("method", "Method"), *per_room, *set_columns(), time_col]
+        return [Column("method", "Method"), *columns_of(records), time_col]
 
     def caption(self, records: list[dict]) -> str:
         parts = []
@@ -292,11 +295,11 @@ class Comparison(Ablation):
 
         def run(resume: bool) -> None:
             columns = self.columns(layout, records)
-            keys = ["method_key", "method", "grecall", "grecall_measured", "col_mesh", "asd", "stability", "fid",
-                    "kid", "seconds_per_scene"]
+            keys = ["method_key", "method", "grecall", "grecall_measured",
+                    *[c.key for c in columns_of(records, hidden=True) if c.key != "grecall"], "seconds_per_scene"]
             keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
-            keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "still_fraction",
-                     "n_scenes", "n_objects", "fid_status", "status"]
+            keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "n_scenes", "n_objects",
+                     "fid_status", "status"]
             write_tables(records, columns, stem, caption=self.caption(records), label="tab:table1", csv_keys=keys,
                          note=table_note(records))
             if log_table is not None:
@@ -325,17 +328,6 @@ class Comparison(Ablation):
                              round(time.perf_counter() - started, 3), self.layout())
 
 
-def guidance_label(guidance: dict | None) -> str:
-    """The caption's words for a row's guidance (its ``sampling.json`` guidance settings): `` + refine guidance``
-    for SPREAD's terms, `` + box_iou guidance`` for PhyScene's term; empty when unguided."""
-    if not guidance:
-        return ""
-    words = [f"{guidance.get('mode')} guidance"] if any(guidance.get(k) for k in ("collision", "gravity", "relation")) \
-        else []
-    words += [f"{name} guidance" for name, weight in (guidance.get("terms") or {}).items() if weight]
-    return "".join(f" + {w}" for w in words)
-
-
 def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> CompareResult:
     """Run (or resume) every stage of ``spec`` (module docstring) and write Table 1."""
     return Comparison(spec, commands).run(log_table)
@@ -353,9 +345,10 @@ def log_table1(records: list[dict], columns: list[Column], out_dir: str | Path, 
     keys = ["method_key", *[c.key for c in columns], "grecall_measured", "train_steps", "sampler", "status"]
     run = init_run(as_logger_config(logger), "compare", out_dir, config or {}, group=group, name=name)
     try:
-        table = wandb.Table(columns=keys)
-        for r in records:
-            table.add_data(*[r.get(k) for k in keys])
+        header, rows = display_rows(records, keys, columns)  # display units, headed as in the CSV (asd_mm)
+        table = wandb.Table(columns=header)
+        for row in rows:
+            table.add_data(*row)
         run.log({"table1": table})
         run.summary.update({f"{r['method_key']}/{c.key}": r.get(c.key) for r in records for c in columns
                             if c.key != "method"})

@@ -32,8 +32,8 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from spread.experiments.plots import figure, number
-from spread.experiments.tables import Column
+from spread.experiments.plots import figure, number, shown
+from spread.experiments.tables import Column, html_table
 
 #: Training curves drawn, in this order (``lr-*`` stands for every learning-rate column).
 CURVES = ("train/loss", "val/loss", "val/grecall", "lr-*", "train/grad_norm")
@@ -127,12 +127,6 @@ def training_curves(runs: dict[str, dict]) -> tuple[str | None, list[str]]:
 
 
 # ---- evaluated runs ------------------------------------------------------------------------------------------
-
-def shown(column: Column, value) -> float | None:
-    """A stored value in the column's display unit (ASD: metres → mm, as its header says); None stays None."""
-    v = number(value)
-    return None if v is None else v * column.scale
-
 
 def varying(records: Sequence[dict], key: str) -> bool:
     return len({number(r.get(key)) for r in records if number(r.get(key)) is not None}) > 1
@@ -249,20 +243,6 @@ def img(data: str, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
-def table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(cell(v))}</td>" for v in row) + "</tr>" for row in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
-def cell(v) -> str:
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)
-
-
 STYLE = """body{font-family:system-ui,sans-serif;margin:1.5em;color:#222;max-width:1400px}
 h1{font-size:1.4em}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}td,th{border:1px solid #ccc;padding:3px 7px;
@@ -285,21 +265,13 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         held["training_runs"], held["curves"] = len(runs), keys
         parts.append(f"<h2>Training curves ({len(runs)} runs)</h2>")
         parts.append(img(data, "training curves") if data else "<p>no logged curves</p>")
-        rows = [[name, *[(c.get(k) or [(None, None)])[-1][1] for k in keys],
-                 max((p[0] for v in c.values() for p in v), default=None)] for name, c in runs.items()]
-        parts.append(table(["run", *[f"last {k}" for k in keys], "last step"], rows))
+        rows = [{"run": name, "last_step": max((p[0] for v in c.values() for p in v), default=None),
+                 **{k: (c.get(k) or [(None, None)])[-1][1] for k in keys}} for name, c in runs.items()]
+        parts.append(html_table(rows, training_columns(keys)))
     if records:
         parts.append(f"<h2>Evaluated runs ({len(records)})</h2>")
-        header = ["run", *[w.split(".")[-1] for w in weights], *[c.label + c.arrow for c in columns], "scenes"]
-        rows = []
-        for r in records:
-            row = [r["run"], *[r.get(w) for w in weights]]
-            for c in columns:
-                v, lo, hi = (shown(c, r.get(k)) for k in (c.key, f"{c.key}_lo", f"{c.key}_hi"))
-                row.append(None if v is None else f"{v:.4g}" + (f" [{lo:.4g}, {hi:.4g}]" if lo is not None
-                                                                 and hi is not None else ""))
-            rows.append([*row, r.get("n_scenes")])
-        parts.append(table(header, rows))
+        parts.append(html_table(records, [Column("run", "run"), *[Column(w, w) for w in weights], *columns,
+                                          Column("n_scenes", "scenes")]))
         if note:
             parts.append(f'<p class="note">{html.escape(note)}</p>')
         varied = [w for w in weights if varying(records, w)]
@@ -317,14 +289,12 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         held["parallel"] = parallel is not None
         if parallel:
             parts.append("<h2>Parallel coordinates</h2>" + img(parallel, "parallel coordinates"))
-        room_rows = []
-        for r in records:
-            for room, m in (metrics_of(r).get("per_room_type") or {}).items():
-                room_rows.append([r["run"], room, m.get("n_evaluated"), *[shown(c, m.get(c.key)) for c in columns]])
+        room_rows = [{**m, "run": r["run"], "room_type": room} for r in records
+                     for room, m in (metrics_of(r).get("per_room_type") or {}).items()]
         held["room_rows"] = len(room_rows)
         if room_rows:
-            parts.append("<h2>Per room type</h2>" + table(["run", "room type", "scenes",
-                                                            *[c.label + c.arrow for c in columns]], room_rows))
+            parts.append("<h2>Per room type</h2>" + html_table(room_rows, [
+                Column("run", "run"), Column("room_type", "room type"), Column("n_evaluated", "scenes"), *columns]))
         name, renders = render_grid(records)
         held["renders"] = len(renders)
         if renders:
@@ -337,6 +307,11 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
     with atomic_path(path) as tmp:
         Path(tmp).write_text(page, encoding="utf-8")
     return held
+
+
+def training_columns(keys: Sequence[str]) -> list[Column]:
+    """The training-runs table's columns: run, last step, each curve's last value."""
+    return [Column("run", "run"), Column("last_step", "last step", None), *[Column(k, f"last {k}", 4) for k in keys]]
 
 
 def training_rows(training: Sequence[Path]) -> tuple[list[str], list[dict]]:
@@ -354,8 +329,7 @@ def write_training_tables(training: Sequence[Path], stem: Path, append: bool) ->
     from spread.io import write_text_atomic
 
     keys, rows = training_rows(training)
-    columns = [Column("run", "run"), Column("last_step", "last step", None),
-               *[Column(k, f"last {k}", 4) for k in keys]]
+    columns = training_columns(keys)
     md = Path(stem).with_suffix(".md")
     before = md.read_text() + "\n" if append and md.exists() else ""
     write_text_atomic(md, before + f"## Training runs ({len(rows)})\n\n" + markdown_table(rows, columns) + "\n")

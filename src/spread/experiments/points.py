@@ -1,9 +1,10 @@
 """Sweep points (``spread-sample evaluate=true`` run folders) re-used only when their fingerprint matches.
 
-``out_dir/point.json`` records the point's full fingerprint (:func:`spread.runtime.fingerprint.point_fingerprint`),
+``out_dir/point.json`` records the point's full fingerprint (:func:`spread.runtime.fingerprint.point_identity`),
 its short name, where it ran (:func:`~spread.runtime.fingerprint.run_tags`), its status (``running`` from the
 moment the work starts, ``finished`` once ``metrics.json`` is written) and, when the folder was redone, why.
-The decision (:func:`check_point`), for a run with ``evaluate=true``:
+The decision (:func:`check_point`, by the platform's one done-check :func:`spread.runtime.fingerprint.done_check`),
+for a run with ``evaluate=true``:
 
 | folder holds | decision |
 |---|---|
@@ -32,8 +33,8 @@ POINT = "point.json"
 
 @dataclass
 class PointDecision:
-    """reuse: the finished folder stands; fresh: redo from scratch (``reason`` says why, None for a new folder
-    or ``resume=false``); fingerprint: the full fingerprint of the config."""
+    """reuse: the finished folder stands; fresh: redo from scratch (``reason`` says why, None for a new folder);
+    fingerprint: the full fingerprint of the config."""
 
     reuse: bool
     fresh: bool
@@ -51,26 +52,20 @@ def read_point(out_dir) -> dict | None:
 
 
 def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
-    """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (module docstring)."""
+    """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (typed, or a composed ``DictConfig``;
+    module docstring)."""
     from spread.experiments.runs import is_finished_run
-    from spread.runtime.fingerprint import changed_keys, point_fingerprint
+    from spread.runtime.fingerprint import done_check, point_fingerprint
 
-    fingerprint = json.loads(json.dumps(point_fingerprint(cfg), default=str))
+    fingerprint = point_fingerprint(cfg)
     record = read_point(out_dir)
     finished = is_finished_run(out_dir)
-    if not resume:
-        return PointDecision(False, True, "resume=false" if finished or record else None, fingerprint)
-    if record is None:
-        if finished:
-            return PointDecision(False, True, "metrics.json has no fingerprint (made before fingerprints)",
-                                 fingerprint)
-        return PointDecision(False, False, None, fingerprint)
-    before = record.get("fingerprint") or {}
-    if before != fingerprint:
-        return PointDecision(False, True, f"changed: {', '.join(changed_keys(before, fingerprint))}", fingerprint)
-    if finished and record.get("status") != "finished":
+    decision = done_check(None if record is None else record.get("fingerprint") or {}, fingerprint,
+                          present=finished or record is not None, finished=finished, resume=resume,
+                          unknown="metrics.json has no fingerprint (made before fingerprints)")
+    if decision.reuse and record.get("status") != "finished":
         finish_point(out_dir)
-    return PointDecision(finished, False, None, fingerprint)
+    return PointDecision(decision.reuse, decision.fresh, decision.reason, fingerprint)
 
 
 def start_point(out_dir, decision: PointDecision) -> None:

@@ -32,7 +32,6 @@ Lightning callback reports every validation to Tune and ASHA stops the worst tri
 from __future__ import annotations
 
 import csv
-import io
 import json
 import os
 import time
@@ -205,15 +204,16 @@ def point_name(config: dict) -> str:
 # ---- trials (run in Ray Tune's trial processes) ----------------------------------------------------------------
 
 def read_metrics(folder: Path) -> dict:
-    """Every metric of an evaluation folder with its interval, the point's seconds and fingerprint."""
+    """Every registered value of an evaluation folder (FID, KID too) with its interval, the point's seconds and
+    fingerprint (its short name)."""
     from spread.experiments.intervals import ci_columns, row_intervals
     from spread.experiments.points import read_point
-    from spread.metrics.registry import METRICS
+    from spread.experiments.runs import record_metrics
 
     metrics = json.loads((folder / "metrics.json").read_text())
     intervals = ci_columns(row_intervals(metrics, folder))
     row = {}
-    for name in (*[n for n in METRICS.names() if n in metrics], "still_fraction", "fid", "kid"):
+    for name in (n for n in record_metrics() if n in metrics and not n.startswith("n_") and n != "fid_status"):
         row[name] = metrics.get(name)
         for bound in ("lo", "hi"):
             if f"{name}_{bound}" in intervals:
@@ -374,6 +374,7 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     if space is not None:
         rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out)
     rows.sort(key=lambda r: tuple(str(r.get(d.key)) for d in plan.dimensions))
+    point_settings(rows, out / "points")
     best = mark_best(rows, s.metric, s.mode)
     csv_path, md_path = write_results(rows, out, plan, best)
     return SweepResult(rows, best, csv_path, md_path, round(time.perf_counter() - started, 3))
@@ -437,46 +438,66 @@ def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
     return best
 
 
-def columns(rows: list[dict], plan: SweepPlan) -> list[str]:
-    keys = [d.key for d in plan.dimensions]
-    seen = []
+def setting_of(key: str) -> str:
+    """The settings key (:func:`spread.runtime.fingerprint.settings`) a swept override key names."""
+    return key.lstrip("+~").replace("guidance.terms.", "guidance.")
+
+
+def point_settings(rows: list[dict], points: Path) -> None:
+    """Each row's ``settings`` and ``identity``: its point's recorded identity (``point.json``), read here."""
+    from spread.experiments.points import read_point
+    from spread.experiments.runs import identity_fields
+
     for r in rows:
-        seen += [k for k in r if k not in seen and k not in keys]
-    first = [k for k in ("best", "point", "status") if k in seen]
-    return keys + first + [k for k in seen if k not in first]
+        record = read_point(points / str(r.get("point"))) if r.get("point") else None
+        if record and isinstance(record.get("fingerprint"), dict):
+            r.update(identity_fields(record["fingerprint"]))
 
 
 def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None) -> tuple[Path, Path]:
-    """``results.csv`` (every field) and ``results.md`` (value ± half-width of the interval, best marked)."""
-    from spread.io import write_text_atomic
+    """``results.csv`` (every field) and ``results.md`` (the swept keys, every other setting that differs between
+    the points, each metric in its display unit with ± half-width of its interval, best marked), through the one
+    table writer (:func:`spread.experiments.tables.write_tables`); the settings every point shares under the
+    table."""
+    from spread.experiments.tables import Column, columns_of, metric_columns, write_tables
+    from spread.runtime.fingerprint import differing
+
+    keys = [d.key for d in plan.dimensions]
+    swept = {setting_of(k) for k in keys}
+    settings = [r.get("settings") or {} for r in rows]
+    differ = [k for k in differing(settings) if k not in swept]
+    for r in rows:
+        r.update({k: (r.get("settings") or {}).get(k) for k in differ})
+        r["mark"] = "★" if r.get("best") else ""
+    metric = plan.settings.metric
+    metrics = [c for c in columns_of(rows) if any(r.get(c.key) is not None for r in rows)] or \
+        (metric_columns([metric]) if metric in metric_names() else [Column(metric, metric, 4, plan.settings.mode)])
+    columns = [Column("mark", ""), *[Column(k, k) for k in keys], *[Column(k, k) for k in differ], *metrics,
+               Column("seconds", "seconds", 1), Column("point", "point")]
+    shared = {k: v for k, v in (settings[0] if settings else {}).items()
+              if k not in differ and k not in swept and all(s.get(k) == v for s in settings)}
+    notes = [f"Best: {best.get('point')} ({plan.settings.metric} = {best[plan.settings.metric]:.4f})."
+             if best is not None else "", "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "."
+             if shared else ""]
+    first = [*keys, "best", "point", "status", *differ]
+    csv_keys = list(dict.fromkeys([*first, *[k for r in rows for k in r if k not in ("settings", "mark")]]))
+    paths = write_tables(rows, columns, out / "results", formats=("md", "csv"), csv_keys=csv_keys,
+                         caption=f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
+                                 f"({plan.settings.mode}) marked ★",
+                         note=table_note(rows), md_extra="\n\n".join(n for n in notes if n))
+    return paths["csv"], paths["md"]
+
+
+def metric_names() -> list[str]:
     from spread.metrics.registry import METRICS
 
-    cols = columns(rows, plan)
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: "" if r.get(k) is None else r.get(k) for k in cols})
-    write_text_atomic(out / "results.csv", buf.getvalue())
-    metrics = [m for m in (*METRICS.names(), "fid", "kid") if any(m in r for r in rows)] or \
-        [plan.settings.metric]
-    keys = [d.key for d in plan.dimensions]
-    head = ["", *keys, *metrics, "seconds", "point"]
-    lines = [f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
-             f"({plan.settings.mode}) marked ★", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = ["★" if r.get("best") else "", *[str(r.get(k)) for k in keys]]
-        for m in metrics:
-            v, lo, hi = r.get(m), r.get(f"{m}_lo"), r.get(f"{m}_hi")
-            cells.append("—" if v is None else f"{v:.4f}" + ("" if lo is None or hi is None else f" ± {(hi - lo) / 2:.4f}"))
-        cells += [f"{r['seconds']:.1f}" if isinstance(r.get("seconds"), (int, float)) else "—", str(r.get("point", ""))]
-        lines.append("| " + " | ".join(cells) + " |")
-    if any(r.get("ci_resamples") for r in rows):
-        lines += ["", "± is half the width of the 95 % percentile bootstrap interval over scenes."]
-    if best is not None:
-        lines += ["", f"Best: {best.get('point')} ({plan.settings.metric} = {best[plan.settings.metric]:.4f})."]
-    write_text_atomic(out / "results.md", "\n".join(lines) + "\n")
-    return out / "results.csv", out / "results.md"
+    return METRICS.names()
+
+
+def table_note(rows: list[dict]) -> str:
+    from spread.experiments.intervals import table_note as note
+
+    return note(rows)
 
 
 def read_results_csv(path) -> list[dict]:

@@ -16,4 +16,4 @@ the release's post-hoc refinement at t = 0 (``refine``); the sampling pipeline
 """
 
 from spread.guidance.config import MODES, GuidanceConfig  # noqa: F401
-from spread.guidance.guide import TERMS, SceneGuidance  # noqa: F401
+from spread.guidance.guide import SceneGuidance  # noqa: F401

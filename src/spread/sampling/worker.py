@@ -37,26 +37,6 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def sampler_label(sampler) -> str:
-    """Short name of a :class:`~spread.model.Sampler`: ``ddim-50``, ``ddpm-1000``, ``dpmsolver++-20``."""
-    return f"{sampler.kind}-{sampler.num_steps}" + (f"-eta{sampler.eta:g}" if sampler.eta else "")
-
-
-def active_guidance(guidance):
-    """The :class:`~spread.guidance.GuidanceConfig` of ``guidance`` (a config, mapping or mode name) when it
-    guides; None for ``None``, ``"none"`` or a config with no weight > 0."""
-    from spread.guidance import GuidanceConfig
-
-    config = GuidanceConfig.from_config(guidance)
-    return config if config.active else None
-
-
-def guidance_label(config) -> str:
-    """Short name of an active guidance config: ``refine(c=0.0075,g=0.001,r=0.001)``."""
-    terms = "".join(f",{name}={weight:g}" for name, weight in config.terms.items() if weight > 0)
-    return f"{config.mode}(c={config.collision:g},g={config.gravity:g},r={config.relation:g}{terms})"
-
-
 def checkpoint_data_settings(ckpt: dict, model) -> dict:
     """``num_points`` and point ``seed`` the checkpoint was trained with (its data module's hyperparameters;
     the model's ``num_points`` and seed 0 when it was trained without one)."""
@@ -100,9 +80,8 @@ def load_pipeline(cfg) -> ScenePipeline:
     from spread import readonce
 
     model = cached_model(cfg.ckpt, cfg.device)
-    guided = active_guidance(cfg.guidance)
-    if guided is not None and sampling_kind(model) != "pipeline":
-        raise ValueError(f"guidance={guided.mode}: guidance steers the methods that sample through the pipeline's "
+    if cfg.guidance.active and sampling_kind(model) != "pipeline":
+        raise ValueError(f"guidance={cfg.guidance.mode}: guidance steers the methods that sample through the pipeline's "
                          f"loop; {cfg.ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
                          f"(sample it with guidance=none)")
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
@@ -141,8 +120,8 @@ class SampleWorker:
         self.scenes_dir = Path(scenes_dir)
         self.pipeline = load_pipeline(cfg)
         guided = self.pipeline.guidance
-        self.provenance = (f"ckpt={cfg.ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(cfg.seed)}"
-                           + (f" guidance={guidance_label(guided)}" if guided else ""))
+        self.provenance = (f"ckpt={cfg.ckpt} sampler={self.pipeline.sampler.label} seed={int(cfg.seed)}"
+                           + (f" guidance={guided.label}" if guided else ""))
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 
     def source(self, item: SampleItem) -> Scene:

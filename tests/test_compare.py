@@ -212,6 +212,15 @@ def test_presets_compose_with_one_sampler_for_every_method():
         assert s.sample_method["spread"][0] == "guidance=refine" and s.sample_method["physcene"] == ["guidance=physcene"]
     quick = compare_spec(compose("compare", "+table1=quick", "data.root=/d", "out_dir=/o"))
     assert quick.train_method["atiss"] == ["experiment=atiss_quick"] and "sampler=ddim50" in quick.sample
+    # the recipes live once, in the registry: the presets name none of them (paper's SPREAD adds its epochs)
+    from spread.baselines.registry import method_spec
+
+    full = compare_spec(compose("compare", "data.root=/d", "out_dir=/o"))
+    assert all(full.train_method[m] == list(method_spec(m).train) for m in full.train_method)
+    assert all(quick.train_method[m] == list(method_spec(m).train_quick) for m in quick.train_method)
+    assert full.sample_method["spread"] == ["guidance=refine"] and quick.sample_method["spread"][0] == "guidance=refine"
+    own = compare_spec(compose("compare", "data.root=/d", "out_dir=/o", "+train.atiss=['experiment=atiss_quick']"))
+    assert own.train_method["atiss"] == ["experiment=atiss_quick"]
 
 
 # ---- end to end -----------------------------------------------------------------------------------------
@@ -222,6 +231,9 @@ def tiny_comparison(tmp_path_factory):
     every evaluation in one Ray session (spread.runtime.ray uses a caller's Ray as is)."""
     import ray
 
+    from omegaconf import open_dict
+
+    from spread.baselines.registry import method_spec
     from spread.experiments.compare_command import compare
 
     torch.set_num_threads(1)
@@ -229,7 +241,8 @@ def tiny_comparison(tmp_path_factory):
     out = tmp_path_factory.mktemp("compare") / "quick"
     cfg = compose("compare", "+table1=quick", f"data.root={data}", f"out_dir={out}", "logger=none")
     cfg.train.extra = [*FAST_TRAIN, "trainer.max_steps=3", "trainer.max_time=null"]
-    cfg.train.spread = [*cfg.train.spread, *SMALL_MODEL]
+    with open_dict(cfg):  # the spread recipe of the quick preset (its registered train_quick), shrunk further
+        cfg.train.spread = [*method_spec("spread").recipe("quick"), *SMALL_MODEL]
     cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "batch_size=2"]
     cfg.sample.spread = [*cfg.sample.spread, "guidance.iterations=4"]
     cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]

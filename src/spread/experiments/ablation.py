@@ -58,14 +58,15 @@ from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
 from spread.experiments.intervals import ci_columns, row_intervals, table_note
+from spread.guidance.config import GuidanceConfig
 from spread.experiments.tables import Column, columns_of, write_tables
 from spread.io import write_json_atomic
 from spread.runtime.ray import RaySettings
 
 log = logging.getLogger("spread.ablate")
 
-#: One guidance term at a time (the other two weights 0): row name → the term kept.
-TERMS = {"guidance_collision": "collision", "guidance_gravity": "gravity", "guidance_relation": "relation"}
+#: One built-in guidance term at a time (the other built-in weights 0): row name → the term kept.
+TERMS = {f"guidance_{term}": term for term in GuidanceConfig.weight_keys()}
 VARIANTS = ("base", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.
 LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance",

@@ -12,7 +12,7 @@ rules and in-process :class:`~spread.experiments.ablation.Commands`), over metho
 | ``table`` | — | ``table1.{md,csv,tex}`` (+ wandb Table) | the three files |
 
 ``physcene`` is DiffuScene's checkpoint sampled with PhyScene's guidance (``guidance=physcene``: the registered
-guidance term ``box_iou``; its sample overrides in ``sample.physcene``; no second training, no second checkpoint);
+guidance term ``box_iou``; its registered sampling overrides; no second training, no second checkpoint);
 ``spread`` is the platform's own SceneDiffusion (by default the ``geometry`` model sampled with guidance).
 Every method samples the split's graphs with one shared override list (``sample.overrides``: sampler, seed,
 samples per graph) plus its own (``sample.<m>``); every evaluation shares ``evaluate.overrides``. The ledger is

@@ -6,8 +6,9 @@ command line is ``spread-sample``'s (or ``spread-train``'s) plus the keys of ``c
 
 * fixed overrides (``ckpt=... data.root=...``) go to every trial;
 * Hydra's sweep syntax makes the search space: a comma list or ``choice(a,b)`` / ``range(0,10,2)`` → a grid
-  (``search=grid``, every combination) or a categorical dimension (``search=random`` / ``optuna``);
-  ``interval(a,b)`` → a uniform dimension (random or Optuna TPE only); a preset's ``hydra.sweeper.params``
+  (``search=grid``, every combination) or a categorical dimension (``search=random`` / ``optuna`` / any other
+  search by registered name or ``module:Class``, :mod:`spread.experiments.tuning`); ``interval(a,b)`` → a
+  uniform dimension (searches that draw only); a preset's ``hydra.sweeper.params``
   (``+sweep=guidance_grid``) count as if written on the command line, unless the key is given there.
 
 Each trial's run folder is ``out_dir/points/<values>_<short fingerprint>`` and it is re-used only when its
@@ -25,8 +26,9 @@ a second trial in the process reads none of them again) and each Ray worker's pe
 library, convex parts, physics worlds, FID reference features) stay warm. A row's ``startup_seconds`` is its
 sampling's time to the first batch, ``trial_pid`` the trial process.
 
-**Training sweeps** (``command=train``): each trial trains into its point folder; with ``scheduler=asha`` a
-Lightning callback reports every validation to Tune and ASHA stops the worst trials early.
+**Training sweeps** (``command=train``): each trial trains into its point folder; with a trial scheduler
+(``scheduler=asha``, or another by name, :mod:`spread.experiments.tuning`) a Lightning callback reports every
+validation to Tune and the scheduler stops the worst trials early.
 """
 
 from __future__ import annotations
@@ -41,7 +43,6 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 COMMANDS = ("sample", "train")
-SEARCHES = ("grid", "random", "optuna")
 #: prepended to every sampling trial (the command line may override them)
 SAMPLE_DEFAULTS = ["workers=0", "progress=false", "figures=0", "evaluate=true"]
 TRAIN_DEFAULTS = ["trainer.enable_progress_bar=false"]
@@ -74,12 +75,26 @@ class SweepSettings:
             raise ValueError("spread-sweep: out_dir is required (the sweep folder)")
         if self.command not in COMMANDS:
             raise ValueError(f"spread-sweep: command={self.command}: choose from {COMMANDS}")
-        if self.search not in SEARCHES:
-            raise ValueError(f"spread-sweep: search={self.search}: choose from {SEARCHES}")
+        from spread.experiments.tuning import search_spec, trial_scheduler_spec
+
+        try:
+            search_spec(self.search)  # a registered name or "module:Class"; else an error naming the known ones
+        except ValueError as exc:
+            raise ValueError(f"spread-sweep: search={self.search}: {exc}") from exc
+        try:
+            if self.scheduler is not None:
+                trial_scheduler_spec(self.scheduler)
+        except ValueError as exc:
+            raise ValueError(f"spread-sweep: scheduler={self.scheduler}: {exc}") from exc
         if self.mode not in ("min", "max"):
             raise ValueError(f"spread-sweep: mode={self.mode}: min or max")
-        if self.scheduler not in (None, "asha"):
-            raise ValueError(f"spread-sweep: scheduler={self.scheduler}: null or asha")
+
+    @property
+    def grid(self) -> bool:
+        """The search runs every combination once (:mod:`spread.experiments.tuning`)."""
+        from spread.experiments.tuning import search_spec
+
+        return search_spec(self.search).grid
         if int(self.max_concurrent) < 1:
             raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: at least 1")
 
@@ -138,9 +153,10 @@ def parse_arguments(argv: list[str]) -> SweepPlan:
         if key.lstrip("+~") not in given and key not in swept:
             swept[key] = dimension(parser.parse_overrides([f"{key}={values}"])[0])
     dims = list(swept.values())
-    if sweep_settings.search == "grid" and any(d.values is None for d in dims):
+    if sweep_settings.grid and any(d.values is None for d in dims):
         bad = [d.key for d in dims if d.values is None]
-        raise ValueError(f"spread-sweep: interval() on {bad} needs search=random or search=optuna")
+        raise ValueError(f"spread-sweep: interval() on {bad} needs search=random, search=optuna or another search "
+                         f"that draws")
     return SweepPlan(sweep_settings, fixed, dims)
 
 
@@ -179,7 +195,7 @@ def search_space(plan: SweepPlan) -> dict:
     space = {}
     for d in plan.dimensions:
         if d.values is not None:
-            space[d.key] = tune.grid_search(d.values) if plan.settings.search == "grid" else tune.choice(d.values)
+            space[d.key] = tune.grid_search(d.values) if plan.settings.grid else tune.choice(d.values)
         else:
             space[d.key] = (tune.loguniform if d.log else tune.uniform)(d.low, d.high)
     return space
@@ -292,12 +308,14 @@ class TuneReport:
 
 
 def train_trial(config: dict, plan: dict) -> None:
-    """One training run into its point folder (fingerprint: the composed config and the data's content)."""
+    """One training run into its point folder, done or not by the platform's done-check (its identity: the
+    composed config and the data's content, recorded in the folder's ``point.json``)."""
     from ray import tune
 
     from spread.configs import compose
     from spread.experiments.commands import record_config
-    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, digest
+    from spread.experiments.points import PointDecision, finish_point, read_point, start_point
+    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, done_check, normalised, short
     from spread.training.fit import train as fit
 
     started = time.perf_counter()
@@ -307,20 +325,26 @@ def train_trial(config: dict, plan: dict) -> None:
     plain = OmegaConf.to_container(cfg, resolve=True)
     plain.pop("out_dir", None)
     root = OmegaConf.select(cfg, "data.root")
-    fp = digest({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
-                 "numbers_version": NUMBERS_VERSION})[:8]
-    folder = Path(plan["points"]) / f"{name}_{fp}"
+    identity = normalised({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
+                           "numbers_version": NUMBERS_VERSION})
+    folder = Path(plan["points"]) / f"{name}_{short(identity)}"
+    record, finished = read_point(folder), (folder / "metrics.json").exists()
+    # a folder without a record carries this identity in its name (made before point.json): the same inputs
+    before = record.get("fingerprint") if record is not None else identity if folder.exists() else None
+    decision = done_check(before, identity, present=folder.exists(), finished=finished)
     last = folder / "checkpoints" / "last.ckpt"
-    run = [*overrides, f"out_dir={folder}", f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
-    cfg = compose("train", run)
-    done = (folder / "metrics.json").exists()
-    callbacks = [TuneReport(plan["metric"])] if plan.get("scheduler") else []
-    if not done:
+    if not decision.reuse:
+        resume = last.exists() and not decision.fresh
+        run = [*overrides, f"out_dir={folder}", f"ckpt_path={last}" if resume else "ckpt_path=null"]
+        cfg = compose("train", run)
+        start_point(folder, PointDecision(False, decision.fresh, decision.reason, identity))
         record_config(cfg, folder, run)()
-        fit(cfg, run_dir=folder, extra_callbacks=callbacks)
+        fit(cfg, run_dir=folder, extra_callbacks=[TuneReport(plan["metric"])] if plan.get("scheduler") else [])
+        finish_point(folder, round(time.perf_counter() - started, 3))
     summary = json.loads((folder / "metrics.json").read_text())
     logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
-    tune.report({**logged, "point": folder.name, "reused": done, "seconds": round(time.perf_counter() - started, 3),
+    tune.report({**logged, "point": folder.name, "reused": decision.reuse,
+                 "seconds": round(time.perf_counter() - started, 3),
                  "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
 
 
@@ -339,6 +363,8 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     """Run every trial of ``plan`` on Ray Tune and write ``results.csv`` / ``results.md`` (module docstring)."""
     from ray import tune
 
+    from spread.experiments.tuning import search_spec, trial_scheduler_spec
+
     s = plan.settings
     out = Path(s.out_dir).resolve()
     (out / "points").mkdir(parents=True, exist_ok=True)
@@ -349,23 +375,12 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
     trainable = tune.with_resources(tune.with_parameters(trial, plan=shared), resources)
-    searcher = None
-    if s.search == "optuna":
-        from ray.tune.search.optuna import OptunaSearch
-
-        searcher = OptunaSearch(metric=s.metric, mode=s.mode, seed=int(s.search_seed))
-    elif s.search == "random":
-        from ray.tune.search import BasicVariantGenerator
-
-        searcher = BasicVariantGenerator(random_state=int(s.search_seed))
-    scheduler = None
-    if s.scheduler == "asha":
-        from ray.tune.schedulers import ASHAScheduler
-
-        scheduler = ASHAScheduler(metric=s.metric, mode=s.mode, time_attr="training_iteration", **dict(s.asha))
-    samples = 1 if s.search == "grid" else int(s.num_samples)
+    search = search_spec(s.search)
+    searcher = search.build(s) if search.build is not None else None
+    scheduler = trial_scheduler_spec(s.scheduler).build(s) if s.scheduler is not None else None
+    samples = 1 if search.grid else int(s.num_samples)
     space, rows = search_space(plan), []
-    if s.search == "grid" and s.command == "sample":  # finished points are read on the driver, no trial
+    if search.grid and s.command == "sample":  # finished points are read on the driver, no trial
         todo = []
         for config in grid_points(plan):
             row = finished_point(config, shared)
@@ -476,8 +491,8 @@ def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | Non
                Column("seconds", "seconds", 1), Column("point", "point")]
     shared = {k: v for k, v in (settings[0] if settings else {}).items()
               if k not in differ and k not in swept and all(s.get(k) == v for s in settings)}
-    notes = [f"Best: {best.get('point')} ({plan.settings.metric} = {best[plan.settings.metric]:.4f})."
-             if best is not None else "", "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "."
+    shown = next((c for c in metrics if c.key == metric), Column(metric, metric, 4))
+    notes = [f"Best: {best.get('point')} ({shown.label} = {shown.format(best[metric])})." if best is not None else "", "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "."
              if shared else ""]
     first = [*keys, "best", "point", "status", *differ]
     csv_keys = list(dict.fromkeys([*first, *[k for r in rows for k in r if k not in ("settings", "mark")]]))

@@ -4,9 +4,9 @@ re-uses, resumes or redoes work by it (a re-launched run never reports old numbe
 **Identities** are plain dicts built from the typed settings (each setting asked, never re-derived):
 
 * :func:`sampling_identity` — what a generated scene file depends on (``sampling.json``): the checkpoint's bytes
-  (``ckpt_sha256``, hashed once per process by path, size and mtime), the split's content (``data``:
-  :func:`dataset_digest`), ``sampling`` (the :class:`~spread.model.Sampler`'s fingerprint, seed, batch size, EMA,
-  graph scale, device, split), ``guidance`` (:meth:`spread.guidance.GuidanceConfig.fingerprint`: the mode, λ of
+  (``ckpt_sha256``, hashed once per process by path, size and mtime), the split (``split``) and its content
+  (``data``: :func:`dataset_digest`), ``sampling`` (the :class:`~spread.model.Sampler`'s fingerprint, seed, batch
+  size, EMA, graph scale, device), ``guidance`` (:meth:`spread.guidance.GuidanceConfig.fingerprint`: the mode, λ of
   every registered term that acts — built-ins, PhyScene's, a plugin's — and every other setting; ``None``
   unguided), ``numbers_version``;
 * :func:`evaluation_identity` — what a per-scene line depends on besides its scene file (``protocol.json``):
@@ -150,10 +150,9 @@ def sampling_identity(cfg) -> dict:
     ``samples_per_graph`` is not part of it (more samples only add files); ``data_root`` says where the data
     lies (``spread-view`` reads it)."""
     return {"ckpt_sha256": file_digest(cfg.ckpt), "data": dataset_digest(cfg.data.root, [cfg.data.split]),
-            "data_root": str(Path(str(cfg.data.root)).resolve()),
+            "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
             "sampling": {"sampler": cfg.sampler.fingerprint(), "seed": int(cfg.seed), "batch_size": int(cfg.batch_size),
-                         "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale), "device": str(cfg.device),
-                         "split": str(cfg.data.split)},
+                         "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale), "device": str(cfg.device)},
             "guidance": cfg.guidance.fingerprint(), "numbers_version": NUMBERS_VERSION}
 
 

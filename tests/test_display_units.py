@@ -45,6 +45,17 @@ def test_the_table_writer_shows_asd_in_mm_in_markdown_csv_latex_and_html(tmp_pat
     assert "<th>ASD (mm) ↓</th>" in html and "<td>2.1 ± 0.3</td>" in html
 
 
+def test_the_table_across_training_seeds_shows_asd_and_its_sd_in_mm(tmp_path):
+    from spread.experiments.ablation_seeds import write_seed_table
+    from spread.experiments.tables import read_csv
+
+    rows = [{**r, "seeds": 2, "asd_sd": 0.0005} for r in ROWS]
+    paths = write_seed_table(rows, tmp_path / "ablation", [0, 1])
+    back = read_csv(paths["csv"])
+    assert [r["asd_mm"] for r in back] == pytest.approx(MM) and back[0]["asd_mm_sd"] == pytest.approx(0.5)
+    assert "2.1 ± 0.5 (± 0.3)" in paths["md"].read_text()
+
+
 def test_plots_draw_asd_in_mm(tmp_path):
     from spread.experiments.plots import ablation_bars, metric_vs_weight
     from spread.experiments.tables import value_column

@@ -368,9 +368,8 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
         if point.reuse:
             print(f"{command.out_dir}: finished earlier with the same fingerprint, re-used")
             return None, None
-        if point.reason:
-            print(f"{command.out_dir}: redone from scratch ({point.reason})")
-        command.resume = command.resume and not point.fresh
+        if point.reason:  # sampling and evaluation then keep what their own fingerprints still match
+            print(f"{command.out_dir}: redone ({point.reason})")
         record = before_work
 
         def before_work():

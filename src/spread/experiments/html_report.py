@@ -7,11 +7,11 @@ Sections, each drawn only when its runs have the data:
   order), one panel per curve (loss, validation loss and GRecall, learning rate, gradient norm), runs
   overlaid (:func:`training_curves`);
 * **table**: the report's table (one row per evaluated run, each metric ± its interval);
-* **metric vs weight**: each metric against each guidance weight that varies over the runs, every run a point
-  with its interval as an error bar and its name beside it; with no varying weight, each metric per run
-  (:func:`metric_plot`);
-* **parallel coordinates** over the runs (the varying weights, then the metrics; each axis from its min to its
-  max; :func:`parallel_coordinates`);
+* **metric vs setting**: each metric (in its display unit, ASD in mm) against each numeric setting that varies
+  over the runs, every run a point with its interval as an error bar and its name beside it; with no varying
+  setting, each metric per run (:func:`metric_plot`);
+* **parallel coordinates** over the runs (the varying settings, then the metrics in their display units; each
+  axis from its min to its max; :func:`parallel_coordinates`);
 * **per room type**: each run's ``per_room_type`` breakdown of ``metrics.json``;
 * **renders**: the same test graph as rendered by each run (the first render name the runs share).
 
@@ -163,39 +163,36 @@ def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> 
     return png(fig), points
 
 
-def parallel_coordinates(records: Sequence[dict], axes_keys: Sequence[str]) -> str | None:
-    """Base64 PNG: one line per run over ``axes_keys`` (each axis scaled from its min to its max, which are
-    written at its ends), coloured by the first metric's value; None with fewer than 2 runs or axes."""
-    keys = [k for k in axes_keys if any(number(r.get(k)) is not None for r in records)]
-    if len(records) < 2 or len(keys) < 2:
+def parallel_coordinates(records: Sequence[dict], axes: Sequence[Column]) -> str | None:
+    """Base64 PNG: one line per run over the columns ``axes`` (each in its display unit, scaled from its min to its
+    max, which are written at its ends), coloured by the last axis's value; None with fewer than 2 runs or axes."""
+    axes = [c for c in axes if any(shown(c, r.get(c.key)) is not None for r in records)]
+    if len(records) < 2 or len(axes) < 2:
         return None
-    bounds = {}
-    for k in keys:
-        values = [number(r.get(k)) for r in records if number(r.get(k)) is not None]
-        bounds[k] = (min(values), max(values))
-    fig, ax = figure(figsize=(1.6 * len(keys) + 1.5, 3.6))
+    values = {c.key: [shown(c, r.get(c.key)) for r in records] for c in axes}
+    bounds = {k: (min(v for v in vs if v is not None), max(v for v in vs if v is not None)) for k, vs in values.items()}
+    fig, ax = figure(figsize=(1.6 * len(axes) + 1.5, 3.6))
     from matplotlib import colormaps
 
     cmap = colormaps["viridis"]
-    colour_key = keys[-1] if len(keys) else None
-    for r in records:
+    colour = axes[-1]
+    for n in range(len(records)):
         ys = []
-        for k in keys:
-            v, (lo, hi) = number(r.get(k)), bounds[k]
+        for c in axes:
+            v, (lo, hi) = values[c.key][n], bounds[c.key]
             ys.append(math.nan if v is None else (0.5 if hi == lo else (v - lo) / (hi - lo)))
-        c = number(r.get(colour_key))
-        lo, hi = bounds[colour_key]
-        ax.plot(range(len(keys)), ys, "-o", ms=3, lw=1.2, alpha=0.8,
-                color=cmap(0.5 if c is None or hi == lo else (c - lo) / (hi - lo)))
-    for i, k in enumerate(keys):
+        v, (lo, hi) = values[colour.key][n], bounds[colour.key]
+        ax.plot(range(len(axes)), ys, "-o", ms=3, lw=1.2, alpha=0.8,
+                color=cmap(0.5 if v is None or hi == lo else (v - lo) / (hi - lo)))
+    for i, c in enumerate(axes):
         ax.axvline(i, color="#444", lw=0.8)
-        lo, hi = bounds[k]
+        lo, hi = bounds[c.key]
         ax.annotate(f"{hi:.3g}", (i, 1.0), xytext=(0, 4), textcoords="offset points", ha="center", fontsize=6)
         ax.annotate(f"{lo:.3g}", (i, 0.0), xytext=(0, -10), textcoords="offset points", ha="center", fontsize=6)
-    ax.set_xticks(range(len(keys)), [k.split(".")[-1] for k in keys], fontsize=7)
+    ax.set_xticks(range(len(axes)), [c.label.split(".")[-1] for c in axes], fontsize=7)
     ax.set_yticks([])
     ax.set_ylim(-0.12, 1.12)
-    ax.set_title(f"{len(records)} runs (colour: {colour_key})", fontsize=9)
+    ax.set_title(f"{len(records)} runs (colour: {colour.label})", fontsize=9)
     fig.tight_layout()
     return png(fig)
 
@@ -283,9 +280,9 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
                     plots.append(f"<figure>{img(data, f'{c.key} vs {w}')}</figure>")
         held["metric_plots"] = len(plots)
         if plots:
-            parts.append("<h2>Metrics" + (" vs weights" if varied else " per run") + " (bars: intervals)</h2>")
+            parts.append("<h2>Metrics" + (" vs the settings that differ" if varied else " per run") + " (bars: intervals)</h2>")
             parts.append('<div class="grid">' + "".join(plots) + "</div>")
-        parallel = parallel_coordinates(records, [*varied, *[c.key for c in columns]])
+        parallel = parallel_coordinates(records, [*[Column(w, w) for w in varied], *columns])
         held["parallel"] = parallel is not None
         if parallel:
             parts.append("<h2>Parallel coordinates</h2>" + img(parallel, "parallel coordinates"))

@@ -10,7 +10,7 @@ for a run with ``evaluate=true``:
 |---|---|
 | ``point.json`` with this fingerprint and an evaluation ``metrics.json`` | re-use (nothing runs) |
 | ``point.json`` with this fingerprint, not finished | resume (finished scenes and per-scene lines kept) |
-| ``point.json`` with another fingerprint | redo from scratch; ``redone_because`` names the changed keys |
+| ``point.json`` with another fingerprint | redo; ``redone_because`` names the changed keys (the old ``metrics.json`` goes; sampling and evaluation keep only the scenes and per-scene lines their own fingerprints still match) |
 | ``metrics.json`` but no ``point.json`` (made before fingerprints) | redo from scratch, with that reason |
 | nothing of a run | a fresh run |
 

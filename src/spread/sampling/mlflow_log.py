@@ -11,10 +11,11 @@ def sampling_run_tags(command) -> dict:
     """Tags of a ``spread-sample`` command (a :class:`~spread.sampling.SamplingConfig` with its extras)."""
     from spread.runtime.mlflow_log import dataset_fingerprint, training_lineage
     from spread import readonce
+    from spread.safe_load import checkpoint_identity
 
-    hp = readonce.checkpoint(command.ckpt).get("hyper_parameters", {})
+    held = checkpoint_identity(readonce.checkpoint(command.ckpt))
     guidance = command.guidance
-    tags = {"spread.variant": hp.get("variant"), "spread.method": hp.get("method", "spread"),
+    tags = {"spread.variant": held["variant"], "spread.method": held["method"],
             "spread.sampler": command.sampler.label, "spread.seed": command.seed,
             "spread.guidance": guidance.mode if guidance.active else "none", "spread.guidance_label": guidance.label,
             "spread.dataset_fingerprint": dataset_fingerprint(command.data.root),

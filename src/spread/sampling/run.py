@@ -174,9 +174,10 @@ def check_checkpoint(path) -> dict:
 
 
 def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
-    """Resume, or redo from scratch (module docstring, step 3) by the platform's done-check
-    (:func:`spread.runtime.fingerprint.done_check`); returns why the folder is redone (None: a resume or a new
-    folder). A redo deletes the folder's scene files, renders and manifest; then (either way) ``sampling.json``
+    """Resume, or redo from scratch (module docstring, step 3; ``resume=false``: always) by the platform's
+    done-check (:func:`spread.runtime.fingerprint.done_check`); returns why the folder is redone (None: a resume
+    or a new folder). A redo deletes the folder's scene files and renders (no file of an earlier run stays beside
+    the new ones); then (either way) ``sampling.json``
     is pinned to ``settings`` (``status: running``) before any file is written, so a run killed mid-way is
     resumed only by a re-launch with the same settings."""
     from spread.runtime.fingerprint import done_check
@@ -186,7 +187,7 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
         before = json.loads(path.read_text()).get("fingerprint")
     except (OSError, ValueError, AttributeError):
         before = None
-    decision = done_check(before, settings, present=resume and any(scenes.glob("*.npz")),
+    decision = done_check(before, settings, present=any(scenes.glob("*.npz")), resume=resume,
                           unknown=f"its scenes have no readable {MANIFEST} fingerprint")
     if decision.fresh:
         for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png")]:
@@ -310,9 +311,6 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     out = Path(cfg.out_dir)
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
-    if not cfg.resume:  # a fresh run: no file of an earlier run may stay beside the new ones
-        for old in scenes_dir.glob("*.npz"):
-            old.unlink()
     check_checkpoint(cfg.ckpt)  # missing, damaged, unsafe or self-contradictory: a clear error before any work
     limit = object_limit(cfg.data.root, cfg.max_objects)
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)

@@ -436,6 +436,10 @@ def test_tiny_ablation_end_to_end_and_resume(tiny_ablation, monkeypatch):
         assert r["grecall_lo"] <= r["grecall"] <= r["grecall_hi"] and r["ci_resamples"] == 1000 and r["ci_seed"] == 0
     md = (out / "ablation.md").read_text()
     assert " ± " in md and "bootstrap interval over scenes (1,000 resamples, seed 0)" in md
+    # each row names what differs: the checkpoint (base vs geometry), the guidance (its mode, each weight)
+    assert [r["guidance.mode"] for r in rows] == ["none", "none", "refine"] and rows[2]["guidance.gravity"] == 0.004
+    assert str(rows[0]["ckpt"]) != str(rows[1]["ckpt"]) and str(rows[1]["ckpt"]) == str(rows[2]["ckpt"])
+    assert "What differs between the rows" in md and "guidance.mode=refine, guidance.collision=0.0075" in md
     assert r"$\pm$" in (out / "ablation.tex").read_text()
     for v in ("truth", "base", "geometry", "guidance"):
         assert (out / f"ablation_{v}.png").stat().st_size > 10_000 and f"(ablation_{v}.png)" in md

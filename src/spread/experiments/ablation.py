@@ -454,7 +454,10 @@ class Ablation:
         return False
 
     def rows(self) -> list[dict]:
-        """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed)."""
+        """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed) and the row's
+        settings and identity (:func:`spread.experiments.runs.folder_identity`)."""
+        from spread.experiments.runs import folder_identity, identity_fields
+
         records = []
         for v in self.spec.variants:
             path = self.eval_dir(v) / "metrics.json"
@@ -465,6 +468,8 @@ class Ablation:
                         "fid_status": metrics.get("fid_status"),
                         "status": "ok" if metrics else self.errors.get(f"evaluate/{v}", "not run")})
             row.update(ci_columns(row_intervals(metrics, self.eval_dir(v)) if metrics else {}))
+            if metrics:  # what the row's numbers were made with, as recorded beside them
+                row.update(identity_fields(folder_identity(self.eval_dir(v), metrics)))
             records.append(row)
         return records
 
@@ -537,21 +542,27 @@ def table_columns(records: Sequence[dict] = ()) -> list[Column]:
 def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                          figures: dict[str, str] | None = None) -> dict[str, Path]:
     """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold, ± the bootstrap interval) and ``.png`` (bars
-    per metric); ``figures`` (row or ``truth`` → PNG file name beside the table) are linked under the Markdown
-    table."""
+    per metric); every setting that differs between the rows is named per row (CSV columns, and a line per row
+    under the Markdown table); ``figures`` (row or ``truth`` → PNG file name beside the table) are linked under the
+    Markdown table."""
     from spread.experiments.plots import ablation_bars
+    from spread.experiments.runs import name_differences
 
+    records = [dict(r) for r in records]
+    differ = name_differences(records)
     caption = title or "Ablation: base, +geometry perceiver, +guidance (same test graphs, seeds and protocol)"
-    shown = ""
+    shown = "".join(f"\n\n**{r['method']}**: " + ", ".join(f"{k}={r.get(k)}" for k in differ) for r in records
+                    if differ)
+    shown = f"What differs between the rows:{shown}" if shown else ""
     if figures:
         labels = {"truth": "ground truth", **LABELS}
-        shown = "One test graph, row by row (3D view | relation matrix against the graph):" \
+        shown += ("\n\n" if shown else "") + "One test graph, row by row (3D view | relation matrix against the graph):" \
             + "".join(f"\n\n**{labels[k]}**\n\n![{labels[k]}]({name})" for k, name in figures.items())
     metrics = columns_of(records)
     paths = write_tables(records, table_columns(records), stem, caption=caption, label="tab:ablation",
-                         csv_keys=["variant", "method", *[c.key for c in columns_of(records, hidden=True)],
-                                   "n_scenes", "n_objects", "fid_status", "status", "ci_level", "ci_resamples",
-                                   "ci_seed"],
+                         csv_keys=["variant", "method", *differ, *[c.key for c in columns_of(records, hidden=True)],
+                                   "n_scenes", "n_objects", "fid_status", "status", "identity", "ci_level",
+                                   "ci_resamples", "ci_seed"],
                          note=table_note(records), md_extra=shown)
     ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}

@@ -201,6 +201,7 @@ class Comparison(Ablation):
 
     def rows(self) -> list[dict]:
         from spread.baselines import graph_conditioned
+        from spread.experiments.runs import folder_identity, identity_fields
 
         GRAPH_CONDITIONED = graph_conditioned()
         rooms = self.room_types()
@@ -224,6 +225,8 @@ class Comparison(Ablation):
                                              lambda sid: rooms.get(suffix.sub("", sid)), ["col_mesh"],
                                              seed=protocol_seed(metrics)))
             row.update(self.budget(m))
+            if ok:  # what the row's numbers were made with, as recorded beside them
+                row.update(identity_fields(folder_identity(self.eval_dir(m), metrics)))
             row["status"] = "ok" if metrics else self.failure(m)
             records.append(row)
         return records
@@ -294,16 +297,20 @@ class Comparison(Ablation):
         layout = self.layout()
 
         def run(resume: bool) -> None:
-            columns = self.columns(layout, records)
-            keys = ["method_key", "method", "grecall", "grecall_measured",
+            from spread.experiments.runs import name_differences
+
+            rows = [dict(r) for r in records]
+            differ = name_differences(rows)  # every setting that differs between the rows, per row in the CSV
+            columns = self.columns(layout, rows)
+            keys = ["method_key", "method", *differ, "grecall", "grecall_measured",
                     *[c.key for c in columns_of(records, hidden=True) if c.key != "grecall"], "seconds_per_scene"]
             keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
             keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "n_scenes", "n_objects",
-                     "fid_status", "status"]
-            write_tables(records, columns, stem, caption=self.caption(records), label="tab:table1", csv_keys=keys,
-                         note=table_note(records))
+                     "fid_status", "status", "identity"]
+            write_tables(rows, columns, stem, caption=self.caption(rows), label="tab:table1", csv_keys=keys,
+                         note=table_note(rows))
             if log_table is not None:
-                log_table(records, columns)
+                log_table(rows, columns)
 
         return Stage("table", self.out, outputs, {"rows": records, "layout": layout}, run)
 

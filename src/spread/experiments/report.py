@@ -92,16 +92,16 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, 
     report (module docstring) into ``out_dir``; ``weights``: the settings plotted on the x axis (None: every
     numeric setting that differs between the runs)."""
     from spread.experiments.html_report import training_folders, write_html, write_training_tables
-    from spread.runtime.fingerprint import differing
+    from spread.experiments.runs import name_differences
 
     out = Path(out_dir)
     training, runs = training_folders([str(runs)] if isinstance(runs, (str, Path)) else [str(r) for r in runs])
     records, unfinished = read_runs(runs) if runs or not training else ([], [])
-    differ = differing([r["settings"] for r in records])
+    differ = name_differences(records)  # every differing setting named per run
     axes = list(weights) if weights is not None else [k for k in differ if numeric(records, k)]
     shown = [*differ, *[k for k in axes if k not in differ]]
-    for r in records:  # every differing setting named per run
-        r.update({k: r["settings"].get(k) for k in shown})
+    for r in records:
+        r.update({k: r["settings"].get(k) for k in axes})
     columns = metric_columns(metrics) if metrics is not None else columns_of(records)
     shared = shared_settings(records, differ)
     result = ReportResult(records, unfinished=unfinished, settings=shown, shared=shared)

@@ -161,6 +161,18 @@ def folder_identity(path: Path, metrics: dict) -> dict:
     return identity
 
 
+def name_differences(records: list[dict], exclude=()) -> list[str]:
+    """The settings that differ between ``records`` (their ``settings``, :func:`identity_fields`; ``exclude``: keys
+    named otherwise), each copied into every record as a field of its own, so a table names them per run;
+    returns their keys."""
+    from spread.runtime.fingerprint import differing
+
+    differ = [k for k in differing([r.get("settings") or {} for r in records]) if k not in exclude]
+    for r in records:
+        r.update({k: (r.get("settings") or {}).get(k) for k in differ})
+    return differ
+
+
 def read_json(path: Path) -> dict:
     """A JSON object file, or {} when it is missing or not one."""
     try:

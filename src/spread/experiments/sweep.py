@@ -474,15 +474,14 @@ def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | Non
     the points, each metric in its display unit with ± half-width of its interval, best marked), through the one
     table writer (:func:`spread.experiments.tables.write_tables`); the settings every point shares under the
     table."""
+    from spread.experiments.runs import name_differences
     from spread.experiments.tables import Column, columns_of, metric_columns, write_tables
-    from spread.runtime.fingerprint import differing
 
     keys = [d.key for d in plan.dimensions]
     swept = {setting_of(k) for k in keys}
     settings = [r.get("settings") or {} for r in rows]
-    differ = [k for k in differing(settings) if k not in swept]
+    differ = name_differences(rows, exclude=swept)
     for r in rows:
-        r.update({k: (r.get("settings") or {}).get(k) for k in differ})
         r["mark"] = "★" if r.get("best") else ""
     metric = plan.settings.metric
     metrics = [c for c in columns_of(rows) if any(r.get(c.key) is not None for r in rows)] or \

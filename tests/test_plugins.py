@@ -186,18 +186,18 @@ def test_a_plugin_term_and_the_refinement_iterations_are_rows_of_the_sweep_and_t
     run_with_plugins(plugin_site, "spread-sweep", *args, "+guidance.terms.floor_push=0.3,0.6",
                      "guidance.iterations=1,2")
     rows = read_results_csv(sweep / "results.csv")
-    assert sorted((r["+guidance.terms.floor_push"], r["guidance.iterations"]) for r in rows) == [
+    assert sorted((r["guidance.floor_push"], r["guidance.iterations"]) for r in rows) == [
         (0.3, 1.0), (0.3, 2.0), (0.6, 1.0), (0.6, 2.0)]  # four identities, four rows
     assert all(r["status"] == "ok" and r["reused"] == "False" for r in rows)
     md = (sweep / "results.md").read_text()
-    assert "| +guidance.terms.floor_push | guidance.iterations |" in md and "sampler=ddim-4" in md
+    assert "| guidance.floor_push | guidance.iterations |" in md and "sampler=ddim-4" in md  # as in spread-report
     points = {p.name: json.loads((p / "point.json").read_text()) for p in (sweep / "points").iterdir()}
     assert sorted((v["fingerprint"]["guidance"]["floor_push"], v["fingerprint"]["guidance"]["iterations"])
                   for v in points.values()) == [(0.3, 1), (0.3, 2), (0.6, 1), (0.6, 2)]
     # re-launched with one weight changed: its points are new work, the others re-used
     run_with_plugins(plugin_site, "spread-sweep", *args, "+guidance.terms.floor_push=0.3,0.9",
                      "guidance.iterations=1,2")
-    reused = {r["+guidance.terms.floor_push"]: r["reused"] for r in read_results_csv(sweep / "results.csv")}
+    reused = {r["guidance.floor_push"]: r["reused"] for r in read_results_csv(sweep / "results.csv")}
     assert reused == {0.3: "True", 0.9: "False"} and len(list((sweep / "points").iterdir())) == 6
     # spread-report over the sweep: one row per run, each naming its plugin weight and its iterations
     report = tmp_path / "report"

@@ -470,29 +470,32 @@ def point_settings(rows: list[dict], points: Path) -> None:
 
 
 def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None) -> tuple[Path, Path]:
-    """``results.csv`` (every field) and ``results.md`` (the swept keys, every other setting that differs between
-    the points, each metric in its display unit with ± half-width of its interval, best marked), through the one
+    """``results.csv`` (every field) and ``results.md`` (the swept settings — named as settings:
+    ``+guidance.terms.floor_push`` is ``guidance.floor_push`` —, every other setting that differs between the
+    points, each metric in its display unit with ± half-width of its interval, best marked), through the one
     table writer (:func:`spread.experiments.tables.write_tables`); the settings every point shares under the
     table."""
     from spread.experiments.runs import name_differences
     from spread.experiments.tables import Column, columns_of, metric_columns, write_tables
 
-    keys = [d.key for d in plan.dimensions]
-    swept = {setting_of(k) for k in keys}
-    settings = [r.get("settings") or {} for r in rows]
-    differ = name_differences(rows, exclude=swept)
+    keys = [setting_of(d.key) for d in plan.dimensions]  # a swept key named as the setting it is
     for r in rows:
+        for d in plan.dimensions:
+            if d.key != setting_of(d.key) and d.key in r:
+                r[setting_of(d.key)] = r.pop(d.key)
         r["mark"] = "★" if r.get("best") else ""
+    settings = [r.get("settings") or {} for r in rows]
+    differ = name_differences(rows, exclude=set(keys))
     metric = plan.settings.metric
     metrics = [c for c in columns_of(rows) if any(r.get(c.key) is not None for r in rows)] or \
         (metric_columns([metric]) if metric in metric_names() else [Column(metric, metric, 4, plan.settings.mode)])
-    columns = [Column("mark", ""), *[Column(k, k) for k in keys], *[Column(k, k) for k in differ], *metrics,
+    columns = [Column("mark", ""), *[Column(k, k) for k in [*keys, *differ]], *metrics,
                Column("seconds", "seconds", 1), Column("point", "point")]
     shared = {k: v for k, v in (settings[0] if settings else {}).items()
-              if k not in differ and k not in swept and all(s.get(k) == v for s in settings)}
+              if k not in differ and k not in keys and all(s.get(k) == v for s in settings)}
     shown = next((c for c in metrics if c.key == metric), Column(metric, metric, 4))
-    notes = [f"Best: {best.get('point')} ({shown.label} = {shown.format(best[metric])})." if best is not None else "", "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "."
-             if shared else ""]
+    notes = [f"Best: {best.get('point')} ({shown.label} = {shown.format(best[metric])})." if best is not None else "",
+             "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "." if shared else ""]
     first = [*keys, "best", "point", "status", *differ]
     csv_keys = list(dict.fromkeys([*first, *[k for r in rows for k in r if k not in ("settings", "mark")]]))
     paths = write_tables(rows, columns, out / "results", formats=("md", "csv"), csv_keys=csv_keys,

@@ -272,7 +272,8 @@ def test_tiny_comparison_end_to_end_and_resume(tiny_comparison):
     # same graphs and seeds for every method; physcene samples DiffuScene's weights with guidance
     names = [sorted(p.name for p in (out / "samples" / m / "scenes").glob("*.npz")) for m in METHODS]
     assert all(n == names[0] for n in names) and len(names[0]) == 3
-    seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["sampling"]["seed"] for m in METHODS}
+    seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["sampling"]["seed"]
+             for m in METHODS}
     assert seeds == {0}
     physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
     assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")

@@ -195,7 +195,8 @@ def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_ru
     shutil.copytree(cli_run[0], out)
     run_in_process(*args(scenes_dir, dataset, out, "logger=none", "protocol.stability_steps=50"))
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["redone_because"] == "changed: protocol.stability_steps" and metrics["protocol"]["stability_steps"] == 50
+    assert metrics["redone_because"] == "changed: protocol.stability_steps"
+    assert metrics["protocol"]["stability_steps"] == 50
     assert metrics["run"]["resumed"] == 0 and metrics["run"]["evaluated_this_run"] == len(list_scene_files(scenes_dir))
     assert_each_scene_once(out, scenes_dir)
     run_in_process(*args(scenes_dir, dataset, out, "logger=none", "protocol.stability_steps=50"))  # identical: resumed

@@ -40,7 +40,8 @@ def hydra_list(key: str, *items: str) -> str:
     return f"{key}=[" + ",".join(f'"{i}"' for i in items) + "]"
 
 
-def run_with_plugins(site: Path, name: str, *args: str, ok: bool = True, wandb: str = "disabled") -> subprocess.CompletedProcess:
+def run_with_plugins(site: Path, name: str, *args: str, ok: bool = True,
+                     wandb: str = "disabled") -> subprocess.CompletedProcess:
     env = {**os.environ, "WANDB_MODE": wandb, "PYTHONPATH": str(site), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([str(SCRIPTS / name), *args], env=env, capture_output=True, text=True, timeout=900)
     if ok:

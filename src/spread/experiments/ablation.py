@@ -556,7 +556,8 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
     shown = f"What differs between the rows:{shown}" if shown else ""
     if figures:
         labels = {"truth": "ground truth", **LABELS}
-        shown += ("\n\n" if shown else "") + "One test graph, row by row (3D view | relation matrix against the graph):" \
+        shown += ("\n\n" if shown else "") \
+            + "One test graph, row by row (3D view | relation matrix against the graph):" \
             + "".join(f"\n\n**{labels[k]}**\n\n![{labels[k]}]({name})" for k, name in figures.items())
     metrics = columns_of(records)
     paths = write_tables(records, table_columns(records), stem, caption=caption, label="tab:ablation",

@@ -297,7 +297,8 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
     values = [v for spec in specs for v in spec.values if v.name in metrics]
     for value in values:
         column = metric_column(value)
-        table.add_row(f"{value.label} ({value.description or value.name}, {'↑' if value.higher_is_better else '↓'})",
+        arrow = "↑" if value.higher_is_better else "↓"
+        table.add_row(f"{value.label} ({value.description or value.name}, {arrow})",
                       column.format(metrics.get(value.name)), interval(column, metrics))
     fid, kid = set_columns()
     table.add_row(f"{fid.label} ({metrics.get('fid_feature_model')}, ↓)", fid.format(metrics.get("fid")))

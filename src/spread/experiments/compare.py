@@ -275,9 +275,9 @@ class Comparison(Ablation):
         if layout == "threedfront":
             rooms = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith("col_mesh/")})
             col_mesh = value_column("col_mesh")
+            latex = (col_mesh.latex or col_mesh.label).replace(r"\downarrow$", "$")
             per_room = [replace(col_mesh, key=f"col_mesh/{room}", label=f"{col_mesh.label} {room}",
-                                latex=(col_mesh.latex or col_mesh.label).replace(r"\downarrow$", "$") + rf" {room}$\downarrow$")
-                        for room in rooms]
+                                latex=rf"{latex} {room}$\downarrow$") for room in rooms]
             return [Column("method", "Method"), *per_room, *set_columns(), time_col]
         return [Column("method", "Method"), *columns_of(records), time_col]
 

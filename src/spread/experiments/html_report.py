@@ -280,7 +280,8 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
                     plots.append(f"<figure>{img(data, f'{c.key} vs {w}')}</figure>")
         held["metric_plots"] = len(plots)
         if plots:
-            parts.append("<h2>Metrics" + (" vs the settings that differ" if varied else " per run") + " (bars: intervals)</h2>")
+            against = " vs the settings that differ" if varied else " per run"
+            parts.append(f"<h2>Metrics{against} (bars: intervals)</h2>")
             parts.append('<div class="grid">' + "".join(plots) + "</div>")
         parallel = parallel_coordinates(records, [*[Column(w, w) for w in varied], *columns])
         held["parallel"] = parallel is not None

@@ -122,7 +122,8 @@ def read_run_folder(path: str | Path) -> dict:
     metrics = read_json_object(metrics_path, RunError)
     if not is_evaluation(metrics):
         raise RunError(f"{metrics_path}: not an evaluation metrics.json (no registered metric and no 'n_evaluated')")
-    record = {"run": path.name, "source": str(path), "kind": "folder", **identity_fields(folder_identity(path, metrics))}
+    record = {"run": path.name, "source": str(path), "kind": "folder",
+              **identity_fields(folder_identity(path, metrics))}
     record.update({k: metrics.get(k) for k in record_metrics()})
     record.update(ci_columns(row_intervals(metrics, path)))
     return record

@@ -121,6 +121,23 @@ def test_wandb_tables_show_asd_in_mm(tmp_path, monkeypatch):
     assert [row[table1["columns"].index("asd_mm")] for row in table1["data"]] == pytest.approx(MM)
 
 
+def test_the_evaluations_per_scene_wandb_table_shows_asd_in_mm(tmp_path, monkeypatch):
+    from spread.evaluation.wandb_log import log_metrics
+    from spread.runtime.tracking import LoggerConfig, init_run, run_folder
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    metrics = {**ROWS[0], "protocol": {"metrics": ["asd", "stability"]}, "fid_status": "disabled"}
+    records = [{"scene_id": "s0", "num_objects": 3, "asd": 0.0021, "stability": 0.9, "still_fraction": 1.0}]
+    run = init_run(LoggerConfig(mode="offline"), "evaluate", tmp_path, {})
+    folder = Path(run_folder(run))
+    log_metrics(run, metrics, records, [])
+    run.finish()
+    table = logged_table(folder, "per_scene")
+    assert table["columns"][2:] == ["num_objects", "asd_mm", "stability", "still_fraction", "error"]
+    assert table["data"][0][3] == pytest.approx(2.1)
+
+
 def test_the_console_tables_show_asd_in_mm(capsys):
     from rich.console import Console
 

@@ -44,8 +44,9 @@ class Column:
     @property
     def csv_key(self) -> str:
         """The CSV header: the key, with its display unit when it has one (``asd_mm``)."""
-        unit = "".join(c if c.isalnum() else "_" for c in self.unit)
-        return f"{self.key}_{unit}" if unit else self.key
+        from spread.metrics.registry import unit_key
+
+        return unit_key(self.key, self.unit)
 
     def display(self, value):
         """A stored number in the display unit (anything else as it is)."""

@@ -60,6 +60,17 @@ class ValueSpec:
         """A stored value in display units (None stays None)."""
         return None if value is None else float(value) * self.scale
 
+    @property
+    def key(self) -> str:
+        """Its name in a table's header row (CSV, wandb): with the display unit when it has one (``asd_mm``)."""
+        return unit_key(self.name, self.unit)
+
+
+def unit_key(key: str, unit: str) -> str:
+    """``key`` with its display unit, as table headers name a value shown in it (``asd`` in mm: ``asd_mm``)."""
+    unit = "".join(c if c.isalnum() else "_" for c in unit)
+    return f"{key}_{unit}" if unit else key
+
 
 @dataclass(frozen=True)
 class MetricSpec:

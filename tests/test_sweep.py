@@ -126,6 +126,22 @@ def test_results_table_marks_the_best_point_and_reads_back(tmp_path):
     assert "| ★ | 0.0075 |" in md and "0.500 ± 0.100" in md and "Best: b (Col_mesh = 0.100)" in md
 
 
+def test_the_results_table_names_every_other_setting_that_differs_between_points(tmp_path):
+    """Two points alike in the swept key but recorded with other refinement iterations (their point.json
+    identities) are two rows, each naming its iterations; what every point shares is said once."""
+    plan = parse_arguments(["ckpt=c", "data.root=/d", "guidance=refine", "guidance.collision=0.0075,0.015",
+                            f"out_dir={tmp_path}"])
+    settings = {"guidance.mode": "refine", "guidance.collision": 0.0075, "sampler": "ddim-4"}
+    rows = [{"guidance.collision": 0.0075, "grecall": 0.5, "point": p, "status": "ok",
+             "settings": {**settings, "guidance.iterations": n}} for p, n in (("a", 1), ("b", 2))]
+    csv_path, md_path = write_results(rows, tmp_path, plan, mark_best(rows, "grecall", "max"))
+    assert [(r["guidance.collision"], r["guidance.iterations"]) for r in read_results_csv(csv_path)] == [
+        (0.0075, 1.0), (0.0075, 2.0)]
+    md = md_path.read_text()
+    assert "| guidance.collision | guidance.iterations |" in md and "Every point: guidance.mode=refine" in md
+    assert "sampler=ddim-4" in md
+
+
 # ---- slow: real points ---------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

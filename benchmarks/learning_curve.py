@@ -40,8 +40,14 @@ from pathlib import Path
 
 import numpy as np
 
-METRICS = (("grecall", "GRecall ↑", 1.0, 3), ("col_mesh", "Col_mesh ↓", 1.0, 3), ("asd", "ASD mm ↓", 1000.0, 1),
-           ("stability", "Stability ↑", 1.0, 3))
+def _metrics():
+    """(key, label, display scale, digits) of the default metrics: the registry's display (ASD in mm)."""
+    from spread.experiments.tables import metric_columns
+
+    return tuple((c.key, c.label + c.arrow, c.scale, c.digits) for c in metric_columns(with_set=False))
+
+
+METRICS = _metrics()
 
 
 # ---- train -------------------------------------------------------------------------------------------

@@ -50,7 +50,10 @@ WEIGHTS = ("guidance.collision", "guidance.gravity", "guidance.relation")
 def test_tables_round_trip_and_show_the_rows(tmp_path):
     columns = [Column("method", "Method"), *METRICS]
     paths = write_tables(ROWS, columns, tmp_path / "t", caption="Ablation", label="tab:x")
-    assert read_csv(paths["csv"]) == ROWS  # every key, None as None, 0.1 + 0.2 bit for bit
+    back = read_csv(paths["csv"])  # every key, None as None, 0.1 + 0.2 bit for bit; ASD in mm, as its header says
+    assert [{k: v for k, v in r.items() if k != "asd_mm"} for r in back] == [
+        {k: v for k, v in r.items() if k != "asd"} for r in ROWS]
+    assert [r["asd_mm"] for r in back] == pytest.approx([1000 * r["asd"] for r in ROWS])
     md = paths["md"].read_text().splitlines()
     body = [line for line in md if line.startswith("| ") and "Method" not in line]
     assert len(body) == 3
@@ -122,7 +125,8 @@ def wandb_run(tmp_path, monkeypatch) -> Path:
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")
     run = wandb.init(project="spread", dir=str(tmp_path), mode="offline", name="agent-run",
-                     config={"guidance.collision": 0.0075, "guidance.gravity": 0.0, "guidance.relation": 0.002},
+                     config={"guidance.mode": "refine", "guidance.collision": 0.0075, "guidance.gravity": 0.0,
+                             "guidance.relation": 0.002},
                      settings=wandb.Settings(console="off", save_code=False, silent=True))
     run.log({"col_mesh": 0.5, "grecall": 0.5})
     run.summary.update({**metrics_json(0.20, 0.93), "col_mesh_lo": 0.1, "col_mesh_hi": 0.3, "ci_level": 0.95,
@@ -144,9 +148,12 @@ def test_report_reads_run_folders_and_a_wandb_offline_run(tmp_path, wandb_run):
     assert by_name["agent-run"]["col_mesh"] == 0.20 and by_name["agent-run"]["kind"] == "wandb"
     assert result.unfinished == [runs["unfinished"]]
     assert len(result.plots) == 6 * 3  # GRecall, Col_mesh, ASD, Stability, FID, KID × three weights
+    from spread.experiments.tables import value_column
+
     for (metric, weight), (png, points) in result.plots.items():
         assert png.exists() and png.name == f"{metric}_vs_{weight.split('.')[-1]}.png"
-        expected = sorted((r[weight], r[metric]) for r in result.records if r[metric] is not None)
+        shown = value_column(metric).display  # the plots' values in display units: ASD in mm
+        expected = sorted((r[weight], shown(r[metric])) for r in result.records if r[metric] is not None)
         assert points == expected, (metric, weight)
     assert result.plots[("col_mesh", "guidance.collision")][1] == [(0.0, 0.30), (0.0075, 0.20), (0.015, 0.10)]
     assert result.plots[("fid", "guidance.gravity")][1] == []  # FID null everywhere: an empty, labelled plot
@@ -179,7 +186,7 @@ def test_report_bad_input_names_the_path(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(RunError, match=f"{tmp_path / 'empty'}: no metrics.json, and no run folders"):
         find_runs([str(tmp_path / "empty")])
-    records, unfinished = read_runs([str(tmp_path / "sweep" / "c0.0*")], WEIGHTS)  # a glob: unfinished skipped
+    records, unfinished = read_runs([str(tmp_path / "sweep" / "c0.0*")])  # a glob: unfinished skipped
     assert [r["run"] for r in records] == ["c0.0_g0.001_r0.001", "c0.015_g0.002_r0.0"]
     assert unfinished == [runs["unfinished"]]
     proc = run_script("spread-report", f"runs={tmp_path / 'nope'}", f"out_dir={tmp_path / 'r'}", ok=False)
@@ -429,6 +436,10 @@ def test_tiny_ablation_end_to_end_and_resume(tiny_ablation, monkeypatch):
         assert r["grecall_lo"] <= r["grecall"] <= r["grecall_hi"] and r["ci_resamples"] == 1000 and r["ci_seed"] == 0
     md = (out / "ablation.md").read_text()
     assert " ± " in md and "bootstrap interval over scenes (1,000 resamples, seed 0)" in md
+    # each row names what differs: the checkpoint (base vs geometry), the guidance (its mode, each weight)
+    assert [r["guidance.mode"] for r in rows] == ["none", "none", "refine"] and rows[2]["guidance.gravity"] == 0.004
+    assert str(rows[0]["ckpt"]) != str(rows[1]["ckpt"]) and str(rows[1]["ckpt"]) == str(rows[2]["ckpt"])
+    assert "What differs between the rows" in md and "guidance.mode=refine, guidance.collision=0.0075" in md
     assert r"$\pm$" in (out / "ablation.tex").read_text()
     for v in ("truth", "base", "geometry", "guidance"):
         assert (out / f"ablation_{v}.png").stat().st_size > 10_000 and f"(ablation_{v}.png)" in md
@@ -439,14 +450,16 @@ def test_tiny_ablation_end_to_end_and_resume(tiny_ablation, monkeypatch):
     manifests = {v: json.loads((out / "samples" / v / "sampling.json").read_text()) for v in ("geometry", "guidance")}
     assert manifests["guidance"]["guidance"]["mode"] == "refine" and not manifests["geometry"].get("guidance")
     assert manifests["guidance"]["fingerprint"]["ckpt_sha256"] == manifests["geometry"]["fingerprint"]["ckpt_sha256"]
-    assert manifests["guidance"]["fingerprint"]["seed"] == manifests["geometry"]["fingerprint"]["seed"]
+    assert manifests["guidance"]["fingerprint"]["sampling"] == manifests["geometry"]["fingerprint"]["sampling"]
     protocols = {json.dumps(json.loads((out / "eval" / v / "metrics.json").read_text())["protocol"], sort_keys=True)
                  for v in ("base", "geometry", "guidance")}
     assert len(protocols) == 1  # one protocol for every row
     assert (out / "train" / "base" / ".hydra" / "config.yaml").exists()
     report = {r["run"]: r for r in run_report([str(out)], out / "report").records}  # eval/<v> → samples/<v>
-    assert set(report) == {"base", "geometry", "guidance"} and report["base"]["guidance.collision"] is None
+    assert set(report) == {"base", "geometry", "guidance"} and report["base"]["guidance.mode"] == "none"
+    assert [report["base"][w] for w in WEIGHTS] == [0.0, 0.0, 0.0]  # unguided: no term acts
     assert [report["guidance"][w] for w in WEIGHTS] == [0.0075, 0.004, 0.001]  # the quick preset's weights
+    assert report["base"]["ckpt"] != report["geometry"]["ckpt"]  # each row names the checkpoint it sampled
     stamp = (out / "ablation.csv").stat().st_mtime_ns
     import spread.runtime.ray as spread_ray
 
@@ -527,9 +540,11 @@ def test_wandb_ablation_table_carries_the_bounds_and_the_row_figures(tmp_path, m
 
 
 def test_an_unguided_run_reports_zero_guidance_weights_not_the_config_defaults():
-    from spread.experiments.runs import first_number
+    from spread.runtime.fingerprint import config_identity, settings
 
-    unguided = [{"guidance": {"mode": "none", "collision": 0.0075, "gravity": 0.001}}]
-    guided = [{"guidance": {"mode": "refine", "collision": 0.0075}}]
-    assert first_number(unguided, "guidance.collision") == 0.0 and first_number(unguided, "guidance.mode") == "none"
-    assert first_number(guided, "guidance.collision") == 0.0075
+    unguided = settings(config_identity({"guidance": {"mode": "none", "collision": 0.0075, "gravity": 0.001}}))
+    guided = settings(config_identity({"guidance": {"mode": "refine", "collision": 0.0075}}))
+    assert unguided["guidance.mode"] == "none" and unguided["guidance.collision"] == 0.0
+    assert unguided["guidance.box_iou"] == 0.0 and "guidance.iterations" not in unguided  # nothing of it acts
+    assert guided["guidance.collision"] == 0.0075 and guided["guidance.gravity"] == 0.001  # the default λ_H
+    assert guided["guidance.iterations"] == 100 and guided["guidance.box_iou"] == 0.0

@@ -135,8 +135,8 @@ def test_two_seeds_with_every_row_end_to_end(data, tmp_path):
         assert r["seeds"] == 2 and r["col_mesh_sd"] is not None and r["grecall_lo"] <= r["grecall_hi"]
     seeds = [json.loads((tmp_path / "q" / f"seed{s}" / "samples" / "guidance_gravity" / "sampling.json").read_text())
              for s in (0, 1)]
-    assert [m["fingerprint"]["seed"] for m in seeds] == [0, 1]
-    assert seeds[0]["guidance"]["collision"] == 0.0 and seeds[0]["guidance"]["gravity"] == 4.0e-3
+    assert [m["fingerprint"]["sampling"]["seed"] for m in seeds] == [0, 1]
+    assert "collision" not in seeds[0]["guidance"] and seeds[0]["guidance"]["gravity"] == 4.0e-3  # only it acts
     assert " ± " in (tmp_path / "q" / "ablation.md").read_text()
 
 
@@ -159,13 +159,25 @@ def test_ddp_training_stage_inside_an_ablation(data, tmp_path):
 # ---- concurrent rows -----------------------------------------------------------------------------------------
 
 class SlowFakeCommands(SeededFakeCommands):
-    """SeededFakeCommands whose sampling takes ``seconds`` (so that concurrent rows visibly overlap)."""
+    """SeededFakeCommands whose sampling takes ``seconds`` (so that concurrent rows visibly overlap); with
+    ``rendezvous`` (a folder) a sampling stage also waits, up to a minute, until a second one has started, so two
+    stages that run at the same time overlap whatever the machine's load (one after the other, they do not)."""
 
     seconds = 2.5
+
+    def __init__(self, rendezvous: Path | None = None):
+        super().__init__()
+        self.rendezvous = rendezvous
 
     def sample(self, overrides):
         import time
 
+        if self.rendezvous is not None:
+            self.rendezvous.mkdir(parents=True, exist_ok=True)
+            (self.rendezvous / Path(args(overrides)["out_dir"]).name).touch()
+            deadline = time.time() + 60
+            while len(list(self.rendezvous.iterdir())) < 2 and time.time() < deadline:
+                time.sleep(0.1)
         time.sleep(self.seconds)
         super().sample(overrides)
 
@@ -191,7 +203,7 @@ def test_rows_run_concurrently_through_ray_and_give_the_sequential_table(tmp_pat
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # one session, used as is
     try:
         concurrent = run_ablation(fake_spec(tmp_path / "par", max_concurrent=2, ray=settings, **rows),
-                                  SlowFakeCommands())
+                                  SlowFakeCommands(rendezvous=tmp_path / "started"))
         again = run_ablation(fake_spec(tmp_path / "par", max_concurrent=2, ray=settings, **rows), SlowFakeCommands())
         actors = run_ablation(fake_spec(tmp_path / "actors", max_concurrent=2, ray=settings,
                                         **{**rows, "sample": ["seed=0", "workers=2"]}), SlowFakeCommands())

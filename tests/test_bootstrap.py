@@ -191,7 +191,8 @@ def test_tables_print_value_plus_minus_half_width_and_csv_keeps_the_bounds(tmp_p
     tex = paths["tex"].read_text()
     assert r"0.800\,{\scriptsize$\pm$0.040}" in tex and "± is what it is." not in tex and r"$\pm$ is what" in tex
     back = read_csv(paths["csv"])
-    assert back[0]["asd"] == 0.0123  # CSV keeps the stored value (metres)
+    assert back[0]["asd_mm"] == pytest.approx(12.3) and "asd" not in back[0]  # in mm, as its header says
+    assert (back[0]["asd_mm_lo"], back[0]["asd_mm_hi"]) == pytest.approx((10.0, 15.2))
     assert back[0]["grecall_lo"] == 0.75 and back[0]["grecall_hi"] == 0.83 and back[1]["grecall_lo"] is None
     assert list(back[0])[:4] == ["method", "grecall", "grecall_lo", "grecall_hi"]
 

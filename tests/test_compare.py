@@ -63,10 +63,10 @@ class FakeCommands:
         (out / "scenes").mkdir(parents=True, exist_ok=True)
         for g in ROOMS:
             (out / "scenes" / f"{g}_k0.npz").write_bytes(b"x")
+        guidance = guidance_config(a.get("guidance"))
         (out / "sampling.json").write_text(json.dumps(
-            {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "seed": a["seed"],
-                                           "sampler": {"kind": "ddim", "steps": 50}},
-             "guidance": guidance_settings(a.get("guidance")),
+            {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "sampling": {"seed": a["seed"]}},
+             "sampler": "ddim-50", "guidance": guidance.fingerprint(), "guidance_label": guidance.label,
              "seconds_per_batch": 0.5, "batches_run": 2, "written_this_run": 3}))
 
     def evaluate(self, overrides):
@@ -91,12 +91,11 @@ class FakeCommands:
         return {}
 
 
-def guidance_settings(preset: str | None) -> dict | None:
-    """What spread-sample records in sampling.json for ``guidance=<preset>`` (None: unguided)."""
-    from spread.guidance import GuidanceConfig
+def guidance_config(preset: str | None):
+    """The typed guidance of ``guidance=<preset>`` (None: unguided), as spread-sample parses it."""
+    from spread.configs import to_object
 
-    return GuidanceConfig.from_config(compose("sample", "ckpt=x", f"guidance={preset}").guidance).to_dict() \
-        if preset else None
+    return to_object(compose("sample", "ckpt=x", "data.root=x", "out_dir=x", f"guidance={preset or 'none'}")).guidance
 
 
 def spec(tmp_path: Path, **kw) -> CompareSpec:
@@ -118,13 +117,15 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
     # physcene: DiffuScene's checkpoint (no derived file, no training) with its registered guidance preset
     physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
     assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")
-    assert physcene["guidance"]["terms"] == {"box_iou": 0.15} and not (out / "train" / "physcene.ckpt").exists()
+    assert physcene["guidance"]["box_iou"] == 0.15 and not (out / "train" / "physcene.ckpt").exists()
+    assert "collision" not in physcene["guidance"]  # SPREAD's terms do not act: not part of its identity
     rows = {r["method_key"]: r for r in first.records}
     assert list(rows) == list(METHODS) and first.layout == "procthor"
     assert [rows[m]["grecall"] for m in METHODS] == [None, None, None, 0.9, 0.9]  # only graph-conditioned
     assert rows["atiss"]["grecall_measured"] == 0.9 and rows["atiss"]["seconds_per_scene"] == pytest.approx(1 / 3)
-    assert rows["spread"]["sampler"] == "ddim-50 + refine guidance" and rows["atiss"]["sampler"] == "one pass per object"
-    assert rows["physcene"]["sampler"] == "ddim-50 + box_iou guidance" and rows["physcene"]["train_steps"] == 7
+    assert rows["spread"]["sampler"] == "ddim-50 + guidance refine(collision=0.0075,gravity=0.001,relation=0.001)"
+    assert rows["atiss"]["sampler"] == "one pass per object" and rows["physcene"]["train_steps"] == 7
+    assert rows["physcene"]["sampler"] == "ddim-50 + guidance sample(box_iou=0.15,last_steps=10,grad_clip=0.1)"
     csv = {r["method_key"]: r for r in read_csv(out / "table1.csv")}
     assert csv["diffuscene"]["col_mesh"] == pytest.approx(0.4) and csv["diffuscene"]["grecall"] is None
     md = (out / "table1.md").read_text()
@@ -211,6 +212,15 @@ def test_presets_compose_with_one_sampler_for_every_method():
         assert s.sample_method["spread"][0] == "guidance=refine" and s.sample_method["physcene"] == ["guidance=physcene"]
     quick = compare_spec(compose("compare", "+table1=quick", "data.root=/d", "out_dir=/o"))
     assert quick.train_method["atiss"] == ["experiment=atiss_quick"] and "sampler=ddim50" in quick.sample
+    # the recipes live once, in the registry: the presets name none of them (paper's SPREAD adds its epochs)
+    from spread.baselines.registry import method_spec
+
+    full = compare_spec(compose("compare", "data.root=/d", "out_dir=/o"))
+    assert all(full.train_method[m] == list(method_spec(m).train) for m in full.train_method)
+    assert all(quick.train_method[m] == list(method_spec(m).train_quick) for m in quick.train_method)
+    assert full.sample_method["spread"] == ["guidance=refine"] and quick.sample_method["spread"][0] == "guidance=refine"
+    own = compare_spec(compose("compare", "data.root=/d", "out_dir=/o", "+train.atiss=['experiment=atiss_quick']"))
+    assert own.train_method["atiss"] == ["experiment=atiss_quick"]
 
 
 # ---- end to end -----------------------------------------------------------------------------------------
@@ -221,6 +231,9 @@ def tiny_comparison(tmp_path_factory):
     every evaluation in one Ray session (spread.runtime.ray uses a caller's Ray as is)."""
     import ray
 
+    from omegaconf import open_dict
+
+    from spread.baselines.registry import method_spec
     from spread.experiments.compare_command import compare
 
     torch.set_num_threads(1)
@@ -228,7 +241,8 @@ def tiny_comparison(tmp_path_factory):
     out = tmp_path_factory.mktemp("compare") / "quick"
     cfg = compose("compare", "+table1=quick", f"data.root={data}", f"out_dir={out}", "logger=none")
     cfg.train.extra = [*FAST_TRAIN, "trainer.max_steps=3", "trainer.max_time=null"]
-    cfg.train.spread = [*cfg.train.spread, *SMALL_MODEL]
+    with open_dict(cfg):  # the spread recipe of the quick preset (its registered train_quick), shrunk further
+        cfg.train.spread = [*method_spec("spread").recipe("quick"), *SMALL_MODEL]
     cfg.sample.extra = ["sampler.steps=4", "progress=false", "renders=1", "batch_size=2"]
     cfg.sample.spread = [*cfg.sample.spread, "guidance.iterations=4"]
     cfg.evaluate.extra = ["protocol.stability_runs=1", "fid.enabled=false", "renders=0", "progress=false"]
@@ -254,15 +268,16 @@ def test_tiny_comparison_end_to_end_and_resume(tiny_comparison):
         assert r["n_scenes"] == 3 and 0.0 <= r["col_mesh"] <= 1.0 and 0.0 <= r["stability"] <= 1.0, (m, r)
         assert r["seconds_per_scene"] > 0 and r["train_steps"] == 3 and r["sample_cpu_s"] > 0
         assert (r["grecall"] is None) == (m in ("atiss", "diffuscene", "physcene"))
-    assert rows["atiss"]["model_size"] == "tiny" and rows["spread"]["sampler"] == "ddim-4 + refine guidance"
+    assert rows["atiss"]["model_size"] == "tiny" and rows["spread"]["sampler"].startswith("ddim-4 + guidance refine(")
     # same graphs and seeds for every method; physcene samples DiffuScene's weights with guidance
     names = [sorted(p.name for p in (out / "samples" / m / "scenes").glob("*.npz")) for m in METHODS]
     assert all(n == names[0] for n in names) and len(names[0]) == 3
-    seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["seed"] for m in METHODS}
+    seeds = {json.loads((out / "samples" / m / "sampling.json").read_text())["fingerprint"]["sampling"]["seed"]
+             for m in METHODS}
     assert seeds == {0}
     physcene = json.loads((out / "samples" / "physcene" / "sampling.json").read_text())
     assert physcene["fingerprint"]["ckpt_sha256"] == file_sha256(out / "train" / "diffuscene" / "checkpoints" / "last.ckpt")
-    assert physcene["guidance"]["mode"] == "sample" and physcene["guidance"]["terms"] == {"box_iou": 0.15}
+    assert physcene["guidance"]["mode"] == "sample" and physcene["guidance"]["box_iou"] == 0.15
     assert physcene["guidance_totals"]["steps"] > 0  # PhyScene's term stepped DiffuScene's samples
     table = read_csv(out / "table1.csv")
     assert [r["method_key"] for r in table] == list(METHODS)

@@ -378,3 +378,22 @@ def test_paper_schedule_and_gravity_window(lib, model_and_batch):
     model, batch, _ = model_and_batch
     guided_states(model, batch, "ddim-8", torch.Generator().manual_seed(0), guidance)
     assert seen == [False] * 8 + [True] * 4  # steps 2..5 without, 6..7 with gravity, twice each
+
+
+def test_the_built_in_terms_are_spelled_in_one_module():
+    """Everything else asks the registry or GuidanceConfig (weights(), weight_keys()): no module lists the trio
+    (``("collision", "gravity", "relation")``, ``guidance.collision, guidance.gravity, ...``) but the config's."""
+    import re
+    from pathlib import Path
+
+    import spread
+    from spread.guidance.terms import term_names
+
+    trio = re.compile(r"""["'](guidance[._])?collision["']\s*,\s*["'](guidance[._])?gravity["']""")
+    found = {p.relative_to(Path(spread.__file__).parent).as_posix() for p in Path(spread.__file__).parent.rglob("*.py")
+             if trio.search(p.read_text())}
+    assert found <= {"guidance/config.py"}, found
+    assert GuidanceConfig.weight_keys() == ("collision", "gravity", "relation")
+    weights = GuidanceConfig("paper", collision=0.5, terms={"box_iou": 0.2}).weights()
+    assert weights["collision"] == 0.5 and weights["box_iou"] == 0.2 and weights["gravity"] == 1e-3  # by name
+    assert set(weights) == set(term_names())  # every registered term: the built-ins are ordinary terms

@@ -40,8 +40,9 @@ def hydra_list(key: str, *items: str) -> str:
     return f"{key}=[" + ",".join(f'"{i}"' for i in items) + "]"
 
 
-def run_with_plugins(site: Path, name: str, *args: str, ok: bool = True) -> subprocess.CompletedProcess:
-    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONPATH": str(site), "OMP_NUM_THREADS": "1"}
+def run_with_plugins(site: Path, name: str, *args: str, ok: bool = True,
+                     wandb: str = "disabled") -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": wandb, "PYTHONPATH": str(site), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([str(SCRIPTS / name), *args], env=env, capture_output=True, text=True, timeout=900)
     if ok:
         assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
@@ -120,7 +121,119 @@ def test_a_plugin_guidance_term_is_switched_on_by_name_in_spread_sample(plugin_s
     moved = [not np.allclose(plain[k].translation, pushed[k].translation) for k in plain]
     assert any(moved)  # only the plugin term has a weight: it is what moved the objects
     record = json.loads((tmp_path / "pushed" / "sampling.json").read_text())
-    assert record["guidance"]["terms"] == {"floor_push": 0.5}
+    assert record["guidance"]["floor_push"] == 0.5 and record["guidance_label"] == "paper(floor_push=0.5)"
+
+
+# ---- a plugin's term is one more setting: tags, fingerprints, re-launches, tables, reports -----------------------
+
+#: A guided run whose only acting term is the plugin's, cheap to evaluate (GRecall only, no FID).
+PUSHED = ["guidance=refine", "guidance.collision=0", "guidance.gravity=0", "guidance.relation=0",
+          "guidance.iterations=1"]
+CHEAP_EVALUATION = ["evaluation.metrics=[grecall]", "evaluation.fid.enabled=false", "ray.num_cpus=1"]
+
+
+def wandb_tags(out: Path) -> list[str]:
+    """The tags of the wandb offline run under ``out/wandb`` (its ``.wandb`` log, decoded with wandb's protobuf)."""
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    from spread.experiments.runs import wandb_records
+
+    (log,) = out.glob("wandb/offline-run-*/run-*.wandb")
+    for raw in wandb_records(log):
+        record = pb.Record()
+        record.ParseFromString(raw)
+        if record.WhichOneof("record_type") == "run":
+            return list(record.run.tags)
+    raise AssertionError(f"{log}: no run record")
+
+
+def test_a_plugin_term_is_named_in_tags_and_fingerprints_and_a_changed_weight_redoes_the_run(plugin_site, dataset,
+                                                                                               checkpoint, tmp_path):
+    from mlflow import MlflowClient
+
+    from spread.runtime.fingerprint import short
+
+    out, uri = tmp_path / "pushed", f"sqlite:///{tmp_path / 'mlflow.db'}"
+    common = [f"ckpt={checkpoint}", f"data.root={dataset}", *FAST_SAMPLE, "seed=1", *PUSHED, "evaluate=true",
+              *CHEAP_EVALUATION, f"out_dir={out}"]
+    run_with_plugins(plugin_site, "spread-sample", *common, "+guidance.terms.floor_push=0.5",
+                     "logger=mlflow", "logger.name=wandb+mlflow", f"logger.tracking_uri={uri}", wandb="offline")
+    assert {"guidance", "guidance=refine", "floor_push=0.5"} <= set(wandb_tags(out))
+    run_id = json.loads((out / "mlflow_run.json").read_text())["run_id"]
+    tags = MlflowClient(tracking_uri=uri).get_run(run_id).data.tags
+    assert tags["spread.guidance.floor_push"] == "0.5" and "spread.guidance.collision" not in tags
+    assert tags["spread.guidance_label"] == "refine(floor_push=0.5,iterations=1)"
+    sampled, point = (json.loads((out / f).read_text()) for f in ("sampling.json", "point.json"))
+    assert sampled["fingerprint"]["guidance"]["floor_push"] == 0.5 == point["fingerprint"]["guidance"]["floor_push"]
+    first = point["short"]
+    # the plugin term's weight changed: sampled and evaluated again, and the records say why
+    changed = run_with_plugins(plugin_site, "spread-sample", *common, "+guidance.terms.floor_push=0.7", "logger=none")
+    assert "redone (changed: guidance.floor_push)" in changed.stdout
+    sampled, point = (json.loads((out / f).read_text()) for f in ("sampling.json", "point.json"))
+    assert sampled["redone_because"] == "changed: guidance.floor_push"
+    assert point["redone_because"] == "changed: guidance.floor_push" and point["status"] == "finished"
+    assert point["short"] != first and point["short"] == short(point["fingerprint"])
+
+
+def test_a_plugin_term_and_the_refinement_iterations_are_rows_of_the_sweep_and_the_report(plugin_site, dataset,
+                                                                                          checkpoint, tmp_path):
+    from spread.experiments.sweep import read_results_csv
+    from spread.experiments.tables import read_csv
+
+    sweep = tmp_path / "sweep"
+    args = [f"ckpt={checkpoint}", f"data.root={dataset}", "sampler.steps=4", "batch_size=2", "renders=0", "logger=none",
+            *PUSHED[:-1], *CHEAP_EVALUATION, "num_cpus=2", "max_concurrent=2", f"out_dir={sweep}"]
+    run_with_plugins(plugin_site, "spread-sweep", *args, "+guidance.terms.floor_push=0.3,0.6",
+                     "guidance.iterations=1,2")
+    rows = read_results_csv(sweep / "results.csv")
+    assert sorted((r["guidance.floor_push"], r["guidance.iterations"]) for r in rows) == [
+        (0.3, 1.0), (0.3, 2.0), (0.6, 1.0), (0.6, 2.0)]  # four identities, four rows
+    assert all(r["status"] == "ok" and r["reused"] == "False" for r in rows)
+    md = (sweep / "results.md").read_text()
+    assert "| guidance.floor_push | guidance.iterations |" in md and "sampler=ddim-4" in md  # as in spread-report
+    points = {p.name: json.loads((p / "point.json").read_text()) for p in (sweep / "points").iterdir()}
+    assert sorted((v["fingerprint"]["guidance"]["floor_push"], v["fingerprint"]["guidance"]["iterations"])
+                  for v in points.values()) == [(0.3, 1), (0.3, 2), (0.6, 1), (0.6, 2)]
+    # re-launched with one weight changed: its points are new work, the others re-used
+    run_with_plugins(plugin_site, "spread-sweep", *args, "+guidance.terms.floor_push=0.3,0.9",
+                     "guidance.iterations=1,2")
+    reused = {r["guidance.floor_push"]: r["reused"] for r in read_results_csv(sweep / "results.csv")}
+    assert reused == {0.3: "True", 0.9: "False"} and len(list((sweep / "points").iterdir())) == 6
+    # spread-report over the sweep: one row per run, each naming its plugin weight and its iterations
+    report = tmp_path / "report"
+    run_with_plugins(plugin_site, "spread-report", f"runs={sweep / 'points'}", f"out_dir={report}")
+    table = read_csv(report / "report.csv")
+    assert sorted((r["guidance.floor_push"], r["guidance.iterations"]) for r in table) == [
+        (0.3, 1), (0.3, 2), (0.6, 1), (0.6, 2), (0.9, 1), (0.9, 2)]
+    assert len({r["identity"] for r in table}) == 6
+    md = (report / "report.md").read_text()
+    assert "| guidance.floor_push | guidance.iterations |" in md and "guidance.mode=refine" in md
+    plots = sorted(p.name for p in (report / "plots").iterdir())
+    assert "grecall_vs_floor_push.png" in plots and "grecall_vs_iterations.png" in plots
+
+
+def test_spread_ablate_redoes_the_guidance_row_when_a_plugin_terms_weight_changes(plugin_site, dataset, checkpoint,
+                                                                                 tmp_path):
+    out = tmp_path / "ablate"
+
+    def ablate(weight: float):
+        run_with_plugins(plugin_site, "spread-ablate", f"data.root={dataset}", f"out_dir={out}", "variants=[guidance]",
+                         f"train.ckpt.geometry={checkpoint}", "recipe=null", "figures=false", "logger=none",
+                         "stages.max_concurrent=1",
+                         hydra_list("sample.overrides", "seed=0", *FAST_SAMPLE),
+                         hydra_list("sample.guidance", *PUSHED, f"+guidance.terms.floor_push={weight}"),
+                         hydra_list("evaluate.overrides", "seed=0", "logger=none", "metrics=[grecall]",
+                                    "fid.enabled=false", "renders=0", "ray.num_cpus=1", "progress=false"))
+        return json.loads((out / "ablation.json").read_text())["stages"]
+
+    first = ablate(0.5)
+    assert "redone_because" not in first["sample/guidance"]
+    assert first["sample/guidance"]["inputs"]["guidance"]["floor_push"] == 0.5
+    changed = ablate(0.7)
+    assert changed["sample/guidance"]["redone_because"] == "changed: guidance.floor_push"
+    assert changed["evaluate/guidance"]["redone_because"].startswith("changed: samples.fingerprint.guidance.floor_push")
+    sampled = json.loads((out / "samples" / "guidance" / "sampling.json").read_text())
+    assert sampled["fingerprint"]["guidance"]["floor_push"] == 0.7
 
 
 def test_a_plugin_method_is_a_row_of_spread_compare(plugin_site, dataset, tmp_path):

@@ -57,7 +57,7 @@ def test_a_point_is_reused_only_when_every_input_matches(point):
     point["ckpt"].write_bytes(b"weights-1")
     assert check_point(cfg(), out).reuse
     (point["data"] / "test" / "a.npz").write_bytes(b"scene-a, changed")
-    assert check_point(cfg(), out).reason == "changed: data"
+    assert check_point(cfg(), out).reason == "changed: data, evaluation.reference"  # the split is the reference too
 
 
 def test_a_redo_clears_the_stale_result_and_records_why(point):
@@ -92,6 +92,31 @@ def test_results_made_before_fingerprints_are_redone(point):
     decision = check_point(cfg(), out)
     assert not decision.reuse and decision.fresh and "no fingerprint" in decision.reason
     assert check_point(cfg(), out, resume=False).fresh
+
+
+def test_unguided_physcene_and_a_stronger_box_iou_have_three_fingerprints(point):
+    """The bug of issue 30: "guided" was decided from collision, gravity and relation only, so an unguided run,
+    guidance=physcene (box_iou 0.15, SPREAD's terms off) and box_iou 0.5 hashed the same."""
+    cfg = point["cfg"]
+    unguided, physcene = point_fingerprint(cfg("guidance=none")), point_fingerprint(cfg("guidance=physcene"))
+    stronger = point_fingerprint(cfg("guidance=physcene", "guidance.terms.box_iou=0.5"))
+    assert len({short(f) for f in (unguided, physcene, stronger)}) == 3
+    assert unguided["guidance"] is None and physcene["guidance"]["box_iou"] == 0.15
+    assert changed_keys(physcene, stronger) == ["guidance.box_iou"]
+
+
+def test_every_registered_terms_weight_is_part_of_the_fingerprint(point):
+    """Any one registered term's weight changed (built-in, PhyScene's; `terms.<name>` and the built-ins' own keys
+    alike) is a changed fingerprint naming that term, so the work is redone."""
+    from spread.guidance.terms import term_names
+
+    cfg = point["cfg"]
+    base = point_fingerprint(cfg("guidance=paper"))
+    for name in term_names():
+        changed = point_fingerprint(cfg("guidance=paper", f"+guidance.terms.{name}=0.25"))
+        assert changed_keys(base, changed) == [f"guidance.{name}"], name
+    alias = point_fingerprint(cfg("guidance=paper", "guidance.collision=0.25"))
+    assert alias == point_fingerprint(cfg("guidance=paper", "+guidance.terms.collision=0.25"))  # one setting
 
 
 def test_unguided_fingerprint_ignores_weights_and_guided_one_keeps_them(point):

@@ -187,7 +187,8 @@ def test_a_relaunch_with_another_protocol_is_redone_and_records_its_own_config(d
     evaluate(compose("evaluate", [*overrides, "protocol.stability_steps=50"]))
     assert "stability_steps: 50" in (out / ".hydra" / "config.yaml").read_text()
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["protocol"]["stability_steps"] == 50 and metrics["redone_because"] == "changed: stability_steps"
+    assert metrics["protocol"]["stability_steps"] == 50
+    assert metrics["redone_because"] == "changed: protocol.stability_steps"
 
 
 # ---- late and silent failures come early -------------------------------------------------------------------

@@ -66,8 +66,34 @@ def test_hydra_search_syntax_becomes_tune_distributions():
         parse_arguments(["ckpt=c", "data.root=/d", "guidance.collision=interval(0.0,0.03)", "out_dir=/x"])
     with pytest.raises(ValueError, match="out_dir is required"):
         parse_arguments(["ckpt=c", "data.root=/d"])
-    with pytest.raises(ValueError, match="search=bayes"):
+    with pytest.raises(ValueError, match="search=bayes: unknown sweep search 'bayes' .*grid, random, optuna"):
         SweepSettings(out_dir="/x", search="bayes")
+    with pytest.raises(ValueError, match="scheduler=hyperband: unknown trial scheduler 'hyperband' .*asha"):
+        SweepSettings(out_dir="/x", scheduler="hyperband")
+
+
+def test_searches_and_trial_schedulers_are_chosen_by_registered_name_or_target():
+    """A search or a trial scheduler is a registry entry (a plugin adds one) or any Ray Tune class by
+    ``module:Class``, built with the sweep's metric and mode."""
+    from ray.tune.schedulers import MedianStoppingRule
+    from ray.tune.search.optuna import OptunaSearch
+
+    from spread.experiments.tuning import SEARCHES, SearchSpec, search_spec, trial_scheduler_spec
+
+    settings = SweepSettings(out_dir="/x", search="ray.tune.search.optuna:OptunaSearch", metric="col_mesh", mode="min",
+                             scheduler="ray.tune.schedulers:MedianStoppingRule")
+    assert not settings.grid and isinstance(search_spec(settings.search).build(settings), OptunaSearch)
+    scheduler = trial_scheduler_spec(settings.scheduler).build(settings)
+    assert isinstance(scheduler, MedianStoppingRule) and scheduler._metric == "col_mesh"
+    SEARCHES.register("every_other", SearchSpec("every_other", None, grid=True, description="a plugin's grid"))
+    try:
+        plan = parse_arguments(["ckpt=c", "data.root=/d", "guidance.collision=0.0,0.1", "search=every_other",
+                                "out_dir=/x"])
+        assert plan.settings.grid and len(grid_points(plan)) == 2
+    finally:
+        SEARCHES.unregister("every_other")
+    with pytest.raises(ValueError, match="search=ray.tune.search:NoSuchSearch: .*AttributeError"):
+        SweepSettings(out_dir="/x", search="ray.tune.search:NoSuchSearch")
 
 
 def documented_lines(path: Path, command: str) -> list[list[str]]:
@@ -98,7 +124,23 @@ def test_results_table_marks_the_best_point_and_reads_back(tmp_path):
     assert [r["guidance.collision"] for r in back] == [0.0, 0.0075] and [r["best"] for r in back] == ["False", "True"]
     assert back[0]["grecall_lo"] == 0.4 and back[1]["grecall_lo"] is None
     md = md_path.read_text()
-    assert "| ★ | 0.0075 |" in md and "0.5000 ± 0.1000" in md and "Best: b (col_mesh = 0.1000)" in md
+    assert "| ★ | 0.0075 |" in md and "0.500 ± 0.100" in md and "Best: b (Col_mesh = 0.100)" in md
+
+
+def test_the_results_table_names_every_other_setting_that_differs_between_points(tmp_path):
+    """Two points alike in the swept key but recorded with other refinement iterations (their point.json
+    identities) are two rows, each naming its iterations; what every point shares is said once."""
+    plan = parse_arguments(["ckpt=c", "data.root=/d", "guidance=refine", "guidance.collision=0.0075,0.015",
+                            f"out_dir={tmp_path}"])
+    settings = {"guidance.mode": "refine", "guidance.collision": 0.0075, "sampler": "ddim-4"}
+    rows = [{"guidance.collision": 0.0075, "grecall": 0.5, "point": p, "status": "ok",
+             "settings": {**settings, "guidance.iterations": n}} for p, n in (("a", 1), ("b", 2))]
+    csv_path, md_path = write_results(rows, tmp_path, plan, mark_best(rows, "grecall", "max"))
+    assert [(r["guidance.collision"], r["guidance.iterations"]) for r in read_results_csv(csv_path)] == [
+        (0.0075, 1.0), (0.0075, 2.0)]
+    md = md_path.read_text()
+    assert "| guidance.collision | guidance.iterations |" in md and "Every point: guidance.mode=refine" in md
+    assert "sampler=ddim-4" in md
 
 
 # ---- slow: real points ---------------------------------------------------------------------------------------

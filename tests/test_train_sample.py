@@ -8,10 +8,7 @@ of a shrunken tiny model (a few steps) serve the whole module; torch runs on one
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +18,7 @@ import torch
 from spread.configs import conf_dir
 from spread.scene import list_scene_files, read_scene
 
-from helpers import (FAST_SAMPLE, FAST_TRAIN, QUIET, SCRIPTS, SMALL_MODEL, compose, make_dataset, run_script,
+from helpers import (FAST_SAMPLE, FAST_TRAIN, QUIET, SMALL_MODEL, compose, make_dataset, run_script,
                      sample_in_process, train_in_process)
 
 EXPERIMENTS = sorted(p.stem for p in (Path(conf_dir()) / "experiment").glob("*.yaml"))
@@ -263,11 +260,12 @@ def test_resume_skips_done_graphs_and_redoes_other_settings_from_scratch(dataset
     assert identical.written == [] and identical.manifest["redone_because"] is None
     other = sample_in_process(*args[:-1], "seed=6")  # another seed: every file made anew, and the record says why
     assert sorted(other.written) == sorted(p.stem for p in files)
-    assert other.manifest["redone_because"] == "changed: seed" and other.manifest["resumed"] == 0
-    assert other.manifest["fingerprint"]["seed"] == 6
+    assert other.manifest["redone_because"] == "changed: sampling.seed" and other.manifest["resumed"] == 0
+    assert other.manifest["fingerprint"]["sampling"]["seed"] == 6
     assert any(p.read_bytes() != before[p.name][0] for p in files), "another seed, other scenes"
     sampler = sample_in_process(*args[:-1], "seed=6", "sampler.steps=3")
-    assert sampler.manifest["redone_because"] == "changed: sampler.steps" and len(sampler.written) == len(files)
+    assert sampler.manifest["redone_because"] == "changed: sampling.sampler.steps"
+    assert len(sampler.written) == len(files)
     assert sample_in_process(*args[:-1], "seed=6", "sampler.steps=3").written == [], "identical: resumed"
 
 
@@ -363,17 +361,18 @@ def test_sample_rejects_an_unknown_guidance_mode(dataset, trained, tmp_path):
 
 def test_guided_sampling_by_config_records_guidance(dataset, trained, tmp_path):
     """``guidance=refine``: files name the guidance in their source, sampling.json pins the full config and the
-    guidance timings, and the scenes differ from unguided ones of the same seed; ``guidance=none`` keeps the
-    fingerprint of an unguided run (no guidance key)."""
+    guidance timings, and the scenes differ from unguided ones of the same seed; ``guidance=none`` records no
+    guidance (its weights change nothing)."""
     args = [f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", "renders=0"]
     plain = sample_in_process(*args, f"out_dir={tmp_path / 'plain'}", "guidance=none")
     guided = sample_in_process(*args, f"out_dir={tmp_path / 'guided'}", "guidance=refine",
                                "guidance.iterations=3", "guidance.collision=0.05")
-    assert "guidance" not in plain.manifest["fingerprint"]
+    assert plain.manifest["fingerprint"]["guidance"] is None and plain.manifest["guidance_label"] == "none"
     assert guided.manifest["fingerprint"]["guidance"]["mode"] == "refine"
     assert guided.manifest["fingerprint"]["guidance"]["iterations"] == 3
     assert guided.manifest["guidance_totals"]["iterations"] == 3 * guided.manifest["batches"]
-    assert "guidance=refine(c=0.05," in str(read_scene(guided.files[0]).extras["source"])
+    assert "guidance=refine(collision=0.05,gravity=0.001,relation=0.001,iterations=3)" in \
+        str(read_scene(guided.files[0]).extras["source"])
     moved = [np.abs(read_scene(a).translation - read_scene(b).translation).max()
              for a, b in zip(plain.files, guided.files)]
     assert max(moved) > 0

@@ -77,8 +77,8 @@ class Registry(Generic[T]):
     # ---- filling ----------------------------------------------------------------------------------------
     def register(self, name: str, entry: T, origin: str = "", replace: bool = False) -> T:
         """Add ``entry`` under ``name``; a second entry under one name is an error unless ``replace``."""
-        if not isinstance(name, str) or not name or not name.replace("_", "").replace("-", "").isalnum():
-            raise RegistryError(f"{self.kind} name {name!r}: use letters, digits, '_' or '-'")
+        if not isinstance(name, str) or not name or not name.replace("_", "").replace("-", "").replace("+", "").isalnum():
+            raise RegistryError(f"{self.kind} name {name!r}: use letters, digits, '_', '-' or '+'")
         if name in self._entries and not replace and self._entries[name] is not entry:
             raise RegistryError(f"{self.kind} '{name}' is registered twice ({self._origin.get(name) or 'built-in'} "
                                 f"and {origin or 'built-in'})")

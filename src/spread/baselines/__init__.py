@@ -41,8 +41,11 @@ def module_class(method: str):
 
 
 def checkpoint_method(hparams: dict) -> str:
-    """The method a checkpoint's hyperparameters belong to (no ``method`` key: SceneDiffusion)."""
-    return str(hparams.get("method") or "spread")
+    """The method a checkpoint's hyperparameters belong to (:func:`spread.safe_load.checkpoint_identity`: no
+    ``method`` key is SceneDiffusion)."""
+    from spread.safe_load import checkpoint_identity
+
+    return checkpoint_identity({"hyper_parameters": hparams})["method"]
 
 
 def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> None:

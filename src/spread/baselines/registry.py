@@ -7,9 +7,10 @@ samples (``sampling``: ``pipeline`` — the one denoising loop, :func:`spread.mo
 DiffuScene, InstructScene, the release's network) — or ``own``: the module's ``sample``, as ATISS's autoregressive
 loop), whether it sees the relation graph (GRecall is reported only then), which trained checkpoint it samples
 (``checkpoint``: PhyScene samples DiffuScene's), its own sampling overrides (``sample``: PhyScene's
-``guidance=physcene``) and its training recipes (``train``: the paper-size experiment's overrides,
-``train_quick``: the CPU one). ``spread-compare``,
-``spread-sample`` and checkpoint loading iterate :data:`METHODS`.
+``guidance=physcene``, SPREAD's ``guidance=refine``) and its training recipes (``train``: the paper-size
+experiment's overrides, ``train_quick``: the CPU one) — the one place they live: ``spread-compare`` takes each
+method's recipe from here (``recipe=full`` or ``quick``, :meth:`MethodSpec.recipe`) unless its config names a
+list for that method. ``spread-compare``, ``spread-sample`` and checkpoint loading iterate :data:`METHODS`.
 
 A baseline module registers itself (``METHODS.register`` at its end); another package adds a method through the
 entry-point group ``spread.methods`` naming a :class:`MethodSpec` (or a LightningModule class, which becomes a
@@ -47,6 +48,14 @@ class MethodSpec:
     def __post_init__(self):
         if self.sampling not in SAMPLING:
             raise RegistryError(f"method '{self.name}': sampling={self.sampling!r}, choose from {SAMPLING}")
+
+    def recipe(self, name: str = "full") -> tuple[str, ...]:
+        """The ``spread-train`` overrides of a training recipe: ``full`` (:attr:`train`) or ``quick``
+        (:attr:`train_quick`)."""
+        recipes = {"full": self.train, "quick": self.train_quick}
+        if name not in recipes:
+            raise RegistryError(f"method '{self.name}': recipe={name!r}, choose from {list(recipes)}")
+        return recipes[name]
 
     @property
     def trained_from(self) -> str:
@@ -91,7 +100,7 @@ def method_names() -> list[str]:
 register_method(MethodSpec(
     "spread", "spread.model.module:SceneDiffusion", label="SPREAD (ours)", note="the platform's SceneDiffusion",
     graph_conditioned=True, train=("experiment=geometry",), train_quick=("experiment=quick", "model.variant=geometry"),
-    order=50))
+    sample=("guidance=refine",), order=50))
 register_method(MethodSpec(
     "release", "spread.model.release_module:ReleaseDiffusion", label="SPREAD (authors' weights)",
     note="the release's network and checkpoint (spread-release-ckpt out=)", graph_conditioned=True,

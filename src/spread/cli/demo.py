@@ -29,17 +29,16 @@ from pathlib import Path
 
 from spread.io import read_json
 
-#: (metric key, label, scale, digits) of the printed table
-def rows(metrics: dict) -> list[tuple[str, str, float, int]]:
-    """(key, label, display scale, digits) of the table: the metrics the evaluation selected (the registry's
-    display), the still share, FID and KID."""
-    from spread.metrics.registry import METRICS, SET_METRICS, ordered
+
+def columns(metrics: dict) -> list:
+    """The table's rows, as the table writer's columns (:mod:`spread.experiments.tables`: display unit, digits, ±):
+    every value of the metrics the evaluation selected (Stability's still share too), FID and KID."""
+    from spread.experiments.tables import metric_column, set_columns
+    from spread.metrics.registry import METRICS, ordered
 
     names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
-    out = [(s.name, f"{s.label} {'↑' if s.higher_is_better else '↓'}", s.scale, s.digits)
-           for s in ordered(METRICS.get(n) for n in names)]
-    out.append(("still_fraction", "objects still (< 1 cm) ↑", 1.0, 3))
-    return out + [(s.name, f"{s.label} ↓ (vs val rooms)", s.scale, s.digits) for s in SET_METRICS]
+    values = [v for spec in ordered(METRICS.get(n) for n in names if n in METRICS) for v in spec.values]
+    return [metric_column(v) for v in values] + set_columns()
 
 
 def script(name: str) -> str:
@@ -63,23 +62,14 @@ def max_time(minutes: float) -> str:
     return f"00:{seconds // 3600:02d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def cell(metrics: dict, key: str, scale: float, digits: int) -> str:
-    """``value ± h`` (h: half the width of the metric's bootstrap interval in ``metrics.json``), or the value."""
-    value, lo, hi = metrics.get(key), metrics.get(f"{key}_lo"), metrics.get(f"{key}_hi")
-    if value is None:
-        return "–"
-    text = f"{scale * value:.{digits}f}"
-    return text if lo is None or hi is None else f"{text} ± {scale * (hi - lo) / 2:.{digits}f}"
-
-
 def comparison_table(truth: dict, generated: dict, title: str):
     from rich.table import Table
 
     table = Table(title=title)
     for column in ("metric", "ground truth", "generated"):
         table.add_column(column, justify="left" if column == "metric" else "right")
-    for key, label, scale, digits in rows(generated):
-        table.add_row(label, *(cell(m, key, scale, digits) for m in (truth, generated)))
+    for column in columns(generated):
+        table.add_row(column.label + column.arrow, *(column.cell(m) for m in (truth, generated)))
     table.add_row("scenes / objects", *(f"{m['n_scenes']} / {m['n_objects']}" for m in (truth, generated)))
     return table
 

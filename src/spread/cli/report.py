@@ -23,7 +23,8 @@ def main(cfg: DictConfig) -> None:
     from spread.experiments.commands import record_config
 
     try:
-        result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=[str(w) for w in cfg.weights],
+        weights = None if cfg.get("weights") is None else [str(w) for w in cfg.weights]
+        result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=weights,
                             metrics=None if cfg.metrics is None else [str(m) for m in cfg.metrics], title=str(cfg.title or ""))
     except (RunError, ValueError) as exc:
         raise SystemExit(f"spread-report: {exc}") from exc

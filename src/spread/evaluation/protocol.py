@@ -113,10 +113,7 @@ class EvalProtocol:
         ``stability_dt / stability_substeps`` seconds."""
         from spread.physics.engines import ENGINES
 
-        step = self.stability_dt / self.stability_substeps
-        if self.physics == "mujoco":
-            return ENGINES.get("mujoco").params(time_step=step, sleep=self.physics_sleep)
-        return ENGINES.get(self.physics).params(time_step=step)
+        return ENGINES.get(self.physics).params_for(self, self.stability_dt / self.stability_substeps)
 
     def build_metrics(self) -> dict:
         """Fresh torchmetrics aggregates of the selected :attr:`metrics`, by name, configured by this protocol

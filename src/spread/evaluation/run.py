@@ -19,7 +19,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -78,40 +77,26 @@ class EvaluationResult:
     out_dir: Path
 
 
-def measured_with(protocol: EvalProtocol, fid: FIDConfig, assets: str) -> dict:
-    """What a per-scene line depends on besides its scene file (whose sha256 each line carries): the protocol,
-    the FID settings, the asset library's index and :data:`spread.runtime.fingerprint.NUMBERS_VERSION`."""
-    from spread.runtime.fingerprint import NUMBERS_VERSION, file_digest
-
-    return {**protocol.fingerprint(fid), "assets_sha256": file_digest(Path(assets) / "index.json"),
-            "numbers_version": NUMBERS_VERSION}
-
-
-def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool,
-                   assets: str | None = None) -> str | None:
-    """Pin ``protocol.json`` (:func:`measured_with`); returns why the folder is redone from scratch (None: a
-    resume or a new folder): lines measured with anything else are deleted with the old ``metrics.json`` and
+def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool, assets: str) -> str | None:
+    """Pin ``protocol.json`` (:func:`spread.runtime.fingerprint.evaluation_identity`: what a per-scene line depends
+    on besides its scene file); returns why the folder is redone from scratch by the platform's done-check (None:
+    a resume or a new folder): lines measured with anything else are deleted with the old ``metrics.json`` and
     renders."""
-    from spread.runtime.fingerprint import changed_keys
+    from spread.runtime.fingerprint import done_check, evaluation_identity, normalised
 
     path = out / PROTOCOL
-    fingerprint = json.loads(json.dumps(measured_with(protocol, fid, assets) if assets is not None
-                                        else protocol.fingerprint(fid)))
-    reason = None
-    if resume and (out / PER_SCENE).exists():
-        try:
-            before = read_json(path)
-        except (OSError, ValueError):
-            before = None
-        if not isinstance(before, dict):
-            reason = f"its {PER_SCENE} has no readable {PROTOCOL}"
-        elif before != fingerprint:
-            reason = f"changed: {', '.join(changed_keys(before, fingerprint))}"
-    if reason is not None:
+    fingerprint = normalised(evaluation_identity(protocol, fid, assets))
+    try:
+        before = read_json(path)
+    except (OSError, ValueError):
+        before = None
+    decision = done_check(before, fingerprint, present=resume and (out / PER_SCENE).exists(),
+                          unknown=f"its {PER_SCENE} has no readable {PROTOCOL}")
+    if decision.fresh:
         for old in [out / PER_SCENE, out / METRICS, *(out / "renders").glob("*.png")]:
             old.unlink(missing_ok=True)
     write_json_atomic(path, fingerprint)
-    return reason
+    return decision.reason
 
 
 def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: str):

@@ -1,5 +1,6 @@
 """An evaluation on wandb (conventions: :mod:`spread.runtime.tracking`): its metrics as summary + one log
-step, a per-scene table whose first rows carry the top-down renders, and the renders themselves.
+step (as ``metrics.json`` has them), a per-scene table whose first rows carry the top-down renders (each value in
+its display unit, headed so: ``asd_mm``), and the renders themselves.
 :func:`log_metrics` also serves a sampling run evaluated in the same command (``spread-sample
 evaluate=true``). Offline by default; ``mode="disabled"`` writes nothing and opens no connection.
 """
@@ -10,11 +11,12 @@ from pathlib import Path
 
 def table_columns(metrics: dict) -> list[str]:
     """Per-scene table columns (besides ``scene_id`` and ``render``), as in ``per_scene.jsonl``: the object count,
-    every value of the metrics the evaluation selected (its protocol's ``metrics``), the error."""
+    every value (:attr:`~spread.metrics.registry.MetricSpec.values`) of the metrics the evaluation selected (its
+    protocol's ``metrics``), the error."""
     from spread.metrics.registry import METRICS
 
     names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
-    values = [v for n in names for v in ([n, "still_fraction"] if n == "stability" else [n])]
+    values = [v.name for n in names if n in METRICS for v in METRICS.get(n).values]
     return ["num_objects", *values, "error"]
 
 
@@ -35,12 +37,16 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
                 for k, v in scalar_metrics(values or {}).items()}  # the per-room-type breakdown
     run.log(scalars)
     run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
+    from spread.metrics.registry import value_spec
+
     by_name = {Path(p).stem: p for p in renders}
     columns = table_columns(metrics)
-    table = wandb.Table(columns=["scene_id", "render", *columns])
+    specs = [value_spec(c) for c in columns]  # each value in its display unit, headed so (asd_mm)
+    table = wandb.Table(columns=["scene_id", "render", *[c if s is None else s.key for c, s in zip(columns, specs)]])
     for r in records:
         image = wandb.Image(str(by_name[r["scene_id"]])) if r["scene_id"] in by_name else None
-        table.add_data(r["scene_id"], image, *[r.get(c) for c in columns])
+        table.add_data(r["scene_id"], image, *[r.get(c) if s is None or r.get(c) is None else s.display(r[c])
+                                               for c, s in zip(columns, specs)])
     # the table travels as a wandb artifact (staged in wandb's data dir until `wandb sync`); the renders
     # are also logged on their own, so the run folder under out_dir/wandb holds them
     run.log({"per_scene": table, "renders": [wandb.Image(str(p), caption=Path(p).stem) for p in renders]})

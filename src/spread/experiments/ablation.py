@@ -25,8 +25,12 @@ interval over scenes (:mod:`spread.experiments.intervals`); the CSV keeps the bo
 graphs with the same seed and are evaluated with the same protocol (one override list for all).
 
 **Resume.** Every output above is written atomically at the end of its command, so it exists only for a
-finished stage. ``out_dir/ablation.json`` (the ledger) records each finished stage's inputs: its overrides
-and what it was made from (checkpoint hash, the sampling fingerprint, the rows). A re-run skips a stage
+finished stage. ``out_dir/ablation.json`` (the ledger) records each finished stage's inputs: for a sampling
+stage the identity of the run its overrides compose to (:func:`spread.runtime.fingerprint.point_identity`:
+checkpoint hash, data content, sampler, seed, every acting guidance term's weight and setting, ...), for an
+evaluation stage the protocol's identity and the fingerprint of the scenes it reads, for data and training
+stages their overrides, for the table its rows. Whether a stage is done is decided by the platform's one
+done-check (:func:`spread.runtime.fingerprint.done_check`). A re-run skips a stage
 whose outputs exist and whose inputs are unchanged; a stage with missing outputs runs again and continues
 what is there (the commands resume themselves: training from ``last.ckpt``, sampling and evaluation skip
 finished scenes); a sampling or evaluation stage whose inputs changed (e.g. a retrained checkpoint) is
@@ -45,7 +49,6 @@ stages run before them, in this process or as their own processes through ``trai
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 import traceback
@@ -54,14 +57,15 @@ from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
 from spread.experiments.intervals import ci_columns, row_intervals, table_note
+from spread.guidance.config import GuidanceConfig
 from spread.experiments.tables import Column, columns_of, write_tables
-from spread.io import file_sha256, read_json, write_json_atomic
+from spread.io import read_json, write_json_atomic
 from spread.runtime.ray import RaySettings
 
 log = logging.getLogger("spread.ablate")
 
-#: One guidance term at a time (the other two weights 0): row name → the term kept.
-TERMS = {"guidance_collision": "collision", "guidance_gravity": "gravity", "guidance_relation": "relation"}
+#: One built-in guidance term at a time (the other built-in weights 0): row name → the term kept.
+TERMS = {f"guidance_{term}": term for term in GuidanceConfig.weight_keys()}
 VARIANTS = ("base", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.
 LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance",
@@ -217,37 +221,34 @@ class Ledger:
         write_json_atomic(self.path, self.data)
 
 
-def normalised(obj) -> dict:
-    """JSON round trip, so ledger entries and fresh inputs compare equal (tuples → lists, paths → str)."""
-    return json.loads(json.dumps(obj, default=str))
-
-
-def changed_keys(before: dict, now: dict) -> list[str]:
-    return sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
-
-
 def run_stage(stage: Stage, ledger: Ledger) -> str:
-    """Skip, continue, redo or refuse the stage (module docstring, *Resume*); returns "skipped" or "done"."""
+    """Skip, continue, redo or refuse the stage (module docstring, *Resume*) by the platform's done-check
+    (:func:`spread.runtime.fingerprint.done_check`); returns "skipped" or "done"."""
+    from spread.runtime.fingerprint import done_check, normalised
+
     inputs = normalised(stage.inputs)
     before = ledger.inputs(stage.name)
-    same = before is None or before == inputs
-    if same and stage.finished() and (before is not None or not stage.derived):
+    finished = stage.finished()
+    if before is None:  # outputs the ledger does not know: its command re-uses or redoes them by its own record
+        decision = done_check(inputs, inputs, present=True, finished=finished and not stage.derived)
+    else:
+        decision = done_check(before, inputs, present=True, finished=finished)
+    if decision.reuse:
         if before is None:
             ledger.record(stage.name, inputs, None)
         log.info("✓ %s: finished earlier (%s), skipped", stage.name, stage.folder)
         return "skipped"
-    if not same and not stage.derived:
-        raise StageError(f"{stage.folder}: made with other settings (changed: {changed_keys(before, inputs)}); "
+    if decision.fresh and not stage.derived:
+        raise StageError(f"{stage.folder}: made with other settings ({decision.reason}); "
                          f"delete that folder or use another out_dir")
-    reason = None if same else f"inputs changed: {', '.join(changed_keys(before, inputs))}"
-    if not same:
-        log.info("▶ %s: %s, redoing it from scratch", stage.name, reason)
+    if decision.fresh:
+        log.info("▶ %s: %s, redoing it from scratch", stage.name, decision.reason)
     started, started_at = time.perf_counter(), time.time()
-    stage.run(same)
+    stage.run(not decision.fresh)
     if not stage.finished():
         missing = [str(p) for p in stage.outputs if not p.exists()] or ["(incomplete outputs)"]
         raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
-    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), reason, started_at=started_at)
+    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), decision.reason, started_at=started_at)
     return "done"
 
 
@@ -267,22 +268,11 @@ def scenes_complete(folder: Path) -> bool:
     return len(list((folder / "scenes").glob("*.npz"))) >= int(manifest["samples"])
 
 
-def uses_actors(overrides: list[str]) -> bool:
-    """Whether ``spread-sample`` with ``overrides`` samples on Ray actors (``workers`` > 0); True when the
-    overrides do not compose (the command then fails by itself)."""
-    from spread.configs import compose
-
-    try:
-        return int(compose("sample", overrides).workers) > 0
-    except Exception:  # noqa: BLE001 - decided by the command, which names the error
-        return True
-
-
 def sampling_inputs(folder: Path) -> dict:
-    """What an evaluation depends on: the sampling fingerprint and the number of samples."""
+    """What an evaluation of a sampling run's scenes depends on: the fingerprint its ``sampling.json`` recorded
+    (:func:`spread.runtime.fingerprint.sampling_identity`) and the number of samples."""
     manifest = read_json(folder / "sampling.json")
-    return {"fingerprint": manifest.get("fingerprint"), "samples": manifest.get("samples"),
-            "guidance": manifest.get("guidance")}
+    return {"fingerprint": manifest.get("fingerprint"), "samples": manifest.get("samples")}
 
 
 class Ablation:
@@ -362,33 +352,42 @@ class Ablation:
         return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
 
     def sample_stage(self, variant: str) -> Stage:
+        from spread.configs import compose, to_object
+        from spread.runtime.fingerprint import point_identity
+
         folder, ckpt = self.sample_dir(variant), self.ckpt(self.checkpoint_of[variant])
         overrides = self.spec.named([*self.sample_lists(variant), f"ckpt={ckpt}", f"data.root={self.spec.dataset}",
                                      f"data.split={self.spec.split}", f"out_dir={folder}"])
+        command = to_object(compose("sample", overrides))  # parsed once: the stage's identity and how it samples
 
         def run(resume: bool) -> None:
             args = overrides + [f"resume={str(resume).lower()}"]
             log.info("  ≙ %s", command_line("spread-sample", args))
             self.commands.sample(args)
 
-        return Stage(f"sample/{variant}", folder, [folder / "sampling.json"],
-                     {"overrides": overrides, "ckpt_sha256": file_sha256(ckpt), **self.data_inputs()},
+        return Stage(f"sample/{variant}", folder, [folder / "sampling.json"], point_identity(command),
                      self.timed(f"sample/{variant}", run),
-                     complete=lambda: scenes_complete(folder), exclusive=uses_actors(overrides))
+                     complete=lambda: scenes_complete(folder), exclusive=int(command.workers) > 0)
 
     def evaluate_stage(self, variant: str) -> Stage:
+        from spread.configs import compose, to_object
+        from spread.runtime.fingerprint import evaluation_identity
+
         folder, samples = self.eval_dir(variant), self.sample_dir(variant)
         overrides = self.spec.named([*self.spec.evaluate, f"scenes={samples / 'scenes'}",
                                      f"reference={self.spec.dataset}", f"reference_split={self.spec.split}",
                                      f"out_dir={folder}"])
+        command = to_object(compose("evaluate", overrides))
 
         def run(resume: bool) -> None:
             args = overrides + [f"resume={str(resume).lower()}"]
             log.info("  ≙ %s", command_line("spread-evaluate", args))
             self.commands.evaluate(args)
 
-        return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"],
-                     {"overrides": overrides, "samples": sampling_inputs(samples), **self.data_inputs()}, run)
+        inputs = {"evaluation": evaluation_identity(command.protocol, command.fid, Path(command.reference) / "assets"),
+                  "reference_split": command.reference_split, "samples": sampling_inputs(samples),
+                  **self.data_inputs()}
+        return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"], inputs, run)
 
     def data_inputs(self) -> dict:
         """What a sample or evaluate stage depends on besides its overrides: the split's data content and the
@@ -422,8 +421,10 @@ class Ablation:
             return False
         if stage is None:
             return False
+        from spread.runtime.fingerprint import done_check
+
         before = self.ledger.inputs(stage.name)
-        return before is not None and before == normalised(stage.inputs) and stage.finished()
+        return before is not None and done_check(before, stage.inputs, present=True, finished=stage.finished()).reuse
 
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:
         """Build and run one stage unless a stage it needs failed; record the outcome; True when finished."""
@@ -452,16 +453,22 @@ class Ablation:
         return False
 
     def rows(self) -> list[dict]:
-        """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed)."""
+        """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed) and the row's
+        settings and identity (:func:`spread.experiments.runs.folder_identity`)."""
+        from spread.experiments.runs import folder_identity, identity_fields
+
         records = []
         for v in self.spec.variants:
             path = self.eval_dir(v) / "metrics.json"
             metrics = read_json(path) if self.status.get(f"evaluate/{v}") in ("done", "skipped") else {}
-            row = {"variant": v, "method": LABELS[v], **{c.key: metrics.get(c.key) for c in columns_of([metrics])}}
-            row.update({"still_fraction": metrics.get("still_fraction"), "n_scenes": metrics.get("n_scenes"),
-                        "n_objects": metrics.get("n_objects"), "fid_status": metrics.get("fid_status"),
+            row = {"variant": v, "method": LABELS[v],
+                   **{c.key: metrics.get(c.key) for c in columns_of([metrics], hidden=True)}}
+            row.update({"n_scenes": metrics.get("n_scenes"), "n_objects": metrics.get("n_objects"),
+                        "fid_status": metrics.get("fid_status"),
                         "status": "ok" if metrics else self.errors.get(f"evaluate/{v}", "not run")})
             row.update(ci_columns(row_intervals(metrics, self.eval_dir(v)) if metrics else {}))
+            if metrics:  # what the row's numbers were made with, as recorded beside them
+                row.update(identity_fields(folder_identity(self.eval_dir(v), metrics)))
             records.append(row)
         return records
 
@@ -534,20 +541,28 @@ def table_columns(records: Sequence[dict] = ()) -> list[Column]:
 def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                          figures: dict[str, str] | None = None) -> dict[str, Path]:
     """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold, ± the bootstrap interval) and ``.png`` (bars
-    per metric); ``figures`` (row or ``truth`` → PNG file name beside the table) are linked under the Markdown
-    table."""
+    per metric); every setting that differs between the rows is named per row (CSV columns, and a line per row
+    under the Markdown table); ``figures`` (row or ``truth`` → PNG file name beside the table) are linked under the
+    Markdown table."""
     from spread.experiments.plots import ablation_bars
+    from spread.experiments.runs import name_differences
 
+    records = [dict(r) for r in records]
+    differ = name_differences(records)
     caption = title or "Ablation: base, +geometry perceiver, +guidance (same test graphs, seeds and protocol)"
-    shown = ""
+    shown = "".join(f"\n\n**{r['method']}**: " + ", ".join(f"{k}={r.get(k)}" for k in differ) for r in records
+                    if differ)
+    shown = f"What differs between the rows:{shown}" if shown else ""
     if figures:
         labels = {"truth": "ground truth", **LABELS}
-        shown = "One test graph, row by row (3D view | relation matrix against the graph):" \
+        shown += ("\n\n" if shown else "") \
+            + "One test graph, row by row (3D view | relation matrix against the graph):" \
             + "".join(f"\n\n**{labels[k]}**\n\n![{labels[k]}]({name})" for k, name in figures.items())
     metrics = columns_of(records)
     paths = write_tables(records, table_columns(records), stem, caption=caption, label="tab:ablation",
-                         csv_keys=["variant", "method", *[c.key for c in metrics], "still_fraction", "n_scenes",
-                                   "n_objects", "fid_status", "status", "ci_level", "ci_resamples", "ci_seed"],
+                         csv_keys=["variant", "method", *differ, *[c.key for c in columns_of(records, hidden=True)],
+                                   "n_scenes", "n_objects", "fid_status", "status", "identity", "ci_level",
+                                   "ci_resamples", "ci_seed"],
                          note=table_note(records), md_extra=shown)
     ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}

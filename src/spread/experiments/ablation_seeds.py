@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 from spread.experiments.ablation import LABELS, AblationResult, AblationSpec, Commands, run_ablation
@@ -81,7 +81,7 @@ def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str 
 
     metrics = columns_of(rows)
     columns = [Column("method", "Method"),
-               *[SeedColumn(c.key, c.label, c.digits, c.better, c.latex, c.scale, c.bounds) for c in metrics]]
+               *[SeedColumn(**{f.name: getattr(c, f.name) for f in fields(c)}) for c in metrics]]
     caption = title or f"Ablation over training seeds {seeds}"
     note = (f"Each cell: mean ± sd across {len(seeds)} training seeds {seeds} (sample sd), then (± h): half the "
             "width of the 95 % bootstrap interval over scenes, averaged over the seeds.")

@@ -272,18 +272,21 @@ def scenes_lineage(scenes) -> dict:
 
 
 def print_evaluation_summary(metrics: dict, out_dir) -> None:
-    """The evaluation's console table: each metric, its 95 % bootstrap interval over scenes where it has one."""
+    """The evaluation's console table: each value of the evaluated metrics in its display unit (the table writer's
+    columns, :func:`spread.experiments.tables.metric_column`), its 95 % bootstrap interval over scenes where it has
+    one."""
     from rich.console import Console
     from rich.table import Table
 
     from spread.evaluation.bootstrap import interval_note
+    from spread.experiments.tables import metric_column, set_columns
 
     def fmt(v, digits=4):
         return "null" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
 
-    def interval(key, scale=1.0, digits=4):
-        lo, hi = metrics.get(f"{key}_lo"), metrics.get(f"{key}_hi")
-        return "" if lo is None or hi is None else f"[{scale * lo:.{digits}f}, {scale * hi:.{digits}f}]"
+    def interval(column, row):
+        lo, hi = row.get(f"{column.key}_lo"), row.get(f"{column.key}_hi")
+        return "" if lo is None or hi is None else f"[{column.format(lo)}, {column.format(hi)}]"
 
     level = (metrics.get("bootstrap") or {}).get("level")
     table = Table(title=f"evaluation {out_dir}")
@@ -291,14 +294,15 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
     table.add_column("value", justify="right")
     table.add_column(f"{level * 100:g} % interval" if level else "interval", justify="right")
     specs = evaluated_specs(metrics)
-    for spec in specs:
-        digits = max(spec.digits, 4) if spec.scale == 1 else spec.digits + 1
-        table.add_row(f"{spec.label} ({spec.description or spec.name}, {'↑' if spec.higher_is_better else '↓'})",
-                      fmt(spec.display(metrics.get(spec.name)), digits), interval(spec.name, spec.scale, digits))
-    if "still_fraction" in metrics:
-        table.add_row("still objects (share)", fmt(metrics["still_fraction"]), interval("still_fraction"))
-    table.add_row(f"FID ({metrics.get('fid_feature_model')}, ↓)", fmt(metrics["fid"], 2))
-    table.add_row("KID (↓)", fmt(metrics.get("kid")))
+    values = [v for spec in specs for v in spec.values if v.name in metrics]
+    for value in values:
+        column = metric_column(value)
+        arrow = "↑" if value.higher_is_better else "↓"
+        table.add_row(f"{value.label} ({value.description or value.name}, {arrow})",
+                      column.format(metrics.get(value.name)), interval(column, metrics))
+    fid, kid = set_columns()
+    table.add_row(f"{fid.label} ({metrics.get('fid_feature_model')}, ↓)", fid.format(metrics.get("fid")))
+    table.add_row(f"{kid.label} (↓)", kid.format(metrics.get("kid")))
     table.add_row("scenes / evaluated / failed",
                   f"{metrics['n_scenes']} / {metrics['n_evaluated']} / {metrics['n_failed']}")
     table.add_row("objects", str(metrics["n_objects"]))
@@ -307,11 +311,11 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
     console.print(table)
     if metrics.get("per_room_type"):
         by_type = Table(title="per room type")
-        for col in ("room type", "scenes", *[s.label for s in specs]):
+        columns = [metric_column(v) for v in values]
+        for col in ("room type", "scenes", *[c.label for c in columns]):
             by_type.add_column(col, justify="left" if col == "room type" else "right")
         for name, m in metrics["per_room_type"].items():
-            by_type.add_row(name, str(m["n_evaluated"]), *[fmt(s.display(m.get(s.name)), s.digits + (s.scale != 1))
-                                                          for s in specs])
+            by_type.add_row(name, str(m["n_evaluated"]), *[c.format(m.get(c.key)) for c in columns])
         console.print(by_type)
     note = interval_note(metrics.get("bootstrap"))
     if note:
@@ -369,13 +373,12 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     if command.evaluate:  # a sweep point: re-used only when its fingerprint matches (experiments.points)
         from spread.experiments.points import check_point, finish_point, start_point
 
-        point = check_point(cfg, command.out_dir, command.resume)
+        point = check_point(command, command.out_dir, command.resume)
         if point.reuse:
             print(f"{command.out_dir}: finished earlier with the same fingerprint, re-used")
             return None, None
-        if point.reason:
-            print(f"{command.out_dir}: redone from scratch ({point.reason})")
-        command.resume = command.resume and not point.fresh
+        if point.reason:  # sampling and evaluation then keep what their own fingerprints still match
+            print(f"{command.out_dir}: redone ({point.reason})")
         record = before_work
 
         def before_work():

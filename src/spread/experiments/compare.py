@@ -12,7 +12,7 @@ rules and in-process :class:`~spread.experiments.ablation.Commands`), over metho
 | ``table`` | — | ``table1.{md,csv,tex}`` (+ wandb Table) | the three files |
 
 ``physcene`` is DiffuScene's checkpoint sampled with PhyScene's guidance (``guidance=physcene``: the registered
-guidance term ``box_iou``; its sample overrides in ``sample.physcene``; no second training, no second checkpoint);
+guidance term ``box_iou``; its registered sampling overrides; no second training, no second checkpoint);
 ``spread`` is the platform's own SceneDiffusion (by default the ``geometry`` model sampled with guidance).
 Every method samples the split's graphs with one shared override list (``sample.overrides``: sampler, seed,
 samples per graph) plus its own (``sample.<m>``); every evaluation shares ``evaluate.overrides``. The ledger is
@@ -40,7 +40,7 @@ from spread.experiments.ablation import Ablation, AblationResult, Commands, Stag
 from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
-from spread.experiments.tables import Column, columns_of, write_tables
+from spread.experiments.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
 from spread.io import read_json, read_text_checked, write_json_atomic
 
 log = logging.getLogger("spread.compare")
@@ -200,6 +200,7 @@ class Comparison(Ablation):
 
     def rows(self) -> list[dict]:
         from spread.baselines import graph_conditioned
+        from spread.experiments.runs import folder_identity, identity_fields
 
         GRAPH_CONDITIONED = graph_conditioned()
         rooms = self.room_types()
@@ -212,8 +213,8 @@ class Comparison(Ablation):
             measured = metrics.get("grecall")
             row["grecall"] = measured if m in GRAPH_CONDITIONED else None
             row["grecall_measured"] = measured
-            for key in (*[c.key for c in columns_of([metrics], with_set=False) if c.key != "grecall"], "fid", "kid",
-                        "still_fraction", "n_scenes", "n_objects", "fid_status"):
+            for key in (*[c.key for c in columns_of([metrics], hidden=True) if c.key != "grecall"],
+                        "n_scenes", "n_objects", "fid_status"):
                 row[key] = metrics.get(key)
             if ok:
                 row.update(ci_columns(row_intervals(metrics, self.eval_dir(m))))
@@ -223,6 +224,8 @@ class Comparison(Ablation):
                                              lambda sid: rooms.get(suffix.sub("", sid)), ["col_mesh"],
                                              seed=protocol_seed(metrics)))
             row.update(self.budget(m))
+            if ok:  # what the row's numbers were made with, as recorded beside them
+                row.update(identity_fields(folder_identity(self.eval_dir(m), metrics)))
             row["status"] = "ok" if metrics else self.failure(m)
             records.append(row)
         return records
@@ -252,9 +255,9 @@ class Comparison(Ablation):
         manifest = self.sample_dir(method) / "sampling.json"
         if manifest.exists():
             data = read_json(manifest)
-            sampler = data.get("fingerprint", {}).get("sampler") or {}
-            out["sampler"] = "one pass per object" if method == "atiss" else f"{sampler.get('kind')}-{sampler.get('steps')}"
-            out["sampler"] += guidance_label(data.get("guidance"))
+            guidance = data.get("guidance_label") or "none"
+            out["sampler"] = "one pass per object" if method == "atiss" else str(data.get("sampler"))
+            out["sampler"] += "" if guidance == "none" else f" + guidance {guidance}"
             per_batch, batches, written = data.get("seconds_per_batch"), data.get("batches_run"), data.get("written_this_run")
             if per_batch is not None and written:
                 out["seconds_per_scene"] = per_batch * batches / written
@@ -265,14 +268,17 @@ class Comparison(Ablation):
         return out
 
     def columns(self, layout: str, records: list[dict]) -> list[Column]:
+        from dataclasses import replace
+
         time_col = Column("seconds_per_scene", "s / scene", 3, "min", r"s / scene$\downarrow$")
-        fid = [Column("fid", "FID", 2, "min", r"FID$\downarrow$"), Column("kid", "KID", 4, "min", r"KID$\downarrow$")]
         if layout == "threedfront":
             rooms = sorted({k.split("/", 1)[1] for r in records for k in r if k.startswith("col_mesh/")})
-            per_room = [Column(f"col_mesh/{room}", f"Col_mesh {room}", 3, "min",
-                               rf"Col$_{{\text{{mesh}}}}$ {room}$\downarrow$") for room in rooms]
-            return [Column("method", "Method"), *per_room, *fid, time_col]
-        return [Column("method", "Method"), *columns_of(records, with_set=False), *fid, time_col]
+            col_mesh = value_column("col_mesh")
+            latex = (col_mesh.latex or col_mesh.label).replace(r"\downarrow$", "$")
+            per_room = [replace(col_mesh, key=f"col_mesh/{room}", label=f"{col_mesh.label} {room}",
+                                latex=rf"{latex} {room}$\downarrow$") for room in rooms]
+            return [Column("method", "Method"), *per_room, *set_columns(), time_col]
+        return [Column("method", "Method"), *columns_of(records), time_col]
 
     def caption(self, records: list[dict]) -> str:
         parts = []
@@ -290,16 +296,20 @@ class Comparison(Ablation):
         layout = self.layout()
 
         def run(resume: bool) -> None:
-            columns = self.columns(layout, records)
-            keys = ["method_key", "method", "grecall", "grecall_measured", "col_mesh", "asd", "stability", "fid",
-                    "kid", "seconds_per_scene"]
+            from spread.experiments.runs import name_differences
+
+            rows = [dict(r) for r in records]
+            differ = name_differences(rows)  # every setting that differs between the rows, per row in the CSV
+            columns = self.columns(layout, rows)
+            keys = ["method_key", "method", *differ, "grecall", "grecall_measured",
+                    *[c.key for c in columns_of(records, hidden=True) if c.key != "grecall"], "seconds_per_scene"]
             keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
-            keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "still_fraction",
-                     "n_scenes", "n_objects", "fid_status", "status"]
-            write_tables(records, columns, stem, caption=self.caption(records), label="tab:table1", csv_keys=keys,
-                         note=table_note(records))
+            keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "n_scenes", "n_objects",
+                     "fid_status", "status", "identity"]
+            write_tables(rows, columns, stem, caption=self.caption(rows), label="tab:table1", csv_keys=keys,
+                         note=table_note(rows))
             if log_table is not None:
-                log_table(records, columns)
+                log_table(rows, columns)
 
         return Stage("table", self.out, outputs, {"rows": records, "layout": layout}, run)
 
@@ -324,17 +334,6 @@ class Comparison(Ablation):
                              round(time.perf_counter() - started, 3), self.layout())
 
 
-def guidance_label(guidance: dict | None) -> str:
-    """The caption's words for a row's guidance (its ``sampling.json`` guidance settings): `` + refine guidance``
-    for SPREAD's terms, `` + box_iou guidance`` for PhyScene's term; empty when unguided."""
-    if not guidance:
-        return ""
-    words = [f"{guidance.get('mode')} guidance"] if any(guidance.get(k) for k in ("collision", "gravity", "relation")) \
-        else []
-    words += [f"{name} guidance" for name, weight in (guidance.get("terms") or {}).items() if weight]
-    return "".join(f" + {w}" for w in words)
-
-
 def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> CompareResult:
     """Run (or resume) every stage of ``spec`` (module docstring) and write Table 1."""
     return Comparison(spec, commands).run(log_table)
@@ -352,9 +351,10 @@ def log_table1(records: list[dict], columns: list[Column], out_dir: str | Path, 
     keys = ["method_key", *[c.key for c in columns], "grecall_measured", "train_steps", "sampler", "status"]
     run = init_run(as_logger_config(logger), "compare", out_dir, config or {}, group=group, name=name)
     try:
-        table = wandb.Table(columns=keys)
-        for r in records:
-            table.add_data(*[r.get(k) for k in keys])
+        header, rows = display_rows(records, keys, columns)  # display units, headed as in the CSV (asd_mm)
+        table = wandb.Table(columns=header)
+        for row in rows:
+            table.add_data(*row)
         run.log({"table1": table})
         run.summary.update({f"{r['method_key']}/{c.key}": r.get(c.key) for r in records for c in columns
                             if c.key != "method"})

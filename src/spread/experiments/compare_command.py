@@ -14,12 +14,15 @@ from spread.experiments.ablation_command import run_stages_command, spec_fields,
 
 
 def compare_spec(cfg: DictConfig):
-    """The :class:`~spread.experiments.compare.CompareSpec` of a composed ``conf/compare.yaml``."""
+    """The :class:`~spread.experiments.compare.CompareSpec` of a composed ``conf/compare.yaml``: each method's
+    training and sampling overrides are its registered recipe (:meth:`~spread.baselines.registry.MethodSpec.recipe`,
+    ``recipe``; its ``sample``) unless the config names a list for it (``train.<m>``, ``sample.<m>``)."""
     from spread.experiments.compare import CompareSpec, registered, spec_of, trained_methods
 
+    recipe = str(cfg.get("recipe") or "full")
     return CompareSpec(
         **spec_fields(cfg, "compare"), methods=tuple(str(m) for m in cfg.methods),
-        train_method={m: strings(cfg.train.get(m)) if m in cfg.train else list(spec_of(m).train)
+        train_method={m: strings(cfg.train.get(m)) if m in cfg.train else list(spec_of(m).recipe(recipe))
                       for m in trained_methods()},
         sample_method={m: strings(cfg.sample.get(m)) if m in cfg.sample else list(spec_of(m).sample)
                        for m in registered()},

@@ -7,11 +7,11 @@ Sections, each drawn only when its runs have the data:
   order), one panel per curve (loss, validation loss and GRecall, learning rate, gradient norm), runs
   overlaid (:func:`training_curves`);
 * **table**: the report's table (one row per evaluated run, each metric ± its interval);
-* **metric vs weight**: each metric against each guidance weight that varies over the runs, every run a point
-  with its interval as an error bar and its name beside it; with no varying weight, each metric per run
-  (:func:`metric_plot`);
-* **parallel coordinates** over the runs (the varying weights, then the metrics; each axis from its min to its
-  max; :func:`parallel_coordinates`);
+* **metric vs setting**: each metric (in its display unit, ASD in mm) against each numeric setting that varies
+  over the runs, every run a point with its interval as an error bar and its name beside it; with no varying
+  setting, each metric per run (:func:`metric_plot`);
+* **parallel coordinates** over the runs (the varying settings, then the metrics in their display units; each
+  axis from its min to its max; :func:`parallel_coordinates`);
 * **per room type**: each run's ``per_room_type`` breakdown of ``metrics.json``;
 * **renders**: the same test graph as rendered by each run (the first render name the runs share).
 
@@ -32,13 +32,12 @@ import csv
 import glob
 import html
 import io
-import json
 import math
 from pathlib import Path
 from typing import Sequence
 
-from spread.experiments.plots import figure, number
-from spread.experiments.tables import Column
+from spread.experiments.plots import figure, number, shown
+from spread.experiments.tables import Column, html_table
 
 #: Training curves drawn, in this order (``lr-*`` stands for every learning-rate column).
 CURVES = ("train/loss", "val/loss", "val/grecall", "lr-*", "train/grad_norm")
@@ -146,13 +145,6 @@ def training_curves(runs: dict[str, dict]) -> tuple[str | None, list[str]]:
 
 # ---- evaluated runs ------------------------------------------------------------------------------------------
 
-def shown(column: Column, value) -> float | None:
-    """A stored value in the column's display unit (ASD: metres → mm, as its header says); None for a missing or
-    invalid one (not finite, outside the column's bounds: :meth:`~spread.experiments.tables.Column.valid`)."""
-    v = column.valid(value)
-    return None if v is None else v * column.scale
-
-
 def varying(records: Sequence[dict], key: str) -> bool:
     return len({number(r.get(key)) for r in records if number(r.get(key)) is not None}) > 1
 
@@ -188,39 +180,36 @@ def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> 
     return png(fig), points
 
 
-def parallel_coordinates(records: Sequence[dict], axes_keys: Sequence[str]) -> str | None:
-    """Base64 PNG: one line per run over ``axes_keys`` (each axis scaled from its min to its max, which are
-    written at its ends), coloured by the first metric's value; None with fewer than 2 runs or axes."""
-    keys = [k for k in axes_keys if any(number(r.get(k)) is not None for r in records)]
-    if len(records) < 2 or len(keys) < 2:
+def parallel_coordinates(records: Sequence[dict], axes: Sequence[Column]) -> str | None:
+    """Base64 PNG: one line per run over the columns ``axes`` (each in its display unit, scaled from its min to its
+    max, which are written at its ends), coloured by the last axis's value; None with fewer than 2 runs or axes."""
+    axes = [c for c in axes if any(shown(c, r.get(c.key)) is not None for r in records)]
+    if len(records) < 2 or len(axes) < 2:
         return None
-    bounds = {}
-    for k in keys:
-        values = [number(r.get(k)) for r in records if number(r.get(k)) is not None]
-        bounds[k] = (min(values), max(values))
-    fig, ax = figure(figsize=(1.6 * len(keys) + 1.5, 3.6))
+    values = {c.key: [shown(c, r.get(c.key)) for r in records] for c in axes}
+    bounds = {k: (min(v for v in vs if v is not None), max(v for v in vs if v is not None)) for k, vs in values.items()}
+    fig, ax = figure(figsize=(1.6 * len(axes) + 1.5, 3.6))
     from matplotlib import colormaps
 
     cmap = colormaps["viridis"]
-    colour_key = keys[-1] if len(keys) else None
-    for r in records:
+    colour = axes[-1]
+    for n in range(len(records)):
         ys = []
-        for k in keys:
-            v, (lo, hi) = number(r.get(k)), bounds[k]
+        for c in axes:
+            v, (lo, hi) = values[c.key][n], bounds[c.key]
             ys.append(math.nan if v is None else (0.5 if hi == lo else (v - lo) / (hi - lo)))
-        c = number(r.get(colour_key))
-        lo, hi = bounds[colour_key]
-        ax.plot(range(len(keys)), ys, "-o", ms=3, lw=1.2, alpha=0.8,
-                color=cmap(0.5 if c is None or hi == lo else (c - lo) / (hi - lo)))
-    for i, k in enumerate(keys):
+        v, (lo, hi) = values[colour.key][n], bounds[colour.key]
+        ax.plot(range(len(axes)), ys, "-o", ms=3, lw=1.2, alpha=0.8,
+                color=cmap(0.5 if v is None or hi == lo else (v - lo) / (hi - lo)))
+    for i, c in enumerate(axes):
         ax.axvline(i, color="#444", lw=0.8)
-        lo, hi = bounds[k]
+        lo, hi = bounds[c.key]
         ax.annotate(f"{hi:.3g}", (i, 1.0), xytext=(0, 4), textcoords="offset points", ha="center", fontsize=6)
         ax.annotate(f"{lo:.3g}", (i, 0.0), xytext=(0, -10), textcoords="offset points", ha="center", fontsize=6)
-    ax.set_xticks(range(len(keys)), [k.split(".")[-1] for k in keys], fontsize=7)
+    ax.set_xticks(range(len(axes)), [c.label.split(".")[-1] for c in axes], fontsize=7)
     ax.set_yticks([])
     ax.set_ylim(-0.12, 1.12)
-    ax.set_title(f"{len(records)} runs (colour: {colour_key})", fontsize=9)
+    ax.set_title(f"{len(records)} runs (colour: {colour.label})", fontsize=9)
     fig.tight_layout()
     return png(fig)
 
@@ -308,20 +297,6 @@ def img(data: str, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
-def table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(cell(v))}</td>" for v in row) + "</tr>" for row in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
-def cell(v) -> str:
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)
-
-
 STYLE = """body{font-family:system-ui,sans-serif;margin:1.5em;color:#222;max-width:1400px}
 h1{font-size:1.4em}h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}td,th{border:1px solid #ccc;padding:3px 7px;
@@ -344,24 +319,13 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         held["training_runs"], held["curves"] = len(runs), keys
         parts.append(f"<h2>Training curves ({len(runs)} runs)</h2>")
         parts.append(img(data, "training curves") if data else "<p>no logged curves</p>")
-        rows = [[name, *[(c.get(k) or [(None, None)])[-1][1] for k in keys],
-                 max((p[0] for v in c.values() for p in v), default=None)] for name, c in runs.items()]
-        parts.append(table(["run", *[f"last {k}" for k in keys], "last step"], rows))
+        rows = [{"run": name, "last_step": max((p[0] for v in c.values() for p in v), default=None),
+                 **{k: (c.get(k) or [(None, None)])[-1][1] for k in keys}} for name, c in runs.items()]
+        parts.append(html_table(rows, training_columns(keys)))
     if records:
         parts.append(f"<h2>Evaluated runs ({len(records)})</h2>")
-        header = ["run", *[w.split(".")[-1] for w in weights], *[c.label + c.arrow for c in columns], "scenes"]
-        rows = []
-        for r in records:
-            row = [r["run"], *[r.get(w) for w in weights]]
-            for c in columns:
-                v, lo, hi = (shown(c, r.get(k)) for k in (c.key, f"{c.key}_lo", f"{c.key}_hi"))
-                if v is None and r.get(c.key) is not None:  # there, but not a valid value: say so, never a number
-                    row.append(c.format(r.get(c.key)))
-                    continue
-                row.append(None if v is None else f"{v:.4g}" + (f" [{lo:.4g}, {hi:.4g}]" if lo is not None
-                                                                 and hi is not None else ""))
-            rows.append([*row, r.get("n_scenes")])
-        parts.append(table(header, rows))
+        parts.append(html_table(records, [Column("run", "run"), *[Column(w, w) for w in weights], *columns,
+                                          Column("n_scenes", "scenes")]))
         if note:
             parts.append(f'<p class="note">{html.escape(note)}</p>')
         varied = [w for w in weights if varying(records, w)]
@@ -373,20 +337,19 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
                     plots.append(f"<figure>{img(data, f'{c.key} vs {w}')}</figure>")
         held["metric_plots"] = len(plots)
         if plots:
-            parts.append("<h2>Metrics" + (" vs weights" if varied else " per run") + " (bars: intervals)</h2>")
+            against = " vs the settings that differ" if varied else " per run"
+            parts.append(f"<h2>Metrics{against} (bars: intervals)</h2>")
             parts.append('<div class="grid">' + "".join(plots) + "</div>")
-        parallel = parallel_coordinates(records, [*varied, *[c.key for c in columns]])
+        parallel = parallel_coordinates(records, [*[Column(w, w) for w in varied], *columns])
         held["parallel"] = parallel is not None
         if parallel:
             parts.append("<h2>Parallel coordinates</h2>" + img(parallel, "parallel coordinates"))
-        room_rows = []
-        for r in records:
-            for room, m in (metrics_of(r).get("per_room_type") or {}).items():
-                room_rows.append([r["run"], room, m.get("n_evaluated"), *[shown(c, m.get(c.key)) for c in columns]])
+        room_rows = [{**m, "run": r["run"], "room_type": room} for r in records
+                     for room, m in (metrics_of(r).get("per_room_type") or {}).items()]
         held["room_rows"] = len(room_rows)
         if room_rows:
-            parts.append("<h2>Per room type</h2>" + table(["run", "room type", "scenes",
-                                                            *[c.label + c.arrow for c in columns]], room_rows))
+            parts.append("<h2>Per room type</h2>" + html_table(room_rows, [
+                Column("run", "run"), Column("room_type", "room type"), Column("n_evaluated", "scenes"), *columns]))
         name, renders = render_grid(records, held["refused"])
         held["renders"] = len(renders)
         if renders:
@@ -406,6 +369,11 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
     return held
 
 
+def training_columns(keys: Sequence[str]) -> list[Column]:
+    """The training-runs table's columns: run, last step, each curve's last value."""
+    return [Column("run", "run"), Column("last_step", "last step", None), *[Column(k, f"last {k}", 4) for k in keys]]
+
+
 def training_rows(training: Sequence[Path]) -> tuple[list[str], list[dict]]:
     """(curve keys, one record per training run: ``run``, ``source``, ``last_step`` and each curve's last value)."""
     runs = {str(f): read_curves(f) for f in training}
@@ -421,8 +389,7 @@ def write_training_tables(training: Sequence[Path], stem: Path, append: bool) ->
     from spread.io import write_text_atomic
 
     keys, rows = training_rows(training)
-    columns = [Column("run", "run"), Column("last_step", "last step", None),
-               *[Column(k, f"last {k}", 4) for k in keys]]
+    columns = training_columns(keys)
     from spread.io import read_text_checked
 
     md = Path(stem).with_suffix(".md")

@@ -4,7 +4,9 @@
 * :func:`metric_vs_weight`: one metric against one guidance weight over a sweep's runs (every run a
   point; the line joins the mean at each weight value, i.e. the marginal effect over the other weights).
 
-Each function returns what it drew, so callers (and tests) can check the figure's data.
+Every value is drawn in its column's display unit (:meth:`~spread.experiments.tables.Column.display`: ASD in
+mm, as the axis label says). Each function returns what it drew, so callers (and tests) can check the figure's
+data.
 """
 
 from __future__ import annotations
@@ -44,12 +46,20 @@ def save(fig, path: str | Path, dpi: int = 110) -> Path:
     return Path(path)
 
 
-def error_bars(records: Sequence[dict], key: str, values: list) -> list[list[float]] | None:
-    """(below, above) error lengths per bar: the sd across seeds (``<key>_sd``) where rows have it, else the
-    bootstrap interval (``<key>_lo`` / ``<key>_hi``); None when no row has either."""
+def shown(column: Column, value) -> float | None:
+    """A stored value in the column's display unit (a finite float), or None for a missing or invalid one (not
+    finite, outside the column's bounds: :meth:`~spread.experiments.tables.Column.valid`)."""
+    v = column.valid(value)
+    return None if v is None else number(column.display(v))
+
+
+def error_bars(records: Sequence[dict], column: Column, values: list) -> list[list[float]] | None:
+    """(below, above) error lengths per bar, display units: the sd across seeds (``<key>_sd``) where rows have
+    it, else the bootstrap interval (``<key>_lo`` / ``<key>_hi``); None when no row has either."""
     below, above, found = [], [], False
+    key = column.key
     for r, v in zip(records, values):
-        sd, lo, hi = number(r.get(f"{key}_sd")), number(r.get(f"{key}_lo")), number(r.get(f"{key}_hi"))
+        sd, lo, hi = (shown(column, r.get(f"{key}_{b}")) for b in ("sd", "lo", "hi"))
         if v is not None and sd is not None:
             below.append(sd), above.append(sd)
             found = True
@@ -64,22 +74,23 @@ def error_bars(records: Sequence[dict], key: str, values: list) -> list[list[flo
 def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str | Path, label_key: str = "variant",
                   title: str = "") -> dict[str, list[float | None]]:
     """Bar plot: a panel per metric column, a bar per record (``n/a`` where the value is null), with error bars
-    (:func:`error_bars`). Returns metric key → the values drawn, in record order (``<key>:error``: the
-    [below, above] error lengths per bar, or None)."""
+    (:func:`error_bars`), in display units. Returns metric key → the values drawn, in record order
+    (``<key>:error``: the [below, above] error lengths per bar, or None)."""
     fig, axes = figure(1, len(columns), figsize=(2.6 * len(columns), 3.2), squeeze=False)
     names = [str(r.get(label_key)) for r in records]
     colours = ["#8c8c8c", "#4c72b0", "#dd8452", "#55a868", "#c44e52", "#8172b3", "#937860"]
     drawn = {}
     for ax, column in zip(axes[0], columns):
-        values = [number(r.get(column.key)) for r in records]
+        values = [shown(column, r.get(column.key)) for r in records]
         drawn[column.key] = values
         heights = [0.0 if v is None else v for v in values]
-        errors = error_bars(records, column.key, values)
+        errors = error_bars(records, column, values)
         bars = ax.bar(range(len(names)), heights, color=[colours[i % len(colours)] for i in range(len(names))],
                       yerr=errors, capsize=3 if errors is not None else 0, ecolor="#333333")
         drawn[f"{column.key}:error"] = None if errors is None else [list(e) for e in zip(*errors)]
         for bar, v in zip(bars, values):
-            ax.annotate("n/a" if v is None else column.format(v), (bar.get_x() + bar.get_width() / 2, bar.get_height()),
+            ax.annotate("n/a" if v is None else f"{v:.{column.digits or 3}f}",
+                        (bar.get_x() + bar.get_width() / 2, bar.get_height()),
                         ha="center", va="bottom", fontsize=7)
         if all(v is None for v in values):
             ax.set_ylim(0, 1)
@@ -95,22 +106,37 @@ def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str 
     return drawn
 
 
-def metric_vs_weight(records: Sequence[dict], metric: Column, weight: str, path: str | Path,
-                     note: str = "") -> list[tuple[float, float]]:
-    """Scatter of ``metric`` against ``weight`` over the records that have both (sorted by weight, then
-    value), with the per-weight mean joined by a line. Returns the points drawn."""
-    points = sorted((number(r.get(weight)), number(r.get(metric.key))) for r in records
-                    if number(r.get(weight)) is not None and number(r.get(metric.key)) is not None)
-    fig, ax = figure(figsize=(4.2, 3.2))
+def series(records: Sequence[dict], keys: Sequence[str]) -> dict[tuple, list[dict]]:
+    """The records grouped by their values of ``keys`` (runs alike in every other setting that differs), in
+    first-appearance order."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in records:
+        groups.setdefault(tuple(str(r.get(k)) for k in keys), []).append(r)
+    return groups
+
+
+def metric_vs_weight(records: Sequence[dict], metric: Column, weight: str, path: str | Path, note: str = "",
+                     others: Sequence[str] = ()) -> list[tuple[float, float]]:
+    """Scatter of ``metric`` (display unit) against the setting ``weight`` over the records that have both, one
+    line per series of runs alike in every setting of ``others`` (the other settings that differ: runs of other
+    identities are never averaged; repeated runs of one identity are, at their x). Returns the points drawn
+    (sorted by the setting, then value)."""
+    have = [r for r in records if number(r.get(weight)) is not None and shown(metric, r.get(metric.key)) is not None]
+    points = sorted((number(r.get(weight)), shown(metric, r.get(metric.key))) for r in have)
+    fig, ax = figure(figsize=(4.6, 3.4))
     if points:
-        ax.scatter([p[0] for p in points], [p[1] for p in points], s=18, alpha=0.6, label="runs")
-        by_weight = defaultdict(list)
-        for w, v in points:
-            by_weight[w].append(v)
-        xs = sorted(by_weight)
-        ax.plot(xs, [sum(by_weight[x]) / len(by_weight[x]) for x in xs], "-o", color="#c44e52", ms=4,
-                label="mean over the other weights")
-        ax.legend(fontsize=7)
+        others = [k for k in others if k != weight]
+        for n, (values, rows) in enumerate(series(have, others).items()):
+            by_x = defaultdict(list)
+            for r in rows:
+                by_x[number(r.get(weight))].append(shown(metric, r.get(metric.key)))
+            xs = sorted(by_x)
+            name = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in zip(others, values)) or "runs"
+            colour = f"C{n % 10}"
+            ax.scatter([x for x in xs for _ in by_x[x]], [v for x in xs for v in by_x[x]], s=18, alpha=0.6,
+                       color=colour)
+            ax.plot(xs, [sum(by_x[x]) / len(by_x[x]) for x in xs], "-o", color=colour, ms=4, label=name[:48])
+        ax.legend(fontsize=6)
     else:
         ax.text(0.5, 0.5, "no values" + (f"\n{note}" if note else ""), ha="center", va="center", fontsize=8,
                 transform=ax.transAxes, wrap=True)

@@ -1,15 +1,16 @@
 """Sweep points (``spread-sample evaluate=true`` run folders) re-used only when their fingerprint matches.
 
-``out_dir/point.json`` records the point's full fingerprint (:func:`spread.runtime.fingerprint.point_fingerprint`),
+``out_dir/point.json`` records the point's full fingerprint (:func:`spread.runtime.fingerprint.point_identity`),
 its short name, where it ran (:func:`~spread.runtime.fingerprint.run_tags`), its status (``running`` from the
 moment the work starts, ``finished`` once ``metrics.json`` is written) and, when the folder was redone, why.
-The decision (:func:`check_point`), for a run with ``evaluate=true``:
+The decision (:func:`check_point`, by the platform's one done-check :func:`spread.runtime.fingerprint.done_check`),
+for a run with ``evaluate=true``:
 
 | folder holds | decision |
 |---|---|
 | ``point.json`` with this fingerprint and an evaluation ``metrics.json`` | re-use (nothing runs) |
 | ``point.json`` with this fingerprint, not finished | resume (finished scenes and per-scene lines kept) |
-| ``point.json`` with another fingerprint | redo from scratch; ``redone_because`` names the changed keys |
+| ``point.json`` with another fingerprint | redo; ``redone_because`` names the changed keys (the old ``metrics.json`` goes; sampling and evaluation keep only the scenes and per-scene lines their own fingerprints still match) |
 | ``metrics.json`` but no ``point.json`` (made before fingerprints) | redo from scratch, with that reason |
 | nothing of a run | a fresh run |
 
@@ -20,7 +21,6 @@ run started with this fingerprint (a redo deletes the old one before any work), 
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,8 +32,8 @@ POINT = "point.json"
 
 @dataclass
 class PointDecision:
-    """reuse: the finished folder stands; fresh: redo from scratch (``reason`` says why, None for a new folder
-    or ``resume=false``); fingerprint: the full fingerprint of the config."""
+    """reuse: the finished folder stands; fresh: redo from scratch (``reason`` says why, None for a new folder);
+    fingerprint: the full fingerprint of the config."""
 
     reuse: bool
     fresh: bool
@@ -51,26 +51,20 @@ def read_point(out_dir) -> dict | None:
 
 
 def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
-    """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (module docstring)."""
+    """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (typed, or a composed ``DictConfig``;
+    module docstring)."""
     from spread.experiments.runs import is_finished_run
-    from spread.runtime.fingerprint import changed_keys, point_fingerprint
+    from spread.runtime.fingerprint import done_check, point_fingerprint
 
-    fingerprint = json.loads(json.dumps(point_fingerprint(cfg), default=str))
+    fingerprint = point_fingerprint(cfg)
     record = read_point(out_dir)
     finished = is_finished_run(out_dir)
-    if not resume:
-        return PointDecision(False, True, "resume=false" if finished or record else None, fingerprint)
-    if record is None:
-        if finished:
-            return PointDecision(False, True, "metrics.json has no fingerprint (made before fingerprints)",
-                                 fingerprint)
-        return PointDecision(False, False, None, fingerprint)
-    before = record.get("fingerprint") or {}
-    if before != fingerprint:
-        return PointDecision(False, True, f"changed: {', '.join(changed_keys(before, fingerprint))}", fingerprint)
-    if finished and record.get("status") != "finished":
+    decision = done_check(None if record is None else record.get("fingerprint") or {}, fingerprint,
+                          present=finished or record is not None, finished=finished, resume=resume,
+                          unknown="metrics.json has no fingerprint (made before fingerprints)")
+    if decision.reuse and record.get("status") != "finished":
         finish_point(out_dir)
-    return PointDecision(finished, False, None, fingerprint)
+    return PointDecision(decision.reuse, decision.fresh, decision.reason, fingerprint)
 
 
 def start_point(out_dir, decision: PointDecision) -> None:

@@ -2,17 +2,22 @@
 
 Writes into ``out_dir``:
 
-* ``report.md`` / ``report.csv``: one row per run (name, the guidance weights, GRecall, Col_mesh, ASD in
-  metres, Stability, FID, scene count, where it was read from), each metric with its 95 % bootstrap interval
-  over scenes (value ± half-width; :mod:`spread.experiments.intervals`); the CSV keeps full precision and the
-  bounds (``<metric>_lo``, ``<metric>_hi``) and the bootstrap's seed.
-* ``plots/<metric>_vs_<weight>.png``: each metric against each weight, every run a point, the mean per
-  weight value joined (:func:`spread.experiments.plots.metric_vs_weight`).
+* ``report.md`` / ``report.csv``: one row per run — its name, **every setting that differs between the runs**
+  (from each run's recorded identity, :mod:`spread.experiments.runs`: any guidance term's weight by its name,
+  ``guidance.iterations``, the sampler, the seed, the checkpoint, the protocol, ...), each metric in its display
+  unit (ASD in mm) with its 95 % bootstrap interval over scenes (value ± half-width;
+  :mod:`spread.experiments.intervals`), the scene count; under the table, the settings every run shares. Runs are
+  never averaged: two runs that differ in anything are two rows. The CSV keeps full precision, the bounds, the
+  bootstrap's seed and each run's ``identity`` (the digest of all its settings).
+* ``plots/<metric>_vs_<setting>.png``: each metric against each numeric setting that differs (or the ``weights``
+  asked for), every run a point, one line per series of runs alike in every other differing setting
+  (:func:`spread.experiments.plots.metric_vs_weight`).
 * ``report.html``: one self-contained page (:mod:`spread.experiments.html_report`): training curves of the
   training runs among ``runs``, the table, metric-vs-weight plots with interval bars and labelled points,
   parallel coordinates, per-room-type tables and a grid of the same test graph rendered by each run;
   ``training.csv`` (and a section of ``report.md``): each training run's last logged values.
-* ``report.json``: what was read, what was skipped (unfinished runs) and the plots with their points.
+* ``report.json``: what was read (each run's full settings), what was skipped (unfinished runs) and the plots
+  with their points.
 """
 
 from __future__ import annotations
@@ -27,82 +32,108 @@ from spread.experiments.runs import read_runs
 from spread.experiments.tables import Column, columns_of, metric_column, write_tables
 from spread.io import read_text_checked, write_json_atomic
 
-#: The guidance weights of DESIGN §5's sweeps, as config keys.
-WEIGHTS = ("guidance.collision", "guidance.gravity", "guidance.relation")
-
 
 @dataclass
 class ReportResult:
-    """records: one per run; plots: (metric, weight) → (png path, points drawn); tables: format → path;
-    unfinished: run folders without metrics.json that were skipped."""
+    """records: one per run; plots: (metric, setting) → (png path, points drawn); tables: format → path;
+    unfinished: run folders without metrics.json that were skipped; settings: the settings that differ (the
+    table's setting columns); shared: the settings every run has alike."""
 
     records: list[dict]
     plots: dict[tuple[str, str], tuple[Path, list]] = field(default_factory=dict)
     tables: dict[str, Path] = field(default_factory=dict)
     unfinished: list[Path] = field(default_factory=list)
     html: dict = field(default_factory=dict)
+    settings: list[str] = field(default_factory=list)
+    shared: dict = field(default_factory=dict)
 
 
-def report_columns(weights: Sequence[str], metrics: Sequence[Column]) -> list[Column]:
-    return [Column("run", "run"), *[Column(w, w.split(".")[-1], None) for w in weights], *metrics,
-            Column("n_scenes", "scenes", None)]
+def report_columns(settings: Sequence[str], metrics: Sequence[Column]) -> list[Column]:
+    return [Column("run", "run"), *[Column(k, k) for k in settings], *metrics, Column("n_scenes", "scenes", None)]
 
 
 def metric_columns(keys: Sequence[str] | None) -> list[Column]:
-    """The columns of the registered metrics (and FID, KID) named by ``keys`` (None: every registered metric and
+    """The columns of the registered values (and FID, KID) named by ``keys`` (None: every registered metric's and
     FID, KID), each in its display unit."""
-    from spread.metrics.registry import SET_METRICS, all_metrics, display_spec
+    from spread.metrics.registry import METRICS, display_values, value_spec
 
     if keys is None:
-        return [metric_column(s) for s in [*all_metrics(), *SET_METRICS]]
-    unknown = [k for k in keys if display_spec(k) is None]
+        return [metric_column(v) for v in display_values(METRICS.names()) if v.shown]
+    unknown = [k for k in keys if value_spec(k) is None]
     if unknown:
-        known = [s.name for s in [*all_metrics(), *SET_METRICS]]
+        known = [v.name for v in display_values(METRICS.names())]
         raise ValueError(f"metrics: unknown {unknown} (choose from {known})")
-    return [metric_column(display_spec(k)) for k in keys]
+    return [metric_column(value_spec(k)) for k in keys]
 
 
-def plot_name(metric: str, weight: str, weights: Sequence[str]) -> str:
-    short = weight.split(".")[-1]
-    if sum(w.split(".")[-1] == short for w in weights) > 1:
-        short = weight.replace(".", "_")
+def plot_name(metric: str, setting: str, settings: Sequence[str]) -> str:
+    short = setting.split(".")[-1]
+    if sum(w.split(".")[-1] == short for w in settings) > 1:
+        short = setting.replace(".", "_")
     return f"{metric}_vs_{short}.png"
 
 
-def run_report(runs, out_dir: str | Path, weights: Sequence[str] = WEIGHTS, metrics: Sequence[str] | None = None,
+def numeric(records: Sequence[dict], key: str) -> bool:
+    values = [r["settings"].get(key) for r in records if r["settings"].get(key) is not None]
+    return bool(values) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+
+
+def shared_settings(records: Sequence[dict], differ: Sequence[str]) -> dict:
+    """The settings every run has, alike (what the table does not repeat per row)."""
+    if not records:
+        return {}
+    first = records[0]["settings"]
+    return {k: v for k, v in first.items() if k not in differ and all(k in r["settings"] for r in records)}
+
+
+def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, metrics: Sequence[str] | None = None,
                title: str = "") -> ReportResult:
     """Read ``runs`` (paths, globs, sweep folders; :func:`~spread.experiments.runs.find_runs`) and write the
-    report (module docstring) into ``out_dir``."""
+    report (module docstring) into ``out_dir``; ``weights``: the settings plotted on the x axis (None: every
+    numeric setting that differs between the runs)."""
     from spread.experiments.html_report import training_folders, write_html, write_training_tables
+    from spread.experiments.runs import name_differences
 
     out = Path(out_dir)
     training, runs = training_folders([str(runs)] if isinstance(runs, (str, Path)) else [str(r) for r in runs])
-    records, unfinished = read_runs(runs, weights) if runs or not training else ([], [])
+    records, unfinished = read_runs(runs) if runs or not training else ([], [])
+    differ = name_differences(records)  # every differing setting named per run
+    axes = list(weights) if weights is not None else [k for k in differ if numeric(records, k)]
+    shown = [*differ, *[k for k in axes if k not in differ]]
+    for r in records:
+        r.update({k: r["settings"].get(k) for k in axes})
     columns = metric_columns(metrics) if metrics is not None else columns_of(records)
-    result = ReportResult(records, unfinished=unfinished)
+    shared = shared_settings(records, differ)
+    result = ReportResult(records, unfinished=unfinished, settings=shown, shared=shared)
+    same = ("Every run: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + ".") if shared else ""
     if records or not training:
-        result.tables = write_tables(records, report_columns(weights, columns), out / "report",
+        keys = ["run", *shown, *[c.key for c in columns], "n_scenes", "identity", "source", "kind"]
+        result.tables = write_tables(records, report_columns(shown, columns), out / "report",
                                      caption=title or f"{len(records)} runs", formats=("md", "csv"),
-                                     note=table_note(records))
+                                     note=table_note(records), md_extra=same,
+                                     csv_keys=list(dict.fromkeys([*keys, *[k for r in records for k in r
+                                                                           if k != "settings"]])))
     if training:
         result.tables |= write_training_tables(training, out / "report", append=bool(records))
     fid_notes = sorted({str(r.get("fid_status")) for r in records if r.get("fid") is None and r.get("fid_status")})
     for metric in columns if records else []:
-        for weight in weights:
-            path = out / "plots" / plot_name(metric.key, weight, weights)
+        for axis in axes:
+            path = out / "plots" / plot_name(metric.key, axis, axes)
             note = "; ".join(fid_notes)[:200] if metric.key == "fid" else ""
-            result.plots[(metric.key, weight)] = (path, metric_vs_weight(records, metric, weight, path, note))
+            result.plots[(metric.key, axis)] = (path, metric_vs_weight(records, metric, axis, path, note, differ))
     result.tables["html"] = out / "report.html"
     result.html = write_html(out / "report.html", title or f"spread-report: {len(records)} evaluated runs, "
-                             f"{len(training)} training runs", training, records, columns, weights,
-                             note=table_note(records) if records else "")
+                             f"{len(training)} training runs", training, records, columns, shown,
+                             note=" ".join(p for p in (table_note(records) if records else "", same) if p))
     write_json_atomic(out / "report.json", {
         "training_runs": [str(p) for p in training], "html": str(out / "report.html"),
-        "runs": [{"run": r["run"], "source": r["source"], "kind": r["kind"]} for r in records],
+        "runs": [{"run": r["run"], "source": r["source"], "kind": r["kind"], "identity": r["identity"],
+                  "settings": r["settings"]} for r in records],
+        "differing": shown, "shared": shared,
         "unfinished": [str(p) for p in unfinished],
         "refused": result.html.get("refused", []),
         "tables": {k: str(v) for k, v in result.tables.items()},
-        "plots": [{"metric": m, "weight": w, "png": str(p), "points": pts}
+        "plots": [{"metric": m, "setting": w, "png": str(p), "points": pts}
                   for (m, w), (p, pts) in result.plots.items()],
     })
     return result

@@ -1,10 +1,14 @@
 """Runs on disk → flat records: run folders (``metrics.json`` + config) and wandb offline runs (no network).
 
 A **run folder** (DESIGN §4) is a folder with an evaluation ``metrics.json`` (one that has ``col_mesh``):
-``spread-evaluate``'s out_dir, or a ``spread-sample evaluate=true`` out_dir. Its settings come from
-``.hydra/config.yaml`` (the composed config) and, where that lacks a key, ``sampling.json`` (its
-``guidance`` record, then its ``fingerprint``). A record carries each metric's confidence interval
-(:mod:`spread.experiments.intervals`: from ``metrics.json``, or bootstrapped from ``per_scene.jsonl``).
+``spread-evaluate``'s out_dir, or a ``spread-sample evaluate=true`` out_dir. Its **identity** is what its numbers
+were made with, as recorded beside them (:mod:`spread.runtime.fingerprint`): ``point.json``'s fingerprint, else the
+``sampling.json`` fingerprint of the scenes (its own, or the sampling run's whose scenes it evaluated) with the
+evaluation's ``protocol.json``, else what ``.hydra/config.yaml`` (the composed config) gives. A record carries its
+flat :func:`~spread.runtime.fingerprint.settings` (``settings``: every guidance term's weight by name,
+``guidance.iterations``, the sampler, the protocol, ...), ``identity`` (their short digest: runs alike in
+everything share it) and each metric's value and confidence interval (:mod:`spread.experiments.intervals`: from
+``metrics.json``, or bootstrapped from ``per_scene.jsonl``).
 
 A **wandb offline run** is a ``wandb/offline-run-<time>-<id>`` folder. wandb ≥ 0.2x keeps an offline run
 only in ``run-<id>.wandb``: a LevelDB-style log (7-byte file header, 32 KiB blocks, records of
@@ -28,15 +32,24 @@ from spread.experiments.intervals import ci_columns, row_intervals
 from spread.experiments.tables import CI_SETTINGS
 from spread.io import read_bytes_checked, read_json_object, read_text_checked
 
-#: ``metrics.json`` keys copied into a record besides every registered metric's (:func:`record_metrics`).
-RECORD_EXTRAS = ("fid", "kid", "still_fraction", "n_scenes", "n_objects", "n_failed", "fid_status")
+#: ``metrics.json`` keys copied into a record besides every registered value's (:func:`record_metrics`).
+RECORD_EXTRAS = ("n_scenes", "n_objects", "n_failed", "fid_status")
 
 
 def record_metrics() -> list[str]:
-    """The ``metrics.json`` keys a run record copies: every registered metric (plugins too), then the extras."""
+    """The ``metrics.json`` keys a run record copies: every registered value (plugins' too; Stability's
+    ``still_fraction``), FID, KID, then the extras."""
+    from spread.metrics.registry import display_values, METRICS
+
+    return [*[v.name for v in display_values(METRICS.names())], *RECORD_EXTRAS]
+
+
+def metric_names() -> list[str]:
     from spread.metrics.registry import METRICS
 
-    return [*METRICS.names(), *RECORD_EXTRAS]
+    return METRICS.names()
+
+
 #: Markers of a run folder that has not finished (no ``metrics.json`` yet).
 UNFINISHED_MARKERS = ("sampling.json", "scenes", "per_scene.jsonl", "protocol.json")
 WANDB_BLOCK = 32768
@@ -64,7 +77,7 @@ def is_evaluation(metrics: dict) -> bool:
     it selected."""
     if not isinstance(metrics, dict):
         return False
-    return "n_evaluated" in metrics or any(k in metrics for k in record_metrics()[:-len(RECORD_EXTRAS)])
+    return "n_evaluated" in metrics or any(k in metrics for k in metric_names())
 
 
 def is_eval_metrics(path: Path) -> bool:
@@ -88,7 +101,7 @@ def is_wandb_run(path: Path) -> bool:
 def is_eval_wandb_run(path: Path) -> bool:
     """A wandb run folder whose summary holds evaluation metrics (not a training or ablation run)."""
     try:
-        read_wandb_run(path, ())
+        read_wandb_run(path)
         return True
     except (RunError, OSError, ValueError):
         return False
@@ -100,8 +113,8 @@ def is_unfinished_run(path: Path) -> bool:
 
 # ---- run folders ---------------------------------------------------------------------------------
 
-def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
-    """One record of a run folder: name, source, ``weights`` (dotted config keys) and the metrics."""
+def read_run_folder(path: str | Path) -> dict:
+    """One record of a run folder: name, source, its settings and identity (module docstring) and the metrics."""
     path = Path(path)
     metrics_path = path / "metrics.json"
     if not metrics_path.exists():
@@ -109,21 +122,64 @@ def read_run_folder(path: str | Path, weights: Iterable[str]) -> dict:
     metrics = read_json_object(metrics_path, RunError)
     if not is_evaluation(metrics):
         raise RunError(f"{metrics_path}: not an evaluation metrics.json (no registered metric and no 'n_evaluated')")
-    configs = []
+    record = {"run": path.name, "source": str(path), "kind": "folder",
+              **identity_fields(folder_identity(path, metrics))}
+    record.update({k: metrics.get(k) for k in record_metrics()})
+    record.update(ci_columns(row_intervals(metrics, path)))
+    return record
+
+
+def identity_fields(identity: dict) -> dict:
+    """A record's ``settings`` (flat, :func:`spread.runtime.fingerprint.settings`) and ``identity`` (their digest)."""
+    from spread.runtime.fingerprint import settings, short
+
+    flat = settings(identity)
+    return {"settings": flat, "identity": short(flat)}
+
+
+def folder_identity(path: Path, metrics: dict) -> dict:
+    """What a run folder's numbers were made with, as recorded beside them (module docstring)."""
+    from spread.runtime.fingerprint import config_identity
+
+    point = optional_json(path / "point.json")
+    if isinstance(point.get("fingerprint"), dict):
+        return point["fingerprint"]
+    identity: dict = {}
     hydra = path / ".hydra" / "config.yaml"
     if hydra.exists():
         from omegaconf import OmegaConf
 
-        configs.append(OmegaConf.to_container(OmegaConf.create(read_text_checked(hydra)), resolve=False))
+        identity |= config_identity(OmegaConf.to_container(OmegaConf.create(read_text_checked(hydra)), resolve=False))
     for sampling in sampling_manifests(path, metrics):
         manifest = read_json_object(sampling, RunError)
-        configs += [manifest, manifest.get("fingerprint") or {}]
-    record = {"run": path.name, "source": str(path), "kind": "folder"}
-    for key in weights:
-        record[key] = first_number(configs, key)
-    record.update({k: metrics.get(k) for k in record_metrics()})
-    record.update(ci_columns(row_intervals(metrics, path)))
-    return record
+        if isinstance(manifest.get("fingerprint"), dict) and "sampling" in manifest["fingerprint"]:
+            identity |= manifest["fingerprint"]
+        elif "guidance" in manifest and "guidance" not in identity:
+            identity |= config_identity({"guidance": manifest["guidance"] or "none"})
+    protocol = optional_json(path / "protocol.json")
+    if isinstance(protocol.get("protocol"), dict):
+        identity["evaluation"] = protocol
+    return identity
+
+
+def name_differences(records: list[dict], exclude=()) -> list[str]:
+    """The settings that differ between ``records`` (their ``settings``, :func:`identity_fields`; ``exclude``: keys
+    named otherwise), each copied into every record as a field of its own, so a table names them per run;
+    returns their keys."""
+    from spread.runtime.fingerprint import differing
+
+    differ = [k for k in differing([r.get("settings") or {} for r in records]) if k not in exclude]
+    for r in records:
+        r.update({k: (r.get("settings") or {}).get(k) for k in differ})
+    return differ
+
+
+def optional_json(path: Path) -> dict:
+    """A JSON object file (read through :func:`spread.io.read_json_object`: a FIFO, device or oversized file is a
+    :class:`RunError` naming it), or {} when it is missing."""
+    if not path.exists() and not path.is_symlink():
+        return {}
+    return read_json_object(path, RunError)
 
 
 def sampling_manifests(path: Path, metrics: dict) -> list[Path]:
@@ -133,21 +189,6 @@ def sampling_manifests(path: Path, metrics: dict) -> list[Path]:
     if metrics.get("scenes"):
         found.append(Path(str(metrics["scenes"])).parent / "sampling.json")
     return [p for p in found if p.exists()]
-
-
-def first_number(configs: list, key: str):
-    """The first value of ``key`` found in ``configs`` (dotted path; ``guidance.x`` also as ``x`` under a
-    ``guidance`` record); numbers as float. A guidance weight of a run sampled without guidance
-    (``guidance.mode: none``) is 0: the config's default weight was never applied."""
-    if key.startswith("guidance.") and key != "guidance.mode" and first_number(configs, "guidance.mode") == "none":
-        return 0.0
-    for config in configs:
-        value = select(config, key)
-        if value is None and "." in key:  # sampling.json may hold {"guidance": {...}} or the dict itself
-            value = select(config.get(key.split(".")[0]) if isinstance(config, dict) else None, key.split(".", 1)[1])
-        if value is not None:
-            return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
-    return None
 
 
 # ---- wandb offline runs --------------------------------------------------------------------------
@@ -217,8 +258,8 @@ def read_wandb_file(path: Path) -> dict:
     return run
 
 
-def read_wandb_run(path: str | Path, weights: Iterable[str]) -> dict:
-    """One record of a wandb offline run folder (config values ``weights``, summary metrics)."""
+def read_wandb_run(path: str | Path) -> dict:
+    """One record of a wandb offline run folder (settings of its config, summary metrics)."""
     path = Path(path)
     files = path / "files"
     if (files / "wandb-summary.json").exists():  # older wandb: plain files
@@ -235,11 +276,12 @@ def read_wandb_run(path: str | Path, weights: Iterable[str]) -> dict:
             raise RunError(f"{path}: no .wandb file and no files/wandb-summary.json (not a wandb run folder)")
         run = read_wandb_file(found[0])
     summary = run["summary"]
-    if not any(k in summary for k in record_metrics()[:-len(RECORD_EXTRAS)]):
+    if not any(k in summary for k in metric_names()):
         raise RunError(f"{path}: the wandb run has no registered metric in its summary (not an evaluation run)")
-    record = {"run": run.get("name") or run["id"], "source": str(path), "kind": "wandb"}
-    for key in weights:
-        record[key] = first_number([run["config"]], key)
+    from spread.runtime.fingerprint import config_identity
+
+    record = {"run": run.get("name") or run["id"], "source": str(path), "kind": "wandb",
+              **identity_fields(config_identity(run["config"]))}
     record.update({k: summary.get(k) for k in record_metrics()})
     bounds = [f"{m}_{b}" for m in record_metrics() for b in ("lo", "hi")]
     record.update({k: summary.get(k) for k in (*bounds, *CI_SETTINGS) if k in summary})
@@ -312,15 +354,26 @@ def find_runs(entries: str | Iterable[str]) -> tuple[list[tuple[str, Path]], lis
     return unique, unfinished
 
 
-def read_runs(entries, weights: Iterable[str]) -> tuple[list[dict], list[Path]]:
-    """Records of every run :func:`find_runs` lists (sorted by weights, then name), and the unfinished folders."""
-    weights = list(weights)
+def read_runs(entries) -> tuple[list[dict], list[Path]]:
+    """Records of every run :func:`find_runs` lists (sorted by the settings that differ between them, then
+    name), and the unfinished folders."""
+    from spread.runtime.fingerprint import differing
+
     found, unfinished = find_runs(entries)
-    records = [read_run_folder(p, weights) if kind == "folder" else read_wandb_run(p, weights) for kind, p in found]
+    records = [read_run_folder(p) if kind == "folder" else read_wandb_run(p) for kind, p in found]
     names = [r["run"] for r in records]
     for r in records:  # two runs with one name (e.g. two sweeps): name them by their path
         if names.count(r["run"]) > 1:
             r["run"] = r["source"]
-    records.sort(key=lambda r: (tuple((r.get(w) is None, r.get(w) if isinstance(r.get(w), float) else 0.0)
-                                      for w in weights), r["run"]))
+    differ = differing([r["settings"] for r in records])
+    records.sort(key=lambda r: (*[sort_key(r["settings"].get(k)) for k in differ], r["run"]))
     return records, unfinished
+
+
+def sort_key(value) -> tuple:
+    """Orders a column of settings: numbers by value, then text, missing last."""
+    if value is None:
+        return (2, 0.0, "")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return (0, float(value), "")
+    return (1, 0.0, str(value))

@@ -6,8 +6,9 @@ command line is ``spread-sample``'s (or ``spread-train``'s) plus the keys of ``c
 
 * fixed overrides (``ckpt=... data.root=...``) go to every trial;
 * Hydra's sweep syntax makes the search space: a comma list or ``choice(a,b)`` / ``range(0,10,2)`` → a grid
-  (``search=grid``, every combination) or a categorical dimension (``search=random`` / ``optuna``);
-  ``interval(a,b)`` → a uniform dimension (random or Optuna TPE only); a preset's ``hydra.sweeper.params``
+  (``search=grid``, every combination) or a categorical dimension (``search=random`` / ``optuna`` / any other
+  search by registered name or ``module:Class``, :mod:`spread.experiments.tuning`); ``interval(a,b)`` → a
+  uniform dimension (searches that draw only); a preset's ``hydra.sweeper.params``
   (``+sweep=guidance_grid``) count as if written on the command line, unless the key is given there.
 
 Each trial's run folder is ``out_dir/points/<values>_<short fingerprint>`` and it is re-used only when its
@@ -25,8 +26,9 @@ a second trial in the process reads none of them again) and each Ray worker's pe
 library, convex parts, physics worlds, FID reference features) stay warm. A row's ``startup_seconds`` is its
 sampling's time to the first batch, ``trial_pid`` the trial process.
 
-**Training sweeps** (``command=train``): each trial trains into its point folder; with ``scheduler=asha`` a
-Lightning callback reports every validation to Tune and ASHA stops the worst trials early.
+**Training sweeps** (``command=train``): each trial trains into its point folder; with a trial scheduler
+(``scheduler=asha``, or another by name, :mod:`spread.experiments.tuning`) a Lightning callback reports every
+validation to Tune and the scheduler stops the worst trials early.
 """
 
 from __future__ import annotations
@@ -42,7 +44,6 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 COMMANDS = ("sample", "train")
-SEARCHES = ("grid", "random", "optuna")
 #: prepended to every sampling trial (the command line may override them)
 SAMPLE_DEFAULTS = ["workers=0", "progress=false", "figures=0", "evaluate=true"]
 TRAIN_DEFAULTS = ["trainer.enable_progress_bar=false"]
@@ -75,12 +76,26 @@ class SweepSettings:
             raise ValueError("spread-sweep: out_dir is required (the sweep folder)")
         if self.command not in COMMANDS:
             raise ValueError(f"spread-sweep: command={self.command}: choose from {COMMANDS}")
-        if self.search not in SEARCHES:
-            raise ValueError(f"spread-sweep: search={self.search}: choose from {SEARCHES}")
+        from spread.experiments.tuning import search_spec, trial_scheduler_spec
+
+        try:
+            search_spec(self.search)  # a registered name or "module:Class"; else an error naming the known ones
+        except ValueError as exc:
+            raise ValueError(f"spread-sweep: search={self.search}: {exc}") from exc
+        try:
+            if self.scheduler is not None:
+                trial_scheduler_spec(self.scheduler)
+        except ValueError as exc:
+            raise ValueError(f"spread-sweep: scheduler={self.scheduler}: {exc}") from exc
         if self.mode not in ("min", "max"):
             raise ValueError(f"spread-sweep: mode={self.mode}: min or max")
-        if self.scheduler not in (None, "asha"):
-            raise ValueError(f"spread-sweep: scheduler={self.scheduler}: null or asha")
+
+    @property
+    def grid(self) -> bool:
+        """The search runs every combination once (:mod:`spread.experiments.tuning`)."""
+        from spread.experiments.tuning import search_spec
+
+        return search_spec(self.search).grid
         if int(self.max_concurrent) < 1:
             raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: at least 1")
         if isinstance(self.num_samples, bool) or not isinstance(self.num_samples, int) or self.num_samples < 1:
@@ -165,9 +180,10 @@ def parse_arguments(argv: list[str]) -> SweepPlan:
             swept[key] = dimension(parser.parse_overrides([f"{key}={values}"])[0])
     dims = list(swept.values())
     check_dimensions(dims)
-    if sweep_settings.search == "grid" and any(d.values is None for d in dims):
+    if sweep_settings.grid and any(d.values is None for d in dims):
         bad = [d.key for d in dims if d.values is None]
-        raise ValueError(f"spread-sweep: interval() on {bad} needs search=random or search=optuna")
+        raise ValueError(f"spread-sweep: interval() on {bad} needs search=random, search=optuna or another search "
+                         f"that draws")
     return SweepPlan(sweep_settings, fixed, dims)
 
 
@@ -220,7 +236,7 @@ def search_space(plan: SweepPlan) -> dict:
     space = {}
     for d in plan.dimensions:
         if d.values is not None:
-            space[d.key] = tune.grid_search(d.values) if plan.settings.search == "grid" else tune.choice(d.values)
+            space[d.key] = tune.grid_search(d.values) if plan.settings.grid else tune.choice(d.values)
         else:
             space[d.key] = (tune.loguniform if d.log else tune.uniform)(d.low, d.high)
     return space
@@ -245,16 +261,17 @@ def point_name(config: dict) -> str:
 # ---- trials (run in Ray Tune's trial processes) ----------------------------------------------------------------
 
 def read_metrics(folder: Path) -> dict:
-    """Every metric of an evaluation folder with its interval, the point's seconds and fingerprint."""
+    """Every registered value of an evaluation folder (FID, KID too) with its interval, the point's seconds and
+    fingerprint (its short name)."""
     from spread.experiments.intervals import ci_columns, row_intervals
     from spread.experiments.points import read_point
+    from spread.experiments.runs import record_metrics
     from spread.io import read_json_object
-    from spread.metrics.registry import METRICS
 
     metrics = read_json_object(folder / "metrics.json")
     intervals = ci_columns(row_intervals(metrics, folder))
     row = {}
-    for name in (*[n for n in METRICS.names() if n in metrics], "still_fraction", "fid", "kid"):
+    for name in (n for n in record_metrics() if n in metrics and not n.startswith("n_") and n != "fid_status"):
         row[name] = metrics.get(name)
         for bound in ("lo", "hi"):
             if f"{name}_{bound}" in intervals:
@@ -333,13 +350,15 @@ class TuneReport:
 
 
 def train_trial(config: dict, plan: dict) -> None:
-    """One training run into its point folder (fingerprint: the composed config and the data's content)."""
+    """One training run into its point folder, done or not by the platform's done-check (its identity: the
+    composed config and the data's content, recorded in the folder's ``point.json``)."""
     from ray import tune
 
     from spread.configs import compose
     from spread.experiments.commands import record_config
+    from spread.experiments.points import PointDecision, finish_point, read_point, start_point
     from spread.io import read_json_object
-    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, digest
+    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, done_check, normalised, short
     from spread.training.fit import train as fit
 
     started = time.perf_counter()
@@ -349,20 +368,26 @@ def train_trial(config: dict, plan: dict) -> None:
     plain = OmegaConf.to_container(cfg, resolve=True)
     plain.pop("out_dir", None)
     root = OmegaConf.select(cfg, "data.root")
-    fp = digest({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
-                 "numbers_version": NUMBERS_VERSION})[:8]
-    folder = Path(plan["points"]) / f"{name}_{fp}"
+    identity = normalised({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
+                           "numbers_version": NUMBERS_VERSION})
+    folder = Path(plan["points"]) / f"{name}_{short(identity)}"
+    record, finished = read_point(folder), (folder / "metrics.json").exists()
+    # a folder without a record carries this identity in its name (made before point.json): the same inputs
+    before = record.get("fingerprint") if record is not None else identity if folder.exists() else None
+    decision = done_check(before, identity, present=folder.exists(), finished=finished)
     last = folder / "checkpoints" / "last.ckpt"
-    run = [*overrides, f"out_dir={folder}", f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
-    cfg = compose("train", run)
-    done = (folder / "metrics.json").exists()
-    callbacks = [TuneReport(plan["metric"])] if plan.get("scheduler") else []
-    if not done:
+    if not decision.reuse:
+        resume = last.exists() and not decision.fresh
+        run = [*overrides, f"out_dir={folder}", f"ckpt_path={last}" if resume else "ckpt_path=null"]
+        cfg = compose("train", run)
+        start_point(folder, PointDecision(False, decision.fresh, decision.reason, identity))
         record_config(cfg, folder, run)()
-        fit(cfg, run_dir=folder, extra_callbacks=callbacks)
+        fit(cfg, run_dir=folder, extra_callbacks=[TuneReport(plan["metric"])] if plan.get("scheduler") else [])
+        finish_point(folder, round(time.perf_counter() - started, 3))
     summary = read_json_object(folder / "metrics.json")
     logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
-    tune.report({**logged, "point": folder.name, "reused": done, "seconds": round(time.perf_counter() - started, 3),
+    tune.report({**logged, "point": folder.name, "reused": decision.reuse,
+                 "seconds": round(time.perf_counter() - started, 3),
                  "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
 
 
@@ -381,6 +406,8 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     """Run every trial of ``plan`` on Ray Tune and write ``results.csv`` / ``results.md`` (module docstring)."""
     from ray import tune
 
+    from spread.experiments.tuning import search_spec, trial_scheduler_spec
+
     s = plan.settings
     out = Path(s.out_dir).resolve()
     started = time.perf_counter()
@@ -392,23 +419,12 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
     trainable = tune.with_resources(tune.with_parameters(trial, plan=shared), resources)
-    searcher = None
-    if s.search == "optuna":
-        from ray.tune.search.optuna import OptunaSearch
-
-        searcher = OptunaSearch(metric=s.metric, mode=s.mode, seed=int(s.search_seed))
-    elif s.search == "random":
-        from ray.tune.search import BasicVariantGenerator
-
-        searcher = BasicVariantGenerator(random_state=int(s.search_seed))
-    scheduler = None
-    if s.scheduler == "asha":
-        from ray.tune.schedulers import ASHAScheduler
-
-        scheduler = ASHAScheduler(metric=s.metric, mode=s.mode, time_attr="training_iteration", **dict(s.asha))
-    samples = 1 if s.search == "grid" else int(s.num_samples)
+    search = search_spec(s.search)
+    searcher = search.build(s) if search.build is not None else None
+    scheduler = trial_scheduler_spec(s.scheduler).build(s) if s.scheduler is not None else None
+    samples = 1 if search.grid else int(s.num_samples)
     space, rows = search_space(plan), []
-    if s.search == "grid" and s.command == "sample":  # finished points are read on the driver, no trial
+    if search.grid and s.command == "sample":  # finished points are read on the driver, no trial
         todo = []
         for config in grid_points(plan):
             row = finished_point(config, shared)
@@ -417,6 +433,7 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     if space is not None:
         rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out)
     rows.sort(key=lambda r: tuple(str(r.get(d.key)) for d in plan.dimensions))
+    point_settings(rows, out / "points")
     best = mark_best(rows, s.metric, s.mode)
     csv_path, md_path = write_results(rows, out, plan, best)
     return SweepResult(rows, best, csv_path, md_path, round(time.perf_counter() - started, 3))
@@ -561,53 +578,68 @@ def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
     return best
 
 
-def columns(rows: list[dict], plan: SweepPlan) -> list[str]:
-    keys = [d.key for d in plan.dimensions]
-    seen = []
+def setting_of(key: str) -> str:
+    """The settings key (:func:`spread.runtime.fingerprint.settings`) a swept override key names."""
+    return key.lstrip("+~").replace("guidance.terms.", "guidance.")
+
+
+def point_settings(rows: list[dict], points: Path) -> None:
+    """Each row's ``settings`` and ``identity``: its point's recorded identity (``point.json``), read here."""
+    from spread.experiments.points import read_point
+    from spread.experiments.runs import identity_fields
+
     for r in rows:
-        seen += [k for k in r if k not in seen and k not in keys]
-    first = [k for k in ("best", "point", "status") if k in seen]
-    return keys + first + [k for k in seen if k not in first]
+        record = read_point(points / str(r.get("point"))) if r.get("point") else None
+        if record and isinstance(record.get("fingerprint"), dict):
+            r.update(identity_fields(record["fingerprint"]))
 
 
 def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None) -> tuple[Path, Path]:
-    """``results.csv`` (every field) and ``results.md`` (value ± half-width of the interval, best marked)."""
-    from spread.io import write_text_atomic
+    """``results.csv`` (every field) and ``results.md`` (the swept settings — named as settings:
+    ``+guidance.terms.floor_push`` is ``guidance.floor_push`` —, every other setting that differs between the
+    points, each metric in its display unit with ± half-width of its interval, best marked), through the one
+    table writer (:func:`spread.experiments.tables.write_tables`); the settings every point shares under the
+    table."""
+    from spread.experiments.runs import name_differences
+    from spread.experiments.tables import Column, columns_of, metric_columns, write_tables
+
+    keys = [setting_of(d.key) for d in plan.dimensions]  # a swept key named as the setting it is
+    for r in rows:
+        for d in plan.dimensions:
+            if d.key != setting_of(d.key) and d.key in r:
+                r[setting_of(d.key)] = r.pop(d.key)
+        r["mark"] = "★" if r.get("best") else ""
+    settings = [r.get("settings") or {} for r in rows]
+    differ = name_differences(rows, exclude=set(keys))
+    metric = plan.settings.metric
+    metrics = [c for c in columns_of(rows) if any(r.get(c.key) is not None for r in rows)] or \
+        (metric_columns([metric]) if metric in metric_names() else [Column(metric, metric, 4, plan.settings.mode)])
+    columns = [Column("mark", ""), *[Column(k, k) for k in [*keys, *differ]], *metrics,
+               Column("seconds", "seconds", 1), Column("point", "point")]
+    shared = {k: v for k, v in (settings[0] if settings else {}).items()
+              if k not in differ and k not in keys and all(s.get(k) == v for s in settings)}
+    shown = next((c for c in metrics if c.key == metric), Column(metric, metric, 4))
+    notes = [f"Best: {best.get('point')} ({shown.label} = {shown.format(best[metric])})." if best is not None else "",
+             "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "." if shared else ""]
+    first = [*keys, "best", "point", "status", *differ]
+    csv_keys = list(dict.fromkeys([*first, *[k for r in rows for k in r if k not in ("settings", "mark")]]))
+    paths = write_tables(rows, columns, out / "results", formats=("md", "csv"), csv_keys=csv_keys,
+                         caption=f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
+                                 f"({plan.settings.mode}) marked ★",
+                         note=table_note(rows), md_extra="\n\n".join(n for n in notes if n))
+    return paths["csv"], paths["md"]
+
+
+def metric_names() -> list[str]:
     from spread.metrics.registry import METRICS
 
-    cols = columns(rows, plan)
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: "" if r.get(k) is None else r.get(k) for k in cols})
-    write_text_atomic(out / "results.csv", buf.getvalue())
-    metrics = [m for m in (*METRICS.names(), "fid", "kid") if any(m in r for r in rows)] or \
-        [plan.settings.metric]
-    keys = [d.key for d in plan.dimensions]
-    head = ["", *keys, *metrics, "seconds", "point"]
-    lines = [f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
-             f"({plan.settings.mode}) marked ★", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    from spread.experiments.tables import Column, markdown_cell, metric_column
-    from spread.metrics.registry import display_spec
+    return METRICS.names()
 
-    cols_of = {m: metric_column(display_spec(m)) if display_spec(m) is not None else Column(m, m, 4) for m in metrics}
-    for r in rows:
-        cells = ["★" if r.get("best") else "", *[str(r.get(k)) for k in keys]]
-        for m in metrics:
-            v, lo, hi = r.get(m), r.get(f"{m}_lo"), r.get(f"{m}_hi")
-            if v is not None and cols_of[m].valid(v) is None:  # not a finite value inside the metric's bounds
-                cells.append(cols_of[m].format(v))
-                continue
-            cells.append("—" if v is None else f"{v:.4f}" + ("" if lo is None or hi is None else f" ± {(hi - lo) / 2:.4f}"))
-        cells += [f"{r['seconds']:.1f}" if isinstance(r.get("seconds"), (int, float)) else "—", str(r.get("point", ""))]
-        lines.append("| " + " | ".join(markdown_cell(c) for c in cells) + " |")
-    if any(r.get("ci_resamples") for r in rows):
-        lines += ["", "± is half the width of the 95 % percentile bootstrap interval over scenes."]
-    if best is not None:
-        lines += ["", f"Best: {best.get('point')} ({plan.settings.metric} = {best[plan.settings.metric]:.4f})."]
-    write_text_atomic(out / "results.md", "\n".join(lines) + "\n")
-    return out / "results.csv", out / "results.md"
+
+def table_note(rows: list[dict]) -> str:
+    from spread.experiments.intervals import table_note as note
+
+    return note(rows)
 
 
 def read_results_csv(path) -> list[dict]:

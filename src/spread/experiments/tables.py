@@ -1,10 +1,13 @@
-"""Tables of result records (one dict per row) as Markdown, CSV and LaTeX; CSV reads back exactly.
+"""The platform's one table writer: result records (one dict per row) as Markdown, CSV, LaTeX, HTML and wandb rows.
 
-A :class:`Column` names a record key, its header label and how a value is printed in Markdown and
-LaTeX. CSV keeps the raw values (floats by ``repr``, so they read back bit for bit; ``None`` as an
-empty cell). :func:`metric_columns` are the results tables' columns, from the metric registry
-(:mod:`spread.metrics.registry`): every table shows a metric in its registered display unit (ASD in mm, stored in
-metres in ``metrics.json`` and in CSV), with the unit in the header.
+A :class:`Column` names a record key, its header label, its display unit and scale, and how a value is printed.
+:func:`metric_columns` are the results tables' columns, from the metric registry (:mod:`spread.metrics.registry`:
+each value's display unit lives there): every table, CSV, HTML page, wandb table and plot shows a metric in its
+registered display unit (ASD in mm; ``metrics.json`` stores metres), the unit in the header — in CSV the header
+is ``<key>_<unit>`` (``asd_mm``, ``asd_mm_lo``) and the cell the displayed number at full precision (floats by
+``repr``; ``None`` as an empty cell; a unitless value reads back bit for bit). Every table of the platform
+(spread-ablate, spread-compare, spread-report, spread-sweep's results, the HTML report, the evaluation's console
+table) is written here.
 
 **Confidence intervals.** A record that holds ``<key>_lo`` and ``<key>_hi`` beside ``<key>`` (the bootstrap
 interval of :mod:`spread.evaluation.bootstrap`) prints as ``value ± h`` with h half the interval's width,
@@ -28,7 +31,7 @@ from spread.io import write_text_atomic
 class Column:
     """key: record key; label: header; digits: decimals printed (None: as is); better: "max", "min" or
     None (which value is bold in LaTeX and marked in Markdown); latex: header in LaTeX (default label);
-    scale: printed value = stored value × scale (a display unit: ASD m → mm), CSV keeps the stored value;
+    scale, unit: displayed value = stored value × scale, in ``unit`` (ASD: m → mm) — in every format;
     bounds: (low, high) of a valid stored value of a number column (None: any finite number). A value that is not
     a finite number inside them (a hand-edited ``Infinity`` or ``1e308`` GRecall) prints as ``invalid (...)``,
     with no interval, and is never the best."""
@@ -39,7 +42,21 @@ class Column:
     better: str | None = None
     latex: str | None = None
     scale: float = 1.0
+    unit: str = ""
     bounds: tuple[float, float] | None = None
+
+    @property
+    def csv_key(self) -> str:
+        """The CSV header: the key, with its display unit when it has one (``asd_mm``)."""
+        from spread.metrics.registry import unit_key
+
+        return unit_key(self.key, self.unit)
+
+    def display(self, value):
+        """A stored number in the display unit (anything else as it is)."""
+        if self.scale == 1.0 or isinstance(value, bool) or not isinstance(value, (int, float)):
+            return value
+        return float(value) * self.scale
 
     @property
     def arrow(self) -> str:
@@ -83,25 +100,45 @@ class Column:
 
 
 def metric_column(spec) -> Column:
-    """The column of a registered metric or set metric (:mod:`spread.metrics.registry`)."""
-    return Column(spec.name, spec.label, spec.digits, spec.better, spec.latex, spec.scale, spec.valid_range)
+    """The column of a registered value (:class:`~spread.metrics.registry.ValueSpec`) or metric."""
+    return Column(spec.name, spec.label, spec.digits, spec.better, spec.latex, spec.scale, spec.unit,
+                  bounds=spec.valid_range)
 
 
-def metric_columns(names=None, with_set: bool = True) -> list[Column]:
-    """The results tables' metric columns: the selected registered metrics (None: the default four) in the
-    paper's order, then FID and KID (KID is unbiased: it can be slightly below 0 when two sets match)."""
-    from spread.metrics.registry import display_specs
+def metric_columns(names=None, with_set: bool = True, hidden: bool = False) -> list[Column]:
+    """The results tables' metric columns: the values of the selected registered metrics (None: the default four)
+    in the paper's order, then FID and KID (KID is unbiased: it can be slightly below 0 when two sets match);
+    ``hidden``: also the values not printed in tables (Stability's ``still_fraction``: CSV and wandb)."""
+    from spread.metrics.registry import display_values
 
-    return [metric_column(s) for s in display_specs(names, with_set)]
+    return [metric_column(v) for v in display_values(names, with_set) if v.shown or hidden]
 
 
-def columns_of(records: Sequence[dict], with_set: bool = True) -> list[Column]:
+def columns_of(records: Sequence[dict], with_set: bool = True, hidden: bool = False) -> list[Column]:
     """The metric columns of every registered metric some record has a value for (default four at least)."""
     from spread.metrics.registry import METRICS, default_metric_names
 
     names = default_metric_names()
     names += [n for n in METRICS.names() if n not in names and any(r.get(n) is not None for r in records)]
-    return metric_columns(names, with_set)
+    return metric_columns(names, with_set, hidden)
+
+
+def set_columns() -> list[Column]:
+    """The columns of the set-level statistics (FID, KID)."""
+    from spread.metrics.registry import SET_METRICS
+
+    return [metric_column(v) for v in SET_METRICS]
+
+
+def value_column(key: str, columns: Sequence[Column] = ()) -> Column | None:
+    """The column of ``key``: one of ``columns``, else a registered value's (so a unit is never lost), else None."""
+    from spread.metrics.registry import value_spec
+
+    for column in columns:
+        if column.key == key:
+            return column
+    spec = value_spec(key)
+    return None if spec is None else metric_column(spec)
 
 
 def best_rows(records: Sequence[dict], column: Column) -> set[int]:
@@ -163,14 +200,43 @@ def latex_table(records: Sequence[dict], columns: Sequence[Column], caption: str
     return "\n".join(parts) + "\n"
 
 
-def csv_text(records: Sequence[dict], keys: Sequence[str]) -> str:
-    """CSV of ``keys`` (header row = keys); floats by ``repr``, None as an empty cell."""
+def display_rows(records: Sequence[dict], keys: Sequence[str],
+                 columns: Sequence[Column] = ()) -> tuple[list[str], list[list]]:
+    """(header, rows) of ``keys`` in display units: a key with a unit (a column's, else a registered value's) and
+    its ``_lo`` / ``_hi`` bounds and ``_sd`` are headed ``<key>_<unit>`` (``asd_mm``, ``asd_mm_lo``) and scaled; the
+    rest as they are. What CSV files and wandb tables hold."""
+    header, convert = [], []
+    for key in keys:
+        base = key[:-3] if key.endswith(("_lo", "_hi", "_sd")) else key
+        column = value_column(key, columns) or (value_column(base, columns) if base != key else None)
+        if column is not None and column.unit:
+            header.append(column.csv_key + key[len(base):] if base != key and column.key == base else column.csv_key)
+            convert.append(column.display)
+        else:
+            header.append(key)
+            convert.append(None)
+    rows = [[r.get(k) if f is None else f(r.get(k)) for k, f in zip(keys, convert)] for r in records]
+    return header, rows
+
+
+def csv_text(records: Sequence[dict], keys: Sequence[str], columns: Sequence[Column] = ()) -> str:
+    """CSV of ``keys`` in display units (:func:`display_rows`); floats by ``repr``, None as an empty cell."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(keys)
-    for r in records:
-        writer.writerow(["" if r.get(k) is None else (repr(r[k]) if isinstance(r[k], float) else r[k]) for k in keys])
+    header, rows = display_rows(records, keys, columns)
+    writer.writerow(header)
+    for row in rows:
+        writer.writerow(["" if v is None else (repr(v) if isinstance(v, float) else v) for v in row])
     return buf.getvalue()
+
+
+def html_table(records: Sequence[dict], columns: Sequence[Column]) -> str:
+    """An HTML ``<table>`` of ``columns`` (cells as in Markdown: display unit, ``± half-width``)."""
+    import html
+
+    head = "".join(f"<th>{html.escape(c.label + c.arrow)}</th>" for c in columns)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(c.cell(r))}</td>" for c in columns) + "</tr>" for r in records)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
 def parse_cell(text: str):
@@ -195,8 +261,8 @@ def read_csv(path: str | Path) -> list[dict]:
     return [{k: parse_cell(v) for k, v in row.items()} for row in csv.DictReader(io.StringIO(text, newline=""))]
 
 
-def write_csv(records: Sequence[dict], keys: Sequence[str], path: str | Path) -> Path:
-    write_text_atomic(path, csv_text(records, keys))
+def write_csv(records: Sequence[dict], keys: Sequence[str], path: str | Path, columns: Sequence[Column] = ()) -> Path:
+    write_text_atomic(path, csv_text(records, keys, columns))
     return Path(path)
 
 
@@ -230,7 +296,8 @@ def write_tables(records: Sequence[dict], columns: Sequence[Column], stem: str |
                  label: str = "", csv_keys: Sequence[str] | None = None,
                  formats: Sequence[str] = ("md", "csv", "tex"), note: str = "", md_extra: str = "") -> dict[str, Path]:
     """``stem.md`` / ``stem.csv`` / ``stem.tex`` (atomic writes); CSV holds ``csv_keys`` (default: the columns'
-    keys, then every other record key), each followed by its interval bounds where records have them;
+    keys, then every other record key) in display units (:func:`display_rows`), each followed by its interval
+    bounds where records have them;
     ``note`` goes under the Markdown table and at the end of the LaTeX caption, ``md_extra`` (Markdown: images,
     links) under the Markdown table only. Returns format → path."""
     stem = Path(stem)
@@ -241,7 +308,7 @@ def write_tables(records: Sequence[dict], columns: Sequence[Column], stem: str |
                           + "".join(f"\n{text}\n" for text in (note, md_extra) if text))
     if "csv" in formats:
         keys = list(csv_keys) if csv_keys is not None else record_keys(records, [c.key for c in columns])
-        out["csv"] = write_csv(records, with_bounds(keys, records), stem.with_suffix(".csv"))
+        out["csv"] = write_csv(records, with_bounds(keys, records), stem.with_suffix(".csv"), columns)
     if "tex" in formats:
         out["tex"] = stem.with_suffix(".tex")
         full = " ".join(p for p in (caption, note) if p)

@@ -1,5 +1,5 @@
-"""The ablation table on wandb: a ``wandb.Table`` (one row per variant; each metric's bootstrap bounds and the
-bootstrap's seed beside it), the bar plot, the figures (``ablation_<row>.png`` in ``out_dir``: one test graph per
+"""The ablation table on wandb: a ``wandb.Table`` (one row per variant; each metric in its display unit, headed as
+in the CSV (``asd_mm``), its bootstrap bounds and the bootstrap's seed beside it), the bar plot, the figures (``ablation_<row>.png`` in ``out_dir``: one test graph per
 row in 3D with its relation matrix), and per-variant summary values (``<variant>/<metric>``, ``_lo``, ``_hi``).
 Offline by default: files under ``out_dir/wandb``, ``wandb sync`` uploads them later; ``mode="disabled"`` writes
 nothing and opens no connection."""
@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from spread.experiments.tables import columns_of, with_bounds
+from spread.experiments.tables import columns_of, display_rows, with_bounds
 
 
 def table_keys(records: list[dict]) -> list[str]:
-    """The wandb table's columns: the row labels, every metric the rows have (the registry's), counts, status."""
-    return ["variant", "method", *[c.key for c in columns_of(records)], "still_fraction", "n_scenes", "fid_status",
+    """The wandb table's columns: the row labels, every value the rows have (the registry's), counts, status."""
+    return ["variant", "method", *[c.key for c in columns_of(records, hidden=True)], "n_scenes", "fid_status",
             "status"]
 
 
@@ -27,10 +27,10 @@ def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Pat
 
     run = init_run(as_logger_config(logger), "ablation", out_dir, config or {}, group=group, name=name)
     try:
-        columns = with_bounds(table_keys(records), records)
-        table = wandb.Table(columns=columns)
-        for r in records:
-            table.add_data(*[r.get(c) for c in columns])
+        header, rows = display_rows(records, with_bounds(table_keys(records), records))  # display units (ASD mm)
+        table = wandb.Table(columns=header)
+        for row in rows:
+            table.add_data(*row)
         payload = {"ablation": table}
         if png is not None and Path(png).exists():
             payload["ablation_plot"] = wandb.Image(str(png))

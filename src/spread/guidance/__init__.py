@@ -16,4 +16,11 @@ the release's post-hoc refinement at t = 0 (``refine``); the sampling pipeline
 """
 
 from spread.guidance.config import MODES, GuidanceConfig  # noqa: F401
-from spread.guidance.guide import TERMS, SceneGuidance  # noqa: F401
+
+
+def __getattr__(name: str):
+    if name == "SceneGuidance":  # torch and the model's samplers load with it, not with the config
+        from spread.guidance.guide import SceneGuidance
+
+        return SceneGuidance
+    raise AttributeError(f"module 'spread.guidance' has no attribute '{name}'")

@@ -178,5 +178,5 @@ def _up_boost(grad: torch.Tensor, config) -> torch.Tensor:
 register_term(GuidanceTerm(
     "collision", lambda ctx: collision_loss(ctx.world, ctx.meshes, ctx.pairs(), ctx.supports, ctx.config.cone_height,
                                             ctx.detach_cones),
-    weight=lambda config: config.collision, edit=_up_boost,
+    edit=_up_boost,
     description="G_C: conical distance field on the BVH's triangle pairs between different objects"))

@@ -17,11 +17,17 @@ Modes (reference notes §3.1, paper §3.4):
            authors' checkpoint (``method: release``)
 ========== ========================================================================================
 
-Weights are the paper's λ (``collision`` 7.5e-3, ``gravity`` 1e-3, ``relation`` 1e-3), applied in
-normalised state space (translation in [−1, 1] through the dataset bounds, rot6d) as the release does
+Weights: every registered term (:mod:`spread.guidance.terms`: the built-ins, PhyScene's ``box_iou``, a plugin's)
+is weighed by name, ``guidance.terms.<name>=λ``; the built-in terms' weights also have keys of their own
+(``guidance.collision`` is ``guidance.terms.collision``), the paper's λ (``collision`` 7.5e-3, ``gravity`` 1e-3,
+``relation`` 1e-3). Applied in normalised state space (translation in [−1, 1] through the dataset bounds, rot6d) as the release does
 (its λ × lr = 15 × 5e-4, 2 × 5e-4, 2 × 5e-4). Gravity joins only from ``gravity_from`` of the way
 through (fraction of the sampling steps in ``paper`` mode, of the refinement iterations in ``refine``
 mode; the release: the later half of its 100 iterations). Geometry constants are in metres.
+
+A config is the setting's one identity: :meth:`GuidanceConfig.weights` (every registered term's λ),
+:attr:`~GuidanceConfig.active`, :attr:`~GuidanceConfig.label` and :meth:`~GuidanceConfig.fingerprint` are what
+sampling, tags, tables, reports and the done-check (:mod:`spread.runtime.fingerprint`) ask; none re-derives them.
 """
 
 from __future__ import annotations
@@ -33,6 +39,8 @@ from dataclasses import field
 from typing import Any, Mapping
 
 MODES = ("none", "paper", "refine", "sample", "release")
+#: Field metadata of a weight key: the field is the weight of the registered term of its name.
+TERM = {"term": True}
 
 
 @dataclass
@@ -41,10 +49,11 @@ class GuidanceConfig:
     state space; ``cone_height``, ``gap``, ``tolerance`` are metres."""
 
     mode: str = "none"
-    #: λ_C, λ_H, λ_R of the paper.
-    collision: float = 7.5e-3
-    gravity: float = 1e-3
-    relation: float = 1e-3
+    #: λ_C, λ_H, λ_R of the paper: the weights of the built-in terms of these names (keys of their own, aliases
+    #: of ``terms.<name>``; :meth:`weight_keys`).
+    collision: float = field(default=7.5e-3, metadata=TERM)
+    gravity: float = field(default=1e-3, metadata=TERM)
+    relation: float = field(default=1e-3, metadata=TERM)
     #: ``refine``: refinement iterations at t = 0 after the sampler (release: 100).
     iterations: int = 100
     #: ``refine``: the t = 0 denoising projection runs every this many iterations (1 = every one, the
@@ -76,8 +85,8 @@ class GuidanceConfig:
     max_contacts: int = 2048
     #: ``refine``: clip the t = 0 projection to [−1, 1] (what the release's scheduler step does).
     clip: bool = True
-    #: Weights of the other registered terms by name (:mod:`spread.guidance.terms`: plugins, PhyScene's
-    #: ``box_iou``), e.g. ``guidance.terms.box_iou=0.15``; the built-ins are weighed by the fields above.
+    #: Weights of the registered terms by name (:mod:`spread.guidance.terms`: plugins, PhyScene's ``box_iou``),
+    #: e.g. ``guidance.terms.box_iou=0.15``; ``terms.collision`` sets the key ``collision`` above.
     terms: dict[str, float] = field(default_factory=dict)
     #: Keep the states every this many guidance iterations (``refine``) or guided steps (``paper``), first and
     #: last included, in each sample's file as ``trajectory_translation`` / ``trajectory_rotation`` (the
@@ -87,7 +96,11 @@ class GuidanceConfig:
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"guidance: key 'mode' is {self.mode!r}, choose from {MODES}")
-        for key in ("collision", "gravity", "relation", "cone_height", "gap", "tolerance", "up_boost", "grad_clip"):
+        own = self.weight_keys()
+        self.terms = {str(k): v for k, v in dict(self.terms or {}).items()}
+        for name in [n for n in self.terms if n in own]:  # terms.collision is the key collision
+            setattr(self, name, self.terms.pop(name))
+        for key in (*own, "cone_height", "gap", "tolerance", "up_boost", "grad_clip"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"guidance: key '{key}' must be a finite number ≥ 0, got {value!r}")
@@ -97,15 +110,15 @@ class GuidanceConfig:
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"guidance: key '{key}' must be a fraction in [0, 1], got {value!r}")
-        self.terms = {str(k): v for k, v in dict(self.terms or {}).items()}
+        settings = {f.name for f in dataclasses.fields(self)}
         for name, value in self.terms.items():
+            if name in settings:
+                raise ValueError(f"guidance: 'terms.{name}': a term cannot be named like the setting '{name}'")
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"guidance: key 'terms.{name}' must be a finite number ≥ 0, got {value!r}")
             if value > 0:
                 from spread.guidance.terms import TERMS_REGISTRY
 
-                if name in ("collision", "gravity", "relation"):
-                    raise ValueError(f"guidance: 'terms.{name}': the built-in terms are weighed by guidance.{name}")
                 TERMS_REGISTRY.get(name)  # an unknown term is an error naming the known ones
         for key, low in (("iterations", 0), ("denoise_every", 0), ("inner_steps", 1), ("max_contacts", 1),
                          ("record_every", 0), ("last_steps", 0)):
@@ -113,11 +126,56 @@ class GuidanceConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"guidance: key '{key}' must be an integer ≥ {low}, got {value!r}")
 
+    # ---- the setting's identity -------------------------------------------------------------------------
+    @classmethod
+    def weight_keys(cls) -> tuple[str, ...]:
+        """The terms whose weight has a key of its own (the built-ins; ``guidance.<name>``)."""
+        return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("term"))
+
+    def weight(self, name: str) -> float:
+        """λ of the term ``name`` (its own key, else ``terms.<name>``; 0 when this config does not weigh it)."""
+        if name in self.weight_keys():
+            return float(getattr(self, name))
+        return float(self.terms.get(name, 0.0))
+
+    def weights(self, nonzero: bool = False) -> dict[str, float]:
+        """λ of every registered term by name, in registry order (built-ins, PhyScene's, plugins'), then any other
+        name the config weighs; ``nonzero``: only the terms with λ > 0."""
+        from spread.guidance.terms import TERMS_REGISTRY
+
+        names = [*TERMS_REGISTRY.names(), *[n for n in self.terms if n not in TERMS_REGISTRY]]
+        out = {name: TERMS_REGISTRY.get(name).weight_of(self) if name in TERMS_REGISTRY else self.weight(name)
+               for name in names}
+        return {k: v for k, v in out.items() if v > 0} if nonzero else out
+
+    def settings(self) -> dict:
+        """Every setting other than the weights (mode, schedule, geometry constants, ...)."""
+        own = self.weight_keys()
+        return {k: v for k, v in self.to_dict().items() if k not in own and k != "terms"}
+
     @property
     def active(self) -> bool:
-        """True when sampling is guided at all: a mode other than ``none`` and some weight > 0."""
-        return self.mode != "none" and (self.collision > 0 or self.gravity > 0 or self.relation > 0
-                                        or any(v > 0 for v in self.terms.values()))
+        """True when sampling is guided at all: a mode other than ``none`` and some registered term's λ > 0."""
+        return self.mode != "none" and bool(self.weights(nonzero=True))
+
+    def fingerprint(self) -> dict | None:
+        """What a guided sample depends on, flat: the mode, λ of every term that acts (by its name) and every
+        other setting; None when unguided (its weights change nothing)."""
+        if not self.active:
+            return None
+        return {**self.settings(), **self.weights(nonzero=True)}
+
+    @property
+    def label(self) -> str:
+        """``none``, or the mode with each acting term's λ and each setting that differs from the defaults:
+        ``refine(collision=0.0075,gravity=0.001,relation=0.001)``, ``sample(box_iou=0.15,last_steps=10,grad_clip=0.1)``."""
+        if not self.active:
+            return "none"
+        default = GuidanceConfig().settings()
+        parts = [f"{k}={v:g}" for k, v in self.weights(nonzero=True).items()]
+        parts += [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in self.settings().items()
+                  if k != "mode" and v != default.get(k)]
+        return f"{self.mode}({','.join(parts)})"
 
     def first_step(self, steps: int) -> int:
         """The first guided step of a ``paper`` or ``sample`` loop of ``steps`` steps (``last_steps``, else

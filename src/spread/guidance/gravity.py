@@ -117,5 +117,5 @@ def _y_only(grad: torch.Tensor, config) -> torch.Tensor:
 register_term(GuidanceTerm(
     "gravity", lambda ctx: gravity_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports), ctx.falls,
                                         ctx.config.gap, ctx.config.tolerance),
-    weight=lambda config: config.gravity, start=lambda config: config.gravity_from, edit=_y_only,
+    start=lambda config: config.gravity_from, edit=_y_only,
     description="G_H: vertical gap to the supporter or the floor outside [ε, ε + θ_H]"))

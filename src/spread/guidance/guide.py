@@ -39,12 +39,10 @@ from spread.guidance.collision import TriangleCollider, TrianglePairs
 from spread.guidance.config import GuidanceConfig
 from spread.guidance.meshes import SceneMeshes
 from spread.guidance.release import RELEASE_TERMS
-from spread.guidance.terms import TERMS_REGISTRY, GuidanceTerm, TermContext, term_names
+from spread.guidance.terms import TERMS_REGISTRY, GuidanceTerm, TermContext
 from spread.model.diffusion import StepContext, training_scheduler
 from spread.model.poses import poses_from_state
 
-#: The built-in terms (every registered term: :func:`spread.guidance.terms.term_names`).
-TERMS = ("collision", "gravity", "relation")
 #: Normalised-y channel of a state (translation x, y, z then rot6d).
 Y_CHANNEL = 1
 
@@ -172,7 +170,7 @@ class SceneGuidance:
         the registered terms' names (default the built-ins and every term the config weighs).
         Differentiable when x requires grad (cones, hulls and hit heights detached; module docs)."""
         self._check(x)
-        names = list(which) if which is not None else [*TERMS, *[n for n in self.config.terms if n not in TERMS]]
+        names = list(which) if which is not None else [*GuidanceConfig.weight_keys(), *self.config.terms]
         values = self._terms(x, names)
         return {k: v.sum() if reduce else v for k, v in values.items()}
 
@@ -190,16 +188,14 @@ class SceneGuidance:
         without ``at``: terms with a start > 0 act when ``late`` (the gravity flag of older callers)."""
         cfg = self.config
         out = {}
-        for name in term_names():
-            term = self.term(name)
-            weight = term.weight_of(cfg)
-            start = term.start_of(cfg)
+        for name, weight in cfg.weights(nonzero=True).items():
+            start = self.term(name).start_of(cfg)
             if at is not None:
                 index, count = at
                 on = index >= math.ceil(start * count)
             else:
                 on = late or start <= 0
-            if weight > 0 and on:
+            if on:
                 out[name] = weight
         return out
 

@@ -79,5 +79,4 @@ def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
 
 register_term(GuidanceTerm(
     "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held),
-    weight=lambda config: config.relation,
     description="G_R: supported vertices outside the supporter's xz hull"))

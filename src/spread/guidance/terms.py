@@ -4,9 +4,10 @@ A :class:`GuidanceTerm` is a name, a loss (``loss(ctx) → (B,)`` per-scene valu
 :class:`TermContext`, differentiable in ``ctx.x``), how its weight is read from the
 :class:`~spread.guidance.GuidanceConfig`, its **schedule** (``start(config)``: the fraction of the sampling steps,
 or of the refinement iterations, from which it acts) and an optional edit of its gradient. The built-in terms
-register themselves in their modules: ``collision`` (weight ``guidance.collision``, the upward boost),
-``gravity`` (``guidance.gravity``, from ``guidance.gravity_from``, y only) and ``relation``
-(``guidance.relation``). Any other registered term is switched on with ``guidance.terms.<name>=<weight>``,
+register themselves in their modules, as ordinary terms: ``collision`` (the upward boost), ``gravity`` (from
+``guidance.gravity_from``, y only) and ``relation``; their weights also have keys of their own
+(``guidance.collision``, an alias of ``guidance.terms.collision``). Any registered term is switched on with
+``guidance.terms.<name>=<weight>``,
 the same way for every method that samples through :class:`~spread.sampling.ScenePipeline` (PhyScene's box-IoU
 term is ``guidance.terms.box_iou``).
 
@@ -26,8 +27,8 @@ from spread.registry import Registry, RegistryError
 
 @dataclass(frozen=True)
 class GuidanceTerm:
-    """One guidance term (module docstring). weight: ``weight(config) → λ`` (default ``config.terms[name]``, 0
-    when absent); start: ``start(config) → fraction`` of the loop from which it acts (default 0); edit:
+    """One guidance term (module docstring). weight: ``weight(config) → λ`` (default the config's weight of its name,
+    :meth:`~spread.guidance.GuidanceConfig.weight`: ``guidance.terms.<name>``, 0 when absent); start: ``start(config) → fraction`` of the loop from which it acts (default 0); edit:
     ``edit(grad, config) → grad`` applied to its gradient before weighting (default none)."""
 
     name: str
@@ -40,7 +41,7 @@ class GuidanceTerm:
     def weight_of(self, config) -> float:
         if self.weight is not None:
             return float(self.weight(config))
-        return float((getattr(config, "terms", None) or {}).get(self.name, 0.0))
+        return float(config.weight(self.name))
 
     def start_of(self, config) -> float:
         return 0.0 if self.start is None else float(self.start(config))

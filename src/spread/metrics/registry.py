@@ -12,6 +12,11 @@ another package, an entry point in the group ``spread.metrics`` naming a ``Scene
 attributes ``higher_is_better``, ``column``, ``unit``, ``scale``, ``digits`` fill the spec) or a
 :class:`MetricSpec`. ``spread-evaluate 'metrics=[grecall,<name>]'`` then selects it.
 
+**Units live here.** Every value a metric writes to ``metrics.json`` is a :class:`ValueSpec` (the metric's own,
+then its ``extra_values``: Stability's ``still_fraction``), which says how every table, CSV, plot axis, report and
+sweep result shows it — stored value × ``scale`` in ``unit`` (ASD: metres stored, mm shown). The one table writer
+(:mod:`spread.experiments.tables`) asks :func:`display_values`; nothing else converts units.
+
 Set-level statistics (FID, KID) are not per-scene metrics: :data:`SET_METRICS` holds only their display.
 
 **A metric reports only its own names** (:func:`own_names`: its name, its ``ratios`` and ``reports`` values, its
@@ -25,52 +30,36 @@ refused when it registers (a plugin: listed as failed, the others load), so no p
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 from spread.registry import Registry, RegistryError
 
 
 @dataclass(frozen=True)
-class MetricSpec:
-    """One registered metric (module docstring).
-
-    name: key in every output. metric: the SceneMetric class. build: ``build(protocol) → metric`` (protocol: the
-    :class:`~spread.evaluation.EvalProtocol`; default ``metric()``). higher_is_better: the ranking. column: table
-    header. unit: display unit ("" for a share). scale: display value = stored value × scale. digits: decimals
-    shown. latex: LaTeX header. default: in the default selection (today's four). order: position in tables.
-    bootstrap_unit: what an interval resamples ("scene": every registered metric is a sum over scenes).
-    description: one line for docs and ``--help``. bounds: (low, high) of a valid stored value (None: a share,
-    ``unit`` "", lies in [0, 1]; any other metric only needs to be finite): tables show a value outside them as
-    invalid, never as the best."""
+class ValueSpec:
+    """One value of ``metrics.json`` (key ``name``) and its display (module docstring): header ``column``, display
+    ``unit`` ("" for a share) and ``scale`` (display value = stored value × scale), ``digits``, ranking, LaTeX
+    header, a one-line ``description``; ``shown``: a column of the printed tables (False: CSV, wandb tables and
+    report files only); ``order``: position among the set-level values."""
 
     name: str
-    metric: type
-    build: Callable | None = None
-    higher_is_better: bool = True
     column: str = ""
     unit: str = ""
     scale: float = 1.0
     digits: int = 3
+    higher_is_better: bool = True
     latex: str | None = None
-    default: bool = False
-    order: int = 100
-    bootstrap_unit: str = "scene"
     description: str = ""
+    shown: bool = True
+    order: int = 1000
+    #: (low, high) of a valid stored value (None: any finite number); tables show a value outside as invalid.
     bounds: tuple[float, float] | None = None
 
     @property
     def valid_range(self) -> tuple[float, float] | None:
-        """(low, high) of a valid stored value: :attr:`bounds`, else [0, 1] for a share (``unit`` "")."""
-        if self.bounds is not None:
-            return (float(self.bounds[0]), float(self.bounds[1]))
-        return (0.0, 1.0) if not self.unit else None
-
-    def create(self, protocol=None):
-        """A fresh metric configured by ``protocol`` (None: the metric's own defaults)."""
-        if self.build is not None and protocol is not None:
-            return self.build(protocol)
-        return self.metric()
+        """(low, high) of a valid stored value (:attr:`bounds`)."""
+        return None if self.bounds is None else (float(self.bounds[0]), float(self.bounds[1]))
 
     @property
     def label(self) -> str:
@@ -86,28 +75,78 @@ class MetricSpec:
         """A stored value in display units (None stays None)."""
         return None if value is None else float(value) * self.scale
 
+    @property
+    def key(self) -> str:
+        """Its name in a table's header row (CSV, wandb): with the display unit when it has one (``asd_mm``)."""
+        return unit_key(self.name, self.unit)
+
+
+def unit_key(key: str, unit: str) -> str:
+    """``key`` with its display unit, as table headers name a value shown in it (``asd`` in mm: ``asd_mm``)."""
+    unit = "".join(c if c.isalnum() else "_" for c in unit)
+    return f"{key}_{unit}" if unit else key
+
 
 @dataclass(frozen=True)
-class SetMetricSpec:
-    """Display of a set-level statistic (FID, KID): no per-scene states, no interval."""
+class MetricSpec:
+    """One registered metric (module docstring).
+
+    name: key in every output. metric: the SceneMetric class. build: ``build(protocol) → metric`` (protocol: the
+    :class:`~spread.evaluation.EvalProtocol`; default ``metric()``). higher_is_better: the ranking. column: table
+    header. unit: display unit ("" for a share). scale: display value = stored value × scale. digits: decimals
+    shown. latex: LaTeX header. default: in the default selection (today's four). order: position in tables.
+    bootstrap_unit: what an interval resamples ("scene": every registered metric is a sum over scenes).
+    description: one line for docs and ``--help``. bounds: (low, high) of a valid stored value (None: a share,
+    ``unit`` "", lies in [0, 1]; any other metric only needs to be finite): tables show a value outside them as
+    invalid, never as the best. extra_values: the other values its ``compute()`` reports that tables carry
+    (:class:`ValueSpec`; Stability's ``still_fraction``)."""
 
     name: str
-    column: str
-    digits: int
-    higher_is_better: bool = False
-    latex: str | None = None
+    metric: type
+    build: Callable | None = None
+    higher_is_better: bool = True
+    column: str = ""
     unit: str = ""
     scale: float = 1.0
-    order: int = 1000
-    valid_range: tuple[float, float] | None = None
+    digits: int = 3
+    latex: str | None = None
+    default: bool = False
+    order: int = 100
+    bootstrap_unit: str = "scene"
+    description: str = ""
+    bounds: tuple[float, float] | None = None
+    extra_values: tuple = ()
 
     @property
-    def label(self) -> str:
-        return self.column
+    def valid_range(self) -> tuple[float, float] | None:
+        """(low, high) of a valid stored value: :attr:`bounds`, else [0, 1] for a share (``unit`` "")."""
+        if self.bounds is not None:
+            return (float(self.bounds[0]), float(self.bounds[1]))
+        return (0.0, 1.0) if not self.unit else None
+
+    def create(self, protocol=None):
+        """A fresh metric configured by ``protocol`` (None: the metric's own defaults)."""
+        if self.build is not None and protocol is not None:
+            return self.build(protocol)
+        return self.metric()
 
     @property
-    def better(self) -> str:
-        return "max" if self.higher_is_better else "min"
+    def value(self) -> ValueSpec:
+        """The display of the metric's own value."""
+        return ValueSpec(self.name, self.column, self.unit, self.scale, self.digits, self.higher_is_better, self.latex,
+                         self.description, order=self.order, bounds=self.valid_range)
+
+    @property
+    def values(self) -> tuple[ValueSpec, ...]:
+        """Every value it reports that tables carry: its own, then :attr:`extra_values`."""
+        return (self.value, *self.extra_values)
+
+    label = property(lambda self: self.value.label, doc="Header with unit, e.g. ``ASD (mm)``.")
+    better = property(lambda self: self.value.better)
+
+    def display(self, value) -> float | None:
+        """A stored value in display units (None stays None)."""
+        return self.value.display(value)
 
 
 def _adapt(name: str, obj) -> MetricSpec:
@@ -198,8 +237,10 @@ METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("
                                          check=check_spec)
 
 SET_METRICS = (
-    SetMetricSpec("fid", "FID", 2, latex=r"FID$\downarrow$", valid_range=(0.0, math.inf)),
-    SetMetricSpec("kid", "KID", 4, latex=r"KID$\downarrow$", order=1001),
+    ValueSpec("fid", "FID", digits=2, higher_is_better=False, latex=r"FID$\downarrow$", order=1000,
+              description="Fréchet distance of top-down render features to the reference set", bounds=(0.0, math.inf)),
+    ValueSpec("kid", "KID", digits=4, higher_is_better=False, latex=r"KID$\downarrow$", order=1001,
+              description="kernel (MMD) distance of the same features; unbiased, can be slightly below 0"),
 )
 
 
@@ -245,6 +286,24 @@ def display_specs(names: Sequence[str] | None = None, with_set: bool = True) -> 
     """What a results table shows: the selected metrics in table order, then FID and KID."""
     specs = ordered(selected_metrics(names))
     return specs + (list(SET_METRICS) if with_set else [])
+
+
+def display_values(names: Sequence[str] | None = None, with_set: bool = True) -> list[ValueSpec]:
+    """Every value a results table carries (module docstring): each selected metric's values (:attr:`MetricSpec.values`,
+    Stability's ``still_fraction`` too) in table order, then FID and KID."""
+    return [v for spec in ordered(selected_metrics(names)) for v in spec.values] + (list(SET_METRICS) if with_set else [])
+
+
+def value_spec(name: str) -> ValueSpec | None:
+    """The display of a value by its ``metrics.json`` key: a metric's own or extra value, FID, KID (None: none)."""
+    for spec in SET_METRICS:
+        if spec.name == name:
+            return spec
+    for _, spec in METRICS.items():
+        for value in spec.values:
+            if value.name == name:
+                return value
+    return None
 
 
 def display_spec(name: str):

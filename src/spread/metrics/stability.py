@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio, scene_seed
-from spread.metrics.registry import register_metric
+from spread.metrics.registry import ValueSpec, register_metric
 from spread.relations import scene_spatial_codes
 
 #: Runs per scene.
@@ -110,7 +110,9 @@ def scene_stability(scene, library, runs: int = STABILITY_RUNS, steps: int = STA
 @register_metric("stability", column="Stability", digits=3, latex=r"Stability$\uparrow$", default=True, order=40,
                  build=lambda p: PhysicsStability(p.stability_runs, p.stability_steps, p.stability_dt,
                                                   p.stability_jitter, base_seed=p.seed, physics=p.physics_params()),
-                 description="share of ordered pairs whose spatial code survives the physics runs")
+                 description="share of ordered pairs whose spatial code survives the physics runs",
+                 extra_values=(ValueSpec("still_fraction", column="Still", digits=3, shown=False, bounds=(0.0, 1.0),
+                                         description="share of objects moved < 1 cm and turned < 0.1 rad"),))
 class PhysicsStability(SceneMetric):
     """Stability over many scenes (higher is better); protocol constants are the defaults, ``base_seed``
     the evaluation's seed (each scene's runs are seeded by ``scene_seed(scene_id, base_seed)``).

@@ -5,17 +5,11 @@ Training: ``DDPMScheduler(num_train_timesteps, beta_schedule, prediction_type="e
 1,000 steps of ``squaredcos_cap_v2`` by default, :data:`TRAIN_SCHEDULER_CONFIG`); x_t = ``add_noise(x_0, ε, t)``.
 
 :class:`Sampler` — chosen by config, independent of the model, built from the model's training schedule
-(``schedule``: its scheduler config; the default schedule when not given):
-
-=============== ==================================================================================
-``ddpm``        ancestral DDPM, by default over all 1000 steps (what the release runs)
-``ddim``        ``DDIMScheduler``, ``steps`` steps, ``eta`` (0 = deterministic)
-``dpmsolver++`` ``DPMSolverMultistepScheduler(algorithm_type="dpmsolver++")``, ``steps`` steps
-=============== ==================================================================================
-
-DDIM and DPM-Solver++ use "trailing" timestep spacing (the first step is t = 999, where the model
-was trained on near-pure noise; Lin et al. 2024), and DPM-Solver++ clips λ(t) at −5.1 as diffusers
-recommends for the cosine schedule. Each call builds a fresh scheduler (they are stateful).
+(``schedule``: its scheduler config; the default schedule when not given), its ``kind`` a registered scheduler
+(:mod:`spread.model.schedulers`: ``ddpm``, by default over all 1000 steps as the release runs; ``ddim`` with
+``eta``; ``dpmsolver++``; a plugin's) or a diffusers scheduler class as ``"module:Class"``. Each call builds a
+fresh scheduler (they are stateful). A sampler has one spelling, its :attr:`Sampler.label` (``ddim-50``,
+``ddpm-1000``, ``ddim-50-eta0.5``), which :meth:`Sampler.from_config` reads back.
 
 The loop (:meth:`Sampler.sample`) works on any ``eps_fn(x_t, t) -> ε̂``; every diffusion method samples through
 it by one function, :func:`denoise`, which takes a method's :class:`Denoising` (its ε-function, mask, state size,
@@ -40,13 +34,14 @@ from dataclasses import dataclass
 from typing import Callable, Mapping
 
 import torch
-from diffusers import DDIMScheduler, DDPMScheduler, DPMSolverMultistepScheduler
+from diffusers import DDPMScheduler
 
 TRAIN_SCHEDULER_CONFIG: dict = {
     "num_train_timesteps": 1000,
     "beta_schedule": "squaredcos_cap_v2",
     "prediction_type": "epsilon",
 }
+#: The built-in sampler kinds (every registered one: :data:`spread.model.schedulers.SCHEDULERS`).
 SAMPLER_KINDS = ("ddpm", "ddim", "dpmsolver++")
 #: What the network predicts (diffusers' names): the noise ε, the clean state x_0, or v = √ᾱ ε − √(1−ᾱ) x_0
 #: (Salimans & Ho 2022). Samplers and guidance always receive ε (:func:`epsilon_from_prediction`).
@@ -228,8 +223,9 @@ def ddpm_step(scheduler: DDPMScheduler, eps: torch.Tensor, t: int, x: torch.Tens
 
 @dataclass
 class Sampler:
-    """A reverse process over the training schedule: ``kind`` ∈ SAMPLER_KINDS, ``steps`` (default
-    1000 for ``ddpm``, 50 otherwise), ``eta`` (DDIM only), ``clip_x0``."""
+    """A reverse process over the training schedule: ``kind`` (a registered scheduler or ``"module:Class"``,
+    module docstring), ``steps`` (default: the kind's, 1000 for ``ddpm``, 50 otherwise), ``eta`` (DDIM only),
+    ``clip_x0``."""
 
     kind: str = "ddim"
     steps: int | None = None
@@ -237,24 +233,41 @@ class Sampler:
     clip_x0: bool = True
 
     def __post_init__(self):
-        if self.kind not in SAMPLER_KINDS:
-            raise ValueError(f"unknown sampler '{self.kind}' (choose from {SAMPLER_KINDS})")
+        from spread.model.schedulers import scheduler_spec
+
+        spec = scheduler_spec(str(self.kind))  # an unknown kind is an error naming the registered ones
         if self.steps is None:
-            self.steps = TRAIN_SCHEDULER_CONFIG["num_train_timesteps"] if self.kind == "ddpm" else 50
+            self.steps = spec.steps
         if not 1 <= self.steps <= TRAIN_SCHEDULER_CONFIG["num_train_timesteps"]:
             raise ValueError(f"sampler steps must be in [1, 1000], got {self.steps}")
 
     @classmethod
     def from_config(cls, config: "Sampler | Mapping | str | None") -> "Sampler":
-        """A Sampler, a mapping of its fields, or a short name: "ddpm", "ddim-50", "dpmsolver++-20"."""
+        """A Sampler, a mapping of its fields, or its :attr:`label` ("ddpm", "ddim-50", "dpmsolver++-20",
+        "ddim-50-eta0.5", "ddim-50-noclip")."""
         if config is None:
             return cls()
         if isinstance(config, Sampler):
             return config
         if isinstance(config, str):
-            kind, _, steps = config.rpartition("-") if config[-1].isdigit() else (config, "", "")
-            return cls(kind=kind, steps=int(steps)) if steps else cls(kind=kind)
+            import re
+
+            found = re.fullmatch(r"(?P<kind>.+?)(?:-(?P<steps>\d+))?(?:-eta(?P<eta>[0-9.eE+-]+))?(?P<noclip>-noclip)?",
+                                 config)
+            steps, eta = found["steps"], found["eta"]
+            return cls(kind=found["kind"], steps=int(steps) if steps else None, eta=float(eta) if eta else 0.0,
+                       clip_x0=not found["noclip"])
         return cls(**dict(config))
+
+    @property
+    def label(self) -> str:
+        """The sampler's one spelling: ``ddim-50``, ``ddpm-1000``, ``ddim-50-eta0.5``, ``dpmsolver++-20-noclip``."""
+        return (f"{self.kind}-{self.steps}" + (f"-eta{self.eta:g}" if self.eta else "")
+                + ("" if self.clip_x0 else "-noclip"))
+
+    def fingerprint(self) -> dict:
+        """Every field (each changes the samples)."""
+        return {"kind": self.kind, "steps": int(self.steps), "eta": float(self.eta), "clip_x0": bool(self.clip_x0)}
 
     @property
     def num_steps(self) -> int:
@@ -264,13 +277,10 @@ class Sampler:
         """A fresh diffusers scheduler for this sampler, from the config of the schedule the model was trained
         with (``model.noise_schedule.config``, or only the keys that differ from the default training schedule,
         e.g. ``{"beta_schedule": "linear"}``; default: the default training schedule)."""
+        from spread.model.schedulers import scheduler_spec
+
         base = training_scheduler(**{k: v for k, v in dict(schedule or {}).items() if not k.startswith("_")}).config
-        if self.kind == "ddpm":  # fewer than 1000 steps: ancestral sampling on a strided schedule
-            return DDPMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
-        if self.kind == "ddim":
-            return DDIMScheduler.from_config(base, clip_sample=False, timestep_spacing="trailing")
-        return DPMSolverMultistepScheduler.from_config(base, algorithm_type="dpmsolver++", timestep_spacing="trailing",
-                                                       lambda_min_clipped=-5.1)
+        return scheduler_spec(self.kind).build(base)
 
     @torch.no_grad()
     def sample(self, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,

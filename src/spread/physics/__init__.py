@@ -9,9 +9,9 @@ package is cheap.
 
 from spread.physics.contacts import FLOOR, ContactSet  # noqa: F401
 from spread.physics.params import BULLET_HULL_MARGIN, PhysicsParams  # noqa: F401
+from spread.physics.world import PhysicsWorld, SettleResult  # noqa: F401  (first: the reference engine registers first)
 from spread.physics.mujoco_world import MujocoWorld
 from spread.physics.params import MujocoParams  # noqa: F401
 from spread.physics.warp_world import MujocoWarpParams, MujocoWarpWorld  # noqa: F401
 from spread.physics.runs import Displacement, Runs, displacement_stats, simulate_runs  # noqa: F401
-from spread.physics.world import PhysicsWorld, SettleResult  # noqa: F401
 from spread.physics.worker import get_world  # noqa: F401

@@ -1,41 +1,52 @@
-"""The physics-engine registry: each Stability engine defined once (``protocol.physics=<name>``).
+"""The physics-engine registry: each Stability engine defined once, in its own module (``protocol.physics=<name>``).
 
 An :class:`EngineSpec` is an engine's name, its parameters' dataclass (every field in SI units; the world's type
-is picked by the parameters' type, :func:`spread.physics.get_world`) and its world class (``"module:Class"``,
-imported when a world is created: pybullet, MuJoCo and MuJoCo Warp are optional heavy imports). Built-ins:
-``pybullet`` (the reference), ``mujoco``, ``mujoco_warp``. Another package adds an engine through the
-entry-point group ``spread.physics`` naming an :class:`EngineSpec`; its world implements what
-:func:`spread.physics.simulate_runs` uses (``params``, ``time_step``, ``set_time_step``, ``load_scene``,
-``set_poses``, ``step``, ``poses``, ``velocities``, ``close``; optionally ``simulate``).
+is picked by the parameters' type, :func:`spread.physics.get_world`), its world class (or ``"module:Class"``;
+pybullet, MuJoCo and MuJoCo Warp themselves are imported when a world is created) and ``options``: the
+parameters it takes from the evaluation protocol besides the time step (MuJoCo's sleeping islands). Each
+engine module registers itself at its end (:func:`register_engine`): ``pybullet`` (the reference,
+:mod:`spread.physics.world`), ``mujoco`` (:mod:`spread.physics.mujoco_world`), ``mujoco_warp``
+(:mod:`spread.physics.warp_world`); the registry imports every module of :mod:`spread.physics` when first read,
+so a new engine is one module. Another package adds an engine through the entry-point group ``spread.physics``
+naming an :class:`EngineSpec`; its world implements what :func:`spread.physics.simulate_runs` uses (``params``,
+``time_step``, ``set_time_step``, ``load_scene``, ``set_poses``, ``step``, ``poses``, ``velocities``, ``close``;
+optionally ``simulate``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
-from spread.physics.params import MujocoParams, PhysicsParams
-from spread.physics.warp_world import MujocoWarpParams
 from spread.registry import Registry, RegistryError, resolve
 
 
 @dataclass(frozen=True)
 class EngineSpec:
+    """One engine (module docstring); ``options(protocol) → dict`` of its parameters' fields set by the protocol."""
+
     name: str
     params: type
-    world: object  # "module:Class" or the class
+    world: object  # the class or "module:Class"
     description: str = ""
+    options: Callable | None = None
 
     def world_class(self):
         return resolve(self.world)
 
+    def params_for(self, protocol, time_step: float):
+        """The engine's parameters for an evaluation ``protocol`` at the internal step ``time_step`` (seconds)."""
+        return self.params(time_step=time_step, **(self.options(protocol) if self.options is not None else {}))
+
 
 def _adapt(name: str, obj) -> EngineSpec:
     if isinstance(obj, EngineSpec):
-        return obj if obj.name == name else EngineSpec(name, obj.params, obj.world, obj.description)
+        return obj if obj.name == name else EngineSpec(name, obj.params, obj.world, obj.description, obj.options)
     raise RegistryError(f"physics entry point '{name}': expected an EngineSpec, got {obj!r}")
 
 
-ENGINES: Registry[EngineSpec] = Registry("physics engine", "spread.physics", adapt=_adapt)
+ENGINES: Registry[EngineSpec] = Registry("physics engine", "spread.physics", packages=("spread.physics",),
+                                         adapt=_adapt)
 
 
 def register_engine(spec: EngineSpec) -> EngineSpec:
@@ -48,11 +59,3 @@ def engine_of(params) -> EngineSpec:
     if not matches:
         raise RegistryError(f"no registered physics engine takes {type(params).__name__} (engines: {ENGINES.names()})")
     return matches[0]
-
-
-register_engine(EngineSpec("pybullet", PhysicsParams, "spread.physics.world:PhysicsWorld",
-                           "pybullet (Bullet), the reference engine"))
-register_engine(EngineSpec("mujoco", MujocoParams, "spread.physics.mujoco_world:MujocoWorld",
-                           "C MuJoCo, the same bodies compiled to MJCF"))
-register_engine(EngineSpec("mujoco_warp", MujocoWarpParams, "spread.physics.warp_world:MujocoWarpWorld",
-                           "MuJoCo Warp: a scene's runs as one batch of worlds (GPU, or CPU); extra gpu-physics"))

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from spread.physics.params import MujocoParams  # noqa: F401  (defined beside the other engines' parameters)
+from spread.physics.engines import EngineSpec, register_engine
 
 
 def _route_warnings(mujoco) -> None:
@@ -276,3 +277,7 @@ class MujocoWorld:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+register_engine(EngineSpec("mujoco", MujocoParams, MujocoWorld, "C MuJoCo, the same bodies compiled to MJCF",
+                           options=lambda protocol: {"sleep": bool(protocol.physics_sleep)}))

@@ -41,6 +41,7 @@ import numpy as np
 
 from spread.physics.mujoco_world import MujocoWorld, WeldedPoses
 from spread.physics.params import MujocoParams
+from spread.physics.engines import EngineSpec, register_engine
 
 log = logging.getLogger("spread.physics.warp")
 
@@ -292,3 +293,7 @@ class MujocoWarpWorld:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+register_engine(EngineSpec("mujoco_warp", MujocoWarpParams, MujocoWarpWorld,
+                           "MuJoCo Warp: a scene's runs as one batch of worlds (GPU, or CPU); extra gpu-physics"))

@@ -28,6 +28,7 @@ from spread.physics.contacts import FLOOR, ContactSet, contact_set
 from spread.physics.frames import body_to_scene, scene_to_body
 from spread.physics.params import BULLET_HULL_MARGIN, PhysicsParams
 from spread.physics.shapes import BodyShape, asset_mass_frame, body_parts, write_parts_obj
+from spread.physics.engines import EngineSpec, register_engine
 
 
 @dataclass
@@ -315,3 +316,6 @@ class PhysicsWorld:
             self.unfreeze(pinned)
         t, R = self.poses()
         return SettleResult(t, R, steps, settled)
+
+
+register_engine(EngineSpec("pybullet", PhysicsParams, PhysicsWorld, "pybullet (Bullet), the reference engine"))

@@ -1,21 +1,32 @@
-"""Fingerprints of results: what a sampled-and-evaluated number depends on, so that a result is re-used only
-when everything it was made from is the same (a re-launched sweep never reports old numbers as new ones).
+"""The one "already done with the same inputs?" of the platform: what a number depends on, and the one rule that
+re-uses, resumes or redoes work by it (a re-launched run never reports old numbers as new ones).
 
-A **point fingerprint** (:func:`point_fingerprint`) is a plain dict over a ``spread-sample`` config:
+**Identities** are plain dicts built from the typed settings (each setting asked, never re-derived):
 
-* ``ckpt_sha256`` — the checkpoint's bytes (hashed once per process while the file is unchanged: :mod:`spread.readonce`);
-* ``data`` — the dataset's content: the sha256 of every scene file of the conditioning split and of the
-  evaluation's reference split, of ``assets/index.json`` and ``stats.json`` (:func:`dataset_digest`);
-* ``sampling`` — sampler, seed, batch size, samples per graph, EMA, graph scale, device, split;
-* ``guidance`` — every guidance setting when guidance is on (``None`` when it is off: weights of an unguided
-  run change nothing);
-* ``evaluation`` — ``evaluate``, the protocol, the FID settings and the reference split;
-* ``numbers_version`` — :data:`NUMBERS_VERSION`, bumped by a code change that changes scenes or metrics.
+* :func:`sampling_identity` — what a generated scene file depends on (``sampling.json``): the checkpoint's bytes
+  (``ckpt_sha256``, hashed once per process by path, size and mtime), the split (``split``) and its content
+  (``data``: :func:`dataset_digest`), ``sampling`` (the :class:`~spread.model.Sampler`'s fingerprint, seed, batch
+  size, EMA, graph scale, device), ``guidance`` (:meth:`spread.guidance.GuidanceConfig.fingerprint`: the mode, λ of
+  every registered term that acts — built-ins, PhyScene's, a plugin's — and every other setting; ``None``
+  unguided), ``numbers_version``;
+* :func:`evaluation_identity` — what a per-scene line depends on besides its scene file (``protocol.json``):
+  the protocol, the FID settings, the asset library's index, ``numbers_version``;
+* :func:`point_identity` — a ``spread-sample evaluate=true`` run (a sweep point, ``point.json``): both, the
+  samples per graph and the reference split's content.
 
-:func:`short` is its 8-hex-digit name (sweep point folders end with it, so two settings never share a
-folder); :func:`changed_keys` names what differs (the reason recorded when a point is redone).
-:func:`run_tags` are the facts of where a run ran (job id, world size, node list, git SHA), recorded
-beside results but never compared. Units: none; all digests are hex sha256.
+:data:`NUMBERS_VERSION` is the code's version of the numbers, bumped by a change that changes scenes or metrics.
+:func:`short` is an identity's 8-hex-digit name (sweep point folders end with it).
+
+**The done-check** (:func:`done_check`) compares the identity recorded with some outputs with this run's, by
+:func:`changed_keys` (the one), and says ``reuse`` (finished with the same inputs), ``resume`` (same inputs,
+unfinished), ``redo`` (other inputs, or none recorded: from scratch, with the reason) or ``new``. Sampling,
+evaluation, sweep points and the ablation's and comparison's stages all decide by it.
+
+:func:`settings` turns an identity into the flat, readable settings tables and reports name per run
+(``guidance.iterations``, ``guidance.floor_push``, ``sampler``, ``protocol.stability_runs``, ...), and
+:func:`differing` names the settings that differ between runs. :func:`run_tags` are the facts of where a run
+ran (job id, world size, node list, git SHA), recorded beside results but never compared. Units: none; all
+digests are hex sha256.
 """
 
 from __future__ import annotations
@@ -26,10 +37,11 @@ import json
 import os
 import socket
 import subprocess
+from dataclasses import dataclass
 from pathlib import Path
 
 #: Bump when a code change changes sampled scenes or metrics (every earlier result is then redone).
-NUMBERS_VERSION = 1
+NUMBERS_VERSION = 2
 
 
 def canonical(obj) -> str:
@@ -77,7 +89,7 @@ def dataset_digest(root, splits) -> str:
 
 
 def changed_keys(before: dict, now: dict, prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ (nested dicts compared key by key)."""
+    """Dotted keys whose values differ (nested dicts compared key by key; JSON-equal values are equal)."""
     out = []
     for k in sorted(set(before) | set(now)):
         a, b = before.get(k), now.get(k)
@@ -88,59 +100,202 @@ def changed_keys(before: dict, now: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def _plain(node):
-    from omegaconf import DictConfig, ListConfig, OmegaConf
-
-    if isinstance(node, (DictConfig, ListConfig)):
-        return OmegaConf.to_container(node, resolve=True)
-    return node
+def normalised(obj):
+    """A JSON round trip (tuples → lists, paths → str), as an identity is recorded on disk."""
+    return json.loads(canonical(obj))
 
 
-def _get(cfg, dotted: str, default=None):
-    from omegaconf import DictConfig, OmegaConf
+# ---- the done-check ------------------------------------------------------------------------------------------
 
-    if isinstance(cfg, DictConfig):
-        node = OmegaConf.select(cfg, dotted, default=None, throw_on_missing=False)
-        return default if node is None or node == "???" else _plain(node)
-    node = cfg
-    for part in dotted.split("."):
-        node = node.get(part) if isinstance(node, dict) else None
-        if node is None:
-            return default
-    return node
+@dataclass(frozen=True)
+class Decision:
+    """The done-check's answer (module docstring): ``action`` is ``reuse``, ``resume``, ``redo`` or ``new``;
+    ``reason`` says why a redo (``changed: guidance.iterations``, ``resume=false``, ...)."""
+
+    action: str
+    reason: str | None = None
+
+    @property
+    def reuse(self) -> bool:
+        return self.action == "reuse"
+
+    @property
+    def fresh(self) -> bool:
+        """Redo from scratch: what is there was made with other inputs (or unknown ones)."""
+        return self.action == "redo"
+
+
+def done_check(before: dict | None, now: dict, *, present: bool, finished: bool = False, resume: bool = True,
+               unknown: str = "its outputs have no fingerprint") -> Decision:
+    """Already done with the same inputs? ``before``: the identity recorded with the outputs (None: none),
+    ``now``: this run's; ``present``: outputs of some run are there; ``finished``: they are complete; ``resume``:
+    False redoes what is there; ``unknown``: the reason when outputs are there without an identity."""
+    if not present:
+        return Decision("new")
+    if not resume:
+        return Decision("redo", "resume=false")
+    if not isinstance(before, dict):
+        return Decision("redo", unknown)
+    changed = changed_keys(normalised(before), normalised(now))
+    if changed:
+        return Decision("redo", f"changed: {', '.join(changed)}")
+    return Decision("reuse" if finished else "resume")
+
+
+# ---- identities ----------------------------------------------------------------------------------------------
+
+def sampling_identity(cfg) -> dict:
+    """What a generated scene file depends on (module docstring); ``cfg``: a typed
+    :class:`~spread.sampling.SamplingConfig` (its ``sampler`` a Sampler, its ``guidance`` a GuidanceConfig).
+    ``samples_per_graph`` is not part of it (more samples only add files); ``data_root`` says where the data
+    lies (``spread-view`` reads it)."""
+    return {"ckpt_sha256": file_digest(cfg.ckpt), "data": dataset_digest(cfg.data.root, [cfg.data.split]),
+            "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
+            "sampling": {"sampler": cfg.sampler.fingerprint(), "seed": int(cfg.seed), "batch_size": int(cfg.batch_size),
+                         "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale), "device": str(cfg.device),
+                         # bf16 sampling changes the numbers (float32, the default, is not spelled)
+                         **({"precision": str(cfg.precision)} if str(getattr(cfg, "precision", "32")) != "32" else {})},
+            "guidance": cfg.guidance.fingerprint(), "numbers_version": NUMBERS_VERSION}
+
+
+def evaluation_identity(protocol, fid, assets) -> dict:
+    """What an evaluation's per-scene line depends on besides its scene file (whose sha256 each line carries):
+    the typed protocol's and FID settings' fingerprints, the asset library's index (``assets``: its folder) and
+    :data:`NUMBERS_VERSION`."""
+    return {"protocol": protocol.fingerprint(), "fid": fid.fingerprint(),
+            "assets_sha256": file_digest(Path(str(assets)) / "index.json"), "numbers_version": NUMBERS_VERSION}
+
+
+def point_identity(command) -> dict:
+    """A ``spread-sample`` run's identity (a sweep point's; ``command``: the typed ``SampleCommand``): its
+    :func:`sampling_identity`, ``samples_per_graph`` and, with ``evaluate``, the :func:`evaluation_identity` with
+    the reference split and its content."""
+    evaluation = None
+    if command.evaluate:
+        ev, root = command.evaluation, Path(str(command.data.root))
+        evaluation = {**evaluation_identity(ev.protocol, ev.fid, root / "assets"),
+                      "reference_split": str(ev.reference_split), "reference": tree_digest(root / ev.reference_split)}
+    return {**sampling_identity(command), "samples_per_graph": int(command.samples_per_graph), "evaluation": evaluation}
+
+
+def typed_command(cfg):
+    """A composed ``spread-sample`` config (a ``DictConfig``, Hydra's root too) as its typed record, parsed once
+    here at the boundary (``out_dir`` is not read: it may be named after this identity)."""
+    import copy
+
+    from omegaconf import DictConfig, OmegaConf, open_dict
+
+    if not isinstance(cfg, DictConfig):
+        return cfg
+    node = copy.deepcopy(cfg)
+    with open_dict(node):
+        node.pop("hydra", None)
+        node.out_dir = "."
+    return OmegaConf.to_object(node)
 
 
 def point_fingerprint(cfg) -> dict:
-    """The fingerprint (module docstring) of a ``spread-sample`` config (a ``DictConfig``, Hydra's root too,
-    or a plain dict of the same keys)."""
-    guidance = _get(cfg, "guidance") or {}
-    if isinstance(guidance, str):
-        guidance = {"mode": guidance}
-    weights = [float(guidance.get(k, 0) or 0) for k in ("collision", "gravity", "relation")]
-    guided = guidance.get("mode", "none") != "none" and any(w > 0 for w in weights)
-    split = _get(cfg, "data.split", "test")
-    evaluate = bool(_get(cfg, "evaluate", False))
-    reference = _get(cfg, "evaluation.reference_split", split) if evaluate else None
-    root = _get(cfg, "data.root")
-    return {
-        "ckpt_sha256": file_digest(_get(cfg, "ckpt")),
-        "data": dataset_digest(root, [split, reference]) if root else None,
-        "sampling": {"sampler": _get(cfg, "sampler"), "seed": _get(cfg, "seed"), "batch_size": _get(cfg, "batch_size"),
-                     "samples_per_graph": _get(cfg, "samples_per_graph"), "use_ema": _get(cfg, "use_ema"),
-                     "graph_scale": _get(cfg, "graph_scale"), "device": _get(cfg, "device"), "split": split,
-                     # bf16 sampling changes the numbers (float32, the default, keeps older fingerprints)
-                     **({"precision": str(_get(cfg, "precision"))} if str(_get(cfg, "precision", "32")) != "32" else {})},
-        "guidance": guidance if guided else None,
-        "evaluation": {"evaluate": evaluate, "reference_split": reference,
-                       "protocol": _get(cfg, "evaluation.protocol") if evaluate else None,
-                       "fid": _get(cfg, "evaluation.fid") if evaluate else None},
-        "numbers_version": NUMBERS_VERSION,
-    }
+    """:func:`point_identity` of a ``spread-sample`` config (typed, or a composed ``DictConfig``)."""
+    return normalised(point_identity(typed_command(cfg)))
 
 
 def point_short(*, _root_) -> str:
     """OmegaConf resolver ``${point_fp:}``: the short point fingerprint of the config it sits in."""
     return short(point_fingerprint(_root_))
+
+
+# ---- what reports name per run --------------------------------------------------------------------------------
+
+#: Identity keys that say where, not what (left out of :func:`settings`).
+WHERE = ("data_root",)
+
+
+def settings(identity: dict) -> dict:
+    """The flat, readable settings of an identity (module docstring): ``guidance.mode`` and, for every registered
+    guidance term, ``guidance.<term>`` (its λ; 0 where it does not act), every other guidance setting of a guided
+    run as ``guidance.<key>``, ``sampler`` (its label), the other sampling settings by name, ``ckpt``, ``data``,
+    ``assets`` and ``reference`` (12 hex digits of their sha256), ``protocol.<key>`` and ``fid.<key>``, ...; an
+    identity that lacks a part (a run recorded before it) gives none of its keys."""
+    from spread.guidance.terms import term_names
+    from spread.model.diffusion import Sampler
+
+    out: dict = {}
+    if "guidance" in identity:
+        guidance = identity["guidance"] or {"mode": "none"}
+        out["guidance.mode"] = guidance.get("mode", "none")
+        out |= {f"guidance.{name}": 0.0 for name in term_names()}
+        out |= {f"guidance.{k}": v for k, v in guidance.items() if k != "mode" and
+                (guidance["mode"] != "none" or k in out)}
+    for key, value in identity.items():
+        if key in ("guidance", *WHERE):
+            continue
+        if key == "sampling" and isinstance(value, dict):
+            for k, v in value.items():
+                out[k] = Sampler.from_config(v).label if k == "sampler" and isinstance(v, (dict, str)) else v
+        elif key == "evaluation" and isinstance(value, dict):
+            for k, v in value.items():
+                if k in ("protocol", "fid") and isinstance(v, dict):
+                    out |= {f"{k}.{f}": w for f, w in v.items()}
+                elif k in ("assets_sha256", "reference"):
+                    out[k.removesuffix("_sha256")] = str(v)[:12]
+                else:
+                    out[k] = v
+        elif key in ("ckpt_sha256", "data"):
+            out[key.removesuffix("_sha256")] = str(value)[:12]
+        elif not isinstance(value, dict):
+            out[key] = value
+    return {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in out.items()}
+
+
+def unflatten(config: dict) -> dict:
+    """``{"a.b": 1}`` (a wandb sweep's flat keys) as ``{"a": {"b": 1}}``; nested keys are kept."""
+    out: dict = {}
+    for key, value in (config or {}).items():
+        node = out
+        parts = str(key).split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {}) if isinstance(node.get(part, {}), dict) else {}
+        if isinstance(value, dict) and isinstance(node.get(parts[-1]), dict):
+            node[parts[-1]] = {**node[parts[-1]], **unflatten(value)}
+        else:
+            node[parts[-1]] = unflatten(value) if isinstance(value, dict) else value
+    return out
+
+
+def config_identity(config: dict) -> dict:
+    """The identity parts a run's recorded config gives (``.hydra/config.yaml``, a wandb run's config; flat dotted
+    keys too), each setting parsed once into its typed record: ``guidance`` (a
+    :class:`~spread.guidance.GuidanceConfig`'s fingerprint), ``sampling`` (the :class:`~spread.model.Sampler`'s,
+    seed, ...), ``samples_per_graph``, the evaluation protocol. For runs recorded without fingerprints."""
+    from spread.guidance import GuidanceConfig
+    from spread.model.diffusion import Sampler
+
+    tree = unflatten(config)
+    out: dict = {}
+    if isinstance(tree.get("guidance"), (dict, str)):
+        out["guidance"] = GuidanceConfig.from_config(tree["guidance"]).fingerprint()
+    sampling = {k: tree[k] for k in ("seed", "batch_size", "use_ema", "graph_scale", "device")
+                if k in tree and ("ckpt" in tree or "sampler" in tree)}  # a sampling run's (not an evaluation's seed)
+    if isinstance(tree.get("sampler"), (dict, str)):
+        sampling["sampler"] = Sampler.from_config(tree["sampler"]).fingerprint()
+    if sampling:
+        out["sampling"] = sampling
+    if "samples_per_graph" in tree:
+        out["samples_per_graph"] = tree["samples_per_graph"]
+    protocol = (tree.get("evaluation") or {}).get("protocol") if isinstance(tree.get("evaluation"), dict) \
+        else tree.get("protocol")
+    if isinstance(protocol, dict):
+        out["evaluation"] = {"protocol": protocol}
+    return out
+
+
+def differing(rows: list[dict]) -> list[str]:
+    """The settings keys (of :func:`settings` dicts) that take more than one value over ``rows``, values a row
+    lacks not counted, in the first row's order then first appearance."""
+    keys: list[str] = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    return [k for k in keys if len({canonical(r[k]) for r in rows if r.get(k) is not None}) > 1]
 
 
 @functools.cache

@@ -4,8 +4,9 @@
 2. Plan the batches (:mod:`spread.sampling.plan`): per-item seeds from (seed, scene id, k), fixed batches.
 3. Resume: a batch whose files all exist is skipped; a batch missing some is sampled again (same seeds,
    same batch, so the same scenes) and only its missing files are written. ``out_dir/sampling.json`` pins
-   what the files were made with (checkpoint hash, the split's data content, sampler, seed, batching, ...)
-   from before the first file is written; a re-launch into a folder made with other settings (or scene files
+   what the files were made with (:func:`spread.runtime.fingerprint.sampling_identity`: checkpoint hash, the
+   split's data content, sampler, seed, batching, every acting guidance term's weight, ...) from before the first
+   file is written; a re-launch into a folder made with other settings (or scene files
    without a record) redoes it from scratch and records why (``redone_because: "changed: <keys>"``), so a
    folder never mixes two runs and never passes old scenes off as new ones. ``resume=false`` deletes the
    folder's scene files first and samples everything.
@@ -23,9 +24,8 @@
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -177,51 +177,27 @@ def check_checkpoint(path) -> dict:
     return checkpoint
 
 
-def guidance_settings(guidance) -> dict | None:
-    """The full guidance config of a run, or None when it samples unguided."""
-    config = GuidanceConfig.from_config(guidance)
-    return config.to_dict() if config.active else None
-
-
-def fingerprint(cfg: SamplingConfig, ckpt_hash: str) -> dict:
-    """Everything that changes a generated file (``samples_per_graph`` does not: it only adds files), the
-    split's data content included (``data``: :func:`spread.runtime.fingerprint.dataset_digest`, as a sweep
-    point's fingerprint has it; ``data_root``, where it lies, is read by ``spread-view``). Unguided runs carry no ``guidance``
-    key (so folders sampled before guidance existed still resume)."""
-    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest
-
-    guidance = guidance_settings(cfg.guidance)
-    return ({"guidance": guidance} if guidance else {}) | {
-        "ckpt_sha256": ckpt_hash, "sampler": asdict(cfg.sampler), "seed": int(cfg.seed),
-        "batch_size": int(cfg.batch_size), "split": cfg.data.split, "use_ema": bool(cfg.use_ema),
-        "graph_scale": float(cfg.graph_scale), "data_root": str(Path(cfg.data.root).resolve()),
-        "data": dataset_digest(cfg.data.root, [cfg.data.split]), "numbers_version": NUMBERS_VERSION} | (
-        {"precision": cfg.precision} if cfg.precision != "32" else {})
-
-
 def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
-    """Resume, or redo from scratch (module docstring, step 3); returns why the folder is redone (None: a
-    resume or a new folder). A redo deletes the folder's scene files, renders and manifest; then (either way)
-    ``sampling.json`` is pinned to ``settings`` (``status: running``) before any file is written, so a run
-    killed mid-way is resumed only by a re-launch with the same settings."""
-    from spread.runtime.fingerprint import changed_keys
+    """Resume, or redo from scratch (module docstring, step 3; ``resume=false``: always) by the platform's
+    done-check (:func:`spread.runtime.fingerprint.done_check`); returns why the folder is redone (None: a resume
+    or a new folder). A redo deletes the folder's scene files and renders (no file of an earlier run stays beside
+    the new ones); then (either way) ``sampling.json``
+    is pinned to ``settings`` (``status: running``) before any file is written, so a run killed mid-way is
+    resumed only by a re-launch with the same settings."""
+    from spread.runtime.fingerprint import done_check
 
     path, scenes = out / MANIFEST, out / "scenes"
-    reason = None
-    if resume and any(scenes.glob("*.npz")):
-        try:
-            before = read_json(path).get("fingerprint")
-        except (OSError, ValueError, AttributeError):
-            before = None
-        if not isinstance(before, dict):
-            reason = f"its scenes have no readable {MANIFEST} fingerprint"
-        elif before != json.loads(json.dumps(settings)):
-            reason = f"changed: {', '.join(changed_keys(before, settings))}"
-    if reason is not None:
+    try:
+        before = read_json(path).get("fingerprint")
+    except (OSError, ValueError, AttributeError):
+        before = None
+    decision = done_check(before, settings, present=any(scenes.glob("*.npz")), resume=resume,
+                          unknown=f"its scenes have no readable {MANIFEST} fingerprint")
+    if decision.fresh:
         for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png")]:
             old.unlink()
-    write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": reason})
-    return reason
+    write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": decision.reason})
+    return decision.reason
 
 
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
@@ -339,14 +315,13 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     out = Path(cfg.out_dir)
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
-    if not cfg.resume:  # a fresh run: no file of an earlier run may stay beside the new ones
-        for old in scenes_dir.glob("*.npz"):
-            old.unlink()
     check_checkpoint(cfg.ckpt)  # missing, damaged, unsafe or self-contradictory: a clear error before any work
     limit = object_limit(cfg.data.root, cfg.max_objects)
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
-    settings = fingerprint(cfg, readonce.file_sha256(cfg.ckpt))  # hashed once per process
+    from spread.runtime.fingerprint import normalised, sampling_identity
+
+    settings = normalised(sampling_identity(cfg))  # the checkpoint hashed once per process
     redone_because = check_fingerprint(out, settings, cfg.resume)
     if before_work is not None:
         before_work()
@@ -390,7 +365,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "resumed": total - pending, "redone_unreadable": len(damaged), "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],
-        "guidance": settings.get("guidance"), "guidance_totals": guidance_totals or None,
+        "sampler": cfg.sampler.label, "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,
+        "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),
         "startup_seconds": round(startup[0], 3) if startup else None,

@@ -1,6 +1,6 @@
 """A sampling run on wandb (``job_type=sample``; conventions: :mod:`spread.runtime.tracking`): its counts,
-timings and guidance totals, the ground truth | generated renders, and tags for the variant, sampler and
-guidance weights. Offline by default; ``mode="disabled"`` writes nothing and opens no connection."""
+timings and guidance totals, the ground truth | generated renders, and tags for the variant, the sampler's label
+and the guidance (``guidance=<mode>`` and ``<term>=<weight>`` for every registered term that acts). Offline by default; ``mode="disabled"`` writes nothing and opens no connection."""
 
 from __future__ import annotations
 
@@ -8,18 +8,17 @@ from pathlib import Path
 from typing import Callable
 
 
-def sampling_tags(ckpt: str, sampler, manifest: dict, extra: list[str] | None = None) -> list[str]:
-    """Variant (from the checkpoint's hyperparameters, read without loading its weights), sampler and
-    guidance tags, plus ``extra``."""
+def sampling_tags(ckpt: str, sampler, guidance, extra: list[str] | None = None) -> list[str]:
+    """Variant (from the checkpoint's hyperparameters, read without loading its weights), the
+    :class:`~spread.model.Sampler`'s label and the :class:`~spread.guidance.GuidanceConfig`'s tags, plus ``extra``."""
     from spread import readonce
-    from spread.sampling.worker import sampler_label
+    from spread.safe_load import checkpoint_identity
 
-    hp = readonce.checkpoint(ckpt).get("hyper_parameters", {})
-    guidance = manifest.get("guidance")
-    tags = [str(hp.get("variant") or hp.get("method", "unknown")), sampler_label(sampler)]  # SPREAD variant or baseline
-    if guidance:
-        tags += ["guidance", f"guidance={guidance['mode']}"] + [f"{k}={guidance[k]:g}"
-                                                                for k in ("collision", "gravity", "relation")]
+    held = checkpoint_identity(readonce.checkpoint(ckpt))
+    tags = [str(held["variant"] or held["method"]), sampler.label]  # SPREAD variant or baseline
+    if guidance.active:
+        tags += ["guidance", f"guidance={guidance.mode}"] + [f"{name}={weight:g}" for name, weight
+                                                             in guidance.weights(nonzero=True).items()]
     return tags + [str(t) for t in (extra or [])]
 
 
@@ -29,11 +28,9 @@ def open_sampling_run(command, config: dict, group: str):
     its checkpoint (:func:`spread.runtime.mlflow_log.training_lineage`: its folder, wandb and MLflow ids)."""
     from spread.runtime.mlflow_log import training_lineage
     from spread.runtime.tracking import init_run
-    from spread.sampling.run import guidance_settings
 
     Path(command.out_dir).mkdir(parents=True, exist_ok=True)
-    tags = sampling_tags(command.ckpt, command.sampler, {"guidance": guidance_settings(command.guidance)},
-                         command.tags)
+    tags = sampling_tags(command.ckpt, command.sampler, command.guidance, command.tags)
     return init_run(command.logger, "sample", command.out_dir, config | {"lineage": training_lineage(command.ckpt)},
                     group=group, name=Path(command.out_dir).name, tags=tags)
 

@@ -37,24 +37,10 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def sampler_label(sampler) -> str:
-    """Short name of a :class:`~spread.model.Sampler`: ``ddim-50``, ``ddpm-1000``, ``dpmsolver++-20``."""
-    return f"{sampler.kind}-{sampler.num_steps}" + (f"-eta{sampler.eta:g}" if sampler.eta else "")
-
-
-def active_guidance(guidance):
-    """The :class:`~spread.guidance.GuidanceConfig` of ``guidance`` (a config, mapping or mode name) when it
-    guides; None for ``None``, ``"none"`` or a config with no weight > 0."""
-    from spread.guidance import GuidanceConfig
-
-    config = GuidanceConfig.from_config(guidance)
-    return config if config.active else None
-
-
 def warn_graph_guidance(guided, model, ckpt) -> None:
     """A warning when relation (support-graph) guidance steers a method that was not trained with the graphs (the
     registry's ``graph_conditioned``): the guidance then pulls towards supports the network never saw."""
-    if guided is None or float(getattr(guided, "relation", 0.0) or 0.0) <= 0:
+    if guided is None or not guided.active or guided.weight("relation") <= 0:
         return
     from spread.baselines.registry import METHODS
 
@@ -62,15 +48,9 @@ def warn_graph_guidance(guided, model, ckpt) -> None:
     if method in METHODS and not METHODS.get(method).graph_conditioned:
         import warnings
 
-        warnings.warn(f"guidance.relation={guided.relation:g}: relation guidance pulls the objects towards the "
-                      f"support graph, but {ckpt} is a '{method}' checkpoint, not trained with the graphs "
+        warnings.warn(f"guidance.relation={guided.weight('relation'):g}: relation guidance pulls the objects towards "
+                      f"the support graph, but {ckpt} is a '{method}' checkpoint, not trained with the graphs "
                       f"(set guidance.relation=0 to steer it by collision and gravity only)", UserWarning, stacklevel=2)
-
-
-def guidance_label(config) -> str:
-    """Short name of an active guidance config: ``refine(c=0.0075,g=0.001,r=0.001)``."""
-    terms = "".join(f",{name}={weight:g}" for name, weight in config.terms.items() if weight > 0)
-    return f"{config.mode}(c={config.collision:g},g={config.gravity:g},r={config.relation:g}{terms})"
 
 
 def checkpoint_data_settings(ckpt: dict, model) -> dict:
@@ -116,12 +96,11 @@ def load_pipeline(cfg) -> ScenePipeline:
     from spread import readonce
 
     model = cached_model(cfg.ckpt, cfg.device)
-    guided = active_guidance(cfg.guidance)
-    if guided is not None and sampling_kind(model) != "pipeline":
-        raise ValueError(f"guidance={guided.mode}: guidance steers the methods that sample through the pipeline's "
+    if cfg.guidance.active and sampling_kind(model) != "pipeline":
+        raise ValueError(f"guidance={cfg.guidance.mode}: guidance steers the methods that sample through the pipeline's "
                          f"loop; {cfg.ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
                          f"(sample it with guidance=none)")
-    warn_graph_guidance(guided, model, cfg.ckpt)
+    warn_graph_guidance(cfg.guidance, model, cfg.ckpt)
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
     dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"])
     return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,
@@ -159,8 +138,8 @@ class SampleWorker:
         self.scenes_dir = Path(scenes_dir)
         self.pipeline = load_pipeline(cfg)
         guided = self.pipeline.guidance
-        self.provenance = (f"ckpt={cfg.ckpt} sampler={sampler_label(self.pipeline.sampler)} seed={int(cfg.seed)}"
-                           + (f" guidance={guidance_label(guided)}" if guided else ""))
+        self.provenance = (f"ckpt={cfg.ckpt} sampler={self.pipeline.sampler.label} seed={int(cfg.seed)}"
+                           + (f" guidance={guided.label}" if guided else ""))
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 
     def source(self, item: SampleItem) -> Scene:

@@ -27,7 +27,7 @@ import yaml
 
 from spread.configs import conf_dir
 from spread.experiments import AblationSpec, RunError, find_runs, read_runs, run_ablation, run_report
-from spread.experiments.ablation import StageError
+from spread.experiments.stages import StageError
 from spread.experiments.tables import Column, metric_columns, read_csv, write_tables
 
 METRICS = metric_columns()
@@ -283,10 +283,11 @@ def test_ablation_resumes_stage_by_stage(tmp_path):
                               ("evaluate", "geometry", "false"), ("evaluate", "guidance", "false")]
 
     with pytest.raises(StageError, match=f"{out / 'train' / 'base'}: made with other settings"):
-        from spread.experiments.ablation import Ablation, run_stage
+        from spread.experiments.ablation import Ablation
+        from spread.experiments.stages import run_stage
 
         ablation = Ablation(spec(tmp_path, train=["seed=1"]), commands)
-        run_stage(ablation.train_stage("base"), ablation.ledger)
+        run_stage(ablation.engine.train_stage("base"), ablation.engine.ledger)
     changed = run_ablation(spec(tmp_path, train=["seed=1"]), commands)  # the command reports it per stage
     assert changed.stages["train/base"] == "failed" and "made with other settings" in changed.errors["train/base"]
 

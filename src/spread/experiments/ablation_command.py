@@ -28,7 +28,7 @@ def recipe_sampling(experiment: str) -> tuple[list[str], list[str]]:
 
 
 def spec_fields(cfg: DictConfig, kind: str) -> dict:
-    """The :class:`~spread.experiments.ablation.StagesSpec` fields of a composed ``conf/ablate.yaml`` or
+    """The :class:`~spread.experiments.stages.StagesSpec` fields of a composed ``conf/ablate.yaml`` or
     ``conf/compare.yaml`` (``kind``: ``ablate`` or ``compare``, the wandb group's prefix); ``stages``:
     ``max_concurrent`` and where its Ray tasks run (``address``, ``num_cpus``)."""
     from spread.runtime.ray import RaySettings

@@ -426,7 +426,7 @@ def print_sampling_summary(result) -> None:
 # ---- the commands as one object (the ablation's stages) ---------------------------------------------------------
 
 class InProcessCommands:
-    """:class:`~spread.experiments.ablation.Commands` backed by the functions above: each stage composes its
+    """:class:`~spread.experiments.stages.Commands` backed by the functions above: each stage composes its
     command's config from the stage's overrides and runs it (which records the config in its folder)."""
 
     def generate(self, overrides: list[str]) -> None:

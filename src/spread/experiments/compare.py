@@ -1,7 +1,7 @@
 """``spread-compare``: the paper's Table 1 — every method trained, sampled and evaluated on one dataset.
 
 The stages are the ablation's (:mod:`spread.experiments.ablation`: the same :class:`Stage`, ledger, resume
-rules and in-process :class:`~spread.experiments.ablation.Commands`), over methods instead of variants:
+rules and in-process :class:`~spread.experiments.stages.Commands`), over methods instead of variants:
 
 | stage | command | folder under ``out_dir`` | finished when |
 |---|---|---|---|
@@ -36,10 +36,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spread.experiments.ablation import Ablation, AblationResult, Commands, Stage, StagesSpec
 from spread.experiments.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
+from spread.experiments.stages import Commands, Stage, StageEngine, StagesResult, StagesSpec
 from spread.experiments.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
 from spread.io import read_json, read_text_checked, write_json_atomic
 
@@ -88,7 +88,7 @@ LAYOUTS = ("auto", "procthor", "threedfront")
 
 @dataclass
 class CompareSpec(StagesSpec):
-    """A comparison (:class:`~spread.experiments.ablation.StagesSpec`; ``conf/compare.yaml`` documents each
+    """A comparison (:class:`~spread.experiments.stages.StagesSpec`; ``conf/compare.yaml`` documents each
     list): its rows (``methods``), each trained method's own training list and each method's own sampling list
     (default: the method's registered ``sample``, physcene's ``guidance=physcene``); ``layout``."""
 
@@ -120,31 +120,28 @@ class CompareSpec(StagesSpec):
 
 
 @dataclass
-class CompareResult(AblationResult):
-    """:class:`~spread.experiments.ablation.AblationResult` and the table's ``layout``."""
+class CompareResult(StagesResult):
+    """:class:`~spread.experiments.stages.StagesResult` and the table's ``layout``."""
 
     layout: str = "procthor"
 
 
-class Comparison(Ablation):
-    """The ablation's stage runner (attempt, data and evaluation stages) over the registered methods."""
+class Comparison:
+    """Table 1's rows (the registered methods) over the stage engine
+    (:class:`~spread.experiments.stages.StageEngine`): which checkpoint each method samples, its own training and
+    sampling overrides, the CPU seconds of its stages, its budget columns and the table."""
+
+    def __init__(self, spec: CompareSpec, commands: Commands):
+        self.spec = spec
+        self.engine = StageEngine(spec, commands, self, LEDGER)
+        self.out = spec.out_dir
+        self.times_path = self.out / TIMES
+        self.times: dict = read_json(self.times_path) if self.times_path.exists() else {}
 
     @property
     def checkpoint_of(self) -> dict[str, str]:
         """method → the trained method whose checkpoint it samples (its own; physcene: diffuscene's)."""
         return {m: trained_from(m) for m in self.spec.methods}
-
-    ledger_name = LEDGER
-
-    def __init__(self, spec: CompareSpec, commands: Commands):
-        super().__init__(spec, commands)
-        self.times_path = self.out / TIMES
-        self.times: dict = read_json(self.times_path) if self.times_path.exists() else {}
-
-    # ---- folders ----
-    def ckpt(self, trained: str) -> Path:
-        given = self.spec.ckpt.get(trained)
-        return Path(given) if given else self.train_dir(trained) / "checkpoints" / "last.ckpt"
 
     def timed(self, name: str, run: Callable[[bool], None]) -> Callable[[bool], None]:
         """``run`` with this process's CPU seconds recorded under ``name`` in ``compare_times.json``."""
@@ -207,8 +204,8 @@ class Comparison(Ablation):
         suffix = re.compile(r"_k\d+$")  # generated scene <graph>_k<k> (spread.sampling.plan.SAMPLE_NAME) → graph
         records = []
         for m in self.spec.methods:
-            ok = self.status.get(f"evaluate/{m}") in ("done", "skipped")
-            metrics = read_json(self.eval_dir(m) / "metrics.json") if ok else {}
+            ok = self.engine.status.get(f"evaluate/{m}") in ("done", "skipped")
+            metrics = read_json(self.engine.eval_dir(m) / "metrics.json") if ok else {}
             row = {"method_key": m, "method": label(m)}
             measured = metrics.get("grecall")
             row["grecall"] = measured if m in GRAPH_CONDITIONED else None
@@ -217,15 +214,15 @@ class Comparison(Ablation):
                         "n_scenes", "n_objects", "fid_status"):
                 row[key] = metrics.get(key)
             if ok:
-                row.update(ci_columns(row_intervals(metrics, self.eval_dir(m))))
+                row.update(ci_columns(row_intervals(metrics, self.engine.eval_dir(m))))
                 if m not in GRAPH_CONDITIONED:  # no GRecall cell, so no interval beside it
                     row["grecall_lo"] = row["grecall_hi"] = None
-                row.update(grouped_intervals(folder_records(self.eval_dir(m)) or [],
+                row.update(grouped_intervals(folder_records(self.engine.eval_dir(m)) or [],
                                              lambda sid: rooms.get(suffix.sub("", sid)), ["col_mesh"],
                                              seed=protocol_seed(metrics)))
             row.update(self.budget(m))
             if ok:  # what the row's numbers were made with, as recorded beside them
-                row.update(identity_fields(folder_identity(self.eval_dir(m), metrics)))
+                row.update(identity_fields(folder_identity(self.engine.eval_dir(m), metrics)))
             row["status"] = "ok" if metrics else self.failure(m)
             records.append(row)
         return records
@@ -235,24 +232,24 @@ class Comparison(Ablation):
         trained = trained_from(method)
         chain = ["data", f"train/{trained}", f"sample/{method}", f"evaluate/{method}"]
         for name in chain:
-            if self.status.get(name) == "failed":
-                return self.errors[name]
-        return self.errors.get(f"evaluate/{method}", "not run")
+            if self.engine.status.get(name) == "failed":
+                return self.engine.errors[name]
+        return self.engine.errors.get(f"evaluate/{method}", "not run")
 
     def budget(self, method: str) -> dict:
         """Training steps and size, sampler, sampling seconds per scene, CPU seconds of this process."""
         out: dict = {}
         trained = trained_from(method)
-        summary = self.train_dir(trained) / "metrics.json"
+        summary = self.engine.train_dir(trained) / "metrics.json"
         if summary.exists():
             out["train_steps"] = read_json(summary).get("global_step")
-        config = self.train_dir(trained) / ".hydra" / "config.yaml"
+        config = self.engine.train_dir(trained) / ".hydra" / "config.yaml"
         if config.exists():
             import yaml
 
             cfg = yaml.safe_load(read_text_checked(config)) or {}
             out["model_size"] = ((cfg.get("model") or {}).get("config") or {}).get("name")
-        manifest = self.sample_dir(method) / "sampling.json"
+        manifest = self.engine.sample_dir(method) / "sampling.json"
         if manifest.exists():
             data = read_json(manifest)
             guidance = data.get("guidance_label") or "none"
@@ -317,21 +314,13 @@ class Comparison(Ablation):
     def run(self, log_table=None) -> CompareResult:
         started = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
-        spec = self.spec
-        self.attempt("data", self.data_stage, [])
-        for t in spec.trained():
-            if spec.ckpt.get(t):
-                self.status[f"train/{t}"] = "given"
-            else:
-                self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
-        self.run_rows([[(f"sample/{m}", "sample_stage", m, ["data", f"train/{trained_from(m)}"]),
-                        (f"evaluate/{m}", "evaluate_stage", m, [f"sample/{m}"])] for m in spec.methods])
+        self.engine.run_trained(self.spec.trained())
+        self.engine.run_sample_evaluate(list(self.spec.methods))
         records = self.rows()
-        self.attempt("table", lambda: self.table_stage(records, log_table), [])
+        self.engine.attempt("table", lambda: self.table_stage(records, log_table), [])
         stem = self.out / TABLE
-        tables = {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}
-        return CompareResult(records, dict(self.status), dict(self.errors), tables,
-                             round(time.perf_counter() - started, 3), self.layout())
+        done = self.engine.result(records, {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}, started)
+        return CompareResult(**vars(done), layout=self.layout())
 
 
 def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> CompareResult:

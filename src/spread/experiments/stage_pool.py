@@ -29,7 +29,7 @@ Step = tuple  # (name, method: str, key: str, needs: list[str])
 
 
 class LedgerView:
-    """A stand-in for :class:`~spread.experiments.ablation.Ledger` inside a task: reads the driver's entries,
+    """A stand-in for :class:`~spread.experiments.stages.Ledger` inside a task: reads the driver's entries,
     collects the records (:func:`merge` writes them in the driver's ledger)."""
 
     def __init__(self, stages: dict):
@@ -97,7 +97,7 @@ def attempt(runner, name: str, method: str, key: str, needs: list[str]) -> bool:
 
 
 def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settings=None) -> dict:
-    """Run ``chains`` (module docstring) for ``runner`` (an :class:`~spread.experiments.ablation.Ablation`):
+    """Run ``chains`` (module docstring) for ``runner`` (a :class:`~spread.experiments.stages.StageEngine`):
     one after another in this process when ``max_concurrent`` ≤ 1 (all chains' first steps, then their
     second steps), else as Ray tasks. Returns ``{"mode", "max_concurrent", ...}`` (the cluster when on Ray)."""
     pending = []

@@ -1,0 +1,405 @@
+"""The resumable stage engine of the multi-run studies (``spread-ablate``, ``spread-compare``).
+
+A study is a sequence of the platform's own commands, run through a :class:`Commands` object; each
+:class:`Stage` is one command with its Hydra overrides (printed as the equivalent command line), finished when
+its outputs exist. :class:`StageEngine` owns what every study shares: the folders (``data/``, ``train/<row>/``,
+``samples/<row>/``, ``eval/<row>/`` under ``out_dir``), the data, training, sampling and evaluation stages, the
+ledger (:class:`Ledger`: each finished stage's inputs, decided by the platform's one done-check
+:func:`spread.runtime.fingerprint.done_check`), the outcome of each stage (``status``, ``errors``: a failed stage
+blocks only the stages that need it) and the rows' concurrent sample → evaluate chains
+(:mod:`spread.experiments.stage_pool`).
+
+What differs between studies is asked of the study object the engine serves (:class:`Study`: which checkpoint a
+row samples, a row's training and sampling overrides, optionally a wrapper that times a stage body and the state
+a Ray task hands back); the ablation (:mod:`spread.experiments.ablation`) and the comparison
+(:mod:`spread.experiments.compare`) each hold an engine — neither inherits from the other.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+from spread.io import read_json, write_json_atomic
+from spread.runtime.ray import RaySettings
+
+log = logging.getLogger("spread.stages")
+
+
+class Commands(Protocol):
+    """The platform's commands, run in-process; each takes the Hydra overrides of its ``conf/<name>.yaml``."""
+
+    def generate(self, overrides: list[str]) -> None: ...
+
+    def train(self, overrides: list[str], run_dir: Path) -> None: ...
+
+    def sample(self, overrides: list[str]) -> None: ...
+
+    def evaluate(self, overrides: list[str]) -> dict: ...
+
+
+class StageError(RuntimeError):
+    """A stage that cannot run as configured; the message names its folder."""
+
+
+@dataclass
+class StagesSpec:
+    """What an ablation or a comparison shares (:class:`AblationSpec`, :class:`~spread.experiments.compare.CompareSpec`).
+    Override lists are Hydra overrides of the sub-commands' configs; ``ckpt``: trained row → a given checkpoint
+    (no training); ``data_root``: None → generate into ``out_dir/data``; ``group``: wandb group of every stage's
+    run (``experiment_name=<group>``; "" leaves each command's); ``max_concurrent``: rows' sample → evaluate
+    chains at a time (Ray tasks when > 1, on ``ray``: None, a local Ray session)."""
+
+    out_dir: Path
+    data_root: Path | None = None
+    split: str = "test"
+    generate: list[str] = field(default_factory=list)
+    train: list[str] = field(default_factory=list)
+    ckpt: dict[str, str | None] = field(default_factory=dict)
+    sample: list[str] = field(default_factory=list)
+    evaluate: list[str] = field(default_factory=list)
+    title: str = ""
+    group: str = ""
+    max_concurrent: int = 1
+    ray: RaySettings | None = None
+
+    def named(self, overrides: list[str]) -> list[str]:
+        """``overrides`` with the wandb group first (so a list can still set its own)."""
+        return ([f"experiment_name={self.group}"] if self.group else []) + list(overrides)
+
+    def __post_init__(self) -> None:
+        self.out_dir = Path(self.out_dir)
+        if int(self.max_concurrent) < 1:
+            raise ValueError(f"max_concurrent={self.max_concurrent}: at least 1")
+
+    def check_given(self, trained: list[str], method_of: Callable[[str], dict], note: str = "") -> None:
+        """Every given checkpoint names a trained row (``note`` says more when not), exists, and is that row's
+        kind of model (``method_of(row)``: :func:`spread.safe_load.expect_checkpoint`'s keywords) — one line
+        before any stage runs."""
+        from spread.safe_load import expect_checkpoint
+
+        for row, path in self.ckpt.items():
+            if row not in trained:
+                raise ValueError(f"train.ckpt.{row}: only {trained} are trained{note}")
+            if path and not Path(path).is_file():
+                raise FileNotFoundError(f"train.ckpt.{row}={path}: no such checkpoint file")
+            if path:
+                expect_checkpoint(path, f"train.ckpt.{row}", **method_of(row))
+
+    @property
+    def dataset(self) -> Path:
+        return Path(self.data_root) if self.data_root else self.out_dir / "data"
+
+
+@dataclass
+class Stage:
+    """One command run. ``inputs``: what its outputs depend on (compared with the ledger); ``derived``: when
+    the inputs changed, redo it from scratch (else refuse); ``complete``: extra check beyond ``outputs``;
+    ``exclusive``: it holds Ray actors while it waits for more (sampling with ``workers`` > 0), so concurrent
+    rows run such stages one at a time (:mod:`spread.experiments.stage_pool`)."""
+
+    name: str
+    folder: Path
+    outputs: list[Path]
+    inputs: dict
+    run: Callable[[bool], object]
+    derived: bool = True
+    complete: Callable[[], bool] | None = None
+    exclusive: bool = False
+
+    def finished(self) -> bool:
+        return all(p.exists() for p in self.outputs) and (self.complete is None or self.complete())
+
+
+@dataclass
+class StagesResult:
+    """records: the table's rows; stages: name → "skipped" | "done" | "given" (a given dataset or checkpoint)
+    | "failed" | "blocked"; errors: name → message; tables: format → path (md, csv, tex, png); seconds: wall."""
+
+    records: list[dict]
+    stages: dict[str, str]
+    errors: dict[str, str]
+    tables: dict[str, Path]
+    seconds: float
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+
+class Ledger:
+    """``out_dir/ablation.json``: finished stages with their inputs, seconds and time (atomic writes)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = read_json(path) if path.exists() else {"stages": {}}
+
+    def inputs(self, name: str) -> dict | None:
+        entry = self.data["stages"].get(name)
+        return None if entry is None else entry["inputs"]
+
+    def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None,
+               started_at: float | None = None, ended_at: float | None = None, tags: dict | None = None) -> None:
+        """One finished stage; ``started_at`` / ``ended_at``: Unix seconds of its work (None: nothing ran)."""
+        from spread.runtime.fingerprint import run_tags
+
+        self.data["stages"][name] = {"inputs": inputs, "seconds": seconds,
+                                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "tags": tags or run_tags(),
+                                     **({"started_at": started_at, "ended_at": ended_at or time.time()}
+                                        if started_at is not None else {}),
+                                     **({"redone_because": reason} if reason else {})}
+        write_json_atomic(self.path, self.data)
+
+
+def run_stage(stage: Stage, ledger: Ledger) -> str:
+    """Skip, continue, redo or refuse the stage (module docstring, *Resume*) by the platform's done-check
+    (:func:`spread.runtime.fingerprint.done_check`); returns "skipped" or "done"."""
+    from spread.runtime.fingerprint import done_check, normalised
+
+    inputs = normalised(stage.inputs)
+    before = ledger.inputs(stage.name)
+    finished = stage.finished()
+    if before is None:  # outputs the ledger does not know: its command re-uses or redoes them by its own record
+        decision = done_check(inputs, inputs, present=True, finished=finished and not stage.derived)
+    else:
+        decision = done_check(before, inputs, present=True, finished=finished)
+    if decision.reuse:
+        if before is None:
+            ledger.record(stage.name, inputs, None)
+        log.info("✓ %s: finished earlier (%s), skipped", stage.name, stage.folder)
+        return "skipped"
+    if decision.fresh and not stage.derived:
+        raise StageError(f"{stage.folder}: made with other settings ({decision.reason}); "
+                         f"delete that folder or use another out_dir")
+    if decision.fresh:
+        log.info("▶ %s: %s, redoing it from scratch", stage.name, decision.reason)
+    started, started_at = time.perf_counter(), time.time()
+    stage.run(not decision.fresh)
+    if not stage.finished():
+        missing = [str(p) for p in stage.outputs if not p.exists()] or ["(incomplete outputs)"]
+        raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
+    ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), decision.reason, started_at=started_at)
+    return "done"
+
+
+def command_line(command: str, overrides: list[str]) -> str:
+    return " ".join([command, *overrides])
+
+
+def scenes_complete(folder: Path) -> bool:
+    """Every scene ``sampling.json`` counts is on disk (a run's pinned ``sampling.json`` counts none until the
+    run ends: not complete)."""
+    try:
+        manifest = read_json(folder / "sampling.json")
+    except (OSError, ValueError):
+        return False
+    if not isinstance(manifest, dict) or "samples" not in manifest:
+        return False
+    return len(list((folder / "scenes").glob("*.npz"))) >= int(manifest["samples"])
+
+
+def sampling_inputs(folder: Path) -> dict:
+    """What an evaluation of a sampling run's scenes depends on: the fingerprint its ``sampling.json`` recorded
+    (:func:`spread.runtime.fingerprint.sampling_identity`) and the number of samples."""
+    manifest = read_json(folder / "sampling.json")
+    return {"fingerprint": manifest.get("fingerprint"), "samples": manifest.get("samples")}
+
+
+class Study(Protocol):
+    """What a study tells the engine (module docstring). Optional: ``timed(name, run)`` (a stage body as it runs),
+    ``worker_state(names)`` and ``merge_worker_state(state)`` (a Ray task's own records)."""
+
+    checkpoint_of: dict[str, str]
+
+    def train_lists(self, trained: str) -> list[str]: ...
+
+    def sample_lists(self, row: str) -> list[str]: ...
+
+
+class StageEngine:
+    """Builds and runs the shared stages of a :class:`StagesSpec` with :class:`Commands` for a :class:`Study`."""
+
+    def __init__(self, spec: StagesSpec, commands: Commands, study: Study, ledger_name: str):
+        self.spec = spec
+        self.commands = commands
+        self.study = study
+        self.out = spec.out_dir
+        self.ledger = Ledger(self.out / ledger_name)
+        self.slot = None  # while rows run concurrently: the stage pool's slot for exclusive stages
+        self.status: dict[str, str] = {}
+        self.errors: dict[str, str] = {}
+
+    # ---- folders ----
+    def train_dir(self, variant: str) -> Path:
+        return self.out / "train" / variant
+
+    def ckpt(self, trained: str) -> Path:
+        given = self.spec.ckpt.get(trained)
+        return Path(given) if given else self.train_dir(trained) / "checkpoints" / "last.ckpt"
+
+    def sample_dir(self, variant: str) -> Path:
+        return self.out / "samples" / variant
+
+    def eval_dir(self, variant: str) -> Path:
+        return self.out / "eval" / variant
+
+    # ---- stages ----
+    def data_stage(self) -> Stage | None:
+        root = self.spec.dataset
+        if self.spec.data_root and root.exists():
+            if not (root / self.spec.split).is_dir():
+                raise StageError(f"data.root={root}: no '{self.spec.split}' split folder")
+            return None
+        overrides = [*self.spec.generate, f"out_dir={root}"]
+
+        def run(resume: bool) -> None:  # spread-generate resumes by itself (rooms on disk are kept)
+            log.info("  ≙ %s", command_line("spread-generate", overrides))
+            self.commands.generate(overrides)
+
+        return Stage("data", root, [root / "manifest.json"], {"overrides": overrides}, run, derived=False)
+
+    def timed(self, name: str, run: Callable[[bool], None]) -> Callable[[bool], None]:
+        """A stage body as it runs: the study's ``timed`` wrapper when it has one (e.g. to record its CPU time)."""
+        timed = getattr(self.study, "timed", None)
+        return run if timed is None else timed(name, run)
+
+    def train_stage(self, trained: str) -> Stage:
+        folder = self.train_dir(trained)
+        last = folder / "checkpoints" / "last.ckpt"
+        overrides = self.spec.named([*self.study.train_lists(trained), f"data.root={self.spec.dataset}",
+                                     f"out_dir={folder}"])
+
+        def run(resume: bool) -> None:
+            extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
+            log.info("  ≙ %s", command_line("spread-train", overrides + extra))
+            self.commands.train(overrides + extra, folder)
+
+        return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], {"overrides": overrides},
+                     self.timed(f"train/{trained}", run), derived=False)
+
+    def sample_stage(self, variant: str) -> Stage:
+        from spread.configs import compose, to_object
+        from spread.runtime.fingerprint import point_identity
+
+        folder, ckpt = self.sample_dir(variant), self.ckpt(self.study.checkpoint_of[variant])
+        overrides = self.spec.named([*self.study.sample_lists(variant), f"ckpt={ckpt}", f"data.root={self.spec.dataset}",
+                                     f"data.split={self.spec.split}", f"out_dir={folder}"])
+        command = to_object(compose("sample", overrides))  # parsed once: the stage's identity and how it samples
+
+        def run(resume: bool) -> None:
+            args = overrides + [f"resume={str(resume).lower()}"]
+            log.info("  ≙ %s", command_line("spread-sample", args))
+            self.commands.sample(args)
+
+        return Stage(f"sample/{variant}", folder, [folder / "sampling.json"], point_identity(command),
+                     self.timed(f"sample/{variant}", run),
+                     complete=lambda: scenes_complete(folder), exclusive=int(command.workers) > 0)
+
+    def evaluate_stage(self, variant: str) -> Stage:
+        from spread.configs import compose, to_object
+        from spread.runtime.fingerprint import evaluation_identity
+
+        folder, samples = self.eval_dir(variant), self.sample_dir(variant)
+        overrides = self.spec.named([*self.spec.evaluate, f"scenes={samples / 'scenes'}",
+                                     f"reference={self.spec.dataset}", f"reference_split={self.spec.split}",
+                                     f"out_dir={folder}"])
+        command = to_object(compose("evaluate", overrides))
+
+        def run(resume: bool) -> None:
+            args = overrides + [f"resume={str(resume).lower()}"]
+            log.info("  ≙ %s", command_line("spread-evaluate", args))
+            self.commands.evaluate(args)
+
+        inputs = {"evaluation": evaluation_identity(command.protocol, command.fid, Path(command.reference) / "assets"),
+                  "reference_split": command.reference_split, "samples": sampling_inputs(samples),
+                  **self.data_inputs()}
+        return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"], inputs, run)
+
+    def data_inputs(self) -> dict:
+        """What a sample or evaluate stage depends on besides its overrides: the split's data content and the
+        code version of the numbers (:mod:`spread.runtime.fingerprint`)."""
+        from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest
+
+        return {"data_sha256": dataset_digest(self.spec.dataset, [self.spec.split]), "numbers_version": NUMBERS_VERSION}
+
+    # ---- running ----
+    def worker_state(self, names: list[str]) -> dict:
+        """What the stages ``names`` run in a Ray task changed besides the ledger (the study's own records)."""
+        own = getattr(self.study, "worker_state", None)
+        return {} if own is None else own(names)
+
+    def merge_worker_state(self, state: dict) -> None:
+        """Take a task's :meth:`worker_state` into the study (the driver's)."""
+        own = getattr(self.study, "merge_worker_state", None)
+        if own is not None and state:
+            own(state)
+
+    def run_rows(self, chains: list[list[tuple]]) -> dict:
+        """The rows' independent stage chains (module docstring, *Concurrency*)."""
+        from spread.experiments.stage_pool import run_chains
+
+        return run_chains(self, chains, self.spec.max_concurrent, self.spec.ray)
+
+    def finished_already(self, name: str, method: str, key: str, needs: list[str]) -> bool:
+        """True when the row step ``(name, method, key, needs)`` would be skipped: the ledger holds it with the
+        inputs it has now and its outputs are there (so a re-run of a finished table starts no Ray session)."""
+        if any(self.status.get(n) in ("failed", "blocked") for n in needs):
+            return False
+        try:
+            stage = getattr(self, method)(key)
+        except Exception:  # noqa: BLE001 - attempt() will report it
+            return False
+        if stage is None:
+            return False
+        from spread.runtime.fingerprint import done_check
+
+        before = self.ledger.inputs(stage.name)
+        return before is not None and done_check(before, stage.inputs, present=True, finished=stage.finished()).reuse
+
+    def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:
+        """Build and run one stage unless a stage it needs failed; record the outcome; True when finished."""
+        blocked = [n for n in needs if self.status.get(n) in ("failed", "blocked")]
+        if blocked:
+            self.status[name] = "blocked"
+            self.errors.setdefault(name, f"not run: {', '.join(blocked)} did not finish")
+            return False
+        try:
+            stage = build()
+            if stage is None:
+                self.status[name] = "given"
+                return True
+            log.info("▶ %s → %s", name, stage.folder)
+            from spread.experiments.stage_pool import held
+
+            with held(self.slot if stage.exclusive else None):
+                self.status[name] = run_stage(stage, self.ledger)
+            return True
+        except KeyboardInterrupt:
+            raise
+        except (Exception, SystemExit) as exc:  # noqa: BLE001 - a failed stage must not lose the other rows
+            message = str(exc) if isinstance(exc, SystemExit) else f"{type(exc).__name__}: {exc}"
+            self.status[name], self.errors[name] = "failed", f"{name}: {message}"
+            log.error("✗ %s failed: %s\n%s", name, message, traceback.format_exc(limit=6))
+        return False
+
+    def run_trained(self, trained: list[str]) -> None:
+        """The data stage, then each trained row's training stage (or ``given`` for a given checkpoint)."""
+        self.attempt("data", self.data_stage, [])
+        for t in trained:
+            if self.spec.ckpt.get(t):
+                self.status[f"train/{t}"] = "given"
+            else:
+                self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
+
+    def run_sample_evaluate(self, rows: list[str]) -> dict:
+        """Each row's sample → evaluate chain (after its data and checkpoint)."""
+        return self.run_rows([[(f"sample/{r}", "sample_stage", r, ["data", f"train/{self.study.checkpoint_of[r]}"]),
+                               (f"evaluate/{r}", "evaluate_stage", r, [f"sample/{r}"])] for r in rows])
+
+    def result(self, records: list[dict], tables: dict[str, Path], started: float) -> "StagesResult":
+        return StagesResult(records, dict(self.status), dict(self.errors), tables,
+                            round(time.perf_counter() - started, 3))

@@ -44,7 +44,7 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("WANDB_MODE", "disabled")
-    from spread.experiments.ablation_command import ablate
+    from spread.commands.ablate import ablate
 
     root = Path(tempfile.mkdtemp(prefix="bench_ablate_"))
     timings, result = [], None

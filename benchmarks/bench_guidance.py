@@ -129,7 +129,7 @@ def part_sampling(args, library) -> None:
     from spread.sampling.worker import checkpoint_data_settings
 
     if args.ckpt:
-        from spread.baselines import module_from_checkpoint
+        from spread.methods import module_from_checkpoint
         from spread.safe_load import load_checkpoint
 
         checkpoint = load_checkpoint(args.ckpt)  # weights only: no code runs from the file

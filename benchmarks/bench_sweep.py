@@ -24,6 +24,7 @@ from pathlib import Path
 
 def sweep(ckpt: str, data: str, out: Path, concurrent: int, num_cpus: int, steps: int,
           address: str | None = None) -> tuple[float, int]:
+    from spread.commands.in_process import InProcessCommands
     from spread.experiments.sweep import parse_arguments, run_sweep
 
     where = [f"address={address}"] if address else [f"num_cpus={num_cpus}"]
@@ -33,7 +34,7 @@ def sweep(ckpt: str, data: str, out: Path, concurrent: int, num_cpus: int, steps
         "renders=0", "logger=none", "threads=1", "evaluation.protocol.stability_runs=1", "evaluation.fid.enabled=false",
         f"max_concurrent={concurrent}", *where, f"out_dir={out}"])
     started = time.perf_counter()
-    result = run_sweep(plan)
+    result = run_sweep(plan, InProcessCommands())
     return time.perf_counter() - started, len(result.rows)
 
 

@@ -38,7 +38,7 @@ def make(root: Path, rooms: int) -> tuple[Path, Path]:
     """A dataset of ``rooms`` generated rooms (30 % test) and a 2-step checkpoint of the shrunken model."""
     from spread.assets.build import build_library
     from spread.configs import compose
-    from spread.experiments.commands import train
+    from spread.commands.train import train
     from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
     from spread.procgen.room_types import RoomConfig
 

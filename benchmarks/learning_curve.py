@@ -42,7 +42,7 @@ import numpy as np
 
 def _metrics():
     """(key, label, display scale, digits) of the default metrics: the registry's display (ASD in mm)."""
-    from spread.experiments.tables import metric_columns
+    from spread.reporting.tables import metric_columns
 
     return tuple((c.key, c.label + c.arrow, c.scale, c.digits) for c in metric_columns(with_set=False))
 
@@ -373,7 +373,7 @@ def log_wandb(runs: dict, out_dir: Path) -> list[str]:
     """One wandb run per curve (``job_type=learning_curve``, group = its label; offline unless ``WANDB_MODE``
     says otherwise): per checkpoint ``<mode>/<metric>`` with ``_low`` / ``_high`` bounds, on the step axis
     ``curve/step``, with ``curve/scenes`` and ``curve/minutes``. Returns the runs' folders."""
-    from spread.runtime.tracking import LoggerConfig, init_run, run_folder
+    from spread.tracking.loggers import LoggerConfig, init_run, run_folder
 
     folders = []
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -82,7 +82,7 @@ def settled_room(root: Path, min_objects: int = 8):
 
 
 def train_in_process(out: Path, *overrides: str) -> dict:
-    from spread.experiments.commands import train
+    from spread.commands.train import train
 
     cfg = compose("train", f"out_dir={out}", *overrides)
     return train(cfg, run_dir=out, overrides=list(overrides))

@@ -26,9 +26,11 @@ import pytest
 import yaml
 
 from spread.configs import conf_dir
-from spread.experiments import AblationSpec, RunError, find_runs, read_runs, run_ablation, run_report
+from spread.experiments.ablation import AblationSpec, run_ablation
+from spread.reporting.report import run_report
+from spread.reporting.runs import RunError, find_runs, read_runs
 from spread.experiments.stages import StageError
-from spread.experiments.tables import Column, metric_columns, read_csv, write_tables
+from spread.reporting.tables import Column, metric_columns, read_csv, write_tables
 
 METRICS = metric_columns()
 
@@ -69,7 +71,7 @@ def test_tables_round_trip_and_show_the_rows(tmp_path):
 def test_ablation_bar_plot_draws_every_row(tmp_path):
     from PIL import Image
 
-    from spread.experiments.plots import ablation_bars
+    from spread.reporting.plots import ablation_bars
 
     drawn = ablation_bars(ROWS, METRICS, tmp_path / "a.png", label_key="method")
     assert drawn["col_mesh"] == [0.241, 0.225, 0.121] and drawn["fid"] == [None, None, 12.5]
@@ -148,7 +150,7 @@ def test_report_reads_run_folders_and_a_wandb_offline_run(tmp_path, wandb_run):
     assert by_name["agent-run"]["col_mesh"] == 0.20 and by_name["agent-run"]["kind"] == "wandb"
     assert result.unfinished == [runs["unfinished"]]
     assert len(result.plots) == 6 * 3  # GRecall, Col_mesh, ASD, Stability, FID, KID × three weights
-    from spread.experiments.tables import value_column
+    from spread.reporting.tables import value_column
 
     for (metric, weight), (png, points) in result.plots.items():
         assert png.exists() and png.name == f"{metric}_vs_{weight.split('.')[-1]}.png"
@@ -324,7 +326,7 @@ def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):
 
 
 def test_presets_compose_and_an_unknown_preset_is_named():
-    from spread.experiments.ablation_command import ablation_spec
+    from spread.commands.ablate import ablation_spec
 
     quick = ablation_spec(compose("ablate", "+preset=quick"))
     assert quick.out_dir == Path("runs/ablate/quick") and "sampler=ddim50" in quick.sample
@@ -404,7 +406,7 @@ def tiny_ablation(tmp_path_factory):
     """The quick preset's code path on 12 generated rooms (3 test graphs) with a shrunken model."""
     import torch
 
-    from spread.experiments.ablation_command import ablate as run
+    from spread.commands.ablate import ablate as run
 
     torch.set_num_threads(1)
     data = make_dataset(tmp_path_factory.mktemp("abdata"))
@@ -420,7 +422,7 @@ def tiny_ablation(tmp_path_factory):
 
 
 def test_tiny_ablation_end_to_end_and_resume(tiny_ablation, monkeypatch):
-    from spread.experiments.ablation_command import ablate as run
+    from spread.commands.ablate import ablate as run
 
     result, out = tiny_ablation["result"], tiny_ablation["out"]
     assert result.ok, result.errors
@@ -507,7 +509,7 @@ def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps, \
-        "spread-sample must skip a run folder whose metrics.json exists (spread.experiments.is_finished_run)"
+        "spread-sample must skip a run folder whose metrics.json exists (spread.reporting.runs.is_finished_run)"
     second = next(sweep.glob("c0.015_g0.001_r0.001_*"))
     metrics = json.loads((second / "metrics.json").read_text())
     assert metrics["n_scenes"] == 3 and metrics["n_failed"] == 0
@@ -518,9 +520,9 @@ def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
 
 def test_wandb_ablation_table_carries_the_bounds_and_the_row_figures(tmp_path, monkeypatch):
     """Offline: the logged table has each metric's bounds and the bootstrap's seed; each row's figure is an image."""
-    from spread.experiments.wandb_table import log_ablation
+    from spread.reporting.wandb_table import log_ablation
     from spread.render import save_png
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.loggers import LoggerConfig
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")

@@ -17,8 +17,8 @@ import pytest
 
 from spread.experiments.ablation import Ablation, AblationSpec, TERMS
 from spread.experiments.ablation_seeds import aggregate, run_seeded_ablation
-from spread.experiments.launch import LaunchedCommands, launch_prefix
-from spread.experiments.tables import read_csv
+from spread.commands.launch import LaunchedCommands, launch_prefix
+from spread.reporting.tables import read_csv
 
 from helpers import FAST_TRAIN, SMALL_MODEL, compose, make_dataset
 from test_ablate_report import FakeCommands, args, metrics_json
@@ -81,8 +81,8 @@ def test_seeds_table_is_mean_and_sd_across_seeds_beside_the_bootstrap(tmp_path):
 
 
 def test_error_bars_are_the_sd_across_seeds_else_the_bootstrap(tmp_path):
-    from spread.experiments.plots import ablation_bars
-    from spread.experiments.tables import metric_columns
+    from spread.reporting.plots import ablation_bars
+    from spread.reporting.tables import metric_columns
 
     METRICS = metric_columns()
 
@@ -126,7 +126,7 @@ def tiny_cfg(data: Path, out: Path, *more: str):
 
 @pytest.mark.slow
 def test_two_seeds_with_every_row_end_to_end(data, tmp_path):
-    from spread.experiments.ablation_command import ablate
+    from spread.commands.ablate import ablate
 
     result = ablate(tiny_cfg(data, tmp_path / "q", "seeds=[0,1]"))
     assert result.ok, result.errors
@@ -143,7 +143,7 @@ def test_two_seeds_with_every_row_end_to_end(data, tmp_path):
 @pytest.mark.slow
 def test_ddp_training_stage_inside_an_ablation(data, tmp_path):
     """train.launcher=local with trainer=ddp on 2 CPU processes (gloo): the stage completes, rank 0 writes."""
-    from spread.experiments.ablation_command import ablate
+    from spread.commands.ablate import ablate
 
     cfg = tiny_cfg(data, tmp_path / "ddp", "variants=[geometry]", "train.launcher=local")
     cfg.train.extra = [*cfg.train.extra, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]

@@ -1,4 +1,4 @@
-"""Table 1 baselines (spread.baselines): ATISS, DiffuScene, PhyScene-style guidance, InstructScene.
+"""Table 1 baselines (spread.methods): ATISS, DiffuScene, PhyScene-style guidance, InstructScene.
 
 * Each method's own mechanism, by a known answer: ATISS's next-object likelihood does not depend on the
   order of its context; DiffuScene's slot mask hides empty slots from the loss; InstructScene's edge
@@ -41,7 +41,7 @@ def dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def facts(dataset) -> dict:
-    from spread.baselines.base import dataset_facts
+    from spread.methods.base import dataset_facts
 
     return dataset_facts(dataset)
 
@@ -93,7 +93,7 @@ def pad_batch(batch: dict, extra: int, garbage: bool = True) -> dict:
 
 @pytest.mark.parametrize("method", METHODS)
 def test_model_yaml_presets_match_the_config_classes(method):
-    from spread.baselines import module_class
+    from spread.methods import module_class
 
     cls = module_class(method).config_class
     assert dict(compose("train", f"model={method}").model.config) == cls.tiny().to_dict()
@@ -104,7 +104,7 @@ def test_model_yaml_presets_match_the_config_classes(method):
 
 
 def test_physcene_is_diffuscene_sampled_with_the_box_iou_guidance_term():
-    from spread.baselines import method_spec
+    from spread.methods import method_spec
     from spread.guidance import GuidanceConfig
 
     spec = method_spec("physcene")
@@ -116,7 +116,7 @@ def test_physcene_is_diffuscene_sampled_with_the_box_iou_guidance_term():
 
 
 def test_an_old_physcene_checkpoint_is_refused_with_the_way_to_sample_it(facts):
-    from spread.baselines.diffuscene import DiffuScene
+    from spread.methods.diffuscene import DiffuScene
 
     with pytest.raises(ValueError, match="guidance=physcene"):
         DiffuScene("tiny", **facts, method="physcene", box_guidance={"weight": 0.15, "clip": 0.1, "last_steps": 10})
@@ -129,8 +129,8 @@ def test_diffusion_baselines_sample_through_the_one_loop_as_their_own_loops_did(
     import json
 
     from spread.assets import AssetLibrary
-    from spread.baselines.diffuscene import DiffuScene
-    from spread.baselines.instructscene import InstructScene
+    from spread.methods.diffuscene import DiffuScene
+    from spread.methods.instructscene import InstructScene
     from spread.guidance import GuidanceConfig, SceneGuidance
     from spread.sampling.pipeline import guidance_callback
 
@@ -168,7 +168,7 @@ def test_diffusion_baselines_sample_through_the_one_loop_as_their_own_loops_did(
 # ---- ATISS -------------------------------------------------------------------------------------------
 
 def test_atiss_likelihood_does_not_depend_on_context_order(batch, facts):
-    from spread.baselines.atiss import ATISS
+    from spread.methods.atiss import ATISS
 
     torch.manual_seed(0)
     model = ATISS("tiny", **facts)
@@ -189,7 +189,7 @@ def test_atiss_likelihood_does_not_depend_on_context_order(batch, facts):
 
 
 def test_atiss_dmll_is_a_distribution_and_samples_follow_it():
-    from spread.baselines import dmll
+    from spread.methods import dmll
 
     params = torch.tensor([[0.3, -0.2, 0.1, -0.4, 0.5, -3.0]])  # two logistics: [π, μ, log s]
     grid = torch.linspace(-1, 1, 256)  # the bin centres
@@ -203,7 +203,7 @@ def test_atiss_dmll_is_a_distribution_and_samples_follow_it():
 # ---- DiffuScene ----------------------------------------------------------------------------------------
 
 def test_diffuscene_slot_mask_hides_empty_slots_from_the_loss(batch, facts):
-    from spread.baselines.diffuscene import DiffuScene
+    from spread.methods.diffuscene import DiffuScene
 
     torch.manual_seed(0)
     model = DiffuScene("tiny", **facts)
@@ -224,7 +224,7 @@ def test_box_iou_guidance_term_moves_overlapping_boxes_apart_in_x_z_and_heading_
     box_iou on DiffuScene's states lowers the summed box IoU, moves only centre x, z and (cos θ, sin θ), each value
     by at most the clip, and repeated steps separate the boxes."""
     from spread.assets import AssetLibrary
-    from spread.baselines.diffuscene import DiffuScene
+    from spread.methods.diffuscene import DiffuScene
     from spread.guidance import GuidanceConfig, SceneGuidance
 
     model = DiffuScene("tiny", **facts).eval()
@@ -274,7 +274,7 @@ def test_oriented_iou_known_answers_and_gradients():
 # ---- InstructScene -------------------------------------------------------------------------------------
 
 def test_instructscene_predicates_follow_its_rules():
-    from spread.baselines import predicates as P
+    from spread.methods import predicates as P
 
     def codes(centres, sizes, lamps=(False, False)):
         c = torch.tensor([centres], dtype=torch.float64)
@@ -299,8 +299,8 @@ def test_instructscene_predicates_follow_its_rules():
 
 
 def test_instructscene_edge_dropout_replaces_the_graph_by_the_padding_code(batch, facts):
-    from spread.baselines.instructscene import InstructScene
-    from spread.baselines.predicates import PAD, drop_edges
+    from spread.methods.instructscene import InstructScene
+    from spread.methods.predicates import PAD, drop_edges
 
     edges = torch.randint(0, 11, (3, 4, 4))
     dropped = drop_edges(edges, torch.tensor([True, False, True]))
@@ -329,7 +329,7 @@ def test_fast_dev_run(dataset, tmp_path, method):
 
 @pytest.mark.parametrize("method", ["atiss", "diffuscene", "instructscene"])
 def test_checkpoint_round_trip_loads_the_method_and_samples_the_same(trained, batch, method):
-    from spread.baselines import load_module
+    from spread.methods import load_module
 
     model = load_module(trained[method])
     assert model.hparams.method == method and model.hparams.categories and model.hparams.bounds
@@ -352,7 +352,7 @@ def test_spread_sample_refuses_guidance_for_a_method_that_samples_its_own_way(da
 
 
 def test_samples_of_every_method_pass_spread_evaluate(dataset, trained, tmp_path):
-    from spread.experiments.commands import InProcessCommands
+    from spread.commands.in_process import InProcessCommands
 
     merged = tmp_path / "all"
     merged.mkdir()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from spread.evaluation.bootstrap import bootstrap_intervals, interval_note, resample_indices
-from spread.experiments.intervals import grouped_intervals
+from spread.reporting.intervals import grouped_intervals
 
 #: The known answer of what each pooled value is (DESIGN §6): value → (state block, numerator, denominator).
 #: The bootstrap asks each registered metric for these terms; this test states them independently.
@@ -177,7 +177,7 @@ def test_same_seed_same_interval_other_seed_other_resamples():
 # ---- tables ----------------------------------------------------------------------------------------
 
 def test_tables_print_value_plus_minus_half_width_and_csv_keeps_the_bounds(tmp_path):
-    from spread.experiments.tables import Column, metric_columns, read_csv, write_tables
+    from spread.reporting.tables import Column, metric_columns, read_csv, write_tables
 
     rows = [{"method": "A", "grecall": 0.8, "grecall_lo": 0.75, "grecall_hi": 0.83, "asd": 0.0123,
              "asd_lo": 0.01, "asd_hi": 0.0152, "fid": 12.0},
@@ -199,7 +199,7 @@ def test_tables_print_value_plus_minus_half_width_and_csv_keeps_the_bounds(tmp_p
 
 def test_evaluation_metrics_json_carries_the_intervals_of_its_records(tmp_path):
     """What run_evaluation adds to metrics.json is bootstrap_intervals of the per-scene lines it wrote."""
-    from spread.experiments.intervals import row_intervals
+    from spread.reporting.intervals import row_intervals
 
     rows = [record(f"s{k}", colliding=k % 2, objects=4, matches=k, pairs=12) for k in range(6)]
     folder = tmp_path / "eval"
@@ -216,8 +216,8 @@ def test_evaluation_metrics_json_carries_the_intervals_of_its_records(tmp_path):
 def test_any_table_with_bounds_prints_them_and_its_csv_names_the_seed(tmp_path):
     """A table with its own columns and csv_keys (as compare's Table 1 passes) gets ± cells, the bounds after
     each value and the bootstrap's settings at the end of the CSV, without naming them."""
-    from spread.experiments.intervals import ci_columns, grouped_intervals, table_note
-    from spread.experiments.tables import Column, read_csv, write_tables
+    from spread.reporting.intervals import ci_columns, grouped_intervals, table_note
+    from spread.reporting.tables import Column, read_csv, write_tables
 
     rooms = random_rooms(16, 2)
     kind = {r["scene_id"]: ("bedroom" if k % 2 else "kitchen") for k, r in enumerate(rooms)}

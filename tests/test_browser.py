@@ -53,7 +53,7 @@ def test_dashboard_page_shows_the_training_and_sampling_runs(store, tmp_path):  
 
 
 def test_html_report_loads_without_console_errors(store, tmp_path):  # noqa: F811
-    from spread.experiments.report import run_report
+    from spread.reporting.report import run_report
 
     run_report([str(store[3]), str(store[2])], tmp_path / "R")
     with Browser() as browser:

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from spread.experiments.compare import METHODS, CompareSpec, run_comparison
-from spread.experiments.tables import read_csv
+from spread.reporting.tables import read_csv
 from spread.io import file_sha256
 from spread.scene import Scene, write_scene
 
@@ -175,7 +175,7 @@ def test_threedfront_layout_shows_col_mesh_per_room_type(tmp_path):
 
 def test_table_is_logged_to_wandb_offline(tmp_path, monkeypatch):
     from spread.experiments.compare import log_table1
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.loggers import LoggerConfig
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")
@@ -202,7 +202,7 @@ def test_bad_specs_name_the_key(tmp_path):
 
 
 def test_presets_compose_with_one_sampler_for_every_method():
-    from spread.experiments.compare_command import compare_spec
+    from spread.commands.compare import compare_spec
 
     for preset in ("quick", "paper"):
         s = compare_spec(compose("compare", f"+table1={preset}", "data.root=/d", "out_dir=/o"))
@@ -213,7 +213,7 @@ def test_presets_compose_with_one_sampler_for_every_method():
     quick = compare_spec(compose("compare", "+table1=quick", "data.root=/d", "out_dir=/o"))
     assert quick.train_method["atiss"] == ["experiment=atiss_quick"] and "sampler=ddim50" in quick.sample
     # the recipes live once, in the registry: the presets name none of them (paper's SPREAD adds its epochs)
-    from spread.baselines.registry import method_spec
+    from spread.methods.registry import method_spec
 
     full = compare_spec(compose("compare", "data.root=/d", "out_dir=/o"))
     assert all(full.train_method[m] == list(method_spec(m).train) for m in full.train_method)
@@ -233,8 +233,8 @@ def tiny_comparison(tmp_path_factory):
 
     from omegaconf import open_dict
 
-    from spread.baselines.registry import method_spec
-    from spread.experiments.compare_command import compare
+    from spread.methods.registry import method_spec
+    from spread.commands.compare import compare
 
     torch.set_num_threads(1)
     data = make_dataset(tmp_path_factory.mktemp("cmpdata"), categories=CATEGORIES)

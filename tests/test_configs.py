@@ -119,7 +119,7 @@ def test_paper_sampling_is_ddpm_1000_and_refine_guidance_with_the_supplements_we
 
 
 def test_the_paper_preset_only_names_the_experiments():
-    from spread.experiments.ablation_command import ablation_spec
+    from spread.commands.ablate import ablation_spec
 
     spec = ablation_spec(compose("ablate", ["+preset=paper"]))
     assert spec.train_variant == {"base": ["experiment=paper_base"], "geometry": ["experiment=paper_geometry"]}

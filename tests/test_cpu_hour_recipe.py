@@ -46,7 +46,7 @@ def test_cpu_hour_samples_with_ddim50_graph_guidance_and_refine_at_twice_the_pap
 
 
 def test_quick_preset_trains_both_variants_by_the_recipe_with_a_shorter_schedule():
-    from spread.experiments.ablation_command import ablation_spec
+    from spread.commands.ablate import ablation_spec
 
     spec = ablation_spec(compose("ablate", ["+preset=quick"]))
     for variant in ("base", "geometry"):

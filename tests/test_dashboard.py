@@ -26,7 +26,7 @@ def store(tmp_path_factory):
     """(folder, store URI, training run folder, sampling run folder): 6 training steps and one sampling run with
     ``evaluate=true``, both with ``logger=mlflow`` into ``<folder>/mlflow.db`` (the sampling run to wandb too,
     offline)."""
-    from spread.experiments.commands import sample
+    from spread.commands.sample import sample
 
     root = tmp_path_factory.mktemp("mlstore")
     data = make_dataset(root / "ds", rooms=8, categories=CATEGORIES)
@@ -91,7 +91,7 @@ def test_train_and_sample_put_two_runs_with_curves_metrics_tags_and_lineage(stor
 
 
 def test_the_sampling_run_on_wandb_has_a_name_per_room_type_metrics_and_lineage(store):
-    from spread.experiments.runs import read_wandb_file
+    from spread.reporting.runs import read_wandb_file
 
     root, uri, train_dir, sample_dir = store
     found = list((sample_dir / "wandb").glob("offline-run-*/*.wandb"))
@@ -178,7 +178,7 @@ def test_dashboard_refuses_unknown_arguments_by_name():
 # ---- spread-report's HTML page -------------------------------------------------------------------------------
 
 def test_report_of_a_sampling_run_and_a_training_run_is_one_self_contained_html_page(store, tmp_path):
-    from spread.experiments.report import run_report
+    from spread.reporting.report import run_report
 
     root, uri, train_dir, sample_dir = store
     result = run_report([str(sample_dir), str(train_dir)], tmp_path / "R")
@@ -188,7 +188,7 @@ def test_report_of_a_sampling_run_and_a_training_run_is_one_self_contained_html_
     metrics = json.loads((sample_dir / "metrics.json").read_text())
     room = next(iter(metrics["per_room_type"]))
     assert result.html["room_rows"] == len(metrics["per_room_type"]) and f"<td>{room}</td>" in page
-    from spread.experiments.tables import metric_columns
+    from spread.reporting.tables import metric_columns
 
     METRICS = metric_columns()
 
@@ -210,8 +210,8 @@ def test_spread_report_script_writes_the_html_page_of_a_sampling_run(store, tmp_
 
 
 def test_report_of_training_runs_only_overlays_their_curves(store, tmp_path):
-    from spread.experiments.html_report import read_curves
-    from spread.experiments.report import run_report
+    from spread.reporting.html_report import read_curves
+    from spread.reporting.report import run_report
 
     train_dir = store[2]
     curves = read_curves(train_dir)
@@ -261,8 +261,8 @@ def test_viewer_refuses_a_missing_path_by_name(tmp_path):
 def test_a_run_opens_before_the_work_and_a_failure_marks_it_failed(tmp_path):
     from mlflow import MlflowClient
 
-    from spread.runtime.mlflow_log import RUN_FILE, log_table, tracked
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.mlflow_store import RUN_FILE, log_table, tracked
+    from spread.tracking.loggers import LoggerConfig
 
     logger = LoggerConfig(name="wandb+mlflow", mode="disabled", tracking_uri=str(tmp_path / "store" / "m.db"))
     assert logger.wandb and logger.mlflow
@@ -284,7 +284,7 @@ def test_a_run_opens_before_the_work_and_a_failure_marks_it_failed(tmp_path):
 
 
 def test_logger_names_are_checked_and_combined():
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.loggers import LoggerConfig
 
     assert LoggerConfig(name="mlflow").names == ("mlflow",) and not LoggerConfig(name="mlflow").wandb
     with pytest.raises(ValueError, match="'wandb\\+tensorboard'"):
@@ -292,7 +292,7 @@ def test_logger_names_are_checked_and_combined():
 
 
 def test_the_default_store_is_the_runs_folders_sqlite_file_for_every_command(tmp_path):
-    from spread.runtime.mlflow_log import resolve_tracking_uri
+    from spread.tracking.mlflow_store import resolve_tracking_uri
 
     for command in ("train", "sample", "evaluate", "ablate", "compare"):
         cfg = compose(command, "logger=mlflow", f"paths.runs_dir={tmp_path / 'runs'}")
@@ -304,7 +304,7 @@ def test_the_default_store_is_the_runs_folders_sqlite_file_for_every_command(tmp
 def test_report_takes_the_training_runs_inside_a_folder_beside_its_evaluated_runs(store, tmp_path):
     """An ablation's or comparison's folder holds both: its evaluated runs make the table, its training runs
     the curves."""
-    from spread.experiments.html_report import training_folders
+    from spread.reporting.html_report import training_folders
 
     root, _, train_dir, sample_dir = store
     training, rest = training_folders([str(root)])

@@ -31,7 +31,7 @@ def test_a_metric_spec_declares_each_value_and_its_display_unit():
 
 def test_the_table_writer_shows_asd_in_mm_in_markdown_csv_latex_and_html(tmp_path):
     from spread.experiments.ablation import write_ablation_table
-    from spread.experiments.tables import columns_of, html_table, read_csv
+    from spread.reporting.tables import columns_of, html_table, read_csv
 
     paths = write_ablation_table(ROWS, tmp_path / "ablation")
     md, tex = paths["md"].read_text(), paths["tex"].read_text()
@@ -47,7 +47,7 @@ def test_the_table_writer_shows_asd_in_mm_in_markdown_csv_latex_and_html(tmp_pat
 
 def test_the_table_across_training_seeds_shows_asd_and_its_sd_in_mm(tmp_path):
     from spread.experiments.ablation_seeds import write_seed_table
-    from spread.experiments.tables import read_csv
+    from spread.reporting.tables import read_csv
 
     rows = [{**r, "seeds": 2, "asd_sd": 0.0005} for r in ROWS]
     paths = write_seed_table(rows, tmp_path / "ablation", [0, 1])
@@ -57,8 +57,8 @@ def test_the_table_across_training_seeds_shows_asd_and_its_sd_in_mm(tmp_path):
 
 
 def test_plots_draw_asd_in_mm(tmp_path):
-    from spread.experiments.plots import ablation_bars, metric_vs_weight
-    from spread.experiments.tables import value_column
+    from spread.reporting.plots import ablation_bars, metric_vs_weight
+    from spread.reporting.tables import value_column
 
     asd = value_column("asd")
     drawn = ablation_bars(ROWS, [asd], tmp_path / "bars.png", label_key="method")
@@ -82,8 +82,8 @@ def test_the_sweep_results_show_asd_in_mm(tmp_path):
 
 
 def test_spread_report_shows_asd_in_mm_in_its_files_and_page(tmp_path):
-    from spread.experiments import run_report
-    from spread.experiments.tables import read_csv
+    from spread.reporting.report import run_report
+    from spread.reporting.tables import read_csv
 
     for name, row, weight in (("a", ROWS[0], 0.0), ("b", ROWS[1], 0.0075)):
         folder = tmp_path / "runs" / name
@@ -106,9 +106,9 @@ def logged_table(folder: Path, key: str) -> dict:
 
 def test_wandb_tables_show_asd_in_mm(tmp_path, monkeypatch):
     from spread.experiments.compare import log_table1
-    from spread.experiments.tables import columns_of
-    from spread.experiments.wandb_table import log_ablation
-    from spread.runtime.tracking import LoggerConfig
+    from spread.reporting.tables import columns_of
+    from spread.reporting.wandb_table import log_ablation
+    from spread.tracking.loggers import LoggerConfig
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")
@@ -122,8 +122,8 @@ def test_wandb_tables_show_asd_in_mm(tmp_path, monkeypatch):
 
 
 def test_the_evaluations_per_scene_wandb_table_shows_asd_in_mm(tmp_path, monkeypatch):
-    from spread.evaluation.wandb_log import log_metrics
-    from spread.runtime.tracking import LoggerConfig, init_run, run_folder
+    from spread.tracking.evaluation_wandb import log_metrics
+    from spread.tracking.loggers import LoggerConfig, init_run, run_folder
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")
@@ -142,7 +142,7 @@ def test_the_console_tables_show_asd_in_mm(capsys):
     from rich.console import Console
 
     from spread.cli.demo import comparison_table
-    from spread.experiments.commands import print_evaluation_summary
+    from spread.commands.evaluate import print_evaluation_summary
 
     metrics = {**ROWS[0], "protocol": {"metrics": ["grecall", "col_mesh", "asd", "stability"]}, "n_evaluated": 4,
                "n_failed": 0, "n_objects": 20, "run": {"seconds": 1.0}, "fid_status": "disabled", "failed": []}

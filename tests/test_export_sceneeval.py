@@ -53,7 +53,7 @@ def test_sceneeval_state_places_every_mesh_where_the_scene_does(tmp_path):
 def test_the_export_command_writes_sceneeval_folders(tmp_path):
     from helpers import compose
 
-    from spread.experiments.commands import export
+    from spread.commands.export import export
 
     library = build_box_library(tmp_path / "assets")
     scenes = tmp_path / "scenes"

@@ -147,7 +147,7 @@ def test_evaluation_records_every_bad_file_by_name_and_the_asd_stays_the_mean_of
     from spread.configs import compose
     from spread.evaluation.aggregate import summary_values
     from spread.evaluation.protocol import EvalProtocol
-    from spread.experiments.commands import evaluate
+    from spread.commands.evaluate import evaluate
 
     scenes = tmp_path / "scenes"
     scenes.mkdir()
@@ -432,7 +432,7 @@ def test_two_evaluations_of_one_folder_never_share_a_metrics_json(dataset, tmp_p
     import sys
 
     from spread.configs import compose
-    from spread.experiments.commands import evaluate
+    from spread.commands.evaluate import evaluate
     from spread.io import RunFolderBusy
 
     out = tmp_path / "eval"
@@ -473,7 +473,7 @@ def test_two_evaluations_of_one_folder_never_share_a_metrics_json(dataset, tmp_p
 
 def test_a_hand_edited_text_metric_is_shown_invalid_never_with_an_interval():
     """Before: spread-report printed a hand-edited "grecall": "abc" as "abc ± 0.125"."""
-    from spread.experiments.tables import metric_columns
+    from spread.reporting.tables import metric_columns
 
     METRICS = metric_columns()
 
@@ -577,9 +577,9 @@ def test_generate_ablate_and_compare_refuse_a_folder_another_run_is_writing(tmp_
     """spread-generate, spread-ablate and spread-compare hold their out_dir's run lock as the other commands do:
     while another run holds it, they stop at once naming the holder, before writing anything."""
     from spread.configs import compose
-    from spread.experiments.ablation_command import ablate
-    from spread.experiments.commands import generate
-    from spread.experiments.compare_command import compare
+    from spread.commands.ablate import ablate
+    from spread.commands.generate import generate
+    from spread.commands.compare import compare
     from spread.io import RunFolderBusy, run_lock
 
     for name, run, overrides in (("generate", generate, ["rooms=2"]),

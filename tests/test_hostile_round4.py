@@ -155,7 +155,7 @@ def test_a_plugin_that_exits_on_import_leaves_every_registry_usable_and_listed_a
     """Medium: a module calling ``sys.exit`` on import stopped every command that reads a registry (Registry.load
     caught Exception only). Variant: the methods registry, and a BaseException that is not an Exception."""
     code = ("import json, warnings\nwarnings.simplefilter('ignore')\n"
-            "from spread.metrics.registry import METRICS\nfrom spread.baselines.registry import METHODS\n"
+            "from spread.metrics.registry import METRICS\nfrom spread.methods.registry import METHODS\n"
             "print(json.dumps({'metrics': METRICS.failed(), 'methods': METHODS.failed(), "
             "'names': METRICS.names(), 'method_names': METHODS.names()}))")
     proc = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(site)},
@@ -330,7 +330,7 @@ def test_spread_dashboard_checks_port_host_and_store_before_serving(tmp_path):
     assert f"{tmp_path / 'a?b'}/mlflow.db: the path holds ?" in line
 
     from spread.cli.dashboard import main
-    from spread.runtime.mlflow_log import open_store
+    from spread.tracking.mlflow_store import open_store
 
     assert "port=-1: not a port number" in refused_in_process(main, ["port=-1"])
     assert "host=192.168.1.10 is not a loopback" in refused_in_process(main, ["host=192.168.1.10"])

@@ -363,7 +363,8 @@ def test_an_imported_threed_front_dataset_trains_samples_evaluates_per_room_type
     their evaluation per room type, and an MJCF export of the samples."""
     from helpers import FAST_SAMPLE, FAST_TRAIN, SMALL_MODEL, compose, sample_in_process, train_in_process
 
-    from spread.experiments.commands import evaluate, export
+    from spread.commands.evaluate import evaluate
+    from spread.commands.export import export
 
     data = front[0] / "out"
     run = tmp_path / "run"

@@ -62,7 +62,7 @@ def image_outputs(cell) -> list:
 
 
 def test_results_notebook_runs_on_a_fresh_tiny_ablation_and_sweep(tmp_path):
-    from spread.experiments.tables import read_csv
+    from spread.reporting.tables import read_csv
 
     nb = execute("02_results.ipynb", tmp_path)
     out = tmp_path / "results"

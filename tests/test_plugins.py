@@ -136,7 +136,7 @@ def wandb_tags(out: Path) -> list[str]:
     """The tags of the wandb offline run under ``out/wandb`` (its ``.wandb`` log, decoded with wandb's protobuf)."""
     from wandb.proto import wandb_internal_pb2 as pb
 
-    from spread.experiments.runs import wandb_records
+    from spread.reporting.runs import wandb_records
 
     (log,) = out.glob("wandb/offline-run-*/run-*.wandb")
     for raw in wandb_records(log):
@@ -178,7 +178,7 @@ def test_a_plugin_term_is_named_in_tags_and_fingerprints_and_a_changed_weight_re
 def test_a_plugin_term_and_the_refinement_iterations_are_rows_of_the_sweep_and_the_report(plugin_site, dataset,
                                                                                           checkpoint, tmp_path):
     from spread.experiments.sweep import read_results_csv
-    from spread.experiments.tables import read_csv
+    from spread.reporting.tables import read_csv
 
     sweep = tmp_path / "sweep"
     args = [f"ckpt={checkpoint}", f"data.root={dataset}", "sampler.steps=4", "batch_size=2", "renders=0", "logger=none",
@@ -251,7 +251,7 @@ def test_a_plugin_method_is_a_row_of_spread_compare(plugin_site, dataset, tmp_pa
                                 "renders=0", "progress=false"),
                      hydra_list("evaluate.overrides", "seed=0", "logger=none", "protocol.stability_runs=1",
                                 "fid.enabled=false", "renders=0", "ray.num_cpus=1", "progress=false"))
-    from spread.experiments.tables import read_csv
+    from spread.reporting.tables import read_csv
 
     rows = read_csv(out / "table1.csv")
     assert [r["method_key"] for r in rows] == ["jitter_truth"] and rows[0]["status"] == "ok"
@@ -259,7 +259,7 @@ def test_a_plugin_method_is_a_row_of_spread_compare(plugin_site, dataset, tmp_pa
 
 
 def test_registries_list_the_built_ins_and_name_unknown_entries():
-    from spread.baselines.registry import method_names
+    from spread.methods.registry import method_names
     from spread.guidance.terms import term_names
     from spread.metrics.registry import METRICS, default_metric_names, selected_metrics
     from spread.registry import RegistryError

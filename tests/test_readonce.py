@@ -133,7 +133,7 @@ def ckpt(dataset, tmp_path_factory) -> Path:
 def readers(monkeypatch):
     """Counting wrappers around every reader a sampling run could use: checkpoint loads, sha256 of files,
     scene reads (by path), asset-library loads and model builds."""
-    import spread.baselines
+    import spread.methods
     import spread.io
     import spread.safe_load
     import spread.scene
@@ -153,8 +153,8 @@ def readers(monkeypatch):
     real_load = AssetLibrary.load.__func__
     monkeypatch.setattr(AssetLibrary, "load", classmethod(
         lambda cls, root: counts["library"].update([str(Path(root).resolve())]) or real_load(cls, root)))
-    monkeypatch.setattr(spread.baselines, "module_from_checkpoint",
-                        counting(counts["model"], spread.baselines.module_from_checkpoint, key=lambda *a, **k: "model"))
+    monkeypatch.setattr(spread.methods, "module_from_checkpoint",
+                        counting(counts["model"], spread.methods.module_from_checkpoint, key=lambda *a, **k: "model"))
     return counts
 
 
@@ -298,6 +298,7 @@ def test_sweep_trials_in_one_trial_process_load_the_model_once(dataset, ckpt, tm
     the second one loads no checkpoint, builds no model and reads no graph (its sampling.json counts)."""
     import json
 
+    from spread.commands.in_process import InProcessCommands
     from spread.experiments.sweep import parse_arguments, run_sweep
 
     out = tmp_path / "sweep"
@@ -305,7 +306,7 @@ def test_sweep_trials_in_one_trial_process_load_the_model_once(dataset, ckpt, tm
                             "guidance.iterations=2", "sampler.steps=4", "batch_size=2", "renders=0", "logger=none",
                             "evaluation.protocol.stability_runs=1", "evaluation.fid.enabled=false", "max_concurrent=1",
                             "num_cpus=2", f"out_dir={out}"])
-    result = run_sweep(plan)
+    result = run_sweep(plan, InProcessCommands())
     assert len(result.rows) == 2 and all(r["status"] == "ok" for r in result.rows)
     assert len({r["trial_pid"] for r in result.rows}) == 1, "the trial process is re-used"
     manifests = sorted((json.loads(p.read_text()) for p in out.glob("points/*/sampling.json")),

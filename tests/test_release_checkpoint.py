@@ -1,4 +1,4 @@
-"""The release-compatible network (spread.model.release) against the release's own code.
+"""The release-compatible network (spread.methods.release_network) against the release's own code.
 
 tests/data/release_network_fixture.npz was written by running the SPREAD release's network code
 (``Sg2ScTransformerDiffusionWrapper`` and its perceiver, from github.com/L-avenir/SPREAD, outside this
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from spread.model.release import (
+from spread.methods.release_network import (
     ReleaseCheckpointError, ReleaseNetwork, ReleaseNetworkConfig, load_release_checkpoint,
 )
 

@@ -9,7 +9,7 @@ on CPU outside this repository. What was not the release's own code there: (1) i
 (torch-mesh-isect's CUDA LBVH, which cannot run without CUDA) — python-fcl found the colliding triangle pairs between
 different meshes on the release's posed triangles and they were handed to its penalty code in the BVH's output
 format (by definition the same pairs; fcl is also what the platform uses); (2) the network — the platform's
-:class:`~spread.model.release.ReleaseNetwork` with the weights of tests/data/release_network_fixture.npz (which the
+:class:`~spread.methods.release_network.ReleaseNetwork` with the weights of tests/data/release_network_fixture.npz (which the
 release's own network code reproduces, tests/test_release_checkpoint.py), its output layer × ``proj_scale`` (0.01)
 so that a random network's ε at t = 0 does not carry the objects away; (3) the 1000 DDPM steps — the refinement
 starts from a stored state. Two runs: float32, as released, and float64 — the release's guidance arithmetic lifted
@@ -38,7 +38,7 @@ from spread.assets.decompose import convex_part
 from spread.assets.imported import write_imported_asset
 from spread.assets.library import AssetLibrary
 from spread.guidance import GuidanceConfig, SceneGuidance
-from spread.model.release_module import ReleaseDiffusion
+from spread.methods.release import ReleaseDiffusion
 
 DATA = Path(__file__).parent / "data"
 NAMES = ["table", "crate", "stool"]

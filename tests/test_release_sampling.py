@@ -72,9 +72,9 @@ def test_a_converted_checkpoint_loads_by_its_method_and_samples_through_the_samp
     """In process (fast): convert, load by the saved method, sample with the spread-sample library path."""
     from helpers import sample_in_process
 
-    from spread.baselines import load_module
+    from spread.methods import load_module
     from spread.cli.release_ckpt import convert
-    from spread.model.release_module import ReleaseDiffusion
+    from spread.methods.release import ReleaseDiffusion
 
     config, weights, keys, _ = fixture
     out = tmp_path / "release.ckpt"
@@ -170,7 +170,7 @@ def test_spread_sample_guidance_paper_runs_the_authors_pipeline_on_a_converted_c
 def test_the_samples_depend_on_the_shape_tokens_and_the_file_frame(fixture, imported):
     """scene_inputs reads the file's tokens (the network sees them) and decodes poses in the library's frame."""
     from spread.assets.library import AssetLibrary
-    from spread.model.release_module import ReleaseDiffusion
+    from spread.methods.release import ReleaseDiffusion
     from spread.sampling.pipeline import ScenePipeline
     from spread.data import SceneDataset
 

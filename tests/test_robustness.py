@@ -155,7 +155,7 @@ def test_a_resumed_sampling_run_resamples_a_truncated_file(dataset, checkpoint, 
 
 def test_a_resumed_evaluation_redoes_a_scene_whose_file_was_replaced(dataset, tmp_path):
     from spread.configs import compose
-    from spread.experiments.commands import evaluate
+    from spread.commands.evaluate import evaluate
 
     scenes = tmp_path / "scenes"
     shutil.copytree(dataset / "test", scenes)
@@ -177,7 +177,7 @@ def test_a_resumed_evaluation_redoes_a_scene_whose_file_was_replaced(dataset, tm
 
 def test_a_relaunch_with_another_protocol_is_redone_and_records_its_own_config(dataset, tmp_path):
     from spread.configs import compose
-    from spread.experiments.commands import evaluate
+    from spread.commands.evaluate import evaluate
 
     out = tmp_path / "eval"
     overrides = [f"scenes={dataset / 'test'}", f"reference={dataset}", f"out_dir={out}", "logger=none",

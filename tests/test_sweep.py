@@ -247,6 +247,7 @@ def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
     """Optuna TPE over an interval on a 2-node ray.cluster_utils.Cluster (one CPU each): both nodes run trials."""
     from ray.cluster_utils import Cluster
 
+    from spread.commands.in_process import InProcessCommands
     from spread.experiments.sweep import run_sweep
 
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
@@ -257,7 +258,7 @@ def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
                                 "guidance.collision=interval(0.0,0.03)", "guidance.gravity=0.001", *QUICK,
                                 "search=optuna", "num_samples=4", "max_concurrent=2", f"address={cluster.address}",
                                 f"out_dir={tmp_path / 'tpe'}", "metric=col_mesh", "mode=min"])
-        result = run_sweep(plan)
+        result = run_sweep(plan, InProcessCommands())
     finally:
         import ray
 
@@ -271,13 +272,14 @@ def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
 
 @pytest.mark.slow
 def test_training_sweep_with_asha_reports_each_validation(tiny, tmp_path):
+    from spread.commands.in_process import InProcessCommands
     from spread.experiments.sweep import run_sweep
 
     plan = parse_arguments(["command=train", "experiment=quick", f"data.root={tiny['data']}", *SMALL_MODEL,
                             *FAST_TRAIN, "trainer.max_steps=4", "trainer.max_time=null",
                             "trainer.check_val_every_n_epoch=1", "model.lr=1e-3,5e-4", "scheduler=asha",
                             "metric=val/loss", "mode=min", "num_cpus=2", "max_concurrent=2", f"out_dir={tmp_path / 'lr'}"])
-    result = run_sweep(plan)
+    result = run_sweep(plan, InProcessCommands())
     assert [r["model.lr"] for r in result.rows] == [0.0005, 0.001] and all(r["status"] == "ok" for r in result.rows)
     assert all(isinstance(r["val/loss"], float) for r in result.rows) and result.best is not None
     # a trial that ran to the end reports its point folder; one ASHA stopped early reported a validation only

@@ -65,7 +65,7 @@ def test_every_experiment_composes_and_its_targets_resolve(experiment):
     for node in (cfg.data, cfg.model, cfg.trainer, cfg.checkpoint):
         get_class(node._target_)
     assert cfg.data.num_points == cfg.model.config.num_points
-    if "method" in cfg.model:  # a Table 1 baseline (spread.baselines); tests/test_baselines.py covers them
+    if "method" in cfg.model:  # a Table 1 baseline (spread.methods); tests/test_baselines.py covers them
         assert list(cfg.tags) == [cfg.model.method]
     else:
         assert cfg.model.variant in ("base", "geometry") and list(cfg.tags) == [cfg.model.variant]

@@ -2,11 +2,11 @@
 training term) and oriented 3D IoU (PhyScene's guidance term, :mod:`spread.guidance.box_iou`).
 
 A full rotation R (world-from-local, y-up) splits as R = R_y(θ)·T (:func:`split_rotation`; θ the y-rotation nearest
-to R, T the rest orientation; :mod:`spread.baselines.boxes` explains the convention); the box of an object is the
+to R, T the rest orientation; :mod:`spread.methods.boxes` explains the convention); the box of an object is the
 axis-aligned box of its canonical extents after T (:func:`box_size`), turned by θ.
 
 Boxes are (..., 7) tensors ``[centre x, y, z, size x, y, z, θ]`` in metres (full sizes, not half), y up,
-θ the heading about y (:mod:`spread.baselines.boxes`: the box is ``R_y(θ)`` applied to the axis-aligned box
+θ the heading about y (:mod:`spread.methods.boxes`: the box is ``R_y(θ)`` applied to the axis-aligned box
 of that size). Both IoUs are differentiable in centres, sizes and θ.
 
 Oriented IoU: the boxes' footprints are rotated rectangles in the xz plane; their intersection is a convex

@@ -9,7 +9,7 @@ module registers them with Hydra's ConfigStore, so that the YAML files only choo
   :class:`~spread.model.Sampler`, ``model/base`` = :class:`~spread.model.config.SceneDiffusionConfig` (with
   :class:`~spread.model.config.ModelConfig`: the paper's network), ``protocol/base`` =
   :class:`~spread.evaluation.EvalProtocol`, ``fid/base`` = :class:`~spread.evaluation.FIDConfig`,
-  ``ray/base`` = :class:`~spread.runtime.RaySettings`, ``logger/base`` = :class:`~spread.runtime.LoggerConfig`,
+  ``ray/base`` = :class:`~spread.runtime.RaySettings`, ``logger/base`` = :class:`~spread.tracking.config.LoggerConfig`,
   ``paths/base`` = :class:`PathsConfig`;
 * **command schemas** — a command's primary config (``conf/<command>.yaml``) starts with its schema, the
   library record it fills plus the command's own keys: ``generate_schema`` = :class:`GenerateCommand`
@@ -65,7 +65,7 @@ def _store(group: str | None, name: str, node) -> None:
 
 def _common() -> None:
     from spread.runtime.ray import RaySettings
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.loggers import LoggerConfig
 
     _store("paths", "base", PathsConfig)
     _store("ray", "base", RaySettings)
@@ -93,14 +93,29 @@ def _evaluation() -> None:
     _store("fid", "base", FIDConfig)
 
 
+def register_resolvers() -> None:
+    """``${point_fp:}`` (the short point fingerprint: :func:`spread.runtime.fingerprint.point_short`),
+    ``${launch_id:}`` (unique per launching process) and ``${wandb_mode:}``
+    (:func:`spread.tracking.config.wandb_mode`)."""
+    from omegaconf import OmegaConf
+
+    from spread.runtime.fingerprint import launch_id, point_short
+    from spread.tracking.config import wandb_mode
+
+    if not OmegaConf.has_resolver("point_fp"):
+        OmegaConf.register_new_resolver("point_fp", point_short, use_cache=False)
+    if not OmegaConf.has_resolver("launch_id"):
+        OmegaConf.register_new_resolver("launch_id", launch_id)
+    if not OmegaConf.has_resolver("wandb_mode"):
+        OmegaConf.register_new_resolver("wandb_mode", wandb_mode, use_cache=False)
+
+
 def register(*commands: str) -> None:
     """Register the schemas the ``commands`` compose (all of :data:`COMMANDS` when none is named)."""
     for name in commands or COMMANDS:
         if name not in COMMANDS:
             raise ValueError(f"unknown command '{name}' (known: {COMMANDS})")
     wanted = set(commands or COMMANDS)
-    from spread.runtime.fingerprint import register_resolvers
-
     register_resolvers()
     _common()
     if wanted & {"generate", "ablate", "compare"}:
@@ -167,7 +182,7 @@ def sample_command():
     stages; built on demand so that importing this module stays light)."""
     from spread.evaluation.protocol import EvalProtocol, FIDConfig
     from spread.metrics.registry import default_metric_names
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.loggers import LoggerConfig
     from spread.sampling.run import SamplingConfig
 
     @dataclass
@@ -206,7 +221,7 @@ def evaluate_command():
     (the protocol's), logger and wandb group."""
     from spread.evaluation.run import EvaluationConfig
     from spread.metrics.registry import default_metric_names
-    from spread.runtime.tracking import LoggerConfig
+    from spread.tracking.loggers import LoggerConfig
 
     @dataclass
     class EvaluateCommand(EvaluationConfig):

@@ -1,7 +1,7 @@
 """Named registries of the platform's extension points, each also filled from Python entry points.
 
 One :class:`Registry` each holds the metrics (:mod:`spread.metrics.registry`), methods
-(:mod:`spread.baselines.registry`), guidance terms (:mod:`spread.guidance.terms`), dataset importers
+(:mod:`spread.methods.registry`), guidance terms (:mod:`spread.guidance.terms`), dataset importers
 (:mod:`spread.importers.registry`) and physics engines (:mod:`spread.physics.engines`). An entry is defined
 once, where its code is (a decorator or a ``register`` call in that module), and everything that lists
 metrics, methods, terms, importers or engines iterates the registry (DESIGN §8, "Extending").

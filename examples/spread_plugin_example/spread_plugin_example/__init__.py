@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from lightning import LightningModule
 
-from spread.baselines.registry import MethodSpec
+from spread.methods.registry import MethodSpec
 from spread.guidance.terms import GuidanceTerm
 from spread.metrics.base import SceneMetric, check_scene, ratio
 from spread.relations import hull_vertices

@@ -1,6 +1,6 @@
 """``spread-ablate +preset=quick``: train / sample / evaluate base, geometry and guidance → the ablation table.
 
-The work is :func:`spread.experiments.ablation_command.ablate`. Exit status 1 when a stage failed (the table
+The work is :func:`spread.commands.ablate.ablate`. Exit status 1 when a stage failed (the table
 is still written, with the failed rows empty).
 """
 
@@ -19,7 +19,7 @@ register()
 @hydra.main(config_path=conf_dir(), config_name="ablate", version_base="1.3")
 @one_line("spread-ablate")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.ablation_command import ablate, print_ablation
+    from spread.commands.ablate import ablate, print_ablation
 
     result = ablate(cfg)
     print_ablation(result, cfg)

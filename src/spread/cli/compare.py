@@ -1,6 +1,6 @@
 """``spread-compare +table1=quick``: the paper's Table 1 — every method trained, sampled, evaluated, tabulated.
 
-The work is :func:`spread.experiments.compare_command.compare`. Exit status 1 when a stage failed (the table
+The work is :func:`spread.commands.compare.compare`. Exit status 1 when a stage failed (the table
 is still written, with the failed rows empty).
 """
 
@@ -19,7 +19,7 @@ register()
 @hydra.main(config_path=conf_dir(), config_name="compare", version_base="1.3")
 @one_line("spread-compare")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.compare_command import compare, print_comparison
+    from spread.commands.compare import compare, print_comparison
 
     result = compare(cfg)
     print_comparison(result)

@@ -36,7 +36,7 @@ def parse(argv: list[str]) -> dict:
 def server_command(values: dict) -> tuple[list[str], str]:
     """(the ``mlflow server`` command line, the store URI); creates the store when it does not exist yet; a store
     that cannot be opened is one line naming it."""
-    from spread.runtime.mlflow_log import StoreError, artifact_root, open_store, resolve_tracking_uri
+    from spread.tracking.mlflow_store import StoreError, artifact_root, open_store, resolve_tracking_uri
 
     try:
         uri = resolve_tracking_uri(values["tracking_uri"] or f"sqlite:///{values['paths.runs_dir']}/mlflow.db")

@@ -31,9 +31,9 @@ from spread.io import read_json
 
 
 def columns(metrics: dict) -> list:
-    """The table's rows, as the table writer's columns (:mod:`spread.experiments.tables`: display unit, digits, ±):
+    """The table's rows, as the table writer's columns (:mod:`spread.reporting.tables`: display unit, digits, ±):
     every value of the metrics the evaluation selected (Stability's still share too), FID and KID."""
-    from spread.experiments.tables import metric_column, set_columns
+    from spread.reporting.tables import metric_column, set_columns
     from spread.metrics.registry import METRICS, ordered
 
     names = (metrics.get("protocol") or {}).get("metrics") or [n for n in METRICS.names() if n in metrics]
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> None:
     from rich.console import Console
 
     from spread.evaluation.bootstrap import interval_note
-    from spread.experiments.ablation_command import recipe_sampling
+    from spread.commands.ablate import recipe_sampling
 
     args = parse_args(argv)
     out = Path(args.out)

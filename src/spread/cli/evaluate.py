@@ -1,7 +1,7 @@
 """``spread-evaluate scenes=DIR reference=DATASET_DIR out_dir=OUT``: scene files → metrics (DESIGN §5, §6).
 
 Writes ``OUT/metrics.json``, ``OUT/per_scene.jsonl``, ``OUT/renders/`` and, with ``logger=wandb`` (the
-default, offline), ``OUT/wandb/``. The work is :func:`spread.experiments.commands.evaluate`.
+default, offline), ``OUT/wandb/``. The work is :func:`spread.commands.evaluate.evaluate`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ register("evaluate")
 @hydra.main(config_path=conf_dir(), config_name="evaluate", version_base="1.3")
 @one_line("spread-evaluate")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import evaluate, print_evaluation_summary
+    from spread.commands.evaluate import evaluate, print_evaluation_summary
 
     result = evaluate(cfg)
     print_evaluation_summary(result.metrics, result.out_dir)

@@ -16,7 +16,7 @@ register("export")
 @hydra.main(config_path=conf_dir(), config_name="export", version_base="1.3")
 @one_line("spread-export")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import export, print_export_summary
+    from spread.commands.export import export, print_export_summary
 
     report = export(cfg)
     print_export_summary(report)

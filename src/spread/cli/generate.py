@@ -15,7 +15,7 @@ register("generate")
 @hydra.main(config_path=conf_dir(), config_name="generate", version_base="1.3")
 @one_line("spread-generate")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import generate, print_dataset_summary
+    from spread.commands.generate import generate, print_dataset_summary
 
     print_dataset_summary(generate(cfg), cfg.out_dir)
 

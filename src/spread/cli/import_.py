@@ -16,7 +16,7 @@ register("import")
 @hydra.main(config_path=conf_dir(), config_name="import", version_base="1.3")
 @one_line("spread-import")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import import_data, print_import_summary
+    from spread.commands.import_data import import_data, print_import_summary
 
     print_import_summary(import_data(cfg), cfg.out_dir)
 

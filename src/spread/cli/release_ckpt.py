@@ -3,7 +3,7 @@ authors' ``ckpt.pth`` into the release's network (``experiment=release``: conf/m
 ``model.*=`` overrides change, e.g. ``model.bounds=[...]``) and report it; refuses a file whose weights do not
 fit, naming the keys, and one whose weights are not finite numbers, not tensors, or under other keys than
 weight names (:func:`check_release_weights`), in one line. With ``out=``, also write a platform checkpoint of
-:class:`~spread.model.release_module.ReleaseDiffusion` (``{"hyper_parameters": {"method": "release", ...},
+:class:`~spread.methods.release.ReleaseDiffusion` (``{"hyper_parameters": {"method": "release", ...},
 "state_dict", "datamodule_hyper_parameters"}``, loadable with ``weights_only=True``) that ``spread-sample
 ckpt=OUT`` samples and ``spread-evaluate`` scores."""
 
@@ -49,8 +49,8 @@ def convert(ckpt: str, out: str, use_ema: bool = True, overrides: list[str] = ()
     import torch
 
     from spread.io import atomic_path
-    from spread.model.release import load_release_checkpoint
-    from spread.model.release_module import ReleaseDiffusion
+    from spread.methods.release_network import load_release_checkpoint
+    from spread.methods.release import ReleaseDiffusion
 
     hp = model_hparams(list(overrides))
     hp.update(weights="ema" if use_ema else "raw", source=str(ckpt))
@@ -67,12 +67,12 @@ def convert(ckpt: str, out: str, use_ema: bool = True, overrides: list[str] = ()
 
 def check_release_weights(path: str, use_ema: bool = True) -> int:
     """The number of weights the release file at ``path`` gives the network, once each is a floating-point tensor
-    of finite numbers under a weight name; :class:`~spread.model.release.ReleaseCheckpointError` in one line naming
+    of finite numbers under a weight name; :class:`~spread.methods.release_network.ReleaseCheckpointError` in one line naming
     the first that is not (``{"model": [1, 2, 3]}``, an int key, an int ``shadow_params``, an all-NaN tensor).
     Read with the platform's loader (weights only, tensors memory-mapped)."""
     import torch
 
-    from spread.model.release import ReleaseCheckpointError, release_state_dict
+    from spread.methods.release_network import ReleaseCheckpointError, release_state_dict
     from spread.safe_load import load_checkpoint
 
     ckpt = load_checkpoint(path, mmap=True)
@@ -111,7 +111,7 @@ def check_release_weights(path: str, use_ema: bool = True) -> int:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from spread.model.release import ReleaseCheckpointError, load_release_checkpoint
+    from spread.methods.release_network import ReleaseCheckpointError, load_release_checkpoint
     from spread.safe_load import UnsafeFileError
 
     args = parse(sys.argv[1:] if argv is None else argv)

@@ -1,6 +1,6 @@
 """``spread-report runs=DIR_OR_GLOB [out_dir=DIR]``: runs → comparison table and plots (DESIGN §5).
 
-The work is :func:`spread.experiments.run_report`. A missing path, a glob that matches nothing or a run
+The work is :func:`spread.reporting.report.run_report`. A missing path, a glob that matches nothing or a run
 without ``metrics.json`` stops the command with a message naming it.
 """
 
@@ -19,8 +19,9 @@ register("report")
 @hydra.main(config_path=conf_dir(), config_name="report", version_base="1.3")
 @one_line("spread-report")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments import RunError, print_report, run_report, runs_argument
-    from spread.experiments.commands import record_config
+    from spread.reporting.report import print_report, run_report, runs_argument
+    from spread.reporting.runs import RunError
+    from spread.commands.common import record_config
 
     try:
         weights = None if cfg.get("weights") is None else [str(w) for w in cfg.weights]

@@ -2,7 +2,7 @@
 
 ``guidance=paper|refine`` samples with physics guidance; ``evaluate=true`` then evaluates ``out_dir/scenes``
 into ``out_dir/metrics.json`` — one run folder per point of a guidance sweep. The work is
-:func:`spread.experiments.commands.sample`.
+:func:`spread.commands.sample.sample`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ register("sample")
 @hydra.main(config_path=conf_dir(), config_name="sample", version_base="1.3")
 @one_line("spread-sample")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import print_evaluation_summary, print_sampling_summary, sample
+    from spread.commands.evaluate import print_evaluation_summary
+    from spread.commands.sample import print_sampling_summary, sample
 
     result, evaluation = sample(cfg)
     if evaluation is not None:

@@ -1,5 +1,5 @@
 """``spread-sweep +sweep=guidance_grid ckpt=... data.root=... max_concurrent=2 out_dir=D``: a sweep on Ray Tune
-(:mod:`spread.experiments.sweep`; keys: ``conf/sweep_run.yaml``). Not a Hydra app: Hydra's sweep syntax on the
+(:mod:`spread.commands.sweep`, :mod:`spread.experiments.sweep`; keys: ``conf/sweep_run.yaml``). Not a Hydra app: Hydra's sweep syntax on the
 command line is the search space, not a multirun."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> None:
-    from spread.experiments.sweep import parse_arguments, run_sweep
+    from spread.commands.sweep import sweep
 
     args = list(sys.argv[1:] if argv is None else argv)
     if any(a in ("-h", "--help") for a in args):
@@ -19,8 +19,7 @@ def main(argv: list[str] | None = None) -> None:
         print(read_text_checked(f"{conf_dir()}/sweep_run.yaml"))
         return
     try:
-        plan = parse_arguments(args)
-        result = run_sweep(plan)
+        result = sweep(args)
     except ValueError as exc:  # a bad setting, refused before any trial: one line
         message = " ".join(str(exc).split())
         raise SystemExit(message if message.startswith("spread-sweep") else f"spread-sweep: {message}") from None

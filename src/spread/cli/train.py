@@ -1,5 +1,5 @@
 """``spread-train experiment=NAME data.root=DIR``: train one variant with Lightning (:mod:`spread.training`;
-the command is :func:`spread.experiments.commands.train`)."""
+the command is :func:`spread.commands.train.train`)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ register()
 @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
 @one_line("spread-train")
 def main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import train
+    from spread.commands.train import train
 
     train(cfg)
 

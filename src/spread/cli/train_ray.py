@@ -18,7 +18,7 @@ register()
 @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
 @one_line("spread-train-ray")
 def _main(cfg: DictConfig) -> None:
-    from spread.experiments.commands import record_config
+    from spread.commands.common import record_config
     from spread.training.fit import run_folder
     from spread.training.ray_train import run_ray_train
 

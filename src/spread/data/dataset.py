@@ -22,7 +22,7 @@ scene_id       str
 ============== ============== =====================================================================
 
 ``extents`` and ``room`` serve models that reason about boxes and the floor (the baselines of
-:mod:`spread.baselines`); SceneDiffusion does not read them.
+:mod:`spread.methods`); SceneDiffusion does not read them.
 
 Scene files are validated on read (against the library too), so a broken file fails with an error
 naming the file and key. ``bounds`` (6 floats) replaces stats.json's translation bounds in the normalisation

@@ -9,7 +9,6 @@
 | :mod:`~spread.evaluation.aggregate` | records → metrics through torchmetrics ``merge_state`` |
 | :mod:`~spread.evaluation.bootstrap` | confidence intervals: a bootstrap over scenes of the pooled ratios |
 | :mod:`~spread.evaluation.run` | one run: :class:`EvaluationConfig`, :func:`run_evaluation` writes ``metrics.json`` etc. |
-| :mod:`~spread.evaluation.wandb_log` | metrics and a per-scene table with renders on wandb |
 
 Ray, wandb and pybullet are imported inside the functions that use them.
 """

@@ -1,21 +1,17 @@
-"""Experiments over the platform's commands: the commands themselves as library functions, the ablation
-table, sweeps and reports (DESIGN §5 ``spread-ablate``, ``spread-report``). Sits between :mod:`spread.cli` and
-the stages (:mod:`spread.procgen`, :mod:`spread.training`, :mod:`spread.sampling`, :mod:`spread.evaluation`).
+"""Multi-run studies over the platform's commands (DESIGN §5): the ablation, the comparison (Table 1) and the
+sweep, and the resumable stage engine the ablation and the comparison each hold. Sits between the command bodies
+(:mod:`spread.commands`, which run a study with their commands injected) and reporting (:mod:`spread.reporting`).
 
 | module | job |
 |---|---|
-| :mod:`~spread.experiments.commands` | generate / train / sample / evaluate on a composed config; console summaries |
-| :mod:`~spread.experiments.ablation` | the ablation's stages (generate … table), ledger, resume |
-| :mod:`~spread.experiments.runs` | run folders and wandb offline runs → flat records; ``runs`` argument expansion |
-| :mod:`~spread.experiments.report` | records → comparison table (md/csv) and metric-vs-weight plots |
-| :mod:`~spread.experiments.html_report` | the report as one self-contained HTML page; training runs' curves |
-| :mod:`~spread.experiments.tables` | Markdown / CSV / LaTeX writers, CSV reader (exact round trip) |
-| :mod:`~spread.experiments.plots` | bar plot of the ablation, metric-vs-weight scatter plots (Agg) |
-| :mod:`~spread.experiments.wandb_table` | the ablation table as a wandb Table (offline by default) |
+| :mod:`~spread.experiments.stages` | the stage engine: stages, the ledger, resume by the done-check, failures that block only what needs them |
+| :mod:`~spread.experiments.stage_pool` | the rows' independent stage chains as Ray tasks, ``max_concurrent`` at a time |
+| :mod:`~spread.experiments.ablation` | the ablation's rows (base, +geometry, +guidance, one term at a time), its table and figures |
+| :mod:`~spread.experiments.ablation_seeds` | the ablation over several training seeds: mean ± sd beside the bootstrap |
+| :mod:`~spread.experiments.compare` | Table 1: the registered methods as rows, budgets, per-room-type layout |
+| :mod:`~spread.experiments.sweep` | sweeps on Ray Tune: the plan, trials, the results table |
+| :mod:`~spread.experiments.tuning` | sweep searchers and trial schedulers by registered name or ``module:Class`` |
+| :mod:`~spread.experiments.points` | a sweep point's ``point.json``: its identity and the done-check's decision |
 
 matplotlib, wandb, torch and Ray are imported inside the functions that use them.
 """
-
-from spread.experiments.ablation import AblationResult, AblationSpec, Commands, run_ablation  # noqa: F401
-from spread.experiments.report import ReportResult, print_report, run_report, runs_argument  # noqa: F401
-from spread.experiments.runs import RunError, find_runs, is_finished_run, read_runs  # noqa: F401

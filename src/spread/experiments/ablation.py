@@ -1,7 +1,7 @@
 """``spread-ablate``: the ablation table (DESIGN §3 variants, §6 protocol) as resumable stages.
 
 The ablation is a sequence of the platform's own commands, run in this process through a
-:class:`Commands` object (:class:`spread.experiments.commands.InProcessCommands`: ``spread-generate``,
+:class:`Commands` object (:class:`spread.commands.in_process.InProcessCommands`: ``spread-generate``,
 ``-train``, ``-sample`` and ``-evaluate``'s library functions); each stage is exactly one command with its Hydra overrides, printed as
 the equivalent command line. The stages, under ``out_dir``:
 
@@ -18,7 +18,7 @@ the equivalent command line. The stages, under ``out_dir``:
 3D view with its category legend beside the relation matrix against the graph
 (:func:`spread.render.scene_card_figure`), and the graph's ground-truth room the same way; ``ablation.md``
 links them under the table. **Intervals**: every metric cell is value ± half the width of its 95 % bootstrap
-interval over scenes (:mod:`spread.experiments.intervals`); the CSV keeps the bounds and the bootstrap's seed.
+interval over scenes (:mod:`spread.reporting.intervals`); the CSV keeps the bounds and the bootstrap's seed.
 
 ``guidance`` samples the ``geometry`` checkpoint with guidance, ``guidance_<term>`` with that one term of it
 (the other two weights 0: collision only, gravity only, relation only); all rows sample the same split's
@@ -44,7 +44,7 @@ the table is still written.
 Ray tasks, that many at a time (:mod:`spread.experiments.stage_pool`; the ledger entries carry each stage's
 ``started_at`` / ``ended_at``); ``max_concurrent: 1`` runs them one after another in this process. Training
 stages run before them, in this process or as their own processes through ``train.launcher``
-(:mod:`spread.experiments.launch`).
+(:mod:`spread.commands.launch`).
 """
 
 from __future__ import annotations
@@ -55,10 +55,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
-from spread.experiments.intervals import ci_columns, row_intervals, table_note
+from spread.reporting.intervals import ci_columns, row_intervals, table_note
 from spread.experiments.stages import (
     Commands, Stage, StageEngine, StageError, StagesResult, StagesSpec, sampling_inputs)
-from spread.experiments.tables import Column, columns_of, write_tables
+from spread.reporting.tables import Column, columns_of, write_tables
 from spread.guidance.config import GuidanceConfig
 from spread.io import read_json
 
@@ -125,8 +125,8 @@ class Ablation:
 
     def rows(self) -> list[dict]:
         """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed) and the row's
-        settings and identity (:func:`spread.experiments.runs.folder_identity`)."""
-        from spread.experiments.runs import folder_identity, identity_fields
+        settings and identity (:func:`spread.reporting.runs.folder_identity`)."""
+        from spread.reporting.runs import folder_identity, identity_fields
 
         records = []
         for v in self.spec.variants:
@@ -207,8 +207,8 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
     per metric); every setting that differs between the rows is named per row (CSV columns, and a line per row
     under the Markdown table); ``figures`` (row or ``truth`` → PNG file name beside the table) are linked under the
     Markdown table."""
-    from spread.experiments.plots import ablation_bars
-    from spread.experiments.runs import name_differences
+    from spread.reporting.plots import ablation_bars
+    from spread.reporting.runs import name_differences
 
     records = [dict(r) for r in records]
     differ = name_differences(records)

@@ -7,7 +7,7 @@ first seed generates ``out_dir/data`` and the others use it). Each seed's stages
 The table ``out_dir/ablation.{md,csv,tex,png}`` has one row per variant. A cell reads
 ``mean ± sd (± h)``: the mean over seeds, the sample standard deviation across seeds (n − 1; 0 with one seed)
 and h, half the width of the bootstrap interval over scenes averaged over the seeds (each seed's interval is
-:mod:`spread.experiments.intervals`'s). The CSV keeps ``<metric>``, ``<metric>_sd``, ``<metric>_lo`` /
+:mod:`spread.reporting.intervals`'s). The CSV keeps ``<metric>``, ``<metric>_sd``, ``<metric>_lo`` /
 ``<metric>_hi`` (the seeds' mean bounds) and ``seeds``; the PNG draws the mean with the sd as error bars.
 """
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 from spread.experiments.ablation import LABELS, AblationResult, AblationSpec, Commands, run_ablation
-from spread.experiments.tables import Column, columns_of, write_tables
+from spread.reporting.tables import Column, columns_of, write_tables
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
 
 
 def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str = "") -> dict[str, Path]:
-    from spread.experiments.plots import ablation_bars
+    from spread.reporting.plots import ablation_bars
 
     metrics = columns_of(rows)
     columns = [Column("method", "Method"),

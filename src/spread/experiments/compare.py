@@ -36,29 +36,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from spread.experiments.intervals import (
+from spread.reporting.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
 from spread.experiments.stages import Commands, Stage, StageEngine, StagesResult, StagesSpec
-from spread.experiments.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
+from spread.reporting.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
 from spread.io import read_json, read_text_checked, write_json_atomic
 
 log = logging.getLogger("spread.compare")
 
 #: The paper's Table 1 rows (the default ``methods``); every registered method can be a row
-#: (:mod:`spread.baselines.registry`: labels, notes, graph conditioning, which checkpoint a method samples).
+#: (:mod:`spread.methods.registry`: labels, notes, graph conditioning, which checkpoint a method samples).
 METHODS = ("atiss", "diffuscene", "physcene", "instructscene", "spread")
 
 
 def registered() -> list[str]:
     """Every registered method (plugins too), in Table 1's row order."""
-    from spread.baselines.registry import method_names
+    from spread.methods.registry import method_names
 
     return method_names()
 
 
 def spec_of(method: str):
-    from spread.baselines.registry import method_spec
+    from spread.methods.registry import method_spec
 
     return method_spec(method)
 
@@ -196,8 +196,8 @@ class Comparison:
         return out
 
     def rows(self) -> list[dict]:
-        from spread.baselines import graph_conditioned
-        from spread.experiments.runs import folder_identity, identity_fields
+        from spread.methods import graph_conditioned
+        from spread.reporting.runs import folder_identity, identity_fields
 
         GRAPH_CONDITIONED = graph_conditioned()
         rooms = self.room_types()
@@ -293,7 +293,7 @@ class Comparison:
         layout = self.layout()
 
         def run(resume: bool) -> None:
-            from spread.experiments.runs import name_differences
+            from spread.reporting.runs import name_differences
 
             rows = [dict(r) for r in records]
             differ = name_differences(rows)  # every setting that differs between the rows, per row in the CSV
@@ -331,11 +331,11 @@ def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> Com
 def log_table1(records: list[dict], columns: list[Column], out_dir: str | Path, logger, name: str | None = None,
                config: dict | None = None, group: str | None = None) -> str | None:
     """Table 1 as a ``wandb.Table`` (the table's columns plus budget fields) and per-method summary values
-    (``<method>/<metric>``), with ``logger`` (a :class:`~spread.runtime.tracking.LoggerConfig`,
+    (``<method>/<metric>``), with ``logger`` (a :class:`~spread.tracking.loggers.LoggerConfig`,
     ``job_type=compare``). Returns the wandb run folder (None when disabled)."""
     import wandb
 
-    from spread.runtime.tracking import as_logger_config, init_run, run_folder
+    from spread.tracking.loggers import as_logger_config, init_run, run_folder
 
     keys = ["method_key", *[c.key for c in columns], "grecall_measured", "train_steps", "sampler", "status"]
     run = init_run(as_logger_config(logger), "compare", out_dir, config or {}, group=group, name=name)

@@ -53,7 +53,7 @@ def read_point(out_dir) -> dict | None:
 def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
     """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (typed, or a composed ``DictConfig``;
     module docstring)."""
-    from spread.experiments.runs import is_finished_run
+    from spread.reporting.runs import is_finished_run
     from spread.runtime.fingerprint import done_check, point_fingerprint
 
     fingerprint = point_fingerprint(cfg)

@@ -263,9 +263,9 @@ def point_name(config: dict) -> str:
 def read_metrics(folder: Path) -> dict:
     """Every registered value of an evaluation folder (FID, KID too) with its interval, the point's seconds and
     fingerprint (its short name)."""
-    from spread.experiments.intervals import ci_columns, row_intervals
+    from spread.reporting.intervals import ci_columns, row_intervals
     from spread.experiments.points import read_point
-    from spread.experiments.runs import record_metrics
+    from spread.reporting.runs import record_metrics
     from spread.io import read_json_object
 
     metrics = read_json_object(folder / "metrics.json")
@@ -283,16 +283,15 @@ def read_metrics(folder: Path) -> dict:
     return row
 
 
-def sample_trial(config: dict, plan: dict) -> None:
-    """One sampling + evaluation point (module docstring); reports its metrics to Tune."""
+def sample_trial(config: dict, plan: dict, commands) -> None:
+    """One sampling + evaluation point (module docstring) through ``commands`` (the sweep command's
+    :class:`~spread.commands.in_process.InProcessCommands`); reports its metrics to Tune."""
     from ray import tune
-
-    from spread.experiments.commands import sample
 
     started = time.perf_counter()
     config = config.get(POINT_KEY, config)
     folder, cfg, overrides = sample_point(config, plan)
-    result, _ = sample(cfg, overrides=overrides)
+    result, _ = commands.sample_config(cfg, overrides)
     row = {**read_metrics(folder), "point": folder.name, "reused": result is None,
            "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id(), "trial_pid": os.getpid(),
            "startup_seconds": None if result is None else result.manifest.get("startup_seconds")}
@@ -349,13 +348,12 @@ class TuneReport:
         return _Report()
 
 
-def train_trial(config: dict, plan: dict) -> None:
+def train_trial(config: dict, plan: dict, commands) -> None:
     """One training run into its point folder, done or not by the platform's done-check (its identity: the
     composed config and the data's content, recorded in the folder's ``point.json``)."""
     from ray import tune
 
     from spread.configs import compose
-    from spread.experiments.commands import record_config
     from spread.experiments.points import PointDecision, finish_point, read_point, start_point
     from spread.io import read_json_object
     from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, done_check, normalised, short
@@ -381,7 +379,7 @@ def train_trial(config: dict, plan: dict) -> None:
         run = [*overrides, f"out_dir={folder}", f"ckpt_path={last}" if resume else "ckpt_path=null"]
         cfg = compose("train", run)
         start_point(folder, PointDecision(False, decision.fresh, decision.reason, identity))
-        record_config(cfg, folder, run)()
+        commands.record_config(cfg, folder, run)
         fit(cfg, run_dir=folder, extra_callbacks=[TuneReport(plan["metric"])] if plan.get("scheduler") else [])
         finish_point(folder, round(time.perf_counter() - started, 3))
     summary = read_json_object(folder / "metrics.json")
@@ -402,8 +400,10 @@ class SweepResult:
     seconds: float
 
 
-def run_sweep(plan: SweepPlan) -> SweepResult:
-    """Run every trial of ``plan`` on Ray Tune and write ``results.csv`` / ``results.md`` (module docstring)."""
+def run_sweep(plan: SweepPlan, commands) -> SweepResult:
+    """Run every trial of ``plan`` on Ray Tune and write ``results.csv`` / ``results.md`` (module docstring);
+    ``commands``: what a trial runs (:class:`~spread.commands.in_process.InProcessCommands`: ``sample_config``,
+    ``record_config``), handed to each trial by the sweep command."""
     from ray import tune
 
     from spread.experiments.tuning import search_spec, trial_scheduler_spec
@@ -418,7 +418,7 @@ def run_sweep(plan: SweepPlan) -> SweepResult:
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
-    trainable = tune.with_resources(tune.with_parameters(trial, plan=shared), resources)
+    trainable = tune.with_resources(tune.with_parameters(trial, plan=shared, commands=commands), resources)
     search = search_spec(s.search)
     searcher = search.build(s) if search.build is not None else None
     scheduler = trial_scheduler_spec(s.scheduler).build(s) if s.scheduler is not None else None
@@ -565,8 +565,8 @@ def parse_number(v):
 
 def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
     """The best row by ``metric`` (marked ``best``); only a valid value competes (finite, inside the metric's
-    bounds: :meth:`spread.experiments.tables.Column.valid`)."""
-    from spread.experiments.tables import Column, metric_column
+    bounds: :meth:`spread.reporting.tables.Column.valid`)."""
+    from spread.reporting.tables import Column, metric_column
     from spread.metrics.registry import display_spec
 
     spec = display_spec(metric)
@@ -586,7 +586,7 @@ def setting_of(key: str) -> str:
 def point_settings(rows: list[dict], points: Path) -> None:
     """Each row's ``settings`` and ``identity``: its point's recorded identity (``point.json``), read here."""
     from spread.experiments.points import read_point
-    from spread.experiments.runs import identity_fields
+    from spread.reporting.runs import identity_fields
 
     for r in rows:
         record = read_point(points / str(r.get("point"))) if r.get("point") else None
@@ -598,10 +598,10 @@ def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | Non
     """``results.csv`` (every field) and ``results.md`` (the swept settings — named as settings:
     ``+guidance.terms.floor_push`` is ``guidance.floor_push`` —, every other setting that differs between the
     points, each metric in its display unit with ± half-width of its interval, best marked), through the one
-    table writer (:func:`spread.experiments.tables.write_tables`); the settings every point shares under the
+    table writer (:func:`spread.reporting.tables.write_tables`); the settings every point shares under the
     table."""
-    from spread.experiments.runs import name_differences
-    from spread.experiments.tables import Column, columns_of, metric_columns, write_tables
+    from spread.reporting.runs import name_differences
+    from spread.reporting.tables import Column, columns_of, metric_columns, write_tables
 
     keys = [setting_of(d.key) for d in plan.dimensions]  # a swept key named as the setting it is
     for r in rows:
@@ -637,7 +637,7 @@ def metric_names() -> list[str]:
 
 
 def table_note(rows: list[dict]) -> str:
-    from spread.experiments.intervals import table_note as note
+    from spread.reporting.intervals import table_note as note
 
     return note(rows)
 

@@ -15,7 +15,7 @@ attributes ``higher_is_better``, ``column``, ``unit``, ``scale``, ``digits`` fil
 **Units live here.** Every value a metric writes to ``metrics.json`` is a :class:`ValueSpec` (the metric's own,
 then its ``extra_values``: Stability's ``still_fraction``), which says how every table, CSV, plot axis, report and
 sweep result shows it — stored value × ``scale`` in ``unit`` (ASD: metres stored, mm shown). The one table writer
-(:mod:`spread.experiments.tables`) asks :func:`display_values`; nothing else converts units.
+(:mod:`spread.reporting.tables`) asks :func:`display_values`; nothing else converts units.
 
 Set-level statistics (FID, KID) are not per-scene metrics: :data:`SET_METRICS` holds only their display.
 

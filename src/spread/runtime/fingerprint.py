@@ -321,21 +321,6 @@ def run_tags() -> dict:
             "host": socket.gethostname(), "git_sha": git_sha()}
 
 
-def register_resolvers() -> None:
-    """``${point_fp:}`` (the short point fingerprint), ``${launch_id:}`` (unique per launching process) and
-    ``${wandb_mode:}`` (:func:`spread.runtime.logger_config.wandb_mode`)."""
-    from omegaconf import OmegaConf
-
-    from spread.runtime.logger_config import wandb_mode
-
-    if not OmegaConf.has_resolver("point_fp"):
-        OmegaConf.register_new_resolver("point_fp", point_short, use_cache=False)
-    if not OmegaConf.has_resolver("launch_id"):
-        OmegaConf.register_new_resolver("launch_id", launch_id)
-    if not OmegaConf.has_resolver("wandb_mode"):
-        OmegaConf.register_new_resolver("wandb_mode", wandb_mode, use_cache=False)
-
-
 @functools.cache
 def launch_id() -> str:
     """``<UTC time>_<host>_<pid>``: two launches into one sweep folder never share their launch records."""

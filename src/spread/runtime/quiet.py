@@ -10,7 +10,7 @@ filters match the message's start, so a new or changed message still shows.
 * Lightning: "`isinstance(treespec, LeafSpec)` is deprecated" (Lightning's own use of a torch API; the
   platform cannot change it).
 * wandb: "The anonymous setting has no effect" (Lightning's WandbLogger passes ``anonymous=None``): the key
-  is removed from the logger's init arguments in :func:`spread.runtime.tracking.lightning_loggers`.
+  is removed from the logger's init arguments in :func:`spread.tracking.loggers.lightning_loggers`.
 """
 
 from __future__ import annotations

@@ -6,8 +6,6 @@
 | :mod:`~spread.sampling.plan` | graphs, per-sample seeds from (seed, scene id, k), fixed batches, resume checks |
 | :mod:`~spread.sampling.worker` | one pipeline per worker: a batch → generated scene files (provenance extras) |
 | :mod:`~spread.sampling.run` | one run: :class:`SamplingConfig`, :func:`run_sampling` (Ray actors or in-process) |
-| :mod:`~spread.sampling.wandb_log` | a sampling run on wandb: counts, timings, renders, tags |
-| :mod:`~spread.sampling.mlflow_log` | a sampling run's MLflow tags (variant, sampler, guidance, lineage) |
 
 torch, Lightning and Ray are imported by the modules and functions that use them.
 """

@@ -92,7 +92,7 @@ def sampling_kind(model) -> str:
     """How a model samples, from the method registry (its checkpoint's ``method``: ``pipeline`` through this
     pipeline's loop and callbacks, or ``own`` through its own ``sample``); a model of no registered method:
     ``pipeline`` when it has ``denoising``."""
-    from spread.baselines.registry import METHODS
+    from spread.methods.registry import METHODS
 
     hparams = getattr(model, "hparams", None) or {}
     method = str(hparams.get("method") or ("spread" if hasattr(model, "denoising") else ""))

@@ -168,9 +168,9 @@ def read_graphs(data_root: str | Path, split: str, max_objects: int | None = Non
 
 def check_checkpoint(path) -> dict:
     """The checkpoint (tensors memory-mapped) once it reads safely and its weights fit the network its
-    hyperparameters describe (:func:`spread.baselines.check_weight_shapes`: nothing is allocated). The one
+    hyperparameters describe (:func:`spread.methods.check_weight_shapes`: nothing is allocated). The one
     read of the file in this process (:func:`spread.readonce.checkpoint`): the workers build from it."""
-    from spread.baselines import check_weight_shapes, checkpoint_method, module_class
+    from spread.methods import check_weight_shapes, checkpoint_method, module_class
 
     checkpoint = readonce.checkpoint(path)
     check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint, str(path))

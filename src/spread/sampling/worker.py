@@ -42,7 +42,7 @@ def warn_graph_guidance(guided, model, ckpt) -> None:
     registry's ``graph_conditioned``): the guidance then pulls towards supports the network never saw."""
     if guided is None or not guided.active or guided.weight("relation") <= 0:
         return
-    from spread.baselines.registry import METHODS
+    from spread.methods.registry import METHODS
 
     method = str((getattr(model, "hparams", None) or {}).get("method") or "spread")
     if method in METHODS and not METHODS.get(method).graph_conditioned:
@@ -66,7 +66,7 @@ def cached_model(ckpt: str, device: str):
     built once per process from the one read of the file (:mod:`spread.readonce`): a second worker or a
     second sweep trial in this process re-uses it (sampling never changes its weights)."""
     from spread import readonce
-    from spread.baselines import module_from_checkpoint
+    from spread.methods import module_from_checkpoint
 
     device = resolve_device(device)
     return readonce.memo("model", (readonce.file_key(ckpt), device), lambda: module_from_checkpoint(

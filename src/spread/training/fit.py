@@ -5,7 +5,7 @@ The run folder (``out_dir``, by default ``<paths.runs_dir>/train/<experiment>/<t
 (one version per launch), ``wandb/`` (offline unless ``WANDB_MODE`` says otherwise) and ``metrics.json``
 (the final step and logged values). The data module, model and trainer are ``_target_`` nodes of the config
 (``conf/data``, ``conf/model``, ``conf/trainer``); :func:`train` adds the loggers
-(:func:`spread.runtime.tracking.lightning_loggers`), the callbacks, the final checkpoint and the resume logic.
+(:func:`spread.tracking.loggers.lightning_loggers`), the callbacks, the final checkpoint and the resume logic.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def check_resume_checkpoint(path: Path, model) -> None:
 
 def takes_images(cfg: DictConfig) -> bool:
     """Whether the run's loggers show images (wandb, MLflow; not the CSV files)."""
-    from spread.runtime.tracking import as_logger_config
+    from spread.tracking.loggers import as_logger_config
 
     logger = as_logger_config(cfg.logger)
     return logger.wandb or logger.mlflow
@@ -164,7 +164,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     runs before ``fit``, and ``resume_from`` (a checkpoint file) wins over ``ckpt_path``."""
     import lightning as L
 
-    from spread.runtime.tracking import as_logger_config, lightning_loggers
+    from spread.tracking.loggers import as_logger_config, lightning_loggers
     from spread.training.monitors import monitors
 
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)

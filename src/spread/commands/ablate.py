@@ -1,0 +1,155 @@
+"""``spread-ablate`` on a composed ``conf/ablate.yaml``: the :class:`~spread.experiments.ablation.AblationSpec`,
+the stages run in-process (:class:`~spread.commands.in_process.InProcessCommands`; training through
+``train.launcher``; the rows ``stages.max_concurrent`` at a time), the table on wandb (offline by default) and on
+the console. The stages and their resume rules are :mod:`spread.experiments.ablation`. ``spread-compare``
+(:mod:`spread.commands.compare`) is the same command over methods: both build their spec's shared
+fields with :func:`spec_fields` and run with :func:`run_stages_command`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+
+def strings(node) -> list[str]:
+    return [str(x) for x in (OmegaConf.to_container(node, resolve=True) if node is not None else [])]
+
+
+def recipe_sampling(experiment: str) -> tuple[list[str], list[str]]:
+    """(sampler overrides, guidance overrides) of a training experiment's ``sampling`` block."""
+    from spread.configs import compose
+
+    sampling = compose("train", [f"experiment={experiment}", "data.root=/unused"]).get("sampling")
+    if sampling is None:
+        raise ValueError(f"recipe={experiment}: conf/experiment/{experiment}.yaml has no `sampling` block")
+    return strings(sampling.get("sampler")), strings(sampling.get("guidance"))
+
+
+def spec_fields(cfg: DictConfig, kind: str) -> dict:
+    """The :class:`~spread.experiments.stages.StagesSpec` fields of a composed ``conf/ablate.yaml`` or
+    ``conf/compare.yaml`` (``kind``: ``ablate`` or ``compare``, the wandb group's prefix); ``stages``:
+    ``max_concurrent`` and where its Ray tasks run (``address``, ``num_cpus``)."""
+    from spread.runtime.ray import RaySettings
+
+    root = cfg.data.root
+    stages = cfg.get("stages") or {}
+    return dict(
+        out_dir=Path(str(cfg.out_dir)), data_root=None if root in (None, "") else Path(str(root)),
+        split=str(cfg.data.split), generate=strings(cfg.data.generate) + strings(cfg.data.get("extra")),
+        train=strings(cfg.train.overrides) + strings(cfg.train.get("extra")),
+        ckpt={k: (None if v in (None, "") else str(v)) for k, v in (cfg.train.get("ckpt") or {}).items()},
+        sample=strings(cfg.sample.overrides) + strings(cfg.sample.get("extra")),
+        evaluate=strings(cfg.evaluate.overrides) + strings(cfg.evaluate.get("extra")),
+        title=str(cfg.get("title") or ""), group=f"{kind}_{cfg.name}",
+        max_concurrent=int(stages.get("max_concurrent") or 1),
+        ray=RaySettings(address=stages.get("address"), num_cpus=stages.get("num_cpus")))
+
+
+def ablation_spec(cfg: DictConfig):
+    """The :class:`~spread.experiments.AblationSpec` of a composed ``conf/ablate.yaml``; with ``recipe``, the
+    rows' sampler and the guidance row's guidance come from that training experiment's ``sampling`` block."""
+    from spread.experiments.ablation import AblationSpec
+
+    sampler, guidance = recipe_sampling(str(cfg.recipe)) if cfg.get("recipe") else ([], [])
+    fields = spec_fields(cfg, "ablate")
+    return AblationSpec(**{**fields, "sample": sampler + fields["sample"]},
+                        variants=tuple(str(v) for v in cfg.variants),
+                        train_variant={v: strings(cfg.train.get(v)) for v in ("base", "geometry")},
+                        guidance=guidance + strings(cfg.sample.guidance), figures=bool(cfg.get("figures", True)))
+
+
+def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
+    """The frame of ``spread-ablate`` and ``spread-compare``: torch threads, ``out_dir``'s lock (a second run
+    on the folder is refused, never mixed), the config recorded, the MLflow run (``name``); then
+    ``body(commands, logger, config, run)`` (``commands``: :func:`launcher_commands`) gives the result."""
+    from spread.commands.common import record_config
+    from spread.io import run_lock
+    from spread.tracking import mlflow_store as mlflow_log
+    from spread.tracking.loggers import as_logger_config
+    from spread.training.fit import set_threads
+
+    set_threads(cfg.get("threads"))
+    with run_lock(spec.out_dir, f"spread-{command}"):
+        record_config(cfg, spec.out_dir)()
+        logger = as_logger_config(cfg.logger)
+        config = OmegaConf.to_container(cfg, resolve=True)
+        kind = {"ablate": "ablation"}.get(command, command)
+        with mlflow_log.tracked(logger, kind, spec.out_dir, config, spec.group, name=name) as run:
+            return body(launcher_commands(cfg), logger, config, run)
+
+
+def ablate(cfg: DictConfig):
+    """The ablation of ``cfg``; returns the :class:`~spread.experiments.AblationResult`."""
+    from spread.experiments.ablation import run_ablation
+    from spread.tracking import mlflow_store as mlflow_log
+
+    spec = ablation_spec(cfg)
+    name = f"ablation/{cfg.name}"
+
+    def body(commands, logger, config, run):
+        def log_table(records, png):
+            if logger.wandb:
+                from spread.reporting.wandb_table import log_ablation
+
+                log_ablation(records, png, spec.out_dir, logger, name=name, group=spec.group, config=config)
+            if run is not None:
+                mlflow_log.log_table(run, records, "variant", sorted(Path(png).parent.glob(Path(png).stem + ".*")))
+
+        logged = log_table if logger.wandb or run is not None else None
+        seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
+        if seeds:
+            from spread.experiments.ablation_seeds import run_seeded_ablation
+
+            return run_seeded_ablation(spec, commands, seeds, logged)
+        return run_ablation(spec, commands, logged)
+
+    return run_stages_command(cfg, spec, "ablate", name, body)
+
+
+def launcher_commands(cfg: DictConfig):
+    """The stages' commands: in this process, or training stages through a launcher (``train.launcher``)."""
+    from spread.commands.in_process import InProcessCommands
+
+    launcher = str((cfg.get("train") or {}).get("launcher") or "inprocess")
+    if launcher == "inprocess":
+        return InProcessCommands()
+    from spread.commands.launch import LaunchedCommands
+
+    return LaunchedCommands(launcher, int(cfg.train.get("nproc") or 1), int(cfg.train.get("nnodes") or 1))
+
+
+def console_table(result, title: str):
+    """The ablation table for the console: value ± half-width of its bootstrap interval per cell."""
+    from rich.table import Table
+
+    from spread.experiments.ablation import table_columns
+
+    table = Table(title=title)
+    columns = table_columns()
+    for c in columns:
+        table.add_column(c.label + c.arrow, justify="left" if c.digits is None else "right")
+    for r in result.records:
+        table.add_row(*[c.cell(r) for c in columns])
+    return table
+
+
+def print_ablation(result, cfg: DictConfig) -> None:
+    from rich.console import Console
+
+    from spread.reporting.intervals import table_note
+
+    console = Console()
+    console.print()
+    console.print(console_table(result, f"ablation {cfg.name} ({cfg.out_dir}, {result.seconds / 60:.1f} min)"))
+    note = table_note(result.records)
+    if note:
+        console.print(note)
+    fid = {r.get("fid_status") for r in result.records if r.get("fid") is None and r.get("fid_status")}
+    for status in sorted(fid):
+        console.print(f"FID: {status}")
+    console.print("stages: " + ", ".join(f"{k} {v}" for k, v in result.stages.items()))
+    console.print("table: " + ", ".join(str(p) for p in result.tables.values()))
+    for message in result.errors.values():
+        console.print(f"[red]✗ {message}[/red]")

@@ -1,0 +1,85 @@
+"""Loading any method's checkpoint (SPREAD's SceneDiffusion, the release's network, every baseline, a plugin's) by the
+``method`` hyperparameter it saved, through the registry (:mod:`spread.methods.registry`); weights-only reading
+(:func:`spread.safe_load.load_checkpoint`), shapes checked on PyTorch's ``meta`` device before allocating."""
+
+from __future__ import annotations
+
+from spread.methods.registry import method_names, method_spec
+
+
+def graph_conditioned() -> tuple[str, ...]:
+    """Methods that condition on the relation graph (GRecall is meaningful for them), from the registry."""
+    return tuple(name for name in method_names() if method_spec(name).graph_conditioned)
+
+
+def module_class(method: str):
+    """The LightningModule class of a registered method name (:data:`METHODS`; plugins included)."""
+    return method_spec(method).module_class()
+
+
+def checkpoint_method(hparams: dict) -> str:
+    """The method a checkpoint's hyperparameters belong to (:func:`spread.safe_load.checkpoint_identity`: no
+    ``method`` key is SceneDiffusion)."""
+    from spread.safe_load import checkpoint_identity
+
+    return checkpoint_identity({"hyper_parameters": hparams})["method"]
+
+
+def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> None:
+    """Before a network is allocated from a checkpoint's hyperparameters: build it on PyTorch's ``meta``
+    device (no memory) and compare the shapes of the weights both have, so a checkpoint whose config asks for
+    ``dim=2e6`` (terabytes) or whose weights belong to another size is refused in one line
+    (:class:`spread.safe_load.CheckpointMismatchError`); weights made after construction (a baseline's EMA
+    copy) are left to the strict ``load_state_dict``. A class that cannot be built on ``meta`` is not checked
+    here (its strict ``load_state_dict`` still refuses a mismatch, after allocation)."""
+    import torch
+
+    from spread.safe_load import CheckpointMismatchError
+
+    hp = dict(checkpoint.get("hyper_parameters") or {})
+    shapes = None
+    # as saved first; then without bounds (the platform's set_bounds reads values, which meta tensors lack)
+    for attempt in (hp, {**hp, "bounds": None} if "bounds" in hp else None):
+        if attempt is None:
+            continue
+        try:
+            with torch.device("meta"):
+                shapes = {k: tuple(v.shape) for k, v in cls(**attempt).state_dict().items()}
+            break
+        except CheckpointMismatchError:
+            raise
+        except Exception:  # noqa: BLE001 - not buildable on meta this way
+            continue
+    if shapes is None:  # not buildable on meta: leave it to load_state_dict
+        return
+    weights = checkpoint.get("state_dict") or {}
+    held = {k: tuple(getattr(v, "shape", ())) for k, v in weights.items()}
+    for name, shape in shapes.items():
+        if name in held and held[name] != shape:
+            raise CheckpointMismatchError(
+                f"{source}: its hyperparameters build weight '{name}' of shape {shape}, the file holds {held[name]} "
+                f"(config {hp.get('config', {})}); hyperparameters and weights disagree, refused before allocating")
+    if shapes and not set(shapes) & set(held):
+        raise CheckpointMismatchError(
+            f"{source}: none of its {len(held)} weights belongs to the '{checkpoint_method(hp)}' network its "
+            f"hyperparameters describe (first: {sorted(held)[:1]}); refused before allocating")
+
+
+def module_from_checkpoint(checkpoint: dict, map_location="cpu", source: str = "checkpoint"):
+    """The LightningModule of a checkpoint's dict (read with :func:`spread.safe_load.load_checkpoint`, which
+    runs no code), of the class its hyperparameters name: built from them, then its weights (EMA included),
+    strictly."""
+    cls = module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {}))
+    check_weight_shapes(cls, checkpoint, source)
+    if hasattr(cls, "from_checkpoint"):
+        return cls.from_checkpoint(checkpoint, map_location=map_location)
+    model = cls(**checkpoint["hyper_parameters"])
+    model.load_state_dict(checkpoint["state_dict"])
+    return model.to(map_location)
+
+
+def load_module(ckpt_path, map_location="cpu"):
+    """The LightningModule saved in ``ckpt_path`` (``weights_only`` loading: no code runs from the file)."""
+    from spread.safe_load import load_checkpoint
+
+    return module_from_checkpoint(load_checkpoint(ckpt_path), map_location, source=str(ckpt_path))

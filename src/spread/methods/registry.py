@@ -1,0 +1,107 @@
+"""The method registry: SPREAD and every baseline defined once, with what training, sampling and Table 1 need.
+
+A :class:`MethodSpec` is a method's name (``spread-compare methods=[...]``, a checkpoint's ``method``
+hyper-parameter), its LightningModule (``"module:Class"``, loaded on demand), its row label and caption note, how it
+samples (``sampling``: ``pipeline`` — the one denoising loop, :func:`spread.model.diffusion.denoise`, driven by
+:class:`~spread.sampling.ScenePipeline` with its callbacks (guidance), the module giving ``denoising(batch)`` (SPREAD,
+DiffuScene, InstructScene, the release's network) — or ``own``: the module's ``sample``, as ATISS's autoregressive
+loop), whether it sees the relation graph (GRecall is reported only then), which trained checkpoint it samples
+(``checkpoint``: PhyScene samples DiffuScene's), its own sampling overrides (``sample``: PhyScene's
+``guidance=physcene``, SPREAD's ``guidance=refine``) and its training recipes (``train``: the paper-size
+experiment's overrides, ``train_quick``: the CPU one) — the one place they live: ``spread-compare`` takes each
+method's recipe from here (``recipe=full`` or ``quick``, :meth:`MethodSpec.recipe`) unless its config names a
+list for that method. ``spread-compare``, ``spread-sample`` and checkpoint loading iterate :data:`METHODS`.
+
+A baseline module registers itself (``METHODS.register`` at its end); another package adds a method through the
+entry-point group ``spread.methods`` naming a :class:`MethodSpec` (or a LightningModule class, which becomes a
+``pipeline`` or ``own`` method by whether it has ``denoising``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from spread.registry import Registry, RegistryError, resolve
+
+SAMPLING = ("pipeline", "own")
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """One method (module docstring). target: ``"module:Class"`` of its LightningModule (or the class itself)."""
+
+    name: str
+    target: object
+    label: str = ""
+    note: str = ""
+    sampling: str = "pipeline"
+    graph_conditioned: bool = False
+    checkpoint: str | None = None
+    train: tuple[str, ...] = ()
+    train_quick: tuple[str, ...] = ()
+    sample: tuple[str, ...] = ()
+    #: False: no training recipe here (the authors' weights): its checkpoint must be given (``train.ckpt.<m>``)
+    trainable: bool = True
+    order: int = 100
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.sampling not in SAMPLING:
+            raise RegistryError(f"method '{self.name}': sampling={self.sampling!r}, choose from {SAMPLING}")
+
+    def recipe(self, name: str = "full") -> tuple[str, ...]:
+        """The ``spread-train`` overrides of a training recipe: ``full`` (:attr:`train`) or ``quick``
+        (:attr:`train_quick`)."""
+        recipes = {"full": self.train, "quick": self.train_quick}
+        if name not in recipes:
+            raise RegistryError(f"method '{self.name}': recipe={name!r}, choose from {list(recipes)}")
+        return recipes[name]
+
+    @property
+    def trained_from(self) -> str:
+        """The method whose trained checkpoint this one samples (itself unless it derives from another)."""
+        return self.checkpoint or self.name
+
+    @property
+    def row_label(self) -> str:
+        return self.label or self.name
+
+    def module_class(self):
+        """The LightningModule class (imported on first use)."""
+        return resolve(self.target)
+
+
+def _adapt(name: str, obj) -> MethodSpec:
+    if isinstance(obj, MethodSpec):
+        return obj if obj.name == name else MethodSpec(**{**obj.__dict__, "name": name})
+    if isinstance(obj, type):
+        sampling = "pipeline" if hasattr(obj, "denoising") else "own"
+        return MethodSpec(name, obj, label=name, sampling=sampling,
+                          graph_conditioned=bool(getattr(obj, "graph_conditioned", False)))
+    raise RegistryError(f"method entry point '{name}': expected a MethodSpec or a LightningModule class, got {obj!r}")
+
+
+METHODS: Registry[MethodSpec] = Registry("method", "spread.methods", packages=("spread.methods",), adapt=_adapt)
+
+
+def register_method(spec: MethodSpec) -> MethodSpec:
+    return METHODS.register(spec.name, spec, origin=str(spec.target))
+
+
+def method_spec(name: str) -> MethodSpec:
+    return METHODS.get(name)
+
+
+def method_names() -> list[str]:
+    """Every registered method in Table 1's row order (baselines, then SPREAD, then plugins)."""
+    return [s.name for s in sorted((s for _, s in METHODS.items()), key=lambda s: s.order)]
+
+
+register_method(MethodSpec(
+    "spread", "spread.model.module:SceneDiffusion", label="SPREAD (ours)", note="the platform's SceneDiffusion",
+    graph_conditioned=True, train=("experiment=geometry",), train_quick=("experiment=quick", "model.variant=geometry"),
+    sample=("guidance=refine",), order=50))
+register_method(MethodSpec(
+    "release", "spread.methods.release:ReleaseDiffusion", label="SPREAD (authors' weights)",
+    note="the release's network and checkpoint (spread-release-ckpt out=)", graph_conditioned=True,
+    trainable=False, order=60))

@@ -1,0 +1,69 @@
+"""A sampling run on wandb (``job_type=sample``; conventions: :mod:`spread.tracking.loggers`): its counts,
+timings and guidance totals, the ground truth | generated renders, and tags for the variant, the sampler's label
+and the guidance (``guidance=<mode>`` and ``<term>=<weight>`` for every registered term that acts). Offline by default; ``mode="disabled"`` writes nothing and opens no connection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+
+def sampling_tags(ckpt: str, sampler, guidance, extra: list[str] | None = None) -> list[str]:
+    """Variant (from the checkpoint's hyperparameters, read without loading its weights), the
+    :class:`~spread.model.Sampler`'s label and the :class:`~spread.guidance.GuidanceConfig`'s tags, plus ``extra``."""
+    from spread import readonce
+    from spread.safe_load import checkpoint_identity
+
+    held = checkpoint_identity(readonce.checkpoint(ckpt))
+    tags = [str(held["variant"] or held["method"]), sampler.label]  # SPREAD variant or baseline
+    if guidance.active:
+        tags += ["guidance", f"guidance={guidance.mode}"] + [f"{name}={weight:g}" for name, weight
+                                                             in guidance.weights(nonzero=True).items()]
+    return tags + [str(t) for t in (extra or [])]
+
+
+def open_sampling_run(command, config: dict, group: str):
+    """The wandb run of a ``spread-sample`` command, opened before the work: named after its run folder, tags
+    of :func:`sampling_tags` (the guidance from the command), and ``config["lineage"]``: the training run of
+    its checkpoint (:func:`spread.tracking.mlflow_store.training_lineage`: its folder, wandb and MLflow ids)."""
+    from spread.tracking.mlflow_store import training_lineage
+    from spread.tracking.loggers import init_run
+
+    Path(command.out_dir).mkdir(parents=True, exist_ok=True)
+    tags = sampling_tags(command.ckpt, command.sampler, command.guidance, command.tags)
+    return init_run(command.logger, "sample", command.out_dir, config | {"lineage": training_lineage(command.ckpt)},
+                    group=group, name=Path(command.out_dir).name, tags=tags)
+
+
+def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, group: str | None = None,
+                 tags: list[str] | None = None, more: Callable | None = None, run=None) -> str | None:
+    """Log a sampling run (``sampling.json``: counts, timings, guidance) with ``logger`` (a
+    :class:`~spread.tracking.loggers.LoggerConfig`); ``more(run)`` logs more into the same run (an evaluation
+    of the scenes, say); without it the renders and 3D figures are logged. ``run``: a run opened before the
+    work (:func:`open_sampling_run`), else one is opened now. The run is finished. Returns the run folder
+    (None when not logged)."""
+    import wandb
+
+    from spread.tracking.loggers import as_logger_config, init_run, run_folder
+
+    logger = as_logger_config(logger)
+    if not logger.wandb:
+        return None
+    run = run if run is not None else init_run(logger, "sample", out_dir, config, group=group, tags=tags)
+    try:
+        numbers = {f"sampling/{k}": manifest[k] for k in ("samples", "written_this_run", "seconds",
+                                                          "seconds_per_batch", "startup_seconds", "repaired_rotations")
+                   if isinstance(manifest.get(k), (int, float))}
+        numbers |= {f"guidance/{k}": v for k, v in (manifest.get("guidance_totals") or {}).items()}
+        run.log(numbers)
+        run.summary.update(numbers)
+        if more is not None:
+            more(run)
+        else:
+            images = {key: [wandb.Image(str(p), caption=Path(p).stem) for p in manifest[key]]
+                      for key in ("renders", "figures") if manifest.get(key)}
+            if images:
+                run.log(images)
+        return run_folder(run)
+    finally:
+        run.finish()

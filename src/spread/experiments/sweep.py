@@ -89,13 +89,6 @@ class SweepSettings:
             raise ValueError(f"spread-sweep: scheduler={self.scheduler}: {exc}") from exc
         if self.mode not in ("min", "max"):
             raise ValueError(f"spread-sweep: mode={self.mode}: min or max")
-
-    @property
-    def grid(self) -> bool:
-        """The search runs every combination once (:mod:`spread.experiments.tuning`)."""
-        from spread.experiments.tuning import search_spec
-
-        return search_spec(self.search).grid
         if int(self.max_concurrent) < 1:
             raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: at least 1")
         if isinstance(self.num_samples, bool) or not isinstance(self.num_samples, int) or self.num_samples < 1:
@@ -112,6 +105,13 @@ class SweepSettings:
             raise ValueError(f"spread-sweep: num_cpus={self.num_cpus}: null or a whole number ≥ 1")
         if not str(self.name).strip():
             raise ValueError("spread-sweep: name is empty")
+
+    @property
+    def grid(self) -> bool:
+        """The search runs every combination once (:mod:`spread.experiments.tuning`)."""
+        from spread.experiments.tuning import search_spec
+
+        return search_spec(self.search).grid
 
     @property
     def folder_name(self) -> str:

@@ -551,3 +551,66 @@ def test_an_unguided_run_reports_zero_guidance_weights_not_the_config_defaults()
     assert unguided["guidance.box_iou"] == 0.0 and "guidance.iterations" not in unguided  # nothing of it acts
     assert guided["guidance.collision"] == 0.0075 and guided["guidance.gravity"] == 0.001  # the default λ_H
     assert guided["guidance.iterations"] == 100 and guided["guidance.box_iou"] == 0.0
+
+
+# ---- published tables only grow (issue 31, item 5) ----------------------------------------------------------
+
+def test_a_rerun_with_some_rows_keeps_the_other_finished_rows_marked_as_carried(tmp_path):
+    """Three rows, then the guidance row alone with another sampling seed: the table keeps base and geometry (as
+    recorded, each marked carried over, named by a note line) and replaces guidance by the re-run one; a full
+    re-run carries nothing."""
+    run_ablation(spec(tmp_path), FakeCommands())
+    before = {r["variant"]: r for r in read_csv(tmp_path / "abl" / "ablation.csv")}
+    commands = FakeCommands()
+    subset = run_ablation(spec(tmp_path, variants=("guidance",), sample=["seed=5"]), commands)
+    assert subset.ok, subset.errors
+    assert commands.calls == [("sample", "guidance", "false"), ("evaluate", "guidance", "false")]  # only it, redone
+    rows = read_csv(tmp_path / "abl" / "ablation.csv")
+    assert [r["variant"] for r in rows] == ["base", "geometry", "guidance"] == [r["variant"] for r in subset.records]
+    for r in rows[:2]:
+        assert r["carried_from"] and {k: v for k, v in r.items() if k != "carried_from"} == \
+            {k: v for k, v in before[r["variant"]].items() if k != "carried_from"}
+    assert rows[2]["carried_from"] is None  # the re-run row replaced the recorded one
+    md = (tmp_path / "abl" / "ablation.md").read_text()
+    note = next(line for line in md.splitlines() if line.startswith("Rows carried over"))
+    assert "Ours (base)" in note and "+Geometry" in note and "+Guidance" not in note
+    full = run_ablation(spec(tmp_path), FakeCommands())
+    assert not any(r.get("carried_from") for r in full.records) and "carried over" not in \
+        (tmp_path / "abl" / "ablation.md").read_text()
+
+
+def test_spread_ablate_rerun_with_two_of_six_rows_keeps_six_rows(tiny_ablation):
+    """The tiny ablation grown to the six rows, then `spread-ablate 'variants=[base,guidance]'` on the same
+    folder (the console script): the table keeps six rows with the same numbers, four marked carried over.
+    Runs last on the module's tiny ablation (its folder gains the one-term rows)."""
+    from spread.commands.ablate import ablate as run
+    from spread.experiments.ablation import VARIANTS
+
+    cfg, out = tiny_ablation["cfg"].copy(), tiny_ablation["out"]
+    cfg.variants = list(VARIANTS)
+    cfg.stages.max_concurrent = 1  # the three new rows in this process (no Ray session to start)
+    six = run(cfg)
+    assert six.ok, six.errors
+    before = read_csv(out / "ablation.csv")
+    assert [r["variant"] for r in before] == list(VARIANTS)
+
+    def listed(key: str) -> str:
+        return f"{key}=[" + ",".join(f'"{x}"' for x in cfg[key.split(".")[0]][key.split(".")[1]]) + "]"
+
+    started = time.perf_counter()
+    proc = run_script("spread-ablate", "+preset=quick", f"data.root={tiny_ablation['data']}", f"out_dir={out}",
+                      "variants=[base,guidance]", "logger=none", listed("train.extra"), listed("sample.extra"),
+                      listed("evaluate.extra"))
+    seconds = time.perf_counter() - started
+    rows = read_csv(out / "ablation.csv")
+    assert [r["variant"] for r in rows] == list(VARIANTS), proc.stdout[-3000:]
+    carried = [r["variant"] for r in rows if r["carried_from"]]
+    assert carried == ["geometry", "guidance_collision", "guidance_gravity", "guidance_relation"]
+    strip = lambda r: {k: v for k, v in r.items() if k != "carried_from"}  # noqa: E731
+    assert [strip(r) for r in rows] == [strip(r) for r in before]  # the same numbers, nothing re-run
+    md = (out / "ablation.md").read_text()
+    assert "Rows carried over from an earlier run" in md and "+Guidance (relation only) (evaluated" in md
+    assert "(ablation_guidance_gravity.png)" in md  # a carried row keeps its figure
+    ledger = json.loads((out / "ablation.json").read_text())["stages"]
+    assert [r["variant"] for r in ledger["table"]["inputs"]["rows"]] == list(VARIANTS)
+    print(f"spread-ablate re-run with two of six rows: {seconds:.1f} s")

@@ -225,3 +225,103 @@ def test_rows_run_concurrently_through_ray_and_give_the_sequential_table(tmp_pat
     assert all(overlap(stages, f"sample/{a}", f"sample/{b}") == 0
                for a, b in [("base", "geometry"), ("base", "guidance"), ("geometry", "guidance")])
     assert read_csv(tmp_path / "actors" / "abl" / "ablation.csv") == read_csv(tmp_path / "seq" / "abl" / "ablation.csv")
+
+
+# ---- concurrent training stages (issue 31, item 7) ---------------------------------------------------------------
+
+class SlowTrainFakeCommands(SeededFakeCommands):
+    """SeededFakeCommands whose training takes ``seconds``; with ``rendezvous`` (a folder) a training stage also
+    waits, up to a minute, until a second one has started (so two that run at the same time overlap whatever the
+    machine's load)."""
+
+    seconds = 1.5
+
+    def __init__(self, rendezvous: Path | None = None):
+        super().__init__()
+        self.rendezvous = rendezvous
+
+    def train(self, overrides, run_dir):
+        import time
+
+        if self.rendezvous is not None:
+            self.rendezvous.mkdir(parents=True, exist_ok=True)
+            (self.rendezvous / f"{run_dir.parent.parent.name}_{run_dir.name}").touch()
+            deadline = time.time() + 60
+            while len(list(self.rendezvous.iterdir())) < 2 and time.time() < deadline:
+                time.sleep(0.1)
+        time.sleep(self.seconds)
+        super().train(overrides, run_dir)
+
+
+def training_entries(out: Path, seeds=(0, 1)) -> dict[str, dict]:
+    """``seed<k>/train/<t>`` → its ledger entry."""
+    return {f"seed{s}/{name}": entry for s in seeds
+            for name, entry in json.loads((out / f"seed{s}" / "ablation.json").read_text())["stages"].items()
+            if name.startswith("train/")}
+
+
+def most_at_once(entries: dict[str, dict]) -> int:
+    """The most ledger entries whose [started_at, ended_at) intervals hold one moment."""
+    return max(sum(e["started_at"] <= x["started_at"] < e["ended_at"] for e in entries.values())
+               for x in entries.values())
+
+
+def test_training_stages_run_two_at_a_time_and_give_the_sequential_table(tmp_path):
+    """3 rows × 2 seeds (4 training stages: base and geometry per seed) with ``train_concurrent=2``: the ledger's
+    times show two training stages at once and never three, each recorded in its seed's ledger, and the table
+    across seeds is the sequential run's; ``stages.train_*`` reach the spec from conf/ablate.yaml."""
+    import ray
+    from ray import cloudpickle
+
+    from spread.commands.ablate import ablation_spec
+    from spread.experiments.stage_pool import overlap
+    from spread.runtime.ray import RaySettings
+
+    import test_ablate_report
+
+    for module in (sys.modules[__name__], test_ablate_report):  # the fakes travel to the Ray workers by value
+        cloudpickle.register_pickle_by_value(module)
+    rows = dict(variants=("base", "geometry", "guidance"))
+    sequential = run_seeded_ablation(fake_spec(tmp_path / "seq", **rows), SlowTrainFakeCommands(), [0, 1])
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # one session, used as is
+    try:
+        concurrent = run_seeded_ablation(fake_spec(tmp_path / "par", train_concurrent=2, ray=RaySettings(num_cpus=2),
+                                                   **rows), SlowTrainFakeCommands(tmp_path / "started"), [0, 1])
+    finally:
+        ray.shutdown()
+    assert sequential.ok and concurrent.ok, concurrent.errors
+    entries, seq_entries = training_entries(tmp_path / "par" / "abl"), training_entries(tmp_path / "seq" / "abl")
+    assert sorted(entries) == sorted(seq_entries) == ["seed0/train/base", "seed0/train/geometry",
+                                                      "seed1/train/base", "seed1/train/geometry"]
+    assert overlap(entries, "seed0/train/base", "seed0/train/geometry") > 0, "the first two trained at once"
+    assert most_at_once(entries) == 2 and most_at_once(seq_entries) == 1
+    assert read_csv(tmp_path / "par" / "abl" / "ablation.csv") == read_csv(tmp_path / "seq" / "abl" / "ablation.csv")
+    spec = ablation_spec(compose("ablate", "+preset=quick", "stages.train_concurrent=6", "stages.train_gpus=1"))
+    assert (spec.train_concurrent, spec.train_cpus, spec.train_gpus) == (6, 1.0, 1.0)
+    assert ablation_spec(compose("ablate", "+preset=quick")).train_concurrent == 1  # default: one after another
+
+
+@pytest.mark.slow
+def test_real_training_stages_two_at_a_time_give_the_sequential_numbers(data, tmp_path):
+    """The tiny recipe, 3 rows × 2 seeds, trained one after another and two at a time (Ray tasks of one CPU):
+    the same checkpoints bit for bit and the same table across seeds."""
+    import ray
+    import torch
+
+    from spread.commands.ablate import ablate
+
+    more = ("seeds=[0,1]", "variants=[base,geometry,guidance]", "stages.max_concurrent=1", "logger=none")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # shared by both runs
+    try:
+        sequential = ablate(tiny_cfg(data, tmp_path / "seq", *more))
+        concurrent = ablate(tiny_cfg(data, tmp_path / "par", *more, "stages.train_concurrent=2"))
+    finally:
+        ray.shutdown()
+    assert sequential.ok and concurrent.ok, (sequential.errors, concurrent.errors)
+    entries = training_entries(tmp_path / "par")
+    assert most_at_once(entries) == 2 and most_at_once(training_entries(tmp_path / "seq")) == 1
+    for name in entries:
+        a, b = (torch.load(tmp_path / run / name / "checkpoints" / "last.ckpt",
+                           map_location="cpu", weights_only=False)["state_dict"] for run in ("seq", "par"))
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), f"{name} trained differently"
+    assert read_csv(tmp_path / "par" / "ablation.csv") == read_csv(tmp_path / "seq" / "ablation.csv")

@@ -152,6 +152,22 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
                               ("evaluate", "diffuscene", "false"), ("evaluate", "physcene", "false")]
 
 
+def test_a_rerun_with_some_methods_keeps_the_other_finished_rows_of_table1(tmp_path):
+    """Every method, then ``methods=[atiss]`` alone: Table 1 keeps the other four rows (marked carried over, a
+    note line names them) in the registry's order, and its numbers."""
+    run_comparison(spec(tmp_path), FakeCommands())
+    before = read_csv(tmp_path / "cmp" / "table1.csv")
+    commands = FakeCommands()
+    again = run_comparison(spec(tmp_path, methods=("atiss",)), commands)
+    assert again.ok and [c[0] for c in commands.calls] == []  # atiss finished earlier: skipped
+    rows = read_csv(tmp_path / "cmp" / "table1.csv")
+    assert [r["method_key"] for r in rows] == list(METHODS) == [r["method_key"] for r in again.records]
+    assert [r["method_key"] for r in rows if r["carried_from"]] == ["diffuscene", "physcene", "instructscene", "spread"]
+    assert [r["col_mesh"] for r in rows] == [r["col_mesh"] for r in before]
+    md = (tmp_path / "cmp" / "table1.md").read_text()
+    assert "Rows carried over from an earlier run of this folder" in md and "InstructScene" in md
+
+
 def test_a_failing_method_blocks_only_its_row(tmp_path):
     result = run_comparison(spec(tmp_path), FakeCommands(fail="instructscene"))
     assert not result.ok and result.stages["sample/instructscene"] == "failed"

@@ -1,6 +1,6 @@
 """``spread-ablate`` on a composed ``conf/ablate.yaml``: the :class:`~spread.experiments.ablation.AblationSpec`,
 the stages run in-process (:class:`~spread.commands.in_process.InProcessCommands`; training through
-``train.launcher``; the rows ``stages.max_concurrent`` at a time), the table on wandb (offline by default) and on
+``train.launcher``, ``stages.train_concurrent`` stages at a time; the rows ``stages.max_concurrent`` at a time), the table on wandb (offline by default) and on
 the console. The stages and their resume rules are :mod:`spread.experiments.ablation`. ``spread-compare``
 (:mod:`spread.commands.compare`) is the same command over methods: both build their spec's shared
 fields with :func:`spec_fields` and run with :func:`run_stages_command`.
@@ -30,7 +30,8 @@ def recipe_sampling(experiment: str) -> tuple[list[str], list[str]]:
 def spec_fields(cfg: DictConfig, kind: str) -> dict:
     """The :class:`~spread.experiments.stages.StagesSpec` fields of a composed ``conf/ablate.yaml`` or
     ``conf/compare.yaml`` (``kind``: ``ablate`` or ``compare``, the wandb group's prefix); ``stages``:
-    ``max_concurrent`` and where its Ray tasks run (``address``, ``num_cpus``)."""
+    ``max_concurrent``, ``train_concurrent`` with each training stage's ``train_cpus`` / ``train_gpus``, and
+    where their Ray tasks run (``address``, ``num_cpus``)."""
     from spread.runtime.ray import RaySettings
 
     root = cfg.data.root
@@ -44,6 +45,9 @@ def spec_fields(cfg: DictConfig, kind: str) -> dict:
         evaluate=strings(cfg.evaluate.overrides) + strings(cfg.evaluate.get("extra")),
         title=str(cfg.get("title") or ""), group=f"{kind}_{cfg.name}",
         max_concurrent=int(stages.get("max_concurrent") or 1),
+        train_concurrent=int(stages.get("train_concurrent") or 1),
+        train_cpus=float(1 if stages.get("train_cpus") is None else stages.get("train_cpus")),
+        train_gpus=float(stages.get("train_gpus") or 0),
         ray=RaySettings(address=stages.get("address"), num_cpus=stages.get("num_cpus")))
 
 

@@ -43,8 +43,13 @@ the table is still written.
 **Concurrency.** The rows' sample → evaluate chains are independent: with ``max_concurrent`` > 1 they run as
 Ray tasks, that many at a time (:mod:`spread.experiments.stage_pool`; the ledger entries carry each stage's
 ``started_at`` / ``ended_at``); ``max_concurrent: 1`` runs them one after another in this process. Training
-stages run before them, in this process or as their own processes through ``train.launcher``
-(:mod:`spread.commands.launch`).
+stages run before them, ``train_concurrent`` at a time (Ray tasks of ``train_cpus`` CPUs and ``train_gpus``
+GPUs each when > 1, so the ablation trains in the time of its slowest row; 1: one after another in this
+process), each in-process or as its own processes through ``train.launcher`` (:mod:`spread.commands.launch`).
+
+**Subsets.** A re-run with some rows (``'variants=[base,guidance]'``) re-runs those and keeps the folder's
+other finished rows in the table, each marked as carried over (:mod:`spread.experiments.stages`, *Published
+tables only grow*).
 """
 
 from __future__ import annotations
@@ -57,7 +62,7 @@ from typing import Callable, Sequence
 
 from spread.reporting.intervals import ci_columns, row_intervals, table_note
 from spread.experiments.stages import (
-    Commands, Stage, StageEngine, StageError, StagesResult, StagesSpec, sampling_inputs)
+    Commands, Stage, StageEngine, StageError, StagesResult, StagesSpec, carried_note, sampling_inputs, with_carried)
 from spread.reporting.tables import Column, columns_of, write_tables
 from spread.guidance.config import GuidanceConfig
 from spread.io import read_json
@@ -150,9 +155,9 @@ class Ablation:
         common = sorted(set.intersection(*sets)) if sets else []
         return common[0] if common else None
 
-    def figure_paths(self) -> dict[str, Path]:
-        """row (and ``truth``) → its figure's path."""
-        return {v: self.out / f"{TABLE}_{v}.png" for v in ("truth", *self.spec.variants)}
+    def figure_paths(self, rows: Sequence[str] = ()) -> dict[str, Path]:
+        """row (and ``truth``) → its figure's path (``rows``: default ``truth`` and the spec's rows)."""
+        return {v: self.out / f"{TABLE}_{v}.png" for v in (rows or ("truth", *self.spec.variants))}
 
     def figures_stage(self) -> Stage | None:
         name = self.figure_scene()
@@ -172,8 +177,11 @@ class Ablation:
     def table_stage(self, records: list[dict], log_table: Callable[[list[dict], Path], None] | None) -> Stage:
         stem = self.out / TABLE
         outputs = [stem.with_suffix(s) for s in (".md", ".csv", ".tex", ".png")]
-        figures = {k: p.name for k, p in self.figure_paths().items()
-                   if self.engine.status.get("figures") in ("done", "skipped") and p.exists()}
+        drawn = self.engine.status.get("figures") in ("done", "skipped")
+        carried = {r["variant"] for r in records if r.get("carried_from")}  # their figures from the earlier run
+        figures = {k: p.name for k, p in self.figure_paths(
+            ("truth", *[v for v in VARIANTS if v in self.spec.variants or v in carried])).items()
+                   if (drawn or k in carried) and p.exists()}
 
         def run(resume: bool) -> None:
             write_ablation_table(records, stem, self.spec.title, figures)
@@ -182,13 +190,21 @@ class Ablation:
 
         return Stage("table", self.out, outputs, {"rows": records, "figures": figures}, run)
 
+    def trained(self) -> list[str]:
+        """The checkpoints the rows sample, in order."""
+        return [t for t in ("base", "geometry") if any(CHECKPOINT_OF[v] == t for v in self.spec.variants)]
+
     def run(self, log_table: Callable[[list[dict], Path], None] | None = None) -> AblationResult:
         started = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
-        variants = self.spec.variants
-        self.engine.run_trained([t for t in ("base", "geometry") if any(CHECKPOINT_OF[v] == t for v in variants)])
-        self.engine.run_sample_evaluate(list(variants))
-        records = self.rows()
+        self.engine.run_trained(self.trained())
+        self.engine.run_sample_evaluate(list(self.spec.variants))
+        return self.finish(log_table, started)
+
+    def finish(self, log_table: Callable[[list[dict], Path], None] | None, started: float) -> AblationResult:
+        """The rows (this run's and the carried ones), the figures and the table, once the rows' stages ran."""
+        records = with_carried(self.rows(), self.engine.carried("variant", list(self.spec.variants)), "variant",
+                               list(VARIANTS))
         if self.spec.figures:
             self.engine.attempt("figures", self.figures_stage, [])
         self.engine.attempt("table", lambda: self.table_stage(records, log_table), [])
@@ -225,8 +241,8 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
     paths = write_tables(records, table_columns(records), stem, caption=caption, label="tab:ablation",
                          csv_keys=["variant", "method", *differ, *[c.key for c in columns_of(records, hidden=True)],
                                    "n_scenes", "n_objects", "fid_status", "status", "identity", "ci_level",
-                                   "ci_resamples", "ci_seed"],
-                         note=table_note(records), md_extra=shown)
+                                   "ci_resamples", "ci_seed", "carried_from"],
+                         note=" ".join(n for n in (table_note(records), carried_note(records)) if n), md_extra=shown)
     ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
 

@@ -2,7 +2,10 @@
 
 Each seed is a whole ablation (:mod:`spread.experiments.ablation`) in ``out_dir/seed<k>/`` whose training,
 sampling and evaluation lists end with ``seed=<k>``; all seeds share one dataset (``data.root``, or the
-first seed generates ``out_dir/data`` and the others use it). Each seed's stages resume on their own.
+first seed generates ``out_dir/data`` and the others use it). Each seed's stages resume on their own. The seeds
+share the stage pools (:mod:`spread.experiments.stage_pool`): every seed's training stages at once
+(``train_concurrent`` at a time), then every seed's sample → evaluate chains (``max_concurrent`` at a time).
+A re-run with some rows keeps each seed's other finished rows (carried over, as in one ablation).
 
 The table ``out_dir/ablation.{md,csv,tex,png}`` has one row per variant. A cell reads
 ``mean ± sd (± h)``: the mean over seeds, the sample standard deviation across seeds (n − 1; 0 with one seed)
@@ -18,7 +21,8 @@ import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
-from spread.experiments.ablation import LABELS, AblationResult, AblationSpec, Commands, run_ablation
+from spread.experiments.ablation import LABELS, Ablation, AblationResult, AblationSpec, Commands
+from spread.experiments.stages import carried_note
 from spread.reporting.tables import Column, columns_of, write_tables
 
 
@@ -65,6 +69,9 @@ def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
         ok = [r for r in mine if r.get("status") == "ok"]
         row = {"variant": variant, "method": LABELS[variant], "seeds": len(ok),
                "status": "ok" if len(ok) == len(mine) else f"{len(mine) - len(ok)} of {len(mine)} seeds failed"}
+        carried = sorted({str(r["carried_from"]) for r in mine if r.get("carried_from")})
+        if carried:
+            row["carried_from"] = ", ".join(carried)
         for c in metrics:
             values = [float(r[c.key]) for r in ok if isinstance(r.get(c.key), (int, float))]
             row[c.key], row[f"{c.key}_sd"] = mean_sd(values)
@@ -85,19 +92,32 @@ def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str 
     caption = title or f"Ablation over training seeds {seeds}"
     note = (f"Each cell: mean ± sd across {len(seeds)} training seeds {seeds} (sample sd), then (± h): half the "
             "width of the 95 % bootstrap interval over scenes, averaged over the seeds.")
+    note = " ".join(n for n in (note, carried_note(rows)) if n)
     paths = write_tables(rows, columns, stem, caption=caption, label="tab:ablation_seeds", note=note,
                          csv_keys=["variant", "method", "seeds", *[k for c in metrics for k in (c.key, f"{c.key}_sd")],
-                                   "status"])
+                                   "status", "carried_from"])
     ablation_bars(rows, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
 
 
 def run_seeded_ablation(spec: AblationSpec, commands: Commands, seeds: list[int], log_table=None) -> AblationResult:
-    """Every seed's ablation, then the table across seeds in ``spec.out_dir``."""
+    """Every seed's ablation (their stages pooled, module docstring), then the table across seeds in
+    ``spec.out_dir``."""
+    from spread.experiments.stage_pool import run_jobs
+
     started = time.perf_counter()
+    ablations = {seed: Ablation(seed_spec(spec, seed), commands) for seed in seeds}
+    for ablation in ablations.values():  # the first seed generates the shared data, the others find it
+        ablation.out.mkdir(parents=True, exist_ok=True)
+        ablation.engine.attempt("data", ablation.engine.data_stage, [])
+    engines = [a.engine for a in ablations.values()]
+    run_jobs([job for a in ablations.values() for job in a.engine.train_jobs(a.trained())],
+             **{**engines[0].train_pool(), "owner": spec.out_dir})
+    run_jobs([job for a in ablations.values() for job in a.engine.row_jobs(list(a.spec.variants))],
+             **{**engines[0].row_pool(), "owner": spec.out_dir})
     per_seed, stages, errors = {}, {}, {}
-    for seed in seeds:
-        result = run_ablation(seed_spec(spec, seed), commands)
+    for seed, ablation in ablations.items():
+        result = ablation.finish(None, started)
         per_seed[seed] = result.records
         stages.update({f"seed{seed}/{k}": v for k, v in result.stages.items()})
         errors.update({f"seed{seed}/{k}": v for k, v in result.errors.items()})

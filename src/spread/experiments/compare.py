@@ -25,6 +25,10 @@ scene (the paper's Table 3) and the CSV holds every value (per-room-type Col_mes
 for the methods that do not see the graph (ATISS, DiffuScene, PhyScene-style); the value measured anyway is
 in the CSV as ``grecall_measured``. The caption states each method's budget: its training run (size, steps
 taken) and its sampler.
+
+A re-run with some methods (``'methods=[atiss]'``) re-runs those and keeps the folder's other finished rows
+in Table 1, each marked as carried over (:mod:`spread.experiments.stages`, *Published tables only grow*);
+training stages run ``stages.train_concurrent`` at a time as the ablation's do.
 """
 
 from __future__ import annotations
@@ -39,7 +43,8 @@ from typing import Callable
 from spread.reporting.intervals import (
     ci_columns, folder_records, grouped_intervals, protocol_seed, row_intervals, table_note,
 )
-from spread.experiments.stages import Commands, Stage, StageEngine, StagesResult, StagesSpec
+from spread.experiments.stages import (
+    Commands, Stage, StageEngine, StagesResult, StagesSpec, carried_note, with_carried)
 from spread.reporting.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
 from spread.io import read_json, read_text_checked, write_json_atomic
 
@@ -302,9 +307,10 @@ class Comparison:
                     *[c.key for c in columns_of(records, hidden=True) if c.key != "grecall"], "seconds_per_scene"]
             keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
             keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "n_scenes", "n_objects",
-                     "fid_status", "status", "identity"]
+                     "fid_status", "status", "identity", "carried_from"]
+            note = " ".join(n for n in (table_note(rows), carried_note(rows)) if n)
             write_tables(rows, columns, stem, caption=self.caption(rows), label="tab:table1", csv_keys=keys,
-                         note=table_note(rows))
+                         note=note)
             if log_table is not None:
                 log_table(rows, columns)
 
@@ -316,7 +322,8 @@ class Comparison:
         self.out.mkdir(parents=True, exist_ok=True)
         self.engine.run_trained(self.spec.trained())
         self.engine.run_sample_evaluate(list(self.spec.methods))
-        records = self.rows()
+        records = with_carried(self.rows(), self.engine.carried("method_key", list(self.spec.methods)), "method_key",
+                               registered())
         self.engine.attempt("table", lambda: self.table_stage(records, log_table), [])
         stem = self.out / TABLE
         done = self.engine.result(records, {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}, started)

@@ -1,10 +1,15 @@
 """Independent stages of an ablation or comparison at the same time, as Ray tasks (``max_concurrent`` at once).
 
 A **chain** is a list of steps ``(name, method, key, needs)`` that must run in order (a row's ``sample/<v>``
-then its ``evaluate/<v>``; ``runner.<method>(key)`` builds the step's stage); chains are independent of one
-another. :func:`run_chains` runs each chain as one Ray task
-(``num_cpus=0``: the task only drives its commands; their sampling actors and evaluation tasks reserve the
-CPUs/GPUs, on any node of the cluster), at most ``max_concurrent`` chains at a time, in the order given.
+then its ``evaluate/<v>``; a training stage ``train/<t>`` alone; ``runner.<method>(key)`` builds the step's
+stage); chains are independent of one another. A **job** is a chain with the runner (a
+:class:`~spread.experiments.stages.StageEngine`) whose stages it runs: :func:`run_jobs` takes jobs of one runner or of several
+(a seeded ablation's seeds share one pool). Each
+chain runs as one Ray task, at most ``max_concurrent`` at a time, in the order given, with ``resources`` per
+task: sample → evaluate chains take ``num_cpus=0`` (the task only drives its commands; their sampling actors
+and evaluation tasks reserve the CPUs/GPUs, on any node of the cluster); training stages take what one training
+needs (``stages.train_cpus`` / ``stages.train_gpus``: on a multi-GPU node each training task gets one GPU of
+its own, Ray sets its ``CUDA_VISIBLE_DEVICES``), so the training stages of a whole study run side by side.
 
 A stage that holds Ray actors while it waits for more (``Stage.exclusive``: sampling with ``workers`` > 0)
 takes the pool's one **slot** for its work: two such stages side by side could each hold part of the CPUs/GPUs
@@ -96,21 +101,22 @@ def attempt(runner, name: str, method: str, key: str, needs: list[str]) -> bool:
     return runner.attempt(name, lambda: getattr(runner, method)(key), needs)
 
 
-def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settings=None) -> dict:
-    """Run ``chains`` (module docstring) for ``runner`` (a :class:`~spread.experiments.stages.StageEngine`):
-    one after another in this process when ``max_concurrent`` ≤ 1 (all chains' first steps, then their
-    second steps), else as Ray tasks. Returns ``{"mode", "max_concurrent", ...}`` (the cluster when on Ray)."""
+def run_jobs(jobs: list[tuple], max_concurrent: int, ray_settings=None, resources: dict | None = None,
+             owner=None) -> dict:
+    """Run ``jobs`` (``(runner, chain)`` pairs, module docstring): one after another in this process when
+    ``max_concurrent`` ≤ 1 (all chains' first steps, then their second steps), else as Ray tasks with
+    ``resources`` each (Ray's ``num_cpus`` / ``num_gpus``; None: ``num_cpus=0``), the Ray session recorded in
+    ``owner`` (the study's folder). Returns ``{"mode", "max_concurrent", ...}`` (the cluster when on Ray)."""
     pending = []
-    for chain in (c for c in chains if c):  # steps finished earlier with these inputs are skipped here, no Ray
+    for runner, chain in ((r, c) for r, c in jobs if c):  # steps finished earlier with these inputs: skipped here
         rest = list(chain)
         while rest and int(max_concurrent) > 1 and runner.finished_already(*rest[0]):
             attempt(runner, *rest.pop(0))
         if rest:
-            pending.append(rest)
-    chains = pending
-    if int(max_concurrent) <= 1 or len(chains) <= 1:
-        for depth in range(max((len(c) for c in chains), default=0)):
-            for chain in chains:
+            pending.append((runner, rest))
+    if int(max_concurrent) <= 1 or len(pending) <= 1:
+        for depth in range(max((len(c) for _, c in pending), default=0)):
+            for runner, chain in pending:
                 if depth < len(chain):
                     attempt(runner, *chain[depth])
         return {"mode": "sequential", "max_concurrent": 1}
@@ -118,28 +124,41 @@ def run_chains(runner, chains: list[list[Step]], max_concurrent: int, ray_settin
 
     from spread.runtime.ray import RaySettings, ray_session
 
-    with ray_session(ray_settings or RaySettings(), owner=getattr(runner, "out", None)) as cluster:
-        task = ray.remote(num_cpus=0, max_retries=0)(run_chain)
-        runner.slot = ray.remote(num_cpus=0)(Slot).remote()
+    runners = list({id(r): r for r, _ in pending}.values())
+    with ray_session(ray_settings or RaySettings(), owner=owner) as cluster:
+        task = ray.remote(max_retries=0, **task_resources(resources))(run_chain)
+        slot = ray.remote(num_cpus=0)(Slot).remote()
+        for runner in runners:
+            runner.slot = slot
         try:
-            drive(runner, chains, task, int(max_concurrent))
+            drive(pending, task, int(max_concurrent))
         finally:
-            ray.kill(runner.slot)
-            runner.slot = None
+            ray.kill(slot)
+            for runner in runners:
+                runner.slot = None
     return {"mode": "ray", "max_concurrent": int(max_concurrent), **cluster}
 
 
-def drive(runner, chains: list[list[Step]], task, max_concurrent: int) -> None:
-    """Keep ``max_concurrent`` chain tasks running until every chain has reported."""
+def task_resources(resources: dict | None) -> dict:
+    """Ray's ``num_cpus`` / ``num_gpus`` of one chain task (None or 0 GPUs: none asked)."""
+    resources = dict(resources or {"num_cpus": 0})
+    out = {"num_cpus": float(resources.get("num_cpus") or 0)}
+    if resources.get("num_gpus"):
+        out["num_gpus"] = float(resources["num_gpus"])
+    return out
+
+
+def drive(jobs: list[tuple], task, max_concurrent: int) -> None:
+    """Keep ``max_concurrent`` chain tasks running until every job ``(runner, chain)`` has reported."""
     import ray
 
-    queue, running, cwd = list(chains), {}, os.getcwd()
+    queue, running, cwd = list(jobs), {}, os.getcwd()
     while queue or running:
         while queue and len(running) < max_concurrent:
-            chain = queue.pop(0)
-            running[task.remote(runner, chain, cwd)] = chain
+            runner, chain = queue.pop(0)
+            running[task.remote(runner, chain, cwd)] = (runner, chain)
         done, _ = ray.wait(list(running), num_returns=1)
-        chain = running.pop(done[0])
+        runner, chain = running.pop(done[0])
         try:
             merge(runner, ray.get(done[0]))
         except Exception as exc:  # noqa: BLE001 - the task itself died: its steps fail, the rest go on

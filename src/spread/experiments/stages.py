@@ -6,8 +6,16 @@ its outputs exist. :class:`StageEngine` owns what every study shares: the folder
 ``samples/<row>/``, ``eval/<row>/`` under ``out_dir``), the data, training, sampling and evaluation stages, the
 ledger (:class:`Ledger`: each finished stage's inputs, decided by the platform's one done-check
 :func:`spread.runtime.fingerprint.done_check`), the outcome of each stage (``status``, ``errors``: a failed stage
-blocks only the stages that need it) and the rows' concurrent sample → evaluate chains
-(:mod:`spread.experiments.stage_pool`).
+blocks only the stages that need it), the concurrent training stages and the rows' concurrent sample → evaluate
+chains (:mod:`spread.experiments.stage_pool`), and the rows a re-run carries over.
+
+**Published tables only grow.** A re-run with a subset of the rows (``'variants=[base,guidance]'``,
+``'methods=[atiss]'``) re-runs those rows and keeps the others of the folder's table: :meth:`StageEngine.carried`
+takes them from the ledger's ``table`` entry (the rows the table was last written with) when the row finished
+there (``status`` ok, an ``identity``) and its evaluation is still recorded and on disk. A row of the same name
+that this run re-runs always replaces the kept one (its identity may differ: what differs is named under the
+table). A kept row carries ``carried_from`` (when its evaluation finished) and :func:`carried_note` says under
+the table which rows were carried over.
 
 What differs between studies is asked of the study object the engine serves (:class:`Study`: which checkpoint a
 row samples, a row's training and sampling overrides, optionally a wrapper that times a stage body and the state
@@ -52,7 +60,9 @@ class StagesSpec:
     Override lists are Hydra overrides of the sub-commands' configs; ``ckpt``: trained row → a given checkpoint
     (no training); ``data_root``: None → generate into ``out_dir/data``; ``group``: wandb group of every stage's
     run (``experiment_name=<group>``; "" leaves each command's); ``max_concurrent``: rows' sample → evaluate
-    chains at a time (Ray tasks when > 1, on ``ray``: None, a local Ray session)."""
+    chains at a time (Ray tasks when > 1, on ``ray``: None, a local Ray session); ``train_concurrent``: training
+    stages at a time (Ray tasks when > 1, each reserving ``train_cpus`` CPUs and ``train_gpus`` GPUs; 1: one
+    after another in this process)."""
 
     out_dir: Path
     data_root: Path | None = None
@@ -66,6 +76,9 @@ class StagesSpec:
     group: str = ""
     max_concurrent: int = 1
     ray: RaySettings | None = None
+    train_concurrent: int = 1
+    train_cpus: float = 1.0
+    train_gpus: float = 0.0
 
     def named(self, overrides: list[str]) -> list[str]:
         """``overrides`` with the wandb group first (so a list can still set its own)."""
@@ -75,6 +88,10 @@ class StagesSpec:
         self.out_dir = Path(self.out_dir)
         if int(self.max_concurrent) < 1:
             raise ValueError(f"max_concurrent={self.max_concurrent}: at least 1")
+        if int(self.train_concurrent) < 1:
+            raise ValueError(f"train_concurrent={self.train_concurrent}: at least 1")
+        if float(self.train_cpus) < 0 or float(self.train_gpus) < 0:
+            raise ValueError(f"train_cpus={self.train_cpus}, train_gpus={self.train_gpus}: not negative")
 
     def check_given(self, trained: list[str], method_of: Callable[[str], dict], note: str = "") -> None:
         """Every given checkpoint names a trained row (``note`` says more when not), exists, and is that row's
@@ -338,11 +355,16 @@ class StageEngine:
         if own is not None and state:
             own(state)
 
-    def run_rows(self, chains: list[list[tuple]]) -> dict:
-        """The rows' independent stage chains (module docstring, *Concurrency*)."""
-        from spread.experiments.stage_pool import run_chains
+    def row_pool(self) -> dict:
+        """How :func:`~spread.experiments.stage_pool.run_jobs` runs sample → evaluate chains: ``max_concurrent``
+        tasks that only drive their commands."""
+        return {"max_concurrent": self.spec.max_concurrent, "ray_settings": self.spec.ray, "owner": self.out}
 
-        return run_chains(self, chains, self.spec.max_concurrent, self.spec.ray)
+    def train_pool(self) -> dict:
+        """How :func:`~spread.experiments.stage_pool.run_jobs` runs training stages: ``train_concurrent`` tasks,
+        each reserving ``train_cpus`` CPUs and ``train_gpus`` GPUs."""
+        return {"max_concurrent": self.spec.train_concurrent, "ray_settings": self.spec.ray, "owner": self.out,
+                "resources": {"num_cpus": self.spec.train_cpus, "num_gpus": self.spec.train_gpus}}
 
     def finished_already(self, name: str, method: str, key: str, needs: list[str]) -> bool:
         """True when the row step ``(name, method, key, needs)`` would be skipped: the ledger holds it with the
@@ -386,20 +408,68 @@ class StageEngine:
             log.error("✗ %s failed: %s\n%s", name, message, traceback.format_exc(limit=6))
         return False
 
-    def run_trained(self, trained: list[str]) -> None:
-        """The data stage, then each trained row's training stage (or ``given`` for a given checkpoint)."""
-        self.attempt("data", self.data_stage, [])
+    def train_jobs(self, trained: list[str]) -> list[tuple]:
+        """``(self, chain)`` per trained row to train (a given checkpoint is ``given``): a chain of one step
+        each, independent of one another (:mod:`spread.experiments.stage_pool`)."""
+        jobs = []
         for t in trained:
             if self.spec.ckpt.get(t):
                 self.status[f"train/{t}"] = "given"
             else:
-                self.attempt(f"train/{t}", lambda t=t: self.train_stage(t), ["data"])
+                jobs.append((self, [(f"train/{t}", "train_stage", t, ["data"])]))
+        return jobs
+
+    def row_jobs(self, rows: list[str]) -> list[tuple]:
+        """``(self, chain)`` per row: its sample → evaluate chain (after its data and checkpoint)."""
+        return [(self, [(f"sample/{r}", "sample_stage", r, ["data", f"train/{self.study.checkpoint_of[r]}"]),
+                        (f"evaluate/{r}", "evaluate_stage", r, [f"sample/{r}"])]) for r in rows]
+
+    def run_trained(self, trained: list[str]) -> dict:
+        """The data stage, then the trained rows' training stages (``train_concurrent`` at a time)."""
+        from spread.experiments.stage_pool import run_jobs
+
+        self.attempt("data", self.data_stage, [])
+        return run_jobs(self.train_jobs(trained), **self.train_pool())
 
     def run_sample_evaluate(self, rows: list[str]) -> dict:
-        """Each row's sample → evaluate chain (after its data and checkpoint)."""
-        return self.run_rows([[(f"sample/{r}", "sample_stage", r, ["data", f"train/{self.study.checkpoint_of[r]}"]),
-                               (f"evaluate/{r}", "evaluate_stage", r, [f"sample/{r}"])] for r in rows])
+        """Each row's sample → evaluate chain (after its data and checkpoint), ``max_concurrent`` at a time."""
+        from spread.experiments.stage_pool import run_jobs
+
+        return run_jobs(self.row_jobs(rows), **self.row_pool())
+
+    # ---- the table ----
+    def carried(self, key: str, rerun: list[str]) -> list[dict]:
+        """The rows of the folder's last table that this run does not re-run (module docstring, *Published
+        tables only grow*); ``key``: the record field that names a row (``variant``, ``method_key``)."""
+        before = self.ledger.inputs("table") or {}
+        stages = self.ledger.data["stages"]
+        kept = []
+        for row in before.get("rows") or []:
+            name = row.get(key)
+            entry = stages.get(f"evaluate/{name}")
+            if name in rerun or row.get("status") != "ok" or not row.get("identity") or entry is None \
+                    or not (self.eval_dir(name) / "metrics.json").exists():
+                continue
+            kept.append({**row, "carried_from": row.get("carried_from") or entry.get("finished")})
+        return kept
 
     def result(self, records: list[dict], tables: dict[str, Path], started: float) -> "StagesResult":
         return StagesResult(records, dict(self.status), dict(self.errors), tables,
                             round(time.perf_counter() - started, 3))
+
+
+def with_carried(records: list[dict], carried: list[dict], key: str, order: list[str]) -> list[dict]:
+    """This run's rows and the carried ones (:meth:`StageEngine.carried`) in the table's row order (``order``:
+    every row name; a re-run row replaces a carried one of the same name)."""
+    fresh = {r[key] for r in records}
+    rows = records + [r for r in carried if r[key] not in fresh]
+    rank = {name: i for i, name in enumerate(order)}
+    return sorted(rows, key=lambda r: rank.get(r[key], len(rank)))
+
+
+def carried_note(records: list[dict], label: str = "method") -> str:
+    """The table's line naming the rows carried over from an earlier run (empty when none)."""
+    carried = [f"{r.get(label)} (evaluated {r['carried_from']})" for r in records if r.get("carried_from")]
+    if not carried:
+        return ""
+    return "Rows carried over from an earlier run of this folder, not re-run this time: " + "; ".join(carried) + "."

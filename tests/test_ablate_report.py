@@ -580,17 +580,27 @@ def test_a_rerun_with_some_rows_keeps_the_other_finished_rows_marked_as_carried(
 
 
 def test_spread_ablate_rerun_with_two_of_six_rows_keeps_six_rows(tiny_ablation):
-    """The tiny ablation grown to the six rows, then `spread-ablate 'variants=[base,guidance]'` on the same
-    folder (the console script): the table keeps six rows with the same numbers, four marked carried over.
-    Runs last on the module's tiny ablation (its folder gains the one-term rows)."""
+    """The tiny ablation grown to the six rows (2 guidance iterations: the guidance row is redone), then
+    `spread-ablate 'variants=[base,guidance]'` on the same folder (the console script): the table keeps six
+    rows with the same numbers, four marked carried over (a carried row keeps its figure). Runs last on the
+    module's tiny ablation (its folder gains the one-term rows)."""
+    import ray
+
     from spread.commands.ablate import ablate as run
     from spread.experiments.ablation import VARIANTS
 
     cfg, out = tiny_ablation["cfg"].copy(), tiny_ablation["out"]
-    cfg.variants = list(VARIANTS)
-    cfg.stages.max_concurrent = 1  # the three new rows in this process (no Ray session to start)
-    six = run(cfg)
+    cfg.variants, cfg.figures = list(VARIANTS), False
+    cfg.sample.guidance = [*cfg.sample.guidance, "guidance.iterations=2"]
+    cfg.stages.max_concurrent = 1  # the new rows in this process, their evaluations on one Ray session
+    started = time.perf_counter()
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        six = run(cfg)
+    finally:
+        ray.shutdown()
     assert six.ok, six.errors
+    grown = time.perf_counter() - started
     before = read_csv(out / "ablation.csv")
     assert [r["variant"] for r in before] == list(VARIANTS)
 
@@ -600,8 +610,8 @@ def test_spread_ablate_rerun_with_two_of_six_rows_keeps_six_rows(tiny_ablation):
     started = time.perf_counter()
     proc = run_script("spread-ablate", "+preset=quick", f"data.root={tiny_ablation['data']}", f"out_dir={out}",
                       "variants=[base,guidance]", "logger=none", listed("train.extra"), listed("sample.extra"),
-                      listed("evaluate.extra"))
-    seconds = time.perf_counter() - started
+                      listed("sample.guidance"), listed("evaluate.extra"))
+    rerun = time.perf_counter() - started
     rows = read_csv(out / "ablation.csv")
     assert [r["variant"] for r in rows] == list(VARIANTS), proc.stdout[-3000:]
     carried = [r["variant"] for r in rows if r["carried_from"]]
@@ -610,7 +620,8 @@ def test_spread_ablate_rerun_with_two_of_six_rows_keeps_six_rows(tiny_ablation):
     assert [strip(r) for r in rows] == [strip(r) for r in before]  # the same numbers, nothing re-run
     md = (out / "ablation.md").read_text()
     assert "Rows carried over from an earlier run" in md and "+Guidance (relation only) (evaluated" in md
-    assert "(ablation_guidance_gravity.png)" in md  # a carried row keeps its figure
+    assert "(ablation_geometry.png)" in md and "(ablation_guidance.png)" in md  # a carried row keeps its figure
     ledger = json.loads((out / "ablation.json").read_text())["stages"]
     assert [r["variant"] for r in ledger["table"]["inputs"]["rows"]] == list(VARIANTS)
-    print(f"spread-ablate re-run with two of six rows: {seconds:.1f} s")
+    print(f"six rows grown in {grown:.1f} s ({ {k: v['seconds'] for k, v in ledger.items()} }); "
+          f"spread-ablate re-run with two of six rows: {rerun:.1f} s")

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from spread.experiments.ablation import Ablation, AblationSpec, TERMS
+from spread.experiments.ablation import Ablation, AblationSpec, TERMS, run_ablation
 from spread.experiments.ablation_seeds import aggregate, run_seeded_ablation
 from spread.commands.launch import LaunchedCommands, launch_prefix
 from spread.reporting.tables import read_csv
@@ -269,7 +269,8 @@ def most_at_once(entries: dict[str, dict]) -> int:
 def test_training_stages_run_two_at_a_time_and_give_the_sequential_table(tmp_path):
     """3 rows × 2 seeds (4 training stages: base and geometry per seed) with ``train_concurrent=2``: the ledger's
     times show two training stages at once and never three, each recorded in its seed's ledger, and the table
-    across seeds is the sequential run's; ``stages.train_*`` reach the spec from conf/ablate.yaml."""
+    across seeds is the sequential run's; a GPU asked of a cluster without one fails the stage (no wait for
+    ever); ``stages.train_*`` reach the spec from conf/ablate.yaml."""
     import ray
     from ray import cloudpickle
 
@@ -287,6 +288,7 @@ def test_training_stages_run_two_at_a_time_and_give_the_sequential_table(tmp_pat
     try:
         concurrent = run_seeded_ablation(fake_spec(tmp_path / "par", train_concurrent=2, ray=RaySettings(num_cpus=2),
                                                    **rows), SlowTrainFakeCommands(tmp_path / "started"), [0, 1])
+        no_gpu = run_ablation(fake_spec(tmp_path / "gpu", train_concurrent=2, train_gpus=1, **rows), FakeCommands())
     finally:
         ray.shutdown()
     assert sequential.ok and concurrent.ok, concurrent.errors
@@ -296,6 +298,9 @@ def test_training_stages_run_two_at_a_time_and_give_the_sequential_table(tmp_pat
     assert overlap(entries, "seed0/train/base", "seed0/train/geometry") > 0, "the first two trained at once"
     assert most_at_once(entries) == 2 and most_at_once(seq_entries) == 1
     assert read_csv(tmp_path / "par" / "abl" / "ablation.csv") == read_csv(tmp_path / "seq" / "abl" / "ablation.csv")
+    # a training stage that asks for more than the cluster has fails, named, instead of waiting for ever
+    assert no_gpu.stages["train/base"] == "failed" and "1 GPU" in no_gpu.errors["train/base"]
+    assert no_gpu.stages["sample/guidance"] == "blocked"
     spec = ablation_spec(compose("ablate", "+preset=quick", "stages.train_concurrent=6", "stages.train_gpus=1"))
     assert (spec.train_concurrent, spec.train_cpus, spec.train_gpus) == (6, 1.0, 1.0)
     assert ablation_spec(compose("ablate", "+preset=quick")).train_concurrent == 1  # default: one after another

@@ -67,7 +67,9 @@ def ablation_spec(cfg: DictConfig):
 def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
     """The frame of ``spread-ablate`` and ``spread-compare``: torch threads, ``out_dir``'s lock (a second run
     on the folder is refused, never mixed), the config recorded, the MLflow run (``name``); then
-    ``body(commands, logger, config, run)`` (``commands``: :func:`launcher_commands`) gives the result."""
+    ``body(commands, logger, config, run)`` (``commands``: :func:`launcher_commands`) gives the result. This
+    run is the study's one: to nest each stage's run under it (issue 31, item 2), hand its id to the stages'
+    command lines through :meth:`~spread.experiments.stages.StagesSpec.named`."""
     from spread.commands.common import record_config
     from spread.io import run_lock
     from spread.tracking import mlflow_store as mlflow_log

@@ -3,13 +3,14 @@
 A **chain** is a list of steps ``(name, method, key, needs)`` that must run in order (a row's ``sample/<v>``
 then its ``evaluate/<v>``; a training stage ``train/<t>`` alone; ``runner.<method>(key)`` builds the step's
 stage); chains are independent of one another. A **job** is a chain with the runner (a
-:class:`~spread.experiments.stages.StageEngine`) whose stages it runs: :func:`run_jobs` takes jobs of one runner or of several
-(a seeded ablation's seeds share one pool). Each
-chain runs as one Ray task, at most ``max_concurrent`` at a time, in the order given, with ``resources`` per
-task: sample → evaluate chains take ``num_cpus=0`` (the task only drives its commands; their sampling actors
-and evaluation tasks reserve the CPUs/GPUs, on any node of the cluster); training stages take what one training
-needs (``stages.train_cpus`` / ``stages.train_gpus``: on a multi-GPU node each training task gets one GPU of
-its own, Ray sets its ``CUDA_VISIBLE_DEVICES``), so the training stages of a whole study run side by side.
+:class:`~spread.experiments.stages.StageEngine`) whose stages it runs: :func:`run_jobs` takes the jobs of one
+runner or of several (a seeded ablation's seeds share one pool). Each chain runs as one Ray task, at most
+``max_concurrent`` at a time, in the order given, with ``resources`` per task: sample → evaluate chains take
+``num_cpus=0`` (the task only drives its commands; their sampling actors and evaluation tasks reserve the
+CPUs/GPUs, on any node of the cluster); a training stage takes what one training needs
+(``stages.train_cpus`` / ``stages.train_gpus``: on a multi-GPU node each training task gets a GPU of its own,
+Ray sets its ``CUDA_VISIBLE_DEVICES``), so the training stages of a whole study run side by side. A task that
+asks for more than the whole cluster has would wait for ever: its steps fail instead, saying so.
 
 A stage that holds Ray actors while it waits for more (``Stage.exclusive``: sampling with ``workers`` > 0)
 takes the pool's one **slot** for its work: two such stages side by side could each hold part of the CPUs/GPUs
@@ -20,8 +21,8 @@ The ledger stays the driver's: a task decides re-use against a snapshot of the l
 (:class:`LedgerView`) and returns what it would record; the driver records it. Each entry carries the wall-clock
 ``started_at`` / ``ended_at`` (Unix seconds) of the stage's work. A task that dies (its worker killed) fails
 its chain's steps (a stage's own error is caught in the task and reported like in this process), and the
-other chains go on. Workers run in the driver's working
-directory, so relative ``out_dir`` paths mean the same in both.
+other chains go on. Workers run in the driver's working directory, so relative ``out_dir`` paths mean the same
+in both.
 """
 
 from __future__ import annotations
@@ -126,7 +127,12 @@ def run_jobs(jobs: list[tuple], max_concurrent: int, ray_settings=None, resource
 
     runners = list({id(r): r for r, _ in pending}.values())
     with ray_session(ray_settings or RaySettings(), owner=owner) as cluster:
-        task = ray.remote(max_retries=0, **task_resources(resources))(run_chain)
+        asked = task_resources(resources)
+        missing = misfit(asked)
+        if missing:  # such a task would wait for ever: its steps fail, named, and the study goes on
+            fail(pending, missing)
+            return {"mode": "ray", "max_concurrent": int(max_concurrent), **cluster}
+        task = ray.remote(max_retries=0, **asked)(run_chain)
         slot = ray.remote(num_cpus=0)(Slot).remote()
         for runner in runners:
             runner.slot = slot
@@ -146,6 +152,28 @@ def task_resources(resources: dict | None) -> dict:
     if resources.get("num_gpus"):
         out["num_gpus"] = float(resources["num_gpus"])
     return out
+
+
+def misfit(asked: dict) -> str:
+    """Why a task asking ``asked`` (Ray's ``num_cpus`` / ``num_gpus``) cannot run on the cluster as it is
+    (more than all its nodes hold together; "" when it fits)."""
+    import ray
+
+    total = ray.cluster_resources()
+    short = [f"{asked[key]:g} {name}" for key, name in (("num_cpus", "CPU"), ("num_gpus", "GPU"))
+             if asked.get(key, 0) > total.get(name, 0.0)]
+    if not short:
+        return ""
+    return (f"each stage asks for {' and '.join(short)} (stages.train_cpus / stages.train_gpus) but the Ray "
+            f"cluster has {total.get('CPU', 0.0):g} CPU and {total.get('GPU', 0.0):g} GPU")
+
+
+def fail(jobs: list[tuple], message: str) -> None:
+    """Every step of ``jobs`` failed with ``message``."""
+    for runner, chain in jobs:
+        for name, *_ in chain:
+            runner.status[name] = "failed"
+            runner.errors[name] = f"{name}: {message}"
 
 
 def drive(jobs: list[tuple], task, max_concurrent: int) -> None:

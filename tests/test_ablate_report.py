@@ -620,6 +620,7 @@ def test_spread_ablate_rerun_with_two_of_six_rows_keeps_six_rows(tiny_ablation):
     assert [strip(r) for r in rows] == [strip(r) for r in before]  # the same numbers, nothing re-run
     md = (out / "ablation.md").read_text()
     assert "Rows carried over from an earlier run" in md and "+Guidance (relation only) (evaluated" in md
+    assert "Rows carried over from an earlier run" in proc.stdout  # and on the console, under the six rows
     assert "(ablation_geometry.png)" in md and "(ablation_guidance.png)" in md  # a carried row keeps its figure
     ledger = json.loads((out / "ablation.json").read_text())["stages"]
     assert [r["variant"] for r in ledger["table"]["inputs"]["rows"]] == list(VARIANTS)

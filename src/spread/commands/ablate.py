@@ -144,14 +144,15 @@ def console_table(result, title: str):
 def print_ablation(result, cfg: DictConfig) -> None:
     from rich.console import Console
 
+    from spread.experiments.stages import carried_note
     from spread.reporting.intervals import table_note
 
     console = Console()
     console.print()
     console.print(console_table(result, f"ablation {cfg.name} ({cfg.out_dir}, {result.seconds / 60:.1f} min)"))
-    note = table_note(result.records)
-    if note:
-        console.print(note)
+    for note in (table_note(result.records), carried_note(result.records)):
+        if note:
+            console.print(note)
     fid = {r.get("fid_status") for r in result.records if r.get("fid") is None and r.get("fid_status")}
     for status in sorted(fid):
         console.print(f"FID: {status}")

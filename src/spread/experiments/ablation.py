@@ -179,9 +179,8 @@ class Ablation:
         outputs = [stem.with_suffix(s) for s in (".md", ".csv", ".tex", ".png")]
         drawn = self.engine.status.get("figures") in ("done", "skipped")
         carried = {r["variant"] for r in records if r.get("carried_from")}  # their figures from the earlier run
-        figures = {k: p.name for k, p in self.figure_paths(
-            ("truth", *[v for v in VARIANTS if v in self.spec.variants or v in carried])).items()
-                   if (drawn or k in carried) and p.exists()}
+        shown = ("truth", *[v for v in VARIANTS if v in self.spec.variants or v in carried])
+        figures = {k: p.name for k, p in self.figure_paths(shown).items() if (drawn or k in carried) and p.exists()}
 
         def run(resume: bool) -> None:
             write_ablation_table(records, stem, self.spec.title, figures)

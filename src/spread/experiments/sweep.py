@@ -242,12 +242,26 @@ def search_space(plan: SweepPlan) -> dict:
     return space
 
 
+#: significant digits a drawn value keeps (an interval's draw from random or Optuna search): the value the trial
+#: runs, names its folder by and shows in the table
+SIGNIFICANT = 4
+
+
+def drawn(config: dict) -> dict:
+    """The trial's values as it runs them: a float a search drew from an interval rounded to :data:`SIGNIFICANT`
+    significant digits (``0.012345678901234567`` → ``0.01235``), so folder names, table cells and the point's
+    identity carry no 17-digit floats and two draws that round alike are one point; listed values (strings from
+    the command line) are kept as written."""
+    return {k: float(f"{v:.{SIGNIFICANT}g}") if isinstance(v, float) and math.isfinite(v) else v
+            for k, v in config.items()}
+
+
 def trial_overrides(config: dict) -> list[str]:
-    return [f"{k}={format_value(v)}" for k, v in sorted(config.items())]
+    return [f"{k}={format_value(v)}" for k, v in sorted(drawn(config).items())]
 
 
 def format_value(v) -> str:
-    return repr(float(v)) if isinstance(v, float) else str(v)
+    return repr(float(f"{v:.{SIGNIFICANT}g}")) if isinstance(v, float) else str(v)
 
 
 def point_name(config: dict) -> str:
@@ -288,10 +302,13 @@ def sample_trial(config: dict, plan: dict, commands) -> None:
     :class:`~spread.commands.in_process.InProcessCommands`); reports its metrics to Tune."""
     from ray import tune
 
+    from spread.experiments.points import point_lock
+
     started = time.perf_counter()
-    config = config.get(POINT_KEY, config)
+    config = drawn(config.get(POINT_KEY, config))
     folder, cfg, overrides = sample_point(config, plan)
-    result, _ = commands.sample_config(cfg, overrides)
+    with point_lock(folder):  # a trial of the same point running now: wait for it, then re-use its result
+        result, _ = commands.sample_config(cfg, overrides)
     row = {**read_metrics(folder), "point": folder.name, "reused": result is None,
            "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id(), "trial_pid": os.getpid(),
            "startup_seconds": None if result is None else result.manifest.get("startup_seconds")}
@@ -330,9 +347,10 @@ def node_id() -> str:
 
 
 class TuneReport:
-    """Lightning callback: every validation's logged values to Ray Tune (what ASHA compares)."""
+    """Lightning callback: every validation's logged values to Ray Tune (what ASHA compares), with the training
+    step and the point's folder name (so a trial the scheduler stops is listed with the step it stopped at)."""
 
-    def __new__(cls, metric: str):
+    def __new__(cls, metric: str, point: str | None = None):
         import lightning as L
 
         class _Report(L.Callback):
@@ -343,7 +361,7 @@ class TuneReport:
                     return
                 logged = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
                 if metric in logged:
-                    tune.report({**logged, "step": int(trainer.global_step)})
+                    tune.report({**logged, "step": int(trainer.global_step), "point": point, "status": "running"})
 
         return _Report()
 
@@ -353,13 +371,27 @@ def train_trial(config: dict, plan: dict, commands) -> None:
     composed config and the data's content, recorded in the folder's ``point.json``)."""
     from ray import tune
 
-    from spread.configs import compose
-    from spread.experiments.points import PointDecision, finish_point, read_point, start_point
+    from spread.experiments.points import point_lock
     from spread.io import read_json_object
-    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, done_check, normalised, short
-    from spread.training.fit import train as fit
 
     started = time.perf_counter()
+    config = drawn(config.get(POINT_KEY, config))
+    folder, identity, overrides = train_point(config, plan)
+    with point_lock(folder):  # a trial of the same point running now: wait for it, then re-use its run
+        reused = train_point_run(folder, identity, overrides, plan, commands)
+    summary = read_json_object(folder / "metrics.json")
+    logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
+    tune.report({**logged, "point": folder.name, "reused": reused, "status": "ok",
+                 "seconds": round(time.perf_counter() - started, 3),
+                 "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
+
+
+def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
+    """(folder, identity, overrides) of a training point: ``points/<values>_<short identity>``; the identity is
+    the composed config (less ``out_dir``), the data's content and the numbers version."""
+    from spread.configs import compose
+    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, normalised, short
+
     name = point_name(config)
     overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}"]
     cfg = compose("train", [*overrides, "out_dir=unset"])
@@ -368,7 +400,18 @@ def train_trial(config: dict, plan: dict, commands) -> None:
     root = OmegaConf.select(cfg, "data.root")
     identity = normalised({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
                            "numbers_version": NUMBERS_VERSION})
-    folder = Path(plan["points"]) / f"{name}_{short(identity)}"
+    return Path(plan["points"]) / f"{name}_{short(identity)}", identity, overrides
+
+
+def train_point_run(folder: Path, identity: dict, overrides: list[str], plan: dict, commands) -> bool:
+    """Train the point into ``folder`` unless it is finished with ``identity`` (the platform's done-check);
+    True when re-used."""
+    from spread.configs import compose
+    from spread.experiments.points import PointDecision, finish_point, read_point, start_point
+    from spread.runtime.fingerprint import done_check
+    from spread.training.fit import train as fit
+
+    started = time.perf_counter()
     record, finished = read_point(folder), (folder / "metrics.json").exists()
     # a folder without a record carries this identity in its name (made before point.json): the same inputs
     before = record.get("fingerprint") if record is not None else identity if folder.exists() else None
@@ -380,13 +423,10 @@ def train_trial(config: dict, plan: dict, commands) -> None:
         cfg = compose("train", run)
         start_point(folder, PointDecision(False, decision.fresh, decision.reason, identity))
         commands.record_config(cfg, folder, run)
-        fit(cfg, run_dir=folder, extra_callbacks=[TuneReport(plan["metric"])] if plan.get("scheduler") else [])
+        callbacks = [TuneReport(plan["metric"], folder.name)] if plan.get("scheduler") else []
+        fit(cfg, run_dir=folder, extra_callbacks=callbacks)
         finish_point(folder, round(time.perf_counter() - started, 3))
-    summary = read_json_object(folder / "metrics.json")
-    logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
-    tune.report({**logged, "point": folder.name, "reused": decision.reuse,
-                 "seconds": round(time.perf_counter() - started, 3),
-                 "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
+    return decision.reuse
 
 
 # ---- the sweep ------------------------------------------------------------------------------------------------
@@ -406,7 +446,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     ``record_config``), handed to each trial by the sweep command."""
     from ray import tune
 
-    from spread.experiments.tuning import search_spec, trial_scheduler_spec
+    from spread.experiments.tuning import limited, search_spec, trial_scheduler_spec
 
     s = plan.settings
     out = Path(s.out_dir).resolve()
@@ -420,7 +460,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
     trainable = tune.with_resources(tune.with_parameters(trial, plan=shared, commands=commands), resources)
     search = search_spec(s.search)
-    searcher = search.build(s) if search.build is not None else None
+    searcher = limited(search.build(s) if search.build is not None else None, s.max_concurrent)  # every search
     scheduler = trial_scheduler_spec(s.scheduler).build(s) if s.scheduler is not None else None
     samples = 1 if search.grid else int(s.num_samples)
     space, rows = search_space(plan), []
@@ -517,7 +557,7 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
         check_resources(s)
         tuner = tune.Tuner(
             trainable, param_space=space,
-            tune_config=tune.TuneConfig(num_samples=samples, max_concurrent_trials=int(s.max_concurrent),
+            tune_config=tune.TuneConfig(num_samples=samples,  # max_concurrent: the searcher's limit (tuning.limited)
                                         search_alg=searcher, scheduler=scheduler, reuse_actors=True),
             run_config=tune.RunConfig(storage_path=str(storage), name=s.folder_name, verbose=0,
                                       failure_config=tune.FailureConfig(max_failures=1)))
@@ -541,7 +581,7 @@ def check_resources(s: SweepSettings) -> None:
 
 def result_row(result, plan: SweepPlan) -> dict:
     given = result.config.get(POINT_KEY, result.config)
-    config = {d.key: given.get(d.key) for d in plan.dimensions}
+    config = drawn({d.key: given.get(d.key) for d in plan.dimensions})
     row = {k: parse_number(v) for k, v in config.items()}
     metrics = dict(result.metrics or {})
     for key in list(metrics):
@@ -550,7 +590,11 @@ def result_row(result, plan: SweepPlan) -> dict:
                    "checkpoint_dir_name", "should_checkpoint", "experiment_tag"):
             metrics.pop(key)
     row.update(metrics)
-    row["status"] = "error" if result.error else "ok"
+    # a training trial's last report is a validation's ("running") when a trial scheduler stopped it there
+    stopped = not result.error and metrics.get("status") == "running"
+    row["status"] = "error" if result.error else "stopped" if stopped else "ok"
+    if stopped:
+        row["stopped_at_step"] = metrics.get("step")
     if result.error:
         row["error"] = str(result.error).splitlines()[0][:200]
     return row

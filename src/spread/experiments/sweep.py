@@ -608,14 +608,14 @@ def parse_number(v):
 
 
 def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
-    """The best row by ``metric`` (marked ``best``); only a valid value competes (finite, inside the metric's
-    bounds: :meth:`spread.reporting.tables.Column.valid`)."""
+    """The best row by ``metric`` (marked ``best``); only a finished trial's valid value competes (finite, inside
+    the metric's bounds: :meth:`spread.reporting.tables.Column.valid`; not a trial a scheduler stopped)."""
     from spread.reporting.tables import Column, metric_column
     from spread.metrics.registry import display_spec
 
     spec = display_spec(metric)
     column = metric_column(spec) if spec is not None else Column(metric, metric, 4, mode)
-    scored = [r for r in rows if column.valid(r.get(metric)) is not None]
+    scored = [r for r in rows if r.get("status", "ok") == "ok" and column.valid(r.get(metric)) is not None]
     best = (max if mode == "max" else min)(scored, key=lambda r: r[metric]) if scored else None
     for r in rows:
         r["best"] = r is best

@@ -56,3 +56,21 @@ def test_metric_vs_weight_plots_have_plain_non_overlapping_tick_labels_even_for_
     low, high = ax.get_xlim()
     assert low < min(weights) <= max(weights) < high and high - low > 0
     assert (tmp_path / "vs.png").stat().st_size > 0
+
+
+def test_a_hydra_launcher_whose_plugin_is_missing_is_named_with_the_package_to_install(monkeypatch):
+    import importlib.util
+    import sys
+
+    from spread.cli.errors import LAUNCHERS, command, launcher_problem
+
+    assert all(launcher_problem(name) is None for name in LAUNCHERS)  # make installs both
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == LAUNCHERS["parallel"][0] else real(name, *a))
+    monkeypatch.setattr(sys, "argv", ["spread-sample", "-m", "hydra/launcher=parallel", "seed=1,2"])
+    ran = []
+    with pytest.raises(SystemExit, match=r"spread-sample: hydra/launcher=parallel needs the Hydra launcher plugin "
+                                         r"hydra-joblib-launcher.*pip install -e '\.\[launchers\]'"):
+        command("spread-sample")(lambda: ran.append(1))()
+    assert not ran

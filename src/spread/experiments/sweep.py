@@ -487,11 +487,13 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     from ray import tune
 
     from spread.experiments.tuning import limited, search_spec, trial_scheduler_spec
+    from spread.tracking.parent import nested_trial
 
     s = plan.settings
     out = Path(s.out_dir).resolve()
     started = time.perf_counter()
     trial = sample_trial if s.command == "sample" else train_trial
+    trial = nested_trial(trial)  # its runs nest under the sweep's parent run (spread.tracking.parent)
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
               "scheduler": s.scheduler, "seeds": s.seeds}
     check_inert_dimensions(plan, shared)  # before anything is written

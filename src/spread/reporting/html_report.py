@@ -312,8 +312,9 @@ img{max-width:100%}.grid img{max-width:260px;border:1px solid #ccc}.note{color:#
 
 
 def write_html(path: Path, title: str, training: list[Path], records: Sequence[dict], columns: Sequence[Column],
-               weights: Sequence[str], md_table: str | None = None, note: str = "") -> dict:
-    """Write the page (module docstring); returns what it holds (section → count) for the caller and tests."""
+               weights: Sequence[str], md_table: str | None = None, note: str = "", extra: str = "") -> dict:
+    """Write the page (module docstring); returns what it holds (section → count) for the caller and tests.
+    ``extra``: an HTML fragment placed after the runs' sections (a sweep's analysis)."""
     from spread.io import atomic_path
 
     parts = [f"<h1>{html.escape(title)}</h1>"]
@@ -365,6 +366,8 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
                               f"<figcaption>{html.escape(run)}</figcaption></figure>" for run, p in renders.items())
             parts.append(f"<h2>Renders: {html.escape(name or 'first render of each run')}</h2>"
                          f'<div class="grid">{figures}</div>')
+    if extra:
+        parts.append(extra)
     if held["refused"]:
         parts.append("<h2>Files not read</h2><ul>" + "".join(f"<li>{html.escape(why)}</li>"
                                                               for why in held["refused"]) + "</ul>")

@@ -57,6 +57,15 @@ def test_a_sweep_folder_loads_with_every_differing_setting_a_column_in_stored_un
     assert (df["kind"] == "sweep").all() and df["identity"].nunique() == 2
     shown = display(df)  # ASD in millimetres, headed so, as the tables show it
     assert shown["asd_mm"].tolist() == pytest.approx([2.0, 1.0]) and shown["asd_mm_hi"][0] == pytest.approx(52.0)
+    # a row whose point folder is gone keeps results.csv's values, back in stored units (the CSV has asd_mm)
+    rows = pd.read_csv(sweep / "results.csv").rename(columns={"asd": "asd_mm"}).assign(asd_mm=[2.0, 1.0])
+    rows.assign(point=["gone", rows["point"][1]]).to_csv(tmp_path / "T.csv", index=False)
+    (tmp_path / "T").mkdir()
+    (tmp_path / "T" / "points").symlink_to(sweep / "points")
+    (tmp_path / "T.csv").rename(tmp_path / "T" / "results.csv")
+    kept = load(tmp_path / "T")
+    assert kept["asd"].tolist() == pytest.approx([0.002, 0.001]) and "asd_mm" not in kept.columns
+    assert pd.isna(kept["guidance.iterations"][0]) and kept["guidance.iterations"][1] == 4
     # the same points read as plain run folders (no results.csv): the same settings and values
     plain = load(sweep / "points")
     assert sorted(plain["guidance.iterations"]) == [2, 4] and sorted(plain["grecall"]) == [0.4, 0.5]

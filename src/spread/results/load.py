@@ -9,7 +9,7 @@ metric with its interval.
 * a **sweep folder** (``results.csv`` + ``points/``): each row of ``results.csv`` (its ``point`` folder under
   ``points/``, its ``seed`` with ``seeds=K``, ``status``, ``reused``, the swept values) joined with its point
   folder's record; rows whose point has no evaluation (a training sweep, a trial that failed or was stopped)
-  keep the row's own values;
+  keep the row's own values (``results.csv``'s display units, ``asd_mm``, back in stored units);
 * an **MLflow store** (a ``.db`` SQLite file or a URI, :mod:`spread.results.store`).
 
 Columns: ``run``, ``source``, ``kind``, ``identity`` (the digest of every setting), each setting of
@@ -64,8 +64,24 @@ def sweep_records(folder: Path) -> list[dict]:
             except RunError:
                 found = {}
             record.update({k: v for k, v in found.items() if v is not None or k not in record})
+        stored_units(record)
         record.setdefault("run", row.get("point"))
         record.setdefault("source", str(point) if point is not None else str(folder))
         record["kind"] = "sweep"
         records.append(record)
     return records
+
+
+def stored_units(record: dict) -> None:
+    """``results.csv`` holds each metric in its display unit, headed so (``asd_mm``): back to the stored value
+    under its own name (``asd`` in metres), unless the point folder's record gave that already."""
+    from spread.metrics.registry import METRICS, display_values, unit_key
+
+    for value in display_values(METRICS.names()):
+        shown = unit_key(value.name, value.unit)
+        if shown == value.name:
+            continue
+        for suffix in ("", "_lo", "_hi", "_sd"):
+            cell = record.pop(shown + suffix, None)
+            if isinstance(cell, (int, float)) and not isinstance(cell, bool) and value.name + suffix not in record:
+                record[value.name + suffix] = cell / float(value.scale)

@@ -2,8 +2,8 @@
 trial's or stage's run nested under it (MLflow's tag ``mlflow.parentRunId``), and the stores the children
 write to fixed before any of them starts.
 
-* :func:`absolute_tracking_overrides` — in the driver, before any trial or stage: ``paths.runs_dir`` and an
-  MLflow ``logger.tracking_uri`` made absolute, so a trial that runs in another working directory (Ray Tune
+* :func:`absolute_tracking_overrides` — in the driver, before any trial or stage, with ``logger=mlflow``:
+  ``paths.runs_dir`` and ``logger.tracking_uri`` made absolute, so a trial that runs in another working directory (Ray Tune
   runs each trial in its own temporary folder) writes to the store the dashboard reads (``spread-dashboard``:
   ``<paths.runs_dir>/mlflow.db``).
 * :class:`ParentRun` (``with parent_run(logger, kind, name, out_dir, experiment) as parent:``) — opens the
@@ -39,24 +39,27 @@ NOT_METRICS = ("trial_seconds", "trial_pid", "startup_seconds", "best", "reused"
 
 def absolute_tracking_overrides(cfg) -> list[str]:
     """Overrides that pin a command's stores to absolute paths (module docstring), from its composed config
-    ``cfg`` (a DictConfig or a dict, resolved in this process's working directory): ``paths.runs_dir=<abs>``
-    when relative, ``logger.tracking_uri=<abs URI>`` when the logger writes to MLflow. [] when nothing moves."""
+    ``cfg`` (a DictConfig or a dict, resolved in this process's working directory), when its logger writes to
+    MLflow: ``paths.runs_dir=<abs>`` when relative and ``logger.tracking_uri=<abs URI>``. [] when nothing moves —
+    without MLflow nothing a trial writes depends on them (its out_dir is given), and a training point's
+    identity (its whole config) stays as it was."""
     from omegaconf import OmegaConf
 
     from spread.tracking.config import as_logger_config
     from spread.tracking.mlflow_store import resolve_tracking_uri
 
     plain = OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else dict(cfg)
+    logger = plain.get("logger")
+    if not logger or not as_logger_config(logger).mlflow:
+        return []
     out = []
     runs_dir = (plain.get("paths") or {}).get("runs_dir")
     if runs_dir and not Path(str(runs_dir)).is_absolute():
         out.append(f"paths.runs_dir={quoted(str(Path(str(runs_dir)).resolve()))}")
-    logger = plain.get("logger")
-    if logger and as_logger_config(logger).mlflow:
-        given = as_logger_config(logger).tracking_uri
-        uri = resolve_tracking_uri(given)
-        if uri != given:
-            out.append(f"logger.tracking_uri={quoted(uri)}")
+    given = as_logger_config(logger).tracking_uri
+    uri = resolve_tracking_uri(given)
+    if uri != given:
+        out.append(f"logger.tracking_uri={quoted(uri)}")
     return out
 
 

@@ -422,9 +422,15 @@ def train_trial(config: dict, plan: dict, commands) -> None:
                  "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
 
 
+#: settings of ``conf/train.yaml`` left out of a training point's identity: its folder, the run folders' root and
+#: the tracking (``logger=mlflow`` pins ``paths.runs_dir`` and the store to absolute paths in the driver, which must
+#: not make a point depend on the folder the sweep is launched from)
+UNTRAINED_KEYS = ("out_dir", "paths", "logger")
+
+
 def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
     """(folder, identity, overrides) of a training point: ``points/<values>_<short identity>``; the identity is
-    the composed config (less ``out_dir``), the data's content and the numbers version."""
+    the composed config (less :data:`UNTRAINED_KEYS`), the data's content and the numbers version."""
     from spread.configs import compose
     from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, normalised, short
 
@@ -432,7 +438,8 @@ def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
     overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}"]
     cfg = compose("train", [*overrides, "out_dir=unset"])
     plain = OmegaConf.to_container(cfg, resolve=True)
-    plain.pop("out_dir", None)
+    for key in UNTRAINED_KEYS:  # where the run is written and logged changes none of its numbers
+        plain.pop(key, None)
     root = OmegaConf.select(cfg, "data.root")
     identity = normalised({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
                            "numbers_version": NUMBERS_VERSION})
@@ -537,9 +544,8 @@ def over_seeds(rows: list[dict], plan: SweepPlan) -> list[dict]:
     """One row per point from its rows of ``seeds=K`` sampling seeds: each metric the mean over the seeds,
     ``<metric>_sd`` their sample sd and ``<metric>_lo`` / ``_hi`` the Student-t interval at :data:`SEED_LEVEL` over
     the seeds (not over scenes); ``seeds`` the seeds, ``status`` ok when every seed's is."""
-    from scipy import stats
-
     from spread.reporting.tables import columns_of
+    from spread.results.stats import t_interval
 
     metrics = [c.key for c in columns_of(rows)]
     groups: dict[tuple, list[dict]] = {}
@@ -556,13 +562,9 @@ def over_seeds(rows: list[dict], plan: SweepPlan) -> list[dict]:
                "seconds": sum(float(r.get("seconds") or 0.0) for r in mine),
                "settings": {k: v for k, v in (first.get("settings") or {}).items() if k != "seed"}}
         for key in metrics:
-            values = [float(r[key]) for r in ok if isinstance(r.get(key), (int, float)) and math.isfinite(r[key])]
-            n = len(values)
-            mean = sum(values) / n if n else None
-            sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else None
-            half = float(stats.t.ppf((1 + SEED_LEVEL) / 2, n - 1)) * sd / math.sqrt(n) if n > 1 else None
-            row.update({key: mean, f"{key}_sd": sd, f"{key}_lo": None if half is None else mean - half,
-                        f"{key}_hi": None if half is None else mean + half})
+            stats = t_interval([r[key] for r in ok if isinstance(r.get(key), (int, float))], SEED_LEVEL)
+            row.update(zip((key, f"{key}_sd", f"{key}_lo", f"{key}_hi"),
+                           (None if math.isnan(v) else v for v in stats)))
         points.append(row)
     return points
 

@@ -27,6 +27,19 @@ import pandas as pd
 from spread.results.frame import settings_of
 
 
+def t_interval(values, level: float = 0.95) -> tuple[float, float, float, float]:
+    """(mean, sample sd, lo, hi) of ``values`` (finite numbers): the Student-t interval mean ± t_{(1+level)/2, n-1}
+    · sd/√n; NaN where it is undefined (no value; sd and bounds with one value)."""
+    from scipy import stats
+
+    x = np.asarray([float(v) for v in values if v is not None and math.isfinite(float(v))], dtype=float)
+    n = len(x)
+    mean = float(x.mean()) if n else math.nan
+    sd = float(x.std(ddof=1)) if n > 1 else math.nan
+    half = float(stats.t.ppf((1 + level) / 2, n - 1)) * sd / math.sqrt(n) if n > 1 else math.nan
+    return mean, sd, mean - half, mean + half
+
+
 def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "seed") -> pd.DataFrame:
     """One row per point (module docstring): its settings, ``<metric>`` (the mean over seeds), ``<metric>_lo`` /
     ``<metric>_hi`` (the Student-t interval at ``level``; NaN with one seed), ``<metric>_sd``, ``n_seeds`` and
@@ -41,13 +54,10 @@ def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "
     for values, group in groups:
         values = values if isinstance(values, tuple) else (values,)
         x = pd.to_numeric(group[metric], errors="coerce").dropna().to_numpy(float)
-        n = len(x)
-        mean = float(x.mean()) if n else math.nan
-        sd = float(x.std(ddof=1)) if n > 1 else math.nan
-        half = float(stats.t.ppf((1 + level) / 2, n - 1)) * sd / math.sqrt(n) if n > 1 else math.nan
+        mean, sd, lo, hi = t_interval(x, level)
         seeds = sorted(group[seed].dropna().tolist()) if seed in group.columns else []
-        rows.append({**dict(zip(keys, values)), metric: mean, f"{metric}_lo": mean - half, f"{metric}_hi": mean + half,
-                     f"{metric}_sd": sd, "n_seeds": n, "seeds": seeds})
+        rows.append({**dict(zip(keys, values)), metric: mean, f"{metric}_lo": lo, f"{metric}_hi": hi,
+                     f"{metric}_sd": sd, "n_seeds": len(x), "seeds": seeds})
     out = pd.DataFrame(rows)
     out.attrs = {"settings": keys, "metrics": [metric], "level": level}
     return out

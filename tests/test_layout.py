@@ -19,6 +19,7 @@ FLOORS = (
     ("cli",),
     ("commands",),  # one module per command body; studies and sweeps get the commands they run injected
     ("experiments",),  # multi-run studies: the stage engine, ablation, comparison, sweep
+    ("results",),  # results as a DataFrame (runs, sweeps, studies, an MLflow store) and the questions asked of it
     ("reporting",),  # the one table writer, plots, intervals, run folders read back, spread-report
     ("configs",),
     ("importers",),  # a dataset from another layout: uses procgen's dataset statistics and renders

@@ -4,7 +4,8 @@ folder; a cell that raises fails the test with the cell's traceback.
 
 * ``01_quickstart``: generate, train, sample, evaluate.
 * ``02_results``: makes a tiny ablation and a 3-point guidance sweep itself (fast mode), then shows the table,
-  the sweep report's plots, before/after-physics renders (top-down and 3D) and one graph's rows in 3D with
+  the sweep report's plots, the sweep queried through ``spread.results`` (importance, Pareto front, a paired
+  difference), before/after-physics renders (top-down and 3D) and one graph's rows in 3D with
   their relation matrices."""
 
 from __future__ import annotations
@@ -79,6 +80,7 @@ def test_results_notebook_runs_on_a_fresh_tiny_ablation_and_sweep(tmp_path):
     assert "+Guidance" in "\n".join(o.get("data", {}).get("text/markdown", "") for c in nb.cells
                                     for o in c.get("outputs", []))
     assert "best: c" in text
+    assert "Pareto front (Col_mesh ↓, GRecall ↑)" in text and "importance (η², GRecall)" in text  # spread.results
     cells = [c for c in nb.cells if c.cell_type == "code"]
     before_after = [c for c in cells if "render_before_after(" in c.source]
     assert before_after and image_outputs(before_after[0])  # the before | after sheet, inline

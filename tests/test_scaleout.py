@@ -318,6 +318,7 @@ def test_ray_train_two_cpu_workers_report_a_checkpoint(dataset, tmp_path):
                           env=script_env(), capture_output=True, text=True, timeout=500)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     assert "step 3, epoch" in proc.stdout and "2 Ray Train workers" in proc.stdout
+    assert "PlacementGroupCleaner" not in proc.stdout + proc.stderr  # no cleaner polling a State API not there
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 3
     last = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert last["global_step"] == 3 and [p.name for p in (out / "checkpoints").iterdir()] == ["last.ckpt"]

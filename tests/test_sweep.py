@@ -143,6 +143,39 @@ def test_the_results_table_names_every_other_setting_that_differs_between_points
     assert "sampler=ddim-4" in md
 
 
+def test_seeds_give_one_csv_row_per_seed_and_one_table_line_per_point_with_its_interval_over_seeds(tmp_path):
+    """``seeds=2``: results.csv keeps every seed's row (ASD in mm), results.md one line per point, each metric the
+    mean over its seeds ± half the 95 % Student-t interval over them (t(0.975, 1) = 12.706), the best point by
+    its mean."""
+    from spread.experiments.sweep import over_seeds
+
+    plan = parse_arguments(["ckpt=c", "data.root=/d", *TWO, f"out_dir={tmp_path}", "seeds=2"])
+    assert plan.settings.seeds == 2
+    values = {(0.0, 0): 0.8, (0.0, 1): 0.9, (0.0075, 0): 0.7, (0.0075, 1): 0.7}
+    rows = [{"guidance.collision": w, "seed": seed, "grecall": g, "asd": 0.012, "status": "ok",
+             "point": f"collision{w}_seed{seed}_abc", "seconds": 1.0} for (w, seed), g in values.items()]
+    points = over_seeds(rows, plan)
+    assert [p["point"] for p in points] == ["collision0.0", "collision0.0075"]
+    first = points[0]
+    half = 12.706 * (0.1 / 2 ** 0.5) / 2 ** 0.5
+    assert first["grecall"] == pytest.approx(0.85) and first["grecall_sd"] == pytest.approx(0.1 / 2 ** 0.5)
+    assert first["grecall_lo"] == pytest.approx(0.85 - half, abs=1e-3) and first["n_seeds"] == 2
+    assert first["seeds"] == [0, 1] and points[1]["grecall_hi"] == pytest.approx(0.7)  # no spread: zero width
+    best = mark_best(points, "grecall", "max")
+    for r in rows:
+        r["best"] = r["guidance.collision"] == best["guidance.collision"]
+    csv_path, md_path = write_results(rows, tmp_path, plan, best, points)
+    back = read_results_csv(csv_path)
+    assert [(r["guidance.collision"], r["seed"]) for r in back] == list(values)
+    assert back[0]["asd_mm"] == pytest.approx(12.0) and [r["best"] for r in back] == ["True", "True", "False", "False"]
+    md = md_path.read_text()
+    assert md.count("| ★ |") == 1 and "0.850 ± 0.635" in md and "2 points" in md and "Student-t" in md
+    with pytest.raises(ValueError, match="seeds=2 is for command=sample"):
+        parse_arguments(["command=train", "data.root=/d", "model.lr=1e-3,1e-4", f"out_dir={tmp_path}", "seeds=2"])
+    with pytest.raises(ValueError, match="seeds=0"):
+        parse_arguments(["ckpt=c", "data.root=/d", *TWO, f"out_dir={tmp_path}", "seeds=0"])
+
+
 # ---- slow: real points ---------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -242,6 +275,68 @@ def test_spread_sweep_two_points_reuse_and_resume_after_a_kill(tiny, tmp_path):
         os.killpg(proc.pid, signal.SIGKILL)
 
 
+def wait_for_finished_point(proc, folder: Path, timeout: float = 400) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline and proc.poll() is None and not any(
+            json.loads(p.read_text()).get("status") == "finished" for p in folder.glob("points/*/point.json")):
+        time.sleep(0.2)
+
+
+@pytest.mark.slow
+def test_an_interrupted_optuna_sweep_resumes_with_the_same_suggestions(tiny, tmp_path):
+    """Killed (``kill -9``) after its first finished trial, the re-launched Optuna sweep restores its searcher and
+    trials from Ray Tune's state and ends with the uninterrupted sweep's points; a changed search starts afresh."""
+    args = [f"ckpt={tiny['ckpt']}", f"data.root={tiny['data']}", "guidance=refine", "guidance.gravity=0.001",
+            "guidance.collision=interval(0.0,0.03)", *QUICK, "search=optuna", "num_samples=3", "max_concurrent=1",
+            "num_cpus=2", "metric=col_mesh", "mode=min"]
+    spread("spread-sweep", *args, f"out_dir={tmp_path / 'whole'}")
+    whole = sorted(r["guidance.collision"] for r in read_results_csv(tmp_path / "whole" / "results.csv"))
+    killed = tmp_path / "killed"
+    with open(tmp_path / "killed.log", "w") as log:
+        proc = subprocess.Popen([str(SCRIPTS / "spread-sweep"), *args, f"out_dir={killed}"], env=ENV, stdout=log,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            wait_for_finished_point(proc, killed)
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert not (killed / "results.csv").exists()
+    again = spread("spread-sweep", *args, f"out_dir={killed}")
+    assert "resuming the search" in again.stdout + again.stderr
+    rows = read_results_csv(killed / "results.csv")
+    assert len(rows) == 3 and sorted(r["guidance.collision"] for r in rows) == whole
+    assert all(len(str(r["guidance.collision"]).split(".")[-1]) <= 6 for r in rows)  # 4 significant digits
+    other = spread("spread-sweep", *[a.replace("num_samples=3", "num_samples=4") for a in args], f"out_dir={killed}")
+    assert "resuming the search" not in other.stdout + other.stderr
+    assert len(read_results_csv(killed / "results.csv")) == 4 and len(list((killed / "tune").glob("sweep.*"))) == 1
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+
+
+@pytest.mark.slow
+def test_a_sweep_with_two_seeds_reports_intervals_over_seeds_and_a_paired_difference(tiny, tmp_path):
+    """``seeds=2``: each of two points sampled with seeds 0 and 1 (four folders), results.csv a row per seed,
+    results.md one line per point with its interval over the seeds; ``spread.results`` gives the paired difference
+    of the two points on the same graphs and seeds."""
+    from spread import results
+
+    out = tmp_path / "S"
+    spread("spread-sweep", *sweep_args(tiny, out, "max_concurrent=2", "seeds=2", "seed=0"))
+    rows = read_results_csv(out / "results.csv")
+    assert [(r["guidance.collision"], r["seed"]) for r in rows] == [(0.0, 0.0), (0.0, 1.0), (0.0075, 0.0),
+                                                                   (0.0075, 1.0)]
+    assert len({r["point"] for r in rows}) == 4 and all("_seed" in r["point"] for r in rows)
+    md = (out / "results.md").read_text()
+    assert "2 points" in md and "Student-t interval over those seeds" in md and md.count("| ★ |") == 1
+    folders = {w: [out / "points" / r["point"] for r in rows if r["guidance.collision"] == w] for w in (0.0, 0.0075)}
+    diff = results.paired_difference(folders[0.0075], folders[0.0], "grecall", resamples=200, seed=0)
+    assert diff["n_pairs"] == 2 * 3 and diff["lo"] <= diff["diff"] <= diff["hi"]
+    frame = results.load(out)
+    assert {"guidance.collision", "seed", "grecall"} <= set(frame.columns) and len(frame) == 4
+
+
 @pytest.mark.slow
 def test_optuna_search_and_a_two_node_cluster(tiny, tmp_path):
     """Optuna TPE over an interval on a 2-node ray.cluster_utils.Cluster (one CPU each): both nodes run trials."""
@@ -280,12 +375,14 @@ def test_training_sweep_with_asha_reports_each_validation(tiny, tmp_path):
                             "trainer.check_val_every_n_epoch=1", "model.lr=1e-3,5e-4", "scheduler=asha",
                             "metric=val/loss", "mode=min", "num_cpus=2", "max_concurrent=2", f"out_dir={tmp_path / 'lr'}"])
     result = run_sweep(plan, InProcessCommands())
-    assert [r["model.lr"] for r in result.rows] == [0.0005, 0.001] and all(r["status"] == "ok" for r in result.rows)
+    assert [r["model.lr"] for r in result.rows] == [0.0005, 0.001]
+    assert all(r["status"] in ("ok", "stopped") for r in result.rows)
     assert all(isinstance(r["val/loss"], float) for r in result.rows) and result.best is not None
-    # a trial that ran to the end reports its point folder; one ASHA stopped early reported a validation only
-    finished = [r for r in result.rows if r.get("point")]
+    # a trial that ran to the end has its finished point folder; one ASHA stopped early is listed as stopped, with
+    # the step it stopped at and its (unfinished) folder
+    finished = [r for r in result.rows if r["status"] == "ok"]
     assert finished and all((tmp_path / "lr" / "points" / r["point"] / "metrics.json").exists() for r in finished)
-    assert all(r["step"] < 4 for r in result.rows if not r.get("point"))
+    assert all(r["stopped_at_step"] == r["step"] < 4 and r["point"] for r in result.rows if r["status"] == "stopped")
 
 
 @pytest.mark.slow

@@ -69,8 +69,32 @@ def out_dir_problem(value: str) -> str | None:
     return None
 
 
+#: ``hydra/launcher=<name>`` (conf/hydra/launcher/) → the Hydra plugin module it needs and the package that has it
+LAUNCHERS = {"parallel": ("hydra_plugins.hydra_joblib_launcher", "hydra-joblib-launcher"),
+             "slurm": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher")}
+
+
+def launcher_problem(value: str) -> str | None:
+    """What is wrong with ``hydra/launcher=<value>`` here (its plugin is not installed), or None. Hydra itself says
+    only "Could not load 'hydra/launcher/joblib'"."""
+    import importlib.util
+
+    if value not in LAUNCHERS:
+        return None
+    module, package = LAUNCHERS[value]
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        found = False
+    if found:
+        return None
+    return (f"hydra/launcher={value} needs the Hydra launcher plugin {package}, which is not installed: "
+            f"pip install -e '.[launchers]' (make demo / make test install it)")
+
+
 def command(name: str):
-    """Decorator of a console script's Hydra ``main``: refuse a bad ``out_dir=`` argument before Hydra runs."""
+    """Decorator of a console script's Hydra ``main``: refuse a bad ``out_dir=`` argument, or a Hydra launcher whose
+    plugin is not installed (:func:`launcher_problem`), before Hydra runs."""
 
     def wrap(main):
         @functools.wraps(main)
@@ -78,6 +102,10 @@ def command(name: str):
             for arg in sys.argv[1:]:
                 if arg.startswith("out_dir="):
                     problem = out_dir_problem(arg.split("=", 1)[1])
+                    if problem:
+                        raise SystemExit(f"{name}: {problem}")
+                if arg.lstrip("+").startswith("hydra/launcher="):
+                    problem = launcher_problem(arg.split("=", 1)[1])
                     if problem:
                         raise SystemExit(f"{name}: {problem}")
             return main(*args, **kwargs)

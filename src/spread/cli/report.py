@@ -1,4 +1,5 @@
-"""``spread-report runs=DIR_OR_GLOB [out_dir=DIR]``: runs → comparison table and plots (DESIGN §5).
+"""``spread-report runs=DIR_OR_GLOB [out_dir=DIR] [compare=[A,B]]``: runs → comparison table and plots (DESIGN §5);
+a sweep folder also gets its analysis section (:mod:`spread.results.analysis`; ``compare``: two of its points).
 
 The work is :func:`spread.reporting.report.run_report`. A missing path, a glob that matches nothing or a run
 without ``metrics.json`` stops the command with a message naming it.
@@ -23,10 +24,15 @@ def main(cfg: DictConfig) -> None:
     from spread.reporting.runs import RunError
     from spread.commands.common import record_config
 
+    from spread.results.analysis import report_analysis
+
     try:
         weights = None if cfg.get("weights") is None else [str(w) for w in cfg.weights]
+        compare = None if cfg.get("compare") is None else [str(p) for p in cfg.compare]
+        analysis = report_analysis(runs_argument(cfg.runs), compare)  # a sweep folder's section (spread.results)
         result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=weights,
-                            metrics=None if cfg.metrics is None else [str(m) for m in cfg.metrics], title=str(cfg.title or ""))
+                            metrics=None if cfg.metrics is None else [str(m) for m in cfg.metrics],
+                            title=str(cfg.title or ""), analysis=analysis)
     except (RunError, ValueError) as exc:
         raise SystemExit(f"spread-report: {exc}") from exc
     record_config(cfg, cfg.out_dir)()

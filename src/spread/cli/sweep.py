@@ -18,6 +18,13 @@ def main(argv: list[str] | None = None) -> None:
 
         print(read_text_checked(f"{conf_dir()}/sweep_run.yaml"))
         return
+    import logging
+
+    handler = logging.StreamHandler(sys.stderr)  # the driver's own lines (a resumed search); trials log in Ray
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    logger = logging.getLogger("spread.sweep")
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
     try:
         result = sweep(args)
     except ValueError as exc:  # a bad setting, refused before any trial: one line
@@ -26,8 +33,12 @@ def main(argv: list[str] | None = None) -> None:
     from spread.io import read_text_checked
 
     print(read_text_checked(result.md))
-    print(f"spread-sweep: {len(result.rows)} trials in {result.seconds:.1f} s → {result.csv}")
-    failed = [r for r in result.rows if r.get("status") != "ok"]
+    stopped = [r for r in result.rows if r.get("status") == "stopped"]
+    print(f"spread-sweep: {len(result.rows)} trials" + (f" ({len(result.points)} points)" if len(result.points) !=
+                                                        len(result.rows) else "")
+          + (f", {len(stopped)} stopped early by the trial scheduler" if stopped else "")
+          + f" in {result.seconds:.1f} s → {result.csv}")
+    failed = [r for r in result.rows if r.get("status") not in ("ok", "stopped")]
     if failed:
         raise SystemExit(f"spread-sweep: {len(failed)} trial(s) failed: " + "; ".join(str(r.get("error")) for r in failed))
 

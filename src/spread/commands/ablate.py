@@ -66,14 +66,14 @@ def ablation_spec(cfg: DictConfig):
 
 def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
     """The frame of ``spread-ablate`` and ``spread-compare``: torch threads, ``out_dir``'s lock (a second run
-    on the folder is refused, never mixed), the config recorded, the MLflow run (``name``); then
-    ``body(commands, logger, config, run)`` (``commands``: :func:`launcher_commands`) gives the result. This
-    run is the study's one: to nest each stage's run under it (issue 31, item 2), hand its id to the stages'
-    command lines through :meth:`~spread.experiments.stages.StagesSpec.named`."""
+    on the folder is refused, never mixed), the config recorded, the MLflow run (``name``: the parent run of
+    every stage's MLflow run, :func:`spread.tracking.parent.nest_under`); then
+    ``body(commands, logger, config, run)`` (``commands``: :func:`launcher_commands`) gives the result."""
     from spread.commands.common import record_config
     from spread.io import run_lock
     from spread.tracking import mlflow_store as mlflow_log
     from spread.tracking.loggers import as_logger_config
+    from spread.tracking.parent import nest_under
     from spread.training.fit import set_threads
 
     set_threads(cfg.get("threads"))
@@ -83,7 +83,8 @@ def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
         config = OmegaConf.to_container(cfg, resolve=True)
         kind = {"ablate": "ablation"}.get(command, command)
         with mlflow_log.tracked(logger, kind, spec.out_dir, config, spec.group, name=name) as run:
-            return body(launcher_commands(cfg), logger, config, run)
+            with nest_under(run, {"ablate": "ablation"}.get(command, "comparison"), str(cfg.name), spec.out_dir):
+                return body(launcher_commands(cfg), logger, config, run)  # the stages' runs: nested under `run`
 
 
 def ablate(cfg: DictConfig):

@@ -21,6 +21,9 @@ run started with this fingerprint (a redo deletes the old one before any work), 
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +31,10 @@ from pathlib import Path
 from spread.io import read_json, write_json_atomic
 
 POINT = "point.json"
+#: the folder beside a sweep's points that holds one lock file per point (:func:`point_lock`)
+LOCKS = ".locks"
+
+log = logging.getLogger("spread.sweep")
 
 
 @dataclass
@@ -91,3 +98,28 @@ def finish_point(out_dir, seconds: float | None = None) -> dict:
         record["seconds"] = seconds
     write_json_atomic(out / POINT, record)
     return record
+
+
+@contextlib.contextmanager
+def point_lock(folder):
+    """Hold the point ``folder``'s lock while a trial decides and does its work: an exclusive ``flock`` on
+    ``<points>/.locks/<folder name>.lock``, *waiting* when another trial holds it. Two trials of one identity (a
+    random search that drew the same values twice) thus never run at once: the second waits for the first and
+    then finds its point finished with the same fingerprint, and re-uses it. The kernel releases the lock when a
+    process dies, so a killed trial never leaves a stale one."""
+    import fcntl
+
+    folder = Path(folder)
+    locks = folder.parent / LOCKS
+    locks.mkdir(parents=True, exist_ok=True)
+    path = locks / f"{folder.name}.lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info("%s: another trial of the same point is running; waiting for it", folder.name)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield path
+    finally:
+        os.close(fd)

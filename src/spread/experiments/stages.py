@@ -81,9 +81,7 @@ class StagesSpec:
     train_gpus: float = 0.0
 
     def named(self, overrides: list[str]) -> list[str]:
-        """``overrides`` with the wandb group first (so a list can still set its own). The one place every
-        stage's command line passes: a study's parent tracking run (issue 31, item 2: each stage's run nested
-        under the ablation's or comparison's MLflow run) is to be named here, beside the group."""
+        """``overrides`` with the wandb group first (so a list can still set its own)."""
         return ([f"experiment_name={self.group}"] if self.group else []) + list(overrides)
 
     def __post_init__(self) -> None:

@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+import logging
 import math
 import os
 import time
@@ -42,6 +44,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import OmegaConf
+
+log = logging.getLogger("spread.sweep")
 
 COMMANDS = ("sample", "train")
 #: prepended to every sampling trial (the command line may override them)
@@ -70,6 +74,7 @@ class SweepSettings:
     trial_gpus: float = 0.0
     scheduler: str | None = None
     asha: dict = field(default_factory=lambda: {"grace_period": 1, "reduction_factor": 2})
+    seeds: int = 1
 
     def __post_init__(self) -> None:
         if self.out_dir in ("???", None, ""):
@@ -105,6 +110,11 @@ class SweepSettings:
             raise ValueError(f"spread-sweep: num_cpus={self.num_cpus}: null or a whole number ≥ 1")
         if not str(self.name).strip():
             raise ValueError("spread-sweep: name is empty")
+        if isinstance(self.seeds, bool) or not isinstance(self.seeds, int) or self.seeds < 1:
+            raise ValueError(f"spread-sweep: seeds={self.seeds}: a whole number ≥ 1 (sampling seeds per point)")
+        if self.seeds > 1 and self.command != "sample":
+            raise ValueError(f"spread-sweep: seeds={self.seeds} is for command=sample (each point sampled with that "
+                             f"many seeds); a training sweep sweeps its seed as a setting: 'seed=0,1'")
 
     @property
     def grid(self) -> bool:
@@ -242,12 +252,26 @@ def search_space(plan: SweepPlan) -> dict:
     return space
 
 
+#: significant digits a drawn value keeps (an interval's draw from random or Optuna search): the value the trial
+#: runs, names its folder by and shows in the table
+SIGNIFICANT = 4
+
+
+def drawn(config: dict) -> dict:
+    """The trial's values as it runs them: a float a search drew from an interval rounded to :data:`SIGNIFICANT`
+    significant digits (``0.012345678901234567`` → ``0.01235``), so folder names, table cells and the point's
+    identity carry no 17-digit floats and two draws that round alike are one point; listed values (strings from
+    the command line) are kept as written."""
+    return {k: float(f"{v:.{SIGNIFICANT}g}") if isinstance(v, float) and math.isfinite(v) else v
+            for k, v in config.items()}
+
+
 def trial_overrides(config: dict) -> list[str]:
-    return [f"{k}={format_value(v)}" for k, v in sorted(config.items())]
+    return [f"{k}={format_value(v)}" for k, v in sorted(drawn(config).items())]
 
 
 def format_value(v) -> str:
-    return repr(float(v)) if isinstance(v, float) else str(v)
+    return repr(float(f"{v:.{SIGNIFICANT}g}")) if isinstance(v, float) else str(v)
 
 
 def point_name(config: dict) -> str:
@@ -288,39 +312,68 @@ def sample_trial(config: dict, plan: dict, commands) -> None:
     :class:`~spread.commands.in_process.InProcessCommands`); reports its metrics to Tune."""
     from ray import tune
 
+    from spread.experiments.points import point_lock
+
     started = time.perf_counter()
-    config = config.get(POINT_KEY, config)
-    folder, cfg, overrides = sample_point(config, plan)
-    result, _ = commands.sample_config(cfg, overrides)
-    row = {**read_metrics(folder), "point": folder.name, "reused": result is None,
-           "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id(), "trial_pid": os.getpid(),
-           "startup_seconds": None if result is None else result.manifest.get("startup_seconds")}
-    tune.report(row)
+    config = drawn(config.get(POINT_KEY, config))
+    runs = []
+    for seed in point_seeds(config, plan):
+        folder, cfg, overrides = sample_point(config, plan, seed)
+        with point_lock(folder):  # a trial of the same point running now: wait for it, then re-use its result
+            result, _ = commands.sample_config(cfg, overrides)
+        runs.append({"seed": seed, "point": folder.name, "reused": result is None, "trial_pid": os.getpid(),
+                     "startup_seconds": None if result is None else result.manifest.get("startup_seconds")})
+    rows = [{**read_metrics(Path(plan["points"]) / run["point"]), **run} for run in runs]
+    tune.report({**seed_mean(rows, plan["metric"]), "runs": json.dumps(runs), "node": node_id(),
+                 "trial_seconds": round(time.perf_counter() - started, 3)})
 
 
-def sample_point(config: dict, plan: dict):
-    """(run folder, composed config, overrides) of a sampling point: ``points/<values>_<short fingerprint>``."""
+def seed_mean(rows: list[dict], metric: str) -> dict:
+    """One report for the searcher from a point's runs (one per seed): the first run's fields, ``metric`` the mean
+    over the seeds whose value is a number."""
+    values = [r[metric] for r in rows if isinstance(r.get(metric), (int, float)) and math.isfinite(r[metric])]
+    return {**rows[0], metric: sum(values) / len(values) if values else None}
+
+
+def point_seeds(config: dict, plan: dict) -> list[int | None]:
+    """The sampling seeds of a point: ``[None]`` (the command's own seed, no seed in the folder name) for
+    ``seeds=1``; else ``seeds`` consecutive seeds from the point's ``seed`` setting."""
+    from spread.configs import compose
+
+    if int(plan.get("seeds") or 1) == 1:
+        return [None]
+    first = int(compose("sample", [*plan["fixed"], *trial_overrides(config), "out_dir=unset"]).seed)
+    return [first + i for i in range(int(plan["seeds"]))]
+
+
+def sample_point(config: dict, plan: dict, seed: int | None = None):
+    """(run folder, composed config, overrides) of a sampling point: ``points/<values>_<short fingerprint>``
+    (``<values>_seed<seed>_<short fingerprint>`` for one of several seeds)."""
     from spread.configs import compose
     from spread.runtime.fingerprint import point_fingerprint, short
 
-    name = point_name(config)
-    overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}",
-                 f"logger.run_name={plan['name']}/{name}"]
+    name = point_name(config) + ("" if seed is None else f"_seed{seed}")
+    overrides = [*plan["fixed"], *trial_overrides(config), *([] if seed is None else [f"seed={seed}"]),
+                 f"experiment_name={plan['name']}", f"logger.run_name={plan['name']}/{name}"]
     cfg = compose("sample", [*overrides, "out_dir=unset"])
     folder = Path(plan["points"]) / f"{name}_{short(point_fingerprint(cfg))}"
     cfg.out_dir = str(folder)
     return folder, cfg, [*overrides, f"out_dir={folder}"]
 
 
-def finished_point(config: dict, plan: dict) -> dict | None:
-    """The row of a sampling point whose folder is finished with the same fingerprint (no trial needed)."""
+def finished_point(config: dict, plan: dict) -> list[dict] | None:
+    """The rows (one per seed) of a sampling point whose folders are all finished with the same fingerprint (no
+    trial needed); None when one is not."""
     from spread.experiments.points import check_point
 
-    folder, cfg, _ = sample_point(config, plan)
-    if not check_point(cfg, folder).reuse:
-        return None
-    return {**{k: parse_number(v) for k, v in config.items()}, **read_metrics(folder), "point": folder.name,
-            "reused": True, "trial_seconds": 0.0, "node": None, "status": "ok"}
+    rows = []
+    for seed in point_seeds(config, plan):
+        folder, cfg, _ = sample_point(config, plan, seed)
+        if not check_point(cfg, folder).reuse:
+            return None
+        rows.append({**{k: parse_number(v) for k, v in config.items()}, **read_metrics(folder), "point": folder.name,
+                     "seed": seed, "reused": True, "trial_seconds": 0.0, "node": None, "status": "ok"})
+    return rows
 
 
 def node_id() -> str:
@@ -330,9 +383,10 @@ def node_id() -> str:
 
 
 class TuneReport:
-    """Lightning callback: every validation's logged values to Ray Tune (what ASHA compares)."""
+    """Lightning callback: every validation's logged values to Ray Tune (what ASHA compares), with the training
+    step and the point's folder name (so a trial the scheduler stops is listed with the step it stopped at)."""
 
-    def __new__(cls, metric: str):
+    def __new__(cls, metric: str, point: str | None = None):
         import lightning as L
 
         class _Report(L.Callback):
@@ -343,7 +397,7 @@ class TuneReport:
                     return
                 logged = {k: float(v) for k, v in trainer.callback_metrics.items() if getattr(v, "numel", lambda: 1)() == 1}
                 if metric in logged:
-                    tune.report({**logged, "step": int(trainer.global_step)})
+                    tune.report({**logged, "step": int(trainer.global_step), "point": point, "status": "running"})
 
         return _Report()
 
@@ -353,22 +407,54 @@ def train_trial(config: dict, plan: dict, commands) -> None:
     composed config and the data's content, recorded in the folder's ``point.json``)."""
     from ray import tune
 
-    from spread.configs import compose
-    from spread.experiments.points import PointDecision, finish_point, read_point, start_point
+    from spread.experiments.points import point_lock
     from spread.io import read_json_object
-    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, done_check, normalised, short
-    from spread.training.fit import train as fit
 
     started = time.perf_counter()
+    config = drawn(config.get(POINT_KEY, config))
+    folder, identity, overrides = train_point(config, plan)
+    with point_lock(folder):  # a trial of the same point running now: wait for it, then re-use its run
+        reused = train_point_run(folder, identity, overrides, plan, commands)
+    summary = read_json_object(folder / "metrics.json")
+    logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
+    tune.report({**logged, "point": folder.name, "reused": reused, "status": "ok",
+                 "seconds": round(time.perf_counter() - started, 3),
+                 "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
+
+
+#: settings of ``conf/train.yaml`` left out of a training point's identity: its folder, the run folders' root and
+#: the tracking (``logger=mlflow`` pins ``paths.runs_dir`` and the store to absolute paths in the driver, which must
+#: not make a point depend on the folder the sweep is launched from)
+UNTRAINED_KEYS = ("out_dir", "paths", "logger")
+
+
+def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
+    """(folder, identity, overrides) of a training point: ``points/<values>_<short identity>``; the identity is
+    the composed config (less :data:`UNTRAINED_KEYS`), the data's content and the numbers version."""
+    from spread.configs import compose
+    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, normalised, short
+
     name = point_name(config)
     overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}"]
     cfg = compose("train", [*overrides, "out_dir=unset"])
     plain = OmegaConf.to_container(cfg, resolve=True)
-    plain.pop("out_dir", None)
+    for key in UNTRAINED_KEYS:  # where the run is written and logged changes none of its numbers
+        plain.pop(key, None)
     root = OmegaConf.select(cfg, "data.root")
     identity = normalised({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
                            "numbers_version": NUMBERS_VERSION})
-    folder = Path(plan["points"]) / f"{name}_{short(identity)}"
+    return Path(plan["points"]) / f"{name}_{short(identity)}", identity, overrides
+
+
+def train_point_run(folder: Path, identity: dict, overrides: list[str], plan: dict, commands) -> bool:
+    """Train the point into ``folder`` unless it is finished with ``identity`` (the platform's done-check);
+    True when re-used."""
+    from spread.configs import compose
+    from spread.experiments.points import PointDecision, finish_point, read_point, start_point
+    from spread.runtime.fingerprint import done_check
+    from spread.training.fit import train as fit
+
+    started = time.perf_counter()
     record, finished = read_point(folder), (folder / "metrics.json").exists()
     # a folder without a record carries this identity in its name (made before point.json): the same inputs
     before = record.get("fingerprint") if record is not None else identity if folder.exists() else None
@@ -380,24 +466,25 @@ def train_trial(config: dict, plan: dict, commands) -> None:
         cfg = compose("train", run)
         start_point(folder, PointDecision(False, decision.fresh, decision.reason, identity))
         commands.record_config(cfg, folder, run)
-        fit(cfg, run_dir=folder, extra_callbacks=[TuneReport(plan["metric"])] if plan.get("scheduler") else [])
+        callbacks = [TuneReport(plan["metric"], folder.name)] if plan.get("scheduler") else []
+        fit(cfg, run_dir=folder, extra_callbacks=callbacks)
         finish_point(folder, round(time.perf_counter() - started, 3))
-    summary = read_json_object(folder / "metrics.json")
-    logged = {k: v for k, v in (summary.get("metrics") or {}).items() if isinstance(v, (int, float))}
-    tune.report({**logged, "point": folder.name, "reused": decision.reuse,
-                 "seconds": round(time.perf_counter() - started, 3),
-                 "trial_seconds": round(time.perf_counter() - started, 3), "node": node_id()})
+    return decision.reuse
 
 
 # ---- the sweep ------------------------------------------------------------------------------------------------
 
 @dataclass
 class SweepResult:
+    """rows: one per trial (per seed of a point with ``seeds`` > 1), as in results.csv; points: one per point (the
+    rows themselves, or their means over seeds), as in results.md; best: the best point."""
+
     rows: list[dict]
     best: dict | None
     csv: Path
     md: Path
     seconds: float
+    points: list[dict] = field(default_factory=list)
 
 
 def run_sweep(plan: SweepPlan, commands) -> SweepResult:
@@ -406,37 +493,80 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     ``record_config``), handed to each trial by the sweep command."""
     from ray import tune
 
-    from spread.experiments.tuning import search_spec, trial_scheduler_spec
+    from spread.experiments.tuning import limited, search_spec, trial_scheduler_spec
+    from spread.tracking.parent import nested_trial
 
     s = plan.settings
     out = Path(s.out_dir).resolve()
     started = time.perf_counter()
     trial = sample_trial if s.command == "sample" else train_trial
+    trial = nested_trial(trial)  # its runs nest under the sweep's parent run (spread.tracking.parent)
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
-              "scheduler": s.scheduler}
+              "scheduler": s.scheduler, "seeds": s.seeds}
     check_inert_dimensions(plan, shared)  # before anything is written
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
     trainable = tune.with_resources(tune.with_parameters(trial, plan=shared, commands=commands), resources)
     search = search_spec(s.search)
-    searcher = search.build(s) if search.build is not None else None
+    searcher = limited(search.build(s) if search.build is not None else None, s.max_concurrent)  # every search
     scheduler = trial_scheduler_spec(s.scheduler).build(s) if s.scheduler is not None else None
     samples = 1 if search.grid else int(s.num_samples)
     space, rows = search_space(plan), []
     if search.grid and s.command == "sample":  # finished points are read on the driver, no trial
         todo = []
         for config in grid_points(plan):
-            row = finished_point(config, shared)
-            rows.append(row) if row is not None else todo.append(config)
+            done = finished_point(config, shared)
+            rows.extend(done) if done is not None else todo.append(config)
         space = {POINT_KEY: tune.grid_search(todo)} if todo else None
     if space is not None:
         rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out)
-    rows.sort(key=lambda r: tuple(str(r.get(d.key)) for d in plan.dimensions))
+    rows.sort(key=lambda r: (values_of(r, plan), r.get("seed") or 0))
     point_settings(rows, out / "points")
-    best = mark_best(rows, s.metric, s.mode)
-    csv_path, md_path = write_results(rows, out, plan, best)
-    return SweepResult(rows, best, csv_path, md_path, round(time.perf_counter() - started, 3))
+    points = over_seeds(rows, plan) if s.seeds > 1 else rows
+    best = mark_best(points, s.metric, s.mode)
+    for r in rows:  # a point's every seed row is marked with it
+        r["best"] = best is not None and values_of(r, plan) == values_of(best, plan)
+    csv_path, md_path = write_results(rows, out, plan, best, points)
+    return SweepResult(rows, best, csv_path, md_path, round(time.perf_counter() - started, 3), points)
+
+
+def values_of(row: dict, plan: SweepPlan) -> tuple:
+    """A row's swept values (what names its point, less the seed)."""
+    return tuple(str(row.get(d.key)) for d in plan.dimensions)
+
+
+#: level of the interval over a point's sampling seeds (``seeds=K``)
+SEED_LEVEL = 0.95
+
+
+def over_seeds(rows: list[dict], plan: SweepPlan) -> list[dict]:
+    """One row per point from its rows of ``seeds=K`` sampling seeds: each metric the mean over the seeds,
+    ``<metric>_sd`` their sample sd and ``<metric>_lo`` / ``_hi`` the Student-t interval at :data:`SEED_LEVEL` over
+    the seeds (not over scenes); ``seeds`` the seeds, ``status`` ok when every seed's is."""
+    from spread.reporting.tables import columns_of
+    from spread.results.stats import t_interval
+
+    metrics = [c.key for c in columns_of(rows)]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(values_of(r, plan), []).append(r)
+    points = []
+    for mine in groups.values():
+        ok = [r for r in mine if r.get("status") == "ok"]
+        first = mine[0]
+        row = {**{d.key: first.get(d.key) for d in plan.dimensions}, "seeds": [r.get("seed") for r in mine],
+               "n_seeds": len(ok), "status": "ok" if len(ok) == len(mine) else f"{len(mine) - len(ok)} of "
+                                                                                  f"{len(mine)} seeds failed",
+               "point": str(first.get("point", "")).split("_seed")[0],
+               "seconds": sum(float(r.get("seconds") or 0.0) for r in mine),
+               "settings": {k: v for k, v in (first.get("settings") or {}).items() if k != "seed"}}
+        for key in metrics:
+            stats = t_interval([r[key] for r in ok if isinstance(r.get(key), (int, float))], SEED_LEVEL)
+            row.update(zip((key, f"{key}_sd", f"{key}_lo", f"{key}_hi"),
+                           (None if math.isnan(v) else v for v in stats)))
+        points.append(row)
+    return points
 
 
 #: Most points composed to find a swept key that changes nothing (beyond: each key is probed at the others' first
@@ -515,13 +645,60 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
         raise ValueError(f"spread-sweep: name={s.name}: Ray Tune's folder would leave out_dir={out}")
     with ray_session(settings, owner=out):
         check_resources(s)
-        tuner = tune.Tuner(
-            trainable, param_space=space,
-            tune_config=tune.TuneConfig(num_samples=samples, max_concurrent_trials=int(s.max_concurrent),
-                                        search_alg=searcher, scheduler=scheduler, reuse_actors=True),
-            run_config=tune.RunConfig(storage_path=str(storage), name=s.folder_name, verbose=0,
-                                      failure_config=tune.FailureConfig(max_failures=1)))
-        return [result_row(r, plan) for r in tuner.fit()]
+        if resumable(plan, out):  # the same search launched before: its searcher and trials where they stopped
+            log.info("spread-sweep: resuming the search recorded in %s", storage / s.folder_name)
+            tuner = tune.Tuner.restore(str(storage / s.folder_name), trainable=trainable, resume_unfinished=True,
+                                       resume_errored=True, param_space=space)
+        else:
+            tuner = tune.Tuner(
+                trainable, param_space=space,
+                tune_config=tune.TuneConfig(num_samples=samples,  # max_concurrent: the searcher's (tuning.limited)
+                                            search_alg=searcher, scheduler=scheduler, reuse_actors=True),
+                run_config=tune.RunConfig(storage_path=str(storage), name=s.folder_name, verbose=0,
+                                          failure_config=tune.FailureConfig(max_failures=1)))
+        return [row for r in tuner.fit() for row in result_rows(r, plan, out)]
+
+
+#: the search a sweep folder's Ray Tune state belongs to (:func:`resumable`)
+SEARCH_RECORD = "search.json"
+
+
+def search_identity(plan: SweepPlan) -> dict:
+    """What a drawing search's suggestions depend on: the fixed overrides, the dimensions, the search, its seed,
+    trial count, metric, mode, trial scheduler and seeds."""
+    s = plan.settings
+    return {"fixed": list(plan.fixed), "dimensions": [vars(d) for d in plan.dimensions], "search": s.search,
+            "search_seed": s.search_seed, "num_samples": s.num_samples, "metric": s.metric, "mode": s.mode,
+            "scheduler": s.scheduler, "asha": dict(s.asha or {}), "seeds": s.seeds, "command": s.command}
+
+
+def resumable(plan: SweepPlan, out: Path) -> bool:
+    """Whether this launch resumes the Ray Tune experiment in ``out`` (a drawing search — random, Optuna, … — killed
+    or finished before, with the same :func:`search_identity`): Tune restores the searcher's state (Optuna's study
+    and sampler, the random generator) and the trials where they stopped, so the resumed sweep makes the same
+    suggestions as an uninterrupted one. Otherwise the folder's old Tune state is moved aside
+    (``tune/<name>.<time>``) and this launch's search recorded. A grid needs none of this (every point is known;
+    finished ones are re-used by their fingerprints)."""
+    from ray import tune
+
+    from spread.io import read_json, write_json_atomic
+    from spread.runtime.fingerprint import normalised
+
+    s = plan.settings
+    state, record = out / "tune" / s.folder_name, out / SEARCH_RECORD
+    if s.grid:
+        return False
+    identity = normalised(search_identity(plan))
+    try:
+        before = read_json(record) if record.exists() else None
+    except (OSError, ValueError):
+        before = None
+    if before == identity and tune.Tuner.can_restore(str(state)):
+        return True
+    if state.exists():
+        state.rename(state.with_name(f"{state.name}.{time.strftime('%Y%m%d-%H%M%S')}"))
+    write_json_atomic(record, identity)
+    return False
 
 
 def check_resources(s: SweepSettings) -> None:
@@ -539,9 +716,19 @@ def check_resources(s: SweepSettings) -> None:
                              f"lower {key} or add nodes")
 
 
+def result_rows(result, plan: SweepPlan, out: Path) -> list[dict]:
+    """A trial's rows: one, or one per seed of a sampling point (its report's ``runs``: each seed's folder, read
+    back here)."""
+    row = result_row(result, plan)
+    runs = row.pop("runs", None)
+    if not runs:
+        return [row]
+    return [{**row, **read_metrics(out / "points" / run["point"]), **run} for run in json.loads(runs)]
+
+
 def result_row(result, plan: SweepPlan) -> dict:
     given = result.config.get(POINT_KEY, result.config)
-    config = {d.key: given.get(d.key) for d in plan.dimensions}
+    config = drawn({d.key: given.get(d.key) for d in plan.dimensions})
     row = {k: parse_number(v) for k, v in config.items()}
     metrics = dict(result.metrics or {})
     for key in list(metrics):
@@ -550,7 +737,11 @@ def result_row(result, plan: SweepPlan) -> dict:
                    "checkpoint_dir_name", "should_checkpoint", "experiment_tag"):
             metrics.pop(key)
     row.update(metrics)
-    row["status"] = "error" if result.error else "ok"
+    # a training trial's last report is a validation's ("running") when a trial scheduler stopped it there
+    stopped = not result.error and metrics.get("status") == "running"
+    row["status"] = "error" if result.error else "stopped" if stopped else "ok"
+    if stopped:
+        row["stopped_at_step"] = metrics.get("step")
     if result.error:
         row["error"] = str(result.error).splitlines()[0][:200]
     return row
@@ -564,14 +755,14 @@ def parse_number(v):
 
 
 def mark_best(rows: list[dict], metric: str, mode: str) -> dict | None:
-    """The best row by ``metric`` (marked ``best``); only a valid value competes (finite, inside the metric's
-    bounds: :meth:`spread.reporting.tables.Column.valid`)."""
+    """The best row by ``metric`` (marked ``best``); only a finished trial's valid value competes (finite, inside
+    the metric's bounds: :meth:`spread.reporting.tables.Column.valid`; not a trial a scheduler stopped)."""
     from spread.reporting.tables import Column, metric_column
     from spread.metrics.registry import display_spec
 
     spec = display_spec(metric)
     column = metric_column(spec) if spec is not None else Column(metric, metric, 4, mode)
-    scored = [r for r in rows if column.valid(r.get(metric)) is not None]
+    scored = [r for r in rows if r.get("status", "ok") == "ok" and column.valid(r.get(metric)) is not None]
     best = (max if mode == "max" else min)(scored, key=lambda r: r[metric]) if scored else None
     for r in rows:
         r["best"] = r is best
@@ -594,40 +785,58 @@ def point_settings(rows: list[dict], points: Path) -> None:
             r.update(identity_fields(record["fingerprint"]))
 
 
-def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None) -> tuple[Path, Path]:
-    """``results.csv`` (every field) and ``results.md`` (the swept settings — named as settings:
-    ``+guidance.terms.floor_push`` is ``guidance.floor_push`` —, every other setting that differs between the
-    points, each metric in its display unit with ± half-width of its interval, best marked), through the one
-    table writer (:func:`spread.reporting.tables.write_tables`); the settings every point shares under the
-    table."""
+def write_results(rows: list[dict], out: Path, plan: SweepPlan, best: dict | None,
+                  points: list[dict] | None = None) -> tuple[Path, Path]:
+    """``results.csv`` (every field of every row: one per trial, one per seed with ``seeds`` > 1) and
+    ``results.md`` (one line per point — ``points``, the rows' means over seeds when there are several —: the swept
+    settings — named as settings: ``+guidance.terms.floor_push`` is ``guidance.floor_push`` —, every other setting
+    that differs between the points, each metric in its display unit with ± half-width of its interval (over
+    scenes; over seeds with several seeds), best marked), through the one table writer
+    (:func:`spread.reporting.tables.write_tables`); the settings every point shares under the table."""
     from spread.reporting.runs import name_differences
     from spread.reporting.tables import Column, columns_of, metric_columns, write_tables
 
+    points = rows if points is None else points
     keys = [setting_of(d.key) for d in plan.dimensions]  # a swept key named as the setting it is
-    for r in rows:
+    for r in [*rows, *([] if points is rows else points)]:
         for d in plan.dimensions:
             if d.key != setting_of(d.key) and d.key in r:
                 r[setting_of(d.key)] = r.pop(d.key)
         r["mark"] = "★" if r.get("best") else ""
+    seeded = points is not rows
+    csv_keys = list(dict.fromkeys([*keys, "seed", "best", "point", "status",
+                                   *name_differences(rows, exclude={*keys, "seed"}),
+                                   *[k for r in rows for k in r if k not in ("settings", "mark")]]))
+    csv_keys = [k for k in csv_keys if k != "seed" or any(r.get("seed") is not None for r in rows)]
+    if seeded:  # units from the metric registry (no columns given)
+        rows_csv = write_tables(rows, [], out / "results", formats=("csv",), csv_keys=csv_keys)["csv"]
+        rows = points
     settings = [r.get("settings") or {} for r in rows]
-    differ = name_differences(rows, exclude=set(keys))
+    differ = name_differences(rows, exclude={*keys, "seed"})
     metric = plan.settings.metric
     metrics = [c for c in columns_of(rows) if any(r.get(c.key) is not None for r in rows)] or \
         (metric_columns([metric]) if metric in metric_names() else [Column(metric, metric, 4, plan.settings.mode)])
     columns = [Column("mark", ""), *[Column(k, k) for k in [*keys, *differ]], *metrics,
-               Column("seconds", "seconds", 1), Column("point", "point")]
+               *([Column("n_seeds", "seeds")] if seeded else []), Column("seconds", "seconds", 1),
+               Column("point", "point")]
     shared = {k: v for k, v in (settings[0] if settings else {}).items()
               if k not in differ and k not in keys and all(s.get(k) == v for s in settings)}
     shown = next((c for c in metrics if c.key == metric), Column(metric, metric, 4))
     notes = [f"Best: {best.get('point')} ({shown.label} = {shown.format(best[metric])})." if best is not None else "",
              "Every point: " + ", ".join(f"{k}={v}" for k, v in shared.items()) + "." if shared else ""]
-    first = [*keys, "best", "point", "status", *differ]
-    csv_keys = list(dict.fromkeys([*first, *[k for r in rows for k in r if k not in ("settings", "mark")]]))
-    paths = write_tables(rows, columns, out / "results", formats=("md", "csv"), csv_keys=csv_keys,
-                         caption=f"# sweep {plan.settings.name}: {len(rows)} trials, best by {plan.settings.metric} "
+    if seeded:
+        seeds = rows[0].get("seeds") if rows else []
+        note = (f"Each cell: the mean over the point's {len(seeds)} sampling seeds {seeds} ± half the width of the "
+                f"{SEED_LEVEL:.0%} Student-t interval over those seeds; results.csv has one row per seed, each with "
+                f"its interval over scenes.")
+    else:
+        note = table_note(rows)
+    paths = write_tables(rows, columns, out / "results", formats=("md",) if seeded else ("md", "csv"),
+                         csv_keys=csv_keys,
+                         caption=f"# sweep {plan.settings.name}: {len(rows)} points, best by {plan.settings.metric} "
                                  f"({plan.settings.mode}) marked ★",
-                         note=table_note(rows), md_extra="\n\n".join(n for n in notes if n))
-    return paths["csv"], paths["md"]
+                         note=note, md_extra="\n\n".join(n for n in notes if n))
+    return (rows_csv if seeded else paths["csv"]), paths["md"]
 
 
 def metric_names() -> list[str]:

@@ -7,7 +7,8 @@ and ``num_samples`` is 1). Built-ins: ``grid``, ``random`` (Tune's ``BasicVarian
 ``search_seed``), ``optuna`` (``OptunaSearch``, TPE). A :class:`TrialSchedulerSpec` is a name
 (``scheduler=<name>``) and ``build(settings)``; built-in: ``asha`` (``ASHAScheduler`` on each validation, its
 ``asha`` settings). ``settings`` is the sweep's :class:`~spread.experiments.sweep.SweepSettings` (``metric``,
-``mode``, ``search_seed``, ``asha``, ...).
+``mode``, ``search_seed``, ``asha``, ...). Whatever a search builds, the sweep runs it through :func:`limited`, so
+``max_concurrent`` holds for every search and scheduler.
 
 Another one is chosen without editing this file: an entry point in the group ``spread.searchers`` (or
 ``spread.trial_schedulers``) naming a spec, or a ``"module:Class"`` target of any Ray Tune searcher or scheduler
@@ -89,10 +90,31 @@ def _resolve(target: str, key: str):
         raise RegistryError(f"{key}={target}: {type(exc).__name__}: {exc}") from exc
 
 
+def limited(search_alg, max_concurrent: int):
+    """``search_alg`` (a Ray Tune searcher or search algorithm, or None: Tune's own variant generation) running at
+    most ``max_concurrent`` trials at once, whatever kind it is: a ``Searcher`` in a ``ConcurrencyLimiter``, a
+    search algorithm through its own ``set_max_concurrency`` (Tune's ``max_concurrent_trials`` alone is ignored
+    for these, with a warning only); ``ValueError`` for one that cannot be limited."""
+    from ray.tune.search import BasicVariantGenerator, ConcurrencyLimiter, Searcher
+
+    if search_alg is None:
+        return BasicVariantGenerator(max_concurrent=int(max_concurrent))
+    if isinstance(search_alg, BasicVariantGenerator):  # random search: its own limit (no Searcher interface)
+        search_alg.max_concurrent = int(max_concurrent)
+        return search_alg
+    if isinstance(search_alg, ConcurrencyLimiter):
+        return search_alg
+    if isinstance(search_alg, Searcher):
+        return ConcurrencyLimiter(search_alg, max_concurrent=int(max_concurrent))
+    if search_alg.set_max_concurrency(int(max_concurrent)):
+        return search_alg
+    raise ValueError(f"{type(search_alg).__name__} cannot limit its trials to max_concurrent={max_concurrent}")
+
+
 def _random(settings):
     from ray.tune.search import BasicVariantGenerator
 
-    return BasicVariantGenerator(random_state=int(settings.search_seed))
+    return BasicVariantGenerator(random_state=int(settings.search_seed), max_concurrent=int(settings.max_concurrent))
 
 
 def _optuna(settings):

@@ -36,7 +36,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from spread.reporting.plots import figure, number, shown
+from spread.reporting.plots import figure, number, readable_axes, shown
 from spread.reporting.tables import Column, html_table
 
 #: Training curves drawn, in this order (``lr-*`` stands for every learning-rate column).
@@ -162,14 +162,20 @@ def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> 
     if not points:
         return None, []
     fig, ax = figure(figsize=(4.6, 3.3))
+    shared_x = len({x for x, *_ in points}) < len(points)  # names at one x would be written over each other
     for x, y, lo, hi, name in points:
         err = [[max(0.0, y - lo)], [max(0.0, hi - y)]] if lo is not None and hi is not None else None
         ax.errorbar([x], [y], yerr=err, fmt="o", ms=4, capsize=3, color="#4c72b0", ecolor="#8c8c8c")
-        ax.annotate(name[:24], (x, y), xytext=(4, 3), textcoords="offset points", fontsize=6)
+        if weight is not None and not shared_x and len(points) <= 8:
+            ax.annotate(name[:24], (x, y), xytext=(4, 3), textcoords="offset points", fontsize=6)
     if weight is None:
-        ax.set_xticks(range(len(records)), [str(r["run"])[:16] for r in records], rotation=25, fontsize=6)
+        ax.set_xticks(range(len(records)), [str(r["run"])[:16] for r in records], rotation=30, ha="right",
+                      rotation_mode="anchor", fontsize=6)
         ax.set_xlim(-0.5, len(records) - 0.5)
+        readable_axes(ax, ys=[y for _, y, *_ in points])
     else:
+        readable_axes(ax, [x for x, *_ in points], [y for _, y, *_ in points])
+        ax.tick_params(axis="x", labelrotation=30)
         ax.set_xlabel(weight, fontsize=8)
     ax.set_ylabel(metric.label + metric.arrow, fontsize=8)
     ax.set_title(f"{metric.label}" + (f" vs {weight.split('.')[-1]}" if weight else " per run") +
@@ -306,8 +312,9 @@ img{max-width:100%}.grid img{max-width:260px;border:1px solid #ccc}.note{color:#
 
 
 def write_html(path: Path, title: str, training: list[Path], records: Sequence[dict], columns: Sequence[Column],
-               weights: Sequence[str], md_table: str | None = None, note: str = "") -> dict:
-    """Write the page (module docstring); returns what it holds (section → count) for the caller and tests."""
+               weights: Sequence[str], md_table: str | None = None, note: str = "", extra: str = "") -> dict:
+    """Write the page (module docstring); returns what it holds (section → count) for the caller and tests.
+    ``extra``: an HTML fragment placed after the runs' sections (a sweep's analysis)."""
     from spread.io import atomic_path
 
     parts = [f"<h1>{html.escape(title)}</h1>"]
@@ -359,6 +366,8 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
                               f"<figcaption>{html.escape(run)}</figcaption></figure>" for run, p in renders.items())
             parts.append(f"<h2>Renders: {html.escape(name or 'first render of each run')}</h2>"
                          f'<div class="grid">{figures}</div>')
+    if extra:
+        parts.append(extra)
     if held["refused"]:
         parts.append("<h2>Files not read</h2><ul>" + "".join(f"<li>{html.escape(why)}</li>"
                                                               for why in held["refused"]) + "</ul>")

@@ -53,6 +53,26 @@ def shown(column: Column, value) -> float | None:
     return None if v is None else number(column.display(v))
 
 
+def readable_axes(ax, xs: Sequence[float] | None = None, ys: Sequence[float] | None = None) -> None:
+    """Numeric axes (those given values; an axis given None is left alone) a reader can read whatever the data:
+    plain tick labels (no ``1e-3 +`` offset, no ``×10⁻³`` corner text), at most five ticks, and a span around a
+    single value (one point, or every point equal) instead of a hair-thin autoscale."""
+    from matplotlib.ticker import MaxNLocator, ScalarFormatter
+
+    for axis, values, set_lim in ((ax.xaxis, xs, ax.set_xlim), (ax.yaxis, ys, ax.set_ylim)):
+        if values is None:
+            continue
+        values = [v for v in values if v is not None]
+        if values and min(values) == max(values):
+            v = values[0]
+            pad = abs(v) * 0.1 if v else 1.0
+            set_lim(v - pad, v + pad)
+        formatter = ScalarFormatter(useOffset=False)
+        formatter.set_scientific(False)
+        axis.set_major_formatter(formatter)
+        axis.set_major_locator(MaxNLocator(5))
+
+
 def error_bars(records: Sequence[dict], column: Column, values: list) -> list[list[float]] | None:
     """(below, above) error lengths per bar, display units: the sd across seeds (``<key>_sd``) where rows have
     it, else the bootstrap interval (``<key>_lo`` / ``<key>_hi``); None when no row has either."""
@@ -95,7 +115,8 @@ def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str 
         if all(v is None for v in values):
             ax.set_ylim(0, 1)
             ax.set_yticks([])
-        ax.set_xticks(range(len(names)), names, rotation=20, fontsize=8)
+        ax.set_xticks(range(len(names)), [n if len(n) <= 18 else n[:17] + "…" for n in names], rotation=30,
+                      ha="right", rotation_mode="anchor", fontsize=8)
         ax.set_title(column.label + column.arrow, fontsize=9)
         ax.tick_params(axis="y", labelsize=7)
         ax.margins(y=0.15)
@@ -140,6 +161,8 @@ def metric_vs_weight(records: Sequence[dict], metric: Column, weight: str, path:
     else:
         ax.text(0.5, 0.5, "no values" + (f"\n{note}" if note else ""), ha="center", va="center", fontsize=8,
                 transform=ax.transAxes, wrap=True)
+    readable_axes(ax, [x for x, _ in points], [y for _, y in points])
+    ax.tick_params(axis="x", labelrotation=30, labelsize=7)
     ax.set_xlabel(weight)
     ax.set_ylabel(metric.label + metric.arrow)
     ax.set_title(f"{metric.label} vs {weight.split('.')[-1]} (n = {len(points)})", fontsize=9)

@@ -16,6 +16,9 @@ Writes into ``out_dir``:
   training runs among ``runs``, the table, metric-vs-weight plots with interval bars and labelled points,
   parallel coordinates, per-room-type tables and a grid of the same test graph rendered by each run;
   ``training.csv`` (and a section of ``report.md``): each training run's last logged values.
+* ``analysis.md`` and ``analysis_*.{md,csv}`` (a sweep folder, with the section in ``report.html``): parameter
+  importance, the Pareto front, intervals over seeds, stopped trials, a paired difference
+  (:mod:`spread.results.analysis`).
 * ``report.json``: what was read (each run's full settings), what was skipped (unfinished runs) and the plots
   with their points.
 """
@@ -24,7 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from spread.reporting.intervals import table_note
 from spread.reporting.plots import metric_vs_weight
@@ -87,10 +90,12 @@ def shared_settings(records: Sequence[dict], differ: Sequence[str]) -> dict:
 
 
 def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, metrics: Sequence[str] | None = None,
-               title: str = "") -> ReportResult:
+               title: str = "", analysis: Callable[[Path], dict] | None = None) -> ReportResult:
     """Read ``runs`` (paths, globs, sweep folders; :func:`~spread.reporting.runs.find_runs`) and write the
     report (module docstring) into ``out_dir``; ``weights``: the settings plotted on the x axis (None: every
-    numeric setting that differs between the runs)."""
+    numeric setting that differs between the runs); ``analysis``: called with ``out_dir``, writes more tables
+    and returns ``{"html": fragment, "tables": {name: path}}`` for the page (a sweep's analysis section,
+    :mod:`spread.results.analysis`, handed in by the command)."""
     from spread.reporting.html_report import training_folders, write_html, write_training_tables
     from spread.reporting.runs import name_differences
 
@@ -121,10 +126,13 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, 
             path = out / "plots" / plot_name(metric.key, axis, axes)
             note = "; ".join(fid_notes)[:200] if metric.key == "fid" else ""
             result.plots[(metric.key, axis)] = (path, metric_vs_weight(records, metric, axis, path, note, differ))
+    extra = analysis(out) if analysis is not None else {}
+    result.tables |= extra.get("tables") or {}
     result.tables["html"] = out / "report.html"
     result.html = write_html(out / "report.html", title or f"spread-report: {len(records)} evaluated runs, "
                              f"{len(training)} training runs", training, records, columns, shown,
-                             note=" ".join(p for p in (table_note(records) if records else "", same) if p))
+                             note=" ".join(p for p in (table_note(records) if records else "", same) if p),
+                             extra=extra.get("html") or "")
     write_json_atomic(out / "report.json", {
         "training_runs": [str(p) for p in training], "html": str(out / "report.html"),
         "runs": [{"run": r["run"], "source": r["source"], "kind": r["kind"], "identity": r["identity"],

@@ -11,6 +11,8 @@ config flattened to params (``a.b.c``). :func:`open_run` starts the run *before*
 leaves a ``FAILED`` run) and writes ``<run folder>/mlflow_run.json`` (store, experiment, run id), which is how
 a later run finds it: a sampling or evaluation run of a checkpoint records the training run of that
 checkpoint (:func:`training_lineage`, tags ``spread.training_run_id`` and ``spread.training_run_folder``).
+A run opened while a sweep's, an ablation's or a comparison's parent run is open (in the same store) is nested
+under it (:mod:`spread.tracking.parent`, :mod:`spread.tracking.nesting`).
 
 Metrics: every numeric entry of ``metrics.json`` (so each metric with its interval, ``<m>_lo``/``<m>_hi``),
 the per-room-type breakdown as ``room/<type>/<entry>``, and ``metrics.json``, ``per_scene.jsonl`` and the
@@ -275,7 +277,9 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
     uri = resolve_tracking_uri(logger.tracking_uri)
     client = open_store(uri)
     exp = experiment_id(client, uri, experiment or "Default")
-    all_tags = common_tags(job_type, tags) | {f"tag.{t}": "1" for t in logger.tags}
+    from spread.tracking.nesting import parent_tags
+
+    all_tags = common_tags(job_type, tags) | {f"tag.{t}": "1" for t in logger.tags} | parent_tags(uri)
     run = client.create_run(exp, tags=all_tags, run_name=logger.run_name or name or Path(out_dir).name)
     handle = MlflowRun(client, run.info.run_id, uri)
     handle.log_params(flat_params(config))
@@ -324,6 +328,8 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
     from lightning.pytorch.loggers import MLFlowLogger
     from lightning.pytorch.utilities import rank_zero_only
 
+    from spread.tracking.nesting import parent_tags
+
     quiet()
     uri = resolve_tracking_uri(logger.tracking_uri)
     open_store(uri)  # a store that cannot be opened is one line naming it, before the fit
@@ -364,7 +370,8 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
 
     return RecordedMLFlowLogger(
         experiment_name=group, run_name=logger.run_name or f"{group}/{Path(run_dir).name}", tracking_uri=uri,
-        tags=common_tags("train", extra) | {f"tag.{t}": "1" for t in [*tags, *logger.tags]}, log_model=False,
+        tags=common_tags("train", extra) | {f"tag.{t}": "1" for t in [*tags, *logger.tags]} | parent_tags(uri),
+        log_model=False,
         run_id=previous, artifact_location=None if root is None else Path(root, safe_name(group)).resolve().as_uri())
 
 

@@ -126,7 +126,7 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     if settings.use_gpu:
         resources["GPU"] = 1.0
     storage = Path(settings.storage_path or run_dir / "ray_train").resolve()
-    trainer = TorchTrainer(
+    trainer = (TorchTrainer if settings.address else private_cluster_trainer())(
         train_worker,
         train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu)},
         scaling_config=ScalingConfig(num_workers=int(settings.num_workers), use_gpu=bool(settings.use_gpu),
@@ -142,6 +142,22 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     if result.error is not None:
         raise result.error
     return result
+
+
+def private_cluster_trainer():
+    """``TorchTrainer`` for a Ray the command starts itself (``ray_train.address=null``) and stops at its end, taking
+    its placement groups with it: without Ray Train's detached ``PlacementGroupCleaner`` actor, which exists to
+    free them after a controller dies on a *shared* cluster, and which, on a Ray started without its dashboard,
+    polls a State API that is not there and prints an alarming ``ConnectionError`` traceback (often when other
+    Ray instances run on the host). On a cluster (``address`` set) the plain ``TorchTrainer`` keeps it."""
+    from ray.train.torch import TorchTrainer
+
+    class PrivateClusterTorchTrainer(TorchTrainer):
+        def _create_default_callbacks(self):
+            return [c for c in super()._create_default_callbacks()
+                    if type(c).__name__ != "PlacementGroupCleanerCallback"]
+
+    return PrivateClusterTorchTrainer
 
 
 def with_default_trainer(argv: list[str]) -> list[str]:

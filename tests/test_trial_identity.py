@@ -1,0 +1,85 @@
+"""A sweep's trial is its identity (issue 31 item 3): drawn values rounded to 4 significant digits, one point
+folder per identity, two trials of one identity never at once (the second waits, then re-uses), and
+``max_concurrent`` held by every search."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+
+from spread.experiments.points import point_lock
+from spread.experiments.sweep import drawn, format_value, point_name, trial_overrides
+
+from helpers import FAST_TRAIN, SMALL_MODEL, make_dataset
+from test_sweep import spread
+
+
+def test_drawn_values_keep_four_significant_digits_and_listed_values_stay_as_written():
+    config = {"guidance.collision": 0.012345678901234567, "model.lr": 0.00031622776601683794, "sampler": "ddim50",
+              "guidance.gravity": "0.001"}
+    assert drawn(config) == {"guidance.collision": 0.01235, "model.lr": 0.0003162, "sampler": "ddim50",
+                             "guidance.gravity": "0.001"}
+    assert trial_overrides(config) == ["guidance.collision=0.01235", "guidance.gravity=0.001", "model.lr=0.0003162",
+                                       "sampler=ddim50"]
+    assert point_name(config) == "collision0.01235_gravity0.001_lr0.0003162_samplerddim50"
+    assert format_value(0.1 + 0.2) == "0.3"  # no 0.30000000000000004 in a folder name or a cell
+    # two draws that round alike are one point
+    assert point_name({"a": 0.0123449}) == point_name({"a": 0.01234}) != point_name({"a": 0.01236})
+
+
+def test_every_search_is_limited_to_max_concurrent_trials():
+    from ray.tune.search import BasicVariantGenerator, ConcurrencyLimiter
+
+    from spread.experiments.sweep import SweepSettings
+    from spread.experiments.tuning import limited, search_spec
+
+    for name, kind in (("random", BasicVariantGenerator), ("optuna", ConcurrencyLimiter)):
+        settings = SweepSettings(out_dir="x", search=name, max_concurrent=3)
+        searcher = limited(search_spec(name).build(settings), settings.max_concurrent)
+        assert isinstance(searcher, kind) and searcher.max_concurrent == 3, name
+    assert limited(None, 2).max_concurrent == 2  # grid: Tune's own generator, limited too
+
+
+def test_a_second_trial_of_the_same_point_waits_for_the_first(tmp_path):
+    folder = tmp_path / "points" / "lr0.001_abc123"
+    events = []
+
+    def trial(name: str, hold: float) -> None:
+        with point_lock(folder):
+            events.append(("start", name, time.monotonic()))
+            time.sleep(hold)
+            events.append(("end", name, time.monotonic()))
+
+    first = threading.Thread(target=trial, args=("first", 0.5))
+    first.start()
+    time.sleep(0.1)
+    second = threading.Thread(target=trial, args=("second", 0.0))
+    second.start()
+    first.join(5)
+    second.join(5)
+    assert [(e[0], e[1]) for e in events] == [("start", "first"), ("end", "first"), ("start", "second"),
+                                               ("end", "second")]
+    assert events[2][2] >= events[1][2]  # the second started only after the first ended
+    assert (tmp_path / "points" / ".locks" / "lr0.001_abc123.lock").exists()
+
+
+@pytest.mark.slow
+def test_a_random_search_that_draws_the_same_setting_twice_trains_it_once(tmp_path):
+    """``spread-sweep command=train search=random`` over a one-value choice, two trials at once: one trains, the
+    other waits for it and re-uses its run; one folder, one checkpoint history (no last-v1.ckpt)."""
+    data = make_dataset(tmp_path / "data")
+    out = tmp_path / "lr"
+    spread("spread-sweep", "command=train", "experiment=quick", f"data.root={data}", *SMALL_MODEL, *FAST_TRAIN,
+           "trainer.max_steps=2", "trainer.max_time=null", "model.lr=choice(0.001)", "search=random",
+           "num_samples=2", "max_concurrent=2", "num_cpus=2", "metric=val/loss", "mode=min", f"out_dir={out}")
+    points = [p for p in (out / "points").iterdir() if not p.name.startswith(".")]
+    assert len(points) == 1 and points[0].name.startswith("lr0.001_")
+    checkpoints = sorted(p.name for p in (points[0] / "checkpoints").iterdir())
+    assert "last.ckpt" in checkpoints and not [c for c in checkpoints if "-v1" in c]
+    rows = [r for r in __import__("csv").DictReader((out / "results.csv").open())]
+    assert len(rows) == 2 and sorted(r["reused"] for r in rows) == ["False", "True"]
+    assert {r["point"] for r in rows} == {points[0].name}
+    assert json.loads((points[0] / "point.json").read_text())["status"] == "finished"

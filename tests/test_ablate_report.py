@@ -475,6 +475,7 @@ def test_tiny_ablation_end_to_end_and_resume(tiny_ablation, monkeypatch):
     assert (out / "ablation.csv").stat().st_mtime_ns == stamp and again.records == result.records
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_interrupted_sweep_skips_finished_runs(tiny_ablation, tmp_path):
     """Two grid points; the sweep is killed (SIGKILL to its process group, like a preemption) right after the
     first run's metrics.json, then launched again: the finished run is left as it is, the other one completes."""

@@ -351,6 +351,7 @@ def test_spread_sample_refuses_guidance_for_a_method_that_samples_its_own_way(da
                           "guidance=refine", "logger=none")
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_samples_of_every_method_pass_spread_evaluate(dataset, trained, tmp_path):
     from spread.commands.in_process import InProcessCommands
 

@@ -190,6 +190,7 @@ def test_resume_after_a_torn_line_counts_every_scene_once(cli_run, dataset, scen
     assert comparable(metrics) == comparable(cli_run[1])
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_run, dataset, scenes_dir, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(cli_run[0], out)
@@ -204,7 +205,7 @@ def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_ru
     assert again["redone_because"] is None and again["run"]["evaluated_this_run"] == 0
 
 
-@pytest.mark.parametrize("max_retries", [3, 0])
+@pytest.mark.parametrize("max_retries", [pytest.param(3, marks=pytest.mark.slow), 0])  # 3: make test-slow
 def test_a_worker_killed_mid_run_loses_no_scene(cli_run, dataset, scenes_dir, tmp_path, monkeypatch, max_retries):
     """A worker exits after its first scene: Ray re-runs the task (max_retries=3), or, with no retries left,
     the driver splits the failed chunk into one task per scene (max_retries=0)."""

@@ -62,6 +62,7 @@ def image_outputs(cell) -> list:
     return [o for o in cell.get("outputs", []) if "image/png" in o.get("data", {})]
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_results_notebook_runs_on_a_fresh_tiny_ablation_and_sweep(tmp_path):
     from spread.reporting.tables import read_csv
 

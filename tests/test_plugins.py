@@ -67,6 +67,7 @@ def sunk_scenes(dataset: Path, out: Path) -> Path:
     return out
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_plugin_metric_is_selected_by_name_in_spread_evaluate(plugin_site, dataset, tmp_path):
     scenes = sunk_scenes(dataset, tmp_path / "scenes")
     out = tmp_path / "eval"

@@ -153,6 +153,7 @@ def test_a_resumed_sampling_run_resamples_a_truncated_file(dataset, checkpoint, 
     assert victim.read_bytes() == intact  # the same seeds, so the same scene again
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_resumed_evaluation_redoes_a_scene_whose_file_was_replaced(dataset, tmp_path):
     from spread.configs import compose
     from spread.commands.evaluate import evaluate

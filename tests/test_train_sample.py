@@ -294,6 +294,7 @@ def test_sampler_swap_by_config(dataset, trained, tmp_path, sampler):
     assert f"sampler={label}" in str(read_scene(result.files[0]).extras["source"])
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_evaluate_accepts_generated_scenes(dataset, sampled, tmp_path):
     out = tmp_path / "eval"
     run_script("spread-evaluate", f"scenes={sampled / 'scenes'}", f"reference={dataset}", f"out_dir={out}",

@@ -63,7 +63,7 @@ def test_a_second_trial_of_the_same_point_waits_for_the_first(tmp_path):
     assert [(e[0], e[1]) for e in events] == [("start", "first"), ("end", "first"), ("start", "second"),
                                                ("end", "second")]
     assert events[2][2] >= events[1][2]  # the second started only after the first ended
-    assert (tmp_path / "points" / ".locks" / "lr0.001_abc123.lock").exists()
+    assert (tmp_path / ".point-locks" / "lr0.001_abc123.lock").exists() and not (tmp_path / "points").exists()
 
 
 @pytest.mark.slow
@@ -75,7 +75,7 @@ def test_a_random_search_that_draws_the_same_setting_twice_trains_it_once(tmp_pa
     spread("spread-sweep", "command=train", "experiment=quick", f"data.root={data}", *SMALL_MODEL, *FAST_TRAIN,
            "trainer.max_steps=2", "trainer.max_time=null", "model.lr=choice(0.001)", "search=random",
            "num_samples=2", "max_concurrent=2", "num_cpus=2", "metric=val/loss", "mode=min", f"out_dir={out}")
-    points = [p for p in (out / "points").iterdir() if not p.name.startswith(".")]
+    points = list((out / "points").iterdir())
     assert len(points) == 1 and points[0].name.startswith("lr0.001_")
     checkpoints = sorted(p.name for p in (points[0] / "checkpoints").iterdir())
     assert "last.ckpt" in checkpoints and not [c for c in checkpoints if "-v1" in c]

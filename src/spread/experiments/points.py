@@ -31,8 +31,9 @@ from pathlib import Path
 from spread.io import read_json, write_json_atomic
 
 POINT = "point.json"
-#: the folder beside a sweep's points that holds one lock file per point (:func:`point_lock`)
-LOCKS = ".locks"
+#: the folder, in the sweep folder beside ``points/``, that holds one lock file per point (:func:`point_lock`);
+#: outside ``points/``, whose every entry is a point
+LOCKS = ".point-locks"
 
 log = logging.getLogger("spread.sweep")
 
@@ -103,14 +104,14 @@ def finish_point(out_dir, seconds: float | None = None) -> dict:
 @contextlib.contextmanager
 def point_lock(folder):
     """Hold the point ``folder``'s lock while a trial decides and does its work: an exclusive ``flock`` on
-    ``<points>/.locks/<folder name>.lock``, *waiting* when another trial holds it. Two trials of one identity (a
-    random search that drew the same values twice) thus never run at once: the second waits for the first and
-    then finds its point finished with the same fingerprint, and re-uses it. The kernel releases the lock when a
-    process dies, so a killed trial never leaves a stale one."""
+    ``<sweep folder>/.point-locks/<folder name>.lock``, *waiting* when another trial holds it. Two trials of one
+    identity (a random search that drew the same values twice) thus never run at once: the second waits for the
+    first and then finds its point finished with the same fingerprint, and re-uses it. The kernel releases the
+    lock when a process dies, so a killed trial never leaves a stale one."""
     import fcntl
 
     folder = Path(folder)
-    locks = folder.parent / LOCKS
+    locks = folder.parent.parent / LOCKS
     locks.mkdir(parents=True, exist_ok=True)
     path = locks / f"{folder.name}.lock"
     fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)

@@ -182,6 +182,7 @@ class SlowFakeCommands(SeededFakeCommands):
         super().sample(overrides)
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_rows_run_concurrently_through_ray_and_give_the_sequential_table(tmp_path):
     """max_concurrent=2: two rows' stages overlap in time (ledger timestamps), each stage's record is the
     driver's ledger, and the table is the one a sequential run writes; a re-run re-uses every stage. Sampling

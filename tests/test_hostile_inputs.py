@@ -543,6 +543,7 @@ def test_bad_settings_end_in_one_line_before_any_work(tmp_path, monkeypatch):
     assert "cannot be created" in out_dir_problem(str(tmp_path / "new" / "run"))
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_training_and_ray_print_no_known_third_party_noise(dataset, tmp_path, capfd):
     from spread.runtime.ray import RaySettings, ray_session
 

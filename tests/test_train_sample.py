@@ -305,6 +305,7 @@ def test_evaluate_accepts_generated_scenes(dataset, sampled, tmp_path):
     assert 0.0 <= metrics["grecall"] <= 1.0 and 0.0 <= metrics["col_mesh"] <= 1.0
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_sample_with_evaluate_true_writes_metrics_beside_the_scenes(dataset, trained, tmp_path):
     """``evaluate=true``: one run folder holds the scenes and their metrics (a sweep point); the protocol comes
     from the shared ``conf/protocol`` group; a second call resumes both (nothing resampled, nothing re-measured)."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -83,3 +84,30 @@ def test_a_random_search_that_draws_the_same_setting_twice_trains_it_once(tmp_pa
     assert len(rows) == 2 and sorted(r["reused"] for r in rows) == ["False", "True"]
     assert {r["point"] for r in rows} == {points[0].name}
     assert json.loads((points[0] / "point.json").read_text())["status"] == "finished"
+
+
+def test_a_trials_error_is_its_exceptions_own_line():
+    from spread.experiments.sweep import error_line
+
+    wrapped = ("\x1b[36mray::ImplicitFunc.train()\x1b[39m (pid=31869, ip=192.0.2.2, repr=sample_trial)\n"
+               "  File \"/x/safe_load.py\", line 89, in load_checkpoint\n"
+               "    raise FileNotFoundError(f\"{path}: no such checkpoint file\")\n"
+               "FileNotFoundError: runs/last.ckpt: no such checkpoint file\n")
+    assert error_line(RuntimeError(wrapped)) == "FileNotFoundError: runs/last.ckpt: no such checkpoint file"
+    assert error_line(ValueError("")) == "ValueError"
+
+
+def test_a_sweep_with_relative_paths_runs_its_trials_in_the_launch_folder(tmp_path, monkeypatch):
+    """``ckpt=`` and ``data.root=`` relative to where ``spread-sweep`` was launched mean the same in a trial,
+    whatever folder Ray Tune gave the trial process."""
+    import os
+
+    from spread.experiments.sweep import in_launch_folder
+
+    launch, trial = tmp_path / "launch", tmp_path / "ray_trial"
+    launch.mkdir(), trial.mkdir()
+    monkeypatch.chdir(trial)
+    in_launch_folder({"cwd": str(launch)})
+    assert Path(os.getcwd()) == launch
+    in_launch_folder({"cwd": str(tmp_path / "not_on_this_node")})  # another node's folder: stays
+    assert Path(os.getcwd()) == launch

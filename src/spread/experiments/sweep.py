@@ -315,6 +315,7 @@ def sample_trial(config: dict, plan: dict, commands) -> None:
     from spread.experiments.points import point_lock
 
     started = time.perf_counter()
+    in_launch_folder(plan)
     config = drawn(config.get(POINT_KEY, config))
     runs = []
     for seed in point_seeds(config, plan):
@@ -326,6 +327,14 @@ def sample_trial(config: dict, plan: dict, commands) -> None:
     rows = [{**read_metrics(Path(plan["points"]) / run["point"]), **run} for run in runs]
     tune.report({**seed_mean(rows, plan["metric"]), "runs": json.dumps(runs), "node": node_id(),
                  "trial_seconds": round(time.perf_counter() - started, 3)})
+
+
+def in_launch_folder(plan: dict) -> None:
+    """Run the trial in the folder ``spread-sweep`` was launched from (where it exists: on the driver's machine),
+    not in Ray Tune's trial folder, so relative paths on the command line (``ckpt=runs/x/last.ckpt``,
+    ``data.root=data``) mean what they meant to the user."""
+    if plan.get("cwd") and Path(plan["cwd"]).is_dir():
+        os.chdir(plan["cwd"])
 
 
 def seed_mean(rows: list[dict], metric: str) -> dict:
@@ -411,6 +420,7 @@ def train_trial(config: dict, plan: dict, commands) -> None:
     from spread.io import read_json_object
 
     started = time.perf_counter()
+    in_launch_folder(plan)
     config = drawn(config.get(POINT_KEY, config))
     folder, identity, overrides = train_point(config, plan)
     with point_lock(folder):  # a trial of the same point running now: wait for it, then re-use its run
@@ -502,7 +512,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     trial = sample_trial if s.command == "sample" else train_trial
     trial = nested_trial(trial)  # its runs nest under the sweep's parent run (spread.tracking.parent)
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
-              "scheduler": s.scheduler, "seeds": s.seeds}
+              "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd()}
     check_inert_dimensions(plan, shared)  # before anything is written
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
@@ -743,8 +753,18 @@ def result_row(result, plan: SweepPlan) -> dict:
     if stopped:
         row["stopped_at_step"] = metrics.get("step")
     if result.error:
-        row["error"] = str(result.error).splitlines()[0][:200]
+        row["error"] = error_line(result.error)
     return row
+
+
+def error_line(error) -> str:
+    """A trial's error in one readable line: the exception's own last line (Ray wraps it in a traceback headed by
+    the worker's colour-coded name), at most 300 characters."""
+    import re
+
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", line).strip() for line in str(error).splitlines()]
+    lines = [line for line in lines if line]
+    return (lines[-1] if lines else type(error).__name__)[:300]
 
 
 def parse_number(v):

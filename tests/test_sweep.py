@@ -147,14 +147,14 @@ def test_seeds_give_one_csv_row_per_seed_and_one_table_line_per_point_with_its_i
     """``seeds=2``: results.csv keeps every seed's row (ASD in mm), results.md one line per point, each metric the
     mean over its seeds ± half the 95 % Student-t interval over them (t(0.975, 1) = 12.706), the best point by
     its mean."""
-    from spread.experiments.sweep import over_seeds
+    from spread.experiments.sweep import seed_means
 
     plan = parse_arguments(["ckpt=c", "data.root=/d", *TWO, f"out_dir={tmp_path}", "seeds=2"])
     assert plan.settings.seeds == 2
     values = {(0.0, 0): 0.8, (0.0, 1): 0.9, (0.0075, 0): 0.7, (0.0075, 1): 0.7}
     rows = [{"guidance.collision": w, "seed": seed, "grecall": g, "asd": 0.012, "status": "ok",
              "point": f"collision{w}_seed{seed}_abc", "seconds": 1.0} for (w, seed), g in values.items()]
-    points = over_seeds(rows, plan)
+    points = seed_means(rows, plan)
     assert [p["point"] for p in points] == ["collision0.0", "collision0.0075"]
     first = points[0]
     half = 12.706 * (0.1 / 2 ** 0.5) / 2 ** 0.5

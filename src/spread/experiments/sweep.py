@@ -533,7 +533,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
         rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out)
     rows.sort(key=lambda r: (values_of(r, plan), r.get("seed") or 0))
     point_settings(rows, out / "points")
-    points = over_seeds(rows, plan) if s.seeds > 1 else rows
+    points = seed_means(rows, plan) if s.seeds > 1 else rows
     best = mark_best(points, s.metric, s.mode)
     for r in rows:  # a point's every seed row is marked with it
         r["best"] = best is not None and values_of(r, plan) == values_of(best, plan)
@@ -550,9 +550,9 @@ def values_of(row: dict, plan: SweepPlan) -> tuple:
 SEED_LEVEL = 0.95
 
 
-def over_seeds(rows: list[dict], plan: SweepPlan) -> list[dict]:
-    """One row per point from its rows of ``seeds=K`` sampling seeds: each metric the mean over the seeds,
-    ``<metric>_sd`` their sample sd and ``<metric>_lo`` / ``_hi`` the Student-t interval at :data:`SEED_LEVEL` over
+def seed_means(rows: list[dict], plan: SweepPlan) -> list[dict]:
+    """One row per point (what :func:`spread.results.over_seeds` gives for a frame) from its rows of ``seeds=K``
+    sampling seeds: each metric the mean over the seeds, ``<metric>_sd`` their sample sd and ``<metric>_lo`` / ``_hi`` the Student-t interval at :data:`SEED_LEVEL` over
     the seeds (not over scenes); ``seeds`` the seeds, ``status`` ok when every seed's is."""
     from spread.reporting.tables import columns_of
     from spread.results.stats import t_interval

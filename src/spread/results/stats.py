@@ -44,8 +44,6 @@ def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "
     """One row per point (module docstring): its settings, ``<metric>`` (the mean over seeds), ``<metric>_lo`` /
     ``<metric>_hi`` (the Student-t interval at ``level``; NaN with one seed), ``<metric>_sd``, ``n_seeds`` and
     ``seeds`` (the seeds, sorted)."""
-    from scipy import stats
-
     if metric not in df.columns:
         raise ValueError(f"over_seeds: no column {metric!r} (columns: {list(df.columns)})")
     keys = [k for k in settings_of(df, exclude=(seed,)) if df[k].nunique(dropna=True) > 1]

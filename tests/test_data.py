@@ -220,6 +220,50 @@ def test_dataloader_workers_match_single_process(root):
     assert len(list(dm.test_dataloader())) == 2
 
 
+def test_size_buckets_batch_rooms_of_similar_object_count_and_keep_a_resumable_order():
+    from spread.data.order import EpochOrder
+
+    sizes = [3 + (7 * i) % 40 for i in range(64)]  # object counts 3..42, mixed
+    plain = EpochOrder(64, seed=5)
+    bucketed = EpochOrder(64, seed=5, sizes=sizes, batch_size=8, window=4)
+    order = list(bucketed)
+    assert sorted(order) == list(range(64)) and list(bucketed) != order  # every room once; epochs differ
+    batches = [order[k:k + 8] for k in range(0, 64, 8)]
+    # a window of 4 batches is sorted before it is cut: in every batch the counts are consecutive in that window
+    spread_of = [max(sizes[i] for i in b) - min(sizes[i] for i in b) for b in batches]
+    padded = lambda o: sum(8 * max(sizes[i] for i in o[k:k + 8]) for k in range(0, 64, 8))
+    first_plain = list(plain)
+    assert padded(order) < 0.8 * padded(first_plain)  # far less padding than the shuffled order
+    assert max(spread_of) < max(sizes) - min(sizes)
+    # the same (seed, epoch) gives the same order, and a resume at a batch boundary continues it
+    assert list(EpochOrder(64, seed=5, sizes=sizes, batch_size=8, window=4)) == order
+    resumed = EpochOrder(64, seed=5, position=lambda: (0, 16), sizes=lambda: sizes, batch_size=8, window=4)
+    assert list(resumed) == order[16:]
+    with pytest.raises(ValueError, match="bucket_batches"):
+        EpochOrder(64, seed=5, sizes=sizes, batch_size=8, window=-1)
+    with pytest.raises(ValueError, match="3 sizes for 64 items"):
+        list(EpochOrder(64, seed=5, sizes=[1, 2, 3], batch_size=8, window=4))
+
+
+def test_the_train_loader_with_size_buckets_holds_every_room_once_per_epoch(root):
+    from spread.data import SceneDataModule
+
+    dm = SceneDataModule(root, batch_size=2, num_points=M, seed=3, bucket_batches=3)
+    dm.setup("fit")
+    batches = list(dm.train_dataloader())
+    counts = dm.dataset("train").sizes()
+    assert sorted(sid for b in batches for sid in b["scene_id"]) == [f"train_{k}" for k in range(6)]
+    # one window holds all 3 batches: they are the sorted counts cut in pairs, in a shuffled order
+    ranked = sorted(counts)
+    assert sorted(sorted(b["num_objects"].tolist()) for b in batches) == [ranked[0:2], ranked[2:4], ranked[4:6]]
+    padded = sum(b["x"].shape[0] * b["x"].shape[1] for b in batches)
+    plain = SceneDataModule(root, batch_size=2, num_points=M, seed=3)
+    plain.setup("fit")
+    assert padded <= sum(b["x"].shape[0] * b["x"].shape[1] for b in plain.train_dataloader())
+    with pytest.raises(ValueError, match="data.bucket_batches"):
+        SceneDataModule(root, bucket_batches=-2)
+
+
 def test_dataset_pickles_without_its_library(root):
     ds = SceneDataset(root, "val", num_points=M)
     blob = pickle.dumps(ds)

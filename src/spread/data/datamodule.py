@@ -7,7 +7,9 @@ worker count does not change what a batch holds. ``augment=true`` trains on the 
 (:mod:`spread.data.augment`): each epoch draws ``len(train)`` distinct (room, symmetry) pairs from the
 8·``len(train)`` in the same (seed, epoch) order, and every split is normalised with the square bounds
 (:meth:`SceneDataModule.translation_bounds`, which the model reads at setup), so a checkpoint's bounds fit
-rotated rooms too. Validation and test items are never transformed. Worker processes get the datasets either by fork (copied)
+rotated rooms too. ``bucket_batches=K`` > 0 batches rooms of similar object count together (the order sorted
+within windows of K batches, :class:`~spread.data.order.EpochOrder`; single process only). Validation and test
+items are never transformed. Worker processes get the datasets either by fork (copied)
 or by pickling (``multiprocessing_context="spawn"``): the dataset then reloads its asset library
 lazily in the worker.
 """
@@ -51,7 +53,7 @@ class SceneDataModule(L.LightningDataModule):
     def __init__(self, root: str | os.PathLike, batch_size: int = 8, num_workers: int = 0,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, pin_memory: bool = False,
                  persistent_workers: bool = False, multiprocessing_context: str | None = None,
-                 augment: bool = False, cache: bool = True):
+                 augment: bool = False, cache: bool = True, bucket_batches: int = 0):
         super().__init__()
         self.root = Path(root)
         self.batch_size = int(batch_size)
@@ -60,12 +62,16 @@ class SceneDataModule(L.LightningDataModule):
         self.seed = int(seed)
         self.augment = bool(augment)
         self.cache = bool(cache)
+        self.bucket_batches = int(bucket_batches)
+        if self.bucket_batches < 0:
+            raise ValueError(f"data.bucket_batches must be >= 0 (0: off), got {bucket_batches}")
         self.pin_memory = bool(pin_memory)
         self.persistent_workers = bool(persistent_workers) and self.num_workers > 0
         self.multiprocessing_context = multiprocessing_context if self.num_workers > 0 else None
         self.save_hyperparameters({"root": str(self.root), "batch_size": self.batch_size,
                                    "num_workers": self.num_workers, "num_points": self.num_points,
-                                   "seed": self.seed, "pin_memory": self.pin_memory, "augment": self.augment})
+                                   "seed": self.seed, "pin_memory": self.pin_memory, "augment": self.augment,
+                                   "bucket_batches": self.bucket_batches})
         self._library = None
         self._datasets: dict[str, SceneDataset] = {}
 
@@ -140,16 +146,29 @@ class SceneDataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         trainer = self.trainer
         if trainer is not None and trainer.world_size > 1:  # Lightning puts its distributed sampler in
+            if self.bucket_batches:
+                import logging
+
+                logging.getLogger("spread.data").warning(
+                    "data.bucket_batches=%d is not applied under DDP (world size %d): Lightning's distributed "
+                    "sampler orders the batches", self.bucket_batches, trainer.world_size)
             return self._loader("train", shuffle=True)
         from spread.data.order import EpochOrder, StatefulLoader
 
-        dataset = self.dataset("train")
-        per_epoch = len(dataset)
+        rooms = self.dataset("train")
+        dataset, per_epoch = rooms, len(rooms)
         if self.augment:  # the 8 floor symmetries of every room; an epoch still has len(train) items
-            dataset = SymmetricScenes(dataset)
+            dataset = SymmetricScenes(rooms)
+
+        def sizes() -> list[int]:  # object count of every item (a symmetry keeps its room's count)
+            counts = rooms.sizes()
+            return [counts[i % len(counts)] for i in range(len(dataset))]
+
         return StatefulLoader(
             dataset, batch_size=self.batch_size,
-            sampler=EpochOrder(len(dataset), self.seed, self.train_position, per_epoch=per_epoch),
+            sampler=EpochOrder(len(dataset), self.seed, self.train_position, per_epoch=per_epoch,
+                               sizes=sizes if self.bucket_batches else None, batch_size=self.batch_size,
+                               window=self.bucket_batches),
             num_workers=self.num_workers, collate_fn=collate_scenes, pin_memory=self.pin_memory,
             persistent_workers=self.persistent_workers, multiprocessing_context=self.multiprocessing_context)
 

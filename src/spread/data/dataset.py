@@ -148,6 +148,12 @@ class SceneDataset(torch.utils.data.Dataset):
                 self._scenes[index] = scene
         return scene
 
+    def sizes(self) -> list[int]:
+        """The object count of every item (its scene record read once; kept with ``cache``)."""
+        if getattr(self, "_sizes", None) is None:
+            self._sizes = [int(self.read(i).num_objects) for i in range(len(self))]
+        return list(self._sizes)
+
     def __getitem__(self, index: int) -> dict:
         return self.encode(self.read(index), source=str(self.files[index]))
 

@@ -94,6 +94,20 @@ def epsilon_from_prediction(prediction: str, output: torch.Tensor, x_t: torch.Te
     return eps.to(output.dtype)
 
 
+def x0_from_prediction(prediction: str, output: torch.Tensor, x_t: torch.Tensor,
+                       alpha_bar: torch.Tensor) -> torch.Tensor:
+    """The network's x̂_0 (B, N, C) from its output at states x_t (B, N, C) with ᾱ_t (B,), differentiable in the
+    output: the output itself for ``sample``, (x_t − √(1−ᾱ) ε̂)/√ᾱ for ``epsilon``, √ᾱ x_t − √(1−ᾱ) v̂ for
+    ``v_prediction``."""
+    check_prediction(prediction)
+    if prediction == "sample":
+        return output
+    a = alpha_bar.to(output)[:, None, None]
+    if prediction == "epsilon":
+        return (x_t - (1 - a).sqrt() * output) / a.sqrt().clamp_min(1e-6)
+    return a.sqrt() * x_t - (1 - a).sqrt() * output
+
+
 def loss_weights(weighting: str, prediction: str, alpha_bar: torch.Tensor, gamma: float = 5.0) -> torch.Tensor:
     """(B,) per-scene loss weights for timesteps with ᾱ_t ``alpha_bar`` (B,). ``min_snr``: the weight that
     makes each target's MSE equal min(SNR, γ)·‖x̂_0 − x_0‖² (Hang et al. 2023): min(SNR, γ)/SNR for ε,

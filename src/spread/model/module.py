@@ -6,6 +6,8 @@
   schedule (``beta_schedule``, ``diffusion_steps`` = T; the paper's cosine schedule over 1,000 by default,
   :mod:`spread.model.diffusion`). Whatever it predicts, :meth:`SceneDiffusion.denoiser` hands samplers and
   guidance ε̂.
+  With ``penetration_weight`` λ > 0, plus λ × the ᾱ_t-weighted box overlap of the decoded x̂_0 beyond the
+  training scene's (metres, :mod:`spread.model.penetration`); ``val/loss`` stays the MSE alone.
 * Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights; optional linear
   warm-up and cosine decay to the trainer's ``max_steps`` (``lr_warmup_steps``, ``lr_schedule``).
 * ``init_from``: a checkpoint whose EMA weights start every weight they have (a ``geometry`` model from a
@@ -34,9 +36,11 @@ import torch
 
 from spread.model.config import ModelConfig, SceneDiffusionConfig
 from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, check_prediction, denoise,
-                                    epsilon_from_prediction, loss_weights, prediction_target, training_scheduler)
+                                    epsilon_from_prediction, loss_weights, prediction_target, training_scheduler,
+                                    x0_from_prediction)
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser, upgrade_state_dict
+from spread.model.penetration import penetration_excess
 from spread.model.poses import poses_from_state
 from spread.model.recall import graph_recall
 
@@ -102,12 +106,15 @@ class SceneDiffusion(L.LightningModule):
                  prediction: str = ARGS.prediction, loss_weighting: str = ARGS.loss_weighting,
                  min_snr_gamma: float = ARGS.min_snr_gamma, lr_warmup_steps: int = ARGS.lr_warmup_steps,
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
-                 init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile):
+                 init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile,
+                 penetration_weight: float = ARGS.penetration_weight):
         super().__init__()
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
         check_prediction(prediction)
         loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
+        if not penetration_weight >= 0:
+            raise ValueError(f"model.penetration_weight must be >= 0, got {penetration_weight}")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"unknown lr_schedule '{lr_schedule}' (choose from {LR_SCHEDULES})")
         self.save_hyperparameters({
@@ -120,6 +127,7 @@ class SceneDiffusion(L.LightningModule):
             "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
             "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
             "init_from": None if init_from is None else str(init_from), "compile": bool(compile),
+            "penetration_weight": float(penetration_weight),
         })
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
@@ -204,10 +212,12 @@ class SceneDiffusion(L.LightningModule):
         alphas = self.noise_schedule.alphas_cumprod.to(device=timesteps.device, dtype=torch.float64)
         return alphas[timesteps.long()]
 
-    def training_loss(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
-                      network: SceneDenoiser | None = None) -> torch.Tensor:
-        """Weighted MSE of the ``prediction`` on one batch; ``noise`` (B, N, 9) and ``timesteps`` (B,) are
-        drawn when not given."""
+    def training_terms(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
+                       network: SceneDenoiser | None = None, penetration: bool = True) -> dict[str, torch.Tensor]:
+        """The loss's terms on one batch: ``mse``, the weighted MSE of the ``prediction``, and (when
+        ``penetration`` and ``penetration_weight`` > 0) ``penetration``, the ᾱ_t-weighted box overlap of the
+        decoded x̂_0 beyond the training scene's (metres, :mod:`spread.model.penetration`); ``noise`` (B, N, 9)
+        and ``timesteps`` (B,) are drawn when not given."""
         network = network if network is not None else self.network
         x0, mask = batch["x"].float(), batch["mask"].bool()
         B = x0.shape[0]
@@ -227,7 +237,29 @@ class SceneDiffusion(L.LightningModule):
         weights = None
         if self.hparams.get("loss_weighting", "none") != "none":
             weights = loss_weights(self.hparams.loss_weighting, prediction, alpha_bar, self.hparams.min_snr_gamma)
-        return masked_mse(output, target, mask, weights)
+        terms = {"mse": masked_mse(output, target, mask, weights)}
+        if penetration and self.hparams.get("penetration_weight", 0.0) > 0:
+            x0_hat = x0_from_prediction(prediction, output, x_t, alpha_bar)
+            bounds = network.bounds
+            if not torch.isfinite(bounds).all():
+                raise RuntimeError("model.penetration_weight needs the translation bounds (train with a SceneDataModule)")
+            translation, rotation = poses_from_state(x0_hat, bounds)
+            with torch.no_grad():
+                true_translation, true_rotation = poses_from_state(x0, bounds)
+            excess = penetration_excess(translation, rotation, true_translation, true_rotation,
+                                        batch["extents"].to(x0), mask)
+            terms["penetration"] = (excess * alpha_bar.to(excess)).mean()
+        return terms
+
+    def training_loss(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
+                      network: SceneDenoiser | None = None, penetration: bool = True) -> torch.Tensor:
+        """The training loss on one batch: the weighted MSE of the ``prediction`` plus ``penetration_weight`` ×
+        the penetration term (:meth:`training_terms`)."""
+        terms = self.training_terms(batch, noise, timesteps, network, penetration)
+        loss = terms["mse"]
+        if "penetration" in terms:
+            loss = loss + float(self.hparams.penetration_weight) * terms["penetration"]
+        return loss
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         loss_fn = self.training_loss
@@ -235,7 +267,13 @@ class SceneDiffusion(L.LightningModule):
             if getattr(self, "_compiled_loss", None) is None:
                 self._compiled_loss = torch.compile(self.training_loss)
             loss_fn = self._compiled_loss
-        loss = loss_fn(batch)
+        if self.hparams.get("penetration_weight", 0.0) > 0 and not self.hparams.get("compile", False):
+            terms = self.training_terms(batch)
+            loss = terms["mse"] + float(self.hparams.penetration_weight) * terms["penetration"]
+            self.log("train/mse", terms["mse"], batch_size=batch["x"].shape[0])
+            self.log("train/penetration", terms["penetration"], batch_size=batch["x"].shape[0])
+        else:
+            loss = loss_fn(batch)
         self.log("train/loss", loss, batch_size=batch["x"].shape[0], prog_bar=True)
         return loss
 
@@ -282,7 +320,8 @@ class SceneDiffusion(L.LightningModule):
         gen = torch.Generator().manual_seed(int(self.hparams.seed) * 1_000_003 + batch_idx)
         noise = torch.randn(x0.shape, generator=gen).to(x0)
         timesteps = torch.randint(0, self.noise_schedule.config.num_train_timesteps, (B,), generator=gen)
-        loss = self.training_loss(batch, noise, timesteps, network=self.ema.module)
+        # the denoising MSE alone, so val/loss compares across runs with and without the penetration term
+        loss = self.training_loss(batch, noise, timesteps, network=self.ema.module, penetration=False)
         self.log("val/loss", loss, batch_size=B, sync_dist=True, prog_bar=True)
         if batch_idx == 0 and self._sampling_due():
             scenes = slice_batch(batch, int(self.hparams.val_sample_scenes))

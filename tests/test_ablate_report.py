@@ -68,6 +68,27 @@ def test_tables_round_trip_and_show_the_rows(tmp_path):
     assert r"+Guidance & 0.300 & \textbf{0.121} & \textbf{7.0} & \textbf{0.950} & 12.50 & 0.0040 \\" in tex
 
 
+@pytest.mark.parametrize("geometry, words", [
+    ((0.180, 0.160, 0.200), "lower than base's, and the 95 % intervals do not overlap"),
+    ((0.220, 0.200, 0.240), "lower than base's, but the 95 % intervals overlap"),
+    ((0.300, 0.280, 0.320), "higher than base's, and the 95 % intervals do not overlap"),
+])
+def test_the_ablation_table_says_in_words_whether_geometry_beats_base_on_col_mesh(tmp_path, geometry, words):
+    from spread.experiments.ablation import geometry_reading, write_ablation_table
+
+    rows = [dict(r) for r in ROWS]
+    rows[0].update(col_mesh=0.241, col_mesh_lo=0.221, col_mesh_hi=0.262, n_scenes=100)
+    rows[1].update(zip(("col_mesh", "col_mesh_lo", "col_mesh_hi"), geometry), n_scenes=100)
+    sentence = geometry_reading(rows)
+    assert words in sentence
+    assert f"{geometry[0]:.3f} [{geometry[1]:.3f}, {geometry[2]:.3f}] against 0.241 [0.221, 0.262]" in sentence
+    assert "(100 / 100 scenes)" in sentence
+    paths = write_ablation_table(rows, tmp_path / "ablation")
+    assert sentence in paths["md"].read_text()
+    # no interval, or no base row: nothing is claimed
+    assert geometry_reading(ROWS) == "" and geometry_reading(rows[1:]) == ""
+
+
 def test_ablation_bar_plot_draws_every_row(tmp_path):
     from PIL import Image
 

@@ -216,6 +216,31 @@ def table_columns(records: Sequence[dict] = ()) -> list[Column]:
     return [Column("method", "Method"), *columns_of(records)]
 
 
+def geometry_reading(records: Sequence[dict]) -> str:
+    """The table's sentence on the paper's +Geometry claim: the ``geometry`` row's unguided Col_mesh against the
+    ``base`` row's, with their 95 % bootstrap intervals, saying whether it is lower and whether the intervals are
+    apart (issue 33, item 3); empty unless both rows have Col_mesh and its interval."""
+    rows = {r.get("variant"): r for r in records}
+    base, geometry = rows.get("base"), rows.get("geometry")
+    keys = ("col_mesh", "col_mesh_lo", "col_mesh_hi")
+    if base is None or geometry is None or any(r.get(k) is None for r in (base, geometry) for k in keys):
+        return ""
+    b, g = (tuple(float(r[k]) for k in keys) for r in (base, geometry))
+    apart = g[2] < b[1] or b[2] < g[1]
+    if g[0] < b[0]:
+        verdict = ("lower than base's, and the 95 % intervals do not overlap: the geometry perceiver reduces "
+                   "collisions here, as the paper reports" if apart else
+                   "lower than base's, but the 95 % intervals overlap: not shown apart on these graphs")
+    elif g[0] > b[0]:
+        verdict = ("higher than base's, and the 95 % intervals do not overlap: against the paper's direction"
+                   if apart else "higher than base's, but the 95 % intervals overlap: no difference shown")
+    else:
+        verdict = "equal to base's"
+    counts = f" ({base.get('n_scenes')} / {geometry.get('n_scenes')} scenes)" if base.get("n_scenes") else ""
+    return (f"+Geometry against base, unguided Col_mesh{counts}: {g[0]:.3f} [{g[1]:.3f}, {g[2]:.3f}] against "
+            f"{b[0]:.3f} [{b[1]:.3f}, {b[2]:.3f}], {verdict}.")
+
+
 def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                          figures: dict[str, str] | None = None) -> dict[str, Path]:
     """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold, ± the bootstrap interval) and ``.png`` (bars
@@ -241,7 +266,8 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                          csv_keys=["variant", "method", *differ, *[c.key for c in columns_of(records, hidden=True)],
                                    "n_scenes", "n_objects", "fid_status", "status", "identity", "ci_level",
                                    "ci_resamples", "ci_seed", "carried_from"],
-                         note=" ".join(n for n in (table_note(records), carried_note(records)) if n), md_extra=shown)
+                         note=" ".join(n for n in (geometry_reading(records), table_note(records), carried_note(records))
+                                   if n), md_extra=shown)
     ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
 

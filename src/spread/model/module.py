@@ -7,7 +7,8 @@
   :mod:`spread.model.diffusion`). Whatever it predicts, :meth:`SceneDiffusion.denoiser` hands samplers and
   guidance ε̂.
   With ``penetration_weight`` λ > 0, plus λ × the ᾱ_t-weighted box overlap of the decoded x̂_0 beyond the
-  training scene's (metres, :mod:`spread.model.penetration`); ``val/loss`` stays the MSE alone.
+  training scene's, and the change of contact depth of supported pairs (metres, :mod:`spread.model.penetration`);
+  ``val/loss`` stays the MSE alone.
 * Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights; optional linear
   warm-up and cosine decay to the trainer's ``max_steps`` (``lr_warmup_steps``, ``lr_schedule``).
 * ``init_from``: a checkpoint whose EMA weights start every weight they have (a ``geometry`` model from a
@@ -43,6 +44,7 @@ from spread.model.network import SceneDenoiser, upgrade_state_dict
 from spread.model.penetration import penetration_excess
 from spread.model.poses import poses_from_state
 from spread.model.recall import graph_recall
+from spread.scene import PHYSICAL_SUPPORT
 
 
 class Poses(NamedTuple):
@@ -247,7 +249,7 @@ class SceneDiffusion(L.LightningModule):
             with torch.no_grad():
                 true_translation, true_rotation = poses_from_state(x0, bounds)
             excess = penetration_excess(translation, rotation, true_translation, true_rotation,
-                                        batch["extents"].to(x0), mask)
+                                        batch["extents"].to(x0), mask, batch["physical"] == PHYSICAL_SUPPORT)
             terms["penetration"] = (excess * alpha_bar.to(excess)).mean()
         return terms
 

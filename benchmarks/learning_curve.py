@@ -348,10 +348,14 @@ def paired_table(args, runs: dict) -> None:
         raise SystemExit(f"--paired-against {ref_label!r} is not one of the runs ({', '.join(runs)})")
 
     def last(label):
-        return max(r["step"] for r in runs[label] if r["mode"] == "unguided")
+        return max(r["step"] for r in runs[label] if r["mode"].startswith("unguided"))
 
-    reference = curve_records(paths[ref_label], last(ref_label))  # its plain unguided samples
-    print(f"\nPaired differences against {ref_label} (step {last(ref_label)}), unguided, same test graphs and x_T: "
+    # the reference's plain unguided samples, or, when it was only sampled with CFG, its one unguided-cfgS mode
+    ref_modes = sorted(r["mode"] for r in runs[ref_label] if r["step"] == last(ref_label)
+                       and r["mode"].startswith("unguided"))
+    ref_mode = "unguided" if "unguided" in ref_modes else ref_modes[0]
+    reference = curve_records(paths[ref_label], last(ref_label), ref_mode)
+    print(f"\nPaired differences against {ref_label} (step {last(ref_label)}, {ref_mode}), same test graphs and x_T: "
           f"Δ [95 % paired bootstrap interval]")
     print("| run | step | scenes seen | train min | ΔGRecall ↑ | ΔCol_mesh ↓ | ΔASD mm ↓ |")
     print("|---|---:|---:|---:|---|---|---|")
@@ -360,7 +364,7 @@ def paired_table(args, runs: dict) -> None:
         # the plain unguided samples and those with classifier-free guidance on the graphs (unguided-cfgS)
         for row in sorted((r for r in runs[label] if r["step"] == step and r["mode"].startswith("unguided")),
                           key=lambda r: r["mode"]):
-            if label == ref_label and row["mode"] == "unguided":
+            if label == ref_label and row["mode"] == ref_mode:
                 continue
             d = paired_difference(curve_records(paths[label], step, row["mode"]), reference)
             minutes = "" if row["seconds"] is None else f"{row['seconds'] / 60:.1f}"

@@ -77,25 +77,26 @@ def test_excess_is_zero_on_the_training_scene_and_counts_only_overlap_beyond_it(
     assert penetration_excess(pushed, rot, ref_t, rot, ext, torch.tensor([[True, False, True]])).item() == 0.0
 
 
-def test_a_supported_object_costs_its_gap_when_it_floats_and_its_sinking_when_it_sinks():
+def test_a_supported_object_costs_alpha_times_its_gap_when_it_floats_and_its_sinking_when_it_sinks():
     eye = torch.eye(3, dtype=torch.float64)
     rot = torch.stack([eye, eye])[None]
     ext = torch.tensor([[[1.2, 1.0, 0.8], [0.2, 0.06, 0.3]]], dtype=torch.float64)  # table, book
     mask = torch.ones(1, 2, dtype=torch.bool)
     resting = torch.tensor([[[0, 0.5, 0], [0.1, 1.03, 0]]], dtype=torch.float64)
     supports = torch.tensor([[[False, True], [False, False]]])  # the table (0) supports the book (1)
-    for lift, cost in ((0.04, 0.04), (-0.02, 0.02), (0.0, 0.0)):
+    for lift, cost in ((0.04, 0.25 * 0.04), (-0.02, 0.02), (0.0, 0.0)):  # α = 0.25 of a gap, all of a sinking
         moved = resting.clone()
         moved[0, 1, 1] += lift
-        got = penetration_excess(moved, rot, resting, rot, ext, mask, supports).item()
+        got = penetration_excess(moved, rot, resting, rot, ext, mask, supports, gap_weight=0.25).item()
         assert got == pytest.approx(cost / 2), lift  # / 2 objects
-    # without the relation a floating book costs nothing (only overlap beyond the room's counts)
+    # α = 0, or without the relation, a floating book costs nothing (only overlap beyond the room's counts)
     floating = resting.clone()
     floating[0, 1, 1] += 0.04
     assert penetration_excess(floating, rot, resting, rot, ext, mask).item() == 0.0
+    assert penetration_excess(floating, rot, resting, rot, ext, mask, supports).item() == 0.0
     # the relation counts whichever way round it is written
-    assert penetration_excess(floating, rot, resting, rot, ext, mask, supports.transpose(1, 2)).item() == \
-        pytest.approx(0.02)
+    assert penetration_excess(floating, rot, resting, rot, ext, mask, supports.transpose(1, 2),
+                              gap_weight=1.0).item() == pytest.approx(0.02)
 
 
 def test_a_gradient_step_on_the_excess_moves_the_boxes_apart():
@@ -170,5 +171,9 @@ def test_the_training_loss_adds_the_weighted_penetration_term_and_val_loss_stays
 
 
 def test_a_negative_penetration_weight_is_refused_by_name():
+    from spread.model.module import SceneDiffusion
+
     with pytest.raises(ValueError, match="penetration_weight"):
         _tiny_model(-1.0)
+    with pytest.raises(ValueError, match="support_gap_weight"):
+        SceneDiffusion("base", _tiny_model(0.0).config, support_gap_weight=-0.5)

@@ -97,7 +97,8 @@ class SceneDiffusionConfig:
     trainer's ``max_steps``); init_from: a checkpoint whose EMA weights start every matching weight (a
     ``geometry`` model from a trained ``base`` one: the perceiver and the geometry attention start fresh, the
     latter at zero so step 0 predicts what the base model predicts); penetration_weight: λ of the
-    penetration-aware term on the decoded poses (:mod:`spread.model.penetration`; 0: off).
+    penetration-aware term on the decoded poses (:mod:`spread.model.penetration`; 0: off); support_gap_weight: α
+    of a supported object's gap in that term.
     """
 
     _target_: str = "spread.model.module.SceneDiffusion"
@@ -125,6 +126,8 @@ class SceneDiffusionConfig:
     #: λ of the penetration-aware term on the decoded x̂_0 (:mod:`spread.model.penetration`, metres of box overlap
     #: beyond the training scene's, weighted by ᾱ_t); 0 = off (the paper's loss)
     penetration_weight: float = 0.0
+    #: α: a supported object's gap above its supporter also costs α × the gap in that term (0: penetration only)
+    support_gap_weight: float = 0.0
     #: torch.compile the training loss (forward and backward of the ε-network; the nearest search stays one
     #: opaque operator). The first steps compile (minutes at paper size); then far fewer launches per step.
     compile: bool = False

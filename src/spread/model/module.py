@@ -7,8 +7,8 @@
   :mod:`spread.model.diffusion`). Whatever it predicts, :meth:`SceneDiffusion.denoiser` hands samplers and
   guidance ε̂.
   With ``penetration_weight`` λ > 0, plus λ × the ᾱ_t-weighted box overlap of the decoded x̂_0 beyond the
-  training scene's, and the change of contact depth of supported pairs (metres, :mod:`spread.model.penetration`);
-  ``val/loss`` stays the MSE alone.
+  training scene's (and ``support_gap_weight`` × a supported object's gap above its supporter; metres,
+  :mod:`spread.model.penetration`); ``val/loss`` stays the MSE alone.
 * Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights; optional linear
   warm-up and cosine decay to the trainer's ``max_steps`` (``lr_warmup_steps``, ``lr_schedule``).
 * ``init_from``: a checkpoint whose EMA weights start every weight they have (a ``geometry`` model from a
@@ -109,14 +109,16 @@ class SceneDiffusion(L.LightningModule):
                  min_snr_gamma: float = ARGS.min_snr_gamma, lr_warmup_steps: int = ARGS.lr_warmup_steps,
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
                  init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile,
-                 penetration_weight: float = ARGS.penetration_weight):
+                 penetration_weight: float = ARGS.penetration_weight,
+                 support_gap_weight: float = ARGS.support_gap_weight):
         super().__init__()
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
         check_prediction(prediction)
         loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
-        if not penetration_weight >= 0:
-            raise ValueError(f"model.penetration_weight must be >= 0, got {penetration_weight}")
+        for key, value in (("penetration_weight", penetration_weight), ("support_gap_weight", support_gap_weight)):
+            if not value >= 0:
+                raise ValueError(f"model.{key} must be >= 0, got {value}")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"unknown lr_schedule '{lr_schedule}' (choose from {LR_SCHEDULES})")
         self.save_hyperparameters({
@@ -129,7 +131,7 @@ class SceneDiffusion(L.LightningModule):
             "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
             "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
             "init_from": None if init_from is None else str(init_from), "compile": bool(compile),
-            "penetration_weight": float(penetration_weight),
+            "penetration_weight": float(penetration_weight), "support_gap_weight": float(support_gap_weight),
         })
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
@@ -249,7 +251,8 @@ class SceneDiffusion(L.LightningModule):
             with torch.no_grad():
                 true_translation, true_rotation = poses_from_state(x0, bounds)
             excess = penetration_excess(translation, rotation, true_translation, true_rotation,
-                                        batch["extents"].to(x0), mask, batch["physical"] == PHYSICAL_SUPPORT)
+                                        batch["extents"].to(x0), mask, batch["physical"] == PHYSICAL_SUPPORT,
+                                        float(self.hparams.get("support_gap_weight", 0.0)))
             terms["penetration"] = (excess * alpha_bar.to(excess)).mean()
         return terms
 

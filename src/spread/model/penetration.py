@@ -16,10 +16,12 @@ no candidate). depth > 0: the boxes overlap by that much along the easiest way o
 Boxes are coarse for non-convex objects (a chair under a table, a book inside a bookcase overlap as boxes in a
 correct room), so the term compares with the training scene itself: a pair costs
 ``relu(depth(x̂_0) − max(depth(x_0), 0))`` metres — only the overlap beyond what the real room has. A pair in a
-support relation (physical code 1 either way) costs ``|depth(x̂_0) − depth(x_0)|`` instead: the supported object
-must neither sink into its supporter nor float above it (for a book on a table the depth is minus its gap).
-Penalising penetration alone teaches the model to lift objects off their supporters when unsure: measured at
-2,000 steps (benchmarks/RESULTS.md, issue 33), Col_mesh 0.277 → 0.143 but ASD 144 → 241 mm. A scene's term is
+support relation (physical code 1 either way) may also pay α × its gap: ``relu(depth(x_0) − depth(x̂_0))`` (for a
+book on a table the depth is minus its gap), α = ``support_gap_weight``. Penetration alone (α = 0) teaches the
+model to lift objects off their supporters when unsure, which gravity guidance then closes; α = 1 (sinking and
+floating alike) keeps them on their supporters but then half of them sink > 1 cm. Measured (benchmarks/RESULTS.md,
+issue 33): at 2,000 steps, α = 0 and λ 0.3 gave Col_mesh 0.277 → 0.143 with ASD 144 → 241 mm; at 1,000 steps α = 1
+gave Col_mesh 0.244 → 0.358 with ASD 215 → 154 mm. A scene's term is
 the sum over its pairs divided by its object count, weighted by ᾱ_t of its timestep (x̂_0 of a nearly pure noise
 state is the data mean, whose boxes overlap by construction; at low noise it is the model's actual placement);
 the batch's term is the mean over scenes.
@@ -61,19 +63,19 @@ def box_depths(translation: torch.Tensor, rotation: torch.Tensor, extents: torch
 
 def penetration_excess(translation: torch.Tensor, rotation: torch.Tensor, reference_translation: torch.Tensor,
                        reference_rotation: torch.Tensor, extents: torch.Tensor, mask: torch.Tensor,
-                       supports: torch.Tensor | None = None) -> torch.Tensor:
-    """(B,) per scene: Σ over pairs i < j of real objects of relu(depth − max(reference depth, 0)) (metres), or
-    |depth − reference depth| where ``supports`` (B, N, N) bool, [b, i, j] = i supports j, relates the pair
-    either way; divided by the scene's object count. The poses (B, N, 3) / (B, N, 3, 3) are the prediction, the
-    reference poses the training scene's (no gradient reaches them)."""
+                       supports: torch.Tensor | None = None, gap_weight: float = 0.0) -> torch.Tensor:
+    """(B,) per scene: Σ over pairs i < j of real objects of relu(depth − max(reference depth, 0)) (metres), plus
+    ``gap_weight`` × relu(reference depth − depth) where ``supports`` (B, N, N) bool, [b, i, j] = i supports j,
+    relates the pair either way; divided by the scene's object count. The poses (B, N, 3) / (B, N, 3, 3) are the
+    prediction, the reference poses the training scene's (no gradient reaches them)."""
     depth = box_depths(translation, rotation, extents)
     with torch.no_grad():
         reference = box_depths(reference_translation, reference_rotation, extents)
     pairs = mask[:, :, None] & mask[:, None, :]
     pairs = pairs & torch.ones(pairs.shape[1:], dtype=torch.bool, device=mask.device).triu(1)
     cost = (depth - reference.clamp_min(0)).clamp_min(0)
-    if supports is not None:
+    if supports is not None and gap_weight > 0:
         held = supports | supports.transpose(1, 2)
-        cost = torch.where(held, (depth - reference).abs(), cost)
+        cost = cost + torch.where(held, gap_weight * (reference - depth).clamp_min(0), torch.zeros_like(cost))
     excess = torch.where(pairs, cost, torch.zeros_like(depth))
     return excess.sum((1, 2)) / mask.sum(1).clamp_min(1).to(excess.dtype)

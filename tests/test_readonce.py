@@ -247,7 +247,7 @@ def test_a_ray_sampling_actor_reads_checkpoint_library_and_each_graph_once(datas
                             "samples_per_graph=2"))
     graphs = list_graphs(dataset, "test")
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)  # never a cluster another test started
     try:
         actor = ray.remote(SampleWorker).options(num_cpus=1).remote(cfg, tmp_path / "ray" / "scenes")
         results = ray.get([actor.run.remote(b) for b in batches])

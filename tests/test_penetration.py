@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from spread.model.diffusion import PREDICTIONS, prediction_target, x0_from_prediction
-from spread.model.penetration import box_depths, penetration_excess
+from spread.model.penetration import box_depths, penetration_excess, support_error
 
 
 def yaw(theta: float) -> torch.Tensor:
@@ -77,26 +77,86 @@ def test_excess_is_zero_on_the_training_scene_and_counts_only_overlap_beyond_it(
     assert penetration_excess(pushed, rot, ref_t, rot, ext, torch.tensor([[True, False, True]])).item() == 0.0
 
 
-def test_a_supported_object_costs_alpha_times_its_gap_when_it_floats_and_its_sinking_when_it_sinks():
+def _table_and_book():
     eye = torch.eye(3, dtype=torch.float64)
     rot = torch.stack([eye, eye])[None]
     ext = torch.tensor([[[1.2, 1.0, 0.8], [0.2, 0.06, 0.3]]], dtype=torch.float64)  # table, book
     mask = torch.ones(1, 2, dtype=torch.bool)
     resting = torch.tensor([[[0, 0.5, 0], [0.1, 1.03, 0]]], dtype=torch.float64)
     supports = torch.tensor([[[False, True], [False, False]]])  # the table (0) supports the book (1)
-    for lift, cost in ((0.04, 0.25 * 0.04), (-0.02, 0.02), (0.0, 0.0)):  # α = 0.25 of a gap, all of a sinking
+    return rot, ext, mask, resting, supports
+
+
+def test_a_supported_object_pays_its_rest_height_error_both_ways_and_its_overhang():
+    rot, ext, mask, resting, supports = _table_and_book()
+    for lift, cost in ((0.04, 0.04), (-0.02, 0.02), (0.0, 0.0)):  # floating and sinking alike, metres
         moved = resting.clone()
         moved[0, 1, 1] += lift
-        got = penetration_excess(moved, rot, resting, rot, ext, mask, supports, gap_weight=0.25).item()
-        assert got == pytest.approx(cost / 2), lift  # / 2 objects
-    # α = 0, or without the relation, a floating book costs nothing (only overlap beyond the room's counts)
+        assert support_error(moved, rot, resting, rot, ext, mask, supports).item() == pytest.approx(cost / 2), lift
+    # sliding along the table costs nothing until the book's centre leaves the table's footprint (half x 0.6 m)
+    slid = resting.clone()
+    slid[0, 1, 0] = 0.55
+    assert support_error(slid, rot, resting, rot, ext, mask, supports).item() == 0.0
+    slid[0, 1, 0] = 0.75
+    assert support_error(slid, rot, resting, rot, ext, mask, supports).item() == pytest.approx(0.15 / 2)
+    # the same footprint in the table's own frame: turned 90° its x half extent lies along world z (0.6 m)
+    turned = torch.stack([torch.eye(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)])[None].clone()
+    turned[0, 0] = yaw(math.pi / 2).double()
+    along_z = resting.clone()
+    along_z[0, 1, 0], along_z[0, 1, 2] = 0.0, 0.55
+    assert support_error(along_z, turned, along_z, turned, ext, mask, supports).item() == 0.0
+    along_z_out = along_z.clone()
+    along_z_out[0, 1, 2] = 0.75
+    assert support_error(along_z_out, turned, along_z, turned, ext, mask, supports).item() == pytest.approx(0.15 / 2)
+    # no relation, or the book padding: nothing
     floating = resting.clone()
     floating[0, 1, 1] += 0.04
-    assert penetration_excess(floating, rot, resting, rot, ext, mask).item() == 0.0
-    assert penetration_excess(floating, rot, resting, rot, ext, mask, supports).item() == 0.0
-    # the relation counts whichever way round it is written
-    assert penetration_excess(floating, rot, resting, rot, ext, mask, supports.transpose(1, 2),
-                              gap_weight=1.0).item() == pytest.approx(0.02)
+    assert support_error(floating, rot, resting, rot, ext, mask, torch.zeros_like(supports)).item() == 0.0
+    assert support_error(floating, rot, resting, rot, ext, torch.tensor([[True, False]]), supports).item() == 0.0
+
+
+def test_a_book_on_a_shelf_board_inside_a_tall_case_is_held_at_its_own_board():
+    """The rest height is measured from the supporter's centre against the training room's, so a book on the
+    lower board of a 2 m bookcase (inside the case's box) is neither lifted to the top nor pulled down."""
+    eye = torch.eye(3, dtype=torch.float64)
+    rot = torch.stack([eye, eye])[None]
+    ext = torch.tensor([[[0.8, 2.0, 0.35], [0.2, 0.3, 0.25]]], dtype=torch.float64)
+    mask = torch.ones(1, 2, dtype=torch.bool)
+    on_board = torch.tensor([[[0, 1.0, 0], [0, 0.55, 0.05]]], dtype=torch.float64)  # board at 0.40 m, book 0.40–0.70
+    supports = torch.tensor([[[False, True], [False, False]]])
+    assert support_error(on_board, rot, on_board, rot, ext, mask, supports).item() == 0.0
+    lifted = on_board.clone()
+    lifted[0, 1, 1] = 1.85  # out of the top of the case: box overlap would be 0 here, the support term is not
+    assert support_error(lifted, rot, on_board, rot, ext, mask, supports).item() == pytest.approx(1.3 / 2)
+    # the box-overlap term alone rewards that lift (less overlap than the room's): why support pairs leave it
+    assert penetration_excess(lifted, rot, on_board, rot, ext, mask).item() == 0.0
+    pushed_in = on_board.clone()
+    pushed_in[0, 1, 2] = 0.0  # pushed 5 cm deeper into the case: more overlap than the room's, charged...
+    assert penetration_excess(pushed_in, rot, on_board, rot, ext, mask).item() > 0
+    # ...unless the pair is a support pair measured by the support term
+    assert penetration_excess(pushed_in, rot, on_board, rot, ext, mask, skip=supports).item() == 0.0
+    assert penetration_excess(pushed_in, rot, on_board, rot, ext, mask, skip=supports.transpose(1, 2)).item() == 0.0
+
+
+def test_a_gradient_step_on_the_support_error_brings_a_floating_object_down():
+    rot, ext, mask, resting, supports = _table_and_book()
+    t = resting.clone()
+    t[0, 1, 1] += 0.05
+    t.requires_grad_(True)
+    support_error(t, rot, resting, rot, ext, mask, supports).sum().backward()
+    assert t.grad[0, 1, 1] > 0  # descending: the book moves down
+    assert torch.all(t.grad[0, 0] == 0)  # and the table is not moved by what it supports
+
+
+def test_the_support_quantile_weighs_sinking_against_floating():
+    rot, ext, mask, resting, supports = _table_and_book()
+    for lift, q, cost in ((0.04, 0.8, 0.4 * 0.04), (-0.02, 0.8, 1.6 * 0.02), (0.04, 0.5, 0.04), (-0.02, 0.2, 0.4 * 0.02)):
+        moved = resting.clone()
+        moved[0, 1, 1] += lift
+        got = support_error(moved, rot, resting, rot, ext, mask, supports, quantile=q).item()
+        assert got == pytest.approx(cost / 2), (lift, q)
+    with pytest.raises(ValueError, match="quantile"):
+        support_error(resting, rot, resting, rot, ext, mask, supports, quantile=1.0)
 
 
 def test_a_gradient_step_on_the_excess_moves_the_boxes_apart():
@@ -124,14 +184,14 @@ def test_x0_from_each_prediction_gives_back_the_clean_state(prediction):
     assert torch.allclose(x0_from_prediction(prediction, output, x_t, alpha_bar), x0, atol=1e-4)
 
 
-def _tiny_model(weight: float, root=None):
+def _tiny_model(weight: float, root=None, support: float = 0.0):
     from spread.model.module import SceneDiffusion
 
     cfg = {"dim": 32, "depth": 1, "heads": 2, "dim_head": 8, "edge_dim": 16, "cond_dim": 32, "index_dim": 8,
            "shape_tokens": 4, "shape_dim": 16, "tokenizer_width": 16, "tokenizer_points": 32, "num_points": 32,
            "num_latents": 4}
     return SceneDiffusion("base", cfg, bounds=[-3, 0, -3, 3, 2.5, 3], prediction="v_prediction",
-                          penetration_weight=weight)
+                          penetration_weight=weight, support_weight=support)
 
 
 def _batch():
@@ -170,10 +230,33 @@ def test_the_training_loss_adds_the_weighted_penetration_term_and_val_loss_stays
     assert set(_tiny_model(0.0).training_terms(batch, noise, t)) == {"mse"}
 
 
+def test_the_support_term_joins_the_loss_with_its_weight_and_its_pairs_leave_the_penetration_term():
+    torch.manual_seed(0)
+    batch = _batch()
+    batch["physical"][:, 0, 1] = 1  # object 0 supports object 1 (physical code 1)
+    noise = torch.randn(2, 3, 9)
+    t = torch.tensor([10, 400])
+    both = _tiny_model(2.0, support=0.5)
+    terms = both.training_terms(batch, noise, t)
+    assert set(terms) == {"mse", "penetration", "support"} and terms["support"].item() > 0
+    total = both.training_loss(batch, noise, t)
+    expected = terms["mse"] + 2.0 * terms["penetration"] + 0.5 * terms["support"]
+    assert total.item() == pytest.approx(expected.item(), rel=1e-5)
+    # the same network with the support term off counts pair (0, 1) in the penetration term instead
+    alone = _tiny_model(2.0)
+    alone.network.load_state_dict(both.network.state_dict())
+    only = alone.training_terms(batch, noise, t)
+    assert set(only) == {"mse", "penetration"}
+    assert only["mse"].item() == pytest.approx(terms["mse"].item(), rel=1e-6)
+    assert only["penetration"].item() >= terms["penetration"].item()
+
+
 def test_a_negative_penetration_weight_is_refused_by_name():
     from spread.model.module import SceneDiffusion
 
     with pytest.raises(ValueError, match="penetration_weight"):
         _tiny_model(-1.0)
-    with pytest.raises(ValueError, match="support_gap_weight"):
-        SceneDiffusion("base", _tiny_model(0.0).config, support_gap_weight=-0.5)
+    with pytest.raises(ValueError, match="support_weight"):
+        SceneDiffusion("base", _tiny_model(0.0).config, support_weight=-0.5)
+    with pytest.raises(ValueError, match="support_quantile"):
+        SceneDiffusion("base", _tiny_model(0.0).config, support_quantile=0.0)

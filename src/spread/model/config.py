@@ -97,8 +97,8 @@ class SceneDiffusionConfig:
     trainer's ``max_steps``); init_from: a checkpoint whose EMA weights start every matching weight (a
     ``geometry`` model from a trained ``base`` one: the perceiver and the geometry attention start fresh, the
     latter at zero so step 0 predicts what the base model predicts); penetration_weight: λ of the
-    penetration-aware term on the decoded poses (:mod:`spread.model.penetration`; 0: off); support_gap_weight: α
-    of a supported object's gap in that term.
+    penetration-aware term on the decoded poses (:mod:`spread.model.penetration`; 0: off); support_weight: μ
+    of the support term (support pairs' rest height and footprint against the training room's, same module).
     """
 
     _target_: str = "spread.model.module.SceneDiffusion"
@@ -126,8 +126,12 @@ class SceneDiffusionConfig:
     #: λ of the penetration-aware term on the decoded x̂_0 (:mod:`spread.model.penetration`, metres of box overlap
     #: beyond the training scene's, weighted by ᾱ_t); 0 = off (the paper's loss)
     penetration_weight: float = 0.0
-    #: α: a supported object's gap above its supporter also costs α × the gap in that term (0: penetration only)
-    support_gap_weight: float = 0.0
+    #: μ of the support term (:func:`spread.model.penetration.support_error`: a supported object's rest height
+    #: above its supporter and its overhang, metres, against the training room's, weighted by ᾱ_t); with μ > 0
+    #: the support pairs leave the penetration term. 0 = off
+    support_weight: float = 0.0
+    #: q of that term's pinball loss on the rest height: a sinking costs 2q, a floating 2(1 − q) (0.5: alike)
+    support_quantile: float = 0.5
     #: torch.compile the training loss (forward and backward of the ε-network; the nearest search stays one
     #: opaque operator). The first steps compile (minutes at paper size); then far fewer launches per step.
     compile: bool = False

@@ -7,7 +7,7 @@
   :mod:`spread.model.diffusion`). Whatever it predicts, :meth:`SceneDiffusion.denoiser` hands samplers and
   guidance ε̂.
   With ``penetration_weight`` λ > 0, plus λ × the ᾱ_t-weighted box overlap of the decoded x̂_0 beyond the
-  training scene's (and ``support_gap_weight`` × a supported object's gap above its supporter; metres,
+  training scene's (and ``support_weight`` × the support pairs' rest-height and footprint error; metres,
   :mod:`spread.model.penetration`); ``val/loss`` stays the MSE alone.
 * Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights; optional linear
   warm-up and cosine decay to the trainer's ``max_steps`` (``lr_warmup_steps``, ``lr_schedule``).
@@ -41,7 +41,7 @@ from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, 
                                     x0_from_prediction)
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser, upgrade_state_dict
-from spread.model.penetration import penetration_excess
+from spread.model.penetration import penetration_excess, support_error
 from spread.model.poses import poses_from_state
 from spread.model.recall import graph_recall
 from spread.scene import PHYSICAL_SUPPORT
@@ -110,15 +110,17 @@ class SceneDiffusion(L.LightningModule):
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
                  init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile,
                  penetration_weight: float = ARGS.penetration_weight,
-                 support_gap_weight: float = ARGS.support_gap_weight):
+                 support_weight: float = ARGS.support_weight, support_quantile: float = ARGS.support_quantile):
         super().__init__()
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
         check_prediction(prediction)
         loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
-        for key, value in (("penetration_weight", penetration_weight), ("support_gap_weight", support_gap_weight)):
+        for key, value in (("penetration_weight", penetration_weight), ("support_weight", support_weight)):
             if not value >= 0:
                 raise ValueError(f"model.{key} must be >= 0, got {value}")
+        if not 0 < support_quantile < 1:
+            raise ValueError(f"model.support_quantile must be in (0, 1), got {support_quantile}")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"unknown lr_schedule '{lr_schedule}' (choose from {LR_SCHEDULES})")
         self.save_hyperparameters({
@@ -131,7 +133,8 @@ class SceneDiffusion(L.LightningModule):
             "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
             "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
             "init_from": None if init_from is None else str(init_from), "compile": bool(compile),
-            "penetration_weight": float(penetration_weight), "support_gap_weight": float(support_gap_weight),
+            "penetration_weight": float(penetration_weight), "support_weight": float(support_weight),
+            "support_quantile": float(support_quantile),
         })
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
@@ -219,9 +222,10 @@ class SceneDiffusion(L.LightningModule):
     def training_terms(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
                        network: SceneDenoiser | None = None, penetration: bool = True) -> dict[str, torch.Tensor]:
         """The loss's terms on one batch: ``mse``, the weighted MSE of the ``prediction``, and (when
-        ``penetration`` and ``penetration_weight`` > 0) ``penetration``, the ᾱ_t-weighted box overlap of the
-        decoded x̂_0 beyond the training scene's (metres, :mod:`spread.model.penetration`); ``noise`` (B, N, 9)
-        and ``timesteps`` (B,) are drawn when not given."""
+        ``penetration`` is true) those of :meth:`term_weights` that are on: ``penetration``, the ᾱ_t-weighted box
+        overlap of the decoded x̂_0 beyond the training scene's, ``support``, its support pairs' rest height and
+        overhang error (metres, :mod:`spread.model.penetration`); ``noise`` (B, N, 9) and ``timesteps`` (B,)
+        are drawn when not given."""
         network = network if network is not None else self.network
         x0, mask = batch["x"].float(), batch["mask"].bool()
         B = x0.shape[0]
@@ -242,44 +246,61 @@ class SceneDiffusion(L.LightningModule):
         if self.hparams.get("loss_weighting", "none") != "none":
             weights = loss_weights(self.hparams.loss_weighting, prediction, alpha_bar, self.hparams.min_snr_gamma)
         terms = {"mse": masked_mse(output, target, mask, weights)}
-        if penetration and self.hparams.get("penetration_weight", 0.0) > 0:
+        extra = self.term_weights() if penetration else {}
+        if extra:
             x0_hat = x0_from_prediction(prediction, output, x_t, alpha_bar)
             bounds = network.bounds
             if not torch.isfinite(bounds).all():
-                raise RuntimeError("model.penetration_weight needs the translation bounds (train with a SceneDataModule)")
+                raise RuntimeError(f"model.{next(iter(extra))}_weight needs the translation bounds "
+                                   "(train with a SceneDataModule)")
             translation, rotation = poses_from_state(x0_hat, bounds)
             with torch.no_grad():
                 true_translation, true_rotation = poses_from_state(x0, bounds)
-            excess = penetration_excess(translation, rotation, true_translation, true_rotation,
-                                        batch["extents"].to(x0), mask, batch["physical"] == PHYSICAL_SUPPORT,
-                                        float(self.hparams.get("support_gap_weight", 0.0)))
-            terms["penetration"] = (excess * alpha_bar.to(excess)).mean()
+            poses = (translation, rotation, true_translation, true_rotation, batch["extents"].to(x0), mask)
+            supports = batch["physical"] == PHYSICAL_SUPPORT
+            per_scene = {}
+            if "penetration" in extra:
+                per_scene["penetration"] = penetration_excess(*poses, skip=supports if "support" in extra else None)
+            if "support" in extra:
+                per_scene["support"] = support_error(*poses, supports, float(self.hparams.get("support_quantile", 0.5)))
+            for name, value in per_scene.items():
+                terms[name] = (value * alpha_bar.to(value)).mean()
         return terms
+
+    def term_weights(self) -> dict[str, float]:
+        """The weights of the loss's terms beside the MSE that are on: ``penetration`` (λ) and ``support`` (μ)."""
+        weights = {"penetration": float(self.hparams.get("penetration_weight", 0.0)),
+                   "support": float(self.hparams.get("support_weight", 0.0))}
+        return {name: w for name, w in weights.items() if w > 0}
+
+    def combine(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The loss from :meth:`training_terms`: the MSE plus each other term times its weight."""
+        weights = self.term_weights()
+        loss = terms["mse"]
+        for name, value in terms.items():
+            if name != "mse":
+                loss = loss + weights[name] * value
+        return loss
 
     def training_loss(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
                       network: SceneDenoiser | None = None, penetration: bool = True) -> torch.Tensor:
         """The training loss on one batch: the weighted MSE of the ``prediction`` plus ``penetration_weight`` ×
-        the penetration term (:meth:`training_terms`)."""
-        terms = self.training_terms(batch, noise, timesteps, network, penetration)
-        loss = terms["mse"]
-        if "penetration" in terms:
-            loss = loss + float(self.hparams.penetration_weight) * terms["penetration"]
-        return loss
+        the penetration term and ``support_weight`` × the support term (:meth:`training_terms`)."""
+        return self.combine(self.training_terms(batch, noise, timesteps, network, penetration))
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        loss_fn = self.training_loss
+        size = batch["x"].shape[0]
         if self.hparams.get("compile", False):
             if getattr(self, "_compiled_loss", None) is None:
                 self._compiled_loss = torch.compile(self.training_loss)
-            loss_fn = self._compiled_loss
-        if self.hparams.get("penetration_weight", 0.0) > 0 and not self.hparams.get("compile", False):
-            terms = self.training_terms(batch)
-            loss = terms["mse"] + float(self.hparams.penetration_weight) * terms["penetration"]
-            self.log("train/mse", terms["mse"], batch_size=batch["x"].shape[0])
-            self.log("train/penetration", terms["penetration"], batch_size=batch["x"].shape[0])
+            loss = self._compiled_loss(batch)
         else:
-            loss = loss_fn(batch)
-        self.log("train/loss", loss, batch_size=batch["x"].shape[0], prog_bar=True)
+            terms = self.training_terms(batch)
+            loss = self.combine(terms)
+            if len(terms) > 1:
+                for name, value in terms.items():
+                    self.log(f"train/{name}", value, batch_size=size)
+        self.log("train/loss", loss, batch_size=size, prog_bar=True)
         return loss
 
     def optimizer_step(self, *args, **kwargs) -> None:

@@ -15,16 +15,26 @@ no candidate). depth > 0: the boxes overlap by that much along the easiest way o
 
 Boxes are coarse for non-convex objects (a chair under a table, a book inside a bookcase overlap as boxes in a
 correct room), so the term compares with the training scene itself: a pair costs
-``relu(depth(x̂_0) − max(depth(x_0), 0))`` metres — only the overlap beyond what the real room has. A pair in a
-support relation (physical code 1 either way) may also pay α × its gap: ``relu(depth(x_0) − depth(x̂_0))`` (for a
-book on a table the depth is minus its gap), α = ``support_gap_weight``. Penetration alone (α = 0) teaches the
-model to lift objects off their supporters when unsure, which gravity guidance then closes; α = 1 (sinking and
-floating alike) keeps them on their supporters but then half of them sink > 1 cm. Measured (benchmarks/RESULTS.md,
-issue 33): at 2,000 steps, α = 0 and λ 0.3 gave Col_mesh 0.277 → 0.143 with ASD 144 → 241 mm; at 1,000 steps α = 1
-gave Col_mesh 0.244 → 0.358 with ASD 215 → 154 mm. A scene's term is
-the sum over its pairs divided by its object count, weighted by ᾱ_t of its timestep (x̂_0 of a nearly pure noise
-state is the data mean, whose boxes overlap by construction; at low noise it is the model's actual placement);
-the batch's term is the mean over scenes.
+``relu(depth(x̂_0) − max(depth(x_0), 0))`` metres — only the overlap beyond what the real room has.
+
+That one-sided cost is wrong for a pair in a support relation: a laptop on a bed lies inside the bed's box (the
+headboard makes it tall), so lifting the laptop off the mattress lowers the overlap and costs nothing, sinking it
+costs; under uncertainty the model learns to lift supported objects (measured: ASD 144 → 241 mm at 2,000 steps).
+So with ``support_weight`` μ > 0 the support pairs (i supports j, physical code 1) leave the box-overlap sum and
+pay the support term instead (:func:`support_error`), in the quantities that say "j rests on i" (the gradient
+reaches j only: a supporter is not moved by what it supports):
+
+* the height of j's lowest box point above i's centre, ``(t_j,y − r_j,y) − t_i,y`` with ``r_j,y = Σ_k h_jk |R_j[y, k]|``
+  (metres), against the same height in the training room (it names the shelf board or mattress j rests on
+  without meshes): a pinball loss, 2q × a sinking, 2(1 − q) × a floating, q = ``support_quantile`` (0.5: both
+  alike; Col_mesh counts every sinking > 1 cm, floating costs only ASD, which gravity guidance closes);
+* how far j's centre lies outside i's footprint, in i's frame (local x and z beyond i's half extents, metres),
+  beyond the training room's own overhang.
+
+A scene's term is the sum over its pairs divided by its object count, weighted by ᾱ_t of its timestep (x̂_0 of a
+nearly pure noise state is the data mean, whose boxes overlap by construction; at low noise it is the model's
+actual placement); the batch's term is the mean over scenes. Measured (benchmarks/RESULTS.md, issue 33): at
+2,000 steps λ 0.3 gave Col_mesh 0.277 → 0.143 with ASD 144 → 241 mm (supported objects lifted).
 """
 
 from __future__ import annotations
@@ -63,19 +73,59 @@ def box_depths(translation: torch.Tensor, rotation: torch.Tensor, extents: torch
 
 def penetration_excess(translation: torch.Tensor, rotation: torch.Tensor, reference_translation: torch.Tensor,
                        reference_rotation: torch.Tensor, extents: torch.Tensor, mask: torch.Tensor,
-                       supports: torch.Tensor | None = None, gap_weight: float = 0.0) -> torch.Tensor:
-    """(B,) per scene: Σ over pairs i < j of real objects of relu(depth − max(reference depth, 0)) (metres), plus
-    ``gap_weight`` × relu(reference depth − depth) where ``supports`` (B, N, N) bool, [b, i, j] = i supports j,
-    relates the pair either way; divided by the scene's object count. The poses (B, N, 3) / (B, N, 3, 3) are the
-    prediction, the reference poses the training scene's (no gradient reaches them)."""
+                       skip: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) per scene: Σ over pairs i < j of real objects of relu(depth − max(reference depth, 0)) (metres), divided
+    by the scene's object count; pairs related by ``skip`` (B, N, N) bool either way are left out (the support
+    pairs, when :func:`support_error` measures them). The poses (B, N, 3) / (B, N, 3, 3) are the prediction, the
+    reference poses the training scene's (no gradient reaches them)."""
     depth = box_depths(translation, rotation, extents)
     with torch.no_grad():
         reference = box_depths(reference_translation, reference_rotation, extents)
     pairs = mask[:, :, None] & mask[:, None, :]
     pairs = pairs & torch.ones(pairs.shape[1:], dtype=torch.bool, device=mask.device).triu(1)
+    if skip is not None:
+        pairs = pairs & ~(skip | skip.transpose(1, 2))
     cost = (depth - reference.clamp_min(0)).clamp_min(0)
-    if supports is not None and gap_weight > 0:
-        held = supports | supports.transpose(1, 2)
-        cost = cost + torch.where(held, gap_weight * (reference - depth).clamp_min(0), torch.zeros_like(cost))
     excess = torch.where(pairs, cost, torch.zeros_like(depth))
     return excess.sum((1, 2)) / mask.sum(1).clamp_min(1).to(excess.dtype)
+
+
+def _rest_height(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
+    """(B, N, N): [b, i, j] the height (metres) of j's lowest box point above i's centre; no gradient reaches i
+    (a supporter is not moved by what it supports)."""
+    bottom = translation[..., 1] - (rotation[..., 1, :].abs() * extents / 2).sum(-1)  # (B, N)
+    return bottom[:, None, :] - translation.detach()[:, :, None, 1]
+
+
+def _overhang(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
+    """(B, N, N): [b, i, j] how far j's centre lies outside i's footprint (local x and z beyond its half
+    extents, summed; metres); no gradient reaches i. Assets are y-up in their own frame (DESIGN §3)."""
+    held = translation.detach()
+    offset = translation[:, None, :, :] - held[:, :, None, :]  # c_j − c_i, (B, N, N, 3)
+    local = torch.einsum("bikd,bijk->bijd", rotation.detach(), offset)  # R_iᵀ (c_j − c_i)
+    beyond = (local.abs() - extents[:, :, None, :] / 2).clamp_min(0)
+    return beyond[..., 0] + beyond[..., 2]
+
+
+def support_error(translation: torch.Tensor, rotation: torch.Tensor, reference_translation: torch.Tensor,
+                  reference_rotation: torch.Tensor, extents: torch.Tensor, mask: torch.Tensor,
+                  supports: torch.Tensor, quantile: float = 0.5) -> torch.Tensor:
+    """(B,) per scene: Σ over support pairs (``supports`` (B, N, N) bool, [b, i, j] = i supports j; real objects
+    only) of the rest-height error, 2q × a sinking and 2(1 − q) × a floating (metres; q = ``quantile``, 0.5:
+    |error|; the loss is then least when a share q of the supported objects rest at or above their height in
+    the room), plus relu(overhang − the training room's overhang) (module docstring), divided by the scene's
+    object count. The gradient reaches the supported object only. Poses as in :func:`penetration_excess`."""
+    if not 0 < quantile < 1:
+        raise ValueError(f"the support quantile must be in (0, 1), got {quantile}")
+    height = _rest_height(translation, rotation, extents)
+    overhang = _overhang(translation, rotation, extents)
+    with torch.no_grad():
+        ref_height = _rest_height(reference_translation, reference_rotation, extents)
+        ref_overhang = _overhang(reference_translation, reference_rotation, extents)
+    pairs = supports & mask[:, :, None] & mask[:, None, :]
+    pairs = pairs & ~torch.eye(pairs.shape[1], dtype=torch.bool, device=mask.device)
+    lift = height - ref_height
+    cost = 2 * quantile * (-lift).clamp_min(0) + 2 * (1 - quantile) * lift.clamp_min(0)
+    cost = cost + (overhang - ref_overhang).clamp_min(0)
+    error = torch.where(pairs, cost, torch.zeros_like(cost))
+    return error.sum((1, 2)) / mask.sum(1).clamp_min(1).to(error.dtype)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from spread.model.diffusion import PREDICTIONS, prediction_target, x0_from_prediction
-from spread.model.penetration import box_depths, penetration_excess, support_error
+from spread.model.penetration import box_depths, penetration_excess, support_error, upper_depths
 
 
 def yaw(theta: float) -> torch.Tensor:
@@ -56,6 +56,19 @@ def test_depths_do_not_change_when_the_whole_room_moves_and_turns():
     off = ~torch.eye(5, dtype=torch.bool)
     assert torch.allclose(before[0][off], after[0][off], atol=1e-12)
     assert (before[0][off] > 0).any() and (before[0][off] < 0).any()  # both overlapping and apart pairs seen
+
+
+def test_the_upper_pairs_are_the_matrix_above_its_diagonal_and_the_matrix_is_symmetric():
+    from spread.data.rotation import rot6d_to_matrix
+
+    g = torch.Generator().manual_seed(0)
+    t = torch.randn(2, 6, 3, generator=g, dtype=torch.float64)
+    r = rot6d_to_matrix(torch.randn(2, 6, 6, generator=g, dtype=torch.float64))
+    e = torch.rand(2, 6, 3, generator=g, dtype=torch.float64) + 0.2
+    full = box_depths(t, r, e)
+    i, j = torch.triu_indices(6, 6, 1)
+    assert torch.equal(upper_depths(t, r, e), full[:, i, j])
+    assert torch.allclose(full, full.transpose(1, 2))
 
 
 def test_excess_is_zero_on_the_training_scene_and_counts_only_overlap_beyond_it():

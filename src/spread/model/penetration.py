@@ -45,30 +45,40 @@ import torch
 AXIS_EPS = 1e-6
 
 
+def pair_depths(ti: torch.Tensor, ri: torch.Tensor, hi: torch.Tensor, tj: torch.Tensor, rj: torch.Tensor,
+                hj: torch.Tensor) -> torch.Tensor:
+    """(...,) separating-axis overlap depth (metres) of box pairs given side by side: centres t (..., 3) metres,
+    rotations r (..., 3, 3) world-from-local, full extents h (..., 3) metres (module docstring)."""
+    ai, aj = ri.transpose(-1, -2), rj.transpose(-1, -2)  # (..., 3 axes, 3 xyz): row k is R e_k
+    cross = torch.linalg.cross(ai[..., :, None, :], aj[..., None, :, :], dim=-1).flatten(-3, -2)  # (..., 9, 3)
+    length = cross.norm(dim=-1, keepdim=True)
+    valid = length[..., 0] > AXIS_EPS
+    candidates = torch.cat([ai, aj, cross / length.clamp_min(AXIS_EPS)], dim=-2)  # (..., 15, 3)
+    # radius of a box on each axis: Σ_k h_k/2 |u · R e_k|
+    r_i = ((candidates @ ai.transpose(-1, -2)).abs() * hi[..., None, :] / 2).sum(-1)
+    r_j = ((candidates @ aj.transpose(-1, -2)).abs() * hj[..., None, :] / 2).sum(-1)
+    distance = (candidates @ (tj - ti)[..., :, None])[..., 0].abs()
+    overlap = r_i + r_j - distance
+    keep = torch.cat([valid.new_ones(valid.shape[:-1] + (6,)), valid], dim=-1)
+    return torch.where(keep, overlap, torch.full_like(overlap, torch.inf)).amin(-1)
+
+
 def box_depths(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
     """(B, N, N) separating-axis overlap depth (metres) of every pair of oriented boxes: translation (B, N, 3)
     metres, rotation (B, N, 3, 3) world-from-local, extents (B, N, 3) full canonical sizes (metres). The
     diagonal (a box with itself) is its own smallest full size; callers mask it."""
-    axes = rotation.transpose(-1, -2)  # (B, N, 3 axes, 3 xyz): row k is R e_k
-    half = extents / 2
-    B, N = translation.shape[:2]
-    ai = axes[:, :, None, :, None, :].expand(B, N, N, 3, 3, 3)
-    aj = axes[:, None, :, None, :, :].expand(B, N, N, 3, 3, 3)
-    cross = torch.linalg.cross(ai, aj, dim=-1).reshape(B, N, N, 9, 3)
-    length = cross.norm(dim=-1, keepdim=True)
-    valid = length[..., 0] > AXIS_EPS
-    cross = cross / length.clamp_min(AXIS_EPS)
-    candidates = torch.cat([axes[:, :, None].expand(B, N, N, 3, 3), axes[:, None, :].expand(B, N, N, 3, 3), cross],
-                           dim=3)  # (B, N, N, 15, 3)
-    # radius of box i on each axis: Σ_k h_ik |u · R_i e_k|
-    r_i = (torch.einsum("bijad,bikd->bijak", candidates, axes).abs() * half[:, :, None, None, :]).sum(-1)
-    r_j = (torch.einsum("bijad,bjkd->bijak", candidates, axes).abs() * half[:, None, :, None, :]).sum(-1)
-    offset = translation[:, None, :, :] - translation[:, :, None, :]  # c_j − c_i, (B, N, N, 3)
-    distance = torch.einsum("bijad,bijd->bija", candidates, offset).abs()
-    overlap = r_i + r_j - distance
-    keep = torch.cat([valid.new_ones(B, N, N, 6), valid], dim=3)
-    overlap = torch.where(keep, overlap, torch.full_like(overlap, torch.inf))
-    return overlap.amin(-1)
+    N = translation.shape[1]
+    return pair_depths(translation[:, :, None].expand(-1, -1, N, -1), rotation[:, :, None].expand(-1, -1, N, -1, -1),
+                       extents[:, :, None].expand(-1, -1, N, -1), translation[:, None].expand(-1, N, -1, -1),
+                       rotation[:, None].expand(-1, N, -1, -1, -1), extents[:, None].expand(-1, N, -1, -1))
+
+
+def upper_depths(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
+    """(B, P) the depths of the pairs i < j only (P = N(N − 1)/2, in ``torch.triu_indices(N, N, 1)`` order):
+    :func:`box_depths` without the other half of the matrix."""
+    i, j = torch.triu_indices(translation.shape[1], translation.shape[1], 1, device=translation.device)
+    return pair_depths(translation[:, i], rotation[:, i], extents[:, i], translation[:, j], rotation[:, j],
+                       extents[:, j])
 
 
 def penetration_excess(translation: torch.Tensor, rotation: torch.Tensor, reference_translation: torch.Tensor,
@@ -78,16 +88,17 @@ def penetration_excess(translation: torch.Tensor, rotation: torch.Tensor, refere
     by the scene's object count; pairs related by ``skip`` (B, N, N) bool either way are left out (the support
     pairs, when :func:`support_error` measures them). The poses (B, N, 3) / (B, N, 3, 3) are the prediction, the
     reference poses the training scene's (no gradient reaches them)."""
-    depth = box_depths(translation, rotation, extents)
+    N = mask.shape[1]
+    i, j = torch.triu_indices(N, N, 1, device=mask.device)
+    depth = upper_depths(translation, rotation, extents)  # (B, P)
     with torch.no_grad():
-        reference = box_depths(reference_translation, reference_rotation, extents)
-    pairs = mask[:, :, None] & mask[:, None, :]
-    pairs = pairs & torch.ones(pairs.shape[1:], dtype=torch.bool, device=mask.device).triu(1)
+        reference = upper_depths(reference_translation, reference_rotation, extents)
+    pairs = mask[:, i] & mask[:, j]
     if skip is not None:
-        pairs = pairs & ~(skip | skip.transpose(1, 2))
+        pairs = pairs & ~(skip[:, i, j] | skip[:, j, i])
     cost = (depth - reference.clamp_min(0)).clamp_min(0)
     excess = torch.where(pairs, cost, torch.zeros_like(depth))
-    return excess.sum((1, 2)) / mask.sum(1).clamp_min(1).to(excess.dtype)
+    return excess.sum(1) / mask.sum(1).clamp_min(1).to(excess.dtype)
 
 
 def _rest_height(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:

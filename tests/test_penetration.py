@@ -156,9 +156,11 @@ def test_a_gradient_step_on_the_support_error_brings_a_floating_object_down():
     t = resting.clone()
     t[0, 1, 1] += 0.05
     t.requires_grad_(True)
-    support_error(t, rot, resting, rot, ext, mask, supports).sum().backward()
+    r = rot.clone().requires_grad_(True)
+    support_error(t, r, resting, rot, ext, mask, supports).sum().backward()
     assert t.grad[0, 1, 1] > 0  # descending: the book moves down
     assert torch.all(t.grad[0, 0] == 0)  # and the table is not moved by what it supports
+    assert r.grad is None or torch.all(r.grad == 0)  # nor is the book tipped over to lower its lowest point
 
 
 def test_the_support_quantile_weighs_sinking_against_floating():

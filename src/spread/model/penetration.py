@@ -103,8 +103,9 @@ def penetration_excess(translation: torch.Tensor, rotation: torch.Tensor, refere
 
 def _rest_height(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
     """(B, N, N): [b, i, j] the height (metres) of j's lowest box point above i's centre; no gradient reaches i
-    (a supporter is not moved by what it supports)."""
-    bottom = translation[..., 1] - (rotation[..., 1, :].abs() * extents / 2).sum(-1)  # (B, N)
+    (a supporter is not moved by what it supports) nor j's rotation (tilting a flat object lowers its lowest
+    point: the term would teach books to tip over rather than to come down)."""
+    bottom = translation[..., 1] - (rotation.detach()[..., 1, :].abs() * extents / 2).sum(-1)  # (B, N)
     return bottom[:, None, :] - translation.detach()[:, :, None, 1]
 
 

@@ -266,6 +266,18 @@ def test_the_support_term_joins_the_loss_with_its_weight_and_its_pairs_leave_the
     assert only["penetration"].item() >= terms["penetration"].item()
 
 
+def test_a_checkpoint_saved_with_the_retired_support_gap_weight_still_loads():
+    from spread.model.module import SceneDiffusion
+
+    model = _tiny_model(0.3)
+    hparams = {**dict(model.hparams), "support_gap_weight": 0.0}
+    loaded = SceneDiffusion.from_checkpoint({"hyper_parameters": hparams, "state_dict": model.state_dict()})
+    assert "support_gap_weight" not in loaded.hparams and loaded.hparams["support_weight"] == 0.0
+    with pytest.warns(UserWarning, match="support_gap_weight=1.0 is retired"):
+        SceneDiffusion.from_checkpoint({"hyper_parameters": {**hparams, "support_gap_weight": 1.0},
+                                        "state_dict": model.state_dict()})
+
+
 def test_a_negative_penetration_weight_is_refused_by_name():
     from spread.model.module import SceneDiffusion
 

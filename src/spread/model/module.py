@@ -30,6 +30,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import NamedTuple, Sequence
 
 import lightning as L
@@ -110,8 +111,13 @@ class SceneDiffusion(L.LightningModule):
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
                  init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile,
                  penetration_weight: float = ARGS.penetration_weight,
-                 support_weight: float = ARGS.support_weight, support_quantile: float = ARGS.support_quantile):
+                 support_weight: float = ARGS.support_weight, support_quantile: float = ARGS.support_quantile,
+                 support_gap_weight: float | None = None):
         super().__init__()
+        if support_gap_weight:  # retired (2026-11-27): checkpoints trained before still load and sample
+            warnings.warn(f"support_gap_weight={support_gap_weight} is retired: that term (a supported object's box gap) "
+                          "no longer exists; sampling is unaffected, further training uses model.support_weight instead",
+                          stacklevel=2)
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
         check_prediction(prediction)

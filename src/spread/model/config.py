@@ -127,8 +127,8 @@ class SceneDiffusionConfig:
     #: beyond the training scene's, weighted by ᾱ_t); 0 = off (the paper's loss)
     penetration_weight: float = 0.0
     #: μ of the support term (:func:`spread.model.penetration.support_error`: a supported object's rest height
-    #: above its supporter and its overhang, metres, against the training room's, weighted by ᾱ_t); with μ > 0
-    #: the support pairs leave the penetration term. 0 = off
+    #: above its supporter and its overhang, metres, against the training room's, weighted by ᾱ_t), added to the
+    #: penetration term's. 0 = off
     support_weight: float = 0.0
     #: q of that term's pinball loss on the rest height: a sinking costs 2q, a floating 2(1 − q) (0.5: alike)
     support_quantile: float = 0.5

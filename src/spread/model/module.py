@@ -263,12 +263,12 @@ class SceneDiffusion(L.LightningModule):
             with torch.no_grad():
                 true_translation, true_rotation = poses_from_state(x0, bounds)
             poses = (translation, rotation, true_translation, true_rotation, batch["extents"].to(x0), mask)
-            supports = batch["physical"] == PHYSICAL_SUPPORT
             per_scene = {}
             if "penetration" in extra:
-                per_scene["penetration"] = penetration_excess(*poses, skip=supports if "support" in extra else None)
+                per_scene["penetration"] = penetration_excess(*poses)
             if "support" in extra:
-                per_scene["support"] = support_error(*poses, supports, float(self.hparams.get("support_quantile", 0.5)))
+                per_scene["support"] = support_error(*poses, batch["physical"] == PHYSICAL_SUPPORT,
+                                                     float(self.hparams.get("support_quantile", 0.5)))
             for name, value in per_scene.items():
                 terms[name] = (value * alpha_bar.to(value)).mean()
         return terms

@@ -17,12 +17,13 @@ Boxes are coarse for non-convex objects (a chair under a table, a book inside a 
 correct room), so the term compares with the training scene itself: a pair costs
 ``relu(depth(x̂_0) − max(depth(x_0), 0))`` metres — only the overlap beyond what the real room has.
 
-That one-sided cost is wrong for a pair in a support relation: a laptop on a bed lies inside the bed's box (the
+That one-sided cost misleads a pair in a support relation: a laptop on a bed lies inside the bed's box (the
 headboard makes it tall), so lifting the laptop off the mattress lowers the overlap and costs nothing, sinking it
 costs; under uncertainty the model learns to lift supported objects (measured: ASD 144 → 241 mm at 2,000 steps).
-So with ``support_weight`` μ > 0 the support pairs (i supports j, physical code 1) leave the box-overlap sum and
-pay the support term instead (:func:`support_error`), in the quantities that say "j rests on i" (the gradient
-reaches j only: a supporter is not moved by what it supports):
+So with ``support_weight`` μ > 0 the support pairs (i supports j, physical code 1) also pay the support term
+(:func:`support_error`), in the quantities that say "j rests on i" (the gradient reaches j only: a supporter is
+not moved by what it supports). They stay in the box-overlap sum, which still charges a supported object pushed
+into its supporter's sides, back or headboard (taken out of it, unguided Col_mesh doubled: RESULTS, issue 33):
 
 * the height of j's lowest box point above i's centre, ``(t_j,y − r_j,y) − t_i,y`` with ``r_j,y = Σ_k h_jk |R_j[y, k]|``
   (metres), against the same height in the training room (it names the shelf board or mattress j rests on
@@ -82,20 +83,16 @@ def upper_depths(translation: torch.Tensor, rotation: torch.Tensor, extents: tor
 
 
 def penetration_excess(translation: torch.Tensor, rotation: torch.Tensor, reference_translation: torch.Tensor,
-                       reference_rotation: torch.Tensor, extents: torch.Tensor, mask: torch.Tensor,
-                       skip: torch.Tensor | None = None) -> torch.Tensor:
+                       reference_rotation: torch.Tensor, extents: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """(B,) per scene: Σ over pairs i < j of real objects of relu(depth − max(reference depth, 0)) (metres), divided
-    by the scene's object count; pairs related by ``skip`` (B, N, N) bool either way are left out (the support
-    pairs, when :func:`support_error` measures them). The poses (B, N, 3) / (B, N, 3, 3) are the prediction, the
-    reference poses the training scene's (no gradient reaches them)."""
+    by the scene's object count. The poses (B, N, 3) / (B, N, 3, 3) are the prediction, the reference poses the
+    training scene's (no gradient reaches them)."""
     N = mask.shape[1]
     i, j = torch.triu_indices(N, N, 1, device=mask.device)
     depth = upper_depths(translation, rotation, extents)  # (B, P)
     with torch.no_grad():
         reference = upper_depths(reference_translation, reference_rotation, extents)
     pairs = mask[:, i] & mask[:, j]
-    if skip is not None:
-        pairs = pairs & ~(skip[:, i, j] | skip[:, j, i])
     cost = (depth - reference.clamp_min(0)).clamp_min(0)
     excess = torch.where(pairs, cost, torch.zeros_like(depth))
     return excess.sum(1) / mask.sum(1).clamp_min(1).to(excess.dtype)

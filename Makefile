@@ -21,10 +21,8 @@ install: $(STAMP)
 demo: install
 	$(BIN)/python -m spread.cli.demo --out $(DEMO_DIR)
 
-# three workers on two cores: the suite waits on subprocesses, Ray start-up and files a third of the time
-# (20 CPU-minutes in 15 wall minutes with two workers), so a third worker fills those gaps
 test: install
-	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 3 --dist loadfile --durations=15
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 # the browser tests (tests/test_browser.py) drive Debian's headless chromium; installed here when missing
 browser:

@@ -121,14 +121,15 @@ def cuda_time(fn, warmup: int, steps: int) -> tuple[float, list[float]]:
     """Median seconds of ``fn()`` over ``steps`` timed calls after ``warmup``; all times."""
     import torch
 
+    sync = torch.cuda.synchronize if torch.cuda.is_available() else (lambda: None)
     for _ in range(warmup):
         fn()
-    torch.cuda.synchronize()
+    sync()
     times = []
     for _ in range(steps):
         t0 = time.perf_counter()
         fn()
-        torch.cuda.synchronize()
+        sync()
         times.append(time.perf_counter() - t0)
     return statistics.median(times), times
 
@@ -167,8 +168,8 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: 
         print(f"  train {name}: {median:.4f} s/step", flush=True)
         del m, opt, batch
         torch.cuda.empty_cache()
-    out["train/ratio"] = round(out["train/geometry/s_per_step"] / out["train/base/s_per_step"], 3) \
-        if "train/geometry/s_per_step" in out else None
+    tag = " compiled" if compile_step else ""
+    out[f"train{tag}/ratio"] = round(out[f"train/geometry{tag}/s_per_step"] / out[f"train/base{tag}/s_per_step"], 3)
     return out
 
 
@@ -209,7 +210,49 @@ def nearest_rows(N: int, M: int) -> dict:
                 continue
             ms, _ = cuda_time(lambda: search(world), 1, 3 if name != "pruned" else 1)
             out[f"nearest/B{B}/{name}_ms"] = round(ms * 1000, 2)
+    out |= kernel_rows(N, M)
     print("  " + ", ".join(f"{k}={v}" for k, v in out.items()), flush=True)
+    return out
+
+
+def kernel_rows(N: int, M: int, device: str = "cuda", sizes: tuple = (4, 64)) -> dict:
+    """The two Triton kernels of the step's geometry features (``spread::pose_states``, ``spread::signed_nearest``)
+    against their torch paths on the same GPU at B = 4 (largest differences: metres), and ms per call at B = 64;
+    ``broken``: kernels Triton could not build or run here (the torch path ran instead, with a warning)."""
+    import torch
+
+    from spread.model import nearest_dense as nd
+    from spread.model.geometry import prepare_points
+
+    out = {}
+    for B in sizes:
+        batch = synthetic_batch(B, N, M, seed=5, device=device)
+        cloud = prepare_points(batch["points"], batch["normals"], batch["mask"], morton=True)
+        offset = torch.tensor(BOUNDS[:3], device=device)
+        scale = (torch.tensor(BOUNDS[3:], device=device) - offset) / 2
+        offset = offset + scale
+        x = batch["x"].float()
+
+        def kernels():
+            world, normals, boxes = torch.ops.spread.pose_states(x, offset, scale, cloud.points, cloud.normals,
+                                                                 nd.BLOCK_K)
+            return (world, normals, boxes), torch.ops.spread.signed_nearest(world, normals, boxes, cloud.valid,
+                                                                             cloud.no_neighbour)
+
+        if B == sizes[0]:
+            (world, normals, boxes), (index, dist) = kernels()
+            tw, tn, tb = nd.pose_torch(x, offset, scale, cloud.points.float(), cloud.normals.float(), nd.BLOCK_K)
+            out["kernels/pose_max_diff_m"] = float(max((world - tw).abs().max(), (boxes - tb).abs().max()))
+            out["kernels/pose_normals_max_diff"] = float((normals - tn).abs().max())
+            flat = world.reshape(B, -1, 3)
+            ref = nd._search_torch(flat, cloud.valid, M)
+            ref_d = nd.sign_distances(flat, normals.reshape(B, -1, 3), ref, cloud.valid, M, float(cloud.no_neighbour))
+            out["kernels/signed_nearest_max_diff_m"] = float((dist - ref_d).abs().max())
+            out["kernels/signed_nearest_points_off_1e-5"] = int(((dist - ref_d).abs() > 1e-5).sum())
+        else:
+            ms, _ = cuda_time(kernels, 1, 5)
+            out[f"kernels/B{B}/pose+signed_nearest_ms"] = round(ms * 1000, 2)
+    out["kernels/broken"] = sorted(nd._BROKEN) or "none"
     return out
 
 
@@ -325,7 +368,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small sizes: a check of the script itself")
     ap.add_argument("--data", type=Path, help="a dataset folder: adds the guided pipeline rows")
     ap.add_argument("--skip-counts", action="store_true")
-    ap.add_argument("--only", nargs="*", default=None, help="CUDA parts: train nearest sample pipeline")
+    ap.add_argument("--only", nargs="*", default=None, help="parts: train nearest sample compile pipeline")
     ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
     ap.add_argument("--profile", action="store_true", help="print the top CUDA kernels of one training step")
     ap.add_argument("--json", type=Path)
@@ -344,22 +387,29 @@ def main() -> None:
         print("operator counts (CPU tensors) ...", flush=True)
         results |= counts(B, N, M, args.quick)
     parts = args.only or ["train", "nearest", "sample", "pipeline"]
+    if args.compile and "compile" not in parts:
+        parts = [*parts, "compile"]
+
+    def save() -> None:  # after every part: a slot that ends early still returns what was measured
+        results["bench_seconds"] = round(time.perf_counter() - t_start, 1)
+        if args.json:
+            args.json.write_text(json.dumps(results, indent=1, default=str))
+
+    steps = 4 if args.quick else 10
     if torch.cuda.is_available():
         torch.backends.cuda.matmul.allow_tf32 = False  # float32 means float32 (the kernel's comparisons too)
-        if "train" in parts:
-            results |= train_rows(B, N, M, 4 if args.quick else 10, False, profile=args.profile)
-            if args.compile:
-                results |= train_rows(B, N, M, 4 if args.quick else 10, True)
-        if "nearest" in parts:
-            results |= nearest_rows(N, M)
-        if "sample" in parts:
-            results |= sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50)
+        cuda_parts = {"train": lambda: train_rows(B, N, M, steps, False, profile=args.profile),
+                      "nearest": lambda: nearest_rows(N, M),
+                      "sample": lambda: sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50),
+                      "compile": lambda: train_rows(B, N, M, steps, True)}
+        for part in ("train", "nearest", "sample", "compile"):  # the compiled step last: it compiles for minutes
+            if part in parts:
+                results |= cuda_parts[part]()
+                save()
     if args.data is not None and "pipeline" in parts:
         results |= pipeline_rows(args.data, 4 if args.quick else 64, args.quick)
-    results["bench_seconds"] = round(time.perf_counter() - t_start, 1)
+    save()
     print(table(results))
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=1, default=str))
 
 
 if __name__ == "__main__":

@@ -277,3 +277,40 @@ def test_bf16_and_cuda_graph_settings_sample_on_cpu_and_bf16_stays_close(tmp_pat
     assert 0 < (states["bf16"] - states["32"]).abs().max() < 0.1
     with pytest.raises(ValueError, match="precision"):
         ScenePipeline(model, None, "ddim-5", precision="fp8")
+
+
+def test_the_training_loss_compiles_as_one_graph_and_equals_eager():
+    """``model.compile=true`` compiles the loss whole (no data-dependent shapes or branches: the shape tokens of a
+    compiled step encode every slot and zero the padding; the bounds check is eager-only) and changes nothing:
+    the same loss and gradients, padding objects and shared shapes included (aot_eager: torch.compile's tracing
+    without a C++ compiler)."""
+    from spread.model import ModelConfig
+    from spread.model.module import SceneDiffusion
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_model import synthetic_batch
+
+    torch.manual_seed(0)
+    model = SceneDiffusion("geometry", ModelConfig(num_points=32, nearest="dense", dim=32, depth=1, num_latents=8,
+                                                   heads=2), bounds=BOUNDS)
+    model.train()
+    batch = synthetic_batch(3, 5, 32)
+    batch["mask"][2, 3:] = False
+    batch["shape_index"] = keys = torch.tensor([[0, 1, 0, 2, 1], [3, 3, 4, 5, 6], [7, 8, 7, 0, 0]])
+    for b, n, first in ((0, 2, (0, 0)), (0, 4, (0, 1)), (1, 1, (1, 0)), (2, 2, (2, 0))):  # one shape, one cloud
+        assert keys[b, n] == keys[first]
+        for key in ("points", "normals"):
+            batch[key][b, n] = batch[key][first]
+
+    def loss_and_grads(fn):
+        torch.manual_seed(1)  # the loss draws its noise
+        model.zero_grad(set_to_none=True)
+        loss = fn(batch, timesteps=torch.tensor([100, 700, 400]))
+        loss.backward()
+        return loss.detach(), [p.grad.clone() for p in model.network.parameters() if p.grad is not None]
+
+    eager, eager_grads = loss_and_grads(model.training_loss)
+    compiled, compiled_grads = loss_and_grads(torch.compile(model.training_loss, backend="aot_eager", fullgraph=True))
+    assert torch.allclose(compiled, eager, atol=1e-6), (compiled, eager)
+    assert len(compiled_grads) == len(eager_grads) > 0
+    worst = max(float((a - b).abs().max() / b.abs().max().clamp(min=1e-12)) for a, b in zip(compiled_grads, eager_grads))
+    assert worst < 1e-5, worst  # shared shapes: one encoding and a gathered gradient against one per slot

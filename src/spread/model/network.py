@@ -112,11 +112,12 @@ class SceneDenoiser(nn.Module):
         cond = Condition(mask=mask, spatial=spatial, physical=physical, edges=self.edge_encoder(spatial, physical),
                          shape_tokens=self.shape_encoder(batch), mount=batch.get("mount"), real=real_objects(mask))
         if self.perceiver is not None:
-            if not torch.isfinite(self.bounds).all():
+            if not torch.compiler.is_compiling() and not torch.isfinite(self.bounds).all():  # eager: checked
                 raise RuntimeError("SceneDenoiser: translation bounds are not set "
                                    "(call set_bounds(stats['bounds_translations']))")
             cond.search = resolve_search(getattr(self.config, "nearest", "pruned"), mask.device)
-            # sampling: each object's points in Morton order once, so the dense search skips most tiles
+            # sampling: each object's points in Morton order once, so the dense search skips most tiles (a
+            # dataset's points come so ordered: spread.data.points; training sorts nothing per step)
             cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
                                         morton=cond.search == "dense" and not self.training)
             cond.static = self.perceiver.static(cond.cloud.points, mask)

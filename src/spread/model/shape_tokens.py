@@ -73,6 +73,12 @@ class PointCloudTokenizer(ShapeEncoder):
         points = batch["points"][:, :, : self.num_points]
         normals = batch["normals"][:, :, : self.num_points]
         B, N = mask.shape
+        if torch.compiler.is_compiling():  # a compiled step has no data-dependent shapes: every slot, padding zeroed
+            keep = mask[..., None, None]
+            points = torch.where(keep, points.float(), 0.0).flatten(0, 1)
+            normals = torch.where(keep, normals.float(), 0.0).flatten(0, 1)
+            tokens = self.encode(points, normals).view(B, N, self.num_tokens, self.token_dim)
+            return torch.where(keep, tokens, 0.0).to(batch["points"].dtype)
         out = points.new_zeros(B, N, self.num_tokens, self.token_dim)
         points, normals = points[mask].float(), normals[mask].float()
         keys = batch.get("shape_index")

@@ -147,6 +147,37 @@ def test_points_are_fixed_per_asset_and_seed(root):
     assert (table_points[0].numpy()[:, None, :] == pts[None]).all(-1).any(1).all(), "a subset of the cache"
 
 
+def test_morton_codes_interleave_the_three_axes_bits_and_order_points_by_them():
+    from spread.data.points import MORTON_BITS, morton_order
+
+    g = torch.Generator().manual_seed(3)
+    pts = torch.rand(2, 3, 200, 3, generator=g) * torch.tensor([2.0, 0.1, 0.7])  # boxes of any proportions
+    order = morton_order(pts)
+    lo, hi = pts.amin(-2, keepdim=True), pts.amax(-2, keepdim=True)
+    q = ((pts - lo) / (hi - lo) * 31).round().long()
+    code = torch.zeros_like(q[..., 0])
+    for bit in range(MORTON_BITS):  # the textbook interleaving: bit b of axis a is bit 3b + a
+        for axis in range(3):
+            code |= ((q[..., axis] >> bit) & 1) << (3 * bit + axis)
+    assert torch.equal(order, torch.argsort(code, dim=-1, stable=True))
+    assert torch.equal(morton_order(pts[1, 2]), order[1, 2]), "any leading shape"
+    many = torch.rand(2048, 3, generator=g) * torch.tensor([2.0, 0.1, 0.7])
+    tile_extent = lambda p: (p.view(-1, 64, 3).amax(1) - p.view(-1, 64, 3).amin(1)).norm(dim=-1).mean()
+    assert tile_extent(many[morton_order(many)]) < 0.6 * tile_extent(many), "tiles of 64 points: compact boxes"
+
+
+def test_an_assets_points_come_in_morton_order_the_same_subset_as_drawn(root):
+    from spread.data.points import asset_points, morton_order, point_indices
+
+    ds = SceneDataset(root, "train", num_points=M, seed=0)
+    pts, _ = ds.library.surface_points("chair")
+    points, normals = asset_points(ds.library, "chair", M, seed=0)
+    drawn = pts[point_indices("chair", M, len(pts), 0)]
+    assert sorted(map(tuple, points.tolist())) == sorted(map(tuple, drawn.tolist())), "the same draw, reordered"
+    assert torch.equal(morton_order(torch.from_numpy(points)), torch.arange(M)), "already in Morton order"
+    assert np.allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-5), "normals follow their points"
+
+
 def test_bad_scene_file_fails_with_its_name(root, tmp_path):
     import shutil
 

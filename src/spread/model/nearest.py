@@ -27,6 +27,8 @@ from __future__ import annotations
 import torch
 from einops import rearrange
 
+from spread.data.points import morton_order  # noqa: F401 - the model's name for it
+
 #: Default bound on the entries of one chunk's distance block (float32: 4 bytes each → 64 MiB).
 CHUNK_ELEMENTS = 1 << 24
 #: Largest block of query points (per scene) that shares one candidate set.
@@ -35,20 +37,6 @@ BLOCK = 256
 REPRESENTATIVES = 32
 #: Slack (metres) added to the upper bound so float rounding can never drop the true neighbour's object.
 BOUND_SLACK = 1e-4
-#: Morton code resolution: bits per axis.
-MORTON_BITS = 5
-
-
-def morton_order(points: torch.Tensor) -> torch.Tensor:
-    """(B, N, M) permutation putting each object's points (B, N, M, 3) in Z-curve order of their box."""
-    lo, hi = points.amin(2, keepdim=True), points.amax(2, keepdim=True)
-    cells = (1 << MORTON_BITS) - 1
-    q = ((points - lo) / (hi - lo).clamp(min=1e-9) * cells).round().long().clamp(0, cells)
-    code = torch.zeros_like(q[..., 0])
-    for bit in range(MORTON_BITS):
-        for axis in range(3):
-            code |= ((q[..., axis] >> bit) & 1) << (3 * bit + axis)
-    return torch.argsort(code, dim=-1, stable=True)
 
 
 def query_blocks(num_objects: int, num_points: int, block: int) -> list[tuple[int, int]]:

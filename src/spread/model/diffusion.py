@@ -324,8 +324,8 @@ class Sampler:
             if len(generator) != B:
                 raise ValueError(f"Sampler.sample: {len(generator)} generators for a batch of {B}")
             rows = max(N, NOISE_ROWS)  # a fixed-size draw: the same first rows at any padding
-            x = torch.stack([torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:N]
-                             .to(device) for g in generator])
+            draws = [torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:N] for g in generator]
+            x = torch.stack([d.to(draws[0].device) for d in draws])  # one copy to the device, not one per scene
             generator = list(generator)
         else:
             noise_device = generator.device if generator is not None else device

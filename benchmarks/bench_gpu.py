@@ -44,10 +44,16 @@ BOUNDS = [-3.0, 0.0, -3.0, 3.0, 2.5, 3.0]
 
 
 def synthetic_batch(B: int, N: int, M: int, seed: int = 0, device="cpu") -> dict:
-    """B rooms of N boxes (0.2–1.2 m) on a 6 m floor, M surface samples each (bench_model's rooms)."""
+    """B rooms of N boxes (0.2–1.2 m) on a 6 m floor, M surface samples each (bench_model's rooms), each object's
+    points in Morton order as a dataset gives them (spread.data.points)."""
     from bench_model import synthetic_batch as rooms
 
-    return {k: v.to(device) for k, v in rooms(B, N, M, seed).items()}
+    from spread.data.points import morton_order
+
+    batch = rooms(B, N, M, seed)
+    order = morton_order(batch["points"])[..., None].expand(-1, -1, -1, 3)
+    batch["points"], batch["normals"] = batch["points"].gather(2, order), batch["normals"].gather(2, order)
+    return {k: v.to(device) for k, v in batch.items()}
 
 
 def model(variant: str, M: int, device="cpu", nearest: str = "dense", **overrides):
@@ -135,18 +141,19 @@ def cuda_time(fn, warmup: int, steps: int) -> tuple[float, list[float]]:
 
 
 def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: bool = False,
-               pruned: bool = False) -> dict:
+               pruned: bool = False, mode: str | None = None, variants=("base", "geometry")) -> dict:
+    """``mode``: torch.compile's mode for the compiled step (``reduce-overhead``: CUDA graphs)."""
     import torch
 
     out = {}
-    rows = [("base", "dense"), ("geometry", "dense")] + ([("geometry", "pruned")] if pruned else [])
+    rows = [(v, "dense") for v in variants] + ([("geometry", "pruned")] if pruned else [])
     for variant, nearest in rows:
         m = model(variant, M, "cuda", nearest=nearest)
         m.train()
         batch = synthetic_batch(B, N, M, device="cuda")
         params = [p for p in m.network.parameters() if p.requires_grad]
         opt = torch.optim.AdamW(params, lr=1e-4, weight_decay=1e-4, fused=True)
-        loss_fn = torch.compile(m.training_loss) if compile_step else m.training_loss
+        loss_fn = torch.compile(m.training_loss, mode=mode) if compile_step else m.training_loss
 
         def step():
             with torch.autocast("cuda", dtype=torch.bfloat16):
@@ -162,14 +169,16 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: 
         median, _ = cuda_time(step, 3, n)
         if profile:
             print(profile_step(step), flush=True)
-        name = variant + ("" if nearest == "dense" else " (pruned search)") + (" compiled" if compile_step else "")
+        name = variant + ("" if nearest == "dense" else " (pruned search)") + (" compiled" if compile_step else "") \
+            + (f" {mode}" if compile_step and mode else "")
         out[f"train/{name}/s_per_step"] = round(median, 4)
         out[f"train/{name}/peak_GiB"] = round(torch.cuda.max_memory_allocated() / 2 ** 30, 2)
         print(f"  train {name}: {median:.4f} s/step", flush=True)
         del m, opt, batch
         torch.cuda.empty_cache()
-    tag = " compiled" if compile_step else ""
-    out[f"train{tag}/ratio"] = round(out[f"train/geometry{tag}/s_per_step"] / out[f"train/base{tag}/s_per_step"], 3)
+    tag = (" compiled" if compile_step else "") + (f" {mode}" if compile_step and mode else "")
+    if f"train/base{tag}/s_per_step" in out and f"train/geometry{tag}/s_per_step" in out:
+        out[f"train{tag}/ratio"] = round(out[f"train/geometry{tag}/s_per_step"] / out[f"train/base{tag}/s_per_step"], 3)
     return out
 
 
@@ -244,8 +253,9 @@ def kernel_rows(N: int, M: int, device: str = "cuda", sizes: tuple = (4, 64)) ->
             tw, tn, tb = nd.pose_torch(x, offset, scale, cloud.points.float(), cloud.normals.float(), nd.BLOCK_K)
             out["kernels/pose_max_diff_m"] = float(max((world - tw).abs().max(), (boxes - tb).abs().max()))
             out["kernels/pose_normals_max_diff"] = float((normals - tn).abs().max())
-            flat = world.reshape(B, -1, 3)
-            ref = nd._search_torch(flat, cloud.valid, M)
+            flat = world.reshape(B, -1, 3)  # exact reference: brute force (torch's CPU path prunes, inexact)
+            vp = cloud.valid[:, :, None].expand(-1, -1, M).reshape(B, -1)
+            ref = nd._brute_force(flat, vp, M, max_elements=1 << 28)
             ref_d = nd.sign_distances(flat, normals.reshape(B, -1, 3), ref, cloud.valid, M, float(cloud.no_neighbour))
             out["kernels/signed_nearest_max_diff_m"] = float((dist - ref_d).abs().max())
             out["kernels/signed_nearest_points_off_1e-5"] = int(((dist - ref_d).abs() > 1e-5).sum())
@@ -292,15 +302,24 @@ def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
         states[name] = run()
         out[f"sample/ddim{steps}/{name}/s_per_scene"] = round(median / B, 4)
         print(f"  DDIM-{steps} {name}: {median / B:.4f} s/scene ({median:.2f} s per batch of {B})", flush=True)
-        if name == "graph bf16":  # no step may read the device on the host
-            torch.cuda.set_sync_debug_mode("error")
-            try:
-                run()
-                out["sample/host_syncs_in_loop"] = 0
-            except RuntimeError as err:
-                out["sample/host_syncs_in_loop"] = f"sync: {str(err).splitlines()[0][:80]}"
-            finally:
-                torch.cuda.set_sync_debug_mode(0)
+        if name == "graph bf16":  # no step may read the device on the host: count the reads, say where they are
+            import warnings
+
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                torch.cuda.set_sync_debug_mode("warn")
+                try:
+                    run()
+                finally:
+                    torch.cuda.set_sync_debug_mode(0)
+            reads = [w for w in caught if "synchroniz" in str(w.message)]
+            out["sample/host_syncs_in_loop"] = len(reads)
+            where = {}
+            for w in reads:
+                site = f"{Path(w.filename).name}:{w.lineno}"
+                where[site] = where.get(site, 0) + 1
+            if where:
+                out["sample/host_sync_sites"] = where
     out["sample/graph_vs_eager_max_diff"] = float((states["graph fp32"] - states["eager fp32"]).abs().max())
     out["sample/bf16_vs_fp32_max_diff"] = float((states["graph bf16"] - states["eager fp32"]).abs().max())
     return out
@@ -371,6 +390,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, help="parts: train nearest sample compile pipeline")
     ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
     ap.add_argument("--profile", action="store_true", help="print the top CUDA kernels of one training step")
+    ap.add_argument("--compile-mode", default=None, help="torch.compile mode of the compiled step (reduce-overhead)")
+    ap.add_argument("--variants", nargs="*", default=["base", "geometry"], help="variants of the compiled step")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args()
@@ -401,7 +422,8 @@ def main() -> None:
         cuda_parts = {"train": lambda: train_rows(B, N, M, steps, False, profile=args.profile),
                       "nearest": lambda: nearest_rows(N, M),
                       "sample": lambda: sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50),
-                      "compile": lambda: train_rows(B, N, M, steps, True)}
+                      "compile": lambda: train_rows(B, N, M, steps, True, mode=args.compile_mode,
+                                                    variants=args.variants)}
         for part in ("train", "nearest", "sample", "compile"):  # the compiled step last: it compiles for minutes
             if part in parts:
                 results |= cuda_parts[part]()

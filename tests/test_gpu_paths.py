@@ -314,3 +314,29 @@ def test_the_training_loss_compiles_as_one_graph_and_equals_eager():
     assert len(compiled_grads) == len(eager_grads) > 0
     worst = max(float((a - b).abs().max() / b.abs().max().clamp(min=1e-12)) for a, b in zip(compiled_grads, eager_grads))
     assert worst < 1e-5, worst  # shared shapes: one encoding and a gathered gradient against one per slot
+
+
+def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_cuda_graph_step(monkeypatch):
+    """``model.compile=true model.compile_mode=reduce-overhead`` (CUDA graphs on a GPU): the step's loss is compiled
+    once in that mode, each step is marked as a new CUDA-graph step, and the loss handed on is not the graph's own
+    buffer; an unknown mode is refused by name."""
+    from spread.model import ModelConfig
+    from spread.model.module import SceneDiffusion
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_model import synthetic_batch
+
+    real_compile, modes, marks = torch.compile, [], []
+    monkeypatch.setattr(torch, "compile", lambda fn, mode=None: modes.append(mode) or real_compile(fn, backend="aot_eager"))
+    monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
+    config = ModelConfig(num_points=16, nearest="dense", dim=32, depth=1, num_latents=8, heads=2)
+    torch.manual_seed(0)
+    model = SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="reduce-overhead").train()
+    batch = synthetic_batch(2, 4, 16)
+    for _ in range(2):
+        loss = model.training_step(batch, 0)
+        loss.backward()
+        assert torch.isfinite(loss) and loss.grad_fn is not None
+    assert modes == ["reduce-overhead"] and len(marks) == 2
+    assert model.hparams["compile_mode"] == "reduce-overhead"
+    with pytest.raises(ValueError, match="compile_mode.*'fast'"):
+        SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="fast")

@@ -94,6 +94,8 @@ def slice_batch(batch: dict, count: int) -> dict:
 
 #: The defaults of SceneDiffusion's arguments (one source: :class:`~spread.model.config.SceneDiffusionConfig`).
 ARGS = SceneDiffusionConfig
+#: torch.compile's modes for ``model.compile_mode``.
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 
 
 class SceneDiffusion(L.LightningModule):
@@ -110,6 +112,7 @@ class SceneDiffusion(L.LightningModule):
                  min_snr_gamma: float = ARGS.min_snr_gamma, lr_warmup_steps: int = ARGS.lr_warmup_steps,
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
                  init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile,
+                 compile_mode: str = ARGS.compile_mode,
                  penetration_weight: float = ARGS.penetration_weight,
                  support_weight: float = ARGS.support_weight, support_quantile: float = ARGS.support_quantile,
                  support_gap_weight: float | None = None):
@@ -127,6 +130,8 @@ class SceneDiffusion(L.LightningModule):
                 raise ValueError(f"model.{key} must be >= 0, got {value}")
         if not 0 < support_quantile < 1:
             raise ValueError(f"model.support_quantile must be in (0, 1), got {support_quantile}")
+        if compile_mode not in COMPILE_MODES:
+            raise ValueError(f"model.compile_mode must be one of {COMPILE_MODES}, got '{compile_mode}'")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"unknown lr_schedule '{lr_schedule}' (choose from {LR_SCHEDULES})")
         self.save_hyperparameters({
@@ -139,6 +144,7 @@ class SceneDiffusion(L.LightningModule):
             "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
             "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
             "init_from": None if init_from is None else str(init_from), "compile": bool(compile),
+            "compile_mode": str(compile_mode),
             "penetration_weight": float(penetration_weight), "support_weight": float(support_weight),
             "support_quantile": float(support_quantile),
         })
@@ -297,9 +303,14 @@ class SceneDiffusion(L.LightningModule):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         size = batch["x"].shape[0]
         if self.hparams.get("compile", False):
+            mode = self.hparams.get("compile_mode", "default")
             if getattr(self, "_compiled_loss", None) is None:
-                self._compiled_loss = torch.compile(self.training_loss)
-            loss = self._compiled_loss(batch)
+                self._compiled_loss = torch.compile(self.training_loss, mode=mode)
+            if mode == "reduce-overhead":  # a new step: the graphs' outputs of the last one may be overwritten
+                torch.compiler.cudagraph_mark_step_begin()
+                loss = self._compiled_loss(batch).clone()  # logged after the next replay: not the graph's buffer
+            else:
+                loss = self._compiled_loss(batch)
         else:
             terms = self.training_terms(batch)
             loss = self.combine(terms)

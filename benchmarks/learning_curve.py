@@ -135,6 +135,37 @@ def run_guidance(run: Path, extra: list[str]):
     return to_object(cfg).guidance, overrides + list(extra)
 
 
+def sample_graphs(pipeline, sources: list, generators: list, guided: bool) -> tuple[dict, dict]:
+    """One batch of test graphs ``sources`` (scenes) sampled by ``pipeline`` (one generator per graph) and, when
+    ``guided``, the same sampler output refined by the pipeline's guidance callback (what sampling with
+    ``guidance=refine`` does): ({mode: [scene with the sampled poses]}, {mode: seconds for the batch}); modes
+    ``unguided`` and ``guided``."""
+    import torch
+
+    from spread.sampling.pipeline import repair_rotations
+
+    batch = pipeline.encode(sources)
+    s0 = time.perf_counter()
+    x, mask = pipeline.sample_states(batch, generators)
+    states, seconds = {"unguided": x}, {"unguided": time.perf_counter() - s0}
+    if guided:
+        s0 = time.perf_counter()
+        (callback,) = pipeline.callbacks(batch, sources)
+        eps_fn, _ = pipeline.model.denoiser(batch, pipeline.use_ema, pipeline.graph_scale)
+        with torch.no_grad():
+            states["guided"] = callback.after(x.clone(), eps_fn)
+        seconds["guided"] = seconds["unguided"] + time.perf_counter() - s0
+    scenes = {}
+    for mode, st in states.items():
+        poses = pipeline.model.decode(st, mask)
+        scenes[mode] = []
+        for b, src in enumerate(sources):
+            k = src.num_objects
+            R, _ = repair_rotations(poses.rotation[b, :k].numpy())
+            scenes[mode].append(src.with_poses(poses.translation[b, :k].numpy(), R, scene_id=src.scene_id))
+    return scenes, seconds
+
+
 def score(scene, library, stability_runs: int) -> dict:
     from spread.metrics import scene_collisions, scene_graph_recall, scene_stability, scene_support_distance
 
@@ -155,7 +186,6 @@ def cmd_eval(args) -> None:
     import torch
 
     from spread.io import write_text_atomic
-    from spread.sampling.pipeline import repair_rotations
     from spread.sampling.run import DataSplit, SamplingConfig
     from spread.sampling.worker import load_pipeline
 
@@ -198,24 +228,10 @@ def cmd_eval(args) -> None:
             for start in range(0, n, args.batch):
                 idx = list(range(start, min(n, start + args.batch)))
                 sources = [data.read(i) for i in idx]
-                batch = pipeline.encode(sources)
                 gens = [torch.Generator().manual_seed(args.seed * 1_000_003 + i) for i in idx]
-                s0 = time.perf_counter()
-                x, mask = pipeline.sample_states(batch, gens)
-                states, seconds = {"unguided": x}, {"unguided": time.perf_counter() - s0}
-                if "guided" in todo:  # refine the same sampler output (what sampling with guidance=refine does)
-                    s0 = time.perf_counter()
-                    (callback,) = pipeline.callbacks(batch, sources)
-                    eps_fn, _ = pipeline.model.denoiser(batch, pipeline.use_ema, pipeline.graph_scale)
-                    with torch.no_grad():
-                        states["guided"] = callback.after(x.clone(), eps_fn)
-                    seconds["guided"] = seconds["unguided"] + time.perf_counter() - s0
+                scenes, seconds = sample_graphs(pipeline, sources, gens, guided="guided" in todo)
                 for mode in todo:
-                    poses = pipeline.model.decode(states[mode], mask)
-                    for b, src in enumerate(sources):
-                        k = src.num_objects
-                        R, _ = repair_rotations(poses.rotation[b, :k].numpy())
-                        scene = src.with_poses(poses.translation[b, :k].numpy(), R, scene_id=src.scene_id)
+                    for scene in scenes[mode]:
                         record = score(scene, data.library, simulated[mode])
                         record["sample_seconds"] = round(seconds[mode] / len(idx), 4)
                         records[mode].append(record)

@@ -9,17 +9,22 @@ as ``learning_curve.py eval`` at its default seed), optionally refines them (``-
 ``--guidance`` overrides), and prints one table: per supporter category (the ten with the largest summed |distance|)
 its support pairs, mean |ASD| and mean signed distance (mm; + floating or beside, − sunk: the metric's
 min signed distance, :mod:`spread.metrics.support_distance`) and the share of pairs more than 5 cm off; then
-the colliding pairs (depth > 1 cm, :mod:`spread.metrics.collision`) by kind — one table per mode (the test rooms,
-unguided, guided): a support pair of the graph, a pair
-whose boxes overlap in the test room itself (a chair under a table), or any other pair.
+the colliding pairs (depth > 1 cm, :mod:`spread.metrics.collision`) by kind: a support pair of the graph, a pair
+whose boxes overlap in the test room itself (a chair under a table), or any other pair. One table per mode: the
+test rooms, unguided, guided. The guidance is the one ``learning_curve.py eval`` refines with (``guidance=refine``,
+the run's own overrides, then ``--guidance``); the sampling loop is that script's too.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
 
 FAR = 0.05  # metres: a support pair "off" by more than this
 
@@ -88,16 +93,13 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch
 
-    from spread.configs import compose, to_object
-    from spread.sampling.pipeline import repair_rotations
+    from learning_curve import run_guidance, sample_graphs
     from spread.sampling.run import DataSplit, SamplingConfig
     from spread.sampling.worker import load_pipeline
 
     torch.set_num_threads(1)
-    guidance = None
-    if args.guided:
-        cfg = compose("sample", ["ckpt=x", "data.root=x", "out_dir=x", "guidance=refine", *args.guidance])
-        guidance = to_object(cfg).guidance
+    # the guidance learning_curve.py eval refines with: guidance=refine, the run's own overrides, then --guidance
+    guidance = run_guidance(Path(args.ckpt).parent.parent, args.guidance)[0] if args.guided else None
     pipeline = load_pipeline(SamplingConfig(ckpt=args.ckpt, data=DataSplit(args.test, "test"), out_dir=args.test,
                                             sampler="ddim-50", device="cpu", guidance=guidance,
                                             graph_scale=args.graph_scale))
@@ -107,20 +109,9 @@ def main(argv: list[str] | None = None) -> None:
     for start in range(0, n, 16):
         idx = list(range(start, min(n, start + 16)))
         sources = [data.read(i) for i in idx]
-        batch = pipeline.encode(sources)
-        x, mask = pipeline.sample_states(batch, [torch.Generator().manual_seed(i) for i in idx])
-        modes = {"unguided": x}
-        if guidance is not None:
-            (callback,) = pipeline.callbacks(batch, sources)
-            eps_fn, _ = pipeline.model.denoiser(batch, pipeline.use_ema, pipeline.graph_scale)
-            with torch.no_grad():
-                modes["guided"] = callback.after(x.clone(), eps_fn)
-        for mode, st in modes.items():
-            poses = pipeline.model.decode(st, mask)
-            for b, src in enumerate(sources):
-                k = src.num_objects
-                R, _ = repair_rotations(poses.rotation[b, :k].numpy())
-                states[mode].append((src.with_poses(poses.translation[b, :k].numpy(), R, scene_id=src.scene_id), src))
+        scenes, _ = sample_graphs(pipeline, sources, [torch.Generator().manual_seed(i) for i in idx], guided=args.guided)
+        for mode, sampled in scenes.items():
+            states[mode] += list(zip(sampled, sources))
     print(table("test rooms", *tally([(s, s) for _, s in states["unguided"]], data.library)))
     for mode, pairs in states.items():
         print()

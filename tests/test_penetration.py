@@ -236,7 +236,7 @@ def test_the_training_loss_adds_the_weighted_penetration_term_and_val_loss_stays
     assert set(terms) == {"mse", "penetration"} and terms["penetration"].item() >= 0
     total = model.training_loss(batch, noise, t)
     assert total.item() == pytest.approx(terms["mse"].item() + 2.0 * terms["penetration"].item(), rel=1e-5)
-    assert model.training_loss(batch, noise, t, penetration=False).item() == pytest.approx(terms["mse"].item(), rel=1e-6)
+    assert model.training_loss(batch, noise, t, pose_terms=False).item() == pytest.approx(terms["mse"].item(), rel=1e-6)
     total.backward()
     assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.network.parameters())
     # off by default: the paper's loss is the MSE alone

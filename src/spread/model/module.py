@@ -232,9 +232,9 @@ class SceneDiffusion(L.LightningModule):
         return alphas[timesteps.long()]
 
     def training_terms(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
-                       network: SceneDenoiser | None = None, penetration: bool = True) -> dict[str, torch.Tensor]:
+                       network: SceneDenoiser | None = None, pose_terms: bool = True) -> dict[str, torch.Tensor]:
         """The loss's terms on one batch: ``mse``, the weighted MSE of the ``prediction``, and (when
-        ``penetration`` is true) those of :meth:`term_weights` that are on: ``penetration``, the ᾱ_t-weighted box
+        ``pose_terms`` is true) those of :meth:`term_weights` that are on: ``penetration``, the ᾱ_t-weighted box
         overlap of the decoded x̂_0 beyond the training scene's, ``support``, its support pairs' rest height and
         overhang error (metres, :mod:`spread.model.penetration`); ``noise`` (B, N, 9) and ``timesteps`` (B,)
         are drawn when not given."""
@@ -258,7 +258,7 @@ class SceneDiffusion(L.LightningModule):
         if self.hparams.get("loss_weighting", "none") != "none":
             weights = loss_weights(self.hparams.loss_weighting, prediction, alpha_bar, self.hparams.min_snr_gamma)
         terms = {"mse": masked_mse(output, target, mask, weights)}
-        extra = self.term_weights() if penetration else {}
+        extra = self.term_weights() if pose_terms else {}
         if extra:
             x0_hat = x0_from_prediction(prediction, output, x_t, alpha_bar)
             bounds = network.bounds
@@ -295,10 +295,10 @@ class SceneDiffusion(L.LightningModule):
         return loss
 
     def training_loss(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
-                      network: SceneDenoiser | None = None, penetration: bool = True) -> torch.Tensor:
+                      network: SceneDenoiser | None = None, pose_terms: bool = True) -> torch.Tensor:
         """The training loss on one batch: the weighted MSE of the ``prediction`` plus ``penetration_weight`` ×
         the penetration term and ``support_weight`` × the support term (:meth:`training_terms`)."""
-        return self.combine(self.training_terms(batch, noise, timesteps, network, penetration))
+        return self.combine(self.training_terms(batch, noise, timesteps, network, pose_terms))
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         size = batch["x"].shape[0]
@@ -363,8 +363,8 @@ class SceneDiffusion(L.LightningModule):
         gen = torch.Generator().manual_seed(int(self.hparams.seed) * 1_000_003 + batch_idx)
         noise = torch.randn(x0.shape, generator=gen).to(x0)
         timesteps = torch.randint(0, self.noise_schedule.config.num_train_timesteps, (B,), generator=gen)
-        # the denoising MSE alone, so val/loss compares across runs with and without the penetration term
-        loss = self.training_loss(batch, noise, timesteps, network=self.ema.module, penetration=False)
+        # the denoising MSE alone, so val/loss compares across runs with and without the pose terms (penetration, support)
+        loss = self.training_loss(batch, noise, timesteps, network=self.ema.module, pose_terms=False)
         self.log("val/loss", loss, batch_size=B, sync_dist=True, prog_bar=True)
         if batch_idx == 0 and self._sampling_due():
             scenes = slice_batch(batch, int(self.hparams.val_sample_scenes))

@@ -363,7 +363,7 @@ class SceneDiffusion(L.LightningModule):
         gen = torch.Generator().manual_seed(int(self.hparams.seed) * 1_000_003 + batch_idx)
         noise = torch.randn(x0.shape, generator=gen).to(x0)
         timesteps = torch.randint(0, self.noise_schedule.config.num_train_timesteps, (B,), generator=gen)
-        # the denoising MSE alone, so val/loss compares across runs with and without the pose terms (penetration, support)
+        # the denoising MSE alone: val/loss compares across runs with and without the pose terms
         loss = self.training_loss(batch, noise, timesteps, network=self.ema.module, pose_terms=False)
         self.log("val/loss", loss, batch_size=B, sync_dist=True, prog_bar=True)
         if batch_idx == 0 and self._sampling_due():

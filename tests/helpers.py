@@ -9,10 +9,12 @@
   ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a subprocess.
 * ``scene_of``: a small hand-made :class:`spread.scene.Scene` from asset ids and poses (the one builder of the
   tests' scenes).
+* ``load_script``: a script of ``benchmarks/`` imported as a module (its functions tested without a subprocess).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -28,12 +30,21 @@ QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=fals
 FAST_TRAIN = [*QUIET, "logger=csv", "trainer.num_sanity_val_steps=0", "data.batch_size=4"]
 FAST_SAMPLE = ["sampler.steps=4", "progress=false", "renders=2", "figures=0", "batch_size=2", "workers=0"]
 SCRIPTS = Path(sys.executable).parent
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def compose(config_name: str, *overrides: str):
     from spread.configs import compose as compose_config
 
     return compose_config(config_name, list(overrides))
+
+
+def load_script(name: str):
+    """``benchmarks/<name>.py`` imported as a module named ``name`` (the folder is not put on sys.path)."""
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def run_script(name: str, *args: str, timeout: int = 600, ok: bool = True) -> subprocess.CompletedProcess:

@@ -1,22 +1,17 @@
 """benchmarks/learning_curve.py: pooling as spread-evaluate does (ratios of sums), bootstrap intervals over
 scenes, the checkpoint ↔ clock bookkeeping, checkpoint selection, and the report's table and plot."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "learning_curve.py"
+from helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def lc():
-    spec = importlib.util.spec_from_file_location("learning_curve", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("learning_curve")
 
 
 def record(matches, pairs, colliding, objects, asd, unchanged=None, stab_pairs=None):

@@ -3,8 +3,6 @@ its colliding pairs by kind, on a hand-made room whose answers are known."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,17 +10,12 @@ import pytest
 from spread.assets.assemble import box_asset, library_from_specs
 from spread.scene import PHYSICAL_SUPPORT
 
-from helpers import scene_of
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "support_pairs.py"
+from helpers import load_script, scene_of
 
 
 @pytest.fixture(scope="module")
 def sp():
-    spec = importlib.util.spec_from_file_location("support_pairs", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("support_pairs")
 
 
 def test_a_sunk_support_pair_a_pair_overlapping_in_the_room_and_another_pair_are_told_apart(sp, tmp_path):

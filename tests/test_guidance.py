@@ -184,6 +184,73 @@ def test_floating_cup_descends_to_its_table(lib):
     assert torch.equal(x[0, 1, 3:], x0[0, 1, 3:])
 
 
+def settled(lib, weight, ids=("table", "cup", "crate"), physical=((0, 1),)):
+    return guide(lib, list(ids), physical=list(physical),
+                 config=GuidanceConfig("refine", collision=0, gravity=0, relation=0, terms={"settle": weight}))
+
+
+def test_settle_closes_the_fraction_lambda_of_each_gap_per_step_and_then_rests(lib):
+    """G_S: a cup 30 cm above its table and a crate 20 cm above the floor close half their gaps in one step of
+    λ = 0.5 (G_H would move both by the same λ·s_y², whatever their gaps), rest within the gravity band after
+    twenty, and only their heights change."""
+    g = settled(lib, 0.5)
+    cup_gap, crate_gap = 0.30, 0.20
+    x0 = state([[0.0, y_on("table"), 0.0], [0.2, y_on("cup", TABLE_TOP, cup_gap), 0.1],
+                [2.0, y_on("crate", 0.0, crate_gap), 0.0]])[None]
+
+    def gaps(x):
+        y = metres(x)[0, :, 1]
+        return float(y[1] - SIZES["cup"][1] / 2 - TABLE_TOP), float(y[2] - SIZES["crate"][1] / 2)
+
+    x1 = g.step(x0)
+    np.testing.assert_allclose(gaps(x1), [GAP + 0.5 * (cup_gap - GAP), GAP + 0.5 * (crate_gap - GAP)], atol=1e-9)
+    x = run_steps(g, x1, 19)
+    for gap in gaps(x):
+        assert GAP - 1e-9 <= gap <= GAP + TOL + 1e-9, gap
+    assert float(g.losses(x, which=["settle"])["settle"]) == 0.0
+    assert torch.equal(x[0, 0], x0[0, 0]), "the table does not move"
+    assert torch.allclose(x[0, 1:, [0, 2]], x0[0, 1:, [0, 2]]) and torch.equal(x[0, 1:, 3:], x0[0, 1:, 3:])
+    sunk = state([[0.0, y_on("table"), 0.0], [0.2, y_on("cup", TABLE_TOP, -0.03), 0.1]])[None]
+    up = settled(lib, 0.5, ids=("table", "cup")).step(sunk)
+    assert math.isclose(float(metres(up)[0, 1, 1] - metres(sunk)[0, 1, 1]), 0.5 * (0.03 + GAP), abs_tol=1e-7)  # float32 meshes
+
+
+def test_settle_leaves_a_cup_beside_its_table_where_gravity_lifts_it_to_the_tables_top(lib):
+    g = settled(lib, 0.5, ids=("table", "cup"))
+    x = state([[0.0, y_on("table"), 0.0], [0.9, y_on("cup", 0.3), 0.0]])[None]  # beside the table, below its top
+    assert float(g.losses(x, which=["settle"])["settle"]) == 0.0 and torch.equal(g.step(x), x)
+    assert float(g.losses(x, which=["gravity"])["gravity"]) > 0.3  # G_H: the gap to the top of the table's box
+
+
+def test_settle_gradient_matches_finite_differences(lib):
+    g = settled(lib, 1.0)
+    tilt = Rotation.from_rotvec([0.05, 0.4, -0.03])
+    x = state([[0.0, y_on("table"), 0.0], [0.1, TABLE_TOP + 0.04, 0.05], [2.0, 0.3, 0.0]],
+              [Rotation.identity(), tilt, tilt])[None]
+    entries = [(0, i, c) for i in (1, 2) for c in range(9)]
+    auto, fd = finite_difference(lambda s: g.losses(s, which=["settle"])["settle"], x, entries)
+    assert abs(auto[1]) > 1e-3 and abs(auto[10]) > 1e-3  # y channels
+    np.testing.assert_allclose(auto, fd, rtol=1e-5, atol=1e-8)
+
+
+def test_over_moves_a_cup_off_its_tables_edge_by_the_fraction_lambda_of_its_mean_outside_distance(lib):
+    """G_O: a cup wholly beyond the table's +x edge (every vertex outside, the edge straight) moves in x by
+    λ times the mean distance of its vertices to the table's footprint, in one step, and nothing else moves."""
+    g = guide(lib, ["table", "cup"], physical=[(0, 1)],
+              config=GuidanceConfig("refine", collision=0, gravity=0, relation=0, terms={"over": 0.5}))
+    edge, beyond = SIZES["table"][0] / 2, 0.1
+    x0 = state([[0.0, y_on("table"), 0.0], [edge + beyond + SIZES["cup"][0] / 2, y_on("cup", TABLE_TOP), 0.1]])[None]
+    mean_outside = beyond + SIZES["cup"][0] / 2  # the cup's vertices lie at beyond and beyond + its width, as many
+    x = g.step(x0)
+    moved = metres(x)[0] - metres(x0)[0]
+    assert math.isclose(float(moved[1, 0]), -0.5 * mean_outside, abs_tol=1e-7), float(moved[1, 0])
+    assert abs(float(moved[1, 1])) < 1e-12 and abs(float(moved[1, 2])) < 1e-7
+    assert torch.equal(x[0, 0], x0[0, 0]) and torch.allclose(x[0, 1, 3:], x0[0, 1, 3:], atol=1e-9)
+    inside = run_steps(g, x, 40)
+    assert float(g.losses(inside, which=["over"])["over"]) < 1e-10
+    assert metres(inside)[0, 1, 0] <= edge - SIZES["cup"][0] / 2 + 1e-3
+
+
 def test_cup_off_centre_is_held_by_its_table_not_the_floor(lib):
     """The release's centre ray misses a table that is not under the cup's centre; the mesh gap does not."""
     g = guide(lib, ["table", "cup"], physical=[(0, 1)])

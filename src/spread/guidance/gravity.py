@@ -18,6 +18,10 @@ gradient reaches only j's pose: ``∂d_j = ∂v*_y`` of the vertex attaining the
 
 Then r_j = d_j − ε and ``G_H = Σ_j |r_j| [r_j > θ_H or r_j < 0]`` over a scene's objects (paper eq.
 G_H; release ε = 5e-4 m, θ_H = 2e-3 m): floating and sinking are penalised, a gap in [ε, ε + θ_H] is not.
+
+``settle`` (G_S, not the paper's; ``guidance.terms.settle=λ``) measures the same gaps, leaves out a supported
+object that is beside its supporters rather than over them, and is quadratic, scaled so that a step of weight λ
+closes the fraction λ of each gap (:func:`settle_loss`); same schedule (``gravity_from``) and y-only step.
 """
 
 from __future__ import annotations
@@ -66,9 +70,14 @@ def ray_heights(points: torch.Tensor, start: torch.Tensor, triangles: torch.Tens
     return out.scatter_reduce(0, s[:, None].expand(-1, H), y, "amax")
 
 
-def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor) -> torch.Tensor:
+def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
+                  beside: str = "roof") -> torch.Tensor:
     """Gap d (B, N) metres from each object to what it rests on (module docstring); ``world`` (B, N, V, 3)
-    posed vertices, ``hull`` (B, N, H, 3) their hull vertices, ``supports`` (B, N, N) bool."""
+    posed vertices, ``hull`` (B, N, H, 3) their hull vertices, ``supports`` (B, N, N) bool. ``beside``: the gap of
+    a supported object none of whose vertices is over a supporter — ``roof``: to the top of the supporters' AABBs
+    (G_H), ``nan``: none (NaN; the settle term leaves such an object to relation guidance)."""
+    if beside not in ("roof", "nan"):
+        raise ValueError(f"vertical_gaps: beside must be 'roof' or 'nan', got {beside!r}")
     B, N, H, _ = hull.shape
     t = meshes.tensors(world.device, world.dtype)
     hmask = t["hmask"]
@@ -94,7 +103,7 @@ def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
         hit = torch.isfinite(h) & hmask
     over = torch.where(hit, y - torch.where(hit, h, torch.zeros_like(h)), torch.full_like(y, torch.inf)).amin(-1)
     supported = supports.any(1)
-    to_support = torch.where(hit.any(-1), over, lowest - roof)
+    to_support = torch.where(hit.any(-1), over, lowest - roof if beside == "roof" else torch.full_like(over, torch.nan))
     return torch.where(supported, to_support, lowest)
 
 
@@ -103,6 +112,22 @@ def gravity_loss(gaps: torch.Tensor, mask: torch.Tensor, gap: float, tolerance: 
     r = torch.where(mask, gaps - gap, torch.zeros_like(gaps))
     bad = mask & ((r > tolerance) | (r < 0))
     return torch.where(bad, r.abs(), torch.zeros_like(r)).sum(-1)
+
+
+def settle_loss(gaps: torch.Tensor, mask: torch.Tensor, bounds: torch.Tensor, gap: float,
+                tolerance: float) -> torch.Tensor:
+    """G_S per scene (B,): ``½ Σ (r / s_y)²`` over real objects with a gap (not NaN) and r = d − ε outside
+    [0, θ_H]; s_y = (y_max − y_min) / 2 of ``bounds`` (6,), the metres per unit of the normalised y channel.
+
+    Its gradient on the normalised y of an object is r / s_y, so a step of weight λ moves the object by λ·r
+    metres: λ is the fraction of its gap (floating or sinking) an object closes per step — whatever the room's
+    height range and the gap's size. G_H (Σ |r|) moves every object by the same λ·s_y² per step instead: too
+    little for an object 30 cm above a bed in the iterations it has, and past its target for a small gap."""
+    scale = 0.5 * (bounds[4] - bounds[1])
+    r = gaps - gap
+    bad = mask & torch.isfinite(r) & ((r > tolerance) | (r < 0))
+    r = torch.where(bad, r / scale, torch.zeros_like(r))
+    return 0.5 * (r * r).sum(-1)
 
 
 def _y_only(grad: torch.Tensor, config) -> torch.Tensor:
@@ -119,3 +144,8 @@ register_term(GuidanceTerm(
                                         ctx.config.gap, ctx.config.tolerance),
     start=lambda config: config.gravity_from, edit=_y_only,
     description="G_H: vertical gap to the supporter or the floor outside [ε, ε + θ_H]"))
+register_term(GuidanceTerm(
+    "settle", lambda ctx: settle_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports, beside="nan"),
+                                      ctx.falls, ctx.bounds, ctx.config.gap, ctx.config.tolerance),
+    start=lambda config: config.gravity_from, edit=_y_only,
+    description="G_S: the gravity gap closed by the fraction λ per step (objects over a supporter or on the floor)"))

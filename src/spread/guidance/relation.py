@@ -10,6 +10,10 @@ V_ij is the set of such vertices (s > 1e-6). Paper eq. G_R, per scene:
 
 with E the scene's support pairs (the release divides by the pairs with some vertex outside
 instead; the paper's |E| is used here). The gradient reaches j's translation (x, z) and rotation.
+
+``over`` (G_O, not the paper's; ``guidance.terms.over=λ``) measures the same outside vertices in the normalised
+state's units and is quadratic per pair, not averaged over the pairs, so that a step of weight λ closes about the
+fraction λ of each pair's mean outside distance (:func:`over_loss`).
 """
 
 from __future__ import annotations
@@ -50,14 +54,14 @@ def polygon_distance(points: torch.Tensor, polygons: torch.Tensor) -> torch.Tens
     return torch.where(inside, torch.zeros_like(dist), dist)
 
 
-def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor) -> torch.Tensor:
-    """G_R per scene (B,) for posed vertices (B, N, V, 3), their hull vertices (B, N, H, 3) and
-    ``supports`` (B, N, N) bool ([b, i, j]: i supports j)."""
-    B = world.shape[0]
-    out = world.new_zeros(B) + 0 * world.sum()
+def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes,
+                      supports: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Per support pair (``supports`` (B, N, N) bool, [b, i, j]: i supports j): its scene b (S,) and the mean
+    distance (S,) of j's vertices outside i's footprint, ``Σ_{α ∈ V_ij} s(α, i) / |V_ij|`` (0 when none is), in the
+    units of ``world`` (B, N, V, 3) and ``hull`` (B, N, H, 3); None when the batch has no support pair."""
     pairs = supports.nonzero()
     if not len(pairs):
-        return out
+        return None
     b, i, j = pairs.unbind(1)
     t = meshes.tensors(world.device, world.dtype)
     # supporters' footprints (numpy, detached), one per distinct supporter, padded to K by repetition
@@ -72,11 +76,44 @@ def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
     polygons = torch.from_numpy(padded).to(world.device, world.dtype)[rows]  # (S, K, 2)
     s = polygon_distance(world[b, j][..., [0, 2]], polygons)  # (S, V)
     outside = t["vmask"][b, j] & (s > OUTSIDE)
-    per_pair = (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
+    return b, (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
+
+
+def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor) -> torch.Tensor:
+    """G_R per scene (B,) for posed vertices (B, N, V, 3), their hull vertices (B, N, H, 3) and
+    ``supports`` (B, N, N) bool ([b, i, j]: i supports j)."""
+    B = world.shape[0]
+    out = world.new_zeros(B) + 0 * world.sum()
+    found = outside_distances(world, hull, meshes, supports)
+    if found is None:
+        return out
+    b, per_pair = found
     edges = torch.zeros(B, device=world.device, dtype=world.dtype).index_add_(0, b, torch.ones_like(per_pair))
     return out.index_add(0, b, per_pair) / edges.clamp_min(1)
+
+
+def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
+              bounds: torch.Tensor) -> torch.Tensor:
+    """G_O per scene (B,): ``½ Σ_{(i,j) ∈ E} d̄_ij²``, d̄_ij the mean distance of j's vertices outside i's
+    footprint measured in the normalised state's units (x and z divided by their half-ranges of ``bounds``).
+
+    Not the paper's G_R (which divides by |V_ij|·|E|, so a room of many support pairs moves each object slowly): its
+    gradient on a supported object's normalised translation is d̄_ij along the way in, so a step of weight λ
+    closes about the fraction λ of that mean distance, whatever the room holds."""
+    B = world.shape[0]
+    out = world.new_zeros(B) + 0 * world.sum()
+    scale = world.new_ones(3)
+    scale[[0, 2]] = 0.5 * (bounds[[3, 5]] - bounds[[0, 2]]).to(world)
+    found = outside_distances(world / scale, hull / scale, meshes, supports)
+    if found is None:
+        return out
+    b, per_pair = found
+    return out.index_add(0, b, 0.5 * per_pair * per_pair)
 
 
 register_term(GuidanceTerm(
     "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held),
     description="G_R: supported vertices outside the supporter's xz hull"))
+register_term(GuidanceTerm(
+    "over", lambda ctx: over_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds),
+    description="G_O: a supported object's outside vertices drawn over its supporter, the fraction λ per step"))

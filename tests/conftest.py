@@ -5,7 +5,26 @@ import os
 os.environ.setdefault("WANDB_MODE", "disabled")
 os.environ.setdefault("HYDRA_FULL_ERROR", "1")
 
+import shutil
+import tempfile
+
 import pytest
+
+_OWN_CACHE: list[str] = []
+
+
+def pytest_configure(config):
+    """One cache folder per test session (helpers.SESSION_CACHE), made by the first process (xdist's controller,
+    before its workers start, so they inherit it) and removed by it at the end."""
+    if "SPREAD_TEST_CACHE" not in os.environ:
+        _OWN_CACHE.append(tempfile.mkdtemp(prefix="spread-test-cache-"))
+        os.environ["SPREAD_TEST_CACHE"] = _OWN_CACHE[0]
+
+
+def pytest_unconfigure(config):
+    for folder in _OWN_CACHE:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop("SPREAD_TEST_CACHE", None)
 
 
 @pytest.fixture(autouse=True, scope="module")

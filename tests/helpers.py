@@ -3,7 +3,8 @@
 * ``SMALL_MODEL``: the tiny model shrunk further (tests check plumbing, not learning).
 * ``compose``: a Hydra config of ``conf/`` with overrides; ``run_script``: a console script in a subprocess
   (wandb disabled) that must succeed.
-* ``make_dataset``: a small generated dataset (its own asset library); ``settled_room``: one generated,
+* ``asset_library``: the generated asset library (all or some categories) in a folder, its files copied from one
+  build shared by the test session; ``make_dataset``: a small generated dataset (its own asset library); ``settled_room``: one generated,
   physics-settled kitchen of ≥ 8 objects and its small library (for physics and export tests);
   ``train_in_process`` /
   ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a subprocess.
@@ -14,8 +15,11 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
+import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -55,14 +59,45 @@ def run_script(name: str, *args: str, timeout: int = 600, ok: bool = True) -> su
     return proc
 
 
+#: A folder shared by the test session's processes (tests/conftest.py sets it): builds that many tests repeat.
+SESSION_CACHE = "SPREAD_TEST_CACHE"
+
+
+def asset_library(root: Path, categories=None, seed: int = 0):
+    """``build_library(root, categories, seed=seed, processes=2)``: the same library, built once per test session.
+
+    The first call for these arguments builds it in the session's cache folder (under a file lock: the xdist
+    workers share it); every call copies those files into ``root`` (byte for byte what a build there writes: the
+    library's files hold no absolute path) and loads it, so a test may change its copy freely. Without a session
+    cache it simply builds."""
+    from filelock import FileLock
+
+    from spread.assets import AssetLibrary
+    from spread.assets.build import build_library
+
+    cache = os.environ.get(SESSION_CACHE)
+    if cache:
+        key = hashlib.sha256(json.dumps([list(categories) if categories is not None else None, seed]).encode())
+        shared = Path(cache) / f"assets-{key.hexdigest()[:16]}"
+        shared.parent.mkdir(parents=True, exist_ok=True)
+        with FileLock(f"{shared}.lock"):
+            if not (shared / "index.json").exists():
+                partial = shared.with_name(shared.name + ".partial")
+                shutil.rmtree(partial, ignore_errors=True)
+                build_library(partial, categories=categories, seed=seed, processes=2, progress=False)
+                partial.rename(shared)
+        shutil.copytree(shared, root, dirs_exist_ok=True)
+        return AssetLibrary.load(root)
+    return build_library(root, categories=categories, seed=seed, processes=2, progress=False)
+
+
 def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 8, categories=None) -> Path:
     """``root/assets`` (the asset library) and ``root/data`` (rooms; 20% val, 30% test); returns ``root/data``."""
-    from spread.assets.build import build_library
     from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
     from spread.procgen.room_types import RoomConfig
 
     lib = root / "assets"
-    build_library(lib, categories=categories, seed=0, processes=2, progress=False)
+    asset_library(lib, categories=categories)
     out = root / "data"
     generate_dataset(out, DatasetConfig(rooms=rooms, seed=seed, processes=2, renders=0, val_fraction=0.2,
                                         test_fraction=0.3, assets=AssetSource(copy_from=str(lib)),

@@ -20,6 +20,8 @@ import pytest
 from spread.io import append_jsonl, read_jsonl
 from spread.scene import Scene, list_scene_files, read_scene, write_scene
 
+from helpers import asset_library
+
 ROOMS = 6
 FAST = ["protocol.stability_runs=2", "ray.num_cpus=2", "progress=false", "renders=3"]
 BAD = {"bad_missing_asset": "unknown asset 'no_such_asset_00'", "bad_nan": "non-finite",
@@ -32,12 +34,11 @@ METRIC_KEYS = ("col_mesh", "grecall", "asd", "stability", "still_fraction", "dis
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     """A dataset folder whose test split holds ROOMS generated rooms (val/train empty)."""
-    from spread.assets.build import build_library
     from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
     from spread.procgen.room_types import RoomConfig
 
     lib = tmp_path_factory.mktemp("evlib") / "assets"
-    build_library(lib, seed=0, processes=2, progress=False)
+    asset_library(lib)
     out = tmp_path_factory.mktemp("evdata") / "data"
     generate_dataset(out, DatasetConfig(rooms=ROOMS, seed=5, processes=2, renders=0, val_fraction=0.0,
                                         test_fraction=1.0, assets=AssetSource(copy_from=str(lib)),

@@ -19,15 +19,16 @@ from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset,
 from spread.procgen.quality import MAX_PENETRATION, MAX_SUPPORT_DISTANCE, check_room
 from spread.scene import list_scene_files, read_scene
 
+from helpers import asset_library
+
 ROOMS = 10
 
 
 @pytest.fixture(scope="module")
 def library_dir(tmp_path_factory):
-    from spread.assets.build import build_library
 
     root = tmp_path_factory.mktemp("lib") / "assets"
-    build_library(root, seed=0, processes=2, progress=False)
+    asset_library(root)
     return root
 
 

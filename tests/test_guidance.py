@@ -17,7 +17,8 @@ from spread.model import Sampler
 BOUNDS = torch.tensor([-3.0, 0.0, -3.0, 3.0, 2.5, 3.0])
 GAP, TOL = 5e-4, 2e-3
 REST = GAP + TOL / 2  # a resting object's gap: inside the gravity band
-SIZES = {"table": (1.0, 0.75, 0.7), "cup": (0.08, 0.1, 0.08), "crate": (0.4, 0.3, 0.4), "block": (0.3, 0.2, 0.3)}
+SIZES = {"table": (1.0, 0.75, 0.7), "cup": (0.08, 0.1, 0.08), "crate": (0.4, 0.3, 0.4), "block": (0.3, 0.2, 0.3),
+         "phone": (0.07, 0.01, 0.15)}
 
 
 @pytest.fixture(scope="module")
@@ -213,6 +214,18 @@ def test_settle_closes_the_fraction_lambda_of_each_gap_per_step_and_then_rests(l
     sunk = state([[0.0, y_on("table"), 0.0], [0.2, y_on("cup", TABLE_TOP, -0.03), 0.1]])[None]
     up = settled(lib, 0.5, ids=("table", "cup")).step(sunk)
     assert math.isclose(float(metres(up)[0, 1, 1] - metres(sunk)[0, 1, 1]), 0.5 * (0.03 + GAP), abs_tol=1e-7)  # float32 meshes
+
+
+def test_settle_lifts_a_phone_sunk_past_its_centre_into_its_table_in_one_step_of_weight_one(lib):
+    """A phone sunk 3 cm into its table (its centre 2.5 cm below the top) still sees the top: its rays start
+    SETTLE_REACH above its lowest point, not at its centre, where they would see nothing of the table."""
+    from spread.guidance.gravity import SETTLE_REACH
+
+    sink = 0.03
+    assert SIZES["phone"][1] / 2 < sink < SETTLE_REACH
+    x = state([[0.0, y_on("table"), 0.0], [0.2, y_on("phone", TABLE_TOP, -sink), 0.1]])[None]
+    up = settled(lib, 1.0, ids=("table", "phone")).step(x)
+    assert math.isclose(float(metres(up)[0, 1, 1] - metres(x)[0, 1, 1]), sink + GAP, abs_tol=1e-7)
 
 
 def test_settle_leaves_a_cup_beside_its_table_where_gravity_lifts_it_to_the_tables_top(lib):

@@ -19,8 +19,9 @@ gradient reaches only j's pose: ``∂d_j = ∂v*_y`` of the vertex attaining the
 Then r_j = d_j − ε and ``G_H = Σ_j |r_j| [r_j > θ_H or r_j < 0]`` over a scene's objects (paper eq.
 G_H; release ε = 5e-4 m, θ_H = 2e-3 m): floating and sinking are penalised, a gap in [ε, ε + θ_H] is not.
 
-``settle`` (G_S, not the paper's; ``guidance.terms.settle=λ``) measures the same gaps, leaves out a supported
-object that is beside its supporters rather than over them, and is quadratic, scaled so that a step of weight λ
+``settle`` (G_S, not the paper's; ``guidance.terms.settle=λ``) measures the same gaps (its rays start at least
+``SETTLE_REACH`` above the object's lowest point), leaves out a supported object that is beside its supporters
+rather than over them, and is quadratic, scaled so that a step of weight λ
 closes the fraction λ of each gap (:func:`settle_loss`); same schedule (``gravity_from``) and y-only step.
 """
 
@@ -30,6 +31,9 @@ import torch
 
 from spread.guidance.terms import GuidanceTerm, register_term
 
+#: The settle term's rays start at least this far above an object's lowest point (metres): a phone sunk 4 cm into
+#: a mattress (its centre below the mattress top) still sees the mattress, not the floor under it.
+SETTLE_REACH = 0.05
 #: Barycentric slack for a vertical ray through a triangle's edge (dimensionless).
 BARY_TOLERANCE = 1e-9
 
@@ -71,11 +75,13 @@ def ray_heights(points: torch.Tensor, start: torch.Tensor, triangles: torch.Tens
 
 
 def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-                  beside: str = "roof") -> torch.Tensor:
+                  beside: str = "roof", reach: float = 0.0) -> torch.Tensor:
     """Gap d (B, N) metres from each object to what it rests on (module docstring); ``world`` (B, N, V, 3)
     posed vertices, ``hull`` (B, N, H, 3) their hull vertices, ``supports`` (B, N, N) bool. ``beside``: the gap of
     a supported object none of whose vertices is over a supporter — ``roof``: to the top of the supporters' AABBs
-    (G_H), ``nan``: none (NaN; the settle term leaves such an object to relation guidance)."""
+    (G_H), ``nan``: none (NaN; the settle term leaves such an object to relation guidance). ``reach`` (metres): the
+    rays start at least this far above the object's lowest point (0: at its AABB centre, G_H), so that a thin
+    object sunk deeper than half its height still sees the surface it sank into."""
     if beside not in ("roof", "nan"):
         raise ValueError(f"vertical_gaps: beside must be 'roof' or 'nan', got {beside!r}")
     B, N, H, _ = hull.shape
@@ -89,7 +95,7 @@ def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
     b, i, j = pairs.unbind(1)
     with torch.no_grad():
         top = torch.where(hmask, y, torch.full_like(y, -torch.inf)).amax(-1)  # (B, N)
-        start = 0.5 * (lowest + top)
+        start = torch.maximum(0.5 * (lowest + top), lowest + reach)
         faces = t["faces"][b, i]  # (S, F, 3)
         S = len(pairs)
         triangles = world[b, i][torch.arange(S, device=world.device)[:, None, None], faces]  # (S, F, 3, 3)
@@ -145,7 +151,8 @@ register_term(GuidanceTerm(
     start=lambda config: config.gravity_from, edit=_y_only,
     description="G_H: vertical gap to the supporter or the floor outside [ε, ε + θ_H]"))
 register_term(GuidanceTerm(
-    "settle", lambda ctx: settle_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports, beside="nan"),
+    "settle", lambda ctx: settle_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports, beside="nan",
+                                                    reach=SETTLE_REACH),
                                       ctx.falls, ctx.bounds, ctx.config.gap, ctx.config.tolerance),
     start=lambda config: config.gravity_from, edit=_y_only,
     description="G_S: the gravity gap closed by the fraction λ per step (objects over a supporter or on the floor)"))

@@ -9,7 +9,7 @@ test graphs, for every checkpoint of a training run, against optimiser steps, sc
            [--stability-runs 10 --stability-at last] [--graph-scale 2]
     # 3. one table (95% bootstrap intervals over scenes) and one plot for one or more runs
     python benchmarks/learning_curve.py report LABEL=RUN ... [--png FILE] [--targets] [--wandb DIR]
-           [--paired-against LABEL]   # each run's last checkpoint minus LABEL's, paired per test graph
+           [--paired-against LABEL [--paired-mode guided]]   # each run's last checkpoint minus LABEL's, per test graph
 
 ``train`` runs ``spread-train`` in this process (one torch thread unless ``threads=`` says otherwise) with
 ``trainer.max_steps``, a checkpoint every ``--every`` steps (all kept) and the run's ``clock.jsonl``
@@ -357,19 +357,25 @@ def cmd_report(args) -> None:
 
 
 def paired_table(args, runs: dict) -> None:
-    """Each run's last unguided checkpoint against the reference run's last one: paired differences."""
+    """Each run's last ``--paired-mode`` samples (unguided or guided) against the reference run's: paired
+    differences."""
     paths = {(label or Path(path).name): Path(path) for label, _, path in (i.rpartition("=") for i in args.runs)}
     ref_label = args.paired_against
     if ref_label not in runs:
         raise SystemExit(f"--paired-against {ref_label!r} is not one of the runs ({', '.join(runs)})")
 
-    def last(label):
-        return max(r["step"] for r in runs[label] if r["mode"].startswith("unguided"))
+    kind = args.paired_mode
 
-    # the reference's plain unguided samples, or, when it was only sampled with CFG, its one unguided-cfgS mode
+    def last(label):
+        steps = [r["step"] for r in runs[label] if r["mode"].startswith(kind)]
+        if not steps:
+            raise SystemExit(f"--paired-mode {kind}: run {label!r} has no {kind} samples")
+        return max(steps)
+
+    # the reference's plain samples of that kind, or, when it was only sampled with CFG, its one <kind>-cfgS mode
     ref_modes = sorted(r["mode"] for r in runs[ref_label] if r["step"] == last(ref_label)
-                       and r["mode"].startswith("unguided"))
-    ref_mode = "unguided" if "unguided" in ref_modes else ref_modes[0]
+                       and r["mode"].startswith(kind))
+    ref_mode = kind if kind in ref_modes else ref_modes[0]
     reference = curve_records(paths[ref_label], last(ref_label), ref_mode)
     print(f"\nPaired differences against {ref_label} (step {last(ref_label)}, {ref_mode}), same test graphs and x_T: "
           f"Δ [95 % paired bootstrap interval]")
@@ -377,15 +383,15 @@ def paired_table(args, runs: dict) -> None:
     print("|---|---:|---:|---:|---|---|---|")
     for label in runs:
         step = last(label)
-        # the plain unguided samples and those with classifier-free guidance on the graphs (unguided-cfgS)
-        for row in sorted((r for r in runs[label] if r["step"] == step and r["mode"].startswith("unguided")),
+        # the plain samples of that kind and those with classifier-free guidance on the graphs (<kind>-cfgS)
+        for row in sorted((r for r in runs[label] if r["step"] == step and r["mode"].startswith(kind)),
                           key=lambda r: r["mode"]):
             if label == ref_label and row["mode"] == ref_mode:
                 continue
             d = paired_difference(curve_records(paths[label], step, row["mode"]), reference)
             minutes = "" if row["seconds"] is None else f"{row['seconds'] / 60:.1f}"
             cells = [cell(d[k], s, dg) if k in d else "" for k, _, s, dg in METRICS if k != "stability"]
-            name = label if row["mode"] == "unguided" else f"{label} ({row['mode'].split('-', 1)[1]})"
+            name = label if row["mode"] == kind else f"{label} ({row['mode'].split('-', 1)[1]})"
             print(f"| {name} | {step} | {row['scenes_seen'] or ''} | {minutes} | " + " | ".join(cells) + " |")
 
 
@@ -504,7 +510,9 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--targets", action="store_true", help="draw the cpu_hour targets")
     r.add_argument("--wandb", help="also log each curve to wandb, files under this folder")
     r.add_argument("--paired-against", metavar="LABEL",
-                   help="also tabulate every run's last unguided checkpoint minus this run's, paired per test graph")
+                   help="also tabulate every run's last checkpoint minus this run's, paired per test graph")
+    r.add_argument("--paired-mode", choices=("unguided", "guided"), default="unguided",
+                   help="which samples --paired-against compares (default unguided)")
     args = ap.parse_args(argv)
     args.overrides = extra
     {"train": cmd_train, "eval": cmd_eval, "report": cmd_report}[args.command](args)

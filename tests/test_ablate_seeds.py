@@ -57,6 +57,24 @@ def test_one_term_rows_keep_only_their_term(tmp_path):
     assert ablation.sample_lists("base") == ["seed=0"]
 
 
+def test_one_term_rows_keep_the_stand_ins_of_their_term_and_zero_the_others(tmp_path):
+    """The recipe's guidance may close gravity gaps with ``settle`` (gravity 0): the gravity row keeps it, the
+    collision and relation rows zero it, and a plugin term named in the list is zeroed in every one-term row."""
+    from spread.configs import compose, to_object
+
+    guidance = ["guidance=refine", "guidance.gravity=0.0", "+guidance.terms.settle=0.3", "+guidance.terms.over=0.05",
+                "+guidance.terms.box_iou=0.1"]
+    ablation = Ablation(fake_spec(tmp_path, guidance=guidance), FakeCommands())
+    weights = {}
+    for row in ("guidance", "guidance_collision", "guidance_gravity", "guidance_relation"):
+        cfg = to_object(compose("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", *ablation.sample_lists(row)[1:]]))
+        weights[row] = cfg.guidance.weights(nonzero=True)
+    assert weights["guidance"] == {"collision": 7.5e-3, "relation": 1e-3, "box_iou": 0.1, "settle": 0.3, "over": 0.05}
+    assert weights["guidance_collision"] == {"collision": 7.5e-3}
+    assert weights["guidance_gravity"] == {"settle": 0.3}
+    assert weights["guidance_relation"] == {"relation": 1e-3, "over": 0.05}
+
+
 def test_seeds_table_is_mean_and_sd_across_seeds_beside_the_bootstrap(tmp_path):
     commands = SeededFakeCommands()
     result = run_seeded_ablation(fake_spec(tmp_path), commands, [0, 1, 2])

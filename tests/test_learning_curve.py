@@ -125,6 +125,28 @@ def test_report_places_each_curve_file_on_steps_scenes_and_minutes_and_draws_the
     assert png.stat().st_size > 10_000
 
 
+def test_report_pairs_the_guided_samples_when_asked_and_the_unguided_ones_by_default(lc, tmp_path, capsys):
+    """Two runs with the same unguided samples and different refinements: --paired-mode guided gives the guided
+    difference (Col_mesh 0.3 -> 0.1 on the same two graphs), the default the unguided one (nothing)."""
+    runs = []
+    for name, guided_colliding in (("ref", (2, 4)), ("new", (1, 1))):
+        run = make_run(tmp_path / name, [2000], [{"step": 2000, "scenes": 32000, "seconds": 480.0}], last=False)
+        (run / "curve").mkdir()
+        rows = {"0002000_unguided": [dict(record(8, 10, 3, 10, [0.1]), scene_id=g) for g in ("a", "b")],
+                "0002000_guided": [dict(record(8, 10, c, 10, [0.05]), scene_id=g)
+                                   for g, c in zip(("a", "b"), guided_colliding)]}
+        for mode, records in rows.items():
+            (run / "curve" / f"{mode}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+        runs.append(f"{name}={run}")
+    lc.main(["report", *runs, "--paired-against", "ref", "--paired-mode", "guided"])
+    out = capsys.readouterr().out
+    assert "against ref (step 2000, guided)" in out and "| new | 2000 | 32000 | 8.0 | 0.000 [" in out
+    assert "| -0.200 [-0.300, -0.100] |" in out  # ΔCol_mesh per graph: −0.1 and −0.3
+    lc.main(["report", *runs, "--paired-against", "ref"])
+    out = capsys.readouterr().out
+    assert "against ref (step 2000, unguided)" in out and "| 0.000 [0.000, 0.000] | 0.0 [" in out
+
+
 def test_report_logs_each_curve_as_an_offline_wandb_run(lc, tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")
     run = make_run(tmp_path, [1000], [{"step": 1000, "scenes": 16000, "seconds": 240.0}], last=False)

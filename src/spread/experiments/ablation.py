@@ -74,6 +74,9 @@ log = logging.getLogger("spread.ablate")
 
 #: One built-in guidance term at a time (the other built-in weights 0): row name → the term kept.
 TERMS = {f"guidance_{term}": term for term in GuidanceConfig.weight_keys()}
+#: The registered terms of ours that stand in for a built-in one (the recipe's guidance may use ``settle`` for the
+#: vertical gap, ``over`` for the footprint): a one-term row keeps them with their built-in and zeroes them otherwise.
+STAND_INS = {"settle": "gravity", "over": "relation"}
 VARIANTS = ("base", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.
 LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance",
@@ -122,9 +125,14 @@ class Ablation:
 
     def sample_lists(self, variant: str) -> list[str]:
         """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own): the guidance
-        rows add the guidance list; a one-term row then sets the other two weights to 0."""
+        rows add the guidance list; a one-term row then sets the other two built-in weights to 0, and every other
+        term the guidance list names but its built-in's stand-in (``STAND_INS``)."""
         if variant in TERMS:
-            off = [f"guidance.{t}=0.0" for t in TERMS.values() if t != TERMS[variant]]
+            kept = TERMS[variant]
+            off = [f"guidance.{t}=0.0" for t in TERMS.values() if t != kept]
+            named = {o.split("guidance.terms.", 1)[1].split("=", 1)[0] for o in self.spec.guidance
+                     if "guidance.terms." in o and "=" in o}
+            off += [f"++guidance.terms.{t}=0.0" for t in sorted(named) if STAND_INS.get(t) != kept]
             return [*self.spec.sample, *self.spec.guidance, *off]
         return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
 

@@ -21,8 +21,9 @@ G_H; release ε = 5e-4 m, θ_H = 2e-3 m): floating and sinking are penalised, a 
 
 ``settle`` (G_S, not the paper's; ``guidance.terms.settle=λ``) measures the same gaps (its rays start at least
 ``SETTLE_REACH`` above the object's lowest point), leaves out a supported object that is beside its supporters
-rather than over them, and is quadratic, scaled so that a step of weight λ
-closes the fraction λ of each gap (:func:`settle_loss`); same schedule (``gravity_from``) and y-only step.
+rather than over them, and is quadratic, scaled so that a step of weight λ closes the fraction λ of each gap
+(:func:`settle_loss`); same schedule (``gravity_from``) and y-only step. The states' y must be normalised through
+``bounds`` (SPREAD's, and the baselines' decode, which map [−1, 1] to the same bounds).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import torch
 from spread.guidance.terms import GuidanceTerm, register_term
 
 #: The settle term's rays start at least this far above an object's lowest point (metres): a phone sunk 4 cm into
-#: a mattress (its centre below the mattress top) still sees the mattress, not the floor under it.
+#: a mattress (its centre below the mattress top) still sees the mattress, not the bed frame's face under it.
 SETTLE_REACH = 0.05
 #: Barycentric slack for a vertical ray through a triangle's edge (dimensionless).
 BARY_TOLERANCE = 1e-9

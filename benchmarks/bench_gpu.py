@@ -232,14 +232,13 @@ def kernel_rows(N: int, M: int, device: str = "cuda", sizes: tuple = (4, 64)) ->
 
     from spread.model import nearest_dense as nd
     from spread.model.geometry import prepare_points
+    from spread.model.poses import denormalize_affine
 
     out = {}
     for B in sizes:
         batch = synthetic_batch(B, N, M, seed=5, device=device)
         cloud = prepare_points(batch["points"], batch["normals"], batch["mask"], morton=True)
-        offset = torch.tensor(BOUNDS[:3], device=device)
-        scale = (torch.tensor(BOUNDS[3:], device=device) - offset) / 2
-        offset = offset + scale
+        offset, scale = denormalize_affine(torch.tensor(BOUNDS, device=device))
         x = batch["x"].float()
 
         def kernels():

@@ -23,6 +23,7 @@ from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.model.geometry import PointCloud, prepare_points, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
+from spread.model.poses import denormalize_affine
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
 
 VARIANTS = ("base", "geometry")
@@ -121,8 +122,7 @@ class SceneDenoiser(nn.Module):
             cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
                                         morton=cond.search == "dense" and not self.training)
             cond.static = self.perceiver.static(cond.cloud.points, mask)
-            lo, hi = self.bounds[:3], self.bounds[3:]  # denormalisation as one multiply-add per step
-            cond.pose_scale, cond.pose_offset = (hi - lo) / 2, (hi + lo) / 2
+            cond.pose_offset, cond.pose_scale = denormalize_affine(self.bounds)  # one multiply-add per step
         return cond
 
     def null_condition(self, cond: Condition) -> Condition:

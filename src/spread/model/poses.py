@@ -19,6 +19,13 @@ def denormalize(x_translation: torch.Tensor, bounds: torch.Tensor) -> torch.Tens
     return (x_translation + 1) / 2 * (hi - lo) + lo
 
 
+def denormalize_affine(bounds: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(offset, scale), each (3,) metres, with ``denormalize(x, bounds) = offset + scale·x``: the bounds' centre
+    and half-range (what the pose kernels take as one multiply-add)."""
+    lo, hi = bounds[:3], bounds[3:]
+    return (hi + lo) / 2, (hi - lo) / 2
+
+
 def poses_from_state(x: torch.Tensor, bounds: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(..., 9) node states → translation (..., 3) metres, rotation (..., 3, 3) world-from-local."""
     return denormalize(x[..., :3], bounds), rot6d_to_matrix(x[..., 3:9])

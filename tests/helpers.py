@@ -4,10 +4,10 @@
 * ``compose``: a Hydra config of ``conf/`` with overrides; ``run_script``: a console script in a subprocess
   (wandb disabled) that must succeed.
 * ``asset_library``: the generated asset library (all or some categories) in a folder, its files copied from one
-  build shared by the test session; ``make_dataset``: a small generated dataset (its own asset library); ``settled_room``: one generated,
-  physics-settled kitchen of ≥ 8 objects and its small library (for physics and export tests);
-  ``train_in_process`` /
-  ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a subprocess.
+  build shared by the test session; ``make_dataset``: a small generated dataset (its own asset library);
+  ``settled_room``: one generated, physics-settled kitchen of ≥ 8 objects and its small library (for physics and
+  export tests); ``train_in_process`` / ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a
+  subprocess.
 * ``scene_of``: a small hand-made :class:`spread.scene.Scene` from asset ids and poses (the one builder of the
   tests' scenes).
 * ``load_script``: a script of ``benchmarks/`` imported as a module (its functions tested without a subprocess).

@@ -12,10 +12,10 @@ point's normal — as two registered custom operators, each one Triton kernel on
 * ``torch.ops.spread.signed_nearest(points, normals, boxes, valid, no_neighbour)`` → (index (B, P) int64, signed
   distance (B, P) float32). A program takes ``BLOCK_Q`` query points of one object and keeps, per query, the nearest
   candidate as one int64 (the float32 bits of d², monotonic for d² ≥ 0, above the key's index: one ``min`` gives the
-  nearest point and, among exact ties, the smallest index — torch's ``argmin`` rule). It first visits every
-  ``STRIDE``-th key of the scene (an upper bound for every query), then, object by object, skips an object whose
-  tiles are all out of reach (one vector test of its boxes) and visits the tiles of the others whose box can still
-  hold a point nearer than the worst current best; only those BLOCK_Q × BLOCK_K distances are computed, as
+  nearest point and, among exact ties, the smallest index — torch's ``argmin`` rule). It first visits, in full, the
+  tile of another object whose box centre is nearest its queries' box centre (an upper bound for every query), then,
+  object by object, skips an object whose tiles are all out of reach (one vector test of its boxes) and visits the
+  tiles of the others whose box can still hold a point nearer than the worst current best; only those BLOCK_Q × BLOCK_K distances are computed, as
   differences (``dx² + dy² + dz²`` in float32, no ``‖q‖² − 2p·q`` cancellation). Then it signs each query's distance
   by the neighbour's normal (``(p − q)·n_q ≥ 0``: outside, +) and writes ``no_neighbour`` for an object alone in
   its scene, 0 for padding. When each object's points are in Morton order (made once per sample) the tiles are
@@ -41,8 +41,6 @@ import torch
 #: Query points per search program; keys per tile (also the pose kernel's tile of points).
 BLOCK_Q = 64
 BLOCK_K = 64
-#: The first pass of the search visits every STRIDE-th key (an upper bound for every query).
-STRIDE = 16
 #: Relative slack on the culling test (float32 rounding of the box distance can never drop the nearest tile).
 CULL_SLACK = 1e-5
 #: Added to the Gram–Schmidt norms (spread.data.rotation.EPS).
@@ -193,7 +191,7 @@ def _triton_kernels():
 
     @triton.jit
     def search_kernel(pts_ptr, nrm_ptr, box_ptr, valid_ptr, idx_ptr, dist_ptr, N, M, KT, QT, NO_NEIGHBOUR,
-                      BQ: tl.constexpr, BK: tl.constexpr, S: tl.constexpr, SLACK: tl.constexpr, KTP: tl.constexpr):
+                      BQ: tl.constexpr, BK: tl.constexpr, SLACK: tl.constexpr, KTP: tl.constexpr):
         pid = tl.program_id(0)
         b = tl.program_id(1).to(tl.int64)
         o = pid // QT
@@ -214,23 +212,40 @@ def _triton_kernels():
         qhiy = tl.max(tl.where(qm, qy, -inf), 0)
         qhiz = tl.max(tl.where(qm, qz, -inf), 0)
         best = tl.full([BQ], 0x7F800000, tl.int64) << 32  # d² = inf, index 0
-        # pass 1: every S-th key of the scene, an upper bound for every query
-        for k0 in range(0, P, BK * S):
-            ki = k0 + tl.arange(0, BK) * S
-            km = ki < P
-            kobj = ki // M
-            kval = km & (kobj != o) & (tl.load(vbase + kobj, mask=km, other=0) != 0)
+        # pass 1: the tile of another real object whose box centre is nearest the query box's centre, in full (an
+        # upper bound for every query; half the tiles of an every-S-th-key pass, the same pass 2)
+        tiles = tl.arange(0, KTP)
+        tm = tiles < KT
+        cqx = (qlox + qhix) * 0.5
+        cqy = (qloy + qhiy) * 0.5
+        cqz = (qloz + qhiz) * 0.5
+        seed_d = inf
+        seed_t = 0
+        for j in range(0, N):
+            ok = (j != o) & (tl.load(vbase + j) != 0)
+            boxes = box_ptr + ((b * N + j) * KT + tiles) * 6
+            cx = (tl.load(boxes + 0, mask=tm, other=0.0) + tl.load(boxes + 3, mask=tm, other=0.0)) * 0.5 - cqx
+            cy = (tl.load(boxes + 1, mask=tm, other=0.0) + tl.load(boxes + 4, mask=tm, other=0.0)) * 0.5 - cqy
+            cz = (tl.load(boxes + 2, mask=tm, other=0.0) + tl.load(boxes + 5, mask=tm, other=0.0)) * 0.5 - cqz
+            cd = tl.where(tm & ok, cx * cx + cy * cy + cz * cz, inf)
+            m = tl.min(cd, 0)
+            nearer = m < seed_d
+            seed_t = tl.where(nearer, j * KT + tl.argmin(cd, 0), seed_t)
+            seed_d = tl.where(nearer, m, seed_d)
+        if seed_d < inf:
+            rk = (seed_t % KT) * BK + tl.arange(0, BK)
+            km = rk < M
+            ki = (seed_t // KT) * M + rk
             kx = tl.load(base + ki * 3 + 0, mask=km, other=0.0)
             ky = tl.load(base + ki * 3 + 1, mask=km, other=0.0)
             kz = tl.load(base + ki * 3 + 2, mask=km, other=0.0)
             dx = qx[:, None] - kx[None, :]
             dy = qy[:, None] - ky[None, :]
             dz = qz[:, None] - kz[None, :]
-            d2 = tl.where(kval[None, :], dx * dx + dy * dy + dz * dz, inf)
+            d2 = tl.where(km[None, :], dx * dx + dy * dy + dz * dz, inf)
             key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki.to(tl.int64)[None, :]
             best = tl.minimum(best, tl.min(key, 1))
         # pass 2: the tiles of the other real objects whose boxes can still hold a nearer point
-        tiles = tl.arange(0, KTP)
         vo = tl.load(vbase + o) != 0
         if vo:
             for j in range(0, N):
@@ -359,7 +374,7 @@ def signed_nearest(points: torch.Tensor, normals: torch.Tensor, boxes: torch.Ten
             distance = torch.empty(B, P, dtype=torch.float32, device=points.device)
             search_kernel[(N * QT, B)](points.float().contiguous(), normals.float().contiguous(), boxes.float().contiguous(),
                                        valid.to(torch.int8).contiguous(), index, distance, N, M, KT, QT,
-                                       float(no_neighbour), BQ=BLOCK_Q, BK=BLOCK_K, S=STRIDE, SLACK=CULL_SLACK,
+                                       float(no_neighbour), BQ=BLOCK_Q, BK=BLOCK_K, SLACK=CULL_SLACK,
                                        KTP=triton.next_power_of_2(KT))
             return index, distance
         except Exception as error:  # noqa: BLE001

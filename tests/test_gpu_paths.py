@@ -338,5 +338,42 @@ def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_
         assert torch.isfinite(loss) and loss.grad_fn is not None
     assert modes == ["reduce-overhead"] and len(marks) == 2
     assert model.hparams["compile_mode"] == "reduce-overhead"
+    # the optimiser's step drops the graph-owned gradients once used (a teardown moving the model must not read them)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    before = [p.detach().clone() for p in model.network.parameters()]
+
+    def closure():
+        loss = model.training_step(batch, 0)
+        loss.backward()
+        return loss
+
+    model.optimizer_step(0, 0, optimizer, closure)
+    assert all(p.grad is None for p in model.parameters())
+    assert any(not torch.equal(a, p) for a, p in zip(before, model.network.parameters()))  # it did step
+    eager = SceneDiffusion("geometry", config, bounds=BOUNDS).train()
+    eager.optimizer_step(0, 0, torch.optim.AdamW(eager.parameters(), lr=1e-3),
+                         lambda: eager.training_step(batch, 0).backward())
+    assert any(p.grad is not None for p in eager.parameters())  # other modes leave them to Lightning
     with pytest.raises(ValueError, match="compile_mode.*'fast'"):
         SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="fast")
+
+
+def test_the_training_noise_is_diffusers_add_noise_to_the_bit_from_a_buffer_that_moves_with_the_module():
+    """x_t of the training step (the module's ᾱ buffer, no attribute assigned inside a CUDA-graph'd step) equals
+    diffusers' ``DDPMScheduler.add_noise`` bit for bit, at every timestep and in float64 too; the buffer is the
+    scheduler's ᾱ and stays out of the state dict (old checkpoints load)."""
+    from spread.model import ModelConfig
+    from spread.model.diffusion import training_scheduler
+    from spread.model.module import SceneDiffusion
+
+    model = SceneDiffusion("base", ModelConfig(num_points=16, dim=32, depth=1, heads=2), bounds=BOUNDS)
+    reference = training_scheduler()
+    assert torch.equal(model.alphas_cumprod, reference.alphas_cumprod)
+    assert "alphas_cumprod" not in model.state_dict()
+    g = torch.Generator().manual_seed(0)
+    for dtype in (torch.float32, torch.float64):
+        x0 = torch.randn(1000, 3, 9, generator=g, dtype=dtype)
+        noise = torch.randn(1000, 3, 9, generator=g, dtype=dtype)
+        t = torch.arange(1000)
+        assert torch.equal(model.add_noise(x0, noise, t), reference.add_noise(x0, noise, t))
+    assert model.double().alphas_cumprod.dtype == torch.float64  # a buffer: moved and cast with the module

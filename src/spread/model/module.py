@@ -152,6 +152,10 @@ class SceneDiffusion(L.LightningModule):
         self.network = SceneDenoiser(cfg, variant, bounds)
         self.ema = EMA(self.network, ema_decay)
         self.noise_schedule = training_scheduler(beta_schedule=beta_schedule, num_train_timesteps=int(diffusion_steps))
+        # ᾱ_t (T,) float32 (the scheduler's values), moved with the module: the training step reads it on the device
+        # (diffusers' add_noise moves its own copy to the device by assigning an attribute, which a CUDA-graph'd
+        # step must not do); not in the state dict
+        self.register_buffer("alphas_cumprod", self.noise_schedule.alphas_cumprod.clone(), persistent=False)
 
     @classmethod
     def from_checkpoint(cls, checkpoint: dict, map_location="cpu") -> "SceneDiffusion":
@@ -228,8 +232,14 @@ class SceneDiffusion(L.LightningModule):
     # ---- training -------------------------------------------------------------------------------------
     def alpha_bar(self, timesteps: torch.Tensor) -> torch.Tensor:
         """ᾱ_t (B,) float64 of the training schedule at integer timesteps (B,)."""
-        alphas = self.noise_schedule.alphas_cumprod.to(device=timesteps.device, dtype=torch.float64)
+        alphas = self.alphas_cumprod.to(device=timesteps.device, dtype=torch.float64)
         return alphas[timesteps.long()]
+
+    def add_noise(self, x0: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
+        """x_t = √ᾱ_t · x0 + √(1 − ᾱ_t) · ε for states x0, noise (B, N, C) at integer timesteps (B,): diffusers'
+        ``DDPMScheduler.add_noise`` to the bit, from the module's ᾱ buffer (no attribute assigned: capturable)."""
+        alphas = self.alphas_cumprod.to(dtype=x0.dtype)[timesteps.to(x0.device)]
+        return (alphas ** 0.5)[:, None, None] * x0 + ((1 - alphas) ** 0.5)[:, None, None] * noise
 
     def training_terms(self, batch: dict, noise: torch.Tensor | None = None, timesteps: torch.Tensor | None = None,
                        network: SceneDenoiser | None = None, pose_terms: bool = True) -> dict[str, torch.Tensor]:
@@ -246,7 +256,7 @@ class SceneDiffusion(L.LightningModule):
         if timesteps is None:
             timesteps = torch.randint(0, self.noise_schedule.config.num_train_timesteps, (B,), device=x0.device)
         timesteps = timesteps.to(x0.device).long()
-        x_t = self.noise_schedule.add_noise(x0, noise, timesteps) * keep
+        x_t = self.add_noise(x0, noise, timesteps) * keep
         drop = None
         if network.training and self.hparams.graph_dropout > 0:
             drop = torch.rand(B, device=x0.device) < self.hparams.graph_dropout
@@ -321,9 +331,14 @@ class SceneDiffusion(L.LightningModule):
         return loss
 
     def optimizer_step(self, *args, **kwargs) -> None:
-        """The optimiser's step, then the EMA's (once per real step, gradient accumulation included)."""
+        """The optimiser's step, then the EMA's (once per real step, gradient accumulation included). A CUDA-graph'd
+        step's gradients live in the graphs' memory, which the next replay overwrites: they are dropped once used
+        (Lightning drops them before the next step anyway; a model moved or saved after the last step would read
+        overwritten memory)."""
         super().optimizer_step(*args, **kwargs)
         self.ema.update(self.network)
+        if self.hparams.get("compile", False) and self.hparams.get("compile_mode", "default") == "reduce-overhead":
+            self.zero_grad(set_to_none=True)
 
     def epsilon(self, output: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """ε̂ from the network's raw output at states x_t and timesteps t (B,) (the identity for ε-prediction)."""

@@ -75,6 +75,26 @@ def test_one_term_rows_keep_the_stand_ins_of_their_term_and_zero_the_others(tmp_
     assert weights["guidance_relation"] == {"relation": 1e-3, "over": 0.05}
 
 
+def test_one_term_rows_ask_the_composed_guidance_which_terms_it_weighs_however_the_list_spells_them(tmp_path):
+    """A term weighed by a preset (physcene's box_iou: no ``guidance.terms.<name>=`` string to read), one added and
+    one added then turned off: the rows zero what the composed guidance weighs, and nothing it does not."""
+    from spread.configs import compose, to_object
+
+    guidance = ["guidance=physcene", "guidance.collision=7.5e-3", "+guidance.terms.settle=0.3",
+                "+guidance.terms.over=0.05", "guidance.terms.over=0.0"]
+    ablation = Ablation(fake_spec(tmp_path, guidance=guidance), FakeCommands())
+    assert sorted(ablation.guidance_terms()) == ["box_iou", "settle"]
+    weights = {}
+    for row in ("guidance", "guidance_collision", "guidance_gravity"):
+        cfg = to_object(compose("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", *ablation.sample_lists(row)[1:]]))
+        weights[row] = cfg.guidance.weights(nonzero=True)
+    assert weights["guidance"] == {"collision": 7.5e-3, "box_iou": 0.15, "settle": 0.3}
+    assert weights["guidance_collision"] == {"collision": 7.5e-3}
+    assert weights["guidance_gravity"] == {"settle": 0.3}
+    assert set(ablation.sample_lists("guidance_collision")[1 + len(guidance):]) == {  # over is weighed 0: not named
+        "guidance.gravity=0.0", "guidance.relation=0.0", "++guidance.terms.box_iou=0.0", "++guidance.terms.settle=0.0"}
+
+
 def test_seeds_table_is_mean_and_sd_across_seeds_beside_the_bootstrap(tmp_path):
     commands = SeededFakeCommands()
     result = run_seeded_ablation(fake_spec(tmp_path), commands, [0, 1, 2])

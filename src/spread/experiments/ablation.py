@@ -130,11 +130,21 @@ class Ablation:
         if variant in TERMS:
             kept = TERMS[variant]
             off = [f"guidance.{t}=0.0" for t in TERMS.values() if t != kept]
-            named = {o.split("guidance.terms.", 1)[1].split("=", 1)[0] for o in self.spec.guidance
-                     if "guidance.terms." in o and "=" in o}
-            off += [f"++guidance.terms.{t}=0.0" for t in sorted(named) if STAND_INS.get(t) != kept]
+            off += [f"++guidance.terms.{t}=0.0" for t in self.guidance_terms() if STAND_INS.get(t) != kept]
             return [*self.spec.sample, *self.spec.guidance, *off]
         return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
+
+    def guidance_terms(self) -> list[str]:
+        """The names under ``guidance.terms`` that the guidance rows weigh (λ > 0), asked of the guidance config the
+        spec's sample and guidance lists compose to (not read off the override strings)."""
+        from omegaconf import OmegaConf
+
+        from spread.configs import compose
+
+        cfg = compose("sample", ["ckpt=unset", "data.root=unset", "out_dir=unset", *self.spec.sample,
+                                 *self.spec.guidance])
+        guidance = GuidanceConfig.from_config(OmegaConf.to_container(cfg.guidance, resolve=True))
+        return [name for name, weight in guidance.weights(nonzero=True).items() if name in guidance.terms]
 
     def rows(self) -> list[dict]:
         """One record per variant: the metrics of ``eval/<v>/metrics.json`` (None where it failed) and the row's

@@ -1,5 +1,5 @@
 """The nearest-point search kernel of another commit against this one, on the same posed points: the same answer
-(indices and signed distances), and each one's CUDA time (median of 5 after 2). Needs a GPU for times; on a CPU with
+(indices and signed distances), and each one's CUDA time, the new one also with ``--block-q`` queries a program (median of 5 after 2). Needs a GPU for times; on a CPU with
 ``TRITON_INTERPRET=1`` it checks the answers at a toy size.
 
     git show bd5cb3d:src/spread/model/nearest_dense.py | sed 's/spread::/spreadold::/g' > .gpudata/old_nearest_dense.py
@@ -39,6 +39,7 @@ def timed(op, args) -> tuple[float, tuple]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--old", type=Path, required=True, help="the other commit's nearest_dense.py, ops renamed spreadold::")
+    ap.add_argument("--block-q", type=int, default=32, help="also time the new kernel with this many queries a program")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     from bench_gpu import synthetic_batch
@@ -61,14 +62,21 @@ def main() -> None:
             inputs = (world, normals, boxes, batch["mask"], 10.0)
             t_old, (i_old, d_old) = timed(torch.ops.spreadold.signed_nearest, inputs)
             t_new, (i_new, d_new) = timed(torch.ops.spread.signed_nearest, inputs)
+            new.BLOCK_Q, default_q = args.block_q, new.BLOCK_Q  # the same kernel with other query tiles
+            try:
+                t_q, (i_q, d_q) = timed(torch.ops.spread.signed_nearest, inputs)
+            finally:
+                new.BLOCK_Q = default_q
             key = f"search/B{B}_N{N}_M{M}/{poses}"
-            out[key] = {"old_ms": round(t_old, 3), "new_ms": round(t_new, 3), "indices_differ": int((i_old != i_new).sum()),
-                        "max_distance_diff": float((d_old - d_new).abs().max())}
-            rows.append(f"| {B} × {N} × {M} | {poses} | {t_old:.2f} | {t_new:.2f} | {out[key]['indices_differ']} | "
-                        f"{out[key]['max_distance_diff']:.1e} |")
+            out[key] = {"old_ms": round(t_old, 3), "new_ms": round(t_new, 3), f"new_q{args.block_q}_ms": round(t_q, 3),
+                        "indices_differ": int((i_old != i_new).sum() + (i_q != i_new).sum()),
+                        "max_distance_diff": float(torch.maximum((d_old - d_new).abs().max(), (d_q - d_new).abs().max()))}
+            rows.append(f"| {B} × {N} × {M} | {poses} | {t_old:.2f} | {t_new:.2f} | {t_q:.2f} | "
+                        f"{out[key]['indices_differ']} | {out[key]['max_distance_diff']:.1e} |")
     print(f"device: {torch.cuda.get_device_name() if dev == 'cuda' else 'cpu (interpreter)'}; kernels fell back: "
           f"{sorted(new._BROKEN) or 'none'}")
-    print("| B × N × M | poses | old ms | new ms | indices that differ | max distance diff |\n|---|---|---|---|---|---|")
+    print(f"| B × N × M | poses | old ms | new ms | new, BLOCK_Q {args.block_q} ms | indices that differ | "
+          "max distance diff |\n|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

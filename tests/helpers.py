@@ -4,7 +4,8 @@
 * ``compose``: a Hydra config of ``conf/`` with overrides; ``run_script``: a console script in a subprocess
   (wandb disabled) that must succeed.
 * ``asset_library``: the generated asset library (all or some categories) in a folder, its files copied from one
-  build shared by the test session; ``make_dataset``: a small generated dataset (its own asset library);
+  build shared by the test session; ``make_dataset``: a small generated dataset (its own asset library), copied
+  from one generation per session too;
   ``settled_room``: one generated, physics-settled kitchen of ≥ 8 objects and its small library (for physics and
   export tests); ``train_in_process`` / ``sample_in_process``: ``spread-train`` / ``spread-sample`` without a
   subprocess.
@@ -92,17 +93,45 @@ def asset_library(root: Path, categories=None, seed: int = 0):
 
 
 def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 8, categories=None) -> Path:
-    """``root/assets`` (the asset library) and ``root/data`` (rooms; 20% val, 30% test); returns ``root/data``."""
-    from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
-    from spread.procgen.room_types import RoomConfig
+    """``root/assets`` (the asset library) and ``root/data`` (rooms; 20% val, 30% test); returns ``root/data``.
+    Generated once per test session for these arguments (as :func:`asset_library`: in the session's cache folder,
+    under a file lock) and copied; the one absolute path in its files, the manifest's ``assets.copy_from``, is
+    rewritten to ``root/assets``, so the copy is what a generation in ``root`` writes (but its timings)."""
+    from filelock import FileLock
 
     lib = root / "assets"
     asset_library(lib, categories=categories)
     out = root / "data"
+    cache = os.environ.get(SESSION_CACHE)
+    if not cache:
+        _generate(out, lib, rooms, seed, max_objects)
+        return out
+    args = [rooms, seed, max_objects, list(categories) if categories is not None else None]
+    shared = Path(cache) / f"data-{hashlib.sha256(json.dumps(args).encode()).hexdigest()[:16]}"
+    shared_lib = shared.with_name(shared.name + "-assets")
+    with FileLock(f"{shared}.lock"):
+        if not (shared / "manifest.json").exists():
+            asset_library(shared_lib, categories=categories)
+            partial = shared.with_name(shared.name + ".partial")
+            shutil.rmtree(partial, ignore_errors=True)
+            _generate(partial, shared_lib, rooms, seed, max_objects)
+            partial.rename(shared)
+    shutil.copytree(shared, out, dirs_exist_ok=True)
+    manifest = out / "manifest.json"
+    text = manifest.read_text()
+    here, there = json.dumps(str(lib))[1:-1], json.dumps(str(shared_lib))[1:-1]
+    assert text.count(there) == 1, f"{manifest}: expected the shared library's path once"
+    manifest.write_text(text.replace(there, here))
+    return out
+
+
+def _generate(out: Path, lib: Path, rooms: int, seed: int, max_objects: int) -> None:
+    from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
+    from spread.procgen.room_types import RoomConfig
+
     generate_dataset(out, DatasetConfig(rooms=rooms, seed=seed, processes=2, renders=0, val_fraction=0.2,
                                         test_fraction=0.3, assets=AssetSource(copy_from=str(lib)),
                                         room=RoomConfig(max_objects=max_objects)), progress=False)
-    return out
 
 
 def settled_room(root: Path, min_objects: int = 8):

@@ -73,7 +73,10 @@ def main() -> None:
                         "max_distance_diff": float(torch.maximum((d_old - d_new).abs().max(), (d_q - d_new).abs().max()))}
             rows.append(f"| {B} × {N} × {M} | {poses} | {t_old:.2f} | {t_new:.2f} | {t_q:.2f} | "
                         f"{out[key]['indices_differ']} | {out[key]['max_distance_diff']:.1e} |")
-    print(f"device: {torch.cuda.get_device_name() if dev == 'cuda' else 'cpu (interpreter)'}; kernels fell back: "
+    import os
+
+    where = "cpu, Triton's interpreter" if os.environ.get("TRITON_INTERPRET") == "1" else "cpu, the torch paths"
+    print(f"device: {torch.cuda.get_device_name() if dev == 'cuda' else where}; kernels fell back: "
           f"{sorted(new._BROKEN) or 'none'}")
     print(f"| B × N × M | poses | old ms | new ms | new, BLOCK_Q {args.block_q} ms | indices that differ | "
           "max distance diff |\n|---|---|---|---|---|---|---|")

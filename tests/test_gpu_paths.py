@@ -377,3 +377,25 @@ def test_the_training_noise_is_diffusers_add_noise_to_the_bit_from_a_buffer_that
         t = torch.arange(1000)
         assert torch.equal(model.add_noise(x0, noise, t), reference.add_noise(x0, noise, t))
     assert model.double().alphas_cumprod.dtype == torch.float64  # a buffer: moved and cast with the module
+
+
+def test_the_search_simulation_is_exact_and_the_nearest_tile_first_pass_evaluates_fewer_tiles():
+    """benchmarks/search_tiles.py replays the kernel's culling (it asserts the replayed search finds the exact
+    nearest distances): the nearest-tile first pass is one tile against the stride pass's P/(16·64), its second pass
+    never below the fewest any order could visit, and in all fewer tiles than the stride pass."""
+    from helpers import load_script
+
+    from spread.model.nearest_dense import pose_torch
+
+    tiles = load_script("search_tiles")
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_gpu import synthetic_batch
+
+    batch = synthetic_batch(2, 6, 256)
+    world = pose_torch(batch["x"], torch.tensor([0.0, 1.25, 0.0]), torch.tensor([3.0, 1.25, 3.0]), batch["points"],
+                       batch["normals"])[0]
+    stride, near = tiles.simulate(world, "stride"), tiles.simulate(world, "neartile")
+    assert stride["first pass"] == 2 and near["first pass"] == 1  # 6 × 256 keys / (16 × 64) → 2 tiles
+    for r in (stride, near):
+        assert r["pass 2"] >= r["fewest pass 2"] - 1e-9
+    assert near["total"] < stride["total"]

@@ -477,3 +477,26 @@ def test_the_built_in_terms_are_spelled_in_one_module():
     weights = GuidanceConfig("paper", collision=0.5, terms={"box_iou": 0.2}).weights()
     assert weights["collision"] == 0.5 and weights["box_iou"] == 0.2 and weights["gravity"] == 1e-3  # by name
     assert set(weights) == set(term_names())  # every registered term: the built-ins are ordinary terms
+
+
+def test_a_guidance_step_finds_the_support_pairs_once_per_sample_not_by_a_device_read_every_step(lib):
+    """The graph's support pairs are the same every step: found once (``support_pairs``/``held_pairs``, the rows of
+    supports.nonzero()); a step of relation or over then reads nothing back from the device, one of gravity or settle
+    only the data-dependent triangles under each supported object (counted by OperatorCounter on CPU tensors)."""
+    from spread.model.opcount import OperatorCounter
+
+    ids = ["table", "cup", "crate", "phone"]
+    x = state([[0, y_on("table"), 0], [0.1, 1.0, 0.05], [1.0, 0.3, 1.0], [-0.55, 0.9, 0.0]])[None].float()  # the phone half off the table
+    reads = {}
+    for name, weights in (("gravity", dict(gravity=4e-3)), ("settle", dict(terms={"settle": 0.3})),
+                          ("relation", dict(relation=1e-3)), ("over", dict(terms={"over": 0.05}))):
+        config = GuidanceConfig.from_config({"mode": "refine", "collision": 0.0, "gravity": 0.0, "relation": 0.0,
+                                             **weights})
+        g = guide(lib, ids, [(0, 1), (0, 3)], config=config)
+        pairs = g._graph(x.device, x.dtype)["support_pairs"]
+        assert pairs.tolist() == [[0, 0, 1], [0, 0, 3]]
+        with OperatorCounter() as counter:
+            moved = g.step(x, at=(99, 100))
+        reads[name] = counter.syncs
+        assert not torch.equal(moved, x)  # each term acts here
+    assert reads == {"gravity": 1, "settle": 1, "relation": 0, "over": 0}

@@ -76,13 +76,14 @@ def ray_heights(points: torch.Tensor, start: torch.Tensor, triangles: torch.Tens
 
 
 def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-                  beside: str = "roof", reach: float = 0.0) -> torch.Tensor:
+                  beside: str = "roof", reach: float = 0.0, pairs: torch.Tensor | None = None) -> torch.Tensor:
     """Gap d (B, N) metres from each object to what it rests on (module docstring); ``world`` (B, N, V, 3)
     posed vertices, ``hull`` (B, N, H, 3) their hull vertices, ``supports`` (B, N, N) bool. ``beside``: the gap of
     a supported object none of whose vertices is over a supporter — ``roof``: to the top of the supporters' AABBs
     (G_H), ``nan``: none (NaN; the settle term leaves such an object to relation guidance). ``reach`` (metres): the
     rays start at least this far above the object's lowest point (0: at its AABB centre, G_H), so that a thin
-    object sunk deeper than half its height still sees the surface it sank into."""
+    object sunk deeper than half its height still sees the surface it sank into. ``pairs``: ``supports.nonzero()``
+    when the caller has it already (the guidance finds it once per sample: no host read per step)."""
     if beside not in ("roof", "nan"):
         raise ValueError(f"vertical_gaps: beside must be 'roof' or 'nan', got {beside!r}")
     B, N, H, _ = hull.shape
@@ -90,7 +91,7 @@ def vertical_gaps(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
     hmask = t["hmask"]
     y = hull[..., 1]
     lowest = torch.where(hmask, y, torch.full_like(y, torch.inf)).amin(-1)  # (B, N); inf at padding
-    pairs = supports.nonzero()
+    pairs = supports.nonzero() if pairs is None else pairs
     if not len(pairs):
         return lowest
     b, i, j = pairs.unbind(1)
@@ -147,13 +148,14 @@ def _y_only(grad: torch.Tensor, config) -> torch.Tensor:
 
 
 register_term(GuidanceTerm(
-    "gravity", lambda ctx: gravity_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports), ctx.falls,
+    "gravity", lambda ctx: gravity_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports,
+                                                      pairs=ctx.support_pairs), ctx.falls,
                                         ctx.config.gap, ctx.config.tolerance),
     start=lambda config: config.gravity_from, edit=_y_only,
     description="G_H: vertical gap to the supporter or the floor outside [ε, ε + θ_H]"))
 register_term(GuidanceTerm(
     "settle", lambda ctx: settle_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports, beside="nan",
-                                                    reach=SETTLE_REACH),
+                                                    reach=SETTLE_REACH, pairs=ctx.support_pairs),
                                       ctx.falls, ctx.bounds, ctx.config.gap, ctx.config.tolerance),
     start=lambda config: config.gravity_from, edit=_y_only,
     description="G_S: the gravity gap closed by the fraction λ per step (objects over a supporter or on the floor)"))

@@ -123,6 +123,9 @@ class SceneGuidance:
                                    "bounds": self.bounds.to(device, dtype),
                                    "falls": (self.mask & ~self.welded).to(device),
                                    "held": (self.supports & ~self.welded[:, None, :]).to(device)}
+            # the support pairs as (S, 3) [b, i, j] rows, found once on the host (not a device read every step)
+            hit["support_pairs"] = self.supports.nonzero().to(device)
+            hit["held_pairs"] = (self.supports & ~self.welded[:, None, :]).nonzero().to(device)
         return hit
 
     # ---- terms --------------------------------------------------------------------------------------

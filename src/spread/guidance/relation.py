@@ -54,12 +54,13 @@ def polygon_distance(points: torch.Tensor, polygons: torch.Tensor) -> torch.Tens
     return torch.where(inside, torch.zeros_like(dist), dist)
 
 
-def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes,
-                      supports: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
+                      pairs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Per support pair (``supports`` (B, N, N) bool, [b, i, j]: i supports j): its scene b (S,) and the mean
     distance (S,) of j's vertices outside i's footprint, ``Σ_{α ∈ V_ij} s(α, i) / |V_ij|`` (0 when none is), in the
-    units of ``world`` (B, N, V, 3) and ``hull`` (B, N, H, 3); None when the batch has no support pair."""
-    pairs = supports.nonzero()
+    units of ``world`` (B, N, V, 3) and ``hull`` (B, N, H, 3); None when the batch has no support pair. ``pairs``:
+    ``supports.nonzero()`` when the caller has it already (found once per sample)."""
+    pairs = supports.nonzero() if pairs is None else pairs
     if not len(pairs):
         return None
     b, i, j = pairs.unbind(1)
@@ -79,12 +80,13 @@ def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes,
     return b, (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
 
 
-def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor) -> torch.Tensor:
+def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
+                  pairs: torch.Tensor | None = None) -> torch.Tensor:
     """G_R per scene (B,) for posed vertices (B, N, V, 3), their hull vertices (B, N, H, 3) and
     ``supports`` (B, N, N) bool ([b, i, j]: i supports j)."""
     B = world.shape[0]
     out = world.new_zeros(B) + 0 * world.sum()
-    found = outside_distances(world, hull, meshes, supports)
+    found = outside_distances(world, hull, meshes, supports, pairs)
     if found is None:
         return out
     b, per_pair = found
@@ -93,7 +95,7 @@ def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
 
 
 def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-              bounds: torch.Tensor) -> torch.Tensor:
+              bounds: torch.Tensor, pairs: torch.Tensor | None = None) -> torch.Tensor:
     """G_O per scene (B,): ``½ Σ_{(i,j) ∈ E} d̄_ij²``, d̄_ij the mean distance of j's vertices outside i's
     footprint measured in the normalised state's units (x and z divided by their half-ranges of ``bounds``).
 
@@ -104,7 +106,7 @@ def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.T
     out = world.new_zeros(B) + 0 * world.sum()
     scale = world.new_ones(3)
     scale[[0, 2]] = 0.5 * (bounds[[3, 5]] - bounds[[0, 2]]).to(world)
-    found = outside_distances(world / scale, hull / scale, meshes, supports)
+    found = outside_distances(world / scale, hull / scale, meshes, supports, pairs)
     if found is None:
         return out
     b, per_pair = found
@@ -112,8 +114,8 @@ def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.T
 
 
 register_term(GuidanceTerm(
-    "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held),
+    "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.held_pairs),
     description="G_R: supported vertices outside the supporter's xz hull"))
 register_term(GuidanceTerm(
-    "over", lambda ctx: over_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds),
+    "over", lambda ctx: over_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs),
     description="G_O: a supported object's outside vertices drawn over its supporter, the fraction λ per step"))

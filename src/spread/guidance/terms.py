@@ -74,7 +74,8 @@ class TermContext:
     ``rotation`` (B, N, 3, 3)), the posed mesh vertices ``world`` and hull points ``hull`` (metres), the batch's
     :class:`~spread.guidance.meshes.SceneMeshes`, ``mask`` (B, N), ``supports`` (B, N, N: row supports column),
     ``falls`` (B, N: objects gravity acts on; wall and ceiling mounts do not fall), ``held`` (support pairs whose
-    supported object is not welded), ``bounds`` (6,), the config, and :meth:`pairs` (the BVH's colliding triangle
+    supported object is not welded), ``support_pairs`` / ``held_pairs`` (their True entries as (S, 3) [b, i, j] rows,
+    found once per sample), ``bounds`` (6,), the config, and :meth:`pairs` (the BVH's colliding triangle
     pairs, found once per context)."""
 
     def __init__(self, guidance, x: torch.Tensor, translation, rotation, world, hull, graph: dict):
@@ -83,6 +84,8 @@ class TermContext:
         self.meshes, self.config = guidance.meshes, guidance.config
         self.mask, self.supports, self.bounds = graph["mask"], graph["supports"], graph["bounds"]
         self.falls, self.held = graph["falls"], graph["held"]
+        # (S, 3) [b, i, j] rows of supports / held, found once per sample (None: a caller without them)
+        self.support_pairs, self.held_pairs = graph.get("support_pairs"), graph.get("held_pairs")
         self.detach_cones = guidance.detach_cones
         self._pairs = None
 

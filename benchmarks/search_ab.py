@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -42,15 +43,15 @@ def main() -> None:
     ap.add_argument("--block-q", type=int, default=32, help="also time the new kernel with this many queries a program")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
-    from bench_gpu import synthetic_batch
+    from bench_gpu import BOUNDS, synthetic_batch
 
     import spread.model.nearest_dense as new
+    from spread.model.poses import denormalize_affine
 
     spec = importlib.util.spec_from_file_location("old_nearest_dense", args.old)
     spec.loader.exec_module(importlib.util.module_from_spec(spec))
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    offset = torch.tensor([0.0, 1.25, 0.0], device=dev)
-    scale = torch.tensor([3.0, 1.25, 3.0], device=dev)  # bench_gpu.BOUNDS
+    offset, scale = denormalize_affine(torch.tensor(BOUNDS, device=dev))
     sizes = [(16, 20, 2000), (64, 20, 2000), (64, 40, 2000)] if dev == "cuda" else [(2, 5, 300)]
     out, rows = {}, []
     for B, N, M in sizes:
@@ -73,8 +74,6 @@ def main() -> None:
                         "max_distance_diff": float(torch.maximum((d_old - d_new).abs().max(), (d_q - d_new).abs().max()))}
             rows.append(f"| {B} × {N} × {M} | {poses} | {t_old:.2f} | {t_new:.2f} | {t_q:.2f} | "
                         f"{out[key]['indices_differ']} | {out[key]['max_distance_diff']:.1e} |")
-    import os
-
     where = "cpu, Triton's interpreter" if os.environ.get("TRITON_INTERPRET") == "1" else "cpu, the torch paths"
     print(f"device: {torch.cuda.get_device_name() if dev == 'cuda' else where}; kernels fell back: "
           f"{sorted(new._BROKEN) or 'none'}")

@@ -99,12 +99,13 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=1984, help="per object, a multiple of 64")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    from bench_gpu import synthetic_batch
+    from bench_gpu import BOUNDS, synthetic_batch
 
     from spread.model.nearest_dense import pose_torch
+    from spread.model.poses import denormalize_affine
 
     batch = synthetic_batch(args.rooms, args.objects, args.points)
-    offset, scale = torch.tensor([0.0, 1.25, 0.0]), torch.tensor([3.0, 1.25, 3.0])  # bench_gpu.BOUNDS
+    offset, scale = denormalize_affine(torch.tensor(BOUNDS))
     noise = torch.randn(args.rooms, args.objects, 9, generator=torch.Generator().manual_seed(1))
     rows = []
     for poses, states in (("rest", batch["x"]), ("noise", noise)):

@@ -386,14 +386,14 @@ def test_the_search_simulation_is_exact_and_the_nearest_tile_first_pass_evaluate
     from helpers import load_script
 
     from spread.model.nearest_dense import pose_torch
+    from spread.model.poses import denormalize_affine
 
     tiles = load_script("search_tiles")
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_gpu import synthetic_batch
 
     batch = synthetic_batch(2, 6, 256)
-    world = pose_torch(batch["x"], torch.tensor([0.0, 1.25, 0.0]), torch.tensor([3.0, 1.25, 3.0]), batch["points"],
-                       batch["normals"])[0]
+    world = pose_torch(batch["x"], *denormalize_affine(torch.tensor(BOUNDS)), batch["points"], batch["normals"])[0]
     stride, near = tiles.simulate(world, "stride"), tiles.simulate(world, "neartile")
     assert stride["first pass"] == 2 and near["first pass"] == 1  # 6 × 256 keys / (16 × 64) → 2 tiles
     for r in (stride, near):

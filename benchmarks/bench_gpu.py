@@ -23,8 +23,9 @@ Rows:
 * **sample s/scene** — CUDA, DDIM-50 at batch 64 synthetic rooms: eager float32, CUDA graph float32, CUDA graph bf16;
   with ``--data``: the platform's ``ScenePipeline`` on the dataset's graphs (64 per batch) with the release's recipe
   (DDPM-1000 + ``guidance=refine``, 100 iterations, paper weights) and the paper's (DDIM-50 + ``guidance=paper``),
-  CUDA graph + bf16. The network has random weights (paper size, untrained): samples interpenetrate more than a
-  trained model's, so the guidance rows are an upper bound of its collision work.
+  CUDA graph + bf16; the refine row once more with ``guidance.detect=host`` (python-fcl and scipy on host copies,
+  against the default's search on the GPU). The network has random weights (paper size, untrained): samples
+  interpenetrate more than a trained model's, so the guidance rows are an upper bound of its collision work.
 """
 
 from __future__ import annotations
@@ -367,6 +368,9 @@ def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
     refine_iterations = 3
     recipes = [("ddpm1000 unguided", "ddpm-10" if quick else "ddpm", {"mode": "none"}),
                (f"ddim2+refine{refine_iterations}", "ddim-2", {"mode": "refine", "iterations": refine_iterations}),
+               # the same with the guidance's geometry found on the host (python-fcl, scipy), as before the device path
+               (f"ddim2+refine{refine_iterations} detect=host", "ddim-2",
+                {"mode": "refine", "iterations": refine_iterations, "detect": "host"}),
                ("ddim3+paper", "ddim-3", {"mode": "paper"})]
     for name, sampler, guidance in recipes:
         pipe = ScenePipeline(m, dataset, sampler, guidance, cuda_graph=True, precision="bf16")

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_guidance.py --data DATASET [--ckpt TINY.ckpt] [--sizes 10 25 50]
         [--iterations 100] [--batch 8] [--samplers ddim-50 dpmsolver++-20] [--release] [--threads 1]
+        [--detect auto host device]
 
 Part 1 (guidance alone, no network). Scenes of N objects are made by laying the dataset's rooms
 (test, then val, then train) side by side along x, 0.5 m apart, with their graphs block-diagonal (the
@@ -10,8 +11,11 @@ last room cut to fit, lowest objects first, so supporters stay); bounds are the 
 jittered by N(0, 5 cm) in x and z, N(0, 1 cm) in y and N(0, 0.1 rad) in yaw (penetrations, floating,
 overhangs, like a generated scene). Each row runs the ``refine`` loop with ε̂ = 0 (so only guidance
 works) for ``--iterations`` iterations, one scene per batch: per step = total / iterations; per scene
-= the total; the split is the guidance's own stats (BVH = broad phase + fcl, penalty = the three
-terms' forward and backward, torch).
+= the total; the split is the guidance's own stats (BVH = broad phase + triangle-pair search, penalty = the three
+terms' forward and backward, torch). Each row once per ``--detect`` path (``guidance.detect``: ``host`` = python-fcl
+and scipy hulls, ``device`` = spread.guidance.dense on the states' device, here the CPU), with the host reads of one
+step at the jittered state (``OperatorCounter``: nonzero, item, ... — the host path's copies of the poses to numpy
+are not counted, as on CPU tensors they are no copy).
 
 Part 2 (full sampling). A batch of the first ``--batch`` test scenes, encoded as ``spread-sample``
 does, sampled with the tiny geometry model (``--ckpt`` or untrained) with guidance none / paper /
@@ -82,22 +86,26 @@ def to_state(translation, rotation, bounds):
     return torch.cat([2 * (t - lo) / (hi - lo) - 1, matrix_to_rot6d(R)], -1)
 
 
-def part_guidance(scenes, library, sizes, iterations: int) -> None:
+def part_guidance(scenes, library, sizes, iterations: int, detects=("auto",)) -> None:
     import torch
 
     from spread.guidance import GuidanceConfig, SceneGuidance
+    from spread.model.opcount import OperatorCounter
 
-    print(f"\n| N | state | support pairs | tri pairs at start | step at start (ms) | tri pairs / step | per step (ms) "
-          f"| BVH (ms) | penalty (ms) | per scene, {iterations} it. (s) | BVH share | penalty share |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"\n| N | state | detect | support pairs | tri pairs at start | step at start (ms) | host reads / step "
+          f"| tri pairs / step | per step (ms) | BVH (ms) | penalty (ms) | per scene, {iterations} it. (s) | BVH share "
+          f"| penalty share |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in sizes:
         ids, t, R, physical = tiled_scene(scenes, library, n)
-        for label, (tt, RR) in (("ground truth", (t, R)), ("jittered", jitter(t, R, n))):
+        for label, (tt, RR), detect in [(lab, pose, d) for lab, pose in (("ground truth", (t, R)),
+                                                                          ("jittered", jitter(t, R, n)))
+                                        for d in detects]:
             lo = np.minimum(tt.min(0), 0) - 1.0
             hi = tt.max(0) + 1.0
             bounds = torch.tensor(np.concatenate([lo, hi]), dtype=torch.float32)
             x = to_state(tt, RR, bounds)[None]
-            config = GuidanceConfig("refine", iterations=iterations)
+            config = GuidanceConfig("refine", iterations=iterations, detect=detect)
             guidance = SceneGuidance(config, library, [ids], torch.as_tensor(physical)[None],
                                      torch.ones(1, n, dtype=torch.bool), bounds)
             guidance.step(x)  # warm: BVHs and caches
@@ -106,14 +114,16 @@ def part_guidance(scenes, library, sizes, iterations: int) -> None:
             for _ in range(10):
                 guidance.step(x)
             at_start = (time.perf_counter() - t0) / 10
+            with OperatorCounter() as counter:
+                guidance.step(x)
             guidance.reset_stats()
             t0 = time.perf_counter()
             guidance.refine(x, lambda x_t, _: torch.zeros_like(x_t))
             wall = time.perf_counter() - t0
             s = guidance.stats
             k = s["steps"]
-            print(f"| {n} | {label} | {int((physical == 1).sum())} | {start_pairs} | {1000 * at_start:.1f} | "
-                  f"{s['colliding_pairs'] / k:.0f} | {1000 * wall / k:.1f} | {1000 * s['bvh_s'] / k:.1f} | "
+            print(f"| {n} | {label} | {detect} | {int((physical == 1).sum())} | {start_pairs} | {1000 * at_start:.1f} | "
+                  f"{counter.syncs} | {s['colliding_pairs'] / k:.0f} | {1000 * wall / k:.1f} | {1000 * s['bvh_s'] / k:.1f} | "
                   f"{1000 * s['penalty_s'] / k:.1f} | {wall:.2f} | {s['bvh_s'] / wall:.0%} | "
                   f"{s['penalty_s'] / wall:.0%} |", flush=True)
 
@@ -158,8 +168,8 @@ def part_sampling(args, library) -> None:
     for sampler, mode in runs:
         guidance = None
         if mode != "none":
-            guidance = SceneGuidance(GuidanceConfig(mode, iterations=args.iterations), library, asset_ids,
-                                     batch["physical"], batch["mask"], model.network.bounds)
+            config = GuidanceConfig(mode, iterations=args.iterations, detect=args.detect[0])
+            guidance = SceneGuidance(config, library, asset_ids, batch["physical"], batch["mask"], model.network.bounds)
         t0 = time.perf_counter()
         callbacks = [guidance_callback(guidance)] if guidance is not None else []
         with torch.no_grad():
@@ -185,6 +195,8 @@ def main() -> None:
     ap.add_argument("--samplers", nargs="*", default=["ddim-50", "dpmsolver++-20"])
     ap.add_argument("--release", action="store_true", help="also DDPM-1000 + refine (slow on CPU)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--detect", nargs="+", default=["auto"], choices=["auto", "host", "device"],
+                    help="guidance.detect paths to compare in part 1 (part 2 takes the first)")
     args = ap.parse_args()
 
     import torch
@@ -202,7 +214,7 @@ def main() -> None:
           f"torch {torch.__version__}, {args.threads} thread(s), load avg {os.getloadavg()[0]:.1f}; "
           f"dataset {args.data}")
     scenes = [read_scene(f, assets=library) for f in files[:max(args.sizes) // 2 + 8]]
-    part_guidance(scenes, library, args.sizes, args.iterations)
+    part_guidance(scenes, library, args.sizes, args.iterations, args.detect)
     if args.samplers or args.release:
         part_sampling(args, library)
 

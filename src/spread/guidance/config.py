@@ -39,6 +39,7 @@ from dataclasses import field
 from typing import Any, Mapping
 
 MODES = ("none", "paper", "refine", "sample", "release")
+DETECT = ("auto", "host", "device")
 #: Field metadata of a weight key: the field is the weight of the registered term of its name.
 TERM = {"term": True}
 
@@ -83,6 +84,11 @@ class GuidanceConfig:
     #: Most triangle pairs reported per object pair by the BVH query (bounds the cost when objects
     #: interpenetrate wholesale, as early predictions of x̂_0 do).
     max_contacts: int = 2048
+    #: Where the geometry the terms differentiate through is found (colliding triangle pairs, supporters'
+    #: footprints): ``host`` (python-fcl and scipy on CPU copies of the poses), ``device`` (tensor operations where
+    #: the states are: :mod:`spread.guidance.dense`), ``auto`` (the device's path on CUDA, the host's on the CPU).
+    #: The same pairs and footprints either way, but for triangles that only touch (tests).
+    detect: str = "auto"
     #: ``refine``: clip the t = 0 projection to [−1, 1] (what the release's scheduler step does).
     clip: bool = True
     #: Weights of the registered terms by name (:mod:`spread.guidance.terms`: plugins, PhyScene's ``box_iou``),
@@ -96,6 +102,8 @@ class GuidanceConfig:
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"guidance: key 'mode' is {self.mode!r}, choose from {MODES}")
+        if self.detect not in DETECT:
+            raise ValueError(f"guidance: key 'detect' is {self.detect!r}, choose from {DETECT}")
         own = self.weight_keys()
         self.terms = {str(k): v for k, v in dict(self.terms or {}).items()}
         for name in [n for n in self.terms if n in own]:  # terms.collision is the key collision

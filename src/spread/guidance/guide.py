@@ -37,6 +37,7 @@ import torch
 
 from spread.guidance.collision import TriangleCollider, TrianglePairs
 from spread.guidance.config import GuidanceConfig
+from spread.guidance.dense import resolve_detect, triangle_pairs
 from spread.guidance.meshes import SceneMeshes
 from spread.guidance.release import RELEASE_TERMS
 from spread.guidance.terms import TERMS_REGISTRY, GuidanceTerm, TermContext
@@ -86,7 +87,7 @@ class SceneGuidance:
         if tuple(self.welded.shape) != (B, N):
             raise ValueError(f"guidance: welded must be (B, N) = {(B, N)}, got {tuple(self.welded.shape)}")
         self.meshes = SceneMeshes(library, asset_ids, self.mask)
-        self.collider = TriangleCollider(self.meshes, self.config.max_contacts)
+        self._collider: TriangleCollider | None = None  # python-fcl's objects, made on the host path's first use
         self.detach_cones = detach_cones
         self.decode, self.state_dim, self.lead = decode, int(state_dim), int(lead)
         if self.lead < 0 or (self.lead and decode is None):
@@ -135,12 +136,26 @@ class SceneGuidance:
             return RELEASE_TERMS[name]
         return TERMS_REGISTRY.get(name)
 
-    def detect(self, translation: torch.Tensor, rotation: torch.Tensor, hull: torch.Tensor) -> TrianglePairs:
+    def on_device(self, device: torch.device) -> bool:
+        """Whether the terms' geometry is found on ``device`` itself (``guidance.detect`` resolved for it)."""
+        return resolve_detect(self.config.detect, device) == "device"
+
+    def detect(self, translation: torch.Tensor, rotation: torch.Tensor, hull: torch.Tensor,
+               world: torch.Tensor | None = None) -> TrianglePairs:
+        """The colliding triangle pairs at these poses (``hull`` (B, N, H, 3): the posed hull vertices, whose
+        boxes are the broad phase; ``world``: the posed vertices, which the device path needs)."""
         t0 = time.perf_counter()
-        lo = hull.detach().amin(2).cpu().double().numpy()
-        hi = hull.detach().amax(2).cpu().double().numpy()
-        pairs = self.collider.find(rotation.detach().cpu().double().numpy(),
-                                   translation.detach().cpu().double().numpy(), lo, hi, self.mask.numpy())
+        if world is not None and self.on_device(world.device):
+            g = self._graph(world.device, world.dtype)
+            h = hull.detach()
+            pairs = triangle_pairs(world, self.meshes, h.amin(2), h.amax(2), g["mask"], self.config.max_contacts)
+        else:
+            lo = hull.detach().amin(2).cpu().double().numpy()
+            hi = hull.detach().amax(2).cpu().double().numpy()
+            if self._collider is None:
+                self._collider = TriangleCollider(self.meshes, self.config.max_contacts)
+            pairs = self._collider.find(rotation.detach().cpu().double().numpy(),
+                                       translation.detach().cpu().double().numpy(), lo, hi, self.mask.numpy())
         self._stats["bvh_s"] += time.perf_counter() - t0
         self._stats["object_pairs"] += pairs.object_pairs
         self._stats["colliding_pairs"] += len(pairs)

@@ -2,7 +2,8 @@
 
 For each support pair (i supports j, ``physical[i, j] == 1``) the supporter's footprint is the convex
 hull of its posed vertices projected on the floor plane (x, z) — computed each call from its posed
-hull vertices with scipy, detached, as the release detaches it. Each vertex α of j (all mesh
+hull vertices (scipy on the host, or :func:`spread.guidance.dense.hull_edges` on the states' device with
+``guidance.detect: device``), detached, as the release detaches it. Each vertex α of j (all mesh
 vertices, projected on (x, z)) outside that polygon is at distance s(α, i) from it (metres);
 V_ij is the set of such vertices (s > 1e-6). Paper eq. G_R, per scene:
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from spread.guidance.dense import hull_edges
 from spread.guidance.terms import GuidanceTerm, register_term
 
 #: A vertex counts as outside when it is farther than this from the hull (metres; release 1e-6).
@@ -43,50 +45,69 @@ def polygon_distance(points: torch.Tensor, polygons: torch.Tensor) -> torch.Tens
     """Distance (S, P) of points (S, P, 2) outside convex CCW polygons (S, K, 2) (0 inside, metres).
 
     Polygons may be padded by repeating a vertex (a zero-length edge changes nothing)."""
-    q = polygons[:, None, :, :]  # (S, 1, K, 2)
-    e = torch.roll(polygons, -1, dims=1)[:, None] - q  # edges q_k → q_{k+1}
+    return segments_distance(points, polygons, torch.roll(polygons, -1, dims=1))
+
+
+def segments_distance(points: torch.Tensor, start: torch.Tensor, end: torch.Tensor,
+                      valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Distance (S, P) of points (S, P, 2) outside the convex region left of every edge start → end (S, K, 2) of
+    its row (0 inside: left of all of them within 1e-9), measured to the nearest edge; ``valid`` (S, K) leaves
+    edges out (the device path's hull edges, :func:`spread.guidance.dense.hull_edges`)."""
+    q = start[:, None, :, :]  # (S, 1, K, 2)
+    e = end[:, None] - q
     d = points[:, :, None, :] - q  # (S, P, K, 2)
     cross = e[..., 0] * d[..., 1] - e[..., 1] * d[..., 0]
-    inside = (cross >= -1e-9).all(-1)
     t = ((d * e).sum(-1) / (e * e).sum(-1).clamp_min(1e-18)).clamp(0, 1)
     off = d - t[..., None] * e
-    dist = (off * off).sum(-1).clamp_min(1e-24).sqrt().amin(-1)
+    dist = (off * off).sum(-1).clamp_min(1e-24)
+    if valid is not None:
+        cross = torch.where(valid[:, None, :], cross, torch.full_like(cross, torch.inf))
+        dist = torch.where(valid[:, None, :], dist, torch.full_like(dist, torch.inf))
+    inside = (cross >= -1e-9).all(-1)
+    dist = dist.amin(-1).sqrt()
     return torch.where(inside, torch.zeros_like(dist), dist)
 
 
 def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-                      pairs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
+                      pairs: torch.Tensor | None = None, device: bool = False
+                      ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Per support pair (``supports`` (B, N, N) bool, [b, i, j]: i supports j): its scene b (S,) and the mean
     distance (S,) of j's vertices outside i's footprint, ``Σ_{α ∈ V_ij} s(α, i) / |V_ij|`` (0 when none is), in the
     units of ``world`` (B, N, V, 3) and ``hull`` (B, N, H, 3); None when the batch has no support pair. ``pairs``:
-    ``supports.nonzero()`` when the caller has it already (found once per sample)."""
+    ``supports.nonzero()`` when the caller has it already (found once per sample). ``device``: the footprints' hull
+    edges found by tensor operations where ``world`` is (``guidance.detect: device``), not by scipy on the host."""
     pairs = supports.nonzero() if pairs is None else pairs
     if not len(pairs):
         return None
     b, i, j = pairs.unbind(1)
     t = meshes.tensors(world.device, world.dtype)
-    # supporters' footprints (numpy, detached), one per distinct supporter, padded to K by repetition
-    hull_np = hull.detach().cpu().double().numpy()
-    hmask = t["hmask"].cpu().numpy()
-    keys = sorted({(int(bb), int(ii)) for bb, ii in zip(b.tolist(), i.tolist())})
-    polys = {k: footprint(hull_np[k[0], k[1]][hmask[k[0], k[1]]][:, [0, 2]]) for k in keys}
-    K = max(len(p) for p in polys.values())
-    padded = np.stack([np.concatenate([p, np.repeat(p[:1], K - len(p), 0)]) for p in polys.values()])
-    index = {k: n for n, k in enumerate(polys)}
-    rows = torch.tensor([index[(int(bb), int(ii))] for bb, ii in zip(b.tolist(), i.tolist())], device=world.device)
-    polygons = torch.from_numpy(padded).to(world.device, world.dtype)[rows]  # (S, K, 2)
-    s = polygon_distance(world[b, j][..., [0, 2]], polygons)  # (S, V)
+    if device:
+        # each pair's supporter's hull edges, found on the states' device (dense.hull_edges, detached)
+        start, end, valid = hull_edges(hull[b, i].detach()[..., [0, 2]], t["hmask"][b, i])
+        s = segments_distance(world[b, j][..., [0, 2]], start, end, valid)  # (S, V)
+    else:
+        # supporters' footprints (numpy, detached), one per distinct supporter, padded to K by repetition
+        hull_np = hull.detach().cpu().double().numpy()
+        hmask = t["hmask"].cpu().numpy()
+        keys = sorted({(int(bb), int(ii)) for bb, ii in zip(b.tolist(), i.tolist())})
+        polys = {k: footprint(hull_np[k[0], k[1]][hmask[k[0], k[1]]][:, [0, 2]]) for k in keys}
+        K = max(len(p) for p in polys.values())
+        padded = np.stack([np.concatenate([p, np.repeat(p[:1], K - len(p), 0)]) for p in polys.values()])
+        index = {k: n for n, k in enumerate(polys)}
+        rows = torch.tensor([index[(int(bb), int(ii))] for bb, ii in zip(b.tolist(), i.tolist())], device=world.device)
+        polygons = torch.from_numpy(padded).to(world.device, world.dtype)[rows]  # (S, K, 2)
+        s = polygon_distance(world[b, j][..., [0, 2]], polygons)  # (S, V)
     outside = t["vmask"][b, j] & (s > OUTSIDE)
     return b, (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
 
 
 def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-                  pairs: torch.Tensor | None = None) -> torch.Tensor:
+                  pairs: torch.Tensor | None = None, device: bool = False) -> torch.Tensor:
     """G_R per scene (B,) for posed vertices (B, N, V, 3), their hull vertices (B, N, H, 3) and
     ``supports`` (B, N, N) bool ([b, i, j]: i supports j)."""
     B = world.shape[0]
     out = world.new_zeros(B) + 0 * world.sum()
-    found = outside_distances(world, hull, meshes, supports, pairs)
+    found = outside_distances(world, hull, meshes, supports, pairs, device)
     if found is None:
         return out
     b, per_pair = found
@@ -95,7 +116,7 @@ def relation_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: tor
 
 
 def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-              bounds: torch.Tensor, pairs: torch.Tensor | None = None) -> torch.Tensor:
+              bounds: torch.Tensor, pairs: torch.Tensor | None = None, device: bool = False) -> torch.Tensor:
     """G_O per scene (B,): ``½ Σ_{(i,j) ∈ E} d̄_ij²``, d̄_ij the mean distance of j's vertices outside i's
     footprint measured in the normalised state's units (x and z divided by their half-ranges of ``bounds``).
 
@@ -106,7 +127,7 @@ def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.T
     out = world.new_zeros(B) + 0 * world.sum()
     scale = world.new_ones(3)
     scale[[0, 2]] = 0.5 * (bounds[[3, 5]] - bounds[[0, 2]]).to(world)
-    found = outside_distances(world / scale, hull / scale, meshes, supports, pairs)
+    found = outside_distances(world / scale, hull / scale, meshes, supports, pairs, device)
     if found is None:
         return out
     b, per_pair = found
@@ -114,8 +135,9 @@ def over_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.T
 
 
 register_term(GuidanceTerm(
-    "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.held_pairs),
+    "relation", lambda ctx: relation_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.held_pairs, ctx.on_device),
     description="G_R: supported vertices outside the supporter's xz hull"))
 register_term(GuidanceTerm(
-    "over", lambda ctx: over_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs),
+    "over", lambda ctx: over_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs,
+                          ctx.on_device),
     description="G_O: a supported object's outside vertices drawn over its supporter, the fraction λ per step"))

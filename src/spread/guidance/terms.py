@@ -87,10 +87,12 @@ class TermContext:
         # (S, 3) [b, i, j] rows of supports / held, found once per sample (None: a caller without them)
         self.support_pairs, self.held_pairs = graph.get("support_pairs"), graph.get("held_pairs")
         self.detach_cones = guidance.detach_cones
+        #: whether the non-differentiable geometry is found on the states' device (``guidance.detect``)
+        self.on_device = guidance.on_device(x.device)
         self._pairs = None
 
     def pairs(self):
         """:class:`~spread.guidance.collision.TrianglePairs` between different objects at these poses."""
         if self._pairs is None:
-            self._pairs = self.guidance.detect(self.translation, self.rotation, self.hull)
+            self._pairs = self.guidance.detect(self.translation, self.rotation, self.hull, self.world)
         return self._pairs

@@ -8,7 +8,8 @@ Each asset contributes (canonical frame: metres, y-up, centred at its bbox centr
   and an object's AABB and xz hull are its hull vertices' (gravity, relation and the broad phase use
   them: far fewer points);
 * a python-fcl ``BVHModel`` over all its triangles (OBBRSS, fcl's default), so a collision query
-  reports triangle indices. Built once per asset and content hash, kept for the process.
+  reports triangle indices (:attr:`AssetMesh.bvh`). Built on the host path's first query of the asset
+  (``guidance.detect: host``; the device path never imports fcl), kept for the process.
 
 A batch (:class:`SceneMeshes`) holds them padded to (B, N, V_max / F_max / H_max): padded vertices
 are 0 with a False mask, padded faces point at vertex 0 and are invalid, padded hull slots repeat the
@@ -18,6 +19,7 @@ first hull vertex (harmless for minima/maxima and hulls). Posing is one einsum:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +38,11 @@ class AssetMesh:
     faces: np.ndarray  # (F, 3) int64
     valid_faces: np.ndarray  # (F,) bool, area ≥ MIN_FACE_AREA
     hull: np.ndarray  # (H,) int64, indices into vertices of the convex hull's vertices
-    bvh: object  # fcl.BVHModel
+
+    @functools.cached_property
+    def bvh(self):
+        """python-fcl's ``BVHModel`` of all its triangles, built on first use."""
+        return _bvh(self.vertices, self.faces)
 
 
 _MESHES: dict[tuple[str, str], AssetMesh] = {}
@@ -74,8 +80,7 @@ def asset_mesh(library, asset_id: str) -> AssetMesh:
         faces = np.asarray(mesh.faces, np.int64)
         a, b, c = (vertices[faces[:, k]] for k in range(3))
         area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-        hit = _MESHES[key] = AssetMesh(asset_id, vertices, faces, area >= MIN_FACE_AREA, _hull_indices(vertices),
-                                       _bvh(vertices, faces))
+        hit = _MESHES[key] = AssetMesh(asset_id, vertices, faces, area >= MIN_FACE_AREA, _hull_indices(vertices))
     return hit
 
 

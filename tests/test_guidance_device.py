@@ -52,13 +52,15 @@ def test_the_device_finds_the_triangle_pairs_python_fcl_finds(lib, dtype):
         assert sorted(map(tuple, device)) == sorted(map(tuple, host)) and device_objects == host_objects
 
 
-def test_chunks_of_object_pairs_change_nothing(lib, monkeypatch):
+def test_chunks_of_object_pairs_and_of_candidate_triangle_pairs_change_nothing(lib, monkeypatch):
     import spread.guidance.dense as dense
 
     inputs = crowded(lib, 2)
     whole, _ = pairs_at(lib, "device", *inputs)
     monkeypatch.setitem(dense.CHUNK_ELEMENTS, "cpu", 1)  # one object pair per chunk
     assert pairs_at(lib, "device", *inputs)[0] == whole and len(whole) > 100
+    monkeypatch.setattr(dense, "CANDIDATES", 7)  # and its candidate triangle pairs 7 at a time
+    assert pairs_at(lib, "device", *inputs)[0] == whole
 
 
 def test_both_paths_keep_at_most_max_contacts_per_object_pair_the_device_the_first_in_face_order(lib):

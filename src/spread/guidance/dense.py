@@ -12,7 +12,8 @@ loop. This module finds the same things where the poses are, in a fixed number o
   edge directions, the 6 in-plane edge normals). Touching counts as intersecting. The pairs are those python-fcl
   reports (tests compare them) but for triangles that only touch, where the two tests may disagree; at most
   ``max_contacts`` per object pair, the first in (face of i, face of j) order (fcl keeps the first its traversal
-  meets). Memory is bounded by doing the object pairs in chunks of ``CHUNK_ELEMENTS`` triangle pairs.
+  meets). Memory is bounded by doing the object pairs in chunks of ``CHUNK_ELEMENTS`` triangle pairs, and their
+  candidate triangle pairs ``CANDIDATES`` at a time (interpenetrating early predictions have millions).
 * :func:`hull_edges` — the edges of the convex hull in (x, z) of each supporter's hull vertices: from each point,
   the edge to the point the most clockwise seen from it, kept when every point lies on its left (within
   ``tolerance``). :func:`spread.guidance.relation.segments_distance` measures a point's distance outside the hull on
@@ -32,6 +33,8 @@ from spread.guidance.collision import TrianglePairs
 #: Triangle pairs (object pairs × F × F) tested per chunk, by device type; bounds the broad phase's memory (~10
 #: bytes each: 640 MiB on a GPU, where fewer, larger chunks mean fewer launches and host reads).
 CHUNK_ELEMENTS = {"cpu": 1 << 23, "cuda": 1 << 26}
+#: Candidate triangle pairs given to one separating-axis test call (~0.8 kB of temporaries each: 1.6 GiB at most).
+CANDIDATES = 1 << 21
 #: An edge × edge axis whose |a × b| is below this fraction of |a| |b| (nearly parallel edges) is skipped.
 PARALLEL = 1e-9
 
@@ -117,7 +120,10 @@ def triangle_pairs(world: torch.Tensor, meshes, lo: torch.Tensor, hi: torch.Tens
         k, fi, fj = boxes.nonzero().unbind(1)  # in (object pair, fi, fj) order
         if not k.numel():
             continue
-        keep = _first_hits(k, triangles_intersect(tri_i[k, fi], tri_j[k, fj]), max_contacts).nonzero()[:, 0]
+        hit = torch.cat([triangles_intersect(tri_i[k[c:c + CANDIDATES], fi[c:c + CANDIDATES]],
+                                             tri_j[k[c:c + CANDIDATES], fj[c:c + CANDIDATES]])
+                         for c in range(0, k.numel(), CANDIDATES)])
+        keep = _first_hits(k, hit, max_contacts).nonzero()[:, 0]
         k, fi, fj = k[keep], fi[keep], fj[keep]
         found.append(torch.stack([b[k], i[k], fi, j[k], fj], 1))
     if not found:

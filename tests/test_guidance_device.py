@@ -121,10 +121,10 @@ def test_hull_edges_measure_the_distances_scipys_hull_measures():
     K = max(len(p) for p in polygons)
     padded = torch.tensor(np.stack([np.concatenate([p, np.repeat(p[:1], K - len(p), 0)]) for p in polygons]))
     want = polygon_distance(queries, padded)
-    got = segments_distance(queries, *hull_edges(points, mask))
+    end, valid = hull_edges(points, mask)
+    got = segments_distance(queries, points, end, valid)
     assert (want > 0).float().mean() > 0.3 and (want == 0).any()  # inside and outside both met
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
-    start, end, valid = hull_edges(points, mask)
     assert valid.sum(1).tolist() == [len(p) for p in polygons]  # one edge from each hull vertex, none else
 
 

@@ -58,12 +58,14 @@ class TrianglePairs:
         return cls(z, z, z, z, z, object_pairs)
 
 
-def overlapping_pairs(lo: np.ndarray, hi: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(K, 3) [b, i, j] with i < j of real objects whose world AABBs (B, N, 3) min/max overlap."""
-    overlap = np.all((lo[:, :, None, :] <= hi[:, None, :, :]) & (hi[:, :, None, :] >= lo[:, None, :, :]), axis=-1)
+def overlapping_pairs(lo: torch.Tensor, hi: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(K, 3) [b, i, j], i < j, of real objects whose world AABBs lo/hi (B, N, 3) overlap (``mask`` (B, N)): the broad
+    phase of both detection paths (``guidance.detect``), on the tensors' device."""
+    N = lo.shape[1]
+    overlap = ((lo[:, :, None, :] <= hi[:, None, :, :]) & (hi[:, :, None, :] >= lo[:, None, :, :])).all(-1)
     overlap &= mask[:, :, None] & mask[:, None, :]
-    overlap &= np.triu(np.ones(overlap.shape[1:], bool), k=1)
-    return np.argwhere(overlap)
+    overlap &= torch.ones(N, N, dtype=torch.bool, device=lo.device).triu(1)
+    return overlap.nonzero()
 
 
 class TriangleCollider:
@@ -85,7 +87,7 @@ class TriangleCollider:
         objects' world AABBs lo/hi (B, N, 3)."""
         import fcl
 
-        candidates = overlapping_pairs(lo, hi, mask)
+        candidates = overlapping_pairs(torch.from_numpy(lo), torch.from_numpy(hi), torch.from_numpy(mask)).numpy()
         if not len(candidates):
             return TrianglePairs.empty()
         posed: set[tuple[int, int]] = set()

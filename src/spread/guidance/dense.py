@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from spread.guidance.collision import TrianglePairs
+from spread.guidance.collision import TrianglePairs, overlapping_pairs
 
 #: Triangle pairs (object pairs × F × F) tested per chunk, by device type; bounds the broad phase's memory (~10
 #: bytes each: 640 MiB on a GPU, where fewer, larger chunks mean fewer launches and host reads).
@@ -70,16 +70,6 @@ def triangles_intersect(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
     return ~(apart & usable).any(-1)
 
 
-def overlapping_objects(lo: torch.Tensor, hi: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """(K, 3) [b, i, j], i < j, of real objects whose world AABBs lo/hi (B, N, 3) overlap (the shared broad phase,
-    :func:`spread.guidance.collision.overlapping_pairs`, on tensors)."""
-    N = lo.shape[1]
-    overlap = ((lo[:, :, None, :] <= hi[:, None, :, :]) & (hi[:, :, None, :] >= lo[:, None, :, :])).all(-1)
-    overlap &= mask[:, :, None] & mask[:, None, :]
-    overlap &= torch.ones(N, N, dtype=torch.bool, device=lo.device).triu(1)
-    return overlap.nonzero()
-
-
 def _first_hits(k: torch.Tensor, hit: torch.Tensor, limit: int) -> torch.Tensor:
     """Keep-mask (P,) of the hits among candidates with sorted group ids ``k`` (P,): each group's first ``limit``."""
     pos = torch.arange(k.numel(), device=k.device)
@@ -98,7 +88,7 @@ def triangle_pairs(world: torch.Tensor, meshes, lo: torch.Tensor, hi: torch.Tens
     pairs' index tensors live on ``world``'s device."""
     world = world.detach()
     t = meshes.tensors(world.device, world.dtype)
-    objects = overlapping_objects(lo.detach(), hi.detach(), mask.to(world.device))
+    objects = overlapping_pairs(lo.detach(), hi.detach(), mask.to(world.device))
     if not len(objects):
         return TrianglePairs.empty()
     F = t["faces"].shape[2]
@@ -133,9 +123,9 @@ def triangle_pairs(world: torch.Tensor, meshes, lo: torch.Tensor, hi: torch.Tens
 
 
 def hull_edges(points: torch.Tensor, mask: torch.Tensor, tolerance: float | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Counter-clockwise convex-hull edges of point sets ``points`` (S, H, 2) [x, z] with real slots ``mask``
-    (S, H): (start (S, H, 2), end (S, H, 2), valid (S, H)) — from each point a, the edge to the point b the most
+    (S, H): (end (S, H, 2), valid (S, H)) of the edge from each point a (``points[:, a]``) to the point b the most
     clockwise seen from a (angles measured from the direction to the points' mean, which lies inside the hull), kept
     when every real point lies left of a → b within ``tolerance`` metres: then a is a hull vertex and a → b the
     hull's next edge (or part of it, when points are collinear on it). O(H²) per set. ``tolerance`` defaults to
@@ -157,4 +147,4 @@ def hull_edges(points: torch.Tensor, mask: torch.Tensor, tolerance: float | None
     left = edge[:, :, None, 0] * to_k[..., 1] - edge[:, :, None, 1] * to_k[..., 0]
     ok = (left >= -tolerance * edge.norm(dim=-1)[..., None]) | ~mask[:, None, :]
     valid = mask & usable.any(-1) & ok.all(-1)
-    return points, end, valid
+    return end, valid

@@ -83,8 +83,9 @@ def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes, supports:
     t = meshes.tensors(world.device, world.dtype)
     if device:
         # each pair's supporter's hull edges, found on the states' device (dense.hull_edges, detached)
-        start, end, valid = hull_edges(hull[b, i].detach()[..., [0, 2]], t["hmask"][b, i])
-        s = segments_distance(world[b, j][..., [0, 2]], start, end, valid)  # (S, V)
+        footprint_points = hull[b, i].detach()[..., [0, 2]]
+        end, valid = hull_edges(footprint_points, t["hmask"][b, i])
+        s = segments_distance(world[b, j][..., [0, 2]], footprint_points, end, valid)  # (S, V)
     else:
         # supporters' footprints (numpy, detached), one per distinct supporter, padded to K by repetition
         hull_np = hull.detach().cpu().double().numpy()

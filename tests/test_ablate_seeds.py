@@ -63,16 +63,17 @@ def test_one_term_rows_keep_the_stand_ins_of_their_term_and_zero_the_others(tmp_
     from spread.configs import compose, to_object
 
     guidance = ["guidance=refine", "guidance.gravity=0.0", "+guidance.terms.settle=0.3", "+guidance.terms.over=0.05",
-                "+guidance.terms.box_iou=0.1"]
+                "+guidance.terms.home=0.01", "+guidance.terms.box_iou=0.1"]
     ablation = Ablation(fake_spec(tmp_path, guidance=guidance), FakeCommands())
     weights = {}
     for row in ("guidance", "guidance_collision", "guidance_gravity", "guidance_relation"):
         cfg = to_object(compose("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", *ablation.sample_lists(row)[1:]]))
         weights[row] = cfg.guidance.weights(nonzero=True)
-    assert weights["guidance"] == {"collision": 7.5e-3, "relation": 1e-3, "box_iou": 0.1, "settle": 0.3, "over": 0.05}
+    assert weights["guidance"] == {"collision": 7.5e-3, "relation": 1e-3, "box_iou": 0.1, "settle": 0.3, "over": 0.05,
+                                   "home": 0.01}
     assert weights["guidance_collision"] == {"collision": 7.5e-3}
     assert weights["guidance_gravity"] == {"settle": 0.3}
-    assert weights["guidance_relation"] == {"relation": 1e-3, "over": 0.05}
+    assert weights["guidance_relation"] == {"relation": 1e-3, "over": 0.05, "home": 0.01}
 
 
 def test_one_term_rows_ask_the_composed_guidance_which_terms_it_weighs_however_the_list_spells_them(tmp_path):

@@ -216,16 +216,27 @@ def test_settle_closes_the_fraction_lambda_of_each_gap_per_step_and_then_rests(l
     assert math.isclose(float(metres(up)[0, 1, 1] - metres(sunk)[0, 1, 1]), 0.5 * (0.03 + GAP), abs_tol=1e-7)  # float32 meshes
 
 
-def test_settle_lifts_a_phone_sunk_past_its_centre_into_its_table_in_one_step_of_weight_one(lib):
-    """A phone sunk 3 cm into its table (its centre 2.5 cm below the top) still sees the top: its rays start
-    SETTLE_REACH above its lowest point, not at its centre, where they would see nothing of the table."""
-    from spread.guidance.gravity import SETTLE_REACH
-
-    sink = 0.03
-    assert SIZES["phone"][1] / 2 < sink < SETTLE_REACH
+@pytest.mark.parametrize("sink", [0.03, 0.12])
+def test_settle_lifts_a_phone_sunk_past_its_centre_into_its_table_in_one_step_of_weight_one(lib, sink):
+    """A phone sunk 3 or 12 cm into its table (its centre below the top) still sees the top: its rays start
+    ``settle_reach`` (0.15 m) above its lowest point, not at its centre, where they would see nothing of the table."""
+    reach = GuidanceConfig().settle_reach
+    assert SIZES["phone"][1] / 2 < sink < reach
     x = state([[0.0, y_on("table"), 0.0], [0.2, y_on("phone", TABLE_TOP, -sink), 0.1]])[None]
     up = settled(lib, 1.0, ids=("table", "phone")).step(x)
     assert math.isclose(float(metres(up)[0, 1, 1] - metres(x)[0, 1, 1]), sink + GAP, abs_tol=1e-7)
+
+
+def test_settle_leaves_an_object_sunk_deeper_than_its_reach_where_it_is(lib):
+    """With ``settle_reach`` 0.05 m a phone sunk 12 cm sees no face of its table above its rays' start: it counts as
+    beside its supporter, and settle leaves it (the setting's default reaches it: the test above)."""
+    g = guide(lib, ["table", "phone"], physical=[(0, 1)],
+              config=GuidanceConfig("refine", collision=0, gravity=0, relation=0, terms={"settle": 1.0},
+                                    settle_reach=0.05))
+    x = state([[0.0, y_on("table"), 0.0], [0.2, y_on("phone", TABLE_TOP, -0.12), 0.1]])[None]
+    assert float(g.losses(x, which=["settle"])["settle"]) == 0.0 and torch.equal(g.step(x), x)
+    with pytest.raises(ValueError, match="settle_reach"):
+        GuidanceConfig(settle_reach=-0.1)
 
 
 def test_settle_leaves_a_cup_beside_its_table_where_gravity_lifts_it_to_the_tables_top(lib):
@@ -262,6 +273,53 @@ def test_over_moves_a_cup_off_its_tables_edge_by_the_fraction_lambda_of_its_mean
     inside = run_steps(g, x, 40)
     assert float(g.losses(inside, which=["over"])["over"]) < 1e-10
     assert metres(inside)[0, 1, 0] <= edge - SIZES["cup"][0] / 2 + 1e-3
+
+
+def homed(lib, weight):
+    return guide(lib, ["table", "cup"], physical=[(0, 1)],
+                 config=GuidanceConfig("refine", collision=0, gravity=0, relation=0, terms={"home": weight}))
+
+
+def test_home_moves_a_cup_beside_and_below_its_table_by_lambda_along_the_way_in_and_up_whatever_its_distance(lib):
+    """G_home: a cup wholly beyond the table's +x edge and 30 cm below its top moves, in one step of weight λ, by λ
+    normalised units towards the table (λ·3 m in x here) and λ up (λ·1.25 m in y): the same step 20 cm and 1 m
+    away (G_O's step is a fraction of the distance); nothing else moves."""
+    g = homed(lib, 0.01)
+    edge = SIZES["table"][0] / 2
+    for beyond in (0.2, 1.0):
+        x0 = state([[0.0, y_on("table"), 0.0],
+                    [edge + beyond + SIZES["cup"][0] / 2, y_on("cup", TABLE_TOP - 0.3), 0.1]])[None]
+        moved = metres(g.step(x0))[0] - metres(x0)[0]
+        half = (BOUNDS[3:] - BOUNDS[:3]).double() / 2
+        assert math.isclose(float(moved[1, 0]), -0.01 * float(half[0]), abs_tol=1e-7), float(moved[1, 0])
+        assert math.isclose(float(moved[1, 1]), 0.01 * float(half[1]), abs_tol=1e-7), float(moved[1, 1])
+        assert abs(float(moved[1, 2])) < 1e-7 and float(moved[0].abs().max()) == 0.0
+
+
+def test_home_stops_once_every_vertex_is_over_the_footprint_and_lifts_only_an_object_wholly_beside(lib):
+    g = homed(lib, 0.01)
+    edge = SIZES["table"][0] / 2
+    x = state([[0.0, y_on("table"), 0.0], [edge + 0.6, y_on("cup", TABLE_TOP), 0.1]])[None]
+    for _ in range(40):
+        x = g.step(x)
+    assert float(g.losses(x, which=["home"])["home"]) == 0.0
+    cup = metres(x)[0, 1]
+    assert edge - SIZES["cup"][0] / 2 - 0.04 < float(cup[0]) <= edge - SIZES["cup"][0] / 2 + 1e-6, "just over the edge"
+    assert float(cup[1]) >= y_on("cup", TABLE_TOP) - 1e-9, "never lowered"
+    assert torch.equal(g.step(x), x), "at rest over its table"
+    overhang = state([[0.0, y_on("table"), 0.0], [edge, y_on("cup", TABLE_TOP - 0.05), 0.1]])[None]
+    moved = metres(g.step(overhang))[0, 1] - metres(overhang)[0, 1]
+    assert float(moved[0]) < -1e-4 and abs(float(moved[1])) < 1e-12, "half over: drawn in, not lifted"
+
+
+def test_home_gradient_matches_finite_differences(lib):
+    g = homed(lib, 1.0)
+    tilt = Rotation.from_rotvec([0.05, 0.4, -0.03])
+    x = state([[0.0, y_on("table"), 0.0], [0.9, TABLE_TOP - 0.2, 0.3]], [Rotation.identity(), tilt])[None]
+    entries = [(0, 1, c) for c in range(9)]
+    auto, fd = finite_difference(lambda s: g.losses(s, which=["home"])["home"], x, entries)
+    assert abs(auto[0]) > 0.1 and abs(auto[1]) > 0.1  # x and y channels
+    np.testing.assert_allclose(auto, fd, rtol=1e-5, atol=1e-8)
 
 
 def test_cup_off_centre_is_held_by_its_table_not_the_floor(lib):

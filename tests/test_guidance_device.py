@@ -143,7 +143,8 @@ def test_footprints_on_the_device_equal_scipys_on_real_assets(lib, dtype):
 
 def test_a_refine_step_is_the_same_on_either_path_and_the_device_footprints_read_nothing_back(lib):
     ids, physical, mask, x = crowded(lib, 0, supports=0.2)
-    weights = {"collision": 1.5e-2, "gravity": 0.0, "relation": 1e-3, "terms": {"over": 0.05, "settle": 0.3}}
+    weights = {"collision": 1.5e-2, "gravity": 0.0, "relation": 1e-3, "terms": {"over": 0.05, "settle": 0.3,
+                                                                                 "home": 0.01}}
     steps = {}
     for detect in ("host", "device"):
         g = SceneGuidance({"mode": "refine", "detect": detect, **weights}, lib, ids, physical, mask, BOUNDS)
@@ -151,9 +152,9 @@ def test_a_refine_step_is_the_same_on_either_path_and_the_device_footprints_read
         assert g.stats["last_colliding_pairs"] > 100
     assert not torch.equal(steps["host"], x)
     torch.testing.assert_close(steps["device"], steps["host"], rtol=0, atol=1e-12)
-    # relation and over on the device path read nothing back (the host path copies every supporter's hull out)
+    # relation, over and home on the device path read nothing back (the host path copies every supporter's hull out)
     config = {"mode": "refine", "detect": "device", "collision": 0.0, "gravity": 0.0, "relation": 1e-3,
-              "terms": {"over": 0.05}}
+              "terms": {"over": 0.05, "home": 0.01}}
     g = SceneGuidance(config, lib, ids, physical, mask, BOUNDS)
     g._graph(x.device, x.dtype)  # the support pairs, found once per sample
     with OperatorCounter() as counter:

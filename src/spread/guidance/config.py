@@ -77,6 +77,10 @@ class GuidanceConfig:
     gap: float = 5e-4
     #: Gravity: θ_H, the tolerated extra gap before an object counts as floating (release 2e-3 m).
     tolerance: float = 2e-3
+    #: Settle (``terms.settle``, not the paper's): its downward rays start at least this far above an object's lowest
+    #: point (metres), so that an object the network sank into its supporter — a book 12 cm into a mattress, a
+    #: plate into a table top past its own centre — still sees the surface it belongs on and is lifted onto it.
+    settle_reach: float = 0.15
     #: Collision: factor on the upward part of the collision step on the y channel (release 3).
     up_boost: float = 3.0
     #: Gravity moves only the y translation (release); False keeps its full gradient.
@@ -108,7 +112,7 @@ class GuidanceConfig:
         self.terms = {str(k): v for k, v in dict(self.terms or {}).items()}
         for name in [n for n in self.terms if n in own]:  # terms.collision is the key collision
             setattr(self, name, self.terms.pop(name))
-        for key in (*own, "cone_height", "gap", "tolerance", "up_boost", "grad_clip"):
+        for key in (*own, "cone_height", "gap", "tolerance", "settle_reach", "up_boost", "grad_clip"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"guidance: key '{key}' must be a finite number ≥ 0, got {value!r}")

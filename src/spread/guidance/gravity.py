@@ -20,7 +20,7 @@ Then r_j = d_j − ε and ``G_H = Σ_j |r_j| [r_j > θ_H or r_j < 0]`` over a sc
 G_H; release ε = 5e-4 m, θ_H = 2e-3 m): floating and sinking are penalised, a gap in [ε, ε + θ_H] is not.
 
 ``settle`` (G_S, not the paper's; ``guidance.terms.settle=λ``) measures the same gaps (its rays start at least
-``SETTLE_REACH`` above the object's lowest point), leaves out a supported object that is beside its supporters
+``guidance.settle_reach`` above the object's lowest point: 0.15 m), leaves out a supported object that is beside its supporters
 rather than over them, and is quadratic, scaled so that a step of weight λ closes the fraction λ of each gap
 (:func:`settle_loss`); same schedule (``gravity_from``) and y-only step. The states' y must be normalised through
 ``bounds`` (SPREAD's, and the baselines' decode, which map [−1, 1] to the same bounds).
@@ -32,9 +32,6 @@ import torch
 
 from spread.guidance.terms import GuidanceTerm, register_term
 
-#: The settle term's rays start at least this far above an object's lowest point (metres): a phone sunk 4 cm into
-#: a mattress (its centre below the mattress top) still sees the mattress, not the bed frame's face under it.
-SETTLE_REACH = 0.05
 #: Barycentric slack for a vertical ray through a triangle's edge (dimensionless).
 BARY_TOLERANCE = 1e-9
 
@@ -155,7 +152,8 @@ register_term(GuidanceTerm(
     description="G_H: vertical gap to the supporter or the floor outside [ε, ε + θ_H]"))
 register_term(GuidanceTerm(
     "settle", lambda ctx: settle_loss(vertical_gaps(ctx.world, ctx.hull, ctx.meshes, ctx.supports, beside="nan",
-                                                    reach=SETTLE_REACH, pairs=ctx.support_pairs),
+                                                    reach=ctx.config.settle_reach,
+                                                    pairs=ctx.support_pairs),
                                       ctx.falls, ctx.bounds, ctx.config.gap, ctx.config.tolerance),
     start=lambda config: config.gravity_from, edit=_y_only,
     description="G_S: the gravity gap closed by the fraction λ per step (objects over a supporter or on the floor)"))

@@ -14,7 +14,10 @@ instead; the paper's |E| is used here). The gradient reaches j's translation (x,
 
 ``over`` (G_O, not the paper's; ``guidance.terms.over=λ``) measures the same outside vertices in the normalised
 state's units and is quadratic per pair, not averaged over the pairs, so that a step of weight λ closes about the
-fraction λ of each pair's mean outside distance (:func:`over_loss`).
+fraction λ of each pair's mean outside distance (:func:`over_loss`). ``home`` (not the paper's;
+``guidance.terms.home=λ``) is linear in the same distance, plus a lift while j is wholly beside and below its
+supporter's top, so that a step moves j by λ normalised units whatever the distance (:func:`home_loss`): the
+objects a network samples a metre off what holds them arrive in the iterations there are.
 """
 
 from __future__ import annotations
@@ -69,13 +72,14 @@ def segments_distance(points: torch.Tensor, start: torch.Tensor, end: torch.Tens
 
 
 def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor,
-                      pairs: torch.Tensor | None = None, device: bool = False
-                      ) -> tuple[torch.Tensor, torch.Tensor] | None:
+                      pairs: torch.Tensor | None = None, device: bool = False, share: bool = False
+                      ) -> tuple[torch.Tensor, ...] | None:
     """Per support pair (``supports`` (B, N, N) bool, [b, i, j]: i supports j): its scene b (S,) and the mean
     distance (S,) of j's vertices outside i's footprint, ``Σ_{α ∈ V_ij} s(α, i) / |V_ij|`` (0 when none is), in the
     units of ``world`` (B, N, V, 3) and ``hull`` (B, N, H, 3); None when the batch has no support pair. ``pairs``:
     ``supports.nonzero()`` when the caller has it already (found once per sample). ``device``: the footprints' hull
-    edges found by tensor operations where ``world`` is (``guidance.detect: device``), not by scipy on the host."""
+    edges found by tensor operations where ``world`` is (``guidance.detect: device``), not by scipy on the host.
+    ``share``: also the share (S,) of j's vertices outside (1: j wholly beside its supporter)."""
     pairs = supports.nonzero() if pairs is None else pairs
     if not len(pairs):
         return None
@@ -99,6 +103,8 @@ def outside_distances(world: torch.Tensor, hull: torch.Tensor, meshes, supports:
         polygons = torch.from_numpy(padded).to(world.device, world.dtype)[rows]  # (S, K, 2)
         s = polygon_distance(world[b, j][..., [0, 2]], polygons)  # (S, V)
     outside = t["vmask"][b, j] & (s > OUTSIDE)
+    if share:
+        return b, (s * outside).sum(-1) / outside.sum(-1).clamp_min(1), outside.sum(-1) / t["vmask"][b, j].sum(-1)
     return b, (s * outside).sum(-1) / outside.sum(-1).clamp_min(1)
 
 
@@ -142,3 +148,38 @@ register_term(GuidanceTerm(
     "over", lambda ctx: over_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs,
                           ctx.on_device),
     description="G_O: a supported object's outside vertices drawn over its supporter, the fraction λ per step"))
+
+
+def home_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor, bounds: torch.Tensor,
+              pairs: torch.Tensor | None = None, device: bool = False) -> torch.Tensor:
+    """G_home per scene (B,): ``Σ_{(i,j) ∈ E} (d̄_ij + [j wholly outside] · max(0, top_i − low_j))`` in the normalised
+    state's units (x, y, z divided by their half-ranges of ``bounds``): d̄_ij the mean distance of j's vertices outside
+    i's footprint, top_i the supporter's highest hull point, low_j the supported object's lowest.
+
+    Linear, not quadratic as G_O: its gradient on j's normalised translation is a unit vector (along the way in, and
+    up while j is wholly beside and below its supporter's top), so a step of weight λ moves j by λ whatever the
+    distance — a cup sampled a metre off its table arrives in the iterations there are, lifted over the table's
+    edge rather than driven into its side; j stops once every vertex is over the footprint."""
+    B = world.shape[0]
+    out = world.new_zeros(B) + 0 * world.sum()
+    scale = 0.5 * (bounds[3:] - bounds[:3]).to(world)
+    w, h = world / scale, hull / scale
+    pairs = supports.nonzero() if pairs is None else pairs
+    found = outside_distances(w, h, meshes, supports, pairs, device, share=True)
+    if found is None:
+        return out
+    b, per_pair, share = found
+    _, i, j = pairs.unbind(1)
+    t = meshes.tensors(world.device, world.dtype)
+    hm = t["hmask"]
+    y = h[..., 1]
+    top = torch.where(hm, y, torch.full_like(y, -torch.inf)).amax(-1).detach()  # (B, N)
+    low = torch.where(hm, y, torch.full_like(y, torch.inf)).amin(-1)
+    wholly = share >= 1  # no vertex of j over i's footprint
+    lift = torch.where(wholly, (top[b, i] - low[b, j]).clamp_min(0), torch.zeros_like(per_pair))
+    return out.index_add(0, b, per_pair + lift)
+
+
+register_term(GuidanceTerm(
+    "home", lambda ctx: home_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs, ctx.on_device),
+    description="G_home: a supported object beside its supporter brought over it at λ a step, lifted over its edge"))

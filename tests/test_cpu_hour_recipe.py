@@ -35,14 +35,15 @@ def test_cpu_hour_builds_a_module_with_its_prediction_and_schedule():
     assert model.variant == "base" and model.config.dim == 128
 
 
-def test_cpu_hour_samples_with_ddim50_graph_guidance_and_refine_at_four_times_the_papers_collision_and_settle():
+def test_cpu_hour_samples_with_ddim50_graph_guidance_and_refine_at_four_times_the_papers_collision_settle_and_home():
     sampling = recipe().sampling
     cfg = to_object(compose("sample", [*SAMPLE, *sampling.sampler, *sampling.guidance]))
     assert (cfg.sampler.kind, cfg.sampler.num_steps) == ("ddim", 50)
     assert cfg.graph_scale == 1.5  # classifier-free guidance on the graphs, the scale chosen on val
     assert cfg.guidance.mode == "refine" and cfg.guidance.active
     assert cfg.guidance.weights(nonzero=True) == pytest.approx({"collision": 3e-2, "relation": 1e-3,
-                                                               "settle": 0.3})  # settle in place of G_H
+                                                               "settle": 0.3, "home": 0.01})  # settle for G_H
+    assert cfg.guidance.settle_reach == 0.15
     assert cfg.guidance.denoise_every == 0  # guidance steps only, no network projection between them
 
 

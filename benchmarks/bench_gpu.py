@@ -15,6 +15,10 @@ Rows:
   tensors: one denoising step (the network call with the batch's condition made once per sample; and with the
   sampler's update), one training step (loss forward + backward), base and +Geometry; the +Geometry denoising step
   at 10 and 40 objects (growth). ``syncs``: host reads of tensor values inside the network call.
+* **gflop / …** — the same denoising and training steps' floating-point operations (GFLOP per step of 16 scenes,
+  ``torch.utils.flop_counter``: matmuls and attention, forward and backward; elementwise work and the nearest
+  search's custom operator not included): what the steps cost when a GPU is busy computing rather than launching —
+  the ratio no launch-count work can go below.
 * **train s/step** — CUDA, paper size, batch 16 × 20 × 2,000 synthetic rooms (6 m square, boxes with surface samples)
   already on the device, bf16 autocast, fused AdamW, gradient clipping at 1 and the EMA update, as ``spread-train``
   runs them (Lightning's own overhead and data loading not included); median of timed steps after warm-up.
@@ -85,6 +89,8 @@ def untrained_but_live(m):
 def counts(B: int, N: int, M: int, quick: bool) -> dict:
     import torch
 
+    from torch.utils.flop_counter import FlopCounterMode
+
     from spread.model import Sampler
     from spread.model.opcount import OperatorCounter
 
@@ -97,9 +103,10 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
         with torch.no_grad():
             cond = net.condition(batch)
             net(batch["x"], t, cond)  # warm (first-call setup)
-            with OperatorCounter() as c:
+            with OperatorCounter() as c, FlopCounterMode(display=False) as f:
                 net(batch["x"], t, cond)
         out[f"ops/denoise/{variant}"], out[f"syncs/denoise/{variant}"] = c.total, c.syncs
+        out[f"gflop/denoise/{variant}"] = round(f.get_total_flops() / 1e9, 1)
         # a whole step of the sampling loop: the network call + the sampler's update (DDIM, averaged over 5 steps)
         sampler = Sampler("ddim", 5)
         calls = {"n": 0}
@@ -120,12 +127,15 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
             m.zero_grad(set_to_none=True)  # (no kernel: the optimiser's zero_grad, outside the count's operators)
 
         train_step()
-        with OperatorCounter() as c3:
+        with OperatorCounter() as c3, FlopCounterMode(display=False) as f3:
             train_step()
         out[f"ops/train/{variant}"] = c3.total
+        out[f"gflop/train/{variant}"] = round(f3.get_total_flops() / 1e9, 1)
         print(f"  counted {variant}", flush=True)
     for kind in ("denoise", "sampling_step", "train"):
         out[f"ops/{kind}/ratio"] = round(out[f"ops/{kind}/geometry"] / out[f"ops/{kind}/base"], 3)
+    for kind in ("denoise", "train"):
+        out[f"gflop/{kind}/ratio"] = round(out[f"gflop/{kind}/geometry"] / out[f"gflop/{kind}/base"], 2)
     for n in ((4, 8) if quick else (10, 40)):
         net = model("geometry", M).ema.module.eval()
         batch = synthetic_batch(B if not quick else 2, n, M)

@@ -75,7 +75,8 @@ log = logging.getLogger("spread.ablate")
 #: One built-in guidance term at a time (the other built-in weights 0): row name → the term kept.
 TERMS = {f"guidance_{term}": term for term in GuidanceConfig.weight_keys()}
 #: The registered terms of ours that stand in for a built-in one (the recipe's guidance may use ``settle`` for the
-#: vertical gap, ``over`` or ``home`` for the footprint): a one-term row keeps them with their built-in and zeroes them otherwise.
+#: vertical gap, ``over`` or ``home`` for the footprint): a one-term row keeps them with their built-in and zeroes
+#: them otherwise.
 STAND_INS = {"settle": "gravity", "over": "relation", "home": "relation"}
 VARIANTS = ("base", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.

@@ -20,9 +20,9 @@ Then r_j = d_j − ε and ``G_H = Σ_j |r_j| [r_j > θ_H or r_j < 0]`` over a sc
 G_H; release ε = 5e-4 m, θ_H = 2e-3 m): floating and sinking are penalised, a gap in [ε, ε + θ_H] is not.
 
 ``settle`` (G_S, not the paper's; ``guidance.terms.settle=λ``) measures the same gaps (its rays start at least
-``guidance.settle_reach`` above the object's lowest point: 0.15 m), leaves out a supported object that is beside its supporters
-rather than over them, and is quadratic, scaled so that a step of weight λ closes the fraction λ of each gap
-(:func:`settle_loss`); same schedule (``gravity_from``) and y-only step. The states' y must be normalised through
+``guidance.settle_reach`` above the object's lowest point: 0.15 m), leaves out a supported object that is beside its
+supporters rather than over them, and is quadratic, scaled so that a step of weight λ closes the fraction λ of each
+gap (:func:`settle_loss`); same schedule (``gravity_from``) and y-only step. The states' y must be normalised through
 ``bounds`` (SPREAD's, and the baselines' decode, which map [−1, 1] to the same bounds).
 """
 

@@ -152,9 +152,9 @@ register_term(GuidanceTerm(
 
 def home_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.Tensor, bounds: torch.Tensor,
               pairs: torch.Tensor | None = None, device: bool = False) -> torch.Tensor:
-    """G_home per scene (B,): ``Σ_{(i,j) ∈ E} (d̄_ij + [j wholly outside] · max(0, top_i − low_j))`` in the normalised
-    state's units (x, y, z divided by their half-ranges of ``bounds``): d̄_ij the mean distance of j's vertices outside
-    i's footprint, top_i the supporter's highest hull point, low_j the supported object's lowest.
+    """G_home per scene (B,): ``Σ_{(i,j) ∈ E} (d̄_ij + [j wholly outside] · max(0, top_i − low_j))`` in the
+    normalised state's units (x, y, z divided by their half-ranges of ``bounds``): d̄_ij the mean distance of j's
+    vertices outside i's footprint, top_i the supporter's highest hull point, low_j the supported object's lowest.
 
     Linear, not quadratic as G_O: its gradient on j's normalised translation is a unit vector (along the way in, and
     up while j is wholly beside and below its supporter's top), so a step of weight λ moves j by λ whatever the
@@ -181,5 +181,6 @@ def home_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.T
 
 
 register_term(GuidanceTerm(
-    "home", lambda ctx: home_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs, ctx.on_device),
+    "home", lambda ctx: home_loss(ctx.world, ctx.hull, ctx.meshes, ctx.held, ctx.bounds, ctx.held_pairs,
+                                  ctx.on_device),
     description="G_home: a supported object beside its supporter brought over it at λ a step, lifted over its edge"))

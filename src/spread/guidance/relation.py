@@ -170,13 +170,10 @@ def home_loss(world: torch.Tensor, hull: torch.Tensor, meshes, supports: torch.T
         return out
     b, per_pair, share = found
     _, i, j = pairs.unbind(1)
-    t = meshes.tensors(world.device, world.dtype)
-    hm = t["hmask"]
-    y = h[..., 1]
-    top = torch.where(hm, y, torch.full_like(y, -torch.inf)).amax(-1).detach()  # (B, N)
-    low = torch.where(hm, y, torch.full_like(y, torch.inf)).amin(-1)
+    top = h[b, i, :, 1].detach().amax(-1)  # (S,): padded hull slots repeat a real one (meshes), no mask needed
+    low = h[b, j, :, 1].amin(-1)
     wholly = share >= 1  # no vertex of j over i's footprint
-    lift = torch.where(wholly, (top[b, i] - low[b, j]).clamp_min(0), torch.zeros_like(per_pair))
+    lift = torch.where(wholly, (top - low).clamp_min(0), torch.zeros_like(per_pair))
     return out.index_add(0, b, per_pair + lift)
 
 

@@ -98,7 +98,8 @@ class SceneDiffusionConfig:
     ``geometry`` model from a trained ``base`` one: the perceiver and the geometry attention start fresh, the
     latter at zero so step 0 predicts what the base model predicts); penetration_weight: λ of the
     penetration-aware term on the decoded poses (:mod:`spread.model.penetration`; 0: off); support_weight: μ
-    of the support term (support pairs' rest height and footprint against the training room's, same module).
+    of the support term (support pairs' rest height and footprint against the training room's, same module);
+    spatial_weight: ν of the relation-aware term (:mod:`spread.model.spatial_term`).
     """
 
     _target_: str = "spread.model.module.SceneDiffusion"
@@ -132,6 +133,9 @@ class SceneDiffusionConfig:
     support_weight: float = 0.0
     #: q of that term's pinball loss on the rest height: a sinking costs 2q, a floating 2(1 − q) (0.5: alike)
     support_quantile: float = 0.5
+    #: ν of the relation-aware term (:mod:`spread.model.spatial_term`: how far the decoded boxes are from each pair's
+    #: spatial code, metres per ordered pair, beyond the training room's, weighted by ᾱ_t). 0 = off
+    spatial_weight: float = 0.0
     #: torch.compile the training loss (forward and backward of the ε-network; the nearest search stays one
     #: opaque operator). The first steps compile (minutes at paper size); then far fewer launches per step.
     compile: bool = False

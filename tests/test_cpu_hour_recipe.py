@@ -27,12 +27,14 @@ def test_cpu_hour_trains_the_tiny_base_model_with_its_levers_within_an_hour():
     assert 0 < cfg.model.graph_dropout < 1  # trains the graph-free branch of classifier-free guidance
 
 
-def test_cpu_hour_builds_a_module_with_its_prediction_and_schedule():
+def test_cpu_hour_builds_a_module_with_its_prediction_schedule_and_pose_terms():
     import hydra
 
     model = hydra.utils.instantiate(recipe().model, bounds=[-3, 0, -3, 3, 3, 3])
     assert model.hparams.prediction == "v_prediction" and model.hparams.lr_schedule == "cosine"
     assert model.variant == "base" and model.config.dim == 128
+    # the penetration-aware and relation-aware terms on the decoded poses; the support term off
+    assert model.term_weights() == pytest.approx({"penetration": 0.3, "spatial": 0.1})
 
 
 def test_cpu_hour_samples_with_ddim50_graph_guidance_and_refine_at_four_times_the_papers_collision_settle_and_home():

@@ -44,9 +44,9 @@ from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, 
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser, upgrade_state_dict
 from spread.model.penetration import penetration_excess, support_error
-from spread.model.spatial_term import spatial_excess
 from spread.model.poses import poses_from_state
 from spread.model.recall import graph_recall
+from spread.model.spatial_term import spatial_excess
 from spread.scene import PHYSICAL_SUPPORT
 
 

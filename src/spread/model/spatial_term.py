@@ -21,9 +21,9 @@ at their bounding-box centre, DESIGN §3) standing in for their meshes, d = t_i 
   j's top − 5 mm (violation relu(top_j − 5 mm − bottom_i)); the two added; below: the same with i and j swapped in
   the height test. The world AABB of a posed box: t ± Σ_k |R e_k| h_k / 2.
 
-Boxes are not meshes, so the boxes of the training room itself may violate a little (a mesh's AABB centre is not its
-box's under rotation by less than a right angle, the 5 mm tolerance); a pair costs relu(violation(x̂_0) −
-violation(x_0)), only what the prediction adds. A scene's term is the mean over its ordered real pairs (metres per
+Boxes are not meshes, so the boxes of the training room itself may violate a little (the world AABB of a turned
+mesh is smaller than its turned box's and need not share its centre; they agree at multiples of a right angle); a
+pair costs relu(violation(x̂_0) − violation(x_0)), only what the prediction adds. A scene's term is the mean over its ordered real pairs (metres per
 pair), weighted by ᾱ_t of its timestep in :meth:`spread.model.module.SceneDiffusion.training_terms`, as the
 penetration term is. Codes other than the six (self, padding) cost nothing.
 """

@@ -6,7 +6,8 @@ import math
 import pytest
 import torch
 
-from spread.model.spatial_term import aabb_half, spatial_excess, spatial_violation
+from spread.box_geometry import box_size
+from spread.model.spatial_term import spatial_excess, spatial_violation
 from spread.relations import spatial_codes
 from spread.scene import (
     SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT, SPATIAL_SELF,
@@ -60,13 +61,14 @@ def test_a_box_sunk_into_the_one_it_should_stand_on_costs_its_depth_beyond_the_t
     assert spatial_violation(t, r, e, spatial)[0, 1, 0].item() == pytest.approx(0.1 - 0.005)
 
 
-def test_boxes_turned_about_y_span_the_world_aabb_of_their_corners():
+def test_box_size_of_boxes_turned_about_y_spans_the_world_aabb_of_their_corners():
+    """The world AABB the term reads (spread.box_geometry.box_size, shared with the baselines' boxes)."""
     g = torch.Generator().manual_seed(0)
     extents = torch.rand(5, 3, generator=g, dtype=torch.float64) + 0.1
     rotation = torch.stack([yaw(a) for a in torch.rand(5, generator=g).tolist()])
     signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
     corners = torch.einsum("nij,nkj->nki", rotation, signs[None] * extents[:, None] / 2)
-    assert torch.allclose(aabb_half(rotation, extents), corners.amax(1), atol=1e-12)
+    assert torch.allclose(box_size(extents, rotation) / 2, corners.amax(1), atol=1e-12)
 
 
 def test_the_codes_of_a_room_of_boxes_cost_nothing_and_every_other_code_costs_something():
@@ -81,9 +83,9 @@ def test_the_codes_of_a_room_of_boxes_cost_nothing_and_every_other_code_costs_so
     translation[:, 1] = extents[:, 1] / 2  # on the floor
     for top, bottom in ((1, 0), (2, 1), (4, 3)):  # three stacks: a box resting on another's centre
         translation[top, [0, 2]] = translation[bottom, [0, 2]] + torch.tensor([0.03, 0.01], dtype=torch.float64)
-        translation[top, 1] = translation[bottom, 1] + aabb_half(rotation, extents)[bottom, 1] + \
-            aabb_half(rotation, extents)[top, 1]
-    half = aabb_half(rotation, extents)
+        translation[top, 1] = translation[bottom, 1] + (box_size(extents, rotation) / 2)[bottom, 1] + \
+            (box_size(extents, rotation) / 2)[top, 1]
+    half = (box_size(extents, rotation) / 2)
     codes = spatial_codes(translation - half, translation + half).long()
     t, r, e = translation[None], rotation[None], extents[None]
     off = ~torch.eye(N, dtype=torch.bool)
@@ -110,7 +112,7 @@ def test_the_excess_is_zero_on_the_training_scene_and_a_gradient_step_turns_a_wr
             break
         (grad,) = torch.autograd.grad(cost, guess)
         guess = (guess - 0.5 * grad).detach().requires_grad_(True)
-    half = aabb_half(r, e)[0]
+    half = (box_size(e, r) / 2)[0]
     codes = spatial_codes((guess[0] - half).detach(), (guess[0] + half).detach())
     assert codes[0, 1] == SPATIAL_RIGHT and codes[1, 0] == SPATIAL_LEFT
     # padding pairs cost nothing: object 1 masked out

@@ -19,7 +19,7 @@ at their bounding-box centre, DESIGN §3) standing in for their meshes, d = t_i 
 * above: the pair must be stacked (the xz-centre of one inside the other's world-AABB footprint; the violation is
   the smaller of the two centres' xz distances outside the other's footprint) and i's AABB bottom no lower than
   j's top − 5 mm (violation relu(top_j − 5 mm − bottom_i)); the two added; below: the same with i and j swapped in
-  the height test. The world AABB of a posed box: t ± Σ_k |R e_k| h_k / 2.
+  the height test. The world AABB of a posed box: t ± |R| h / 2 (:func:`spread.box_geometry.box_size`).
 
 Boxes are not meshes, so the boxes of the training room itself may violate a little (the world AABB of a turned
 mesh is smaller than its turned box's and need not share its centre; they agree at multiples of a right angle); a
@@ -34,14 +34,9 @@ import math
 
 import torch
 
+from spread.box_geometry import box_size
 from spread.relations import VERTICAL_TOLERANCE
 from spread.scene import SPATIAL_ABOVE, SPATIAL_BEHIND, SPATIAL_BELOW, SPATIAL_FRONT, SPATIAL_LEFT, SPATIAL_RIGHT
-
-
-def aabb_half(rotation: torch.Tensor, extents: torch.Tensor) -> torch.Tensor:
-    """(..., 3) half-size (metres) of the world AABB of boxes with rotations (..., 3, 3) world-from-local and full
-    extents (..., 3) metres: Σ_k |R[:, k]| h_k / 2."""
-    return (rotation.abs() * extents[..., None, :] / 2).sum(-1)
 
 
 def spatial_violation(translation: torch.Tensor, rotation: torch.Tensor, extents: torch.Tensor,
@@ -54,7 +49,7 @@ def spatial_violation(translation: torch.Tensor, rotation: torch.Tensor, extents
     root2 = math.sqrt(2.0)
     sectors = {SPATIAL_RIGHT: dz.abs() - dx, SPATIAL_FRONT: dx.abs() - dz, SPATIAL_BEHIND: dx.abs() + dz,
                SPATIAL_LEFT: dz.abs() + dx}
-    half = aabb_half(rotation, extents)  # (B, N, 3)
+    half = box_size(extents, rotation) / 2  # (B, N, 3) the world AABB's half-size
     # i's xz-centre outside j's footprint, and j's outside i's: (B, N, N)
     outside_ij = (d.abs()[..., (0, 2)] - half[:, None, :, (0, 2)]).clamp_min(0).norm(dim=-1)
     outside_ji = (d.abs()[..., (0, 2)] - half[:, :, None, (0, 2)]).clamp_min(0).norm(dim=-1)

@@ -225,9 +225,13 @@ def args(overrides: list[str]) -> dict:
 class FakeCommands:
     """Writes each command's outputs like the real one would (atomic end markers), records the calls."""
 
+    #: seconds per training step of each trained row (the clock the equal-time row is sized by)
+    STEP_SECONDS = {"base": 0.1, "geometry": 0.27, "base_time": 0.1}
+
     def __init__(self, fail_guidance: bool = False):
         self.calls: list[tuple[str, str, str | None]] = []
         self.fail_guidance = fail_guidance
+        self.trained: dict[str, dict] = {}  # run folder name -> its overrides
 
     def generate(self, overrides):
         out = Path(args(overrides)["out_dir"])
@@ -239,6 +243,10 @@ class FakeCommands:
         (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
         (run_dir / "checkpoints" / "last.ckpt").write_bytes(str(run_dir).encode())
         (run_dir / "metrics.json").write_text("{}")
+        steps = int(args(overrides).get("trainer.max_steps", 100))
+        seconds = steps * self.STEP_SECONDS[run_dir.name]
+        (run_dir / "clock.jsonl").write_text(json.dumps({"step": steps, "scenes": 16 * steps, "seconds": seconds}))
+        self.trained[run_dir.name] = args(overrides)
         self.calls.append(("train", run_dir.name, args(overrides)["ckpt_path"]))
 
     def sample(self, overrides):
@@ -263,7 +271,7 @@ class FakeCommands:
         a = args(overrides)
         out = Path(a["out_dir"])
         out.mkdir(parents=True, exist_ok=True)
-        value = {"base": 0.3, "geometry": 0.2, "guidance": 0.1}[out.name]
+        value = {"base": 0.3, "base_time": 0.25, "geometry": 0.2, "guidance": 0.1}[out.name]
         (out / "metrics.json").write_text(json.dumps(metrics_json(value, 1 - value)))
         self.calls.append(("evaluate", out.name, a["resume"]))
         return {}
@@ -328,6 +336,43 @@ def test_a_failing_row_blocks_only_itself(tmp_path):
     result = run_ablation(spec(tmp_path), commands)
     assert result.ok and [c[:2] for c in commands.calls] == [("sample", "guidance"), ("evaluate", "guidance")]
     assert result.stages["table"] == "done" and read_csv(tmp_path / "abl" / "ablation.csv")[2]["col_mesh"] == 0.1
+
+
+def test_the_equal_time_row_trains_base_for_geometrys_training_seconds(tmp_path):
+    """base_time: base's overrides, trained after base and +Geometry for the steps base makes in +Geometry's
+    clock time (here 100 geometry steps of 0.27 s, base 0.1 s a step: 270 steps), sampled and evaluated unguided."""
+    from spread.experiments.ablation import geometry_reading
+
+    commands = FakeCommands()
+    result = run_ablation(spec(tmp_path, variants=("base_time", "geometry")), commands)
+    assert result.ok and [c[1] for c in commands.calls if c[0] == "train"] == ["base", "geometry", "base_time"]
+    assert commands.trained["base_time"]["trainer.max_steps"] == "270"
+    assert commands.trained["base_time"]["experiment"] == "paper_base"
+    assert [(r["variant"], r["method"], r["col_mesh"]) for r in result.records] == [
+        ("base_time", "Ours (base), +Geometry's time", 0.25), ("geometry", "+Geometry", 0.2)]
+    commands.calls.clear()  # a re-run sizes it the same from the same clocks: nothing runs
+    assert run_ablation(spec(tmp_path, variants=("base_time", "geometry")), commands).ok and commands.calls == []
+    # the table's sentence reads +Geometry against both base rows
+    rows = [{"variant": v, "col_mesh": c, "col_mesh_lo": c - 0.02, "col_mesh_hi": c + 0.02, "n_scenes": 100}
+            for v, c in (("base", 0.30), ("base_time", 0.22), ("geometry", 0.20))]
+    sentence = geometry_reading(rows)
+    assert "+Geometry against base, unguided Col_mesh (100 / 100 scenes): 0.200 [0.180, 0.220] against 0.300" \
+        in sentence and "do not overlap" in sentence
+    assert ("+Geometry against base at equal training time, unguided Col_mesh (100 / 100 scenes): 0.200 [0.180, "
+            "0.220] against 0.220 [0.200, 0.240], lower than base's, but the 95 % intervals overlap") in sentence
+
+
+def test_the_equal_time_row_needs_both_clocks(tmp_path):
+    import torch
+
+    ckpt = tmp_path / "g.ckpt"
+    torch.save({"hyper_parameters": {"variant": "geometry"}, "state_dict": {}}, ckpt)
+    result = run_ablation(spec(tmp_path, variants=("base_time", "geometry"), ckpt={"geometry": str(ckpt)}),
+                          FakeCommands())
+    assert result.stages["train/base_time"] == "failed" and result.stages["sample/base_time"] == "blocked"
+    assert "needs base and +Geometry trained in this ablation" in result.errors["train/base_time"]
+    assert "train/geometry/clock.jsonl" in result.errors["train/base_time"]
+    assert result.stages["evaluate/geometry"] == "done"
 
 
 def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):

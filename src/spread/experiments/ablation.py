@@ -78,12 +78,15 @@ TERMS = {f"guidance_{term}": term for term in GuidanceConfig.weight_keys()}
 #: vertical gap, ``over`` or ``home`` for the footprint): a one-term row keeps them with their built-in and zeroes
 #: them otherwise.
 STAND_INS = {"settle": "gravity", "over": "relation", "home": "relation"}
-VARIANTS = ("base", "geometry", "guidance", *TERMS)
+VARIANTS = ("base", "base_time", "geometry", "guidance", *TERMS)
 #: Row labels, as in the paper's ablation table.
-LABELS = {"base": "Ours (base)", "geometry": "+Geometry", "guidance": "+Guidance",
-          **{v: f"+Guidance ({t} only)" for v, t in TERMS.items()}}
+LABELS = {"base": "Ours (base)", "base_time": "Ours (base), +Geometry's time", "geometry": "+Geometry",
+          "guidance": "+Guidance", **{v: f"+Guidance ({t} only)" for v, t in TERMS.items()}}
 #: The checkpoint each row samples.
-CHECKPOINT_OF = {"base": "base", "geometry": "geometry", "guidance": "geometry", **{v: "geometry" for v in TERMS}}
+CHECKPOINT_OF = {"base": "base", "base_time": "base_time", "geometry": "geometry", "guidance": "geometry",
+                 **{v: "geometry" for v in TERMS}}
+#: The trained checkpoints, in training order (``base_time`` last: its steps come from the other two's clocks).
+TRAINED = ("base", "geometry", "base_time")
 LEDGER = "ablation.json"
 TABLE = "ablation"
 
@@ -121,8 +124,26 @@ class Ablation:
         self.out = spec.out_dir
 
     def train_lists(self, trained: str) -> list[str]:
-        """The ``spread-train`` overrides of one trained row (the spec's shared list, then the row's own)."""
+        """The ``spread-train`` overrides of one trained row (the spec's shared list, then the row's own);
+        ``base_time``: base's, trained for the steps base makes in +Geometry's training time
+        (:meth:`equal_time_steps`)."""
+        if trained == "base_time":
+            return [*self.spec.train, *self.spec.train_variant.get("base", []),
+                    f"trainer.max_steps={self.equal_time_steps()}"]
         return [*self.spec.train, *self.spec.train_variant.get(trained, [])]
+
+    def equal_time_steps(self) -> int:
+        """The steps of the ``base_time`` row: +Geometry's training seconds over base's seconds per step, both read
+        from the clocks of the two runs trained here (``train/<v>/clock.jsonl``: the training loop's wall seconds at
+        the last checkpoint, validation left out; :class:`spread.training.clock.TrainingClock`). The learning-rate
+        schedule is sized to these steps as to any ``max_steps``."""
+        clocks = {v: last_clock(self.engine.train_dir(v)) for v in ("base", "geometry")}
+        missing = [f"train/{v}/clock.jsonl" for v, c in clocks.items() if c is None]
+        if missing:
+            raise StageError(f"base_time: needs base and +Geometry trained in this ablation (no {missing} under "
+                             f"{self.out}; a given checkpoint has no clock)")
+        base, geometry = clocks["base"], clocks["geometry"]
+        return max(1, round(geometry["seconds"] * base["step"] / base["seconds"]))
 
     def sample_lists(self, variant: str) -> list[str]:
         """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own): the guidance
@@ -209,13 +230,19 @@ class Ablation:
         return Stage("table", self.out, outputs, {"rows": records, "figures": figures}, run)
 
     def trained(self) -> list[str]:
-        """The checkpoints the rows sample, in order."""
-        return [t for t in ("base", "geometry") if any(CHECKPOINT_OF[v] == t for v in self.spec.variants)]
+        """The checkpoints the rows sample, in order (``base_time`` needs base and +Geometry trained too)."""
+        needed = {CHECKPOINT_OF[v] for v in self.spec.variants}
+        if "base_time" in needed:
+            needed |= {"base", "geometry"}
+        return [t for t in TRAINED if t in needed]
 
     def run(self, log_table: Callable[[list[dict], Path], None] | None = None) -> AblationResult:
         started = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
-        self.engine.run_trained(self.trained())
+        trained = self.trained()
+        self.engine.run_trained([t for t in trained if t != "base_time"])
+        if "base_time" in trained:  # after the two whose clocks size it
+            self.engine.run_trained(["base_time"])
         self.engine.run_sample_evaluate(list(self.spec.variants))
         return self.finish(log_table, started)
 
@@ -237,10 +264,18 @@ def table_columns(records: Sequence[dict] = ()) -> list[Column]:
 
 def geometry_reading(records: Sequence[dict]) -> str:
     """The table's sentence on the paper's +Geometry claim: the ``geometry`` row's unguided Col_mesh against the
-    ``base`` row's, with their 95 % bootstrap intervals, saying whether it is lower and whether the intervals are
-    apart (issue 33, item 3); empty unless both rows have Col_mesh and its interval."""
+    ``base`` row's (equal steps) and against the ``base_time`` row's (base trained for +Geometry's wall time), each
+    with both 95 % bootstrap intervals, saying whether it is lower and whether the intervals are apart (issue 33,
+    item 3); empty unless the rows have Col_mesh and its interval."""
     rows = {r.get("variant"): r for r in records}
-    base, geometry = rows.get("base"), rows.get("geometry")
+    geometry = rows.get("geometry")
+    said = [col_mesh_reading(geometry, rows.get(v), words) for v, words in
+            (("base", ""), ("base_time", " at equal training time"))]
+    return " ".join(s for s in said if s)
+
+
+def col_mesh_reading(geometry: dict | None, base: dict | None, when: str) -> str:
+    """One sentence of :func:`geometry_reading`: +Geometry's unguided Col_mesh against one base row's."""
     keys = ("col_mesh", "col_mesh_lo", "col_mesh_hi")
     if base is None or geometry is None or any(r.get(k) is None for r in (base, geometry) for k in keys):
         return ""
@@ -256,8 +291,8 @@ def geometry_reading(records: Sequence[dict]) -> str:
     else:
         verdict = "equal to base's"
     counts = f" ({base.get('n_scenes')} / {geometry.get('n_scenes')} scenes)" if base.get("n_scenes") else ""
-    return (f"+Geometry against base, unguided Col_mesh{counts}: {g[0]:.3f} [{g[1]:.3f}, {g[2]:.3f}] against "
-            f"{b[0]:.3f} [{b[1]:.3f}, {b[2]:.3f}], {verdict}.")
+    return (f"+Geometry against base{when}, unguided Col_mesh{counts}: {g[0]:.3f} [{g[1]:.3f}, {g[2]:.3f}] "
+            f"against {b[0]:.3f} [{b[1]:.3f}, {b[2]:.3f}], {verdict}.")
 
 
 def write_ablation_table(records: list[dict], stem: Path, title: str = "",
@@ -289,6 +324,15 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                                    if n), md_extra=shown)
     ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
+
+
+def last_clock(run_dir: Path) -> dict | None:
+    """The last record ``{"step", "scenes", "seconds"}`` of a training run's ``clock.jsonl`` (None if it has none)."""
+    import json
+
+    path = Path(run_dir) / "clock.jsonl"
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return json.loads(lines[-1]) if lines else None
 
 
 def graph_of(sample_name: str) -> str:

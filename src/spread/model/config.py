@@ -13,10 +13,6 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Mapping
 
 
-#: ``ModelConfig.geometry_tokens``: the geometry perceiver's latents per scene (the release's) or per object (ours).
-GEOMETRY_TOKENS = ("scene", "object")
-
-
 @dataclass
 class ModelConfig:
     """The network's sizes. Defaults: the paper's / release's network (reference §2, paper supplement):
@@ -51,11 +47,6 @@ class ModelConfig:
     perceiver_cross_heads: int = 1
     perceiver_cross_dim_head: int = 64
     perceiver_dropout: float = 0.0  # the release's perceiver has none (reference §2.3); the graph blocks use `dropout`
-    # what the node of each object attends to (benchmarks/RESULTS.md, "The geometry perceiver per object"):
-    # "scene" (the release's: num_latents latents shared by the scene, distilled from every object's points) or
-    # "object" (ours: each real object's own points distilled into object_latents latents that only its node reads)
-    geometry_tokens: str = "scene"
-    object_latents: int = 4
     point_bands: int = 6  # Fourier bands of canonical xyz (metres)
     point_max_frequency: float = 32.0
     # data
@@ -64,13 +55,6 @@ class ModelConfig:
     # "pruned" (object pruning, Python loop over point blocks: best on CPU), "dense" (one operator: a Triton kernel
     # on CUDA, brute force on CPU for small problems), "auto" (dense on CUDA, pruned on CPU)
     nearest: str = "auto"
-
-    def __post_init__(self) -> None:
-        if self.geometry_tokens not in GEOMETRY_TOKENS:
-            raise ValueError(f"model.config.geometry_tokens: unknown '{self.geometry_tokens}' "
-                             f"(choose from {list(GEOMETRY_TOKENS)})")
-        if int(self.object_latents) < 1:
-            raise ValueError(f"model.config.object_latents: must be >= 1, got {self.object_latents}")
 
     @classmethod
     def from_any(cls, config: "Mapping[str, Any] | ModelConfig | None" = None, **overrides) -> "ModelConfig":

@@ -6,8 +6,7 @@ Inputs (B scenes, N objects padded, ``mask`` (B, N) marks the real ones):
 * ``edges`` (B, N, N, edge_dim) from :class:`~spread.model.graph_attention.EdgeEncoder`;
 * ``shape_tokens`` (B, N, L, shape_dim): each object's asset tokens, projected by one shared Linear
   to the width (folded into each block's key/value projection, the same function at less cost);
-* ``geometry_tokens`` (B, G, dim) or None: the scene's perceiver latents (``geometry`` variant); with
-  ``geometry_tokens = "object"`` (V, G, dim): each real object's own latents, read by its node only.
+* ``geometry_tokens`` (B, G, dim) or None: the scene's perceiver latents (``geometry`` variant).
 
 Node token: ``Linear([Fourier(x_t), sinusoid(object index)])`` — the paper's "fixed sinusoidal
 encodings → Linear"; the index code is the one the perceiver puts on each object's points — plus, with
@@ -16,8 +15,8 @@ encodings → Linear"; the index code is the one the perceiver puts on each obje
 
 Block (× depth), all pre-norm with AdaLN on the timestep embedding, residual after each sub-layer:
 1. cross-attention of each object to its own shape tokens (real objects only);
-2. cross-attention of every object to the scene's geometry tokens, or to its own (``geometry`` variant only;
-   the geometry tokens' keys/values and this sub-layer's AdaLN modulation are computed for all blocks in one product each:
+2. cross-attention of every object to the scene's geometry tokens (``geometry`` variant only; the geometry
+   tokens' keys/values and this sub-layer's AdaLN modulation are computed for all blocks in one product each:
    ``geometry_kv``, ``geometry_mod``; checkpoints with them per block load into it);
 3. graph attention over the real objects, edge features as logit bias and message term;
 4. GEGLU feed-forward.
@@ -54,7 +53,6 @@ class DenoiserBlock(nn.Module):
         self.shape_attn = Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout)
         # geometry: the modulation and the keys/values are the denoiser's, computed for every block at once
         self.norm_geometry = nn.LayerNorm(dim, elementwise_affine=False) if geometry else None
-        self.per_object = geometry and cfg.geometry_tokens == "object"
         self.geometry_attn = (Attention(dim, heads=cfg.heads, dim_head=cfg.dim_head, dropout=cfg.dropout, kv="given")
                               if geometry else None)
         self.norm_graph = AdaLayerNorm(dim, cond)
@@ -67,8 +65,8 @@ class DenoiserBlock(nn.Module):
                 shape_in: nn.Linear, edges: torch.Tensor, geometry: tuple | None, real: torch.Tensor) -> torch.Tensor:
         """x (B, N, dim); cond (B, cond_dim); shape_tokens (V, L, shape_dim) of the V real objects (flat indices
         ``real`` (V,) into B·N, in ``mask`` order), projected by ``shape_in``; edges (B, N, N, edge_dim); geometry:
-        None or this block's (keys/values (B, G, 2·heads·dim_head) of the scene's geometry tokens — (V, G, ·) of
-        each real object's own with ``geometry_tokens = "object"`` — 1 + scale (B, dim), shift (B, dim))."""
+        None or this block's (keys/values (B, G, 2·heads·dim_head) of the scene's geometry tokens, 1 + scale (B, dim),
+        shift (B, dim))."""
         h = self.norm_shape(x, cond)
         attended = self.shape_attn(h.flatten(0, 1).index_select(0, real)[:, None, :], shape_tokens,
                                    context_proj=shape_in)
@@ -77,11 +75,7 @@ class DenoiserBlock(nn.Module):
         if self.geometry_attn is not None:
             kv, scale, shift = geometry
             h = torch.addcmul(shift[:, None, :], self.norm_geometry(x), scale[:, None, :])  # AdaLN
-            if self.per_object:  # each real node reads its own object's latents (kv (V, G, ·))
-                attended = self.geometry_attn(h.flatten(0, 1).index_select(0, real)[:, None, :], kv=kv)
-                x = x + torch.zeros_like(x).flatten(0, 1).index_copy(0, real, attended[:, 0].to(x.dtype)).view_as(x)
-            else:
-                x = x + self.geometry_attn(h, kv=kv)
+            x = x + self.geometry_attn(h, kv=kv)
         x = x + self.graph_attn(self.norm_graph(x, cond), edges, mask, cond)
         return x + self.ff(self.norm_ff(x, cond))
 

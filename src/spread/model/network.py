@@ -88,13 +88,11 @@ class SceneDenoiser(nn.Module):
         self.edge_encoder = EdgeEncoder(config.edge_dim)
         self.perceiver = None
         if variant == "geometry":
-            per_object = config.geometry_tokens == "object"
             self.perceiver = GeometryPerceiver(
-                config.dim, config.object_latents if per_object else config.num_latents, config.perceiver_depth,
-                config.perceiver_self_per_cross,
+                config.dim, config.num_latents, config.perceiver_depth, config.perceiver_self_per_cross,
                 config.perceiver_cross_heads, config.perceiver_cross_dim_head, config.heads, config.dim_head,
                 config.ff_mult, config.point_bands, config.point_max_frequency, config.index_dim,
-                config.perceiver_dropout, per_object=per_object)
+                config.perceiver_dropout)
         self.denoiser = GraphDenoiser(config, geometry=variant == "geometry")
         self.register_buffer("bounds", torch.full((6,), float("nan")))
         if bounds is not None:
@@ -134,10 +132,9 @@ class SceneDenoiser(nn.Module):
         return replace(cond, spatial=spatial, physical=physical, edges=self.edge_encoder(spatial, physical))
 
     def geometry_tokens(self, x_t: torch.Tensor, cond: Condition) -> torch.Tensor:
-        """Perceiver latents of the scene posed at the (noisy) states x_t (B, N, 9): (B, G, dim) shared by the
-        scene, or per real object (V, G, dim) (``geometry_tokens = "object"``)."""
+        """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
         distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search)
-        return self.perceiver(distance.to(x_t.dtype), cond.static, real=cond.real)
+        return self.perceiver(distance.to(x_t.dtype), cond.static)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""

@@ -1,4 +1,4 @@
-"""Geometry perceiver: signed chamfer point features of the whole scene → a few scene-level (or per-object) tokens.
+"""Geometry perceiver: signed chamfer point features of the whole scene → a few scene-level tokens.
 
 Input: the signed distances (B, N, M) of :func:`spread.model.geometry.signed_distances` (metres) and the
 sample's :class:`StaticTokens` (what does not change between denoising steps: the canonical points' Fourier
@@ -15,13 +15,6 @@ attention), all fixed encodings concatenated and fed to the cross-attention's ke
   resolution around contact (mm–cm) without losing the far field (m).
 * a sinusoidal code of the object index — *which object* the point belongs to; the denoiser gives
   each node the same code, which is how a node finds its own points in the shared latents.
-
-``per_object`` (``ModelConfig.geometry_tokens = "object"``, ours): the same point tokens, but each real object's
-own M points are distilled into its own ``num_latents`` latents (the same learned initial latents for every
-object; keys: that object's points only), output (V, num_latents, dim) for the V real objects in mask order,
-which only that object's node attends to. The scene's latents must route every object's contacts through a
-shared bottleneck and a node must find its own in them by the index code; per object, a node reads where on
-itself it touches or penetrates a neighbour directly (benchmarks/RESULTS.md, "The geometry perceiver per object").
 
 Then ``depth`` × [cross-attention latents ← point tokens, ``self_per_cross`` × self-attention],
 each with a GEGLU feed-forward, pre-LayerNorm and residuals (Perceiver, Jaegle et al. 2021). The
@@ -95,10 +88,9 @@ class GeometryPerceiver(nn.Module):
     def __init__(self, dim: int, num_latents: int = 256, depth: int = 4, self_per_cross: int = 2,
                  cross_heads: int = 1, cross_dim_head: int = 64, heads: int = 8, dim_head: int = 64,
                  ff_mult: int = 4, num_bands: int = 6, max_frequency: float = 32.0, index_dim: int = 64,
-                 dropout: float = 0.0, per_object: bool = False):
+                 dropout: float = 0.0):
         super().__init__()
         self.num_bands, self.max_frequency, self.index_dim = num_bands, max_frequency, index_dim
-        self.per_object = per_object
         context_dim = point_token_dim(num_bands, index_dim)
         self.latents = nn.Parameter(torch.randn(num_latents, dim) * 0.02)
         self.context_norm = nn.LayerNorm(context_dim, elementwise_affine=False)
@@ -133,21 +125,12 @@ class GeometryPerceiver(nn.Module):
         bias = torch.einsum("lkc,lc->lk", self.context_kv, self.context_shift).reshape(depth * width)
         return F.linear(self.context_norm(tokens), weight.to(tokens.dtype), bias.to(tokens.dtype))
 
-    def forward(self, distance: torch.Tensor, static: StaticTokens, real: torch.Tensor | None = None) -> torch.Tensor:
-        """Signed distances (B, N, M) (metres) of the sample's points → scene tokens (B, num_latents, dim), or with
-        ``per_object`` each real object's tokens (V, num_latents, dim), ``real`` (V,) the flat indices of the real
-        objects in B·N (:func:`spread.model.denoiser.real_objects`)."""
-        tokens = point_tokens(distance, static, self.distance_scales)
-        key_bias = static.key_bias
-        if self.per_object:
-            if real is None:
-                raise ValueError("GeometryPerceiver(per_object=True) needs real= (the real objects' flat indices)")
-            B, N, M = distance.shape
-            tokens, key_bias = tokens.view(B * N, M, -1).index_select(0, real), None  # (V, M, C): own points only
-        kv = self.context(tokens).chunk(len(self.layers), dim=-1)
-        z = repeat(self.latents, "l d -> b l d", b=tokens.shape[0])
+    def forward(self, distance: torch.Tensor, static: StaticTokens) -> torch.Tensor:
+        """Signed distances (B, N, M) (metres) of the sample's points → scene tokens (B, num_latents, dim)."""
+        kv = self.context(point_tokens(distance, static, self.distance_scales)).chunk(len(self.layers), dim=-1)
+        z = repeat(self.latents, "l d -> b l d", b=distance.shape[0])
         for (norm_z, cross, norm_ff, ff, self_layers), layer_kv in zip(self.layers, kv):
-            z = z + cross(norm_z(z), kv=layer_kv, key_bias=key_bias)
+            z = z + cross(norm_z(z), kv=layer_kv, key_bias=static.key_bias)
             z = z + ff(norm_ff(z))
             for norm_a, attn, norm_f, ff_self in self_layers:
                 z = z + attn(norm_a(z))

@@ -1,0 +1,159 @@
+"""What the geometry features show the network while it samples, against what training shows it at the same t.
+
+The +Geometry perceiver reads, at every denoising step, each object's signed nearest-other-object distances of
+the state x_t it is given (:func:`spread.model.geometry.state_distances`). It learns what to do with them from
+training states x_t = √ᾱ_t x_0 + √(1 − ᾱ_t) ε of collision-free rooms. This script puts the two side by side on
+the same graphs: per real object (with a neighbour) its deepest penetration max(0, −min_p d(p)) in mm,
+
+* ``sampling``: in the states the sampler hands the network (DDIM with the checkpoint's EMA weights and the graph
+  scale), at each step's t;
+* ``training``: in x_t drawn as in training from the graphs' own ground-truth rooms at the same t;
+
+and a last row ``x_0``: the sampler's output against the ground-truth rooms themselves (the proxy is not 0 on
+collision-free rooms: objects tucked under or into others read as penetrating by the nearest point's normal).
+
+One table: t, then for each, the median and 90th percentile penetration (mm) and the share of objects deeper than
+1 cm (Col_mesh's threshold). Where sampling's low-t states hold penetrations training never shows at that t, the
+perceiver meets them out of its training distribution and has nothing learned to do with them.
+
+Above the table, what the proxy reads on the ground-truth rooms themselves — the share of objects "penetrating"
+> 1 cm — against their meshes' exact penetration (``--exact-graphs`` rooms: ``trimesh`` containment of each object's
+samples in every other object's watertight mesh), and with ``--proxy-points`` the proxy at other M (the paper's
+2,000). benchmarks/RESULTS.md, "What the geometry features read".
+
+    python benchmarks/exposure_gap.py RUN/checkpoints/last.ckpt DATA --graphs 48 --every 7 --exact-graphs 48 \
+        --proxy-points 256,1000,2000
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def penetration_mm(cloud, x: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor) -> np.ndarray:
+    """Per real object with a neighbour: max(0, −min over its points of d) in mm, of states x (B, N, 9)."""
+    from spread.model.geometry import state_distances
+
+    d = state_distances(cloud, x, offset, scale, "pruned")  # (B, N, M) metres
+    deepest = (-d.amin(-1)).clamp(min=0) * 1000
+    keep = cloud.has_other[..., 0]
+    return deepest[keep].numpy()
+
+
+def exact_penetration_mm(scene, library, M: int, seed: int) -> np.ndarray:
+    """Per object of a room (with another object): the deepest its M surface samples lie inside any other object's
+    mesh, mm (``trimesh`` containment and closest point on the watertight meshes): what the proxy should read."""
+    rng = np.random.default_rng(seed)
+    meshes = [library.mesh(a) for a in scene.asset_id]
+    world = []
+    for k, aid in enumerate(scene.asset_id):
+        points = library.geometry(aid).surface_points
+        pick = rng.choice(len(points), size=min(M, len(points)), replace=False)
+        world.append(points[pick] @ np.asarray(scene.rotation[k]).T + np.asarray(scene.translation[k]))
+    deepest = []
+    for i in range(len(meshes)):
+        depth = 0.0
+        for j, mesh in enumerate(meshes):
+            if j == i:
+                continue
+            local = (world[i] - np.asarray(scene.translation[j])) @ np.asarray(scene.rotation[j])
+            inside = mesh.contains(local)
+            if inside.any():
+                _, dist, _ = __import__("trimesh").proximity.closest_point(mesh, local[inside])
+                depth = max(depth, float(dist.max()))
+        deepest.append(depth * 1000)
+    return np.asarray(deepest if len(meshes) > 1 else [])
+
+
+def main() -> None:
+    from spread.data import SceneDataset, collate_scenes
+    from spread.model.diffusion import Sampler, denoise
+    from spread.model.geometry import prepare_points
+    from spread.model.module import SceneDiffusion
+    from spread.model.poses import denormalize_affine
+    from spread.safe_load import load_checkpoint
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("ckpt", type=Path)
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--graphs", type=int, default=48)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--sampler", default="ddim-50")
+    ap.add_argument("--graph-scale", type=float, default=2.0)
+    ap.add_argument("--every", type=int, default=5, help="report every k-th sampling step (and the last)")
+    ap.add_argument("--proxy-points", default="",
+                    help="also the proxy on the ground-truth rooms at these M (comma list, e.g. 256,2000: the paper's)")
+    ap.add_argument("--exact-graphs", type=int, default=12,
+                    help="ground-truth rooms whose exact mesh penetration is measured beside the proxy's (slow)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    model = SceneDiffusion.from_checkpoint(load_checkpoint(args.ckpt)).eval()
+    offset, scale = denormalize_affine(model.bounds)
+    alpha_bar = model.alphas_cumprod
+    data = SceneDataset(args.dataset, args.split, num_points=model.network.config.num_points,
+                        bounds=model.bounds.tolist())
+    sampler = Sampler.from_config(args.sampler)
+    sampled: dict[int, list] = {}
+    trained: dict[int, list] = {}
+    for start in range(0, min(args.graphs, len(data)), args.batch):
+        batch = collate_scenes([data[k] for k in range(start, min(start + args.batch, args.graphs, len(data)))])
+        cloud = prepare_points(batch["points"], batch["normals"], batch["mask"])
+        problem = model.denoising(batch, graph_scale=args.graph_scale)
+        eps_fn, seen = problem.eps_fn, []
+
+        def recording(x_t, t, eps_fn=eps_fn, seen=seen):
+            seen.append((int(t[0]), x_t.detach().clone()))
+            return eps_fn(x_t, t)
+
+        problem.eps_fn = recording
+        generator = torch.Generator().manual_seed(start)
+        with torch.no_grad():
+            final = denoise(problem, sampler, generator)
+            sampled.setdefault(-1, []).append(penetration_mm(cloud, final, offset, scale))
+            trained.setdefault(-1, []).append(penetration_mm(cloud, batch["x"], offset, scale))
+            for i, (t, x_t) in enumerate(seen):
+                if i % args.every and i != len(seen) - 1:
+                    continue
+                sampled.setdefault(t, []).append(penetration_mm(cloud, x_t, offset, scale))
+                a = alpha_bar[t]
+                noise = torch.randn(batch["x"].shape, generator=generator)
+                x_train = (a.sqrt() * batch["x"] + (1 - a).sqrt() * noise) * batch["mask"][..., None]
+                trained.setdefault(t, []).append(penetration_mm(cloud, x_train, offset, scale))
+        print(f"graphs {start + len(batch['mask'])} / {min(args.graphs, len(data))}", flush=True)
+
+    proxy = np.concatenate(trained[-1])
+    if args.exact_graphs:
+        exact = np.concatenate([exact_penetration_mm(data.read(k), data.library, model.network.config.num_points, k)
+                                for k in range(min(args.exact_graphs, len(data)))])
+        print(f"ground-truth rooms: the proxy reads {np.mean(proxy > 10):.3f} of the objects as penetrating > 1 cm "
+              f"(median {np.median(proxy):.1f} mm); the meshes themselves, exactly ({min(args.exact_graphs, len(data))} "
+              f"rooms, {len(exact)} objects): {np.mean(exact > 10):.3f} (median {np.median(exact):.1f} mm, max "
+              f"{exact.max():.1f} mm)")
+    for m in [int(v) for v in args.proxy_points.split(",") if v]:
+        dense = SceneDataset(args.dataset, args.split, num_points=m, bounds=model.bounds.tolist())
+        reads = []
+        for start in range(0, min(args.graphs, len(dense)), args.batch):
+            batch = collate_scenes([dense[k] for k in range(start, min(start + args.batch, args.graphs, len(dense)))])
+            reads.append(penetration_mm(prepare_points(batch["points"], batch["normals"], batch["mask"]), batch["x"],
+                                        offset, scale))
+        reads = np.concatenate(reads)
+        print(f"ground-truth rooms, the proxy at M = {m}: {np.mean(reads > 10):.3f} of the objects read as penetrating "
+              f"> 1 cm (median {np.median(reads):.1f} mm)")
+    print(f"\n{args.ckpt}: {min(args.graphs, len(data))} graphs of {args.dataset / args.split}, {args.sampler}, "
+          f"graph scale {args.graph_scale}; deepest penetration per object (mm)")
+    print(f"{'t':>5} | {'sampling median':>15} {'p90':>7} {'> 1 cm':>7} | {'training median':>15} {'p90':>7} "
+          f"{'> 1 cm':>7}")
+    for t in sorted(sampled, reverse=True):
+        s, r = np.concatenate(sampled[t]), np.concatenate(trained[t])
+        print(f"{t if t >= 0 else 'x_0':>5} | {np.median(s):>15.1f} {np.percentile(s, 90):>7.1f} "
+              f"{np.mean(s > 10):>7.3f} | {np.median(r):>15.1f} {np.percentile(r, 90):>7.1f} {np.mean(r > 10):>7.3f}")
+
+
+if __name__ == "__main__":
+    main()

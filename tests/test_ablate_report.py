@@ -373,6 +373,11 @@ def test_the_equal_time_row_needs_both_clocks(tmp_path):
     assert "needs base and +Geometry trained in this ablation" in result.errors["train/base_time"]
     assert "train/geometry/clock.jsonl" in result.errors["train/base_time"]
     assert result.stages["evaluate/geometry"] == "done"
+    # a clock cut mid-line by a kill: named, not a traceback
+    clock = tmp_path / "abl" / "train" / "base" / "clock.jsonl"
+    clock.write_text('{"step": 100, "scenes": 1600, "seconds": 10.0}\n{"step": 200, "sec')
+    result = run_ablation(spec(tmp_path, variants=("base_time", "geometry")), FakeCommands())
+    assert f"{clock}: the last line is not a clock record" in result.errors["train/base_time"]
 
 
 def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):

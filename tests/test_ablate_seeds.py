@@ -119,6 +119,16 @@ def test_seeds_table_is_mean_and_sd_across_seeds_beside_the_bootstrap(tmp_path):
     assert commands.calls == []
 
 
+def test_every_seeds_equal_time_row_trains_after_its_base_and_geometry(tmp_path):
+    commands = FakeCommands()
+    result = run_seeded_ablation(fake_spec(tmp_path, variants=("base", "base_time", "geometry")), commands, [0, 1])
+    assert not result.errors, result.errors
+    trained = [Path(c[1]).name if "/" in c[1] else c[1] for c in commands.calls if c[0] == "train"]
+    assert sorted(trained[:4]) == ["base", "base", "geometry", "geometry"] and trained[4:] == ["base_time"] * 2
+    assert commands.trained["base_time"]["trainer.max_steps"] == "270"  # 100 geometry steps of 0.27 s, base 0.1 s
+    assert [r["variant"] for r in result.records] == ["base", "base_time", "geometry"]
+
+
 def test_error_bars_are_the_sd_across_seeds_else_the_bootstrap(tmp_path):
     from spread.reporting.plots import ablation_bars
     from spread.reporting.tables import metric_columns

@@ -236,13 +236,18 @@ class Ablation:
             needed |= {"base", "geometry"}
         return [t for t in TRAINED if t in needed]
 
+    def training_phases(self) -> list[list[str]]:
+        """:meth:`trained` in phases that train one after the other (each phase's rows ``train_concurrent`` at a
+        time): ``base_time`` alone after the others, whose clocks size it."""
+        trained = self.trained()
+        phases = [[t for t in trained if t != "base_time"], [t for t in trained if t == "base_time"]]
+        return [p for p in phases if p]
+
     def run(self, log_table: Callable[[list[dict], Path], None] | None = None) -> AblationResult:
         started = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
-        trained = self.trained()
-        self.engine.run_trained([t for t in trained if t != "base_time"])
-        if "base_time" in trained:  # after the two whose clocks size it
-            self.engine.run_trained(["base_time"])
+        for phase in self.training_phases():
+            self.engine.run_trained(phase)
         self.engine.run_sample_evaluate(list(self.spec.variants))
         return self.finish(log_table, started)
 
@@ -327,12 +332,23 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
 
 
 def last_clock(run_dir: Path) -> dict | None:
-    """The last record ``{"step", "scenes", "seconds"}`` of a training run's ``clock.jsonl`` (None if it has none)."""
+    """The last record ``{"step", "seconds"}`` of a training run's ``clock.jsonl`` (None if it has none); a record
+    that is not one (a line cut by a kill, a non-positive count) is an error naming the file."""
     import json
+    import math
 
     path = Path(run_dir) / "clock.jsonl"
-    lines = path.read_text().splitlines() if path.is_file() else []
-    return json.loads(lines[-1]) if lines else None
+    lines = [line for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    if not lines:
+        return None
+    try:
+        record = json.loads(lines[-1])
+        step, seconds = int(record["step"]), float(record["seconds"])
+    except (ValueError, TypeError, KeyError) as exc:
+        raise StageError(f"{path}: the last line is not a clock record ({type(exc).__name__}: {exc})") from exc
+    if step < 1 or not math.isfinite(seconds) or seconds <= 0:
+        raise StageError(f"{path}: the last record has step {step} and seconds {seconds}; both must be > 0")
+    return {"step": step, "seconds": seconds}
 
 
 def graph_of(sample_name: str) -> str:

@@ -111,8 +111,10 @@ def run_seeded_ablation(spec: AblationSpec, commands: Commands, seeds: list[int]
         ablation.out.mkdir(parents=True, exist_ok=True)
         ablation.engine.attempt("data", ablation.engine.data_stage, [])
     engines = [a.engine for a in ablations.values()]
-    run_jobs([job for a in ablations.values() for job in a.engine.train_jobs(a.trained())],
-             **{**engines[0].train_pool(), "owner": spec.out_dir})
+    phases = max(len(a.training_phases()) for a in ablations.values())
+    for k in range(phases):  # every seed's rows of a phase in one pool (base_time after the clocks that size it)
+        run_jobs([job for a in ablations.values() for phase in a.training_phases()[k:k + 1]
+                  for job in a.engine.train_jobs(phase)], **{**engines[0].train_pool(), "owner": spec.out_dir})
     run_jobs([job for a in ablations.values() for job in a.engine.row_jobs(list(a.spec.variants))],
              **{**engines[0].row_pool(), "owner": spec.out_dir})
     per_seed, stages, errors = {}, {}, {}

@@ -19,7 +19,9 @@ perceiver meets them out of its training distribution and has nothing learned to
 Above the table, what the proxy reads on the ground-truth rooms themselves — the share of objects "penetrating"
 > 1 cm — against their meshes' exact penetration (``--exact-graphs`` rooms: ``trimesh`` containment of each object's
 samples in every other object's watertight mesh), and with ``--proxy-points`` the proxy at other M (the paper's
-2,000). benchmarks/RESULTS.md, "What the geometry features read".
+2,000). ``--picture PNG`` draws the first ground-truth room instead, red where the proxy reads a sample inside
+another object. benchmarks/RESULTS.md, "Equal wall time, four tries at the perceiver, and what the geometry
+features read".
 
     python benchmarks/exposure_gap.py RUN/checkpoints/last.ckpt DATA --graphs 48 --every 7 --exact-graphs 48 \
         --proxy-points 256,1000,2000
@@ -69,6 +71,55 @@ def exact_penetration_mm(scene, library, M: int, seed: int) -> np.ndarray:
     return np.asarray(deepest if len(meshes) > 1 else [])
 
 
+def draw_proxy_room(data, index: int, M: int, offset, scale, path: Path) -> str:
+    """One ground-truth room's surface samples from two sides, red where the proxy reads the point inside another
+    object by > 1 cm (the meshes' exact test finds none in these rooms); returns the title."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from spread.data import collate_scenes
+    from spread.model.geometry import prepare_points, state_distances
+    from spread.model.poses import poses_from_state
+
+    batch = collate_scenes([data[index]])
+    cloud = prepare_points(batch["points"], batch["normals"], batch["mask"])
+    d = state_distances(cloud, batch["x"], offset, scale, "pruned")[0]  # (N, M) metres
+    t, R = poses_from_state(batch["x"], offset.new_tensor([*(offset - scale).tolist(), *(offset + scale).tolist()]))
+    world = torch.einsum("nij,nmj->nmi", R[0], batch["points"][0]) + t[0, :, None]
+    n = int(batch["mask"][0].sum())
+    world, d = world[:n].reshape(-1, 3).numpy(), d[:n].reshape(-1).numpy()
+    inside = d < -0.01
+    scene = data.read(index)
+    per_object = (d.reshape(n, -1) < -0.01).mean(1)
+    title = (f"{scene.scene_id}: {inside.mean():.0%} of the samples read > 1 cm inside another object "
+             f"(red; {int((per_object > 0).sum())} of {n} objects), collision-free by the meshes")
+    fig = plt.figure(figsize=(13, 5.5))
+    centres = world.reshape(n, -1, 3).mean(1)
+    names = [a.rsplit("_", 1)[0] for a in scene.asset_id]
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    ax.scatter(world[~inside, 0], world[~inside, 2], world[~inside, 1], s=1.5, c="#9aa7b8", alpha=0.5)
+    ax.scatter(world[inside, 0], world[inside, 2], world[inside, 1], s=4, c="#d62728")
+    for c, name in zip(centres, names):
+        ax.text(c[0], c[2], c[1] + 0.15, name, fontsize=7)
+    ax.set_xlabel("x (m)"), ax.set_ylabel("z (m)"), ax.set_zlabel("y, up (m)")
+    ax.view_init(elev=25, azim=-60)
+    ax.set_box_aspect(np.ptp(world[:, [0, 2, 1]], axis=0))
+    top = fig.add_subplot(1, 2, 2)  # from above
+    top.scatter(world[~inside, 0], world[~inside, 2], s=1.5, c="#9aa7b8", alpha=0.5, label="read outside")
+    top.scatter(world[inside, 0], world[inside, 2], s=4, c="#d62728", label="read > 1 cm inside another object")
+    for c, name in zip(centres, names):
+        top.annotate(name, (c[0], c[2]), fontsize=7, xytext=(4, 4), textcoords="offset points")
+    top.set_aspect("equal"), top.set_xlabel("x (m)"), top.set_ylabel("z (m)"), top.set_title("from above", fontsize=9)
+    top.legend(loc="upper right", fontsize=7, markerscale=3)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return title
+
+
 def main() -> None:
     from spread.data import SceneDataset, collate_scenes
     from spread.model.diffusion import Sampler, denoise
@@ -86,6 +137,8 @@ def main() -> None:
     ap.add_argument("--sampler", default="ddim-50")
     ap.add_argument("--graph-scale", type=float, default=2.0)
     ap.add_argument("--every", type=int, default=5, help="report every k-th sampling step (and the last)")
+    ap.add_argument("--picture", type=Path, default=None,
+                    help="draw the first ground-truth room with the points the proxy reads inside (PNG) and stop")
     ap.add_argument("--proxy-points", default="",
                     help="also the proxy on the ground-truth rooms at these M (comma list, e.g. 256,2000: the paper's)")
     ap.add_argument("--exact-graphs", type=int, default=12,
@@ -98,6 +151,9 @@ def main() -> None:
     alpha_bar = model.alphas_cumprod
     data = SceneDataset(args.dataset, args.split, num_points=model.network.config.num_points,
                         bounds=model.bounds.tolist())
+    if args.picture is not None:
+        print(draw_proxy_room(data, 0, model.network.config.num_points, offset, scale, args.picture))
+        return
     sampler = Sampler.from_config(args.sampler)
     sampled: dict[int, list] = {}
     trained: dict[int, list] = {}

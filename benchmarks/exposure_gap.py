@@ -19,7 +19,8 @@ perceiver meets them out of its training distribution and has nothing learned to
 Above the table, what the proxy reads on the ground-truth rooms themselves — the share of objects "penetrating"
 > 1 cm — against their meshes' exact penetration (``--exact-graphs`` rooms: ``trimesh`` containment of each object's
 samples in every other object's watertight mesh), and with ``--proxy-points`` the proxy at other M (the paper's
-2,000). ``--picture PNG`` draws the first ground-truth room instead, red where the proxy reads a sample inside
+2,000), with ``--thickness`` the proxy with its sign gated by the neighbour's local thickness (``--no-sampling``: only
+these lines). ``--picture PNG`` draws the first ground-truth room instead, red where the proxy reads a sample inside
 another object. benchmarks/RESULTS.md, "Equal wall time, four tries at the perceiver, and what the geometry
 features read".
 
@@ -120,6 +121,47 @@ def draw_proxy_room(data, index: int, M: int, offset, scale, path: Path) -> str:
     return title
 
 
+def thickness_gated_mm(batch, library, scenes, offset, scale) -> tuple[np.ndarray, np.ndarray]:
+    """Per object of ground-truth rooms: the deepest penetration (mm) the proxy reads as released, and as it would
+    read with its sign gated by the neighbour's local thickness — p counts as inside q's object only if it lies behind
+    q's normal plane by less than the solid's thickness behind q (a ray from q along −n_q to the far surface), so a
+    board's far face or a point a metre away no longer reads as inside. A measurement for a better feature, not the
+    model's: the nearest other-object sample by brute force (exact, as the model's search)."""
+    import trimesh
+
+    from spread.model.poses import poses_from_state
+
+    bounds = torch.cat([offset - scale, offset + scale])
+    t, R = poses_from_state(batch["x"], bounds)
+    released, gated = [], []
+    for b, scene in enumerate(scenes):
+        n = len(scene.asset_id)
+        local, normals = batch["points"][b, :n].double().numpy(), batch["normals"][b, :n].double().numpy()
+        thickness = np.zeros(local.shape[:2])
+        for j, aid in enumerate(scene.asset_id):
+            mesh = library.mesh(aid)
+            hits, rays, _ = mesh.ray.intersects_location(local[j] - 1e-4 * normals[j], -normals[j],
+                                                         multiple_hits=False)
+            thickness[j, rays] = np.linalg.norm(hits - (local[j][rays] - 1e-4 * normals[j][rays]), axis=1)
+        Rb, tb = R[b, :n].double().numpy(), t[b, :n].double().numpy()
+        world = np.einsum("nij,nmj->nmi", Rb, local) + tb[:, None]
+        wnorm = np.einsum("nij,nmj->nmi", Rb, normals)
+        flat, nflat, tflat = world.reshape(-1, 3), wnorm.reshape(-1, 3), thickness.reshape(-1)
+        owner = np.repeat(np.arange(n), local.shape[1])
+        dist = torch.cdist(torch.from_numpy(flat), torch.from_numpy(flat)).numpy()
+        dist[owner[:, None] == owner[None]] = np.inf
+        q = dist.argmin(1)
+        depth = -((flat - flat[q]) * nflat[q]).sum(-1)  # > 0: behind q's normal plane
+        near = np.linalg.norm(flat - flat[q], axis=1)
+        read = np.where(depth > 0, near, 0.0)  # the released proxy's penetration (|d| where the sign is −)
+        inside = (depth > 0) & (depth < tflat[q])
+        released.append(read.reshape(n, -1).max(1) * 1000)
+        gated.append(np.where(inside, near, 0.0).reshape(n, -1).max(1) * 1000)
+    keep = [len(s.asset_id) > 1 for s in scenes]
+    return (np.concatenate([r for r, k in zip(released, keep) if k]),
+            np.concatenate([g for g, k in zip(gated, keep) if k]))
+
+
 def main() -> None:
     from spread.data import SceneDataset, collate_scenes
     from spread.model.diffusion import Sampler, denoise
@@ -139,6 +181,9 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=5, help="report every k-th sampling step (and the last)")
     ap.add_argument("--picture", type=Path, default=None,
                     help="draw the first ground-truth room with the points the proxy reads inside (PNG) and stop")
+    ap.add_argument("--no-sampling", action="store_true", help="only the ground-truth rooms' lines (no sampling)")
+    ap.add_argument("--thickness", action="store_true",
+                    help="also the proxy with its sign gated by the neighbour's thickness on the ground-truth rooms")
     ap.add_argument("--proxy-points", default="",
                     help="also the proxy on the ground-truth rooms at these M (comma list, e.g. 256,2000: the paper's)")
     ap.add_argument("--exact-graphs", type=int, default=12,
@@ -157,7 +202,7 @@ def main() -> None:
     sampler = Sampler.from_config(args.sampler)
     sampled: dict[int, list] = {}
     trained: dict[int, list] = {}
-    for start in range(0, min(args.graphs, len(data)), args.batch):
+    for start in range(0, 0 if args.no_sampling else min(args.graphs, len(data)), args.batch):
         batch = collate_scenes([data[k] for k in range(start, min(start + args.batch, args.graphs, len(data)))])
         cloud = prepare_points(batch["points"], batch["normals"], batch["mask"])
         problem = model.denoising(batch, graph_scale=args.graph_scale)
@@ -183,14 +228,23 @@ def main() -> None:
                 trained.setdefault(t, []).append(penetration_mm(cloud, x_train, offset, scale))
         print(f"graphs {start + len(batch['mask'])} / {min(args.graphs, len(data))}", flush=True)
 
-    proxy = np.concatenate(trained[-1])
-    if args.exact_graphs:
+    proxy = np.concatenate(trained[-1]) if trained else None
+    if args.exact_graphs and proxy is not None:
         exact = np.concatenate([exact_penetration_mm(data.read(k), data.library, model.network.config.num_points, k)
                                 for k in range(min(args.exact_graphs, len(data)))])
         print(f"ground-truth rooms: the proxy reads {np.mean(proxy > 10):.3f} of the objects as penetrating > 1 cm "
               f"(median {np.median(proxy):.1f} mm); the meshes themselves, exactly ({min(args.exact_graphs, len(data))} "
               f"rooms, {len(exact)} objects): {np.mean(exact > 10):.3f} (median {np.median(exact):.1f} mm, max "
               f"{exact.max():.1f} mm)")
+    if args.thickness:
+        rooms = range(min(args.graphs, len(data)))
+        pairs = [thickness_gated_mm(collate_scenes([data[k] for k in rooms[i:i + args.batch]]), data.library,
+                                    [data.read(k) for k in rooms[i:i + args.batch]], offset, scale)
+                 for i in range(0, len(rooms), args.batch)]
+        released, gated = (np.concatenate([p[k] for p in pairs]) for k in (0, 1))
+        print(f"ground-truth rooms, {len(released)} objects: the proxy as released reads {np.mean(released > 10):.3f} "
+              f"as penetrating > 1 cm ({np.mean(released > 50):.3f} > 5 cm); with its sign gated by the neighbour's "
+              f"thickness {np.mean(gated > 10):.3f} ({np.mean(gated > 50):.3f} > 5 cm)")
     for m in [int(v) for v in args.proxy_points.split(",") if v]:
         dense = SceneDataset(args.dataset, args.split, num_points=m, bounds=model.bounds.tolist())
         reads = []
@@ -201,14 +255,15 @@ def main() -> None:
         reads = np.concatenate(reads)
         print(f"ground-truth rooms, the proxy at M = {m}: {np.mean(reads > 10):.3f} of the objects read as penetrating "
               f"> 1 cm (median {np.median(reads):.1f} mm)")
-    print(f"\n{args.ckpt}: {min(args.graphs, len(data))} graphs of {args.dataset / args.split}, {args.sampler}, "
-          f"graph scale {args.graph_scale}; deepest penetration per object (mm)")
-    print(f"{'t':>5} | {'sampling median':>15} {'p90':>7} {'> 1 cm':>7} | {'training median':>15} {'p90':>7} "
-          f"{'> 1 cm':>7}")
-    for t in sorted(sampled, reverse=True):
-        s, r = np.concatenate(sampled[t]), np.concatenate(trained[t])
-        print(f"{t if t >= 0 else 'x_0':>5} | {np.median(s):>15.1f} {np.percentile(s, 90):>7.1f} "
-              f"{np.mean(s > 10):>7.3f} | {np.median(r):>15.1f} {np.percentile(r, 90):>7.1f} {np.mean(r > 10):>7.3f}")
+    if sampled:
+        print(f"\n{args.ckpt}: {min(args.graphs, len(data))} graphs of {args.dataset / args.split}, {args.sampler}, "
+              f"graph scale {args.graph_scale}; deepest penetration per object (mm)")
+        print(f"{'t':>5} | {'sampling median':>15} {'p90':>7} {'> 1 cm':>7} | {'training median':>15} {'p90':>7} "
+              f"{'> 1 cm':>7}")
+        for t in sorted(sampled, reverse=True):
+            s, r = np.concatenate(sampled[t]), np.concatenate(trained[t])
+            print(f"{t if t >= 0 else 'x_0':>5} | {np.median(s):>15.1f} {np.percentile(s, 90):>7.1f} "
+                  f"{np.mean(s > 10):>7.3f} | {np.median(r):>15.1f} {np.percentile(r, 90):>7.1f} {np.mean(r > 10):>7.3f}")
 
 
 if __name__ == "__main__":

@@ -157,12 +157,15 @@ def test_diffusion_baselines_sample_through_the_one_loop_as_their_own_loops_did(
                "ins": ins.sample(batch, "ddim-12", generator=gens()),
                "ins2": ins.sample(batch, "ddim-12", generator=gens(), graph_scale=2.0)}
     assert guidance.stats["steps"] == 10  # the last 10 of 12 steps
+    # float32 round-off: recorded under an earlier torch; torch 2.14 moves one rotation entry of every sample set by
+    # 1.6e-5 (the same entry in all four: the rot6d decode's arithmetic, not the loops) and ins2's translation by
+    # 1.3e-5. A step of a loop done differently moves them by orders of magnitude more (the guided samples, below).
     for name, poses in samples.items():
         for part in ("translation", "rotation"):
             expected = torch.tensor(recorded[f"{name}_{part}"], dtype=torch.float32)
-            torch.testing.assert_close(getattr(poses, part), expected, atol=1e-5, rtol=0, msg=f"{name} {part}")
+            torch.testing.assert_close(getattr(poses, part), expected, atol=5e-5, rtol=0, msg=f"{name} {part}")
     moved = (samples["ds_guided"].translation - samples["ds"].translation).abs().max()
-    assert moved > 1e-4  # the guidance did act (10× the tolerance)
+    assert moved > 5e-4  # the guidance did act (10× the tolerance)
 
 
 # ---- ATISS -------------------------------------------------------------------------------------------

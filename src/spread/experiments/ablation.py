@@ -337,8 +337,10 @@ def last_clock(run_dir: Path) -> dict | None:
     import json
     import math
 
+    from spread.io import read_text_checked
+
     path = Path(run_dir) / "clock.jsonl"
-    lines = [line for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    lines = [line for line in read_text_checked(path).splitlines() if line.strip()] if path.is_file() else []
     if not lines:
         return None
     try:

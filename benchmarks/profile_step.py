@@ -76,7 +76,7 @@ def main() -> None:
         module.register_forward_pre_hook(lambda m, a, name=name: stack.append((name, time.perf_counter())))
         module.register_forward_hook(lambda m, a, o: times.__setitem__(stack[-1][0], times[stack[-1][0]]
                                                                          + time.perf_counter() - stack.pop()[1]))
-    original = network_module.signed_chamfer_features
+    original = network_module.state_distances  # the per-step signed chamfer search (the network's name for it)
 
     def timed_chamfer(*a, **k):
         t0 = time.perf_counter()
@@ -84,7 +84,7 @@ def main() -> None:
         times["chamfer features"] += time.perf_counter() - t0
         return out
 
-    network_module.signed_chamfer_features = timed_chamfer
+    network_module.state_distances = timed_chamfer
     loader = iter(dm.train_dataloader())
     objects = 0
 

@@ -50,6 +50,8 @@ def penetration_mm(cloud, x: torch.Tensor, offset: torch.Tensor, scale: torch.Te
 def exact_penetration_mm(scene, library, M: int, seed: int) -> np.ndarray:
     """Per object of a room (with another object): the deepest its M surface samples lie inside any other object's
     mesh, mm (``trimesh`` containment and closest point on the watertight meshes): what the proxy should read."""
+    import trimesh
+
     rng = np.random.default_rng(seed)
     meshes = [library.mesh(a) for a in scene.asset_id]
     world = []
@@ -66,13 +68,13 @@ def exact_penetration_mm(scene, library, M: int, seed: int) -> np.ndarray:
             local = (world[i] - np.asarray(scene.translation[j])) @ np.asarray(scene.rotation[j])
             inside = mesh.contains(local)
             if inside.any():
-                _, dist, _ = __import__("trimesh").proximity.closest_point(mesh, local[inside])
+                _, dist, _ = trimesh.proximity.closest_point(mesh, local[inside])
                 depth = max(depth, float(dist.max()))
         deepest.append(depth * 1000)
     return np.asarray(deepest if len(meshes) > 1 else [])
 
 
-def draw_proxy_room(data, index: int, M: int, offset, scale, path: Path) -> str:
+def draw_proxy_room(data, index: int, offset, scale, path: Path) -> str:
     """One ground-truth room's surface samples from two sides, red where the proxy reads the point inside another
     object by > 1 cm (the meshes' exact test finds none in these rooms); returns the title."""
     import matplotlib
@@ -197,7 +199,7 @@ def main() -> None:
     data = SceneDataset(args.dataset, args.split, num_points=model.network.config.num_points,
                         bounds=model.bounds.tolist())
     if args.picture is not None:
-        print(draw_proxy_room(data, 0, model.network.config.num_points, offset, scale, args.picture))
+        print(draw_proxy_room(data, 0, offset, scale, args.picture))
         return
     sampler = Sampler.from_config(args.sampler)
     sampled: dict[int, list] = {}

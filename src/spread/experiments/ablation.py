@@ -137,7 +137,12 @@ class Ablation:
         from the clocks of the two runs trained here (``train/<v>/clock.jsonl``: the training loop's wall seconds at
         the last checkpoint, validation left out; :class:`spread.training.clock.TrainingClock`). The learning-rate
         schedule is sized to these steps as to any ``max_steps``."""
-        clocks = {v: last_clock(self.engine.train_dir(v)) for v in ("base", "geometry")}
+        from spread.training.clock import last_record
+
+        try:
+            clocks = {v: last_record(self.engine.train_dir(v)) for v in ("base", "geometry")}
+        except ValueError as exc:
+            raise StageError(str(exc)) from exc
         missing = [f"train/{v}/clock.jsonl" for v, c in clocks.items() if c is None]
         if missing:
             raise StageError(f"base_time: needs base and +Geometry trained in this ablation (no {missing} under "
@@ -329,28 +334,6 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                                    if n), md_extra=shown)
     ablation_bars(records, metrics, stem.with_suffix(".png"), label_key="method", title=caption)
     return {**paths, "png": stem.with_suffix(".png")}
-
-
-def last_clock(run_dir: Path) -> dict | None:
-    """The last record ``{"step", "seconds"}`` of a training run's ``clock.jsonl`` (None if it has none); a record
-    that is not one (a line cut by a kill, a non-positive count) is an error naming the file."""
-    import json
-    import math
-
-    from spread.io import read_text_checked
-
-    path = Path(run_dir) / "clock.jsonl"
-    lines = [line for line in read_text_checked(path).splitlines() if line.strip()] if path.is_file() else []
-    if not lines:
-        return None
-    try:
-        record = json.loads(lines[-1])
-        step, seconds = int(record["step"]), float(record["seconds"])
-    except (ValueError, TypeError, KeyError) as exc:
-        raise StageError(f"{path}: the last line is not a clock record ({type(exc).__name__}: {exc})") from exc
-    if step < 1 or not math.isfinite(seconds) or seconds <= 0:
-        raise StageError(f"{path}: the last record has step {step} and seconds {seconds}; both must be > 0")
-    return {"step": step, "seconds": seconds}
 
 
 def graph_of(sample_name: str) -> str:

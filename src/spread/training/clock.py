@@ -12,6 +12,7 @@ checkpoint can be placed on the step, scene and time axes afterwards.
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -72,3 +73,23 @@ class TrainingClock(Callback):
     def load_state_dict(self, state_dict: dict) -> None:
         self.seconds = float(state_dict.get("seconds", 0.0))
         self.scenes = int(state_dict.get("scenes", 0))
+
+
+def last_record(run_dir: str | Path) -> dict | None:
+    """The last record ``{"step", "seconds"}`` of a run's ``clock.jsonl`` (None if it has none), read through the
+    bounded-read door; a record that is not one (a line cut by a kill, a non-positive count) is a ValueError naming
+    the file."""
+    from spread.io import read_text_checked
+
+    path = Path(run_dir) / "clock.jsonl"
+    lines = [line for line in read_text_checked(path).splitlines() if line.strip()] if path.is_file() else []
+    if not lines:
+        return None
+    try:
+        record = json.loads(lines[-1])
+        step, seconds = int(record["step"]), float(record["seconds"])
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"{path}: the last line is not a clock record ({type(exc).__name__}: {exc})") from exc
+    if step < 1 or not math.isfinite(seconds) or seconds <= 0:
+        raise ValueError(f"{path}: the last record has step {step} and seconds {seconds}; both must be > 0")
+    return {"step": step, "seconds": seconds}

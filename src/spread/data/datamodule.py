@@ -53,7 +53,8 @@ class SceneDataModule(L.LightningDataModule):
     def __init__(self, root: str | os.PathLike, batch_size: int = 8, num_workers: int = 0,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, pin_memory: bool = False,
                  persistent_workers: bool = False, multiprocessing_context: str | None = None,
-                 augment: bool = False, cache: bool = True, bucket_batches: int = 0):
+                 augment: bool = False, cache: bool = True, bucket_batches: int = 0,
+                 geometry_distance: str = "chamfer"):
         super().__init__()
         self.root = Path(root)
         self.batch_size = int(batch_size)
@@ -63,6 +64,7 @@ class SceneDataModule(L.LightningDataModule):
         self.augment = bool(augment)
         self.cache = bool(cache)
         self.bucket_batches = int(bucket_batches)
+        self.geometry_distance = str(geometry_distance)  # the model's (ModelConfig.geometry_distance): what it reads
         if self.bucket_batches < 0:
             raise ValueError(f"data.bucket_batches must be >= 0 (0: off), got {bucket_batches}")
         self.pin_memory = bool(pin_memory)
@@ -96,7 +98,8 @@ class SceneDataModule(L.LightningDataModule):
         """The split's dataset, built on first use (sharing one asset library)."""
         if split not in self._datasets:
             self._datasets[split] = SceneDataset(self.root, split, library=self.library, num_points=self.num_points,
-                                                 seed=self.seed, bounds=self.translation_bounds(), cache=self.cache)
+                                                 seed=self.seed, bounds=self.translation_bounds(), cache=self.cache,
+                                                 geometry_distance=self.geometry_distance)
         return self._datasets[split]
 
     def setup(self, stage: str | None = None) -> None:

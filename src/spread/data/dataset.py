@@ -19,6 +19,9 @@ normals        (N, M, 3) f32  their unit normals, same frame
 extents        (N, 3) f32     each asset's canonical bbox size (the library record's ``extents``), metres
 room           (2, 3) f32     the scene's floor/room bounds [min, max] (metres); NaN when the file has none
 scene_id       str
+part_planes    (N, P, F, 4)   with ``geometry_distance='parts'`` only: each asset's convex part planes [n, d]
+                              (canonical frame, :mod:`spread.data.parts`); ``part_boxes`` (N, P, 2, 3) their
+                              boxes, ``part_valid`` (N, P) bool
 ============== ============== =====================================================================
 
 ``extents`` and ``room`` serve models that reason about boxes and the floor (the baselines of
@@ -27,7 +30,7 @@ scene_id       str
 Scene files are validated on read (against the library too), so a broken file fails with an error
 naming the file and key. ``bounds`` (6 floats) replaces stats.json's translation bounds in the normalisation
 (the square bounds of an augmented training run, :mod:`spread.data.augment`); :meth:`SceneDataset.item`
-encodes a scene after one of the 8 floor symmetries (poses, spatial codes and, when mirrored, the points). The dataset pickles without its library (it holds a lock and meshes); a
+encodes a scene after one of the 8 floor symmetries (poses, spatial codes and, when mirrored, the points and part planes). The dataset pickles without its library (it holds a lock and meshes); a
 worker process that gets a pickled copy reloads the library lazily from its folder.
 """
 
@@ -87,13 +90,15 @@ class SceneDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | os.PathLike, split: str, library=None,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, bounds: list[float] | None = None,
-                 cache: bool = False, reader=None):
+                 cache: bool = False, reader=None, geometry_distance: str = "chamfer"):
         from spread.assets.library import AssetLibrary
+        from spread.data.parts import READS_PARTS
 
         self.root = Path(root)
         self.split = split
         self.num_points = int(num_points)
         self.seed = int(seed)
+        self.parts = str(geometry_distance) in READS_PARTS  # the batch carries convex part planes (data/parts.py)
         if self.num_points < 1:
             raise ValueError(f"num_points must be ≥ 1, got {num_points}")
         self.files = list_scene_files(self.root / split)
@@ -116,6 +121,7 @@ class SceneDataset(torch.utils.data.Dataset):
         self._asset_index = {a: i for i, a in enumerate(self.asset_ids)}
         self._category_index = {c: i for i, c in enumerate(self.categories)}
         self._points: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._parts: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.cache = bool(cache)  # keep every validated Scene record read (a few kB each) in memory
         self._scenes: dict[int, Scene] = {}
 
@@ -124,6 +130,7 @@ class SceneDataset(torch.utils.data.Dataset):
         state = dict(self.__dict__)
         state["_library"] = None
         state["_points"] = {}
+        state["_parts"] = {}
         state["_scenes"] = {}
         return state
 
@@ -176,6 +183,16 @@ class SceneDataset(torch.utils.data.Dataset):
             self._points[asset_id] = hit
         return hit
 
+    def parts_of(self, asset_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(planes, boxes, valid) of an asset's convex parts, memoised; see :mod:`spread.data.parts`."""
+        hit = self._parts.get(asset_id)
+        if hit is None:
+            from spread.data.parts import asset_part_planes
+
+            hit = asset_part_planes(self.library.convex_parts(asset_id), source=f"asset '{asset_id}'")
+            self._parts[asset_id] = hit
+        return hit
+
     def encode(self, scene: Scene, source: str | None = None, transform: int = 0) -> dict:
         """Tensors of one Scene (also used to encode test graphs at sampling time). ``transform``: the floor
         symmetry the scene went through (its points and normals are mirrored when it is a mirror)."""
@@ -196,7 +213,7 @@ class SceneDataset(torch.utils.data.Dataset):
             from spread.data.augment import mirror_local
 
             pts, nrm = mirror_local(pts, transform), mirror_local(nrm, transform)
-        return {
+        item = {
             "x": torch.from_numpy(np.ascontiguousarray(x, np.float32)),
             "spatial": torch.from_numpy(scene.spatial.astype(np.int64)),
             "physical": torch.from_numpy(scene.physical.astype(np.int64)),
@@ -212,3 +229,13 @@ class SceneDataset(torch.utils.data.Dataset):
                                      else np.asarray(scene.room, np.float32)),
             "scene_id": scene.scene_id,
         }
+        if self.parts:
+            planes, boxes, valid = zip(*(self.parts_of(str(a)) for a in scene.asset_id))
+            planes, boxes = np.stack(planes), np.stack(boxes)
+            if transform >= 4:
+                from spread.data.parts import mirror_planes
+
+                planes, boxes = mirror_planes(planes, boxes)
+            item.update(part_planes=torch.from_numpy(planes), part_boxes=torch.from_numpy(boxes),
+                        part_valid=torch.from_numpy(np.stack(valid)))
+        return item

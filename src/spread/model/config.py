@@ -55,6 +55,10 @@ class ModelConfig:
     # "pruned" (object pruning, Python loop over point blocks: best on CPU), "dense" (one operator: a Triton kernel
     # on CUDA, brute force on CPU for small problems), "auto" (dense on CUDA, pruned on CPU)
     nearest: str = "auto"
+    # what the geometry features' distance d(p) is: "chamfer" (the release's: nearest sampled point of another
+    # object, signed by its normal) | "parts" (signed distance to the other objects' convex parts, exact sign,
+    # measured up to 10 cm: spread.model.parts_distance; the batches then carry the part planes)
+    geometry_distance: str = "chamfer"
 
     @classmethod
     def from_any(cls, config: "Mapping[str, Any] | ModelConfig | None" = None, **overrides) -> "ModelConfig":

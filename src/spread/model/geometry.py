@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from spread.model.nearest import CHUNK_ELEMENTS, morton_order, nearest_other_point
+from spread.model.parts_distance import PartPlanes, parts_distances
 from spread.data.rotation import rot6d_to_matrix
 from spread.model.poses import pose_points
 
@@ -39,6 +40,9 @@ from spread.model.poses import pose_points
 NO_NEIGHBOUR_DISTANCE = 10.0
 #: ``ModelConfig.nearest``: how the nearest other-object point is searched.
 SEARCHES = ("auto", "pruned", "dense")
+#: ``ModelConfig.geometry_distance``: ``chamfer`` (this module: the release's signed nearest-point proxy) or
+#: ``parts`` (:mod:`spread.model.parts_distance`: signed distance to the other objects' convex parts).
+GEOMETRY_DISTANCES = ("chamfer", "parts")
 
 
 def resolve_search(search: str, device: torch.device) -> str:
@@ -64,6 +68,7 @@ class PointCloud:
     fill: torch.Tensor
     count: torch.Tensor
     no_neighbour: float = NO_NEIGHBOUR_DISTANCE
+    parts: PartPlanes | None = None  # geometry_distance=parts: the objects' convex part planes (then d is theirs)
 
 
 def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask: torch.Tensor,
@@ -133,9 +138,13 @@ def state_distances(cloud: PointCloud, states: torch.Tensor, offset: torch.Tenso
                     search: str = "pruned") -> torch.Tensor:
     """:func:`signed_distances` of the poses of node states (B, N, 9) — normalised translation, denormalised as
     ``offset + x·scale`` (metres), and rot6d — as the network computes them at every denoising step (no gradient):
-    with the dense search, two operators (pose, signed search: :mod:`spread.model.nearest_dense`)."""
+    with the dense search, two operators (pose, signed search: :mod:`spread.model.nearest_dense`). A cloud with
+    ``parts`` reads the distance to the other objects' convex parts instead (:mod:`spread.model.parts_distance`)."""
     B, N, M, _ = cloud.points.shape
     x = states.float()
+    if cloud.parts is not None:
+        t, R = torch.addcmul(offset, x[..., :3], scale), rot6d_to_matrix(x[..., 3:9])
+        return parts_distances(cloud.parts, pose_points(cloud.points, t, R), t, R, cloud.valid)
     if search == "dense":
         from spread.model.nearest_dense import BLOCK_K
 

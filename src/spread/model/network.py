@@ -20,7 +20,7 @@ from torch import nn
 from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser, real_objects
-from spread.model.geometry import PointCloud, prepare_points, resolve_search, state_distances
+from spread.model.geometry import GEOMETRY_DISTANCES, PointCloud, prepare_points, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
 from spread.model.poses import denormalize_affine
@@ -84,6 +84,9 @@ class SceneDenoiser(nn.Module):
         if variant not in VARIANTS:
             raise ValueError(f"unknown variant '{variant}' (choose from {VARIANTS})")
         self.config, self.variant = config, variant
+        if getattr(config, "geometry_distance", "chamfer") not in GEOMETRY_DISTANCES:
+            raise ValueError(f"model.config.geometry_distance: unknown '{config.geometry_distance}' "
+                             f"(choose from {GEOMETRY_DISTANCES})")
         self.shape_encoder = build_shape_encoder(config)
         self.edge_encoder = EdgeEncoder(config.edge_dim)
         self.perceiver = None
@@ -121,6 +124,10 @@ class SceneDenoiser(nn.Module):
             # dataset's points come so ordered: spread.data.points; training sorts nothing per step)
             cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
                                         morton=cond.search == "dense" and not self.training)
+            if getattr(self.config, "geometry_distance", "chamfer") == "parts":
+                from spread.model.parts_distance import PartPlanes
+
+                cond.cloud.parts = PartPlanes.from_batch(batch, mask)
             cond.static = self.perceiver.static(cond.cloud.points, mask)
             cond.pose_offset, cond.pose_scale = denormalize_affine(self.bounds)  # one multiply-add per step
         return cond

@@ -55,10 +55,12 @@ def warn_graph_guidance(guided, model, ckpt) -> None:
 
 def checkpoint_data_settings(ckpt: dict, model) -> dict:
     """``num_points`` and point ``seed`` the checkpoint was trained with (its data module's hyperparameters;
-    the model's ``num_points`` and seed 0 when it was trained without one)."""
+    the model's ``num_points`` and seed 0 when it was trained without one), and the model's ``geometry_distance``
+    (what its batches must carry)."""
     hp = ckpt.get("datamodule_hyper_parameters") or {}
     points = hp["num_points"] if "num_points" in hp else model.config.num_points
-    return {"num_points": int(points), "seed": int(hp.get("seed", 0))}
+    return {"num_points": int(points), "seed": int(hp.get("seed", 0)),
+            "geometry_distance": str(getattr(model.config, "geometry_distance", "chamfer"))}
 
 
 def cached_model(ckpt: str, device: str):
@@ -73,7 +75,7 @@ def cached_model(ckpt: str, device: str):
         readonce.checkpoint(ckpt), map_location=device, source=str(ckpt)).eval())
 
 
-def cached_dataset(data_root: str, split: str, num_points: int, seed: int):
+def cached_dataset(data_root: str, split: str, num_points: int, seed: int, geometry_distance: str = "chamfer"):
     """The :class:`~spread.data.SceneDataset` encoding a split's graphs (its library and scene files read
     through :mod:`spread.readonce`), once per process and settings."""
     from spread import readonce
@@ -82,10 +84,11 @@ def cached_dataset(data_root: str, split: str, num_points: int, seed: int):
     root = Path(data_root).resolve()
     library = readonce.asset_library(root / "assets")
     parts = [root / split, root / "stats.json", root / "manifest.json"]  # the files, bounds, category order
-    key = (str(root), split, int(num_points), int(seed), readonce.library_key(library),
+    key = (str(root), split, int(num_points), int(seed), str(geometry_distance), readonce.library_key(library),
            *[readonce.file_key(p) if p.exists() else str(p) for p in parts])
     return readonce.memo("dataset", key, lambda: SceneDataset(root, split, library=library, num_points=num_points,
-                                                               seed=seed, reader=readonce.scene))
+                                                               seed=seed, reader=readonce.scene,
+                                                               geometry_distance=geometry_distance))
 
 
 def load_pipeline(cfg) -> ScenePipeline:
@@ -102,7 +105,7 @@ def load_pipeline(cfg) -> ScenePipeline:
                          f"(sample it with guidance=none)")
     warn_graph_guidance(cfg.guidance, model, cfg.ckpt)
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
-    dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"])
+    dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"], data["geometry_distance"])
     return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,
                          cuda_graph=cfg.cuda_graph, precision=cfg.precision)
 

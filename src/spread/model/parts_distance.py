@@ -1,0 +1,87 @@
+"""The ``parts`` geometry distance: each surface point's signed distance to the other objects' convex parts.
+
+The release's signed chamfer proxy (:mod:`spread.model.geometry`) signs the distance to the nearest *sampled*
+point of another object by that point's normal; on furniture made of boards it reads most objects of
+collision-free rooms as penetrating (benchmarks/RESULTS.md, "what the geometry features read"). This feature asks
+the shapes themselves: for a point p of object i (posed) and every other real object j,
+
+    s_j(p) = min over j's parts k of max over k's planes (n·q − d),   q = R_jᵀ (p − t_j)   (j's canonical frame)
+
+(:mod:`spread.data.parts`: exact sign; inside, minus the depth into the part; outside, a lower bound of the
+distance), and d(p) = min(min_j s_j(p), ``PARTS_RANGE``) metres. Beyond ``PARTS_RANGE`` nothing is measured: a
+part whose box, posed and grown by the range, misses object i's posed points' box is skipped (so far pairs cost
+nothing), and such points read ``PARTS_RANGE``. An object alone in its scene reads ``PARTS_RANGE``; padding 0.
+
+The candidate (scene, i, j, part) quadruples are found on the tensors' device (one ``nonzero`` per call: a host
+synchronisation, unlike the chamfer search) and evaluated in chunks of at most ``CHUNK_ELEMENTS`` numbers. No
+autograd: the network reads the feature of its input state (as for the chamfer feature).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+#: Largest distance (metres) the feature measures; farther points read this.
+PARTS_RANGE = 0.1
+#: Most (candidate × point × plane) numbers evaluated at once.
+CHUNK_ELEMENTS = 1 << 24
+
+
+@dataclass
+class PartPlanes:
+    """The pose-independent part shapes of a batch: planes (B, N, P, F, 4) [unit n, d] and boxes (B, N, P, 2, 3)
+    in each object's canonical frame, valid (B, N, P) bool (real objects' real parts only), P trimmed to the
+    batch's most parts."""
+
+    planes: torch.Tensor
+    boxes: torch.Tensor
+    valid: torch.Tensor
+
+    @classmethod
+    def from_batch(cls, batch: dict, mask: torch.Tensor) -> "PartPlanes":
+        """From a batch's ``part_planes`` / ``part_boxes`` / ``part_valid`` (:mod:`spread.data.parts`)."""
+        missing = [k for k in ("part_planes", "part_boxes", "part_valid") if k not in batch]
+        if missing:
+            raise ValueError(f"geometry_distance=parts: the batch has no {missing} (a dataset built with "
+                             f"geometry_distance='parts' carries them)")
+        valid = batch["part_valid"].bool() & mask.bool()[..., None]
+        used = int(valid.any(1).any(0).nonzero().max()) + 1 if valid.any() else 1
+        return cls(batch["part_planes"][:, :, :used].float(), batch["part_boxes"][:, :, :used].float(),
+                   valid[:, :, :used])
+
+
+def posed_boxes(boxes: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """World axis-aligned boxes (B, N, P, 2, 3) of canonical boxes (B, N, P, 2, 3) posed by (B, N, 3), (B, N, 3, 3)."""
+    centre, half = boxes.mean(-2), (boxes[..., 1, :] - boxes[..., 0, :]) / 2
+    c = torch.einsum("bnij,bnpj->bnpi", rotation, centre) + translation[:, :, None]
+    h = torch.einsum("bnij,bnpj->bnpi", rotation.abs(), half)
+    return torch.stack([c - h, c + h], dim=-2)
+
+
+@torch.no_grad()
+def parts_distances(parts: PartPlanes, world: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor,
+                    valid: torch.Tensor, reach: float = PARTS_RANGE,
+                    max_elements: int = CHUNK_ELEMENTS) -> torch.Tensor:
+    """(B, N, M) signed distance (metres, at most ``reach``) of every posed point ``world`` (B, N, M, 3) to the other
+    real objects' parts posed by translation (B, N, 3), rotation (B, N, 3, 3) world-from-local; valid (B, N)."""
+    B, N, M, _ = world.shape
+    world, t, R = world.float(), translation.float(), rotation.float()
+    lo, hi = world.amin(2), world.amax(2)  # (B, N, 3) each object's points' box
+    part_box = posed_boxes(parts.boxes, t, R)  # (B, N, P, 2, 3)
+    near = ((lo[:, :, None, None] <= part_box[:, None, :, :, 1] + reach)
+            & (hi[:, :, None, None] >= part_box[:, None, :, :, 0] - reach)).all(-1)  # (B, Ni, Nj, P)
+    others = valid[:, :, None] & valid[:, None, :] & ~torch.eye(N, dtype=torch.bool, device=world.device)
+    b, i, j, k = (near & others[..., None] & parts.valid[:, None]).nonzero(as_tuple=True)
+    out = torch.full((B * N, M), float(reach), device=world.device)
+    F = parts.planes.shape[-2]
+    step = max(1, max_elements // (M * F))
+    for start in range(0, len(b), step):
+        bb, ii, jj, kk = (v[start:start + step] for v in (b, i, j, k))
+        local = torch.einsum("cmi,cij->cmj", world[bb, ii] - t[bb, jj][:, None], R[bb, jj])  # q = Rᵀ(p − t)
+        planes = parts.planes[bb, jj, kk]  # (C, F, 4)
+        s = (torch.einsum("cmj,cfj->cmf", local, planes[..., :3]) - planes[:, None, :, 3]).amax(-1)  # (C, M)
+        out.scatter_reduce_(0, (bb * N + ii)[:, None].expand(-1, M), s, "amin")
+    out = out.clamp(max=reach).view(B, N, M)
+    return torch.where(valid[..., None], out, 0.0)

@@ -321,6 +321,12 @@ def test_ablation_resumes_stage_by_stage(tmp_path):
         run_stage(ablation.engine.train_stage("base"), ablation.engine.ledger)
     changed = run_ablation(spec(tmp_path, train=["seed=1"]), commands)  # the command reports it per stage
     assert changed.stages["train/base"] == "failed" and "made with other settings" in changed.errors["train/base"]
+    import shutil  # doing what the error says — deleting that folder — lets the stage train anew
+
+    shutil.rmtree(out / "train" / "base")
+    commands.calls.clear()
+    changed = run_ablation(spec(tmp_path, train=["seed=1"]), commands)
+    assert changed.stages["train/base"] == "done" and ("train", "base", "null") in commands.calls
 
 
 def test_a_failing_row_blocks_only_itself(tmp_path):

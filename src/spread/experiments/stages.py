@@ -180,10 +180,12 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     inputs = normalised(stage.inputs)
     before = ledger.inputs(stage.name)
     finished = stage.finished()
+    # a stage folder deleted since the ledger recorded it (what the refusal below asks for) is simply made anew
+    present = stage.derived or Path(stage.folder).exists()
     if before is None:  # outputs the ledger does not know: its command re-uses or redoes them by its own record
-        decision = done_check(inputs, inputs, present=True, finished=finished and not stage.derived)
+        decision = done_check(inputs, inputs, present=present, finished=finished and not stage.derived)
     else:
-        decision = done_check(before, inputs, present=True, finished=finished)
+        decision = done_check(before, inputs, present=present, finished=finished)
     if decision.reuse:
         if before is None:
             ledger.record(stage.name, inputs, None)

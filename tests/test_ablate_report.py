@@ -368,6 +368,39 @@ def test_the_equal_time_row_trains_base_for_geometrys_training_seconds(tmp_path)
             "0.220] against 0.220 [0.200, 0.240], lower than base's, but the 95 % intervals overlap") in sentence
 
 
+class PerSceneCommands(FakeCommands):
+    """FakeCommands whose evaluations also write per-scene Col_mesh on the same 40 scene ids: +Geometry 0.1 below
+    base on every scene, and alike base_time's on average (above on half the scenes, below on the others)."""
+
+    def evaluate(self, overrides):
+        out = Path(args(overrides)["out_dir"])
+        result = super().evaluate(overrides)
+        shift = {"base": 0.1, "base_time": 0.0, "geometry": 0.0, "guidance": -0.05}[out.name]
+        lines = []
+        for k in range(40):
+            value = 0.2 + shift + (0.05 * (-1) ** k if out.name == "base_time" else 0.0) + 0.01 * (k % 3)
+            lines.append(json.dumps({"scene_id": f"g{k:02d}", "col_mesh": value}))
+        (out / "per_scene.jsonl").write_text("\n".join(lines) + "\n")
+        metrics = json.loads((out / "metrics.json").read_text())
+        metrics.update(col_mesh_lo=metrics["col_mesh"] - 0.05, col_mesh_hi=metrics["col_mesh"] + 0.05,
+                       bootstrap={"method": "percentile", "unit": "scene", "resamples": 1000, "level": 0.95,
+                                  "seed": 0, "n_scenes": 40})
+        (out / "metrics.json").write_text(json.dumps(metrics))
+        return result
+
+
+def test_the_table_reads_geometry_against_each_base_row_paired_on_the_same_scenes(tmp_path):
+    result = run_ablation(spec(tmp_path, variants=("base", "base_time", "geometry")), PerSceneCommands())
+    assert result.ok
+    paired = next(r for r in result.records if r["variant"] == "geometry")["paired"]
+    assert paired["base"]["n_pairs"] == 40 and paired["base"]["diff"] == pytest.approx(-0.1)
+    assert paired["base"]["hi"] < 0 and paired["base_time"]["lo"] < 0 < paired["base_time"]["hi"]
+    md = (tmp_path / "abl" / "ablation.md").read_text()
+    assert ("Paired on the same 40 scenes (the mean of per-scene Col_mesh differences), +Geometry − Ours (base): "
+            "-0.100 [-0.100, -0.100], below zero: lower on the same scenes.") in md
+    assert "+Geometry − Ours (base), +Geometry's time: " in md and "it spans zero." in md
+
+
 def test_the_equal_time_row_needs_both_clocks(tmp_path):
     import torch
 

@@ -193,6 +193,32 @@ class Ablation:
             records.append(row)
         return records
 
+    def pair_geometry(self, records: list[dict]) -> None:
+        """On the ``geometry`` record, ``paired``: row → :func:`spread.results.paired_difference` of per-scene
+        Col_mesh, +Geometry − that row, for ``base`` and ``base_time`` where both rows were evaluated in this run's
+        folders (the same graphs and sampling seeds: the scenes pair up by id). The difference between rows is
+        measured per scene, where each row's own interval also carries the spread between scenes."""
+        from spread.results import paired_difference
+
+        rows = {r["variant"]: r for r in records}
+        geometry = rows.get("geometry")
+        if geometry is None or geometry.get("status") != "ok" or geometry.get("carried_from"):
+            return
+        paired = {}
+        for v in ("base", "base_time"):
+            row = rows.get(v)
+            if row is None or row.get("status") != "ok" or row.get("carried_from"):
+                continue
+            try:
+                d = paired_difference(self.engine.eval_dir("geometry"), self.engine.eval_dir(v), "col_mesh",
+                                      seed=0)
+            except (ValueError, OSError) as err:
+                log.warning("paired Col_mesh, +Geometry against %s: %s", v, err)
+                continue
+            paired[v] = {k: d[k] for k in ("diff", "lo", "hi", "n_pairs")}
+        if paired:
+            geometry["paired"] = paired
+
     def figure_scene(self) -> str | None:
         """The scene file name the figures show: the first one every sampled row has."""
         sets = [{p.name for p in (self.engine.sample_dir(v) / "scenes").glob("*.npz")} for v in self.spec.variants
@@ -260,6 +286,7 @@ class Ablation:
         """The rows (this run's and the carried ones), the figures and the table, once the rows' stages ran."""
         records = with_carried(self.rows(), self.engine.carried("variant", list(self.spec.variants)), "variant",
                                list(VARIANTS))
+        self.pair_geometry(records)
         if self.spec.figures:
             self.engine.attempt("figures", self.figures_stage, [])
         self.engine.attempt("table", lambda: self.table_stage(records, log_table), [])
@@ -279,9 +306,26 @@ def geometry_reading(records: Sequence[dict]) -> str:
     item 3); empty unless the rows have Col_mesh and its interval."""
     rows = {r.get("variant"): r for r in records}
     geometry = rows.get("geometry")
-    said = [col_mesh_reading(geometry, rows.get(v), words) for v, words in
-            (("base", ""), ("base_time", " at equal training time"))]
+    said = []
+    for v, words in (("base", ""), ("base_time", " at equal training time")):
+        sentence = col_mesh_reading(geometry, rows.get(v), words)
+        said.append(sentence + paired_reading(geometry, v) if sentence else "")
     return " ".join(s for s in said if s)
+
+
+def paired_reading(geometry: dict | None, against: str) -> str:
+    """The sentence on the paired per-scene difference (:meth:`Ablation.pair_geometry`), "" without one."""
+    d = ((geometry or {}).get("paired") or {}).get(against)
+    if not d:
+        return ""
+    if d["hi"] < 0:
+        verdict = "below zero: lower on the same scenes"
+    elif d["lo"] > 0:
+        verdict = "above zero: higher on the same scenes"
+    else:
+        verdict = "it spans zero"
+    return (f" Paired on the same {d['n_pairs']} scenes (the mean of per-scene Col_mesh differences), +Geometry − "
+            f"{LABELS[against]}: {d['diff']:+.3f} [{d['lo']:+.3f}, {d['hi']:+.3f}], {verdict}.")
 
 
 def col_mesh_reading(geometry: dict | None, base: dict | None, when: str) -> str:

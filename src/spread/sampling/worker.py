@@ -60,7 +60,7 @@ def checkpoint_data_settings(ckpt: dict, model) -> dict:
     hp = ckpt.get("datamodule_hyper_parameters") or {}
     points = hp["num_points"] if "num_points" in hp else model.config.num_points
     return {"num_points": int(points), "seed": int(hp.get("seed", 0)),
-            "geometry_distance": str(getattr(model.config, "geometry_distance", "chamfer"))}
+            "geometry_distance": str(getattr(getattr(model, "config", None), "geometry_distance", "chamfer"))}
 
 
 def cached_model(ckpt: str, device: str):

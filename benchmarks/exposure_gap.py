@@ -21,7 +21,8 @@ Above the table, what the proxy reads on the ground-truth rooms themselves — t
 samples in every other object's watertight mesh), and with ``--proxy-points`` the proxy at other M (the paper's
 2,000), with ``--thickness`` the proxy with its sign gated by the neighbour's local thickness, with ``--parts`` the
 signed distance to the other objects' convex parts (``model.config.geometry_distance=parts``) (``--no-sampling``: only
-these lines). A checkpoint trained with ``geometry_distance=parts`` is measured with its own distance throughout. ``--picture PNG`` draws the first ground-truth room instead, red where the proxy reads a sample inside
+these lines). A checkpoint trained with ``geometry_distance=parts`` is measured with its own distance throughout.
+``--picture PNG`` draws the first ground-truth room instead, red where the proxy reads a sample inside
 another object. benchmarks/RESULTS.md, "Equal wall time, four tries at the perceiver, and what the geometry
 features read".
 

@@ -146,6 +146,10 @@ def test_a_batch_without_part_planes_and_an_unknown_distance_are_refused(dataset
 
     with pytest.raises(ValueError, match="geometry_distance.*'box'"):
         SceneDenoiser(ModelConfig(geometry_distance="box"), "geometry")
+    with pytest.raises(ValueError, match=r"data.geometry_distance: unknown 'part' \(choose from \['chamfer', "):
+        from spread.data import SceneDataset
+
+        SceneDataset(dataset, "train", num_points=8, geometry_distance="part")
     with pytest.raises(ValueError, match=r"geometry_distance=parts: the batch has no \['part_planes'"):
         PartPlanes.from_batch({"points": torch.zeros(1, 1, 1, 3)}, torch.ones(1, 1, dtype=torch.bool))
 

@@ -30,8 +30,9 @@ part_planes    (N, P, F, 4)   with ``geometry_distance='parts'`` only: each asse
 Scene files are validated on read (against the library too), so a broken file fails with an error
 naming the file and key. ``bounds`` (6 floats) replaces stats.json's translation bounds in the normalisation
 (the square bounds of an augmented training run, :mod:`spread.data.augment`); :meth:`SceneDataset.item`
-encodes a scene after one of the 8 floor symmetries (poses, spatial codes and, when mirrored, the points and part planes). The dataset pickles without its library (it holds a lock and meshes); a
-worker process that gets a pickled copy reloads the library lazily from its folder.
+encodes a scene after one of the 8 floor symmetries (poses, spatial codes and, when mirrored, the points and part
+planes). The dataset pickles without its library (it holds a lock and meshes); a worker process that gets a
+pickled copy reloads the library lazily from its folder.
 """
 
 from __future__ import annotations
@@ -92,13 +93,14 @@ class SceneDataset(torch.utils.data.Dataset):
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, bounds: list[float] | None = None,
                  cache: bool = False, reader=None, geometry_distance: str = "chamfer"):
         from spread.assets.library import AssetLibrary
-        from spread.data.parts import READS_PARTS
+        from spread.data.parts import READS_PARTS, check_geometry_distance
 
         self.root = Path(root)
         self.split = split
         self.num_points = int(num_points)
         self.seed = int(seed)
-        self.parts = str(geometry_distance) in READS_PARTS  # the batch carries convex part planes (data/parts.py)
+        # the model's distance decides whether the batch carries convex part planes (data/parts.py)
+        self.parts = check_geometry_distance(geometry_distance, "data.geometry_distance") in READS_PARTS
         if self.num_points < 1:
             raise ValueError(f"num_points must be ≥ 1, got {num_points}")
         self.files = list_scene_files(self.root / split)

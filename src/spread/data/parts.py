@@ -28,8 +28,18 @@ import numpy as np
 PART_CAP = 32
 #: Most planes per part (boxes have 6, the 16-sided prisms 18).
 FACE_CAP = 24
+#: ``ModelConfig.geometry_distance``, the one list: ``chamfer`` (the release's signed nearest-point proxy,
+#: :mod:`spread.model.geometry`) or ``parts`` (the distance to the other objects' convex parts: these arrays).
+GEOMETRY_DISTANCES = ("chamfer", "parts")
 #: ``geometry_distance`` values whose model reads these arrays.
 READS_PARTS = ("parts",)
+
+
+def check_geometry_distance(value: str, key: str = "model.config.geometry_distance") -> str:
+    """``value`` when it is one of :data:`GEOMETRY_DISTANCES`, else ``ValueError`` naming ``key`` and the value."""
+    if str(value) not in GEOMETRY_DISTANCES:
+        raise ValueError(f"{key}: unknown '{value}' (choose from {list(GEOMETRY_DISTANCES)})")
+    return str(value)
 
 
 def unique_planes(normals: np.ndarray, offsets: np.ndarray, decimals: int = 5) -> tuple[np.ndarray, np.ndarray]:

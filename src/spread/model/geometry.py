@@ -40,9 +40,6 @@ from spread.model.poses import pose_points
 NO_NEIGHBOUR_DISTANCE = 10.0
 #: ``ModelConfig.nearest``: how the nearest other-object point is searched.
 SEARCHES = ("auto", "pruned", "dense")
-#: ``ModelConfig.geometry_distance``: ``chamfer`` (this module: the release's signed nearest-point proxy) or
-#: ``parts`` (:mod:`spread.model.parts_distance`: signed distance to the other objects' convex parts).
-GEOMETRY_DISTANCES = ("chamfer", "parts")
 
 
 def resolve_search(search: str, device: torch.device) -> str:

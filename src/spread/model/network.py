@@ -6,7 +6,8 @@ state is computed once by :meth:`SceneDenoiser.condition` (shape tokens, edge fe
 :meth:`SceneDenoiser.forward` then only does the per-step work: in the ``geometry`` variant it
 denormalises the current translations with ``bounds`` (the stats.json bounds, a buffer saved with
 the weights), turns the rot6d into matrices by Gram–Schmidt, recomputes the signed chamfer features
-of the posed points and runs the perceiver, then the graph transformer.
+of the posed points (or, with ``geometry_distance=parts``, their distances to the other objects' convex parts) and
+runs the perceiver, then the graph transformer.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from torch import nn
 from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser, real_objects
-from spread.model.geometry import GEOMETRY_DISTANCES, PointCloud, prepare_points, resolve_search, state_distances
+from spread.data.parts import check_geometry_distance
+from spread.model.geometry import PointCloud, prepare_points, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
 from spread.model.poses import denormalize_affine
@@ -84,9 +86,7 @@ class SceneDenoiser(nn.Module):
         if variant not in VARIANTS:
             raise ValueError(f"unknown variant '{variant}' (choose from {VARIANTS})")
         self.config, self.variant = config, variant
-        if getattr(config, "geometry_distance", "chamfer") not in GEOMETRY_DISTANCES:
-            raise ValueError(f"model.config.geometry_distance: unknown '{config.geometry_distance}' "
-                             f"(choose from {GEOMETRY_DISTANCES})")
+        check_geometry_distance(getattr(config, "geometry_distance", "chamfer"))
         self.shape_encoder = build_shape_encoder(config)
         self.edge_encoder = EdgeEncoder(config.edge_dim)
         self.perceiver = None

@@ -418,9 +418,10 @@ def test_spread_sweep_refuses_trials_no_node_can_hold_and_keeps_ray_tune_inside_
     from spread.experiments.sweep import SweepSettings, check_resources, read_results_csv
 
     base = [f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={dataset}", "num_cpus=1"]
-    line = one_line_error(run("spread-sweep", *base, "seed=0,1", f"out_dir={tmp_path / 'big'}", "trial_cpus=64",
-                              timeout=240), "spread-sweep")
+    proc = run("spread-sweep", *base, "seed=0,1", f"out_dir={tmp_path / 'big'}", "trial_cpus=64", timeout=240)
+    line = one_line_error(proc, "spread-sweep")
     assert "trial_cpus=64: no node of the Ray cluster has that many CPUs (the largest has 1" in line
+    assert "Ray instance" not in proc.stderr  # the cluster it would start has num_cpus=1: refused before starting it
     nodes = [{"Alive": True, "Resources": {"CPU": 2.0}}, {"Alive": False, "Resources": {"CPU": 64.0, "GPU": 8.0}}]
     with pytest.MonkeyPatch.context() as patch:  # a 2-CPU node, and a dead one that had everything
         patch.setattr(ray, "nodes", lambda: nodes)

@@ -148,3 +148,25 @@ def test_run_tags_name_the_slurm_job(monkeypatch):
     tags = run_tags()
     assert (tags["job_id"], tags["world_size"], tags["node_list"]) == ("4242", 8, "node[01-02]")
     assert tags["git_sha"] is None or re.fullmatch(r"[0-9a-f]{40}", tags["git_sha"])
+
+
+def test_a_point_spelled_by_another_sweep_is_found_by_its_fingerprint_not_its_name(point):
+    """``points/iterations1_<short>`` made by a sweep over the iterations is the point a later sweep names
+    ``floor_<short>`` when it keeps the iterations to one value: found by the fingerprint its point.json records;
+    a folder with the same short name but another recorded fingerprint is not taken."""
+    from spread.experiments.points import point_folder
+
+    points = point["out"].parent / "points"
+    fingerprint = point_fingerprint(point["cfg"]())
+    tag = short(fingerprint)
+    wanted = points / f"floor_{tag}"
+    assert point_folder(wanted, fingerprint) == wanted  # no points folder yet
+    impostor = points / f"a_{tag}"
+    impostor.mkdir(parents=True)
+    start_point(impostor, check_point(point["cfg"]("seed=5"), impostor))
+    assert point_folder(wanted, fingerprint) == wanted  # same short name, another fingerprint
+    made = points / f"iterations1_{tag}"
+    made.mkdir()
+    finish(made, check_point(point["cfg"](), made))
+    assert point_folder(wanted, fingerprint) == made
+    assert point_folder(impostor, fingerprint) == impostor  # a folder that exists is its own point

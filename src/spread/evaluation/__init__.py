@@ -13,6 +13,26 @@
 Ray, wandb and pybullet are imported inside the functions that use them.
 """
 
-from spread.evaluation.bootstrap import bootstrap_intervals, interval_note  # noqa: F401
-from spread.evaluation.protocol import STABILITY_SUBSTEPS, EvalProtocol, FIDConfig, versions  # noqa: F401
-from spread.evaluation.run import EvaluationConfig, EvaluationResult, run_evaluation  # noqa: F401
+#: Every public name and the module that defines it, imported on first access (PEP 562): the protocol
+#: (:class:`EvalProtocol`) loads without torch and torchmetrics.
+_EXPORTS = {
+    "spread.evaluation.bootstrap": ("bootstrap_intervals", "interval_note"),
+    "spread.evaluation.protocol": ("STABILITY_SUBSTEPS", "EvalProtocol", "FIDConfig", "versions"),
+    "spread.evaluation.run": ("EvaluationConfig", "EvaluationResult", "run_evaluation"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+
+def __getattr__(name: str):
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # looked up once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_MODULE_OF})

@@ -16,11 +16,10 @@ import platform
 import sys
 from dataclasses import asdict, dataclass, field
 
-from spread.metrics import (
-    COLLISION_DEPTH_THRESHOLD, FID_RENDER_SETTINGS, STABILITY_DT, STABILITY_JITTER, STABILITY_RUNS,
-    STABILITY_STEPS, STILL_ANGLE, STILL_DISTANCE,
+from spread.metrics.constants import (
+    COLLISION_DEPTH_THRESHOLD, DEFAULT_FEATURE_MODEL, FID_RENDER_SETTINGS, STABILITY_DT, STABILITY_JITTER,
+    STABILITY_RUNS, STABILITY_STEPS, STILL_ANGLE, STILL_DISTANCE,
 )
-from spread.metrics.fid import DEFAULT_FEATURE_MODEL
 
 #: Internal Bullet steps per protocol step of :data:`~spread.metrics.STABILITY_DT` (1/60 s): 4 steps of
 #: 1/240 s, the step the room generator verifies its rooms with. Kept although Stability then costs

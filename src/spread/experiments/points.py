@@ -58,6 +58,24 @@ def read_point(out_dir) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
+def point_folder(folder, fingerprint: dict) -> Path:
+    """Where a point with ``fingerprint`` lives: ``folder`` (``<values>_<short fingerprint>``), or a folder beside it
+    with the same short fingerprint whose ``point.json`` records this very fingerprint — the same setting reached
+    through another spelling of the sweep (a swept key kept to one value, a key left at its default), re-used
+    rather than made again under a second name."""
+    from spread.runtime.fingerprint import normalised
+
+    folder = Path(folder)
+    if folder.exists() or not folder.parent.is_dir():
+        return folder
+    wanted = normalised(fingerprint)
+    for other in sorted(folder.parent.glob(f"*_{folder.name.rsplit('_', 1)[-1]}")):
+        record = read_point(other)
+        if other.is_dir() and record is not None and record.get("fingerprint") == wanted:
+            return other
+    return folder
+
+
 def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
     """Re-use, resume or redo ``out_dir`` for the sample command ``cfg`` (typed, or a composed ``DictConfig``;
     module docstring)."""

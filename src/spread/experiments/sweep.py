@@ -359,13 +359,15 @@ def sample_point(config: dict, plan: dict, seed: int | None = None):
     """(run folder, composed config, overrides) of a sampling point: ``points/<values>_<short fingerprint>``
     (``<values>_seed<seed>_<short fingerprint>`` for one of several seeds)."""
     from spread.configs import compose
+    from spread.experiments.points import point_folder
     from spread.runtime.fingerprint import point_fingerprint, short
 
     name = point_name(config) + ("" if seed is None else f"_seed{seed}")
     overrides = [*plan["fixed"], *trial_overrides(config), *([] if seed is None else [f"seed={seed}"]),
                  f"experiment_name={plan['name']}", f"logger.run_name={plan['name']}/{name}"]
     cfg = compose("sample", [*overrides, "out_dir=unset"])
-    folder = Path(plan["points"]) / f"{name}_{short(point_fingerprint(cfg))}"
+    fingerprint = point_fingerprint(cfg)
+    folder = point_folder(Path(plan["points"]) / f"{name}_{short(fingerprint)}", fingerprint)
     cfg.out_dir = str(folder)
     return folder, cfg, [*overrides, f"out_dir={folder}"]
 
@@ -442,6 +444,7 @@ def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
     """(folder, identity, overrides) of a training point: ``points/<values>_<short identity>``; the identity is
     the composed config (less :data:`UNTRAINED_KEYS`), the data's content and the numbers version."""
     from spread.configs import compose
+    from spread.experiments.points import point_folder
     from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, normalised, short
 
     name = point_name(config)
@@ -453,7 +456,7 @@ def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
     root = OmegaConf.select(cfg, "data.root")
     identity = normalised({"config": plain, "data": dataset_digest(root, ["train", "val"]) if root else None,
                            "numbers_version": NUMBERS_VERSION})
-    return Path(plan["points"]) / f"{name}_{short(identity)}", identity, overrides
+    return point_folder(Path(plan["points"]) / f"{name}_{short(identity)}", identity), identity, overrides
 
 
 def train_point_run(folder: Path, identity: dict, overrides: list[str], plan: dict, commands) -> bool:
@@ -653,6 +656,8 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
     storage = out / "tune"
     if not (storage / s.folder_name).resolve().is_relative_to(out.resolve()):  # safe_name makes this impossible
         raise ValueError(f"spread-sweep: name={s.name}: Ray Tune's folder would leave out_dir={out}")
+    if settings.starts_cluster and s.num_cpus:  # a cluster this sweep starts has its num_cpus: refused before Ray
+        check_resources(s, [{"CPU": float(s.num_cpus)}], keys=("trial_cpus",))
     with ray_session(settings, owner=out):
         check_resources(s)
         if resumable(plan, out):  # the same search launched before: its searcher and trials where they stopped
@@ -711,13 +716,18 @@ def resumable(plan: SweepPlan, out: Path) -> bool:
     return False
 
 
-def check_resources(s: SweepSettings) -> None:
-    """In the sweep's Ray session, before any trial: ``ValueError`` when no live node holds a trial's bundle
-    (``trial_cpus`` CPUs; ``trial_gpus`` GPUs), which Ray Tune would wait for for ever."""
-    import ray
+def check_resources(s: SweepSettings, nodes: list[dict] | None = None,
+                    keys: tuple[str, ...] = ("trial_cpus", "trial_gpus")) -> None:
+    """``ValueError`` when no live node holds a trial's bundle (``trial_cpus`` CPUs; ``trial_gpus`` GPUs), which
+    Ray Tune would wait for for ever. ``nodes``: each node's resources (default: the live nodes of this process's
+    Ray session); ``keys``: the settings checked."""
+    if nodes is None:
+        import ray
 
-    nodes = [n.get("Resources") or {} for n in ray.nodes() if n.get("Alive")]
+        nodes = [n.get("Resources") or {} for n in ray.nodes() if n.get("Alive")]
     for key, resource in (("trial_cpus", "CPU"), ("trial_gpus", "GPU")):
+        if key not in keys:
+            continue
         wanted = float(getattr(s, key))
         largest = max((float(n.get(resource, 0)) for n in nodes), default=0.0)
         if wanted > largest:

@@ -19,21 +19,40 @@ States are tensors summed across DDP ranks and mergeable with ``metric.merge_sta
 scene that cannot be measured; each record's ``to_dict()`` is one JSON line of ``per_scene.jsonl``.
 """
 
-from spread.metrics.base import SceneMetric, check_scene, scene_seed  # noqa: F401
-from spread.metrics.collision import (  # noqa: F401
-    COLLISION_DEPTH_THRESHOLD, CollisionResult, MeshCollisionRate, PairDepth, scene_collisions,
-)
-from spread.metrics.extractors import FEATURE_DIMS, ExtractorStatus, load_extractor  # noqa: F401
-from spread.metrics.fid import FID_RENDER_SETTINGS, SceneFID, fid_render, scene_features  # noqa: F401
-from spread.metrics.graph_recall import GraphRecall, GraphRecallResult, scene_graph_recall  # noqa: F401
-from spread.metrics.support_distance import (  # noqa: F401
-    AverageSupportDistance, SupportDistanceResult, SupportPairDistance, scene_support_distance,
-)
-from spread.metrics.stability import (  # noqa: F401
-    STABILITY_DT, STABILITY_JITTER, STABILITY_RUNS, STABILITY_STEPS, STILL_ANGLE, STILL_DISTANCE,
-    PhysicsStability, StabilityResult, scene_stability,
-)
-from spread.metrics.out_of_bounds import OutOfBoundsRate, scene_out_of_bounds  # noqa: F401
-from spread.metrics.registry import (  # noqa: F401
-    METRICS, MetricSpec, default_metric_names, display_specs, register_metric, selected_metrics,
-)
+#: Every public name and the module that defines it, imported on first access (PEP 562): ``import
+#: spread.metrics.registry`` and the protocol's constants do not pay for torch and torchmetrics.
+_EXPORTS = {
+    "spread.metrics.base": ("SceneMetric", "check_scene", "scene_seed"),
+    "spread.metrics.constants": (
+        "COLLISION_DEPTH_THRESHOLD", "FID_RENDER_SETTINGS", "STABILITY_DT", "STABILITY_JITTER", "STABILITY_RUNS",
+        "STABILITY_STEPS", "STILL_ANGLE", "STILL_DISTANCE",
+    ),
+    "spread.metrics.collision": ("CollisionResult", "MeshCollisionRate", "PairDepth", "scene_collisions"),
+    "spread.metrics.extractors": ("FEATURE_DIMS", "ExtractorStatus", "load_extractor"),
+    "spread.metrics.fid": ("SceneFID", "fid_render", "scene_features"),
+    "spread.metrics.graph_recall": ("GraphRecall", "GraphRecallResult", "scene_graph_recall"),
+    "spread.metrics.support_distance": (
+        "AverageSupportDistance", "SupportDistanceResult", "SupportPairDistance", "scene_support_distance",
+    ),
+    "spread.metrics.stability": ("PhysicsStability", "StabilityResult", "scene_stability"),
+    "spread.metrics.out_of_bounds": ("OutOfBoundsRate", "scene_out_of_bounds"),
+    "spread.metrics.registry": (
+        "METRICS", "MetricSpec", "default_metric_names", "display_specs", "register_metric", "selected_metrics",
+    ),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+
+def __getattr__(name: str):
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # looked up once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_MODULE_OF})

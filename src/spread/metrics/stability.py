@@ -26,21 +26,11 @@ import numpy as np
 import torch
 
 from spread.metrics.base import SceneMetric, check_scene, ratio, scene_seed
+from spread.metrics.constants import (  # noqa: F401  (re-exported: the protocol's numbers live in constants)
+    STABILITY_DT, STABILITY_JITTER, STABILITY_RUNS, STABILITY_STEPS, STILL_ANGLE, STILL_DISTANCE,
+)
 from spread.metrics.registry import ValueSpec, register_metric
 from spread.relations import scene_spatial_codes
-
-#: Runs per scene.
-STABILITY_RUNS = 10
-#: Protocol steps per run.
-STABILITY_STEPS = 100
-#: Seconds per protocol step (the physics world subdivides it into its own internal steps).
-STABILITY_DT = 1.0 / 60.0
-#: Largest translation jitter per axis at the start of a run, metres (sub-millimetre).
-STABILITY_JITTER = 5e-4
-#: An object is still when displaced less than this (metres) ...
-STILL_DISTANCE = 0.01
-#: ... and rotated less than this (radians).
-STILL_ANGLE = 0.1
 
 
 @dataclass

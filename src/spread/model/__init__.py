@@ -1,24 +1,36 @@
 """The SPREAD model: shape tokens, signed chamfer geometry features, geometry perceiver, graph
 transformer denoiser, diffusion samplers and the LightningModule (DESIGN §2, paper §3.2–3.3).
 
-Needs only torch, einops, diffusers and lightning; ``SceneDiffusion`` (Lightning) is imported on
-first access.
+Needs only torch, einops, diffusers and lightning; every name below is imported on first access.
 """
 
-from spread.model.config import ModelConfig  # noqa: F401
-from spread.model.diffusion import SAMPLER_KINDS, Sampler, StepContext, training_scheduler  # noqa: F401
-from spread.model.ema import EMA  # noqa: F401
-from spread.model.geometry import signed_chamfer_features  # noqa: F401
-from spread.model.network import VARIANTS, Condition, SceneDenoiser  # noqa: F401
-from spread.model.perceiver import GeometryPerceiver  # noqa: F401
-from spread.model.poses import pose_points, poses_from_state  # noqa: F401
-from spread.model.recall import graph_recall  # noqa: F401
-from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder  # noqa: F401
+#: Every public name and the module that defines it, imported on first access (PEP 562): ``import
+#: spread.model.config`` does not pay for diffusers and Lightning.
+_EXPORTS = {
+    "spread.model.config": ("ModelConfig",),
+    "spread.model.diffusion": ("SAMPLER_KINDS", "Sampler", "StepContext", "training_scheduler"),
+    "spread.model.ema": ("EMA",),
+    "spread.model.geometry": ("signed_chamfer_features",),
+    "spread.model.network": ("VARIANTS", "Condition", "SceneDenoiser"),
+    "spread.model.perceiver": ("GeometryPerceiver",),
+    "spread.model.poses": ("pose_points", "poses_from_state"),
+    "spread.model.recall": ("graph_recall",),
+    "spread.model.shape_tokens": ("PointCloudTokenizer", "PrecomputedShapeTokens", "ShapeEncoder"),
+    "spread.model.module": ("SceneDiffusion", "Poses"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
 
 
 def __getattr__(name: str):
-    if name in ("SceneDiffusion", "Poses"):
-        from spread.model import module
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
 
-        return getattr(module, name)
-    raise AttributeError(f"module 'spread.model' has no attribute '{name}'")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # looked up once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_MODULE_OF})

@@ -31,10 +31,12 @@ size, so there a sample also depends on how far its batch is padded.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import torch
-from diffusers import DDPMScheduler
+
+if TYPE_CHECKING:  # diffusers loads with the first scheduler: reading a Sampler's settings does not need it
+    from diffusers import DDPMScheduler
 
 TRAIN_SCHEDULER_CONFIG: dict = {
     "num_train_timesteps": 1000,
@@ -57,6 +59,8 @@ NOISE_ROWS = 64
 def training_scheduler(**overrides) -> DDPMScheduler:
     """A DDPM training schedule: ε-prediction, by default cosine betas over T = 1000 (the paper's);
     ``overrides`` (``beta_schedule``, ``num_train_timesteps``, ...) change it."""
+    from diffusers import DDPMScheduler
+
     return DDPMScheduler(**{**TRAIN_SCHEDULER_CONFIG, **overrides})
 
 

@@ -22,7 +22,7 @@ demo: install
 	$(BIN)/python -m spread.cli.demo --out $(DEMO_DIR)
 
 test: install
-	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=15
 
 # the browser tests (tests/test_browser.py) drive Debian's headless chromium; installed here when missing
 browser:
@@ -31,7 +31,7 @@ browser:
 	  { echo "needs chromium (Debian: apt-get install chromium chromium-driver) for the browser tests"; exit 1; }
 
 test-slow: install browser
-	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile -m slow
+	WANDB_MODE=disabled $(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m slow
 
 bench: install
 	$(BIN)/python benchmarks/bench_generate.py

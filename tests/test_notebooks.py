@@ -45,6 +45,7 @@ def quickstart(tmp_path_factory):
     return execute("01_quickstart.ipynb", out), out
 
 
+@pytest.mark.slow  # ~60 s on 2 cores (a kernel that generates, trains, samples, evaluates): make test-slow runs it
 def test_quickstart_runs_and_evaluates_generated_scenes(quickstart):
     nb, out = quickstart
     text = outputs_text(nb)

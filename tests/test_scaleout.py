@@ -1,6 +1,6 @@
 """Scale-out on one machine (DESIGN §7, jobs/): two-node Lightning DDP launched by ``jobs/torchrun.sh`` (two
 torchrun agents, c10d rendezvous, gloo, CPU) and by ``jobs/slurm_train.sbatch`` under a stand-in ``srun``;
-Ray Train with two CPU workers and a worker-group restart (slow); sampling fanned over a two-node
+Ray Train with two CPU workers and a worker-group restart (both slow); sampling fanned over a two-node
 ``ray.cluster_utils.Cluster``; the faults: a sampling actor SIGKILLed mid-batch, a ``spread-train`` process
 SIGKILLed mid-epoch and resumed with ``ckpt_path=last``; the Ray job scripts and the cluster file.
 
@@ -307,6 +307,7 @@ def test_ray_train_config_and_default_trainer():
         split_config(compose("train", "data.root=/d"), Path("/runs/x"))
 
 
+@pytest.mark.slow  # ~70 s on 2 cores (three processes importing Lightning): make test-slow runs it
 def test_ray_train_two_cpu_workers_report_a_checkpoint(dataset, tmp_path):
     """``spread-train-ray`` (trainer=ray by default): TorchTrainer with RayDDPStrategy,
     RayLightningEnvironment, prepare_trainer and RayTrainReportCallback, 2 workers of 0.5 CPU on a private

@@ -201,12 +201,14 @@ def test_torchrun_two_nodes_train_the_same_weights_and_rank_zero_writes_one_chec
 
 
 def test_torchrun_relaunched_with_the_same_run_id_resumes_its_newest_checkpoint(dataset, tmp_path):
-    """jobs/torchrun.sh with 2 gloo processes (tiny), launched twice with one RUN_ID and no ATTEMPT: the launcher
-    counts the second attempt, which resumes the first's last.ckpt (the step continues from 3 to 5); Lightning
-    writes no last-v1.ckpt; the log names the file resumed. A plain spread-train into the same folder without
-    resuming is refused, and fresh=true moves the run aside."""
+    """jobs/torchrun.sh with one gloo process per node (the two-process runs are this module's other torchrun
+    tests), launched twice with one RUN_ID and no ATTEMPT: the launcher counts the second attempt, which resumes the
+    first's last.ckpt (the step continues from 3 to 5; one process under DDP is still Lightning's distributed
+    sampler, which resumed our mid-epoch order with an IndexError); Lightning writes no last-v1.ckpt; the log names
+    the file resumed. A plain spread-train into the same folder without resuming is refused, and fresh=true moves
+    the run aside."""
     out = tmp_path / "run"
-    env = jobs_env(out, NNODES="1", NPROC_PER_NODE="2", RDZV_ENDPOINT=f"127.0.0.1:{free_port()}", RUN_ID="wf1",
+    env = jobs_env(out, NNODES="1", NPROC_PER_NODE="1", RDZV_ENDPOINT=f"127.0.0.1:{free_port()}", RUN_ID="wf1",
                    LOCAL_ADDR="127.0.0.1")
     launch = ["bash", str(ROOT / "jobs" / "torchrun.sh"), *TRAIN, f"data.root={dataset}", "trainer.accelerator=cpu"]
     first = subprocess.run([*launch, "trainer.max_steps=3"], env=env, capture_output=True, text=True, timeout=400)

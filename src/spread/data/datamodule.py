@@ -31,6 +31,17 @@ from spread.data.stats import load_stats
 SPLITS = ("train", "val", "test")
 
 
+
+def wraps_sampler(trainer) -> bool:
+    """Whether Lightning replaces the training loader's sampler with its distributed one: a distributed strategy
+    (DDP, Ray's, ...) with ``use_distributed_sampler`` on — also with one process (``torchrun
+    --nproc-per-node=1``), where our resumable :class:`~spread.data.order.EpochOrder` would be wrapped and, resumed
+    mid-epoch, yield fewer indices than the wrapper counts. Lightning's own test, where it exposes it."""
+    connector = getattr(trainer, "_accelerator_connector", None)
+    if connector is not None and hasattr(connector, "is_distributed"):
+        return bool(connector.use_distributed_sampler and connector.is_distributed)
+    return trainer.world_size > 1
+
 class SymmetricScenes(torch.utils.data.Dataset):
     """A :class:`SceneDataset` seen under its 8 floor symmetries: item i = room i mod n after transform i // n."""
 
@@ -148,7 +159,7 @@ class SceneDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         trainer = self.trainer
-        if trainer is not None and trainer.world_size > 1:  # Lightning puts its distributed sampler in
+        if trainer is not None and wraps_sampler(trainer):  # Lightning puts its distributed sampler in
             if self.bucket_batches:
                 import logging
 

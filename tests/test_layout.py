@@ -8,7 +8,12 @@ sibling on its floor or anything above.
 from __future__ import annotations
 
 import ast
+import importlib
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 import spread
 
@@ -35,7 +40,7 @@ FLOORS = (
     ("scene",),
     ("assets",),
     ("safe_load",),  # loaders that run no code: check their files with io's bounded-read helper
-    ("io", "registry"),
+    ("io", "registry", "lazy"),  # lazy: a package's names imported on first access
 )
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}
 
@@ -170,3 +175,23 @@ def test_the_circle_finder_finds_a_planted_circle_and_the_old_physics_one():
     graph["spread.physics.mjcf"].add("spread.physics.mujoco_world")  # the function-level import issue 22 found
     assert ["spread.physics.mjcf", "spread.physics.mujoco_world"] in circles(graph) or \
         any({"spread.physics.mjcf", "spread.physics.mujoco_world"} <= set(c) for c in circles(graph))
+
+
+def test_a_packages_names_load_on_first_access_and_settings_load_without_the_heavy_libraries():
+    """``spread.model``, ``spread.metrics`` and ``spread.evaluation`` import their public names when first asked
+    (:mod:`spread.lazy`): the settings (the model's config, the evaluation protocol and its numbers, the sampler)
+    load without diffusers or torchmetrics; every listed name resolves to its module's object; an unknown one is an
+    AttributeError naming it."""
+    code = ("import sys; import spread.model.config, spread.evaluation.protocol, spread.metrics.constants, "
+            "spread.model.diffusion; print(sorted(m for m in ('diffusers', 'torchmetrics', 'lightning') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+    for package in ("spread.model", "spread.metrics", "spread.evaluation"):
+        module = importlib.import_module(package)
+        for source, names in module._EXPORTS.items():
+            for name in names:
+                assert getattr(module, name) is getattr(importlib.import_module(source), name), (package, name)
+                assert name in dir(module)
+        with pytest.raises(AttributeError, match=rf"module '{package}' has no attribute 'no_such_name'"):
+            getattr(module, "no_such_name")

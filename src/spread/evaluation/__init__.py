@@ -13,6 +13,8 @@
 Ray, wandb and pybullet are imported inside the functions that use them.
 """
 
+from spread.lazy import lazy_names
+
 #: Every public name and the module that defines it, imported on first access (PEP 562): the protocol
 #: (:class:`EvalProtocol`) loads without torch and torchmetrics.
 _EXPORTS = {
@@ -20,19 +22,4 @@ _EXPORTS = {
     "spread.evaluation.protocol": ("STABILITY_SUBSTEPS", "EvalProtocol", "FIDConfig", "versions"),
     "spread.evaluation.run": ("EvaluationConfig", "EvaluationResult", "run_evaluation"),
 }
-_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
-
-
-def __getattr__(name: str):
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # looked up once
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_MODULE_OF})
+__getattr__, __dir__ = lazy_names(__name__, _EXPORTS)

@@ -19,6 +19,8 @@ States are tensors summed across DDP ranks and mergeable with ``metric.merge_sta
 scene that cannot be measured; each record's ``to_dict()`` is one JSON line of ``per_scene.jsonl``.
 """
 
+from spread.lazy import lazy_names
+
 #: Every public name and the module that defines it, imported on first access (PEP 562): ``import
 #: spread.metrics.registry`` and the protocol's constants do not pay for torch and torchmetrics.
 _EXPORTS = {
@@ -40,19 +42,4 @@ _EXPORTS = {
         "METRICS", "MetricSpec", "default_metric_names", "display_specs", "register_metric", "selected_metrics",
     ),
 }
-_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
-
-
-def __getattr__(name: str):
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # looked up once
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_MODULE_OF})
+__getattr__, __dir__ = lazy_names(__name__, _EXPORTS)

@@ -4,6 +4,8 @@ transformer denoiser, diffusion samplers and the LightningModule (DESIGN §2, pa
 Needs only torch, einops, diffusers and lightning; every name below is imported on first access.
 """
 
+from spread.lazy import lazy_names
+
 #: Every public name and the module that defines it, imported on first access (PEP 562): ``import
 #: spread.model.config`` does not pay for diffusers and Lightning.
 _EXPORTS = {
@@ -18,19 +20,4 @@ _EXPORTS = {
     "spread.model.shape_tokens": ("PointCloudTokenizer", "PrecomputedShapeTokens", "ShapeEncoder"),
     "spread.model.module": ("SceneDiffusion", "Poses"),
 }
-_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
-
-
-def __getattr__(name: str):
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # looked up once
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_MODULE_OF})
+__getattr__, __dir__ = lazy_names(__name__, _EXPORTS)

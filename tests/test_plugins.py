@@ -260,6 +260,18 @@ def test_a_plugin_method_is_a_row_of_spread_compare(plugin_site, dataset, tmp_pa
     assert rows[0]["method"] == "Jittered ground truth" and 0.5 < rows[0]["grecall"] <= 1.0
 
 
+def test_the_metrics_order_is_the_same_whichever_metric_module_a_process_imports_first():
+    """The default selection is part of an evaluation's fingerprint: Col_mesh, GRecall, ASD, Stability (then OOB),
+    also in a process that imported Stability's and OOB's modules before any other."""
+    code = ("import spread.metrics.out_of_bounds, spread.metrics.stability; "
+            "from spread.metrics.registry import METRICS, default_metric_names; "
+            "print(default_metric_names(), METRICS.names()[:5])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip() == ("['col_mesh', 'grecall', 'asd', 'stability'] "
+                                  "['col_mesh', 'grecall', 'asd', 'stability', 'oob']")
+
+
 def test_registries_list_the_built_ins_and_name_unknown_entries():
     from spread.methods.registry import method_names
     from spread.guidance.terms import term_names

@@ -9,7 +9,9 @@ metrics, methods, terms, importers or engines iterates the registry (DESIGN §8,
 Entries come from three places, loaded on first use:
 
 1. the modules that define them (a registry knows the packages whose modules register built-ins, and imports
-   every module of them, so a new built-in is one new file);
+   every module of them, so a new built-in is one new file). A module named among the packages (not a package)
+   fixes its entries' place: the built-ins of the named modules come first, in that order, whichever module a
+   process happened to import first (the metrics' default selection is part of an evaluation's fingerprint);
 2. **entry points** of installed distributions, group ``spread.<kind>`` (``spread.metrics``, ``spread.methods``,
    ``spread.guidance``, ``spread.importers``, ``spread.physics``): the entry point's name is the registered
    name, its object is an entry or what the registry's ``adapt`` turns into one (a ``SceneMetric`` subclass,
@@ -102,6 +104,7 @@ class Registry(Generic[T]):
         try:
             for package in self.packages:
                 self._import_package(package)
+            self._order_named_modules()
             for ep in importlib.metadata.entry_points(group=self.group):
                 origin = f"entry point '{ep.name} = {ep.value}' ({ep.dist.name if ep.dist else 'unknown'})"
                 if ep.name in self._entries:  # a built-in (or an earlier plugin) keeps its name
@@ -129,6 +132,20 @@ class Registry(Generic[T]):
         if name not in self._failed:
             warnings.warn(f"{self.kind} plugin '{name}': {reason}", PluginWarning, stacklevel=3)
         self._failed.setdefault(name, reason)
+
+    def _order_named_modules(self) -> None:
+        """Entries defined in a module named in :attr:`packages` first, in that order (their ``origin`` is
+        ``module.object``); every other entry after them, in registration order."""
+        named = [p for p in self.packages if not hasattr(importlib.import_module(p), "__path__")]
+        if not named:
+            return
+
+        def rank(name: str) -> int:
+            origin = self._origin.get(name, "")
+            return next((i for i, module in enumerate(named) if origin.startswith(f"{module}.")), len(named))
+
+        order = sorted(self._entries, key=rank)  # stable: the rest keep their registration order
+        self._entries = {name: self._entries[name] for name in order}
 
     @staticmethod
     def _import_package(package: str) -> None:

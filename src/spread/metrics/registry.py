@@ -233,8 +233,12 @@ def check_spec(name: str, spec, others: dict) -> None:
                                 f"rename it")
 
 
-METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=("spread.metrics",), adapt=_adapt,
-                                         check=check_spec)
+#: The built-in metrics' modules, in the order of their entries (the default selection Col_mesh, GRecall, ASD,
+#: Stability, then OOB), whichever of them a process imports first; then any other module of the package.
+BUILTIN_MODULES = ("spread.metrics.collision", "spread.metrics.graph_recall", "spread.metrics.support_distance",
+                   "spread.metrics.stability", "spread.metrics.out_of_bounds")
+METRICS: Registry[MetricSpec] = Registry("metric", "spread.metrics", packages=(*BUILTIN_MODULES, "spread.metrics"),
+                                         adapt=_adapt, check=check_spec)
 
 SET_METRICS = (
     ValueSpec("fid", "FID", digits=2, higher_is_better=False, latex=r"FID$\downarrow$", order=1000,

@@ -31,16 +31,17 @@ from spread.data.stats import load_stats
 SPLITS = ("train", "val", "test")
 
 
-
 def wraps_sampler(trainer) -> bool:
     """Whether Lightning replaces the training loader's sampler with its distributed one: a distributed strategy
     (DDP, Ray's, ...) with ``use_distributed_sampler`` on — also with one process (``torchrun
     --nproc-per-node=1``), where our resumable :class:`~spread.data.order.EpochOrder` would be wrapped and, resumed
-    mid-epoch, yield fewer indices than the wrapper counts. Lightning's own test, where it exposes it."""
+    mid-epoch, yield fewer indices than the wrapper counts. Lightning's own test where its connector has it (a
+    private attribute), else more than one process."""
     connector = getattr(trainer, "_accelerator_connector", None)
     if connector is not None and hasattr(connector, "is_distributed"):
         return bool(connector.use_distributed_sampler and connector.is_distributed)
     return trainer.world_size > 1
+
 
 class SymmetricScenes(torch.utils.data.Dataset):
     """A :class:`SceneDataset` seen under its 8 floor symmetries: item i = room i mod n after transform i // n."""

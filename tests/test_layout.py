@@ -180,8 +180,8 @@ def test_the_circle_finder_finds_a_planted_circle_and_the_old_physics_one():
 def test_a_packages_names_load_on_first_access_and_settings_load_without_the_heavy_libraries():
     """``spread.model``, ``spread.metrics`` and ``spread.evaluation`` import their public names when first asked
     (:mod:`spread.lazy`): the settings (the model's config, the evaluation protocol and its numbers, the sampler)
-    load without diffusers or torchmetrics; every listed name resolves to its module's object; an unknown one is an
-    AttributeError naming it."""
+    load without diffusers or torchmetrics; every listed name resolves to its module's object, a submodule asked for
+    as an attribute is imported (as the eager ``__init__`` did); an unknown name is an AttributeError naming it."""
     code = ("import sys; import spread.model.config, spread.evaluation.protocol, spread.metrics.constants, "
             "spread.model.diffusion; print(sorted(m for m in ('diffusers', 'torchmetrics', 'lightning') "
             "if m in sys.modules))")
@@ -195,3 +195,6 @@ def test_a_packages_names_load_on_first_access_and_settings_load_without_the_hea
                 assert name in dir(module)
         with pytest.raises(AttributeError, match=rf"module '{package}' has no attribute 'no_such_name'"):
             getattr(module, "no_such_name")
+    code = "import spread.metrics, spread.model; print(spread.metrics.support_distance.__name__, spread.model.ema.EMA)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.split()[0] == "spread.metrics.support_distance", out.stderr[-2000:]

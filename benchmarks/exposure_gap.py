@@ -49,18 +49,6 @@ def penetration_mm(cloud, x: torch.Tensor, offset: torch.Tensor, scale: torch.Te
     return deepest[keep].numpy()
 
 
-def cloud_of(batch: dict, parts: bool):
-    """The batch's :class:`~spread.model.geometry.PointCloud`; with ``parts`` it reads the distance to the other
-    objects' convex parts (``geometry_distance=parts``) instead of the release's proxy."""
-    from spread.model.geometry import prepare_points
-    from spread.model.parts_distance import PartPlanes
-
-    cloud = prepare_points(batch["points"], batch["normals"], batch["mask"])
-    if parts:
-        cloud.parts = PartPlanes.from_batch(batch, batch["mask"])
-    return cloud
-
-
 def exact_penetration_mm(scene, library, M: int, seed: int) -> np.ndarray:
     """Per object of a room (with another object): the deepest its M surface samples lie inside any other object's
     mesh, mm (``trimesh`` containment and closest point on the watertight meshes): what the proxy should read."""
@@ -181,7 +169,7 @@ def thickness_gated_mm(batch, library, scenes, offset, scale) -> tuple[np.ndarra
 def main() -> None:
     from spread.data import SceneDataset, collate_scenes
     from spread.model.diffusion import Sampler, denoise
-    from spread.model.geometry import prepare_points
+    from spread.model.geometry import batch_cloud, prepare_points
     from spread.model.module import SceneDiffusion
     from spread.model.poses import denormalize_affine
     from spread.safe_load import load_checkpoint
@@ -223,7 +211,7 @@ def main() -> None:
     trained: dict[int, list] = {}
     for start in range(0, 0 if args.no_sampling else min(args.graphs, len(data)), args.batch):
         batch = collate_scenes([data[k] for k in range(start, min(start + args.batch, args.graphs, len(data)))])
-        cloud = cloud_of(batch, distance == "parts")
+        cloud = batch_cloud(batch, batch["mask"], parts=distance == "parts")
         problem = model.denoising(batch, graph_scale=args.graph_scale)
         eps_fn, seen = problem.eps_fn, []
 
@@ -266,9 +254,9 @@ def main() -> None:
               f"thickness {np.mean(gated > 10):.3f} ({np.mean(gated > 50):.3f} > 5 cm)")
     if args.parts:
         rooms = range(min(args.graphs, len(data)))
-        reads = np.concatenate([penetration_mm(cloud_of(batch, True), batch["x"], offset, scale) for batch in
-                                (collate_scenes([data[k] for k in rooms[i:i + args.batch]])
-                                 for i in range(0, len(rooms), args.batch))])
+        batches = (collate_scenes([data[k] for k in rooms[i:i + args.batch]]) for i in range(0, len(rooms), args.batch))
+        reads = np.concatenate([penetration_mm(batch_cloud(batch, batch["mask"], parts=True), batch["x"], offset, scale)
+                                for batch in batches])
         print(f"ground-truth rooms, {len(reads)} objects: the parts distance reads {np.mean(reads > 10):.3f} of them as "
               f"penetrating > 1 cm (median {np.median(reads):.1f} mm, max {reads.max():.1f} mm)")
     for m in [int(v) for v in args.proxy_points.split(",") if v]:

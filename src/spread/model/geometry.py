@@ -87,6 +87,16 @@ def prepare_points(points_local: torch.Tensor, normals_local: torch.Tensor, mask
     return PointCloud(p_local, n_local, valid, has_other, fill, count.clamp(min=1), float(no_neighbour_distance))
 
 
+def batch_cloud(batch: dict, mask: torch.Tensor, parts: bool = False, morton: bool = False) -> PointCloud:
+    """The :class:`PointCloud` of a batch's ``points`` and ``normals`` (:func:`prepare_points`); with ``parts``
+    (``geometry_distance=parts``) it carries the objects' convex part planes too (the batch's ``part_planes``,
+    ``part_boxes``, ``part_valid``), so its distances are to the other objects' parts."""
+    cloud = prepare_points(batch["points"], batch["normals"], mask, morton=morton)
+    if parts:
+        cloud.parts = PartPlanes.from_batch(batch, mask)
+    return cloud
+
+
 def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: torch.Tensor, search: str = "pruned",
                      chunk: int | None = None, max_elements: int = CHUNK_ELEMENTS, prune: bool = True) -> torch.Tensor:
     """(B, N, M) signed nearest-other-object distance d of every point of ``cloud`` posed by translation (B, N, 3)

@@ -22,7 +22,7 @@ from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.data.parts import check_geometry_distance
-from spread.model.geometry import PointCloud, prepare_points, resolve_search, state_distances
+from spread.model.geometry import PointCloud, batch_cloud, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import GeometryPerceiver, StaticTokens
 from spread.model.poses import denormalize_affine
@@ -122,12 +122,8 @@ class SceneDenoiser(nn.Module):
             cond.search = resolve_search(getattr(self.config, "nearest", "pruned"), mask.device)
             # sampling: each object's points in Morton order once, so the dense search skips most tiles (a
             # dataset's points come so ordered: spread.data.points; training sorts nothing per step)
-            cond.cloud = prepare_points(batch["points"], batch["normals"], mask,
-                                        morton=cond.search == "dense" and not self.training)
-            if getattr(self.config, "geometry_distance", "chamfer") == "parts":
-                from spread.model.parts_distance import PartPlanes
-
-                cond.cloud.parts = PartPlanes.from_batch(batch, mask)
+            parts = getattr(self.config, "geometry_distance", "chamfer") == "parts"
+            cond.cloud = batch_cloud(batch, mask, parts=parts, morton=cond.search == "dense" and not self.training)
             cond.static = self.perceiver.static(cond.cloud.points, mask)
             cond.pose_offset, cond.pose_scale = denormalize_affine(self.bounds)  # one multiply-add per step
         return cond

@@ -103,7 +103,8 @@ class SceneDiffusionConfig:
     latter at zero so step 0 predicts what the base model predicts); penetration_weight: λ of the
     penetration-aware term on the decoded poses (:mod:`spread.model.penetration`; 0: off); support_weight: μ
     of the support term (support pairs' rest height and footprint against the training room's, same module);
-    spatial_weight: ν of the relation-aware term (:mod:`spread.model.spatial_term`).
+    spatial_weight: ν of the relation-aware term (:mod:`spread.model.spatial_term`); parts_weight: the weight of
+    the parts term (:mod:`spread.model.parts_term`).
     """
 
     _target_: str = "spread.model.module.SceneDiffusion"
@@ -140,6 +141,10 @@ class SceneDiffusionConfig:
     #: ν of the relation-aware term (:mod:`spread.model.spatial_term`: how far the decoded boxes are from each pair's
     #: spatial code, metres per ordered pair, beyond the training room's, weighted by ᾱ_t). 0 = off
     spatial_weight: float = 0.0
+    #: weight of the parts term (:mod:`spread.model.parts_term`: how deep the decoded objects' surface points lie
+    #: inside the other objects' convex parts, metres per object, beyond the training room's, weighted by ᾱ_t; the
+    #: batches must carry the part planes: ``data.geometry_distance=parts``). 0 = off
+    parts_weight: float = 0.0
     #: torch.compile the training loss (forward and backward of the ε-network; the nearest search stays one
     #: opaque operator). The first steps compile (minutes at paper size); then far fewer launches per step.
     compile: bool = False

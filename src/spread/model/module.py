@@ -9,7 +9,8 @@
   With ``penetration_weight`` λ > 0, plus λ × the ᾱ_t-weighted box overlap of the decoded x̂_0 beyond the
   training scene's (and ``support_weight`` × the support pairs' rest-height and footprint error; metres,
   :mod:`spread.model.penetration`; and ``spatial_weight`` × the pairs' distance from their spatial codes,
-  :mod:`spread.model.spatial_term`); ``val/loss`` stays the MSE alone.
+  :mod:`spread.model.spatial_term`; and ``parts_weight`` × the decoded objects' depth inside each other's convex
+  parts beyond the training scene's, :mod:`spread.model.parts_term`); ``val/loss`` stays the MSE alone.
 * Optimiser: AdamW (lr 1e-4, weight decay 1e-4, paper supplement) on the network's weights; optional linear
   warm-up and cosine decay to the trainer's ``max_steps`` (``lr_warmup_steps``, ``lr_schedule``).
 * ``init_from``: a checkpoint whose EMA weights start every weight they have (a ``geometry`` model from a
@@ -43,6 +44,8 @@ from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, 
                                     x0_from_prediction)
 from spread.model.ema import EMA
 from spread.model.network import SceneDenoiser, upgrade_state_dict
+from spread.model.parts_distance import PartPlanes
+from spread.model.parts_term import parts_excess
 from spread.model.penetration import penetration_excess, support_error
 from spread.model.poses import poses_from_state
 from spread.model.recall import graph_recall
@@ -117,7 +120,8 @@ class SceneDiffusion(L.LightningModule):
                  compile_mode: str = ARGS.compile_mode,
                  penetration_weight: float = ARGS.penetration_weight,
                  support_weight: float = ARGS.support_weight, support_quantile: float = ARGS.support_quantile,
-                 spatial_weight: float = ARGS.spatial_weight, support_gap_weight: float | None = None):
+                 spatial_weight: float = ARGS.spatial_weight, parts_weight: float = ARGS.parts_weight,
+                 support_gap_weight: float | None = None):
         super().__init__()
         if support_gap_weight:  # retired (2026-11-27): checkpoints trained before still load and sample
             warnings.warn(f"support_gap_weight={support_gap_weight} is retired: that term (a supported object's box gap) "
@@ -128,7 +132,7 @@ class SceneDiffusion(L.LightningModule):
         check_prediction(prediction)
         loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
         for key, value in (("penetration_weight", penetration_weight), ("support_weight", support_weight),
-                           ("spatial_weight", spatial_weight)):
+                           ("spatial_weight", spatial_weight), ("parts_weight", parts_weight)):
             if not value >= 0:
                 raise ValueError(f"model.{key} must be >= 0, got {value}")
         if not 0 < support_quantile < 1:
@@ -150,6 +154,7 @@ class SceneDiffusion(L.LightningModule):
             "compile_mode": str(compile_mode),
             "penetration_weight": float(penetration_weight), "support_weight": float(support_weight),
             "support_quantile": float(support_quantile), "spatial_weight": float(spatial_weight),
+            "parts_weight": float(parts_weight),
         })
         self.variant, self.config, self.val_sampler = variant, cfg, sampler
         self.network = SceneDenoiser(cfg, variant, bounds)
@@ -290,16 +295,19 @@ class SceneDiffusion(L.LightningModule):
                                                      float(self.hparams.get("support_quantile", 0.5)))
             if "spatial" in extra:
                 per_scene["spatial"] = spatial_excess(*poses, batch["spatial"])
+            if "parts" in extra:
+                per_scene["parts"] = parts_excess(PartPlanes.from_batch(batch, mask), batch["points"], *poses[:4], mask)
             for name, value in per_scene.items():
                 terms[name] = (value * alpha_bar.to(value)).mean()
         return terms
 
     def term_weights(self) -> dict[str, float]:
-        """The weights of the loss's terms beside the MSE that are on: ``penetration`` (λ), ``support`` (μ) and
-        ``spatial`` (ν)."""
+        """The weights of the loss's terms beside the MSE that are on: ``penetration`` (λ), ``support`` (μ),
+        ``spatial`` (ν) and ``parts`` (the convex parts' penetration, :mod:`spread.model.parts_term`)."""
         weights = {"penetration": float(self.hparams.get("penetration_weight", 0.0)),
                    "support": float(self.hparams.get("support_weight", 0.0)),
-                   "spatial": float(self.hparams.get("spatial_weight", 0.0))}
+                   "spatial": float(self.hparams.get("spatial_weight", 0.0)),
+                   "parts": float(self.hparams.get("parts_weight", 0.0))}
         return {name: w for name, w in weights.items() if w > 0}
 
     def combine(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -59,6 +59,10 @@ class ModelConfig:
     # object, signed by its normal) | "parts" (signed distance to the other objects' convex parts, exact sign,
     # measured up to 10 cm: spread.model.parts_distance; the batches then carry the part planes)
     geometry_distance: str = "chamfer"
+    # each object's own geometric state (its deepest point, shares inside and in contact, where it penetrates and
+    # where it touches: spread.model.perceiver.object_summary) added to its node's input (a zero-initialised
+    # projection), beside the scene perceiver's tokens; variant "geometry" only
+    geometry_summary: bool = False
 
     @classmethod
     def from_any(cls, config: "Mapping[str, Any] | ModelConfig | None" = None, **overrides) -> "ModelConfig":

@@ -127,7 +127,8 @@ class GraphDenoiser(nn.Module):
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor,
                 shape_tokens: torch.Tensor, geometry_tokens: torch.Tensor | None = None,
-                mount: torch.Tensor | None = None, real: torch.Tensor | None = None) -> torch.Tensor:
+                mount: torch.Tensor | None = None, real: torch.Tensor | None = None,
+                node_features: torch.Tensor | None = None) -> torch.Tensor:
         """ε̂ (B, N, 9). ``real`` (V,): the flat indices of the real objects in B·N (:func:`real_objects`), made once
         per sample so that a step reads no tensor value on the host; found from ``mask`` when not given."""
         if self.geometry and geometry_tokens is None:
@@ -136,6 +137,8 @@ class GraphDenoiser(nn.Module):
         real = real_objects(mask) if real is None else real
         cond = self.time(t)
         x = self.embed_nodes(x_t, mount)
+        if node_features is not None:  # (B, N, dim) added to each node's input (the geometry summary)
+            x = x + node_features
         shape_tokens = shape_tokens.flatten(0, 1).index_select(0, real)  # (V, L, shape_dim), projected in each block
         geometry = self.geometry_inputs(geometry_tokens, cond) if self.geometry else [None] * len(self.blocks)
         for block, block_geometry in zip(self.blocks, geometry):

@@ -24,7 +24,7 @@ from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.data.parts import check_geometry_distance
 from spread.model.geometry import PointCloud, batch_cloud, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
-from spread.model.perceiver import GeometryPerceiver, StaticTokens
+from spread.model.perceiver import SUMMARY_DIM, GeometryPerceiver, StaticTokens, object_summary
 from spread.model.poses import denormalize_affine
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
 
@@ -97,6 +97,11 @@ class SceneDenoiser(nn.Module):
                 config.ff_mult, config.point_bands, config.point_max_frequency, config.index_dim,
                 config.perceiver_dropout)
         self.denoiser = GraphDenoiser(config, geometry=variant == "geometry")
+        self.summary_in = None
+        if variant == "geometry" and getattr(config, "geometry_summary", False):
+            self.summary_in = nn.Linear(SUMMARY_DIM, config.dim)
+            nn.init.zeros_(self.summary_in.weight)
+            nn.init.zeros_(self.summary_in.bias)
         self.register_buffer("bounds", torch.full((6,), float("nan")))
         if bounds is not None:
             self.set_bounds(bounds)
@@ -136,11 +141,19 @@ class SceneDenoiser(nn.Module):
 
     def geometry_tokens(self, x_t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
-        distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search)
-        return self.perceiver(distance.to(x_t.dtype), cond.static)
+        return self.geometry_features(x_t, cond)[0]
+
+    def geometry_features(self, x_t: torch.Tensor, cond: Condition) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The perceiver latents (B, G, dim) of the scene posed at x_t (B, N, 9), and with ``geometry_summary``
+        each node's summary input (B, N, dim) (else None)."""
+        distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search).to(x_t.dtype)
+        tokens = self.perceiver(distance, cond.static)
+        if self.summary_in is None:
+            return tokens, None
+        return tokens, self.summary_in(object_summary(distance, cond.cloud.points.to(x_t.dtype)))
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""
-        geometry = self.geometry_tokens(x_t, cond) if self.perceiver is not None else None
+        geometry, summary = self.geometry_features(x_t, cond) if self.perceiver is not None else (None, None)
         return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry, mount=cond.mount,
-                             real=cond.real)
+                             real=cond.real, node_features=summary)

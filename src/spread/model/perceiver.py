@@ -71,6 +71,31 @@ def point_tokens(distance: torch.Tensor, static: StaticTokens, scales: torch.Ten
     return torch.cat([static.xyz.to(d.dtype), d, torch.tanh(d / scales), static.index.to(d.dtype)], dim=-1)
 
 
+#: Channels of :func:`object_summary`.
+SUMMARY_DIM = 2 + len(DISTANCE_SCALES) + 2 + 3 + 3
+#: Length scale (metres) of the contact weight in :func:`object_summary`.
+CONTACT_SCALE = 0.02
+
+
+def object_summary(distance: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Each object's own geometric state, for its node (``geometry_summary``): signed distances (B, N, M) metres of
+    its canonical points (B, N, M, 3) → (B, N, SUMMARY_DIM): its deepest point's d (clipped to [−0.25, 0.25] m) and
+    tanh(d_min / s) for s in DISTANCE_SCALES, d_min < 0 as 0/1, the share of its points inside (d < 0) and within
+    1 cm, the depth-weighted mean canonical position of its points inside (where it penetrates: which way is out),
+    and the contact-weighted mean canonical position (weight exp(−max(d, 0) / CONTACT_SCALE): where it touches)."""
+    d = distance
+    d_min = d.amin(-1, keepdim=True)
+    inside = (d < 0).to(d.dtype)
+    depth = torch.relu(-d)[..., None]
+    where_in = (depth * points).sum(-2) / depth.sum(-2).clamp_min(1e-6)
+    contact = torch.exp(-torch.relu(d) / CONTACT_SCALE)[..., None]
+    where_touch = (contact * points).sum(-2) / contact.sum(-2).clamp_min(1e-6)
+    scales = torch.tensor(DISTANCE_SCALES, device=d.device, dtype=d.dtype)
+    return torch.cat([d_min.clamp(-0.25, 0.25), (d_min < 0).to(d.dtype), torch.tanh(d_min / scales),
+                      inside.mean(-1, keepdim=True), (d < 0.01).to(d.dtype).mean(-1, keepdim=True),
+                      where_in, where_touch], dim=-1)
+
+
 def point_token_dim(num_bands: int, index_dim: int) -> int:
     return fourier_dim(3, num_bands) + 1 + len(DISTANCE_SCALES) + index_dim
 

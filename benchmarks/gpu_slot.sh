@@ -22,7 +22,7 @@ quiet() { grep -v "^W1\|^ *\^\|━"; }
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$OUT/gpu.txt" 2>&1
 
 timeout "${TRAIN_S:-170}" $PY -m spread.cli.train experiment=paper_geometry data.root="$ROOMS" trainer=gpu \
-  logger=csv model.compile=true model.compile_mode=reduce-overhead trainer.max_steps=100 trainer.log_every_n_steps=10 \
+  logger=csv model.compile=true model.compile_mode=reduce-overhead trainer.max_steps=60 trainer.log_every_n_steps=10 \
   trainer.check_val_every_n_epoch=100000 trainer.num_sanity_val_steps=0 renders.every_n_epochs=0 \
   data.num_workers=4 data.persistent_workers=true out_dir=/tmp/gpu_slot_train 2>&1 | quiet | tail -12
 cp /tmp/gpu_slot_train/csv/version_0/metrics.csv "$OUT/lightning_metrics.csv" 2>/dev/null

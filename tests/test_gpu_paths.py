@@ -318,7 +318,7 @@ def test_the_training_loss_compiles_as_one_graph_and_equals_eager():
 
 def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_cuda_graph_step(monkeypatch):
     """``model.compile=true model.compile_mode=reduce-overhead`` (CUDA graphs on a GPU): the step's loss is compiled
-    once in that mode, each step is marked as a new CUDA-graph step, and the loss handed on is not the graph's own
+    once in that mode as one graph, each step is marked as a new CUDA-graph step, and the loss handed on is not the graph's own
     buffer; an unknown mode is refused by name."""
     from spread.model import ModelConfig
     from spread.model.module import SceneDiffusion
@@ -326,7 +326,8 @@ def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_
     from bench_model import synthetic_batch
 
     real_compile, modes, marks = torch.compile, [], []
-    monkeypatch.setattr(torch, "compile", lambda fn, mode=None: modes.append(mode) or real_compile(fn, backend="aot_eager"))
+    monkeypatch.setattr(torch, "compile", lambda fn, mode=None, **kw: modes.append((mode, kw))
+                        or real_compile(fn, backend="aot_eager", **kw))
     monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
     config = ModelConfig(num_points=16, nearest="dense", dim=32, depth=1, num_latents=8, heads=2)
     torch.manual_seed(0)
@@ -336,7 +337,8 @@ def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_
         loss = model.training_step(batch, 0)
         loss.backward()
         assert torch.isfinite(loss) and loss.grad_fn is not None
-    assert modes == ["reduce-overhead"] and len(marks) == 2
+    # one graph (a graph break would split the step into several CUDA graphs with host code between)
+    assert modes == [("reduce-overhead", {"fullgraph": True})] and len(marks) == 2
     assert model.hparams["compile_mode"] == "reduce-overhead"
     # the optimiser's step drops the graph-owned gradients once used (a teardown moving the model must not read them)
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)

@@ -330,7 +330,7 @@ class SceneDiffusion(L.LightningModule):
         if self.hparams.get("compile", False):
             mode = self.hparams.get("compile_mode", "default")
             if getattr(self, "_compiled_loss", None) is None:
-                self._compiled_loss = torch.compile(self.training_loss, mode=mode)
+                self._compiled_loss = torch.compile(self.training_loss, mode=mode, fullgraph=True)
             if mode == "reduce-overhead":  # a new step: the graphs' outputs of the last one may be overwritten
                 torch.compiler.cudagraph_mark_step_begin()
                 loss = self._compiled_loss(batch).clone()  # logged after the next replay: not the graph's buffer

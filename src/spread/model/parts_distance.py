@@ -60,6 +60,35 @@ def posed_boxes(boxes: torch.Tensor, translation: torch.Tensor, rotation: torch.
     return torch.stack([c - h, c + h], dim=-2)
 
 
+def part_candidates(parts: PartPlanes, world: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor,
+                    valid: torch.Tensor, reach: float) -> tuple[torch.Tensor, ...]:
+    """(b, i, j, k) flat indices of every (scene, object i, other real object j, j's part k) whose posed part box,
+    grown by ``reach`` metres, meets the box of i's posed points ``world`` (B, N, M, 3) — one ``nonzero``."""
+    N = world.shape[1]
+    lo, hi = world.amin(2), world.amax(2)  # (B, N, 3) each object's points' box
+    part_box = posed_boxes(parts.boxes, translation, rotation)  # (B, N, P, 2, 3)
+    near = ((lo[:, :, None, None] <= part_box[:, None, :, :, 1] + reach)
+            & (hi[:, :, None, None] >= part_box[:, None, :, :, 0] - reach)).all(-1)  # (B, Ni, Nj, P)
+    others = valid[:, :, None] & valid[:, None, :] & ~torch.eye(N, dtype=torch.bool, device=world.device)
+    return (near & others[..., None] & parts.valid[:, None]).nonzero(as_tuple=True)
+
+
+def part_values(parts: PartPlanes, world: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor,
+                candidates: tuple[torch.Tensor, ...], max_elements: int = CHUNK_ELEMENTS):
+    """For the ``candidates`` (b, i, j, k) of :func:`part_candidates`, in chunks of at most ``max_elements``
+    (candidate × point × plane) numbers: yields (chunk's slice, s (C, M)), s = max over part k's planes of
+    (n·q − d) at each of i's points q = R_jᵀ (p − t_j) in j's canonical frame (< 0 inside, minus the depth)."""
+    b, i, j, k = candidates
+    M, F = world.shape[2], parts.planes.shape[-2]
+    step = max(1, max_elements // (M * F))
+    for start in range(0, len(b), step):
+        chunk = slice(start, start + step)
+        bb, ii, jj, kk = b[chunk], i[chunk], j[chunk], k[chunk]
+        local = torch.einsum("cmi,cij->cmj", world[bb, ii] - translation[bb, jj][:, None], rotation[bb, jj])
+        planes = parts.planes[bb, jj, kk]  # (C, F, 4)
+        yield chunk, (torch.einsum("cmj,cfj->cmf", local, planes[..., :3]) - planes[:, None, :, 3]).amax(-1)
+
+
 @torch.no_grad()
 def parts_distances(parts: PartPlanes, world: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor,
                     valid: torch.Tensor, reach: float = PARTS_RANGE,
@@ -68,20 +97,10 @@ def parts_distances(parts: PartPlanes, world: torch.Tensor, translation: torch.T
     real objects' parts posed by translation (B, N, 3), rotation (B, N, 3, 3) world-from-local; valid (B, N)."""
     B, N, M, _ = world.shape
     world, t, R = world.float(), translation.float(), rotation.float()
-    lo, hi = world.amin(2), world.amax(2)  # (B, N, 3) each object's points' box
-    part_box = posed_boxes(parts.boxes, t, R)  # (B, N, P, 2, 3)
-    near = ((lo[:, :, None, None] <= part_box[:, None, :, :, 1] + reach)
-            & (hi[:, :, None, None] >= part_box[:, None, :, :, 0] - reach)).all(-1)  # (B, Ni, Nj, P)
-    others = valid[:, :, None] & valid[:, None, :] & ~torch.eye(N, dtype=torch.bool, device=world.device)
-    b, i, j, k = (near & others[..., None] & parts.valid[:, None]).nonzero(as_tuple=True)
+    candidates = part_candidates(parts, world, t, R, valid, reach)
+    b, i = candidates[0], candidates[1]
     out = torch.full((B * N, M), float(reach), device=world.device)
-    F = parts.planes.shape[-2]
-    step = max(1, max_elements // (M * F))
-    for start in range(0, len(b), step):
-        bb, ii, jj, kk = (v[start:start + step] for v in (b, i, j, k))
-        local = torch.einsum("cmi,cij->cmj", world[bb, ii] - t[bb, jj][:, None], R[bb, jj])  # q = Rᵀ(p − t)
-        planes = parts.planes[bb, jj, kk]  # (C, F, 4)
-        s = (torch.einsum("cmj,cfj->cmf", local, planes[..., :3]) - planes[:, None, :, 3]).amax(-1)  # (C, M)
-        out.scatter_reduce_(0, (bb * N + ii)[:, None].expand(-1, M), s, "amin")
+    for chunk, s in part_values(parts, world, t, R, candidates, max_elements):
+        out.scatter_reduce_(0, (b[chunk] * N + i[chunk])[:, None].expand(-1, M), s, "amin")
     out = out.clamp(max=reach).view(B, N, M)
     return torch.where(valid[..., None], out, 0.0)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import torch
 
-from spread.model.parts_distance import CHUNK_ELEMENTS, PartPlanes, posed_boxes
+from spread.model.parts_distance import CHUNK_ELEMENTS, PartPlanes, part_candidates, part_values
 from spread.model.poses import pose_points
 
 
@@ -41,29 +41,16 @@ def _inside_candidates(parts: PartPlanes, world: torch.Tensor, translation: torc
                        valid: torch.Tensor, max_elements: int) -> tuple[torch.Tensor, ...]:
     """(b, i, j, k, m): for every part k of object j that object i's posed points ``world`` (B, N, M, 3) enter,
     i's deepest point m inside it."""
-    B, N, M, _ = world.shape
-    lo, hi = world.amin(2), world.amax(2)
-    part_box = posed_boxes(parts.boxes, translation, rotation)  # (B, N, P, 2, 3)
-    near = ((lo[:, :, None, None] <= part_box[:, None, :, :, 1])
-            & (hi[:, :, None, None] >= part_box[:, None, :, :, 0])).all(-1)  # (B, Ni, Nj, P)
-    others = valid[:, :, None] & valid[:, None, :] & ~torch.eye(N, dtype=torch.bool, device=world.device)
-    b, i, j, k = (near & others[..., None] & parts.valid[:, None]).nonzero(as_tuple=True)
-    F = parts.planes.shape[-2]
-    step = max(1, max_elements // (M * F))
-    keep, deepest = [], []
-    for start in range(0, len(b), step):
-        bb, ii, jj, kk = (v[start:start + step] for v in (b, i, j, k))
-        local = torch.einsum("cmi,cij->cmj", world[bb, ii] - translation[bb, jj][:, None], rotation[bb, jj])
-        planes = parts.planes[bb, jj, kk]  # (C, F, 4)
-        s = (torch.einsum("cmj,cfj->cmf", local, planes[..., :3]) - planes[:, None, :, 3]).amax(-1)  # (C, M)
+    candidates = part_candidates(parts, world, translation, rotation, valid, reach=0.0)
+    inside, deepest = [], []
+    for _, s in part_values(parts, world, translation, rotation, candidates, max_elements):
         value, m = s.min(-1)
-        keep.append(value < 0)
+        inside.append(value < 0)
         deepest.append(m)
-    if not keep:
-        empty = b[:0]
-        return empty, empty, empty, empty, empty
-    inside = torch.cat(keep)
-    return b[inside], i[inside], j[inside], k[inside], torch.cat(deepest)[inside]
+    if not inside:
+        return tuple(candidates[0][:0] for _ in range(5))
+    keep = torch.cat(inside)
+    return (*(v[keep] for v in candidates), torch.cat(deepest)[keep])
 
 
 def pair_part_depths(parts: PartPlanes, points: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor,

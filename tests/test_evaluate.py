@@ -150,7 +150,7 @@ def test_fid_and_kid_come_offline_from_the_shipped_inception_weights(cli_run):
 
 def test_clip_fid_without_local_clip_weights_is_null_with_the_reason(dataset, tmp_path):
     out = tmp_path / "run"
-    run_in_process(*args(dataset / "test", dataset, out, "logger=none", "fid=clip", "protocol.stability_runs=1"))
+    run_in_process(*args(dataset / "test", dataset, out, "logger=none", "fid=clip", "metrics=[grecall]", "renders=0"))
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["fid"] is None and metrics["kid"] is None and metrics["fid_feature_model"] == "clip_vit_b_32"
     assert metrics["fid_status"].startswith("unavailable") and "clip" in metrics["fid_status"].lower()
@@ -248,7 +248,7 @@ def test_fid_with_an_injected_backbone_is_zero_for_the_reference_itself(dataset,
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
     out = tmp_path / "run"
     run_in_process(*args(dataset / "test", dataset, out, "logger=none", "chunk_size=2",
-                         "fid.extractor=evfid:factory", "fid.feature_model=colour_stats"))
+                         "fid.extractor=evfid:factory", "fid.feature_model=colour_stats", "metrics=[grecall]"))
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["fid_status"].startswith("ok") and metrics["fid_feature_model"] == "colour_stats"
     assert metrics["fid_num_generated"] == metrics["fid_num_reference"] == ROOMS

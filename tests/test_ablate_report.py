@@ -435,6 +435,36 @@ def test_given_checkpoints_skip_training_and_bad_specs_name_the_key(tmp_path):
         spec(tmp_path, ckpt={"base": "/nope.ckpt"})
 
 
+def test_a_trained_row_whose_lists_compose_another_model_is_refused_before_any_stage(tmp_path):
+    """A ``train.geometry`` list given on the command line replaces the preset's: without ``model.variant=geometry``
+    the +Geometry row trained a second base model under +Geometry's name (stop 48, 1,320 graphs: two equal rows).
+    Refused in one line naming the list, before anything trains, for the script as users type it and the library."""
+    proc = subprocess.run([str(SCRIPTS / "spread-ablate"), "+preset=quick", f"data.root={tmp_path / 'data'}",
+                           f"out_dir={tmp_path / 'abl'}", "variants=[base,geometry]", "logger=none",
+                           'train.geometry=["model.config.geometry_summary=true"]'],
+                          env={**{k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG")},
+                               "WANDB_MODE": "disabled"}, capture_output=True, text=True, timeout=300)
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode != 0 and last.startswith("spread-ablate: train.geometry: the +Geometry row trains "
+                                                    "model.variant=geometry"), proc.stderr[-3000:]
+    assert "compose model.variant=base" in last and "Traceback" not in proc.stderr
+    assert not (tmp_path / "data").exists() and not (tmp_path / "abl" / "train").exists()  # nothing generated
+    commands = FakeCommands()
+    with pytest.raises(ValueError, match=r"train\.base: the Ours \(base\) row trains model\.variant=base, but "
+                                         r".*compose model\.variant=geometry"):
+        run_ablation(spec(tmp_path, variants=("base_time",),
+                          train_variant={"base": ["experiment=paper_geometry"], "geometry": ["experiment=paper_geometry"]}),
+                     commands)
+    assert commands.calls == []
+    # a given checkpoint is not trained: its lists are not asked (check_given checks the file's kind)
+    ckpt = tmp_path / "g.ckpt"
+    import torch
+
+    torch.save({"hyper_parameters": {"variant": "geometry"}, "state_dict": {}}, ckpt)
+    run_ablation(spec(tmp_path, variants=("geometry",), ckpt={"geometry": str(ckpt)},
+                      train_variant={"geometry": ["experiment=paper_base"]}), commands)
+
+
 def test_presets_compose_and_an_unknown_preset_is_named():
     from spread.commands.ablate import ablation_spec
 

@@ -97,7 +97,8 @@ class AblationSpec(StagesSpec):
     each trained row's own training list, the guidance rows' guidance list, and the row figures."""
 
     variants: tuple[str, ...] = ("base", "geometry", "guidance")  # conf/ablate.yaml adds the one-term rows
-    train_variant: dict[str, list[str]] = field(default_factory=dict)
+    train_variant: dict[str, list[str]] = field(default_factory=lambda: {v: [f"model.variant={v}"]
+                                                                         for v in ("base", "geometry")})
     guidance: list[str] = field(default_factory=list)
     figures: bool = True  # one scene per row in 3D with its relation matrix (ablation_<v>.png)
 
@@ -122,6 +123,26 @@ class Ablation:
         self.spec = spec
         self.engine = StageEngine(spec, commands, self, LEDGER)
         self.out = spec.out_dir
+        self.check_trained_variants()
+
+    def check_trained_variants(self) -> None:
+        """Each row this ablation trains composes to that row's model: ``model.variant`` base for base (and
+        base_time, which trains base's lists), geometry for +Geometry — a ``ValueError`` naming the list before any
+        stage runs. (A ``train.geometry`` list given on the command line replaces the preset's, and without
+        ``model.variant=geometry`` in it the +Geometry row was a second base model under +Geometry's name.)"""
+        from omegaconf import OmegaConf
+
+        from spread.configs import compose
+
+        for row in dict.fromkeys("base" if t == "base_time" else t for t in self.trained()):
+            if self.spec.ckpt.get(row):  # given, not trained: check_given checked its kind
+                continue
+            lists = [*self.spec.train, *self.spec.train_variant.get(row, [])]
+            got = OmegaConf.select(compose("train", lists), "model.variant")
+            if got != row:
+                raise ValueError(f"train.{row}: the {LABELS[row]} row trains model.variant={row}, but its training "
+                                 f"overrides {lists} compose model.variant={got} (add model.variant={row} to "
+                                 f"train.{row})")
 
     def train_lists(self, trained: str) -> list[str]:
         """The ``spread-train`` overrides of one trained row (the spec's shared list, then the row's own);

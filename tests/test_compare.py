@@ -4,6 +4,8 @@ layouts, the presets, and the quick preset's code path end to end with tiny mode
 from __future__ import annotations
 
 import json
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -314,3 +316,51 @@ def test_a_method_without_a_training_recipe_needs_its_checkpoint_given(tmp_path)
     given = tmp_path / "release.ckpt"
     torch.save({"hyper_parameters": {"method": "release"}, "state_dict": {}}, given)
     assert CompareSpec(out_dir=tmp_path, methods=("release",), ckpt={"release": str(given)}).trained() == ["release"]
+
+
+@pytest.mark.parametrize("recipe", ["full", "quick"])
+def test_every_trained_methods_registered_recipe_composes_a_model_of_that_method(recipe):
+    """A test over every method: each registered recipe composes with ``conf/train.yaml`` to its own method's model
+    (the checkpoint's ``method``), SPREAD's to +Geometry. (The full recipe named ``experiment=geometry`` after the
+    file became ``paper_geometry``: ``spread-compare +table1=paper`` failed at SPREAD's training stage, after the
+    baselines had trained.)"""
+    from spread.experiments.compare import spec_of, trained_methods
+    from spread.methods.loading import trained_identity
+
+    assert {"atiss", "diffuscene", "instructscene", "spread"} <= set(trained_methods())
+    for method in trained_methods():
+        cfg = compose("train", *spec_of(method).recipe(recipe), "data.root=/d", "out_dir=/o")
+        held = trained_identity(cfg.model)
+        assert held["method"] == method, (method, recipe, held)
+        if method == "spread":
+            assert held["variant"] == "geometry"
+
+
+def test_a_trained_method_whose_list_composes_another_model_is_refused_before_any_stage(tmp_path):
+    """``+train.<m>`` replaces a method's recipe; a list that composes another method's model (here SPREAD's quick
+    experiment under DiffuScene's name) would train it and fill DiffuScene's row. Refused in one line naming the
+    list before anything is generated or trained — the script as users type it, and the library for a list that
+    drops SPREAD's +Geometry variant."""
+    import subprocess
+
+    from spread.commands.compare import compare_spec
+    from spread.experiments.compare import Comparison
+
+    scripts = Path(sys.executable).parent
+    proc = subprocess.run([str(scripts / "spread-compare"), "+table1=quick", f"data.root={tmp_path / 'data'}",
+                           f"out_dir={tmp_path / 'cmp'}", "methods=[diffuscene]", "logger=none",
+                           '+train.diffuscene=["experiment=quick"]'],
+                          env={**{k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG")},
+                               "WANDB_MODE": "disabled"}, capture_output=True, text=True, timeout=300)
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode != 0 and last.startswith("spread-compare: train.diffuscene: the DiffuScene row trains "
+                                                    "method=diffuscene"), proc.stderr[-3000:]
+    assert "compose method=spread" in last and "Traceback" not in proc.stderr
+    assert not (tmp_path / "data").exists() and not (tmp_path / "cmp" / "train").exists()
+    spec = compare_spec(compose("compare", "+table1=quick", f"data.root={tmp_path / 'data'}",
+                                f"out_dir={tmp_path / 'cmp'}", "methods=[spread]", '+train.spread=["model=diffuscene"]'))
+    with pytest.raises(ValueError, match=r"^train\.spread: the SPREAD \(ours\) row trains method=spread, but .*"
+                                         r"compose method=diffuscene"):
+        Comparison(spec, commands=None)
+    spec.ckpt["spread"] = str(tmp_path / "given.ckpt")  # a given checkpoint is not trained: its list is not asked
+    Comparison(spec, commands=None)

@@ -126,23 +126,11 @@ class Ablation:
         self.check_trained_variants()
 
     def check_trained_variants(self) -> None:
-        """Each row this ablation trains composes to that row's model: ``model.variant`` base for base (and
-        base_time, which trains base's lists), geometry for +Geometry — a ``ValueError`` naming the list before any
-        stage runs. (A ``train.geometry`` list given on the command line replaces the preset's, and without
-        ``model.variant=geometry`` in it the +Geometry row was a second base model under +Geometry's name.)"""
-        from omegaconf import OmegaConf
-
-        from spread.configs import compose
-
-        for row in dict.fromkeys("base" if t == "base_time" else t for t in self.trained()):
-            if self.spec.ckpt.get(row):  # given, not trained: check_given checked its kind
-                continue
-            lists = [*self.spec.train, *self.spec.train_variant.get(row, [])]
-            got = OmegaConf.select(compose("train", lists), "model.variant")
-            if got != row:
-                raise ValueError(f"train.{row}: the {LABELS[row]} row trains model.variant={row}, but its training "
-                                 f"overrides {lists} compose model.variant={got} (add model.variant={row} to "
-                                 f"train.{row})")
+        """Each row this ablation trains composes to that row's model (:meth:`StagesSpec.check_trained`):
+        ``model.variant`` base for base (and base_time, which trains base's lists), geometry for +Geometry."""
+        rows = dict.fromkeys("base" if t == "base_time" else t for t in self.trained())
+        self.spec.check_trained({row: [*self.spec.train, *self.spec.train_variant.get(row, [])] for row in rows},
+                                lambda v: {"method": "spread", "variant": v}, lambda v: LABELS[v])
 
     def train_lists(self, trained: str) -> list[str]:
         """The ``spread-train`` overrides of one trained row (the spec's shared list, then the row's own);

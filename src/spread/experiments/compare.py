@@ -142,6 +142,8 @@ class Comparison:
         self.out = spec.out_dir
         self.times_path = self.out / TIMES
         self.times: dict = read_json(self.times_path) if self.times_path.exists() else {}
+        # each method trained here composes that method's model (a +train.<m> list replaces its recipe)
+        spec.check_trained({m: self.train_lists(m) for m in spec.trained()}, lambda m: {"method": m}, label)
 
     @property
     def checkpoint_of(self) -> dict[str, str]:

@@ -107,6 +107,33 @@ class StagesSpec:
             if path:
                 expect_checkpoint(path, f"train.ckpt.{row}", **method_of(row))
 
+    def check_trained(self, lists_of: dict[str, list[str]], method_of: Callable[[str], dict],
+                      label: Callable[[str], str] = str) -> None:
+        """Every row this study trains composes to that row's kind of model — the counterpart of
+        :meth:`check_given` for the rows trained here: ``lists_of`` (trained row → its ``spread-train`` overrides)
+        composed with ``conf/train.yaml`` and asked :func:`spread.methods.loading.trained_identity` (the ``method``
+        and ``variant`` its checkpoint will hold), compared with ``method_of(row)``'s keywords. A ``ValueError``
+        naming ``train.<row>`` before any stage runs; a row with a given checkpoint is not trained, so not asked.
+        (A list given on the command line replaces the preset's: ``train.geometry`` without
+        ``model.variant=geometry`` trained a second base model under +Geometry's name.)"""
+        from spread.configs import compose
+        from spread.methods.loading import trained_identity
+
+        keys = {"method": "method", "variant": "model.variant"}
+        for row, lists in lists_of.items():
+            if self.ckpt.get(row):
+                continue
+            got = trained_identity(compose("train", list(lists)).model)
+            wanted = {k: v for k, v in method_of(row).items() if v is not None}
+            wrong = {k: v for k, v in wanted.items() if got.get(k) != v}
+            if wrong:
+                wants = ", ".join(f"{keys.get(k, k)}={v}" for k, v in wrong.items())
+                holds = ", ".join(f"{keys.get(k, k)}={got.get(k)}" for k in wrong)
+                hint = (f"add model.variant={wrong['variant']} to train.{row}" if list(wrong) == ["variant"]
+                        else f"its recipe's model or experiment makes a {wanted.get('method')} model")
+                raise ValueError(f"train.{row}: the {label(row)} row trains {wants}, but its training overrides "
+                                 f"{list(lists)} compose {holds} ({hint})")
+
     @property
     def dataset(self) -> Path:
         return Path(self.data_root) if self.data_root else self.out_dir / "data"

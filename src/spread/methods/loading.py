@@ -83,3 +83,28 @@ def load_module(ckpt_path, map_location="cpu"):
     from spread.safe_load import load_checkpoint
 
     return module_from_checkpoint(load_checkpoint(ckpt_path), map_location, source=str(ckpt_path))
+
+
+def trained_identity(model_cfg) -> dict:
+    """What a checkpoint trained with this composed ``model`` node (``spread-train``'s ``cfg.model``) will hold, as
+    :func:`spread.safe_load.checkpoint_identity` reads it back: ``method``, the registered method whose LightningModule
+    ``_target_`` names (None: none registered), and ``variant``, ``model.variant`` where the model has one (SPREAD's
+    base / geometry). Asked of the config, not of the override strings: a list that sets ``experiment=quick`` under a
+    baseline's name composes SPREAD, and this says so."""
+    from omegaconf import OmegaConf
+
+    from spread.registry import resolve
+
+    target = str(OmegaConf.select(model_cfg, "_target_", default=""))
+    dotted = target.replace(":", ".")
+    names = method_names()
+    method = next((n for n in names if isinstance(method_spec(n).target, str)
+                   and method_spec(n).target.replace(":", ".") == dotted), None)
+    if method is None and target:  # a re-exported path, or a plugin registered with its class
+        module, _, attr = dotted.rpartition(".")
+        try:
+            cls = resolve(f"{module}:{attr}")
+        except (ImportError, AttributeError, ValueError):
+            cls = None
+        method = next((n for n in names if cls is not None and method_spec(n).module_class() is cls), None)
+    return {"method": method, "variant": OmegaConf.select(model_cfg, "variant", default=None)}

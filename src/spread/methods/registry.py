@@ -99,7 +99,7 @@ def method_names() -> list[str]:
 
 register_method(MethodSpec(
     "spread", "spread.model.module:SceneDiffusion", label="SPREAD (ours)", note="the platform's SceneDiffusion",
-    graph_conditioned=True, train=("experiment=geometry",), train_quick=("experiment=quick", "model.variant=geometry"),
+    graph_conditioned=True, train=("experiment=paper_geometry",), train_quick=("experiment=quick", "model.variant=geometry"),
     sample=("guidance=refine",), order=50))
 register_method(MethodSpec(
     "release", "spread.methods.release:ReleaseDiffusion", label="SPREAD (authors' weights)",

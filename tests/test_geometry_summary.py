@@ -56,3 +56,53 @@ def test_a_summary_model_starts_as_the_model_without_it_and_then_reads_the_geome
     assert torch.allclose(eps2[:, :5][b["mask"]], eps[b["mask"]], atol=1e-5)
     with pytest.raises(TypeError):
         tiny(geometry_summary=True, no_such_field=1)
+
+
+def test_self_conditioned_geometry_poses_the_scene_at_the_networks_clean_estimate():
+    """``geometry_at=x0_hat``: the output is the network's second pass with the geometry of the scene posed at its
+    own first-pass x̂_0 (clipped to ±1, zero at padding); the first pass carries no gradient; sampling does the same
+    at every step. A bad value is named."""
+    from spread.model import SceneDiffusion
+    from spread.model.diffusion import x0_from_prediction
+
+    torch.manual_seed(0)
+    model = SceneDiffusion("geometry", tiny(geometry_at="x0_hat", geometry_summary=True), bounds=BOUNDS).eval()
+    with torch.no_grad():
+        model.network.denoiser.head[-1].weight.normal_()
+        model.network.summary_in.weight.normal_()
+    net = model.network
+    b = random_batch(sizes=(3, 5), seed=4)
+    t = torch.tensor([10, 300])
+    x_t = b["x"] + 0.05 * torch.randn_like(b["x"]) * b["mask"][..., None]
+    cond = net.condition(b)
+    with torch.no_grad():
+        first = net(x_t, t, cond)
+        pose = x0_from_prediction("epsilon", first, x_t, model.alpha_bar(t)).clamp(-1, 1) * b["mask"][..., None]
+        expected = net(x_t, t, cond, pose=pose)
+        got = model.network_output(net, x_t, t, cond)
+        at_x_t = net(x_t, t, cond)
+    assert torch.allclose(got, expected, atol=1e-6) and not torch.allclose(got, at_x_t, atol=1e-4)
+    # the same weights with the release's x_t: the one-pass output
+    plain = SceneDiffusion("geometry", tiny(geometry_summary=True), bounds=BOUNDS).eval()
+    plain.network.load_state_dict(net.state_dict())
+    with torch.no_grad():
+        assert torch.allclose(plain.network_output(plain.network, x_t, t, plain.network.condition(b)), at_x_t, atol=1e-6)
+    # training: a gradient through the second pass only, and a finite loss
+    model.train()
+    calls = []
+    hook = net.perceiver.register_forward_hook(lambda m, i, o: calls.append(torch.is_grad_enabled()))
+    loss = model.training_loss({**b, "extents": torch.ones(2, 5, 3) * 0.3}, timesteps=t, pose_terms=False)
+    hook.remove()
+    loss.backward()
+    assert calls == [False, True] and torch.isfinite(loss)
+    assert net.summary_in.weight.grad is not None and net.summary_in.weight.grad.abs().sum() > 0
+    # sampling: two passes a step
+    model.eval()
+    calls.clear()
+    sampled = model.ema.module if model.ema is not None else net  # sampling reads the EMA weights
+    hook = sampled.perceiver.register_forward_hook(lambda m, i, o: calls.append(1))
+    model.sample_states(b, {"kind": "ddim", "steps": 3})
+    hook.remove()
+    assert len(calls) == 2 * 3
+    with pytest.raises(ValueError, match=r"model\.config\.geometry_at='x_0'"):
+        SceneDenoiser(tiny(geometry_at="x_0"), "geometry", BOUNDS)

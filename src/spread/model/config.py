@@ -63,6 +63,11 @@ class ModelConfig:
     # where it touches: spread.model.perceiver.object_summary) added to its node's input (a zero-initialised
     # projection), beside the scene perceiver's tokens; variant "geometry" only
     geometry_summary: bool = False
+    # where the geometry features pose the scene: "x_t" (the release's: the noisy states of the step) | "x0_hat" (the
+    # network's own clean estimate, self-conditioning: a first, gradient-free pass at x_t gives x̂_0, clipped to
+    # ±1, and the second reads the geometry of the scene posed there — in training and at every sampling step, so
+    # a step costs two passes); variant "geometry" only
+    geometry_at: str = "x_t"
 
     @classmethod
     def from_any(cls, config: "Mapping[str, Any] | ModelConfig | None" = None, **overrides) -> "ModelConfig":

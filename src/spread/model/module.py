@@ -268,7 +268,7 @@ class SceneDiffusion(L.LightningModule):
         drop = None
         if network.training and self.hparams.graph_dropout > 0:
             drop = torch.rand(B, device=x0.device) < self.hparams.graph_dropout
-        output = network(x_t, timesteps, network.condition(batch, drop))
+        output = self.network_output(network, x_t, timesteps, network.condition(batch, drop))
         prediction = self.hparams.get("prediction", "epsilon")
         alpha_bar = self.alpha_bar(timesteps)
         target = prediction_target(prediction, x0, noise, alpha_bar) * keep
@@ -364,7 +364,21 @@ class SceneDiffusion(L.LightningModule):
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, batch: dict) -> torch.Tensor:
         """ε̂ (B, N, 9) of the training network for states x_t (B, N, 9) at timesteps t (B,)."""
-        return self.epsilon(self.network(x_t, t, self.network.condition(batch)), x_t, t)
+        return self.epsilon(self.network_output(self.network, x_t, t, self.network.condition(batch)), x_t, t)
+
+    def network_output(self, network: SceneDenoiser, x_t: torch.Tensor, t: torch.Tensor, cond) -> torch.Tensor:
+        """The network's raw output at states x_t (B, N, 9) and timesteps t (B,). With ``model.config.geometry_at=
+        x0_hat`` (self-conditioned geometry) its geometry features pose the scene at its own clean estimate: a
+        first pass at x_t, without gradients, gives x̂_0 (clipped to the states' ±1 box, zero at padding), and the
+        second pass — the one returned — reads the geometry there. The same in training and at every sampling step."""
+        if network.perceiver is None or getattr(network.config, "geometry_at", "x_t") == "x_t":
+            return network(x_t, t, cond)
+        with torch.no_grad():
+            first = network(x_t, t, cond)
+            alpha_bar = self.alpha_bar(t.to(x_t.device).long())
+            x0_hat = x0_from_prediction(self.hparams.get("prediction", "epsilon"), first, x_t, alpha_bar)
+            pose = x0_hat.clamp(-1.0, 1.0) * cond.mask[..., None].to(x_t.dtype)
+        return network(x_t, t, cond, pose=pose)
 
     def configure_optimizers(self):
         optimizer = torch.optim.AdamW(self.network.parameters(), lr=self.hparams.lr,
@@ -418,10 +432,10 @@ class SceneDiffusion(L.LightningModule):
         null = network.null_condition(cond) if graph_scale != 1.0 else None
 
         def eps_fn(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            eps = self.epsilon(network(x_t, t, cond), x_t, t)
+            eps = self.epsilon(self.network_output(network, x_t, t, cond), x_t, t)
             if null is None:
                 return eps
-            eps_null = self.epsilon(network(x_t, t, null), x_t, t)
+            eps_null = self.epsilon(self.network_output(network, x_t, t, null), x_t, t)
             return eps_null + graph_scale * (eps - eps_null)
 
         return eps_fn, cond.mask

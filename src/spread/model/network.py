@@ -29,6 +29,8 @@ from spread.model.poses import denormalize_affine
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
 
 VARIANTS = ("base", "geometry")
+#: where the geometry features pose the scene (ModelConfig.geometry_at): the noisy states, or the clean estimate
+GEOMETRY_AT = ("x_t", "x0_hat")
 
 
 @dataclass
@@ -97,6 +99,8 @@ class SceneDenoiser(nn.Module):
                 config.ff_mult, config.point_bands, config.point_max_frequency, config.index_dim,
                 config.perceiver_dropout)
         self.denoiser = GraphDenoiser(config, geometry=variant == "geometry")
+        if getattr(config, "geometry_at", "x_t") not in GEOMETRY_AT:
+            raise ValueError(f"model.config.geometry_at={config.geometry_at!r}: choose from {list(GEOMETRY_AT)}")
         self.summary_in = None
         if variant == "geometry" and getattr(config, "geometry_summary", False):
             self.summary_in = nn.Linear(SUMMARY_DIM, config.dim)
@@ -152,8 +156,11 @@ class SceneDenoiser(nn.Module):
             return tokens, None
         return tokens, self.summary_in(object_summary(distance, cond.cloud.points.to(x_t.dtype)))
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition) -> torch.Tensor:
-        """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects."""
-        geometry, summary = self.geometry_features(x_t, cond) if self.perceiver is not None else (None, None)
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition, pose: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects; the geometry features of the scene posed at
+        ``pose`` (B, N, 9) states (None: at x_t; ``geometry_at=x0_hat``: the module passes its clean estimate)."""
+        posed = x_t if pose is None else pose.to(x_t)
+        geometry, summary = self.geometry_features(posed, cond) if self.perceiver is not None else (None, None)
         return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry, mount=cond.mount,
                              real=cond.real, node_features=summary)

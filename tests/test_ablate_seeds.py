@@ -177,7 +177,7 @@ def tiny_cfg(data: Path, out: Path, *more: str):
 def test_two_seeds_with_every_row_end_to_end(data, tmp_path):
     from spread.commands.ablate import ablate
 
-    result = ablate(tiny_cfg(data, tmp_path / "q", "seeds=[0,1]"))
+    result = ablate(tiny_cfg(data, tmp_path / "q", "seeds=[0,1]", f"variants=[{','.join(ALL)}]"))
     assert result.ok, result.errors
     assert [r["variant"] for r in result.records] == list(ALL)
     for r in result.records:

@@ -60,3 +60,24 @@ def test_quick_preset_trains_both_variants_by_the_recipe_with_a_shorter_schedule
     assert "experiment=cpu_hour" in quick.train.overrides and "trainer.max_steps=1200" in quick.train.overrides
     sample = to_object(compose("sample", [*SAMPLE, *spec.sample]))
     assert sample.graph_scale == 2.0  # the recipe trains with graph dropout, so its rows sample as the recipe does
+
+
+def test_quick_preset_scores_both_rows_on_hundreds_of_graphs_with_the_self_conditioned_geometry_row():
+    """The quick ablation's +Geometry row is the design that read lower than base on the 1,320-graph runs (`parts`
+    features + summary at x̂_0), trained on the same 240 rooms as base and scored on 480 test graphs; base at
+    +Geometry's wall time is one of its rows; the paper preset's row keeps the release's feature at x_t."""
+    from collections import Counter
+
+    from spread.commands.ablate import ablation_spec
+    from spread.procgen.dataset import split_of
+
+    spec = ablation_spec(compose("ablate", ["+preset=quick"]))
+    assert {"base", "base_time", "geometry", "guidance"} <= set(spec.variants)
+    geometry = compose("train", [*spec.train, *spec.train_variant["geometry"], "data.root=/d"]).model.config
+    assert (geometry.geometry_at, geometry.geometry_distance, geometry.geometry_summary) == ("x0_hat", "parts", True)
+    generate = to_object(compose("generate", [*spec.generate, "out_dir=/o"]))
+    splits = Counter(split_of(i, generate) for i in range(generate.rooms))
+    assert splits["train"] == 240 and splits["test"] >= 400 and splits["val"] > 0
+    paper = ablation_spec(compose("ablate", ["+preset=paper"]))
+    assert compose("train", [*paper.train, *paper.train_variant["geometry"], "data.root=/d"]).model.config.geometry_at \
+        == "x_t"

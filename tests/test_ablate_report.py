@@ -99,6 +99,15 @@ def test_ablation_bar_plot_draws_every_row(tmp_path):
     assert Image.open(tmp_path / "a.png").size[0] > 500
 
 
+
+def test_a_long_row_name_is_wrapped_on_two_lines_under_its_bar_not_cut():
+    from spread.reporting.plots import tick_label
+
+    assert tick_label("Ours (base)") == "Ours (base)"
+    assert tick_label("Ours (base), +Geometry's time") == "Ours (base),\n+Geometry's time"  # was "Ours (base), +Geo…"
+    longest = tick_label("word " * 20)
+    assert longest.count("\n") == 1 and longest.endswith("…") and all(len(x) <= 18 for x in longest.split("\n"))
+
 # ---- report ---------------------------------------------------------------------------------------------
 
 def metrics_json(col_mesh: float, grecall: float) -> dict:

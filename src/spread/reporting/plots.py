@@ -91,6 +91,14 @@ def error_bars(records: Sequence[dict], column: Column, values: list) -> list[li
     return [below, above] if found else None
 
 
+def tick_label(name: str, width: int = 18) -> str:
+    """A bar's label on at most two lines of ``width`` characters, broken at spaces (a longer one ends in "…")."""
+    import textwrap
+
+    lines = textwrap.wrap(name, width) or [""]
+    return "\n".join(lines) if len(lines) <= 2 else "\n".join([lines[0], lines[1][:width - 1] + "…"])
+
+
 def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str | Path, label_key: str = "variant",
                   title: str = "") -> dict[str, list[float | None]]:
     """Bar plot: a panel per metric column, a bar per record (``n/a`` where the value is null), with error bars
@@ -115,7 +123,7 @@ def ablation_bars(records: Sequence[dict], columns: Sequence[Column], path: str 
         if all(v is None for v in values):
             ax.set_ylim(0, 1)
             ax.set_yticks([])
-        ax.set_xticks(range(len(names)), [n if len(n) <= 18 else n[:17] + "…" for n in names], rotation=30,
+        ax.set_xticks(range(len(names)), [tick_label(n) for n in names], rotation=30,
                       ha="right", rotation_mode="anchor", fontsize=8)
         ax.set_title(column.label + column.arrow, fontsize=9)
         ax.tick_params(axis="y", labelsize=7)

@@ -99,7 +99,6 @@ def test_ablation_bar_plot_draws_every_row(tmp_path):
     assert Image.open(tmp_path / "a.png").size[0] > 500
 
 
-
 def test_a_long_row_name_is_wrapped_on_two_lines_under_its_bar_not_cut():
     from spread.reporting.plots import tick_label
 

@@ -107,6 +107,7 @@ def test_a_long_row_name_is_wrapped_on_two_lines_under_its_bar_not_cut():
     longest = tick_label("word " * 20)
     assert longest.count("\n") == 1 and longest.endswith("…") and all(len(x) <= 18 for x in longest.split("\n"))
 
+
 # ---- report ---------------------------------------------------------------------------------------------
 
 def metrics_json(col_mesh: float, grecall: float) -> dict:

@@ -12,6 +12,7 @@ data.
 from __future__ import annotations
 
 import math
+import textwrap
 from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
@@ -93,8 +94,6 @@ def error_bars(records: Sequence[dict], column: Column, values: list) -> list[li
 
 def tick_label(name: str, width: int = 18) -> str:
     """A bar's label on at most two lines of ``width`` characters, broken at spaces (a longer one ends in "…")."""
-    import textwrap
-
     lines = textwrap.wrap(name, width) or [""]
     return "\n".join(lines) if len(lines) <= 2 else "\n".join([lines[0], lines[1][:width - 1] + "…"])
 

@@ -63,6 +63,10 @@ class ModelConfig:
     # where it touches: spread.model.perceiver.object_summary) added to its node's input (a zero-initialised
     # projection), beside the scene perceiver's tokens; variant "geometry" only
     geometry_summary: bool = False
+    # each ordered pair's geometric state (how deep i's deepest point lies in j alone, and j's in i:
+    # spread.model.perceiver.pair_features) added to its edge's features (a zero-initialised projection), so the
+    # graph attention reads it on the edge it concerns; variant "geometry" with geometry_distance "parts" only
+    geometry_pairs: bool = False
     # where the geometry features pose the scene: "x_t" (the release's: the noisy states of the step) | "x0_hat" (the
     # network's own clean estimate, self-conditioning: a first, gradient-free pass at x_t gives x̂_0, clipped to
     # ±1, and the second reads the geometry of the scene posed there — in training and at every sampling step, so

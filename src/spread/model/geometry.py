@@ -142,16 +142,19 @@ def signed_distances(cloud: PointCloud, translation: torch.Tensor, rotation: tor
 
 
 def state_distances(cloud: PointCloud, states: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor,
-                    search: str = "pruned") -> torch.Tensor:
+                    search: str = "pruned", pairs: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """:func:`signed_distances` of the poses of node states (B, N, 9) — normalised translation, denormalised as
     ``offset + x·scale`` (metres), and rot6d — as the network computes them at every denoising step (no gradient):
     with the dense search, two operators (pose, signed search: :mod:`spread.model.nearest_dense`). A cloud with
-    ``parts`` reads the distance to the other objects' convex parts instead (:mod:`spread.model.parts_distance`)."""
+    ``parts`` reads the distance to the other objects' convex parts instead (:mod:`spread.model.parts_distance`);
+    with ``pairs`` (``parts`` only) it also returns each ordered pair's distance (B, N, N)."""
     B, N, M, _ = cloud.points.shape
     x = states.float()
+    if pairs and cloud.parts is None:
+        raise ValueError("pair distances (model.config.geometry_pairs) need geometry_distance=parts")
     if cloud.parts is not None:
         t, R = torch.addcmul(offset, x[..., :3], scale), rot6d_to_matrix(x[..., 3:9])
-        return parts_distances(cloud.parts, pose_points(cloud.points, t, R), t, R, cloud.valid)
+        return parts_distances(cloud.parts, pose_points(cloud.points, t, R), t, R, cloud.valid, pairs=pairs)
     if search == "dense":
         from spread.model.nearest_dense import BLOCK_K
 

@@ -24,7 +24,8 @@ from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.data.parts import check_geometry_distance
 from spread.model.geometry import PointCloud, batch_cloud, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
-from spread.model.perceiver import SUMMARY_DIM, GeometryPerceiver, StaticTokens, object_summary
+from spread.model.perceiver import (PAIR_DIM, SUMMARY_DIM, GeometryPerceiver, StaticTokens, object_summary,
+                                    pair_features)
 from spread.model.poses import denormalize_affine
 from spread.model.shape_tokens import PointCloudTokenizer, PrecomputedShapeTokens, ShapeEncoder
 
@@ -106,6 +107,14 @@ class SceneDenoiser(nn.Module):
             self.summary_in = nn.Linear(SUMMARY_DIM, config.dim)
             nn.init.zeros_(self.summary_in.weight)
             nn.init.zeros_(self.summary_in.bias)
+        self.pairs_in = None
+        if variant == "geometry" and getattr(config, "geometry_pairs", False):
+            if getattr(config, "geometry_distance", "chamfer") != "parts":
+                raise ValueError("model.config.geometry_pairs=true needs model.config.geometry_distance=parts (the "
+                                 f"pair distances are the parts distance's), got {config.geometry_distance!r}")
+            self.pairs_in = nn.Linear(PAIR_DIM, config.edge_dim)
+            nn.init.zeros_(self.pairs_in.weight)
+            nn.init.zeros_(self.pairs_in.bias)
         self.register_buffer("bounds", torch.full((6,), float("nan")))
         if bounds is not None:
             self.set_bounds(bounds)
@@ -147,20 +156,29 @@ class SceneDenoiser(nn.Module):
         """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
         return self.geometry_features(x_t, cond)[0]
 
-    def geometry_features(self, x_t: torch.Tensor, cond: Condition) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The perceiver latents (B, G, dim) of the scene posed at x_t (B, N, 9), and with ``geometry_summary``
-        each node's summary input (B, N, dim) (else None)."""
-        distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search).to(x_t.dtype)
+    def geometry_features(self, x_t: torch.Tensor, cond: Condition) -> tuple[torch.Tensor, ...]:
+        """The perceiver latents (B, G, dim) of the scene posed at x_t (B, N, 9); with ``geometry_summary`` each
+        node's summary input (B, N, dim), with ``geometry_pairs`` each edge's pair input (B, N, N, edge_dim)
+        (else None)."""
+        pairs = None
+        distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search,
+                                   pairs=self.pairs_in is not None)
+        if self.pairs_in is not None:
+            distance, pairs = distance[0], self.pairs_in(pair_features(distance[1].to(x_t.dtype)))
+        distance = distance.to(x_t.dtype)
         tokens = self.perceiver(distance, cond.static)
-        if self.summary_in is None:
-            return tokens, None
-        return tokens, self.summary_in(object_summary(distance, cond.cloud.points.to(x_t.dtype)))
+        summary = None
+        if self.summary_in is not None:
+            summary = self.summary_in(object_summary(distance, cond.cloud.points.to(x_t.dtype)))
+        return tokens, summary, pairs
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition, pose: torch.Tensor | None = None
                 ) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects; the geometry features of the scene posed at
         ``pose`` (B, N, 9) states (None: at x_t; ``geometry_at=x0_hat``: the module passes its clean estimate)."""
         posed = x_t if pose is None else pose.to(x_t)
-        geometry, summary = self.geometry_features(posed, cond) if self.perceiver is not None else (None, None)
-        return self.denoiser(x_t, t, cond.mask, cond.edges, cond.shape_tokens, geometry, mount=cond.mount,
+        geometry, summary, pairs = (self.geometry_features(posed, cond) if self.perceiver is not None
+                                    else (None, None, None))
+        edges = cond.edges if pairs is None else cond.edges + pairs
+        return self.denoiser(x_t, t, cond.mask, edges, cond.shape_tokens, geometry, mount=cond.mount,
                              real=cond.real, node_features=summary)

@@ -91,16 +91,25 @@ def part_values(parts: PartPlanes, world: torch.Tensor, translation: torch.Tenso
 
 @torch.no_grad()
 def parts_distances(parts: PartPlanes, world: torch.Tensor, translation: torch.Tensor, rotation: torch.Tensor,
-                    valid: torch.Tensor, reach: float = PARTS_RANGE,
-                    max_elements: int = CHUNK_ELEMENTS) -> torch.Tensor:
+                    valid: torch.Tensor, reach: float = PARTS_RANGE, max_elements: int = CHUNK_ELEMENTS,
+                    pairs: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """(B, N, M) signed distance (metres, at most ``reach``) of every posed point ``world`` (B, N, M, 3) to the other
-    real objects' parts posed by translation (B, N, 3), rotation (B, N, 3, 3) world-from-local; valid (B, N)."""
+    real objects' parts posed by translation (B, N, 3), rotation (B, N, 3, 3) world-from-local; valid (B, N).
+
+    With ``pairs``, also (B, N, N): for each ordered pair (i, j), the signed distance of i's deepest point with
+    respect to j alone (min over i's points and j's parts, at most ``reach``; ``reach`` on the diagonal and for a
+    padding object) — what the per-point distance, a minimum over every other object, cannot tell apart."""
     B, N, M, _ = world.shape
     world, t, R = world.float(), translation.float(), rotation.float()
     candidates = part_candidates(parts, world, t, R, valid, reach)
-    b, i = candidates[0], candidates[1]
+    b, i, j = candidates[0], candidates[1], candidates[2]
     out = torch.full((B * N, M), float(reach), device=world.device)
+    pair = torch.full((B * N * N,), float(reach), device=world.device) if pairs else None
     for chunk, s in part_values(parts, world, t, R, candidates, max_elements):
         out.scatter_reduce_(0, (b[chunk] * N + i[chunk])[:, None].expand(-1, M), s, "amin")
-    out = out.clamp(max=reach).view(B, N, M)
-    return torch.where(valid[..., None], out, 0.0)
+        if pair is not None:
+            pair.scatter_reduce_(0, (b[chunk] * N + i[chunk]) * N + j[chunk], s.amin(-1), "amin")
+    out = torch.where(valid[..., None], out.clamp(max=reach).view(B, N, M), 0.0)
+    if pair is None:
+        return out
+    return out, pair.clamp(max=reach).view(B, N, N)

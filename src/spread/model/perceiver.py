@@ -96,6 +96,21 @@ def object_summary(distance: torch.Tensor, points: torch.Tensor) -> torch.Tensor
                       where_in, where_touch], dim=-1)
 
 
+#: Channels of :func:`pair_features`: for each direction of a pair, d clipped, d < 0, tanh(d / s).
+PAIR_DIM = 2 * (2 + len(DISTANCE_SCALES))
+
+
+def pair_features(pair: torch.Tensor) -> torch.Tensor:
+    """Each ordered pair's geometric state, for its edge (``geometry_pairs``): pair distances (B, N, N) metres (i's
+    deepest point with respect to j alone: :func:`spread.model.parts_distance.parts_distances`) → (B, N, N,
+    PAIR_DIM): for d_ij and then d_ji, d clipped to [−0.25, 0.25] m, d < 0 as 0/1, and tanh(d / s) for s in
+    DISTANCE_SCALES — so the edge of a laptop 3 cm deep in the bed it stands on reads it, in both directions."""
+    scales = torch.tensor(DISTANCE_SCALES, device=pair.device, dtype=pair.dtype)
+    both = torch.stack([pair, pair.transpose(1, 2)], dim=-1)[..., None]  # (B, N, N, 2, 1)
+    feats = torch.cat([both.clamp(-0.25, 0.25), (both < 0).to(pair.dtype), torch.tanh(both / scales)], dim=-1)
+    return feats.flatten(-2)
+
+
 def point_token_dim(num_bands: int, index_dim: int) -> int:
     return fourier_dim(3, num_bands) + 1 + len(DISTANCE_SCALES) + index_dim
 

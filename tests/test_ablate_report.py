@@ -87,6 +87,10 @@ def test_the_ablation_table_says_in_words_whether_geometry_beats_base_on_col_mes
     assert sentence in paths["md"].read_text()
     # no interval, or no base row: nothing is claimed
     assert geometry_reading(ROWS) == "" and geometry_reading(rows[1:]) == ""
+    # a +Geometry row sampled with guidance on its geometry features says so where it is compared
+    rows[1]["settings"] = {"geometry_scale": 2.0, "guidance.mode": "none"}
+    assert geometry_reading(rows).startswith("+Geometry (sampled with geometry_scale=2.0: guidance on its own geometry "
+                                             "features, no physics term) against base, unguided Col_mesh")
 
 
 def test_ablation_bar_plot_draws_every_row(tmp_path):

@@ -60,6 +60,10 @@ def test_quick_preset_trains_both_variants_by_the_recipe_with_a_shorter_schedule
     assert "experiment=cpu_hour" in quick.train.overrides and "trainer.max_steps=1200" in quick.train.overrides
     sample = to_object(compose("sample", [*SAMPLE, *spec.sample]))
     assert sample.graph_scale == 2.0  # the recipe trains with graph dropout, so its rows sample as the recipe does
+    # +Geometry's rows (geometry, guidance) with guidance on its geometry features, base's rows without
+    assert sample.geometry_scale == 1.0 and "base" not in spec.sample_variant
+    geometry = to_object(compose("sample", [*SAMPLE, *spec.sample, *spec.sample_variant["geometry"]]))
+    assert geometry.geometry_scale == 2.0 and geometry.graph_scale == 2.0
 
 
 def test_quick_preset_scores_both_rows_on_hundreds_of_graphs_with_the_self_conditioned_geometry_row():

@@ -61,6 +61,7 @@ def ablation_spec(cfg: DictConfig):
     return AblationSpec(**{**fields, "sample": sampler + fields["sample"]},
                         variants=tuple(str(v) for v in cfg.variants),
                         train_variant={v: strings(cfg.train.get(v)) for v in ("base", "geometry")},
+                        sample_variant={v: strings(cfg.sample.get(v)) for v in ("base", "geometry") if cfg.sample.get(v)},
                         guidance=guidance + strings(cfg.sample.guidance), figures=bool(cfg.get("figures", True)))
 
 

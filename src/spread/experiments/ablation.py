@@ -100,6 +100,10 @@ class AblationSpec(StagesSpec):
     train_variant: dict[str, list[str]] = field(default_factory=lambda: {v: [f"model.variant={v}"]
                                                                          for v in ("base", "geometry")})
     guidance: list[str] = field(default_factory=list)
+    #: each trained checkpoint's own sampling list (base, geometry), added to every row that samples it after the
+    #: shared list: ``geometry: [geometry_scale=2.0]`` samples +Geometry and the guidance rows with guidance on its
+    #: geometry features, which the base rows have none of
+    sample_variant: dict[str, list[str]] = field(default_factory=dict)
     figures: bool = True  # one scene per row in 3D with its relation matrix (ablation_<v>.png)
 
     def __post_init__(self) -> None:
@@ -110,6 +114,10 @@ class AblationSpec(StagesSpec):
                              f"(choose from {list(VARIANTS)})")
         self.variants = tuple(v for v in VARIANTS if v in self.variants)
         self.check_given(["base", "geometry"], lambda v: {"method": "spread", "variant": v})
+        wrong = [k for k in self.sample_variant if k not in ("base", "geometry")]
+        if wrong:
+            raise ValueError(f"sample.{wrong[0]}: only the trained checkpoints' rows have their own sampling list "
+                             f"(sample.base, sample.geometry)")
 
 
 class Ablation:
@@ -160,15 +168,18 @@ class Ablation:
         return max(1, round(geometry["seconds"] * base["step"] / base["seconds"]))
 
     def sample_lists(self, variant: str) -> list[str]:
-        """The ``spread-sample`` overrides of one row (the spec's shared list, then the row's own): the guidance
-        rows add the guidance list; a one-term row then sets the other two built-in weights to 0, and every other
-        term the guidance list names but its built-in's stand-in (``STAND_INS``)."""
+        """The ``spread-sample`` overrides of one row (the spec's shared list, then its checkpoint's own list
+        ``sample_variant``, base's for base_time): the guidance rows add the guidance list; a one-term row then sets
+        the other two built-in weights to 0, and every other term the guidance list names but its built-in's
+        stand-in (``STAND_INS``)."""
+        checkpoint = "base" if self.checkpoint_of[variant] == "base_time" else self.checkpoint_of[variant]
+        shared = [*self.spec.sample, *self.spec.sample_variant.get(checkpoint, [])]
         if variant in TERMS:
             kept = TERMS[variant]
             off = [f"guidance.{t}=0.0" for t in TERMS.values() if t != kept]
             off += [f"++guidance.terms.{t}=0.0" for t in self.guidance_terms() if STAND_INS.get(t) != kept]
-            return [*self.spec.sample, *self.spec.guidance, *off]
-        return [*self.spec.sample, *(self.spec.guidance if variant == "guidance" else [])]
+            return [*shared, *self.spec.guidance, *off]
+        return [*shared, *(self.spec.guidance if variant == "guidance" else [])]
 
     def guidance_terms(self) -> list[str]:
         """The names under ``guidance.terms`` that the guidance rows weigh (λ > 0), asked of the guidance config the
@@ -315,9 +326,12 @@ def geometry_reading(records: Sequence[dict]) -> str:
     item 3); empty unless the rows have Col_mesh and its interval."""
     rows = {r.get("variant"): r for r in records}
     geometry = rows.get("geometry")
+    scale = ((geometry or {}).get("settings") or {}).get("geometry_scale", 1.0)
+    name = "+Geometry" if float(scale) == 1.0 else \
+        f"+Geometry (sampled with geometry_scale={scale}: guidance on its own geometry features, no physics term)"
     said = []
     for v, words in (("base", ""), ("base_time", " at equal training time")):
-        sentence = col_mesh_reading(geometry, rows.get(v), words)
+        sentence = col_mesh_reading(geometry, rows.get(v), words, name)
         said.append(sentence + paired_reading(geometry, v) if sentence else "")
     return " ".join(s for s in said if s)
 
@@ -337,8 +351,8 @@ def paired_reading(geometry: dict | None, against: str) -> str:
             f"{LABELS[against]}: {d['diff']:+.3f} [{d['lo']:+.3f}, {d['hi']:+.3f}], {verdict}.")
 
 
-def col_mesh_reading(geometry: dict | None, base: dict | None, when: str) -> str:
-    """One sentence of :func:`geometry_reading`: +Geometry's unguided Col_mesh against one base row's."""
+def col_mesh_reading(geometry: dict | None, base: dict | None, when: str, name: str = "+Geometry") -> str:
+    """One sentence of :func:`geometry_reading`: +Geometry's (``name``) unguided Col_mesh against one base row's."""
     keys = ("col_mesh", "col_mesh_lo", "col_mesh_hi")
     if base is None or geometry is None or any(r.get(k) is None for r in (base, geometry) for k in keys):
         return ""
@@ -354,7 +368,7 @@ def col_mesh_reading(geometry: dict | None, base: dict | None, when: str) -> str
     else:
         verdict = "equal to base's"
     counts = f" ({base.get('n_scenes')} / {geometry.get('n_scenes')} scenes)" if base.get("n_scenes") else ""
-    return (f"+Geometry against base{when}, unguided Col_mesh{counts}: {g[0]:.3f} [{g[1]:.3f}, {g[2]:.3f}] "
+    return (f"{name} against base{when}, unguided Col_mesh{counts}: {g[0]:.3f} [{g[1]:.3f}, {g[2]:.3f}] "
             f"against {b[0]:.3f} [{b[1]:.3f}, {b[2]:.3f}], {verdict}.")
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from spread.model.nearest import CHUNK_ELEMENTS, morton_order, nearest_other_point
-from spread.model.parts_distance import PartPlanes, parts_distances
+from spread.model.parts_distance import PARTS_RANGE, PartPlanes, parts_distances
 from spread.data.rotation import rot6d_to_matrix
 from spread.model.poses import pose_points
 
@@ -162,6 +162,23 @@ def state_distances(cloud: PointCloud, states: torch.Tensor, offset: torch.Tenso
         _, d = torch.ops.spread.signed_nearest(world, normals, boxes, cloud.valid, cloud.no_neighbour)
         return d.view(B, N, M)
     return signed_distances(cloud, torch.addcmul(offset, x[..., :3], scale), rot6d_to_matrix(x[..., 3:9]), search)
+
+
+def blind_distances(cloud: PointCloud, pairs: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """What :func:`state_distances` reads when no other object is near anywhere — the geometry features of a scene
+    whose objects are all far apart, whatever the poses: every real object's points at ``PARTS_RANGE`` (a cloud
+    with ``parts``) or at the cloud's ``no_neighbour`` distance (chamfer), 0 at padding (B, N, M); with ``pairs``
+    also every ordered pair at ``PARTS_RANGE`` (B, N, N). No search runs. Classifier-free guidance on the geometry
+    (``SamplingConfig.geometry_scale``) contrasts the network's output with these against its output with the real
+    ones."""
+    B, N, M, _ = cloud.points.shape
+    if pairs and cloud.parts is None:
+        raise ValueError("pair distances (model.config.geometry_pairs) need geometry_distance=parts")
+    far = PARTS_RANGE if cloud.parts is not None else cloud.no_neighbour
+    out = torch.where(cloud.valid[..., None], far, 0.0).to(cloud.points.dtype).expand(B, N, M)
+    if not pairs:
+        return out
+    return out, torch.full((B, N, N), PARTS_RANGE, device=out.device, dtype=out.dtype)
 
 
 def signed_chamfer_features(points_local: torch.Tensor, normals_local: torch.Tensor, translation: torch.Tensor,

@@ -19,6 +19,8 @@
   resume); validation and :meth:`SceneDiffusion.sample` use it by default.
 * Classifier-free guidance training: with probability ``graph_dropout`` a scene's two graphs are
   replaced by padding codes; ``sample(..., graph_scale=s)`` then mixes ε̂ = ε̂_∅ + s (ε̂_G − ε̂_∅).
+  ``denoising(..., geometry_scale=s)`` does the same with a +Geometry model's geometry features: the output with
+  them against the output reading a scene where nothing is near anything (:meth:`SceneDiffusion.network_output`).
 * Validation: ``val/loss`` with seeded noise and timesteps (comparable across epochs); every
   ``sample_every_n_epochs`` epochs (0 = never) the first ``val_sample_scenes`` scenes of the first
   validation batch are sampled with ``val_sampler`` — through the one loop every method samples with
@@ -366,19 +368,29 @@ class SceneDiffusion(L.LightningModule):
         """ε̂ (B, N, 9) of the training network for states x_t (B, N, 9) at timesteps t (B,)."""
         return self.epsilon(self.network_output(self.network, x_t, t, self.network.condition(batch)), x_t, t)
 
-    def network_output(self, network: SceneDenoiser, x_t: torch.Tensor, t: torch.Tensor, cond) -> torch.Tensor:
+    def network_output(self, network: SceneDenoiser, x_t: torch.Tensor, t: torch.Tensor, cond,
+                       geometry_scale: float = 1.0) -> torch.Tensor:
         """The network's raw output at states x_t (B, N, 9) and timesteps t (B,). With ``model.config.geometry_at=
         x0_hat`` (self-conditioned geometry) its geometry features pose the scene at its own clean estimate: a
         first pass at x_t, without gradients, gives x̂_0 (clipped to the states' ±1 box, zero at padding), and the
-        second pass — the one returned — reads the geometry there. The same in training and at every sampling step."""
-        if network.perceiver is None or getattr(network.config, "geometry_at", "x_t") == "x_t":
-            return network(x_t, t, cond)
-        with torch.no_grad():
-            first = network(x_t, t, cond)
-            alpha_bar = self.alpha_bar(t.to(x_t.device).long())
-            x0_hat = x0_from_prediction(self.hparams.get("prediction", "epsilon"), first, x_t, alpha_bar)
-            pose = x0_hat.clamp(-1.0, 1.0) * cond.mask[..., None].to(x_t.dtype)
-        return network(x_t, t, cond, pose=pose)
+        second pass — the one returned — reads the geometry there. The same in training and at every sampling step.
+
+        ``geometry_scale`` s ≠ 1 (sampling; a +Geometry model): classifier-free guidance on the geometry features,
+        o_blind + s (o − o_blind), where o_blind is the same pass reading a scene with nothing near anything
+        (``blind``: :func:`~spread.model.geometry.blind_distances`). ε̂ is affine in the output at fixed x_t and t
+        with weights summing to 1, so this is the same mix of ε̂ (whatever ``prediction`` is); one pass more."""
+        pose = None
+        if network.perceiver is not None and getattr(network.config, "geometry_at", "x_t") != "x_t":
+            with torch.no_grad():
+                first = network(x_t, t, cond)
+                alpha_bar = self.alpha_bar(t.to(x_t.device).long())
+                x0_hat = x0_from_prediction(self.hparams.get("prediction", "epsilon"), first, x_t, alpha_bar)
+                pose = x0_hat.clamp(-1.0, 1.0) * cond.mask[..., None].to(x_t.dtype)
+        out = network(x_t, t, cond, pose=pose)
+        if geometry_scale == 1.0:
+            return out
+        blind = network(x_t, t, cond, pose=pose, blind=True)
+        return blind + geometry_scale * (out - blind)
 
     def configure_optimizers(self):
         optimizer = torch.optim.AdamW(self.network.parameters(), lr=self.hparams.lr,
@@ -421,30 +433,43 @@ class SceneDiffusion(L.LightningModule):
         return loss
 
     # ---- sampling -------------------------------------------------------------------------------------
-    def denoiser(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0):
+    def denoiser(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0, geometry_scale: float = 1.0):
         """(ε-function, mask) for the batch's scenes: ``eps_fn(x_t (B, N, 9), t (B,)) → ε̂`` of the EMA (or
         training) network conditioned on the batch's graphs and assets; ``graph_scale ≠ 1`` mixes in the
-        graph-free prediction (ε̂ = ε̂_∅ + s (ε̂_G − ε̂_∅), classifier-free guidance). The network is used as
-        it is (call ``eval()`` first, as :meth:`sample_states` and the sampling pipeline do)."""
+        graph-free prediction (ε̂ = ε̂_∅ + s (ε̂_G − ε̂_∅), classifier-free guidance); ``geometry_scale ≠ 1`` (a
+        +Geometry model) does the same with the geometry-blind prediction inside each branch
+        (:meth:`network_output`). The network is used as it is (call ``eval()`` first, as :meth:`sample_states`
+        and the sampling pipeline do)."""
         network = self.ema.module if use_ema else self.network
+        geometry_scale = float(geometry_scale)
+        if geometry_scale != 1.0 and not self.has_geometry:
+            raise ValueError(f"geometry_scale={geometry_scale}: a model without geometry features (model.variant="
+                             "base) has no geometry to guide; sample it with geometry_scale=1")
         batch = batch_to(batch, self.device)
         cond = network.condition(batch)
         null = network.null_condition(cond) if graph_scale != 1.0 else None
 
         def eps_fn(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            eps = self.epsilon(self.network_output(network, x_t, t, cond), x_t, t)
+            eps = self.epsilon(self.network_output(network, x_t, t, cond, geometry_scale), x_t, t)
             if null is None:
                 return eps
-            eps_null = self.epsilon(self.network_output(network, x_t, t, null), x_t, t)
+            eps_null = self.epsilon(self.network_output(network, x_t, t, null, geometry_scale), x_t, t)
             return eps_null + graph_scale * (eps - eps_null)
 
         return eps_fn, cond.mask
 
-    def denoising(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0) -> Denoising:
+    def denoising(self, batch: dict, use_ema: bool = True, graph_scale: float = 1.0,
+                  geometry_scale: float = 1.0) -> Denoising:
         """The batch's :class:`~spread.model.diffusion.Denoising` for the one sampling loop: :meth:`denoiser`'s
         ε-function and mask, 9-d states on the model's training schedule, decoded by :meth:`decode`."""
-        eps_fn, mask = self.denoiser(batch, use_ema, graph_scale)
+        eps_fn, mask = self.denoiser(batch, use_ema, graph_scale, geometry_scale)
         return Denoising(eps_fn, mask, lambda x: self.decode(x, mask), 9, self.noise_schedule.config)
+
+    @property
+    def has_geometry(self) -> bool:
+        """Whether the network reads geometry features (a +Geometry model): only then may sampling guide them
+        (``geometry_scale``, :meth:`denoiser`)."""
+        return self.network.perceiver is not None
 
     @property
     def bounds(self) -> torch.Tensor:

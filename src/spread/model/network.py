@@ -22,7 +22,7 @@ from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.data.parts import check_geometry_distance
-from spread.model.geometry import PointCloud, batch_cloud, resolve_search, state_distances
+from spread.model.geometry import PointCloud, batch_cloud, blind_distances, resolve_search, state_distances
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import (PAIR_DIM, SUMMARY_DIM, GeometryPerceiver, StaticTokens, object_summary,
                                     pair_features)
@@ -156,13 +156,18 @@ class SceneDenoiser(nn.Module):
         """Perceiver latents (B, G, dim) of the scene posed at the (noisy) states x_t (B, N, 9)."""
         return self.geometry_features(x_t, cond)[0]
 
-    def geometry_features(self, x_t: torch.Tensor, cond: Condition) -> tuple[torch.Tensor, ...]:
+    def geometry_features(self, x_t: torch.Tensor, cond: Condition, blind: bool = False) -> tuple[torch.Tensor, ...]:
         """The perceiver latents (B, G, dim) of the scene posed at x_t (B, N, 9); with ``geometry_summary`` each
         node's summary input (B, N, dim), with ``geometry_pairs`` each edge's pair input (B, N, N, edge_dim)
-        (else None)."""
+        (else None). ``blind``: the same features with every distance read as if no other object were near
+        (:func:`~spread.model.geometry.blind_distances`; x_t then only sets the dtype) — the geometry-free branch
+        of classifier-free guidance on the geometry."""
         pairs = None
-        distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search,
-                                   pairs=self.pairs_in is not None)
+        if blind:
+            distance = blind_distances(cond.cloud, pairs=self.pairs_in is not None)
+        else:
+            distance = state_distances(cond.cloud, x_t, cond.pose_offset, cond.pose_scale, cond.search,
+                                       pairs=self.pairs_in is not None)
         if self.pairs_in is not None:
             distance, pairs = distance[0], self.pairs_in(pair_features(distance[1].to(x_t.dtype)))
         distance = distance.to(x_t.dtype)
@@ -172,12 +177,16 @@ class SceneDenoiser(nn.Module):
             summary = self.summary_in(object_summary(distance, cond.cloud.points.to(x_t.dtype)))
         return tokens, summary, pairs
 
-    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition, pose: torch.Tensor | None = None
-                ) -> torch.Tensor:
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: Condition, pose: torch.Tensor | None = None,
+                blind: bool = False) -> torch.Tensor:
         """x_t (B, N, 9), t (B,) → ε̂ (B, N, 9), zero at padding objects; the geometry features of the scene posed at
-        ``pose`` (B, N, 9) states (None: at x_t; ``geometry_at=x0_hat``: the module passes its clean estimate)."""
+        ``pose`` (B, N, 9) states (None: at x_t; ``geometry_at=x0_hat``: the module passes its clean estimate), or with
+        ``blind`` those of a scene with nothing near anything (:meth:`geometry_features`; needs the perceiver)."""
+        if blind and self.perceiver is None:
+            raise ValueError("SceneDenoiser: blind=True reads no geometry of a model without geometry features "
+                             "(model.variant=base)")
         posed = x_t if pose is None else pose.to(x_t)
-        geometry, summary, pairs = (self.geometry_features(posed, cond) if self.perceiver is not None
+        geometry, summary, pairs = (self.geometry_features(posed, cond, blind) if self.perceiver is not None
                                     else (None, None, None))
         edges = cond.edges if pairs is None else cond.edges + pairs
         return self.denoiser(x_t, t, cond.mask, edges, cond.shape_tokens, geometry, mount=cond.mount,

@@ -144,6 +144,26 @@ def done_check(before: dict | None, now: dict, *, present: bool, finished: bool 
 
 # ---- identities ----------------------------------------------------------------------------------------------
 
+#: Sampling settings added after runs were recorded: spelled in an identity only where they differ from these
+#: defaults (so the runs made before keep their fingerprints), and filled back in by :func:`settings` (so a table
+#: still sees them differ). precision: "bf16" changes the numbers; geometry_scale: classifier-free guidance on the
+#: geometry features (:class:`~spread.sampling.SamplingConfig`).
+SAMPLING_DEFAULTS = {"precision": "32", "geometry_scale": 1.0}
+
+
+def unspelled_defaults_dropped(values: dict) -> dict:
+    """``values`` without the :data:`SAMPLING_DEFAULTS` they hold at their defaults (compared as the default's
+    type: a recorded ``geometry_scale: 1`` is the default 1.0)."""
+    def at_default(key, value) -> bool:
+        default = SAMPLING_DEFAULTS[key]
+        try:
+            return type(default)(value) == default
+        except (TypeError, ValueError):
+            return False
+
+    return {k: v for k, v in values.items() if not (k in SAMPLING_DEFAULTS and at_default(k, v))}
+
+
 def sampling_identity(cfg) -> dict:
     """What a generated scene file depends on (module docstring); ``cfg``: a typed
     :class:`~spread.sampling.SamplingConfig` (its ``sampler`` a Sampler, its ``guidance`` a GuidanceConfig).
@@ -153,8 +173,8 @@ def sampling_identity(cfg) -> dict:
             "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
             "sampling": {"sampler": cfg.sampler.fingerprint(), "seed": int(cfg.seed), "batch_size": int(cfg.batch_size),
                          "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale), "device": str(cfg.device),
-                         # bf16 sampling changes the numbers (float32, the default, is not spelled)
-                         **({"precision": str(cfg.precision)} if str(getattr(cfg, "precision", "32")) != "32" else {})},
+                         **unspelled_defaults_dropped({"precision": str(getattr(cfg, "precision", "32")),
+                                                       "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0))})},
             "guidance": cfg.guidance.fingerprint(), "numbers_version": NUMBERS_VERSION}
 
 
@@ -230,7 +250,7 @@ def settings(identity: dict) -> dict:
         if key in ("guidance", *WHERE):
             continue
         if key == "sampling" and isinstance(value, dict):
-            for k, v in value.items():
+            for k, v in {**SAMPLING_DEFAULTS, **value}.items():
                 out[k] = Sampler.from_config(v).label if k == "sampler" and isinstance(v, (dict, str)) else v
         elif key == "evaluation" and isinstance(value, dict):
             for k, v in value.items():
@@ -274,8 +294,9 @@ def config_identity(config: dict) -> dict:
     out: dict = {}
     if isinstance(tree.get("guidance"), (dict, str)):
         out["guidance"] = GuidanceConfig.from_config(tree["guidance"]).fingerprint()
-    sampling = {k: tree[k] for k in ("seed", "batch_size", "use_ema", "graph_scale", "device")
+    sampling = {k: tree[k] for k in ("seed", "batch_size", "use_ema", "graph_scale", "device", *SAMPLING_DEFAULTS)
                 if k in tree and ("ckpt" in tree or "sampler" in tree)}  # a sampling run's (not an evaluation's seed)
+    sampling = unspelled_defaults_dropped(sampling)
     if isinstance(tree.get("sampler"), (dict, str)):
         sampling["sampler"] = Sampler.from_config(tree["sampler"]).fingerprint()
     if sampling:

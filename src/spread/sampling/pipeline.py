@@ -9,7 +9,8 @@ One call (:meth:`ScenePipeline.__call__`) on a batch of source scenes (the condi
 1. **encode** them exactly as in training (:class:`~spread.data.SceneDataset` with the checkpoint's point
    settings) and collate into one padded batch;
 2. the method's **denoising problem** (``model.denoising(batch, use_ema, graph_scale)``: its ε-function with EMA
-   weights and classifier-free ``graph_scale``, mask, state size, training schedule, differentiable pose
+   weights and classifier-free ``graph_scale`` — and ``geometry_scale`` for a model with geometry features
+   (``has_geometry``: SPREAD's +Geometry) —, mask, state size, training schedule, differentiable pose
    decoder and its own per-step edit, e.g. DiffuScene's imputation of the known channels);
 3. **callbacks** for this batch (:meth:`ScenePipeline.callbacks`, plus any passed in): per-step edits of the
    predicted x̂_0 (``x0_hook``) or of the sampled state (``sample_hook``) and edits after the sampler
@@ -111,12 +112,22 @@ class ScenePipeline:
     """
 
     def __init__(self, model, dataset, sampler, guidance=None, use_ema: bool = True, graph_scale: float = 1.0,
-                 cuda_graph: bool = False, precision: str = "32"):
+                 cuda_graph: bool = False, precision: str = "32", geometry_scale: float = 1.0):
+        import math
+
         from spread.guidance import GuidanceConfig
         from spread.model import Sampler
 
         if precision not in PRECISIONS:
             raise ValueError(f"sampling precision must be one of {PRECISIONS}, got '{precision}'")
+        geometry_scale = float(geometry_scale)
+        if not math.isfinite(geometry_scale):
+            raise ValueError(f"geometry_scale={geometry_scale}: a finite number (1: the model as trained)")
+        if geometry_scale != 1.0 and not getattr(model, "has_geometry", False):
+            hparams = getattr(model, "hparams", {})
+            kind = ", ".join(f"{k} {hparams[k]}" for k in ("method", "variant") if k in hparams) or type(model).__name__
+            raise ValueError(f"geometry_scale={geometry_scale}: this model ({kind}) has no geometry features to guide; "
+                             f"sample it with geometry_scale=1")
         if cuda_graph and not getattr(model, "cuda_graph_capturable", True):
             raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
                              f"step cannot be captured as a CUDA graph (it reads the batch on the host at every step); "
@@ -127,7 +138,7 @@ class ScenePipeline:
         if config.active and hasattr(model, "resolve_guidance"):  # the method's own realisation of a mode
             config = model.resolve_guidance(config)
         self.guidance = config if config.active else None
-        self.use_ema, self.graph_scale = bool(use_ema), float(graph_scale)
+        self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), float(graph_scale), geometry_scale
         self.cuda_graph, self.precision = bool(cuda_graph), str(precision)
         self.guidance_stats: dict = {}
 
@@ -178,7 +189,9 @@ class ScenePipeline:
         from spread.model.diffusion import denoise
 
         with torch.no_grad():
-            problem = self.model.denoising(batch, self.use_ema, self.graph_scale)
+            # geometry_scale only when set: methods without geometry features do not take it (refused above)
+            extra = {"geometry_scale": self.geometry_scale} if self.geometry_scale != 1.0 else {}
+            problem = self.model.denoising(batch, self.use_ema, self.graph_scale, **extra)
         problem = self.on_device(problem)
         own = self.callbacks(batch, sources, problem) if sources is not None else []
         return denoise(problem, self.sampler, generator, [*own, *callbacks]), problem

@@ -57,7 +57,9 @@ class SamplingConfig:
     folder; sampler: a :class:`~spread.model.Sampler` (or its config / short name); samples_per_graph: k;
     seed; batch_size: samples per forward batch (= per task); workers: Ray actors (0: in this process);
     device: cpu, cuda or auto; threads: torch threads per worker; use_ema: the EMA weights; graph_scale:
-    classifier-free guidance on the graphs (needs a model trained with graph_dropout); resume: skip
+    classifier-free guidance on the graphs (needs a model trained with graph_dropout); geometry_scale: classifier-free
+    guidance on a +Geometry model's geometry features (s: the output with them against the output reading nothing
+    near anything; 1: the model as trained; one network pass more per step); resume: skip
     existing files (false: delete and redo all); renders: top-down truth | generated PNGs of the first samples;
     figures: 3D figures of the first samples, of the kinds in ``figure_kinds`` (``card``: 3D view + relation
     matrix, ``physics``: before | after one Stability run); progress: tqdm bar; guidance: a
@@ -79,6 +81,7 @@ class SamplingConfig:
     threads: int | None = 1
     use_ema: bool = True
     graph_scale: float = 1.0
+    geometry_scale: float = 1.0
     resume: bool = True
     renders: int = 4
     figures: int = 2

@@ -94,7 +94,7 @@ def cached_dataset(data_root: str, split: str, num_points: int, seed: int, geome
 def load_pipeline(cfg) -> ScenePipeline:
     """The pipeline of a :class:`~spread.sampling.SamplingConfig`: its checkpoint's model (SceneDiffusion or a
     baseline, in eval mode on ``cfg.device``), an encoder of ``cfg.data``'s split with the checkpoint's point
-    settings, ``cfg.sampler``, ``cfg.guidance``, ``cfg.use_ema``, ``cfg.graph_scale``. The model and the
+    settings, ``cfg.sampler``, ``cfg.guidance``, ``cfg.use_ema``, ``cfg.graph_scale``, ``cfg.geometry_scale``. The model and the
     encoder are built once per process (:func:`cached_model`, :func:`cached_dataset`)."""
     from spread import readonce
 
@@ -107,7 +107,7 @@ def load_pipeline(cfg) -> ScenePipeline:
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
     dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"], data["geometry_distance"])
     return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,
-                         cuda_graph=cfg.cuda_graph, precision=cfg.precision)
+                         cuda_graph=cfg.cuda_graph, precision=cfg.precision, geometry_scale=cfg.geometry_scale)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,

@@ -342,6 +342,47 @@ def test_ablation_resumes_stage_by_stage(tmp_path):
     assert changed.stages["train/base"] == "done" and ("train", "base", "null") in commands.calls
 
 
+class KilledDuringSample(FakeCommands):
+    """A driver stopped (SIGTERM, a lost node) while one row samples: some scenes written, nothing recorded."""
+
+    def __init__(self, row: str):
+        super().__init__()
+        self.row = row
+
+    def sample(self, overrides):
+        a = args(overrides)
+        if Path(a["out_dir"]).name != self.row:
+            return super().sample(overrides)
+        self.calls.append(("sample", self.row, a["resume"]))
+        scenes = Path(a["out_dir"]) / "scenes"
+        for f in scenes.glob("*.npz"):  # resume=false: the older run's scenes go first, as the real command does
+            f.unlink()
+        (scenes / "g0.npz").write_bytes(b"new")
+        raise KeyboardInterrupt  # not an Exception: nothing catches it, as nothing catches a killed process
+
+
+def test_a_driver_stopped_mid_stage_after_a_change_continues_that_stage_instead_of_redoing_it(tmp_path):
+    """Relaunched with the settings it was stopped with, the stage continues (resume=true: the command keeps the
+    scenes its own record says were made with them); relaunched with other settings again, it is redone."""
+    out = tmp_path / "abl"
+    assert run_ablation(spec(tmp_path), FakeCommands()).ok  # finished once with seed 0
+    changed = ["seed=0", "graph_scale=2.0"]
+    with pytest.raises(KeyboardInterrupt):
+        run_ablation(spec(tmp_path, sample=changed, variants=("geometry",)), KilledDuringSample("geometry"))
+    assert (out / "samples" / "geometry" / "scenes" / "g0.npz").read_bytes() == b"new"
+    commands = FakeCommands()
+    assert run_ablation(spec(tmp_path, sample=changed, variants=("geometry",)), commands).ok
+    assert ("sample", "geometry", "true") in commands.calls  # continued, not redone from scratch
+    assert not list((out / ".begun").glob("*.json"))  # recorded: nothing left begun
+    # stopped again with a change, then relaunched with the older settings: what is there is not theirs
+    with pytest.raises(KeyboardInterrupt):
+        run_ablation(spec(tmp_path, sample=["seed=0", "graph_scale=3.0"], variants=("geometry",)),
+                     KilledDuringSample("geometry"))
+    commands = FakeCommands()
+    assert run_ablation(spec(tmp_path, sample=changed, variants=("geometry",)), commands).ok
+    assert ("sample", "geometry", "false") in commands.calls
+
+
 def test_a_failing_row_blocks_only_itself(tmp_path):
     commands = FakeCommands(fail_guidance=True)
     result = run_ablation(spec(tmp_path), commands)

@@ -36,11 +36,25 @@ Step = tuple  # (name, method: str, key: str, needs: list[str])
 
 class LedgerView:
     """A stand-in for :class:`~spread.experiments.stages.Ledger` inside a task: reads the driver's entries,
-    collects the records (:func:`merge` writes them in the driver's ledger)."""
+    collects the records (:func:`merge` writes them in the driver's ledger); a stage's begun-with inputs it writes
+    itself (one file per stage, :func:`~spread.experiments.stages.begun_file`), so a driver stopped mid-task
+    leaves them."""
 
-    def __init__(self, stages: dict):
+    def __init__(self, stages: dict, path=None):
         self.data = {"stages": stages}
         self.records: list[dict] = []
+        self.path = path
+
+    def begin(self, name: str, inputs: dict) -> None:
+        from spread.experiments.stages import mark_begun
+
+        if self.path is not None:
+            mark_begun(self.path, name, inputs)
+
+    def begun(self, name: str) -> dict | None:
+        from spread.experiments.stages import read_begun
+
+        return None if self.path is None else read_begun(self.path, name)
 
     def inputs(self, name: str) -> dict | None:
         entry = self.data["stages"].get(name)
@@ -89,7 +103,7 @@ def held(slot):
 def run_chain(runner, chain: list[Step], cwd: str) -> dict:
     """One chain in a Ray task: every step through ``runner.attempt`` against a view of the ledger."""
     os.chdir(cwd)
-    runner.ledger = LedgerView(runner.ledger.data["stages"])
+    runner.ledger = LedgerView(runner.ledger.data["stages"], getattr(runner.ledger, "path", None))
     names = [step[0] for step in chain]
     for step in chain:
         attempt(runner, *step)

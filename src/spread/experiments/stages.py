@@ -175,8 +175,32 @@ class StagesResult:
         return not self.errors
 
 
+def begun_file(ledger: Path, name: str) -> Path:
+    """Where a stage's begun-with inputs lie: ``<ledger's folder>/.begun/<name, / as __>.json`` — one file per stage,
+    so concurrent stages (Ray tasks) never write the same file."""
+    return Path(ledger).parent / ".begun" / (name.replace("/", "__") + ".json")
+
+
+def mark_begun(ledger: Path, name: str, inputs: dict) -> None:
+    """Record that the stage ``name`` of the ledger at ``ledger`` begins with ``inputs`` (atomic)."""
+    target = begun_file(ledger, name)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(target, {"name": name, "inputs": inputs, "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
+
+
+def read_begun(ledger: Path, name: str) -> dict | None:
+    """The inputs the stage ``name`` last began with and did not finish (None: none, or an unreadable record)."""
+    try:
+        record = read_json(begun_file(ledger, name))
+    except (OSError, ValueError):
+        return None
+    return record.get("inputs") if isinstance(record, dict) and record.get("name") == name else None
+
+
 class Ledger:
-    """``out_dir/ablation.json``: finished stages with their inputs, seconds and time (atomic writes)."""
+    """``out_dir/ablation.json``: finished stages with their inputs, seconds and time (atomic writes); and each
+    stage's inputs when it begins (:meth:`begin`), so that a driver stopped mid-stage resumes that stage's own work
+    instead of redoing it against the older finished record."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -185,6 +209,13 @@ class Ledger:
     def inputs(self, name: str) -> dict | None:
         entry = self.data["stages"].get(name)
         return None if entry is None else entry["inputs"]
+
+    def begin(self, name: str, inputs: dict) -> None:
+        """Record that the stage ``name`` begins with ``inputs`` (before its command writes anything)."""
+        mark_begun(self.path, name, inputs)
+
+    def begun(self, name: str) -> dict | None:
+        return read_begun(self.path, name)
 
     def record(self, name: str, inputs: dict, seconds: float | None, reason: str | None = None,
                started_at: float | None = None, ended_at: float | None = None, tags: dict | None = None) -> None:
@@ -197,6 +228,7 @@ class Ledger:
                                         if started_at is not None else {}),
                                      **({"redone_because": reason} if reason else {})}
         write_json_atomic(self.path, self.data)
+        begun_file(self.path, name).unlink(missing_ok=True)
 
 
 def run_stage(stage: Stage, ledger: Ledger) -> str:
@@ -205,7 +237,9 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     from spread.runtime.fingerprint import done_check, normalised
 
     inputs = normalised(stage.inputs)
-    before = ledger.inputs(stage.name)
+    # a stage begun and not recorded (its driver stopped): what is on disk was begun with those inputs, not the
+    # finished record's — the same inputs now continue it, other ones redo it
+    before = ledger.begun(stage.name) or ledger.inputs(stage.name)
     finished = stage.finished()
     # a stage folder deleted since the ledger recorded it (what the refusal below asks for) is simply made anew
     present = stage.derived or Path(stage.folder).exists()
@@ -223,6 +257,9 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
                          f"delete that folder or use another out_dir")
     if decision.fresh:
         log.info("▶ %s: %s, redoing it from scratch", stage.name, decision.reason)
+    elif ledger.begun(stage.name) is not None:
+        log.info("▶ %s: continuing the run begun with these inputs (%s)", stage.name, stage.folder)
+    ledger.begin(stage.name, inputs)
     started, started_at = time.perf_counter(), time.time()
     stage.run(not decision.fresh)
     if not stage.finished():
@@ -408,7 +445,7 @@ class StageEngine:
             return False
         from spread.runtime.fingerprint import done_check
 
-        before = self.ledger.inputs(stage.name)
+        before = self.ledger.begun(stage.name) or self.ledger.inputs(stage.name)
         return before is not None and done_check(before, stage.inputs, present=True, finished=stage.finished()).reuse
 
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:

@@ -31,13 +31,15 @@ import contextlib
 import os
 import time
 
+from spread.experiments.begun import mark_begun, read_begun
+
 Step = tuple  # (name, method: str, key: str, needs: list[str])
 
 
 class LedgerView:
     """A stand-in for :class:`~spread.experiments.stages.Ledger` inside a task: reads the driver's entries,
     collects the records (:func:`merge` writes them in the driver's ledger); a stage's begun-with inputs it writes
-    itself (one file per stage, :func:`~spread.experiments.stages.begun_file`), so a driver stopped mid-task
+    itself (one file per stage, :mod:`spread.experiments.begun`), so a driver stopped mid-task
     leaves them."""
 
     def __init__(self, stages: dict, path=None):
@@ -46,14 +48,10 @@ class LedgerView:
         self.path = path
 
     def begin(self, name: str, inputs: dict) -> None:
-        from spread.experiments.stages import mark_begun
-
         if self.path is not None:
             mark_begun(self.path, name, inputs)
 
     def begun(self, name: str) -> dict | None:
-        from spread.experiments.stages import read_begun
-
         return None if self.path is None else read_begun(self.path, name)
 
     def inputs(self, name: str) -> dict | None:

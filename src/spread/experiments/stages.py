@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
 
+from spread.experiments.begun import forget_begun, mark_begun, read_begun
 from spread.io import read_json, write_json_atomic
 from spread.runtime.ray import RaySettings
 
@@ -175,28 +176,6 @@ class StagesResult:
         return not self.errors
 
 
-def begun_file(ledger: Path, name: str) -> Path:
-    """Where a stage's begun-with inputs lie: ``<ledger's folder>/.begun/<name, / as __>.json`` — one file per stage,
-    so concurrent stages (Ray tasks) never write the same file."""
-    return Path(ledger).parent / ".begun" / (name.replace("/", "__") + ".json")
-
-
-def mark_begun(ledger: Path, name: str, inputs: dict) -> None:
-    """Record that the stage ``name`` of the ledger at ``ledger`` begins with ``inputs`` (atomic)."""
-    target = begun_file(ledger, name)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(target, {"name": name, "inputs": inputs, "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
-
-
-def read_begun(ledger: Path, name: str) -> dict | None:
-    """The inputs the stage ``name`` last began with and did not finish (None: none, or an unreadable record)."""
-    try:
-        record = read_json(begun_file(ledger, name))
-    except (OSError, ValueError):
-        return None
-    return record.get("inputs") if isinstance(record, dict) and record.get("name") == name else None
-
-
 class Ledger:
     """``out_dir/ablation.json``: finished stages with their inputs, seconds and time (atomic writes); and each
     stage's inputs when it begins (:meth:`begin`), so that a driver stopped mid-stage resumes that stage's own work
@@ -228,7 +207,7 @@ class Ledger:
                                         if started_at is not None else {}),
                                      **({"redone_because": reason} if reason else {})}
         write_json_atomic(self.path, self.data)
-        begun_file(self.path, name).unlink(missing_ok=True)
+        forget_begun(self.path, name)
 
 
 def run_stage(stage: Stage, ledger: Ledger) -> str:

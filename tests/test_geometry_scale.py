@@ -89,6 +89,37 @@ def test_geometry_scale_inside_graph_guidance_mixes_each_branch():
     assert torch.allclose(both, mixed["0"] + 3.0 * (mixed["G"] - mixed["0"]), atol=1e-5)
 
 
+def test_the_blind_features_are_made_once_per_sample_and_change_no_state(monkeypatch):
+    import spread.model.network as network_module
+    from spread.model.diffusion import denoise
+
+    model = _geometry_model(prediction="epsilon")
+    b = _close_scenes(seed=7)
+    calls = []
+    model.network.perceiver.register_forward_hook(lambda *_: calls.append(1))
+
+    def run(graph_scale):
+        calls.clear()
+        with torch.no_grad():
+            problem = model.denoising(b, use_ema=False, graph_scale=graph_scale, geometry_scale=2.0)
+            states = denoise(problem, "ddim-4", torch.Generator().manual_seed(3))
+        return states, len(calls)
+
+    once, n_once = run(1.0)
+    cfg_once, n_cfg = run(3.0)
+    assert (n_once, n_cfg) == (4 + 1, 2 * 4 + 1)  # a posed pass per step and branch; one blind pass in all
+    monkeypatch.setattr(network_module, "reusable", lambda: False)  # made again at every step, as before
+    every, n_every = run(1.0)
+    cfg_every, n_cfg_every = run(3.0)
+    assert (n_every, n_cfg_every) == (2 * 4, 4 * 4)
+    assert torch.equal(once, every) and torch.equal(cfg_once, cfg_every)
+    # with gradients (training) nothing is kept: the blind pass builds its own graph every call
+    cond = model.network.condition(b)
+    x_t, t = b["x"] * b["mask"][..., None], torch.tensor([5, 6])
+    model.network(x_t, t, cond, blind=True).sum().backward()
+    assert cond.blind == {} and model.network.perceiver.latents.grad is not None
+
+
 def test_a_model_without_geometry_refuses_a_geometry_scale():
     from spread.sampling.pipeline import ScenePipeline
 

@@ -12,7 +12,7 @@ runs the perceiver, then the graph transformer.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import torch
@@ -50,6 +50,10 @@ class Condition:
     pose_scale: torch.Tensor | None = None  # geometry variant: (3,) metres per unit of normalised translation
     pose_offset: torch.Tensor | None = None  # (3,) metres at normalised 0
     real: torch.Tensor | None = None  # (V,) flat indices of the real objects in B·N (so no step reads the mask)
+    #: geometry variant, sampling: the geometry-blind features (they read no pose), made at the first blind pass and
+    #: reused by every later step — keyed by the states' dtype and the autocast in force; shared with
+    #: :meth:`SceneDenoiser.null_condition` (the blind features read no graph either)
+    blind: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def upgrade_state_dict(network: nn.Module, state: dict) -> dict:
@@ -61,6 +65,23 @@ def upgrade_state_dict(network: nn.Module, state: dict) -> dict:
         for hook in module._load_state_dict_pre_hooks.values():
             hook(state, f"{name}." if name else "", {}, True, [], [], [])
     return state
+
+
+def blind_key(x_t: torch.Tensor) -> tuple:
+    """What the geometry-blind features depend on besides the condition: the states' dtype and the autocast in
+    force on their device (``sampling.precision=bf16`` runs the perceiver in bfloat16)."""
+    device = x_t.device.type
+    enabled = torch.is_autocast_enabled(device)
+    return x_t.dtype, enabled, torch.get_autocast_dtype(device) if enabled else None
+
+
+def reusable() -> bool:
+    """Whether features made now (without gradients) may be kept for later steps: not inside torch.compile (a side
+    effect it would trace) and not while a CUDA graph records (its memory is the graph's; the eager warm-up before
+    the recording keeps them)."""
+    if torch.compiler.is_compiling():
+        return False
+    return not (torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
 
 
 def drop_graphs(spatial: torch.Tensor, physical: torch.Tensor, drop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -161,7 +182,19 @@ class SceneDenoiser(nn.Module):
         node's summary input (B, N, dim), with ``geometry_pairs`` each edge's pair input (B, N, N, edge_dim)
         (else None). ``blind``: the same features with every distance read as if no other object were near
         (:func:`~spread.model.geometry.blind_distances`; x_t then only sets the dtype) — the geometry-free branch
-        of classifier-free guidance on the geometry."""
+        of classifier-free guidance on the geometry; they read no pose, so without gradients they are made once
+        per condition and reused (``cond.blind``)."""
+        if blind and not torch.is_grad_enabled():
+            key = blind_key(x_t)
+            if key not in cond.blind:
+                features = self._geometry_features(x_t, cond, True)
+                if not reusable():
+                    return features
+                cond.blind[key] = features
+            return cond.blind[key]
+        return self._geometry_features(x_t, cond, blind)
+
+    def _geometry_features(self, x_t: torch.Tensor, cond: Condition, blind: bool) -> tuple[torch.Tensor, ...]:
         pairs = None
         if blind:
             distance = blind_distances(cond.cloud, pairs=self.pairs_in is not None)

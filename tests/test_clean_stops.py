@@ -89,3 +89,56 @@ def test_a_record_of_processes_that_are_gone_or_of_another_session_stops_nothing
         assert stop_leftover(tmp_path) == [] and not (tmp_path / RECORD).exists()
     finally:
         sleeper.kill()
+
+
+def test_sigterm_inside_an_in_process_training_stage_stops_the_driver_instead_of_failing_the_stage(tmp_path):
+    """Found stopping `spread-ablate` mid-training: Lightning turned the SIGTERM into SIGTERMException, the driver
+    counted it as the stage's failure and started the next training. Now the command stops (exit 143), the stage is
+    neither failed nor recorded, and its begun record stays so a relaunch continues it; a stage's own errors (an
+    exception, a command's SystemExit with a message) still fail that stage alone."""
+    from types import SimpleNamespace
+
+    import lightning.pytorch as pl
+    import torch
+
+    from spread.experiments.stages import TERMINATED, Ledger, Stage, StageEngine
+
+    class Tiny(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.layer = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, batch_idx):
+            if batch_idx == 2:  # the user's `kill <driver pid>`, mid-training
+                os.kill(os.getpid(), signal.SIGTERM)
+            return self.layer(batch[0]).pow(2).mean()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def train(resume: bool) -> None:
+        data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(16, 2)), batch_size=2)
+        pl.Trainer(max_steps=8, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                   enable_model_summary=False, accelerator="cpu", default_root_dir=tmp_path).fit(Tiny(), data)
+
+    ledger = Ledger(tmp_path / "ledger.json")
+    engine = SimpleNamespace(status={}, errors={}, slot=None, ledger=ledger)
+    stage = Stage("train/base", tmp_path / "train", [tmp_path / "train" / "last.ckpt"], {"steps": 8}, train)
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            StageEngine.attempt(engine, "train/base", lambda: stage, [])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert stopped.value.code == TERMINATED
+    assert "train/base" not in engine.status and engine.errors == {}  # not a failed stage
+    assert ledger.begun("train/base") == {"steps": 8} and ledger.inputs("train/base") is None  # a relaunch continues
+
+    def failing(exc):
+        def build():
+            raise exc
+        return build
+
+    assert StageEngine.attempt(engine, "sample/base", failing(ValueError("bad ckpt")), []) is False
+    assert StageEngine.attempt(engine, "evaluate/base", failing(SystemExit("metrics=[nope]: unknown")), []) is False
+    assert engine.status == {"sample/base": "failed", "evaluate/base": "failed"}

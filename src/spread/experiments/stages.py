@@ -210,6 +210,22 @@ class Ledger:
         forget_begun(self.path, name)
 
 
+#: The exit status of a command stopped by SIGTERM (128 + 15), as :mod:`spread.runtime.ray` raises it in a session.
+TERMINATED = 128 + 15
+
+
+def terminated(exc: BaseException) -> bool:
+    """Whether ``exc`` says the command received SIGTERM — Lightning's ``SIGTERMException`` out of a training stage
+    run in this process, or the ``SystemExit(143)`` a Ray session's handler raises — rather than that a stage failed
+    (a command's own ``SystemExit`` with a message is a failure of its stage)."""
+    import sys
+
+    lightning = sys.modules.get("lightning.pytorch.utilities.exceptions")
+    if lightning is not None and isinstance(exc, lightning.SIGTERMException):
+        return True
+    return isinstance(exc, SystemExit) and exc.code == TERMINATED
+
+
 def run_stage(stage: Stage, ledger: Ledger) -> str:
     """Skip, continue, redo or refuse the stage (module docstring, *Resume*) by the platform's done-check
     (:func:`spread.runtime.fingerprint.done_check`); returns "skipped" or "done"."""
@@ -448,6 +464,9 @@ class StageEngine:
         except KeyboardInterrupt:
             raise
         except (Exception, SystemExit) as exc:  # noqa: BLE001 - a failed stage must not lose the other rows
+            if terminated(exc):  # the command was asked to stop, not the stage failed: no later stage may start
+                log.error("■ %s stopped by SIGTERM: the command stops (a relaunch continues this stage)", name)
+                raise SystemExit(TERMINATED) from exc
             message = str(exc) if isinstance(exc, SystemExit) else f"{type(exc).__name__}: {exc}"
             self.status[name], self.errors[name] = "failed", f"{name}: {message}"
             log.error("✗ %s failed: %s\n%s", name, message, traceback.format_exc(limit=6))

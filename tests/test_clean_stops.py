@@ -101,7 +101,8 @@ def test_sigterm_inside_an_in_process_training_stage_stops_the_driver_instead_of
     import lightning.pytorch as pl
     import torch
 
-    from spread.experiments.stages import TERMINATED, Ledger, Stage, StageEngine
+    from spread.experiments.stages import Ledger, Stage, StageEngine
+    from spread.runtime.ray import TERMINATED
 
     class Tiny(pl.LightningModule):
         def __init__(self):
@@ -142,3 +143,24 @@ def test_sigterm_inside_an_in_process_training_stage_stops_the_driver_instead_of
     assert StageEngine.attempt(engine, "sample/base", failing(ValueError("bad ckpt")), []) is False
     assert StageEngine.attempt(engine, "evaluate/base", failing(SystemExit("metrics=[nope]: unknown")), []) is False
     assert engine.status == {"sample/base": "failed", "evaluate/base": "failed"}
+
+
+def test_sigterm_while_a_metric_measures_stops_the_evaluation_instead_of_failing_that_metric(monkeypatch):
+    """The per-scene loop keeps going past a metric that fails (its SystemExit too); the SystemExit(143) that SIGTERM
+    raises in a Ray session while a metric measures is the command's stop, not that metric's failure."""
+    from types import SimpleNamespace
+
+    from spread.evaluation import work
+    from spread.runtime.ray import TERMINATED
+
+    def metric(exc):
+        def evaluate(scene, library):
+            raise exc
+        return {"m": SimpleNamespace(evaluate=evaluate)}
+
+    monkeypatch.setattr(work, "read_only_copy", lambda scene: scene)
+    assert work.measure(metric(SystemExit("no mesh")), "m", object(), None) == "SystemExit: no mesh"
+    assert work.measure(metric(ValueError("bad")), "m", object(), None) == "ValueError: bad"
+    with pytest.raises(SystemExit) as stopped:
+        work.measure(metric(SystemExit(TERMINATED)), "m", object(), None)
+    assert stopped.value.code == 143

@@ -25,6 +25,7 @@ from typing import Sequence
 import numpy as np
 
 from spread.evaluation.protocol import EvalProtocol, FIDConfig
+from spread.runtime.ray import terminated
 
 #: Fault injection for tests: when this environment variable names a file that does not exist yet, the
 #: first task to see it creates the file and kills its own worker process (``os._exit``) after its first
@@ -205,6 +206,8 @@ def measure(metrics: dict, name: str, scene, library) -> tuple[dict, dict, dict]
         except (TypeError, ValueError) as exc:
             raise TypeError(f"its to_dict() is not JSON ({exc})") from None
     except (Exception, SystemExit) as exc:  # this metric fails for this scene; the others stand
+        if terminated(exc):  # SIGTERM while it measured: the command stops, not this metric
+            raise
         return f"{type(exc).__name__}: {str(exc)[:500] or '(no message)'}"
     return values, state, detail
 

@@ -34,7 +34,7 @@ from typing import Callable, Protocol
 
 from spread.experiments.begun import forget_begun, mark_begun, read_begun
 from spread.io import read_json, write_json_atomic
-from spread.runtime.ray import RaySettings
+from spread.runtime.ray import TERMINATED, RaySettings, terminated
 
 log = logging.getLogger("spread.stages")
 
@@ -208,22 +208,6 @@ class Ledger:
                                      **({"redone_because": reason} if reason else {})}
         write_json_atomic(self.path, self.data)
         forget_begun(self.path, name)
-
-
-#: The exit status of a command stopped by SIGTERM (128 + 15), as :mod:`spread.runtime.ray` raises it in a session.
-TERMINATED = 128 + 15
-
-
-def terminated(exc: BaseException) -> bool:
-    """Whether ``exc`` says the command received SIGTERM — Lightning's ``SIGTERMException`` out of a training stage
-    run in this process, or the ``SystemExit(143)`` a Ray session's handler raises — rather than that a stage failed
-    (a command's own ``SystemExit`` with a message is a failure of its stage)."""
-    import sys
-
-    lightning = sys.modules.get("lightning.pytorch.utilities.exceptions")
-    if lightning is not None and isinstance(exc, lightning.SIGTERMException):
-        return True
-    return isinstance(exc, SystemExit) and exc.code == TERMINATED
 
 
 def run_stage(stage: Stage, ledger: Ledger) -> str:

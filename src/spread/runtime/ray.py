@@ -185,8 +185,25 @@ def _record(owner: Path) -> None:
                                               "pids": pids, "started": time.time()})
 
 
+#: The exit status of a command stopped by SIGTERM (128 + 15): what :func:`_terminate` raises in a session.
+TERMINATED = 128 + signal.SIGTERM
+
+
 def _terminate(signum, frame):
     raise SystemExit(128 + signum)
+
+
+def terminated(exc: BaseException) -> bool:
+    """Whether ``exc`` says the command received SIGTERM — the ``SystemExit(143)`` a session's handler raises, or
+    Lightning's ``SIGTERMException`` out of a training run in this process — rather than that one piece of work
+    failed (a command's own ``SystemExit`` with a message is that work's failure). Loops that keep going past a
+    failed stage, scene or metric re-raise these."""
+    import sys
+
+    lightning = sys.modules.get("lightning.pytorch.utilities.exceptions")
+    if lightning is not None and isinstance(exc, lightning.SIGTERMException):
+        return True
+    return isinstance(exc, SystemExit) and exc.code == TERMINATED
 
 
 @contextlib.contextmanager

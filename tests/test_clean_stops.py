@@ -91,11 +91,19 @@ def test_a_record_of_processes_that_are_gone_or_of_another_session_stops_nothing
         sleeper.kill()
 
 
-def test_sigterm_inside_an_in_process_training_stage_stops_the_driver_instead_of_failing_the_stage(tmp_path):
+def _ray_driver_handler(signum, frame):  # what ray.init leaves installed in a driver process
+    sys.exit(signum)
+
+
+@pytest.mark.parametrize("handler", [signal.SIG_DFL, _ray_driver_handler], ids=["lightning", "after_ray_init"])
+def test_sigterm_inside_an_in_process_training_stage_stops_the_driver_instead_of_failing_the_stage(tmp_path,
+                                                                                                   handler):
     """Found stopping `spread-ablate` mid-training: Lightning turned the SIGTERM into SIGTERMException, the driver
     counted it as the stage's failure and started the next training. Now the command stops (exit 143), the stage is
     neither failed nor recorded, and its begun record stays so a relaunch continues it; a stage's own errors (an
-    exception, a command's SystemExit with a message) still fail that stage alone."""
+    exception, a command's SystemExit with a message) still fail that stage alone. Whatever handler is in force:
+    Lightning's own (SIGTERMException) or the one ray.init leaves in a driver (SystemExit(15)), as in a driver that
+    already ran a Ray session."""
     from types import SimpleNamespace
 
     import lightning.pytorch as pl
@@ -125,7 +133,7 @@ def test_sigterm_inside_an_in_process_training_stage_stops_the_driver_instead_of
     ledger = Ledger(tmp_path / "ledger.json")
     engine = SimpleNamespace(status={}, errors={}, slot=None, ledger=ledger)
     stage = Stage("train/base", tmp_path / "train", [tmp_path / "train" / "last.ckpt"], {"steps": 8}, train)
-    previous = signal.getsignal(signal.SIGTERM)
+    previous = signal.signal(signal.SIGTERM, handler)
     try:
         with pytest.raises(SystemExit) as stopped:
             StageEngine.attempt(engine, "train/base", lambda: stage, [])

@@ -194,16 +194,17 @@ def _terminate(signum, frame):
 
 
 def terminated(exc: BaseException) -> bool:
-    """Whether ``exc`` says the command received SIGTERM — the ``SystemExit(143)`` a session's handler raises, or
-    Lightning's ``SIGTERMException`` out of a training run in this process — rather than that one piece of work
-    failed (a command's own ``SystemExit`` with a message is that work's failure). Loops that keep going past a
-    failed stage, scene or metric re-raise these."""
+    """Whether ``exc`` says the command received SIGTERM — the ``SystemExit(143)`` a session's handler raises, the
+    ``SystemExit(15)`` of the handler ``ray.init`` leaves in a driver, or Lightning's ``SIGTERMException`` out of a
+    training run in this process (whichever handler was in force) — rather than that one piece of work failed (a
+    command's own ``SystemExit`` with a message is that work's failure). Loops that keep going past a failed stage,
+    scene or metric re-raise these."""
     import sys
 
     lightning = sys.modules.get("lightning.pytorch.utilities.exceptions")
     if lightning is not None and isinstance(exc, lightning.SIGTERMException):
         return True
-    return isinstance(exc, SystemExit) and exc.code == TERMINATED
+    return isinstance(exc, SystemExit) and exc.code in (TERMINATED, int(signal.SIGTERM))
 
 
 @contextlib.contextmanager

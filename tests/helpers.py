@@ -77,7 +77,9 @@ SESSION_CACHE = "SPREAD_TEST_CACHE"
 
 
 def asset_library(root: Path, categories=None, seed: int = 0):
-    """``build_library(root, categories, seed=seed, processes=2)``: the same library, built once per test session.
+    """``build_library(root, categories, seed=seed)``: the same library, built once per test session (in one process:
+    the suite keeps both cores busy, so a pool would only add its workers' start-up; test_assets checks that a pool
+    builds the same library).
 
     The first call for these arguments builds it in the session's cache folder (under a file lock: the xdist
     workers share it); every call copies those files into ``root`` (byte for byte what a build there writes: the
@@ -97,11 +99,11 @@ def asset_library(root: Path, categories=None, seed: int = 0):
             if not (shared / "index.json").exists():
                 partial = shared.with_name(shared.name + ".partial")
                 shutil.rmtree(partial, ignore_errors=True)
-                build_library(partial, categories=categories, seed=seed, processes=2, progress=False)
+                build_library(partial, categories=categories, seed=seed, processes=1, progress=False)
                 partial.rename(shared)
         shutil.copytree(shared, root, dirs_exist_ok=True)
         return AssetLibrary.load(root)
-    return build_library(root, categories=categories, seed=seed, processes=2, progress=False)
+    return build_library(root, categories=categories, seed=seed, processes=1, progress=False)
 
 
 def make_dataset(root: Path, rooms: int = 12, seed: int = 7, max_objects: int = 8, categories=None) -> Path:
@@ -141,7 +143,7 @@ def _generate(out: Path, lib: Path, rooms: int, seed: int, max_objects: int) -> 
     from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
     from spread.procgen.room_types import RoomConfig
 
-    generate_dataset(out, DatasetConfig(rooms=rooms, seed=seed, processes=2, renders=0, val_fraction=0.2,
+    generate_dataset(out, DatasetConfig(rooms=rooms, seed=seed, processes=1, renders=0, val_fraction=0.2,
                                         test_fraction=0.3, assets=AssetSource(copy_from=str(lib)),
                                         room=RoomConfig(max_objects=max_objects)), progress=False)
 

@@ -139,6 +139,17 @@ class Dashboard:
         self.stop()
         raise AssertionError("spread-dashboard did not answer in 120 s")
 
+    def commands(self) -> list[str]:
+        """The command lines of the dashboard's processes (its process group: the MLflow server and its workers)."""
+        lines = []
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                if os.getpgid(int(pid)) == self.proc.pid:
+                    lines.append(Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode())
+            except (OSError, ProcessLookupError):
+                pass  # ended while we looked
+        return lines
+
     def stop(self) -> None:
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGTERM)
@@ -168,6 +179,9 @@ def test_dashboard_serves_the_ui_and_lists_experiments_runs_and_metrics_over_res
     assert len(runs) == 2
     metrics = {m["key"] for r in runs for m in r["data"].get("metrics", [])}
     assert {"grecall", "grecall_lo", "grecall_hi", "train/loss"} <= metrics
+    # the MLflow server without its job runner (huey consumers for GenAI jobs): nothing the dashboard serves needs it
+    commands = dashboard.commands()
+    assert any("mlflow" in c for c in commands) and not any("huey" in c for c in commands), commands
 
 
 def test_dashboard_refuses_unknown_arguments_by_name():

@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None) -> None:
     command, uri = server_command(values)
     print(f"spread-dashboard: store {uri}\nspread-dashboard: open http://{values['host']}:{values['port']}/ "
           f"(Ctrl-C stops it)", flush=True)
+    # MLflow's job runner (huey consumer processes for its GenAI jobs) serves nothing the dashboard shows: off, unless
+    # the user's environment turns it on
+    os.environ.setdefault("MLFLOW_SERVER_ENABLE_JOB_EXECUTION", "false")
     os.execv(command[0], command)
 
 

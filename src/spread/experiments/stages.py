@@ -218,7 +218,8 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     inputs = normalised(stage.inputs)
     # a stage begun and not recorded (its driver stopped): what is on disk was begun with those inputs, not the
     # finished record's — the same inputs now continue it, other ones redo it
-    before = ledger.begun(stage.name) or ledger.inputs(stage.name)
+    begun = ledger.begun(stage.name)
+    before = begun or ledger.inputs(stage.name)
     finished = stage.finished()
     # a stage folder deleted since the ledger recorded it (what the refusal below asks for) is simply made anew
     present = stage.derived or Path(stage.folder).exists()
@@ -236,7 +237,7 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
                          f"delete that folder or use another out_dir")
     if decision.fresh:
         log.info("▶ %s: %s, redoing it from scratch", stage.name, decision.reason)
-    elif ledger.begun(stage.name) is not None:
+    elif begun is not None:
         log.info("▶ %s: continuing the run begun with these inputs (%s)", stage.name, stage.folder)
     ledger.begin(stage.name, inputs)
     started, started_at = time.perf_counter(), time.time()

@@ -25,9 +25,10 @@ Rows:
 * **nearest** — the dense search kernel and the pruned search against exact brute force (torch on the GPU) at B = 2
   (largest distance difference, points off by more than 1 µm), then ms per call at B = 16 and 64.
 * **sample s/scene** — CUDA, DDIM-50 at batch 64 synthetic rooms: eager float32, CUDA graph float32, CUDA graph bf16;
-  with ``--data``: the platform's ``ScenePipeline`` on the dataset's graphs (64 per batch) with the release's recipe
-  (DDPM-1000 + ``guidance=refine``, 100 iterations, paper weights) and the paper's (DDIM-50 + ``guidance=paper``),
-  CUDA graph + bf16; the refine row once more with ``guidance.detect=host`` (python-fcl and scipy on host copies,
+  with ``--data``: the platform's ``ScenePipeline`` on the dataset's graphs (repeated to 128, batched 64 at a time
+  as ``spread-sample`` batches them: sorted by object count) with the release's recipe (DDPM-1000 + ``guidance=refine``,
+  100 iterations, paper weights; estimated as 10 × DDPM-100 + 100/3 × three refine iterations) and the paper's
+  (``guidance=paper``), CUDA graph + bf16; DDPM once more in the earlier slots' layout (one batch of every size); the refine row once more with ``guidance.detect=host`` (python-fcl and scipy on host copies,
   against the default's search on the GPU). The network has random weights (paper size, untrained): samples
   interpenetrate more than a trained model's, so the guidance rows are an upper bound of its collision work.
 """
@@ -166,8 +167,10 @@ def cuda_time(fn, warmup: int, steps: int) -> tuple[float, list[float]]:
 
 
 def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: bool = False,
-               pruned: bool = False, mode: str | None = None, variants=("base", "geometry")) -> dict:
-    """``mode``: torch.compile's mode for the compiled step (``reduce-overhead``: CUDA graphs)."""
+               pruned: bool = False, mode: str | None = None, variants=("base", "geometry"),
+               profile_out: Path | None = None) -> dict:
+    """``mode``: torch.compile's mode for the compiled step (``reduce-overhead``: CUDA graphs); ``profile``: the top
+    CUDA kernels of one step printed (8 rows), or appended to ``profile_out`` (30 rows, headed by the row's name)."""
     import torch
 
     out = {}
@@ -192,10 +195,13 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: 
         torch.cuda.reset_peak_memory_stats()
         n = steps if nearest == "dense" else max(2, steps // 4)
         median, _ = cuda_time(step, 3, n)
-        if profile:
-            print(profile_step(step), flush=True)
         name = variant + ("" if nearest == "dense" else " (pruned search)") + (" compiled" if compile_step else "") \
             + (f" {mode}" if compile_step and mode else "")
+        if profile and profile_out is not None:
+            with open(profile_out, "a") as f:
+                f.write(f"## train {name}: B={B} N={N} M={M}, {median:.4f} s/step\n{profile_step(step, 30)}\n\n")
+        elif profile:
+            print(profile_step(step), flush=True)
         out[f"train/{name}/s_per_step"] = round(median, 4)
         out[f"train/{name}/peak_GiB"] = round(torch.cuda.max_memory_allocated() / 2 ** 30, 2)
         print(f"  train {name}: {median:.4f} s/step", flush=True)
@@ -290,15 +296,15 @@ def kernel_rows(N: int, M: int, device: str = "cuda", sizes: tuple = (4, 64)) ->
     return out
 
 
-def profile_step(step) -> str:
-    """The top CUDA kernels of one call of ``step`` (torch.profiler), one line each."""
+def profile_step(step, rows: int = 8) -> str:
+    """The top ``rows`` CUDA kernels of one call of ``step`` (torch.profiler), one line each."""
     import torch
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         step()
         torch.cuda.synchronize()
-    return prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=8, max_name_column_width=50)
+    return prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=rows, max_name_column_width=50)
 
 
 def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
@@ -349,7 +355,26 @@ def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
     return out
 
 
+def platform_batches(scenes: list, B: int) -> list[list]:
+    """``scenes`` as ``spread-sample`` batches them (:func:`spread.sampling.plan.plan_batches`): sorted by object
+    count, then ``B`` at a time, so each batch is padded to its own largest scene only."""
+    ordered = sorted(scenes, key=lambda s: s.num_objects)  # stable: equal sizes keep their order
+    return [ordered[i:i + B] for i in range(0, len(ordered), B)]
+
+
+def padded_share(batches: list[list]) -> float:
+    """The share of the batches' object slots that are padding (each batch padded to its largest scene)."""
+    real = sum(s.num_objects for b in batches for s in b)
+    slots = sum(len(b) * max(s.num_objects for s in b) for b in batches)
+    return 1.0 - real / slots
+
+
 def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
+    """The platform's ``ScenePipeline`` on the dataset's rooms, repeated to 2·B scenes and batched as ``spread-sample``
+    batches them (sorted by object count: :func:`platform_batches`), CUDA graph + bf16. DDPM's per-step work does not
+    depend on its number of steps, so DDPM-1000 is estimated as 10 × DDPM-100; the refine iterations are measured on
+    a DDIM-2 sample and scaled to 100. One row more in the earlier slots' layout (``mixed``: one batch of the first B
+    scenes, every size padded to the largest room), for comparison with their figures."""
     import torch
 
     from spread.assets.library import AssetLibrary
@@ -358,51 +383,71 @@ def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
     from spread.model import ModelConfig
     from spread.model.module import SceneDiffusion
     from spread.sampling.pipeline import ScenePipeline
+    from spread.scene import read_scene
 
     out = {}
     library = AssetLibrary.load(data / "assets")
     M = 2000 if not quick else 64
-    from spread.scene import read_scene
-
     files = [f for split in ("test", "val", "train") for f in sorted((data / split).glob("*.npz"))]
     dataset = SceneDataset(data, "test", library=library, num_points=M)  # the encoder (graphs, points)
-    scenes = [read_scene(f, assets=library) for f in files[:B]]
-    while len(scenes) < B:
-        scenes += scenes[:B - len(scenes)]
+    rooms = [read_scene(f, assets=library) for f in files[:2 * B]]
+    scenes = [rooms[i % len(rooms)] for i in range(2 * B)]
+    layouts = {"sorted": platform_batches(scenes, B), "mixed": [scenes[:B]]}
+    for layout, batches in layouts.items():
+        out[f"pipeline/{layout}/padded_share"] = round(padded_share(batches), 3)
+        out[f"pipeline/{layout}/batch_objects"] = [[min(s.num_objects for s in b), max(s.num_objects for s in b)]
+                                                   for b in batches]
+    print(f"  {len(rooms)} rooms → {2 * B} scenes; padded object slots: "
+          + ", ".join(f"{k} {out[f'pipeline/{k}/padded_share']:.0%} {out[f'pipeline/{k}/batch_objects']}"
+                      for k in layouts), flush=True)
     torch.manual_seed(0)
     config = ModelConfig(num_points=M) if not quick else ModelConfig(num_points=M, dim=64, depth=2, num_latents=16)
     m = SceneDiffusion("geometry", config, bounds=load_stats(data / "stats.json")["bounds_translations"])
     m = m.to("cuda" if torch.cuda.is_available() else "cpu").eval()
-    # the release's recipe in two parts: DDPM-1000 (the network's 1000 steps), then refine iterations measured on a
-    # DDIM-2 sample (as interpenetrating as an untrained network's DDPM-1000 output) and scaled to 100
     refine_iterations = 3
-    # (DDPM-1000 last: the longest row, measured in earlier slots; a slot cut short keeps the guided rows)
-    recipes = [(f"ddim2+refine{refine_iterations}", "ddim-2", {"mode": "refine", "iterations": refine_iterations}),
+    ddpm_steps = 10 if quick else 100
+    recipes = [("sorted", f"ddim2+refine{refine_iterations}", "ddim-2",
+                {"mode": "refine", "iterations": refine_iterations}),
                # the same with the guidance's geometry found on the host (python-fcl, scipy), as before the device path
-               (f"ddim2+refine{refine_iterations} detect=host", "ddim-2",
+               ("sorted", f"ddim2+refine{refine_iterations} detect=host", "ddim-2",
                 {"mode": "refine", "iterations": refine_iterations, "detect": "host"}),
-               ("ddim3+paper", "ddim-3", {"mode": "paper"}),
-               ("ddpm1000 unguided", "ddpm-10" if quick else "ddpm", {"mode": "none"})]
-    # warm-up, untimed: the first batch builds the kernels and the CUDA graph of each bucket
-    ScenePipeline(m, dataset, "ddim-2", recipes[0][2], cuda_graph=True, precision="bf16")(
-        scenes, [torch.Generator().manual_seed(i) for i in range(len(scenes))])
-    for name, sampler, guidance in recipes:
+               ("sorted", "ddim3+paper", "ddim-3", {"mode": "paper"}),
+               ("sorted", f"ddpm{ddpm_steps} unguided", f"ddpm-{ddpm_steps}", {"mode": "none"}),
+               ("mixed", f"ddpm{ddpm_steps} unguided", f"ddpm-{ddpm_steps}", {"mode": "none"})]
+
+    def run(batches, sampler, guidance) -> tuple[float, dict]:
         pipe = ScenePipeline(m, dataset, sampler, guidance, cuda_graph=True, precision="bf16")
-        gens = [torch.Generator().manual_seed(i) for i in range(len(scenes))]
-        t0 = time.perf_counter()
-        pipe(scenes, gens)
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        seconds = time.perf_counter() - t0
-        stats = pipe.guidance_stats
-        out[f"pipeline/{name}/s_per_scene"] = round(seconds / len(scenes), 4)
+        seconds, totals = 0.0, {}
+        for batch in batches:
+            gens = [torch.Generator().manual_seed(i) for i in range(len(batch))]
+            t0 = time.perf_counter()
+            pipe(batch, gens)
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            seconds += time.perf_counter() - t0
+            for k, v in (pipe.guidance_stats or {}).items():
+                totals[k] = totals.get(k, 0) + v if isinstance(v, (int, float)) else v
+        return seconds, totals
+
+    for batches in layouts.values():  # warm-up, untimed: the kernels and each batch size's CUDA graph are built
+        run(batches, "ddim-2", recipes[0][3])
+    for layout, name, sampler, guidance in recipes:
+        batches = layouts[layout]
+        n = sum(len(b) for b in batches)
+        seconds, stats = run(batches, sampler, guidance)
+        key = f"pipeline/{layout}/{name}"
+        out[f"{key}/s_per_scene"] = round(seconds / n, 4)
         if stats:
-            out[f"pipeline/{name}/guidance"] = {k: round(v, 2) if isinstance(v, float) else v for k, v in stats.items()}
-        print(f"  {name}: {seconds / len(scenes):.4f} s/scene ({seconds:.1f} s per batch of {len(scenes)}); "
-              f"guidance {stats}", flush=True)
-    unguided = out["pipeline/ddpm1000 unguided/s_per_scene"]
-    refine = out[f"pipeline/ddim2+refine{refine_iterations}/s_per_scene"]
-    out["pipeline/ddpm1000+refine100 (estimate)/s_per_scene"] = round(unguided + refine * 100 / refine_iterations, 3)
+            out[f"{key}/guidance"] = {k: round(v, 2) if isinstance(v, float) else v for k, v in stats.items()}
+        print(f"  {layout} {name}: {seconds / n:.4f} s/scene ({seconds:.1f} s for {n} scenes in {len(batches)} "
+              f"batches); guidance {stats}", flush=True)
+    scale = 1000 // ddpm_steps
+    for layout in layouts:
+        out[f"pipeline/{layout}/ddpm1000 unguided (estimate: {scale} × ddpm{ddpm_steps})/s_per_scene"] = round(
+            scale * out[f"pipeline/{layout}/ddpm{ddpm_steps} unguided/s_per_scene"], 4)
+    refine = out[f"pipeline/sorted/ddim2+refine{refine_iterations}/s_per_scene"]
+    out["pipeline/sorted/ddpm1000+refine100 (estimate)/s_per_scene"] = round(
+        scale * out[f"pipeline/sorted/ddpm{ddpm_steps} unguided/s_per_scene"] + refine * 100 / refine_iterations, 3)
     return out
 
 
@@ -421,6 +466,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, help="parts: train nearest sample compile pipeline")
     ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
     ap.add_argument("--profile", action="store_true", help="print the top CUDA kernels of one training step")
+    ap.add_argument("--profile-out", type=Path, default=None,
+                    help="with --profile: append 30 kernel rows per training row (eager and compiled) to this file")
     ap.add_argument("--compile-mode", default=None, help="torch.compile mode of the compiled step (reduce-overhead)")
     ap.add_argument("--variants", nargs="*", default=["base", "geometry"], help="variants of the compiled step")
     ap.add_argument("--json", type=Path)
@@ -450,11 +497,13 @@ def main() -> None:
     steps = 4 if args.quick else 10
     if torch.cuda.is_available():
         torch.backends.cuda.matmul.allow_tf32 = False  # float32 means float32 (the kernel's comparisons too)
-        cuda_parts = {"train": lambda: train_rows(B, N, M, steps, False, profile=args.profile),
+        cuda_parts = {"train": lambda: train_rows(B, N, M, steps, False, profile=args.profile,
+                                                  profile_out=args.profile_out),
                       "nearest": lambda: nearest_rows(N, M),
                       "sample": lambda: sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50),
                       "compile": lambda: train_rows(B, N, M, steps, True, mode=args.compile_mode,
-                                                    variants=args.variants)}
+                                                    variants=args.variants, profile=args.profile,
+                                                    profile_out=args.profile_out)}
         for part in ("train", "nearest", "sample", "compile"):  # the compiled step last: it compiles for minutes
             if part in parts:
                 results |= cuda_parts[part]()

@@ -6,7 +6,9 @@
 #      paper size on the carried rooms (2-51 objects: one compile, one dynamic recompile): perf/steps_per_s per 10
 #      steps in lightning_metrics.csv (the fourth slot's run was still compiling after 230 s, before fullgraph=True);
 #   3. DDIM-50 sampling at batch 64 (eager, CUDA graph, bf16);
-#   4. the guided pipeline on real rooms (refine both ways, paper guidance, DDPM-1000) at batch 64.
+#   4. the guided pipeline on real rooms (refine both ways, paper guidance, DDPM-1000) at batch 64;
+#   5. where a training step's GPU time goes: the top 30 CUDA kernels of one eager step, base and +Geometry
+#      (profile_train.txt; what +Geometry adds beyond the arithmetic is what the ≤ 1.3× ratio waits on).
 # (The search a/b of the last slots is done: 32 queries a program won, the default since; OLD=<file> runs it again.)
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata, then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
@@ -44,3 +46,7 @@ mark "sample"
 timeout "${PIPELINE_S:-130}" $PY benchmarks/bench_gpu.py --skip-counts --only pipeline --data "$ROOMS" \
   --json "$OUT/pipeline.json" 2>&1 | quiet | tail -20
 mark "pipeline"
+
+timeout "${PROFILE_S:-60}" $PY benchmarks/bench_gpu.py --skip-counts --only train --profile \
+  --profile-out "$OUT/profile_train.txt" --json "$OUT/train_profiled.json" 2>&1 | quiet | tail -6
+mark "profile"

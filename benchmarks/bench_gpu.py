@@ -356,10 +356,13 @@ def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
 
 
 def platform_batches(scenes: list, B: int) -> list[list]:
-    """``scenes`` as ``spread-sample`` batches them (:func:`spread.sampling.plan.plan_batches`): sorted by object
-    count, then ``B`` at a time, so each batch is padded to its own largest scene only."""
-    ordered = sorted(scenes, key=lambda s: s.num_objects)  # stable: equal sizes keep their order
-    return [ordered[i:i + B] for i in range(0, len(ordered), B)]
+    """``scenes`` in the batches ``spread-sample`` makes of them (:func:`spread.sampling.plan.plan_batches`: sorted by
+    object count, then ``B`` at a time, so each batch is padded to its own largest scene only); a repeated scene counts
+    as one more graph."""
+    from spread.sampling.plan import Graph, plan_batches
+
+    graphs = [Graph(f"{i:06d}", "", s.num_objects) for i, s in enumerate(scenes)]
+    return [[scenes[int(item.graph.scene_id)] for item in plan.items] for plan in plan_batches(graphs, 1, B, 0)]
 
 
 def padded_share(batches: list[list]) -> float:

@@ -38,15 +38,15 @@ def one_thread():
     torch.set_num_threads(before)
 
 
-#: test modules by their share of a ``make test`` run, heaviest first (measured on 2 cores, 2026-11-28: 256 s down
-#: to 20 s of the 1,923 s). With ``--dist loadfile`` each module goes whole to one worker in collection order (the
+#: test modules by their share of a ``make test`` run, heaviest first (measured on 2 cores, 2026-11-29: 222 s down
+#: to 16 s of ~2,000 s). With ``--dist loadfile`` each module goes whole to one worker in collection order (the
 #: Makefile passes ``--no-loadscope-reorder``: xdist would otherwise order modules by their number of tests);
 #: handing out the long ones first keeps both workers busy to the end instead of leaving one long module alone at
 #: the tail.
-HEAVY_MODULES = ("test_plugins", "test_evaluate", "test_scaleout", "test_hostile_round4", "test_ablate_report",
-                 "test_compare", "test_train_sample", "test_robustness", "test_notebooks", "test_gpu_paths",
-                 "test_ablate_seeds", "test_dashboard", "test_cli_defaults", "test_procgen", "test_hostile_inputs",
-                 "test_clean_stops", "test_registry_regression", "test_readonce", "test_assets")
+HEAVY_MODULES = ("test_hostile_round4", "test_evaluate", "test_ablate_report", "test_scaleout", "test_compare",
+                 "test_dashboard", "test_gpu_paths", "test_train_sample", "test_ablate_seeds", "test_robustness",
+                 "test_plugins", "test_procgen", "test_cli_defaults", "test_hostile_inputs", "test_registry_regression",
+                 "test_readonce", "test_documented_commands", "test_clean_stops", "test_assets", "test_notebooks")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -40,7 +40,7 @@ def dataset(tmp_path_factory):
     lib = tmp_path_factory.mktemp("evlib") / "assets"
     asset_library(lib)
     out = tmp_path_factory.mktemp("evdata") / "data"
-    generate_dataset(out, DatasetConfig(rooms=ROOMS, seed=5, processes=2, renders=0, val_fraction=0.0,
+    generate_dataset(out, DatasetConfig(rooms=ROOMS, seed=5, processes=1, renders=0, val_fraction=0.0,
                                         test_fraction=1.0, assets=AssetSource(copy_from=str(lib)),
                                         room=RoomConfig(max_objects=24)), progress=False)
     assert len(list_scene_files(out / "test")) == ROOMS

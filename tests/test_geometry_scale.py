@@ -181,6 +181,7 @@ def checkpoints(tmp_path_factory, dataset):
     return {v: out / v / "checkpoints" / "last.ckpt" for v in ("geometry", "base")}
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_spread_sample_with_geometry_scale_records_it_redoes_other_settings_and_refuses_a_base_model(
         checkpoints, dataset, tmp_path):
     scenes = tmp_path / "samples"

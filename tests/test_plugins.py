@@ -125,6 +125,50 @@ def test_a_plugin_guidance_term_is_switched_on_by_name_in_spread_sample(plugin_s
     assert record["guidance"]["floor_push"] == 0.5 and record["guidance_label"] == "paper(floor_push=0.5)"
 
 
+def test_every_entry_point_group_finds_the_example_and_its_term_is_one_more_setting(plugin_site, tmp_path):
+    """The fast guard of the slow command-line tests below (make test-slow runs those): in a process that sees the
+    installed example, each of the four groups lists its entry with the entry point as its origin, and the plugin
+    term's weight is part of a ``spread-sample`` setting as the built-ins' are: its fingerprint (a changed weight
+    names it), and the acting weights and label that the wandb and MLflow tags are made of."""
+    code = """
+import json, sys
+from pathlib import Path
+from spread.configs import compose
+from spread.metrics.registry import METRICS
+from spread.guidance.terms import TERMS_REGISTRY
+from spread.methods.registry import METHODS, method_names
+from spread.physics.engines import ENGINES
+from spread.runtime.fingerprint import changed_keys, point_fingerprint, typed_command
+root = Path(sys.argv[1])
+origins = {r.kind: r.origin(n) for r, n in ((METRICS, "below_floor"), (TERMS_REGISTRY, "floor_push"),
+                                             (METHODS, "jitter_truth"), (ENGINES, "static"))}
+base = [f"ckpt={root / 'm.ckpt'}", f"data.root={root / 'data'}", f"out_dir={root / 'out'}", "guidance=refine",
+        "guidance.collision=0", "guidance.gravity=0", "guidance.relation=0", "guidance.iterations=1"]
+half, more = (compose("sample", [*base, f"+guidance.terms.floor_push={w}"]) for w in (0.5, 0.7))
+guidance = typed_command(half).guidance
+print(json.dumps({"origins": origins, "methods": method_names(), "label": METHODS.get("jitter_truth").label,
+                  "weights": guidance.weights(nonzero=True), "guidance_label": guidance.label,
+                  "fingerprint": point_fingerprint(half)["guidance"],
+                  "changed": changed_keys(point_fingerprint(half), point_fingerprint(more))}))
+"""
+    (tmp_path / "m.ckpt").write_bytes(b"weights")  # the fingerprint hashes files, never loads them
+    (tmp_path / "data" / "test").mkdir(parents=True)
+    (tmp_path / "data" / "stats.json").write_text("{}")
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(plugin_site), "WANDB_MODE": "disabled"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    seen = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert seen["origins"] == {
+        "metric": "entry point 'below_floor = spread_plugin_example:BelowFloorRate' (spread-plugin-example)",
+        "guidance term": "entry point 'floor_push = spread_plugin_example:FLOOR_PUSH' (spread-plugin-example)",
+        "method": "entry point 'jitter_truth = spread_plugin_example:JITTER_TRUTH' (spread-plugin-example)",
+        "physics engine": "entry point 'static = spread_plugin_example:STATIC_ENGINE' (spread-plugin-example)"}
+    assert seen["methods"][-1] == "jitter_truth" and seen["label"] == "Jittered ground truth"
+    assert seen["weights"] == {"floor_push": 0.5} and seen["guidance_label"] == "refine(floor_push=0.5,iterations=1)"
+    assert seen["fingerprint"]["floor_push"] == 0.5 and seen["fingerprint"]["iterations"] == 1
+    assert seen["changed"] == ["guidance.floor_push"]
+
+
 # ---- a plugin's term is one more setting: tags, fingerprints, re-launches, tables, reports -----------------------
 
 #: A guided run whose only acting term is the plugin's, cheap to evaluate (GRecall only, no FID).
@@ -148,6 +192,7 @@ def wandb_tags(out: Path) -> list[str]:
     raise AssertionError(f"{log}: no run record")
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_plugin_term_is_named_in_tags_and_fingerprints_and_a_changed_weight_redoes_the_run(plugin_site, dataset,
                                                                                                checkpoint, tmp_path):
     from mlflow import MlflowClient
@@ -176,6 +221,7 @@ def test_a_plugin_term_is_named_in_tags_and_fingerprints_and_a_changed_weight_re
     assert point["short"] != first and point["short"] == short(point["fingerprint"])
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_plugin_term_and_the_refinement_iterations_are_rows_of_the_sweep_and_the_report(plugin_site, dataset,
                                                                                           checkpoint, tmp_path):
     from spread.experiments.sweep import read_results_csv
@@ -214,6 +260,7 @@ def test_a_plugin_term_and_the_refinement_iterations_are_rows_of_the_sweep_and_t
     assert "grecall_vs_floor_push.png" in plots and "grecall_vs_iterations.png" in plots
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_spread_ablate_redoes_the_guidance_row_when_a_plugin_terms_weight_changes(plugin_site, dataset, checkpoint,
                                                                                  tmp_path):
     out = tmp_path / "ablate"
@@ -238,6 +285,7 @@ def test_spread_ablate_redoes_the_guidance_row_when_a_plugin_terms_weight_change
     assert sampled["fingerprint"]["guidance"]["floor_push"] == 0.7
 
 
+@pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_plugin_method_is_a_row_of_spread_compare(plugin_site, dataset, tmp_path):
     from spread.data.stats import load_stats
 

@@ -12,7 +12,7 @@
 # (The search a/b of the last slots is done: 32 queries a program won, the default since; OLD=<file> runs it again.)
 # The parts' limits (75 + TRAIN_S 280 + 90 + PIPELINE_S 130 + PROFILE_S 45 s) sum to 620 s, over one device call's
 # 600: the parts usually end before their limits, and a call cut short loses the last part only (the profile).
-# On a bare machine (docs/gpu.md): carry .whl and .gpudata, then
+# On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
 set -u
 OUT=${OUT:-gpu_out}; ROOMS=${ROOMS:-.gpudata/rooms}; OLD=${OLD:-}; PY=${PY:-python3}

@@ -129,7 +129,7 @@ def test_every_entry_point_group_finds_the_example_and_its_term_is_one_more_sett
     """The fast guard of the slow command-line tests below (make test-slow runs those): in a process that sees the
     installed example, each of the four groups lists its entry with the entry point as its origin, and the plugin
     term's weight is part of a ``spread-sample`` setting as the built-ins' are: its fingerprint (a changed weight
-    names it), and the acting weights and label that the wandb and MLflow tags are made of."""
+    names it), its label, and the sampling run's wandb and MLflow tags."""
     code = """
 import json, sys
 from pathlib import Path
@@ -139,19 +139,23 @@ from spread.guidance.terms import TERMS_REGISTRY
 from spread.methods.registry import METHODS, method_names
 from spread.physics.engines import ENGINES
 from spread.runtime.fingerprint import changed_keys, point_fingerprint, typed_command
+from spread.tracking.sampling_mlflow import sampling_run_tags
+from spread.tracking.sampling_wandb import sampling_tags
 root = Path(sys.argv[1])
 origins = {r.kind: r.origin(n) for r, n in ((METRICS, "below_floor"), (TERMS_REGISTRY, "floor_push"),
                                              (METHODS, "jitter_truth"), (ENGINES, "static"))}
 base = [f"ckpt={root / 'm.ckpt'}", f"data.root={root / 'data'}", f"out_dir={root / 'out'}", "guidance=refine",
         "guidance.collision=0", "guidance.gravity=0", "guidance.relation=0", "guidance.iterations=1"]
 half, more = (compose("sample", [*base, f"+guidance.terms.floor_push={w}"]) for w in (0.5, 0.7))
-guidance = typed_command(half).guidance
+command = typed_command(half)
+mlflow_tags = {k: v for k, v in sampling_run_tags(command).items() if k.startswith("spread.guidance")}
 print(json.dumps({"origins": origins, "methods": method_names(), "label": METHODS.get("jitter_truth").label,
-                  "weights": guidance.weights(nonzero=True), "guidance_label": guidance.label,
+                  "wandb_tags": sampling_tags(command.ckpt, command.sampler, command.guidance),
+                  "mlflow_tags": mlflow_tags,
                   "fingerprint": point_fingerprint(half)["guidance"],
                   "changed": changed_keys(point_fingerprint(half), point_fingerprint(more))}))
 """
-    (tmp_path / "m.ckpt").write_bytes(b"weights")  # the fingerprint hashes files, never loads them
+    torch.save({"hyper_parameters": {"variant": "geometry", "method": "spread"}, "state_dict": {}}, tmp_path / "m.ckpt")
     (tmp_path / "data" / "test").mkdir(parents=True)
     (tmp_path / "data" / "stats.json").write_text("{}")
     proc = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=300,
@@ -164,7 +168,9 @@ print(json.dumps({"origins": origins, "methods": method_names(), "label": METHOD
         "method": "entry point 'jitter_truth = spread_plugin_example:JITTER_TRUTH' (spread-plugin-example)",
         "physics engine": "entry point 'static = spread_plugin_example:STATIC_ENGINE' (spread-plugin-example)"}
     assert seen["methods"][-1] == "jitter_truth" and seen["label"] == "Jittered ground truth"
-    assert seen["weights"] == {"floor_push": 0.5} and seen["guidance_label"] == "refine(floor_push=0.5,iterations=1)"
+    assert seen["wandb_tags"] == ["geometry", "ddim-50", "guidance", "guidance=refine", "floor_push=0.5"]
+    assert seen["mlflow_tags"] == {"spread.guidance": "refine", "spread.guidance.floor_push": "0.5",
+                                   "spread.guidance_label": "refine(floor_push=0.5,iterations=1)"}
     assert seen["fingerprint"]["floor_push"] == 0.5 and seen["fingerprint"]["iterations"] == 1
     assert seen["changed"] == ["guidance.floor_push"]
 

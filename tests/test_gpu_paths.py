@@ -320,7 +320,7 @@ def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_
     """``model.compile=true model.compile_mode=reduce-overhead`` (CUDA graphs on a GPU): the step's loss is compiled
     once in that mode as one graph, each step is marked as a new CUDA-graph step, and the loss handed on is not the graph's own
     buffer; an unknown mode is refused by name. Dynamo's ``eager`` backend: ``fullgraph=True`` still fails on any
-    graph break, and the test above runs the same step through aot_eager (its backward traced too)."""
+    graph break, and the test above compiles the training loss through aot_eager (its backward traced too)."""
     from spread.model import ModelConfig
     from spread.model.module import SceneDiffusion
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))

@@ -28,8 +28,9 @@ Rows:
   with ``--data``: the platform's ``ScenePipeline`` on the dataset's graphs (repeated to 128, batched 64 at a time
   as ``spread-sample`` batches them: sorted by object count) with the release's recipe (DDPM-1000 + ``guidance=refine``,
   100 iterations, paper weights; estimated as 10 × DDPM-100 + 100/3 × three refine iterations) and the paper's
-  (``guidance=paper``), CUDA graph + bf16; DDPM once more in the earlier slots' layout (one batch of every size); the refine row once more with ``guidance.detect=host`` (python-fcl and scipy on host copies,
-  against the default's search on the GPU). The network has random weights (paper size, untrained): samples
+  (``guidance=paper``), CUDA graph + bf16; DDPM once more in the earlier slots' layout (one batch of every size);
+  the refine row once more with ``guidance.detect=host`` (python-fcl and scipy on host copies, against the default's
+  search on the GPU). The network has random weights (paper size, untrained): samples
   interpenetrate more than a trained model's, so the guidance rows are an upper bound of its collision work.
 """
 

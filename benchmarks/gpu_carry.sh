@@ -1,7 +1,7 @@
 #!/bin/bash
 # What a bare GPU machine lacks, made here in one command before a slot (docs/gpu.md, "A bare GPU machine"):
 #   .whl/             wheels for the machine's Python (3.12): diffusers, trimesh, python-fcl, hydra-core, omegaconf,
-#                     antlr4 (no wheel on the index: built here), importlib_metadata, zipp — about 14 MB
+#                     antlr4 (no wheel on the index: built here), importlib_metadata, zipp — about 12 MB
 #   .gpudata/rooms/   ROOMS generated rooms (seed SEED) with only what the pipeline and detect_ab read: the splits,
 #                     stats.json, the asset index, meshes, parts and records, and the point caches of the assets the
 #                     rooms use (no logs, renders or physics .obj) — about 23 MB for 40 rooms

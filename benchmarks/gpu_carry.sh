@@ -10,7 +10,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOMS=${ROOMS:-40}; SEED=${SEED:-7}; PYVER=${PYVER:-3.12}; BIN=${BIN:-.venv/bin}
-[ -x "$BIN/python" ] || { echo "gpu_carry: needs the project's environment ($BIN/python): run 'make install' first"; exit 1; }
+if [ ! -x "$BIN/python" ]; then
+  echo "gpu_carry: needs the project's environment ($BIN/python): run 'make install' first"; exit 1
+fi
 
 rm -rf .whl && mkdir -p .whl
 "$BIN/python" -m pip download -q --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \

@@ -3,8 +3,9 @@
 # that ends early still returns what was measured (everything lands in $OUT, default ./gpu_out):
 #   1. the guidance's triangle pairs on the GPU against the CPU and python-fcl on the same poses (detect_ab.py);
 #   2. spread-train through Lightning with the CUDA-graph'd step (model.compile_mode=reduce-overhead), +Geometry at
-#      paper size on the carried rooms (2-51 objects: one compile, one dynamic recompile): perf/steps_per_s per 10
-#      steps in lightning_metrics.csv (the fourth slot's run was still compiling after 230 s, before fullgraph=True);
+#      paper size on the carried rooms (2-51 objects: one static graph per bucket of 8 object counts, model.compile_bucket;
+#      the fifth slot's run, before the buckets, recompiled per count and never left compiling): perf/steps_per_s per 10
+#      steps in lightning_metrics.csv, Dynamo's recompiles in lightning.log;
 #   3. DDIM-50 sampling at batch 64 (eager, CUDA graph, bf16);
 #   4. the guided pipeline on real rooms (refine both ways, paper guidance, DDPM-1000) at batch 64;
 #   5. where a training step's GPU time goes: the top 30 CUDA kernels of one eager step, base and +Geometry
@@ -30,10 +31,11 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$OUT/gpu
 timeout 75 $PY benchmarks/detect_ab.py --data "$ROOMS" --scenes 16 --json "$OUT/detect_ab.json" 2>&1 | quiet | tail -12
 mark "detect a/b"
 
-timeout "${TRAIN_S:-280}" $PY -m spread.cli.train experiment=paper_geometry data.root="$ROOMS" trainer=gpu \
+TORCH_LOGS=recompiles timeout "${TRAIN_S:-280}" $PY -m spread.cli.train experiment=paper_geometry data.root="$ROOMS" trainer=gpu \
   logger=csv model.compile=true model.compile_mode=reduce-overhead trainer.max_steps=60 trainer.log_every_n_steps=10 \
   trainer.check_val_every_n_epoch=100000 trainer.num_sanity_val_steps=0 renders.every_n_epochs=0 \
-  data.num_workers=4 data.persistent_workers=true out_dir=/tmp/gpu_slot_train 2>&1 | quiet | tail -12
+  data.num_workers=4 data.persistent_workers=true out_dir=/tmp/gpu_slot_train 2>&1 | quiet > "$OUT/lightning.log"
+grep -c "Recompiling function" "$OUT/lightning.log" | sed 's/^/recompiles: /'; tail -8 "$OUT/lightning.log"
 cp /tmp/gpu_slot_train/csv/version_0/metrics.csv "$OUT/lightning_metrics.csv" 2>/dev/null
 mark "lightning (reduce-overhead)"
 

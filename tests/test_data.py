@@ -219,6 +219,36 @@ def test_collate_pads_and_matches_unbatched(root):
     assert (SPATIAL_PAD, PHYSICAL_PAD, INDEX_PAD) == (7, 3, -1)
 
 
+
+def test_a_batch_padded_to_more_objects_equals_one_collated_beside_a_larger_scene(root):
+    """``pad_objects(collate(items), n)`` is what collating the items beside a scene of n objects gives them (its
+    row dropped): every per-object key padded with its code, the mask False there; per-scene keys unchanged."""
+    from spread.data.collate import pad_objects
+
+    ds = SceneDataset(root, "train", num_points=M)
+    items = [ds[k] for k in range(len(ds))]
+    sizes = [int(it["x"].shape[0]) for it in items]
+    big = max(range(len(items)), key=sizes.__getitem__)
+    small = [it for k, it in enumerate(items) if k != big and sizes[k] < sizes[big]]
+    assert small, "the fixture must mix scene sizes"
+    batch = collate_scenes(small)
+    padded = pad_objects(batch, sizes[big])
+    reference = collate_scenes(small + [items[big]])
+    assert padded["x"].shape[1] == sizes[big] > batch["x"].shape[1]
+    assert sorted(padded) == sorted(reference)
+    for key, value in reference.items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(padded[key], value[:len(small)]), key
+            assert padded[key].dtype == value.dtype, key
+        else:
+            assert padded[key] == value[:len(small)], key
+    assert pad_objects(batch, batch["x"].shape[1]) is batch
+    with pytest.raises(ValueError, match=f"cannot pad a batch of {batch['x'].shape[1]} objects to 1"):
+        pad_objects(batch, 1)
+    with pytest.raises(ValueError, match="not a collated batch"):
+        pad_objects({"points": batch["points"]}, 9)
+
+
 # ---- datamodule ------------------------------------------------------------------------------------
 
 def _same_batches(a, b):

@@ -316,19 +316,67 @@ def test_the_training_loss_compiles_as_one_graph_and_equals_eager():
     assert worst < 1e-5, worst  # shared shapes: one encoding and a gathered gradient against one per slot
 
 
-def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_cuda_graph_step(monkeypatch):
-    """``model.compile=true model.compile_mode=reduce-overhead`` (CUDA graphs on a GPU): the step's loss is compiled
-    once in that mode as one graph, each step is marked as a new CUDA-graph step, and the loss handed on is not the graph's own
-    buffer; an unknown mode is refused by name. Dynamo's ``eager`` backend: ``fullgraph=True`` still fails on any
-    graph break, and the test above compiles the training loss through aot_eager (its backward traced too)."""
+def test_a_batch_padded_to_more_objects_has_the_same_training_loss_and_gradients():
+    """The compiled step pads each batch to a bucket of object counts (``model.compile_bucket``): padding objects
+    are masked everywhere — graph attention, the perceiver, the nearest-other-object search, every loss term — so the
+    loss and its gradients are those of the unpadded batch (the same noise and timesteps for the real objects; no
+    dropout, whose masks are drawn per slot; the zero-initialised layers made live, or ε̂ ≡ 0 would hide any leak)."""
+    from spread.data.collate import pad_objects
     from spread.model import ModelConfig
     from spread.model.module import SceneDiffusion
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_model import synthetic_batch
 
-    real_compile, modes, marks = torch.compile, [], []
+    torch.manual_seed(0)
+    model = SceneDiffusion("geometry", ModelConfig(num_points=32, nearest="dense", dim=32, depth=1, num_latents=8,
+                                                   heads=2, dropout=0.0), bounds=BOUNDS, penetration_weight=0.5).train()
+    with torch.no_grad():
+        for p in model.network.parameters():
+            if not p.any():
+                p.normal_(0.0, 0.02)
+    batch = synthetic_batch(3, 5, 32)
+    batch["mask"][2, 3:] = False
+    batch["extents"] = batch["points"].amax(2) - batch["points"].amin(2)  # the penetration term's boxes, metres
+    noise, timesteps = torch.randn(3, 5, 9), torch.tensor([100, 700, 400])
+
+    def loss_and_grads(b, eps):
+        model.zero_grad(set_to_none=True)
+        loss = model.training_loss(b, noise=eps, timesteps=timesteps)
+        loss.backward()
+        return loss.detach(), [p.grad.clone() for p in model.network.parameters() if p.grad is not None]
+
+    loss, grads = loss_and_grads(batch, noise)
+    padded = pad_objects(batch, 8)
+    assert padded["mask"].shape == (3, 8) and padded["mask"].sum() == batch["mask"].sum()
+    loss8, grads8 = loss_and_grads(padded, torch.cat([noise, torch.randn(3, 3, 9)], 1))  # any noise on the padding
+    assert torch.allclose(loss8, loss, rtol=1e-6, atol=1e-7), (loss8, loss)
+    assert len(grads8) == len(grads) > 0
+    scale = max(float(b.abs().max()) for b in grads)  # against the largest gradient: some are ~0 (softmax shifts)
+    worst = max(float((a - b).abs().max()) for a, b in zip(grads8, grads))
+    assert worst < 1e-6 * scale, (worst, scale)
+
+
+def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_marks_every_cuda_graph_step(monkeypatch):
+    """``model.compile=true model.compile_mode=reduce-overhead`` (CUDA graphs on a GPU): the step's loss is compiled
+    in that mode as one static graph (``dynamic=False``) per bucket of object counts — batches of 4 and 7 objects pad
+    to ``compile_bucket=8`` and share one graph, one of 9 pads to 16 and makes a second — each step is marked as a new
+    CUDA-graph step, and the loss handed on is not the graph's own buffer; an unknown mode or a bucket below 1 is
+    refused by name. Dynamo's ``eager`` backend: ``fullgraph=True`` still fails on any graph break, and the test
+    above compiles the training loss through aot_eager (its backward traced too)."""
+    from spread.model import ModelConfig
+    from spread.model.module import SceneDiffusion
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from bench_model import synthetic_batch
+
+    real_compile, modes, marks, graphs = torch.compile, [], [], []
+
+    def counting_backend(gm, example_inputs):  # called once per graph Dynamo compiles
+        graphs.append(sorted({tuple(t.shape)[1] for t in example_inputs if isinstance(t, torch.Tensor) and t.dim() == 3
+                              and t.shape[0] == 2}))
+        return gm.forward
+
     monkeypatch.setattr(torch, "compile", lambda fn, mode=None, **kw: modes.append((mode, kw))
-                        or real_compile(fn, backend="eager", **kw))
+                        or real_compile(fn, backend=counting_backend, **kw))
     monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
     config = ModelConfig(num_points=16, nearest="dense", dim=32, depth=1, num_latents=8, heads=2)
     torch.manual_seed(0)
@@ -339,7 +387,12 @@ def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_
         loss.backward()
         assert torch.isfinite(loss) and loss.grad_fn is not None
     # one graph (a graph break would split the step into several CUDA graphs with host code between)
-    assert modes == [("reduce-overhead", {"fullgraph": True})] and len(marks) == 2
+    assert modes == [("reduce-overhead", {"fullgraph": True, "dynamic": False})] and len(marks) == 2
+    assert len(graphs) == 1 and 8 in graphs[0], graphs  # 4 objects padded to the bucket, 8
+    model.training_step(synthetic_batch(2, 7, 16), 0).backward()  # the same bucket: no new graph
+    assert len(graphs) == 1 and len(marks) == 3
+    model.training_step(synthetic_batch(2, 9, 16), 0).backward()  # the next: a second, static graph
+    assert len(graphs) == 2 and 16 in graphs[1] and 9 not in graphs[1], graphs
     assert model.hparams["compile_mode"] == "reduce-overhead"
     # the optimiser's step drops the graph-owned gradients once used (a teardown moving the model must not read them)
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
@@ -359,6 +412,9 @@ def test_the_compile_setting_compiles_the_step_once_in_its_mode_and_marks_every_
     assert any(p.grad is not None for p in eager.parameters())  # other modes leave them to Lightning
     with pytest.raises(ValueError, match="compile_mode.*'fast'"):
         SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="fast")
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match=f"compile_bucket must be an integer >= 1.*{bad!r}"):
+            SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_bucket=bad)
 
 
 def test_the_training_noise_is_diffusers_add_noise_to_the_bit_from_a_buffer_that_moves_with_the_module():

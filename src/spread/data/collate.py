@@ -22,6 +22,8 @@ num_objects     (B,) int64                   N of each scene
 Pairs between a real and a padded object, in both directions, get the pad codes. Keys of
 :data:`SCENE_KEYS` are per-scene tensors of one shape, stacked. Other tensors whose first dimension is
 the scene's N are zero-padded along it; anything else is collected into a list.
+:func:`pad_objects` pads a collated batch further, to a larger N, with the same values (a compiled training step
+pads each batch to a bucket of object counts, so that it compiles once per bucket, not once per N).
 """
 
 from __future__ import annotations
@@ -85,3 +87,28 @@ def collate_scenes(items: Sequence[dict]) -> dict:
         else:
             batch[key] = list(values)
     return batch
+
+
+def pad_objects(batch: dict, n: int) -> dict:
+    """A collated batch (:func:`collate_scenes`) padded to ``n`` ≥ its N objects, with the values and the mask
+    :func:`collate_scenes` would have given a batch whose largest scene had ``n`` objects; the same device and
+    dtypes. Per-scene keys (:data:`SCENE_KEYS`, ``num_objects``), lists and other values are left as they are."""
+    if "mask" not in batch or "x" not in batch:
+        raise ValueError(f"pad_objects: not a collated batch (keys {sorted(batch)}): 'mask' and 'x' are needed")
+    size = int(batch["x"].shape[1])
+    if n < size:
+        raise ValueError(f"pad_objects: cannot pad a batch of {size} objects to {n}")
+    if n == size:
+        return batch
+    out = dict(batch)
+    for key, value in batch.items():
+        if not isinstance(value, torch.Tensor) or key in SCENE_KEYS or key == "num_objects" or value.dim() < 2:
+            continue
+        fill, dims = (False, 1) if key == "mask" else PAD_SPEC.get(key, (0, 1))
+        if any(value.shape[d] != size for d in range(1, dims + 1)):
+            continue  # not per object
+        shape = (value.shape[0],) + (n,) * dims + tuple(value.shape[dims + 1:])
+        padded = value.new_full(shape, fill)
+        padded[(slice(None),) + (slice(0, size),) * dims] = value
+        out[key] = padded
+    return out

@@ -165,3 +165,8 @@ class SceneDiffusionConfig:
     #: without the host; H200, paper size: +Geometry 0.036 s/step against 0.094 default and 0.149 eager) |
     #: ``max-autotune`` | ``max-autotune-no-cudagraphs``
     compile_mode: str = "default"
+    #: a compiled step pads each batch's object count up to a multiple of this (padding objects are masked: the
+    #: loss is the same function of the real objects) and compiles one static graph per bucket, at most
+    #: ⌈largest room / bucket⌉ of them: rooms of every size from 2 to 51 objects would otherwise recompile the step
+    #: for each new count (H200, stop 56: still compiling after 280 s). 1 = no padding (one graph per count)
+    compile_bucket: int = 8

@@ -40,6 +40,7 @@ from typing import NamedTuple, Sequence
 import lightning as L
 import torch
 
+from spread.data.collate import pad_objects
 from spread.model.config import ModelConfig, SceneDiffusionConfig
 from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, check_prediction, denoise,
                                     epsilon_from_prediction, loss_weights, prediction_target, training_scheduler,
@@ -105,6 +106,28 @@ ARGS = SceneDiffusionConfig
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 
 
+def bucketed(n: int, bucket: int) -> int:
+    """``n`` objects rounded up to a multiple of ``bucket``."""
+    return -(-int(n) // int(bucket)) * int(bucket)
+
+
+#: Dynamo's recompile limit while a step is compiled per bucket of object counts (its default, 8, is the buckets of
+#: rooms up to 64 objects at ``compile_bucket=8``; a full batch and an epoch's short last one are two graphs a bucket).
+COMPILE_RECOMPILE_LIMIT = 64
+
+
+def compiled_step(fn, mode: str):
+    """``fn`` compiled as one graph (``fullgraph``) per input shape, each static (``dynamic=False``: Dynamo's
+    automatic dynamic shapes would turn the second object count into one dynamic-shape graph, minutes to compile at
+    paper size and slower to run); the process's recompile limit raised to :data:`COMPILE_RECOMPILE_LIMIT`."""
+    import torch._dynamo
+
+    config = torch._dynamo.config
+    name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
+    setattr(config, name, max(getattr(config, name), COMPILE_RECOMPILE_LIMIT))
+    return torch.compile(fn, mode=mode, fullgraph=True, dynamic=False)
+
+
 class SceneDiffusion(L.LightningModule):
     """Trains, validates and samples one variant (module docstring); arguments: :class:`SceneDiffusionConfig`
     (``config`` None: the paper's network)."""
@@ -119,7 +142,7 @@ class SceneDiffusion(L.LightningModule):
                  min_snr_gamma: float = ARGS.min_snr_gamma, lr_warmup_steps: int = ARGS.lr_warmup_steps,
                  lr_schedule: str = ARGS.lr_schedule, lr_final_ratio: float = ARGS.lr_final_ratio,
                  init_from: str | None = ARGS.init_from, compile: bool = ARGS.compile,
-                 compile_mode: str = ARGS.compile_mode,
+                 compile_mode: str = ARGS.compile_mode, compile_bucket: int = ARGS.compile_bucket,
                  penetration_weight: float = ARGS.penetration_weight,
                  support_weight: float = ARGS.support_weight, support_quantile: float = ARGS.support_quantile,
                  spatial_weight: float = ARGS.spatial_weight, parts_weight: float = ARGS.parts_weight,
@@ -141,6 +164,8 @@ class SceneDiffusion(L.LightningModule):
             raise ValueError(f"model.support_quantile must be in (0, 1), got {support_quantile}")
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"model.compile_mode must be one of {COMPILE_MODES}, got '{compile_mode}'")
+        if isinstance(compile_bucket, bool) or not isinstance(compile_bucket, int) or compile_bucket < 1:
+            raise ValueError(f"model.compile_bucket must be an integer >= 1 (objects), got {compile_bucket!r}")
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"unknown lr_schedule '{lr_schedule}' (choose from {LR_SCHEDULES})")
         self.save_hyperparameters({
@@ -153,7 +178,7 @@ class SceneDiffusion(L.LightningModule):
             "loss_weighting": loss_weighting, "min_snr_gamma": float(min_snr_gamma),
             "lr_warmup_steps": int(lr_warmup_steps), "lr_schedule": lr_schedule, "lr_final_ratio": float(lr_final_ratio),
             "init_from": None if init_from is None else str(init_from), "compile": bool(compile),
-            "compile_mode": str(compile_mode),
+            "compile_mode": str(compile_mode), "compile_bucket": int(compile_bucket),
             "penetration_weight": float(penetration_weight), "support_weight": float(support_weight),
             "support_quantile": float(support_quantile), "spatial_weight": float(spatial_weight),
             "parts_weight": float(parts_weight),
@@ -332,7 +357,8 @@ class SceneDiffusion(L.LightningModule):
         if self.hparams.get("compile", False):
             mode = self.hparams.get("compile_mode", "default")
             if getattr(self, "_compiled_loss", None) is None:
-                self._compiled_loss = torch.compile(self.training_loss, mode=mode, fullgraph=True)
+                self._compiled_loss = compiled_step(self.training_loss, mode)
+            batch = pad_objects(batch, bucketed(batch["x"].shape[1], self.hparams.get("compile_bucket", ARGS.compile_bucket)))
             if mode == "reduce-overhead":  # a new step: the graphs' outputs of the last one may be overwritten
                 torch.compiler.cudagraph_mark_step_begin()
                 loss = self._compiled_loss(batch).clone()  # logged after the next replay: not the graph's buffer

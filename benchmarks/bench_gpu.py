@@ -356,6 +356,35 @@ def sample_rows(B: int, N: int, M: int, steps: int) -> dict:
     return out
 
 
+def sample_profile_rows(B: int, N: int, M: int, profile_out: Path | None) -> dict:
+    """The top 30 CUDA kernels of two eager bf16 denoising steps (DDIM-2, batch ``B`` synthetic rooms, +Geometry at
+    paper size: where a sampling step's GPU time goes), appended to ``profile_out`` (printed when None)."""
+    import torch
+
+    from spread.model import Sampler
+    from spread.model.diffusion import denoise
+    from spread.sampling.pipeline import ScenePipeline
+
+    m = untrained_but_live(model("geometry", M, "cuda")).eval()
+    sampler = Sampler("ddim", 2)
+    pipe = ScenePipeline(m, None, sampler, cuda_graph=False, precision="bf16")
+    with torch.no_grad():
+        problem = pipe.on_device(m.denoising(synthetic_batch(B, N, M, device="cuda")))
+
+    def step():
+        return denoise(problem, sampler, [torch.Generator().manual_seed(i) for i in range(B)])
+
+    median, _ = cuda_time(step, 1, 3)
+    text = f"## sample ddim-2 eager bf16: B={B} N={N} M={M}, {median / 2:.4f} s per denoising step\n{profile_step(step, 30)}"
+    if profile_out is not None:
+        with open(profile_out, "a") as f:
+            f.write(text + "\n\n")
+    else:
+        print(text, flush=True)
+    print(f"  sample ddim-2 eager bf16: {median / 2:.4f} s per denoising step at batch {B}", flush=True)
+    return {"sample_profile/eager bf16/s_per_step": round(median / 2, 4)}
+
+
 def platform_batches(scenes: list, B: int) -> list[list]:
     """``scenes`` in the batches ``spread-sample`` makes of them (:func:`spread.sampling.plan.plan_batches`: sorted by
     object count, then ``B`` at a time, so each batch is padded to its own largest scene only); a repeated scene counts
@@ -467,7 +496,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small sizes: a check of the script itself")
     ap.add_argument("--data", type=Path, help="a dataset folder: adds the guided pipeline rows")
     ap.add_argument("--skip-counts", action="store_true")
-    ap.add_argument("--only", nargs="*", default=None, help="parts: train nearest sample compile pipeline")
+    ap.add_argument("--only", nargs="*", default=None,
+                    help="parts: train nearest sample compile pipeline sample_profile (the last only when named)")
     ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
     ap.add_argument("--profile", action="store_true", help="print the top CUDA kernels of one training step")
     ap.add_argument("--profile-out", type=Path, default=None,
@@ -507,8 +537,9 @@ def main() -> None:
                       "sample": lambda: sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50),
                       "compile": lambda: train_rows(B, N, M, steps, True, mode=args.compile_mode,
                                                     variants=args.variants, profile=args.profile,
-                                                    profile_out=args.profile_out)}
-        for part in ("train", "nearest", "sample", "compile"):  # the compiled step last: it compiles for minutes
+                                                    profile_out=args.profile_out),
+                      "sample_profile": lambda: sample_profile_rows(4 if args.quick else 64, N, M, args.profile_out)}
+        for part in ("train", "nearest", "sample", "sample_profile", "compile"):  # the compiled step last: it compiles for minutes
             if part in parts:
                 results |= cuda_parts[part]()
                 save()

@@ -8,10 +8,11 @@
 #      steps in lightning_metrics.csv, Dynamo's recompiles in lightning.log;
 #   3. DDIM-50 sampling at batch 64 (eager, CUDA graph, bf16);
 #   4. the guided pipeline on real rooms (refine both ways, paper guidance, DDPM-1000) at batch 64;
-#   5. where a training step's GPU time goes: the top 30 CUDA kernels of one eager step, base and +Geometry
-#      (profile_train.txt; what +Geometry adds beyond the arithmetic is what the ≤ 1.3× ratio waits on).
+#   5. where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base and +Geometry, and of
+#      two eager bf16 denoising steps at batch 64 (profile_train.txt; the fifth slot's showed the 107-channel point
+#      tokens' LayerNorm and product in slow kernels: padded to 112 channels since).
 # (The search a/b of the last slots is done: 32 queries a program won, the default since; OLD=<file> runs it again.)
-# The parts' limits (75 + TRAIN_S 280 + 90 + PIPELINE_S 130 + PROFILE_S 45 s) sum to 620 s, over one device call's
+# The parts' limits (75 + TRAIN_S 280 + 90 + PIPELINE_S 130 + PROFILE_S 75 s) sum to 650 s, over one device call's
 # 600: the parts usually end before their limits, and a call cut short loses the last part only (the profile).
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
@@ -51,6 +52,6 @@ timeout "${PIPELINE_S:-130}" $PY benchmarks/bench_gpu.py --skip-counts --only pi
   --json "$OUT/pipeline.json" 2>&1 | quiet | tail -20
 mark "pipeline"
 
-timeout "${PROFILE_S:-45}" $PY benchmarks/bench_gpu.py --skip-counts --only train --profile \
+timeout "${PROFILE_S:-75}" $PY benchmarks/bench_gpu.py --skip-counts --only train sample_profile --profile \
   --profile-out "$OUT/profile_train.txt" --json "$OUT/train_profiled.json" 2>&1 | quiet | tail -6
 mark "profile"

@@ -458,3 +458,34 @@ def test_the_search_simulation_is_exact_and_the_nearest_tile_first_pass_evaluate
     for r in (stride, near):
         assert r["pass 2"] >= r["fewest pass 2"] - 1e-9
     assert near["total"] < stride["total"]
+
+
+def test_point_tokens_are_padded_to_a_multiple_of_8_and_the_keys_values_are_each_layers_layernorm_and_projection():
+    """The point tokens carry zero channels up to a multiple of 8 (a bf16 product with an inner dimension of 107 runs
+    in a slow CUDA kernel, and so does the LayerNorm of 107-channel rows); the perceiver's keys and values of every
+    cross-attention are still each layer's ``to_kv(LayerNorm(token))`` over the 107 real channels, with that layer's
+    LayerNorm scale and shift (the padding meets zero weights)."""
+    import torch.nn.functional as F
+
+    from spread.model.perceiver import GeometryPerceiver, point_token_dim, point_tokens
+
+    torch.manual_seed(0)
+    perceiver = GeometryPerceiver(dim=32, num_latents=8, depth=3, num_bands=6, index_dim=64)
+    with torch.no_grad():  # layers that differ: a wrong fold or a shifted channel shows
+        perceiver.context_scale.normal_(1.0, 0.3)
+        perceiver.context_shift.normal_(0.0, 0.3)
+    B, N, M = 2, 3, 50
+    mask = torch.tensor([[True, True, True], [True, True, False]])
+    static = perceiver.static((torch.rand(B, N, M, 3) - 0.5) * mask[..., None, None], mask)
+    distance = torch.randn(B, N, M) * 2.0  # metres, both signs
+    tokens = point_tokens(distance, static)
+    C = point_token_dim(6, 64)
+    assert C == 107 and tokens.shape == (B, N * M, 112)
+    assert torch.equal(tokens[..., C:], torch.zeros(B, N * M, 112 - C))
+    assert torch.equal(tokens[..., 39], distance.reshape(B, -1))  # d after the 39 Fourier channels of xyz
+    with torch.no_grad():
+        got = perceiver.context(tokens).chunk(3, dim=-1)
+        for layer, kv in enumerate(got):
+            normed = F.layer_norm(tokens[..., :C], (C,), perceiver.context_scale[layer], perceiver.context_shift[layer])
+            expected = F.linear(normed, perceiver.context_kv[layer])
+            assert torch.allclose(kv, expected, atol=1e-5, rtol=1e-5), float((kv - expected).abs().max())

@@ -12,7 +12,8 @@ Rows:
 * **ops / …** — kernel operators (:mod:`spread.model.opcount`: every dispatched ATen operator that computes, views
   and metadata left out; a custom operator such as the dense nearest search counts once: its CUDA implementation is
   one kernel) of the paper config (``ModelConfig()``, M = 2,000, ``nearest=dense``) at batch 16 × 20 objects, CPU
-  tensors: one denoising step (the network call with the batch's condition made once per sample; and with the
+  tensors, as CUDA runs them (the perceiver's point tokens padded to 112 channels, which CPU tensors are not): one
+  denoising step (the network call with the batch's condition made once per sample; and with the
   sampler's update), one training step (loss forward + backward), base and +Geometry; the +Geometry denoising step
   at 10 and 40 objects (growth). ``syncs``: host reads of tensor values inside the network call.
 * **gflop / …** — the same denoising and training steps' floating-point operations (GFLOP per step of 16 scenes,
@@ -93,9 +94,11 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
 
     from torch.utils.flop_counter import FlopCounterMode
 
+    import spread.model.perceiver as perceiver
     from spread.model import Sampler
     from spread.model.opcount import OperatorCounter
 
+    perceiver.token_multiple = lambda device: perceiver.CHANNEL_MULTIPLE  # CUDA's tokens (the CPU's are unpadded)
     out = {}
     for variant in ("base", "geometry"):
         m = model(variant, M)

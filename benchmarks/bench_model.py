@@ -62,7 +62,7 @@ def run_row(config: str, variant: str, B: int, N: int, M: int, repeats: int) -> 
     from spread.model.module import SceneDiffusion
 
     chamfer_time = [0.0]
-    original = network_module.signed_chamfer_features
+    original = network_module.state_distances  # the geometry features' signed distances (the search)
 
     def timed(*args, **kwargs):
         t0 = time.perf_counter()
@@ -70,7 +70,7 @@ def run_row(config: str, variant: str, B: int, N: int, M: int, repeats: int) -> 
         chamfer_time[0] += time.perf_counter() - t0
         return out
 
-    network_module.signed_chamfer_features = timed
+    network_module.state_distances = timed
     torch.manual_seed(0)
     from spread.configs import model_config
 

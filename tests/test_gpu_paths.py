@@ -460,15 +460,17 @@ def test_the_search_simulation_is_exact_and_the_nearest_tile_first_pass_evaluate
     assert near["total"] < stride["total"]
 
 
-def test_point_tokens_are_padded_to_a_multiple_of_8_and_the_keys_values_are_each_layers_layernorm_and_projection():
-    """The point tokens carry zero channels up to a multiple of 8 (a bf16 product with an inner dimension of 107 runs
-    in a slow CUDA kernel, and so does the LayerNorm of 107-channel rows); the perceiver's keys and values of every
-    cross-attention are still each layer's ``to_kv(LayerNorm(token))`` over the 107 real channels, with that layer's
-    LayerNorm scale and shift (the padding meets zero weights)."""
+def test_point_tokens_are_padded_to_a_multiple_of_8_on_cuda_and_the_keys_values_are_each_layers_layernorm_and_projection():
+    """On CUDA the point tokens carry zero channels up to a multiple of 8 (a bf16 product with an inner dimension of
+    107 runs in a slow kernel, and so does the LayerNorm of 107-channel rows); on the CPU they are not padded (its
+    fused LayerNorm is faster). Either way the perceiver's keys and values of every cross-attention are each layer's
+    ``to_kv(LayerNorm(token))`` over the 107 real channels, with that layer's LayerNorm scale and shift (the padding
+    meets zero weights). The padded path runs here on CPU tensors, asked for by its multiple."""
     import torch.nn.functional as F
 
-    from spread.model.perceiver import GeometryPerceiver, point_token_dim, point_tokens
+    from spread.model.perceiver import GeometryPerceiver, point_token_dim, point_tokens, static_tokens, token_multiple
 
+    assert token_multiple(torch.device("cuda")) == 8 and token_multiple(torch.device("cpu")) == 1
     torch.manual_seed(0)
     perceiver = GeometryPerceiver(dim=32, num_latents=8, depth=3, num_bands=6, index_dim=64)
     with torch.no_grad():  # layers that differ: a wrong fold or a shifted channel shows
@@ -476,16 +478,17 @@ def test_point_tokens_are_padded_to_a_multiple_of_8_and_the_keys_values_are_each
         perceiver.context_shift.normal_(0.0, 0.3)
     B, N, M = 2, 3, 50
     mask = torch.tensor([[True, True, True], [True, True, False]])
-    static = perceiver.static((torch.rand(B, N, M, 3) - 0.5) * mask[..., None, None], mask)
+    points = (torch.rand(B, N, M, 3) - 0.5) * mask[..., None, None]
     distance = torch.randn(B, N, M) * 2.0  # metres, both signs
-    tokens = point_tokens(distance, static)
     C = point_token_dim(6, 64)
-    assert C == 107 and tokens.shape == (B, N * M, 112)
-    assert torch.equal(tokens[..., C:], torch.zeros(B, N * M, 112 - C))
-    assert torch.equal(tokens[..., 39], distance.reshape(B, -1))  # d after the 39 Fourier channels of xyz
+    plain = point_tokens(distance, perceiver.static(points, mask))  # the CPU's
+    padded = point_tokens(distance, static_tokens(points, mask, 6, perceiver.max_frequency, 64, multiple=8))
+    assert C == 107 and plain.shape == (B, N * M, 107) and padded.shape == (B, N * M, 112)
+    assert torch.equal(padded[..., :C], plain) and torch.equal(padded[..., C:], torch.zeros(B, N * M, 112 - C))
+    assert torch.equal(plain[..., 39], distance.reshape(B, -1))  # d after the 39 Fourier channels of xyz
     with torch.no_grad():
-        got = perceiver.context(tokens).chunk(3, dim=-1)
-        for layer, kv in enumerate(got):
-            normed = F.layer_norm(tokens[..., :C], (C,), perceiver.context_scale[layer], perceiver.context_shift[layer])
-            expected = F.linear(normed, perceiver.context_kv[layer])
-            assert torch.allclose(kv, expected, atol=1e-5, rtol=1e-5), float((kv - expected).abs().max())
+        for tokens in (plain, padded):
+            for layer, kv in enumerate(perceiver.context(tokens).chunk(3, dim=-1)):
+                normed = F.layer_norm(plain, (C,), perceiver.context_scale[layer], perceiver.context_shift[layer])
+                expected = F.linear(normed, perceiver.context_kv[layer])
+                assert torch.allclose(kv, expected, atol=1e-5, rtol=1e-5), float((kv - expected).abs().max())

@@ -40,16 +40,24 @@ DISTANCE_SCALES = (0.01, 0.05, 0.25)
 #: The point tokens carry trailing zero channels up to a multiple of this. On CUDA a bf16 matrix product whose inner
 #: dimension is not a multiple of 8 runs in a slow kernel, and PyTorch's LayerNorm of rows of such a width in its
 #: non-vectorised one (H200, one +Geometry training step at batch 16 × 20 × 2,000: 3.2 ms for the 107-channel
-#: LayerNorm, 1.1 ms for the product; ``benchmarks/RESULTS.md``, stop 56). The padding meets zero weights.
+#: LayerNorm, 1.1 ms for the product; ``benchmarks/RESULTS.md``, stop 56). The padding meets zero weights. On the
+#: CPU the tokens are not padded (:func:`token_multiple`): there PyTorch's fused LayerNorm of the unpadded rows is
+#: 3–4× faster than the padded path's ``var_mean`` + ``addcmul``.
 CHANNEL_MULTIPLE = 8
+
+
+def token_multiple(device: torch.device) -> int:
+    """The multiple a point token's channels are padded to on ``device``: :data:`CHANNEL_MULTIPLE` on CUDA, 1 (no
+    padding) elsewhere."""
+    return CHANNEL_MULTIPLE if torch.device(device).type == "cuda" else 1
 
 
 @dataclass
 class StaticTokens:
     """The pose-independent channels of the point tokens, made once per sample: ``xyz`` (B, N·M, F) Fourier
     features of the canonical points, ``index`` (B, N·M, E + P) the object-index code followed by the P zero channels
-    that pad a token to a multiple of :data:`CHANNEL_MULTIPLE`, ``key_bias`` (B, 1, 1, N·M) the additive attention
-    mask of the points (0 for real objects' points, −inf for padding)."""
+    that pad a token to a multiple of :func:`token_multiple` (none on the CPU), ``key_bias`` (B, 1, 1, N·M) the
+    additive attention mask of the points (0 for real objects' points, −inf for padding)."""
 
     xyz: torch.Tensor
     index: torch.Tensor
@@ -57,12 +65,14 @@ class StaticTokens:
 
 
 def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_frequency: float,
-                  index_dim: int) -> StaticTokens:
-    """:class:`StaticTokens` of canonical points (B, N, M, 3) (zero at padding objects) and ``mask`` (B, N)."""
+                  index_dim: int, multiple: int | None = None) -> StaticTokens:
+    """:class:`StaticTokens` of canonical points (B, N, M, 3) (zero at padding objects) and ``mask`` (B, N); the
+    tokens padded to a multiple of ``multiple`` channels (None: :func:`token_multiple` of the points' device)."""
     B, N, M, _ = points.shape
     channels = point_token_dim(num_bands, index_dim)
+    multiple = token_multiple(points.device) if multiple is None else multiple
     index = sinusoidal_embedding(torch.arange(N, device=points.device), index_dim)  # (N, E)
-    index = F.pad(index, (0, padded_dim(channels) - channels))  # (N, E + P), the padding last in the token
+    index = F.pad(index, (0, padded_dim(channels, multiple) - channels))  # (N, E + P), the padding last in the token
     return StaticTokens(rearrange(fourier_features(points, num_bands, max_frequency), "b n m c -> b (n m) c"),
                         repeat(index, "n e -> b (n m) e", b=B, m=M),
                         key_bias(repeat(mask.bool(), "b n -> b (n m)", m=M)))
@@ -71,7 +81,7 @@ def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_
 def point_tokens(distance: torch.Tensor, static: StaticTokens, scales: torch.Tensor | None = None) -> torch.Tensor:
     """Signed distances (B, N, M) and the sample's :class:`StaticTokens` → (B, N·M, padded_dim(point_token_dim(...)))
     tokens [Fourier(xyz), d, tanh(d / s) for s in DISTANCE_SCALES, index code, zeros] (module docstring; the zeros
-    pad to a multiple of :data:`CHANNEL_MULTIPLE`); ``scales``: the DISTANCE_SCALES as a tensor on the device (made
+    pad to the multiple the static tokens were made for, :func:`token_multiple`); ``scales``: the DISTANCE_SCALES as a tensor on the device (made
     here when not given)."""
     d = rearrange(distance, "b n m -> b (n m) 1")
     if scales is None:
@@ -125,9 +135,9 @@ def point_token_dim(num_bands: int, index_dim: int) -> int:
     return fourier_dim(3, num_bands) + 1 + len(DISTANCE_SCALES) + index_dim
 
 
-def padded_dim(channels: int) -> int:
-    """``channels`` rounded up to a multiple of :data:`CHANNEL_MULTIPLE`."""
-    return -(-channels // CHANNEL_MULTIPLE) * CHANNEL_MULTIPLE
+def padded_dim(channels: int, multiple: int = CHANNEL_MULTIPLE) -> int:
+    """``channels`` rounded up to a multiple of ``multiple``."""
+    return -(-channels // multiple) * multiple
 
 
 class GeometryPerceiver(nn.Module):
@@ -138,8 +148,9 @@ class GeometryPerceiver(nn.Module):
     (the LayerNorm without its affine part) and one matrix product whose weights fold in each layer's LayerNorm
     scale and shift (``context_scale``, ``context_shift`` (depth, C), ``context_kv`` (depth, 2·heads·dim_head, C)):
     ``to_kv(LN(x)·w + b) = (W·diag(w))·LN(x) + W·b``, the same function. Checkpoints with one LayerNorm and
-    ``to_kv`` per layer load into it. The normalisation's mean and variance are those of a token's C real channels;
-    its zero padding (:data:`CHANNEL_MULTIPLE`) is normalised too and met by zero columns of the product's weight."""
+    ``to_kv`` per layer load into it. Padded tokens (CUDA: :func:`token_multiple`): the normalisation's mean and
+    variance are those of a token's C real channels, its zero padding is normalised too and met by zero columns of
+    the product's weight."""
 
     def __init__(self, dim: int, num_latents: int = 256, depth: int = 4, self_per_cross: int = 2,
                  cross_heads: int = 1, cross_dim_head: int = 64, heads: int = 8, dim_head: int = 64,
@@ -179,8 +190,10 @@ class GeometryPerceiver(nn.Module):
         C channels, then P zeros (:func:`point_tokens`)."""
         depth, width, channels = self.context_kv.shape
         weight = (self.context_kv * self.context_scale[:, None, :]).reshape(depth * width, channels)
-        weight = F.pad(weight, (0, tokens.shape[-1] - channels))  # zero columns for the padding
         bias = torch.einsum("lkc,lc->lk", self.context_kv, self.context_shift).reshape(depth * width)
+        if tokens.shape[-1] == channels:  # unpadded (the CPU)
+            return F.linear(self.context_norm(tokens), weight.to(tokens.dtype), bias.to(tokens.dtype))
+        weight = F.pad(weight, (0, tokens.shape[-1] - channels))  # zero columns for the padding
         # LayerNorm over the C real channels (biased variance, as nn.LayerNorm), applied to all C + P
         var, mean = torch.var_mean(tokens[..., :channels], dim=-1, correction=0, keepdim=True)
         rstd = torch.rsqrt(var + self.context_norm.eps)

@@ -378,7 +378,8 @@ def sample_profile_rows(B: int, N: int, M: int, profile_out: Path | None) -> dic
         return denoise(problem, sampler, [torch.Generator().manual_seed(i) for i in range(B)])
 
     median, _ = cuda_time(step, 1, 3)
-    text = f"## sample ddim-2 eager bf16: B={B} N={N} M={M}, {median / 2:.4f} s per denoising step\n{profile_step(step, 30)}"
+    head = f"## sample ddim-2 eager bf16: B={B} N={N} M={M}, {median / 2:.4f} s per denoising step"
+    text = f"{head}\n{profile_step(step, 30)}"
     if profile_out is not None:
         with open(profile_out, "a") as f:
             f.write(text + "\n\n")
@@ -542,7 +543,8 @@ def main() -> None:
                                                     variants=args.variants, profile=args.profile,
                                                     profile_out=args.profile_out),
                       "sample_profile": lambda: sample_profile_rows(4 if args.quick else 64, N, M, args.profile_out)}
-        for part in ("train", "nearest", "sample", "sample_profile", "compile"):  # the compiled step last: it compiles for minutes
+        # the compiled step last: it compiles for minutes
+        for part in ("train", "nearest", "sample", "sample_profile", "compile"):
             if part in parts:
                 results |= cuda_parts[part]()
                 save()

@@ -3,9 +3,9 @@
 # that ends early still returns what was measured (everything lands in $OUT, default ./gpu_out):
 #   1. the guidance's triangle pairs on the GPU against the CPU and python-fcl on the same poses (detect_ab.py);
 #   2. spread-train through Lightning with the CUDA-graph'd step (model.compile_mode=reduce-overhead), +Geometry at
-#      paper size on the carried rooms (2-51 objects: one static graph per bucket of 8 object counts, model.compile_bucket;
-#      the fifth slot's run, before the buckets, recompiled per count and never left compiling): perf/steps_per_s per 10
-#      steps in lightning_metrics.csv, Dynamo's recompiles in lightning.log;
+#      paper size on the carried rooms (2-51 objects: one static graph per bucket of 8 object counts,
+#      model.compile_bucket; the fifth slot's run, before the buckets, recompiled per count and never left
+#      compiling): perf/steps_per_s per 10 steps in lightning_metrics.csv, Dynamo's recompiles in lightning.log;
 #   3. DDIM-50 sampling at batch 64 (eager, CUDA graph, bf16);
 #   4. the guided pipeline on real rooms (refine both ways, paper guidance, DDPM-1000) at batch 64;
 #   5. where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base and +Geometry, and of

@@ -358,7 +358,8 @@ class SceneDiffusion(L.LightningModule):
             mode = self.hparams.get("compile_mode", "default")
             if getattr(self, "_compiled_loss", None) is None:
                 self._compiled_loss = compiled_step(self.training_loss, mode)
-            batch = pad_objects(batch, bucketed(batch["x"].shape[1], self.hparams.get("compile_bucket", ARGS.compile_bucket)))
+            bucket = self.hparams.get("compile_bucket", ARGS.compile_bucket)
+            batch = pad_objects(batch, bucketed(batch["x"].shape[1], bucket))  # one graph per bucket of counts
             if mode == "reduce-overhead":  # a new step: the graphs' outputs of the last one may be overwritten
                 torch.compiler.cudagraph_mark_step_begin()
                 loss = self._compiled_loss(batch).clone()  # logged after the next replay: not the graph's buffer

@@ -42,7 +42,7 @@ DISTANCE_SCALES = (0.01, 0.05, 0.25)
 #: non-vectorised one (H200, one +Geometry training step at batch 16 × 20 × 2,000: 3.2 ms for the 107-channel
 #: LayerNorm, 1.1 ms for the product; ``benchmarks/RESULTS.md``, stop 56). The padding meets zero weights. On the
 #: CPU the tokens are not padded (:func:`token_multiple`): there PyTorch's fused LayerNorm of the unpadded rows is
-#: 3–4× faster than the padded path's ``var_mean`` + ``addcmul``.
+#: 3.5–4.5× faster than the padded path's ``var_mean`` + ``addcmul``.
 CHANNEL_MULTIPLE = 8
 
 
@@ -81,8 +81,8 @@ def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_
 def point_tokens(distance: torch.Tensor, static: StaticTokens, scales: torch.Tensor | None = None) -> torch.Tensor:
     """Signed distances (B, N, M) and the sample's :class:`StaticTokens` → (B, N·M, padded_dim(point_token_dim(...)))
     tokens [Fourier(xyz), d, tanh(d / s) for s in DISTANCE_SCALES, index code, zeros] (module docstring; the zeros
-    pad to the multiple the static tokens were made for, :func:`token_multiple`); ``scales``: the DISTANCE_SCALES as a tensor on the device (made
-    here when not given)."""
+    pad to the multiple the static tokens were made for, :func:`token_multiple`); ``scales``: the DISTANCE_SCALES
+    as a tensor on the device (made here when not given)."""
     d = rearrange(distance, "b n m -> b (n m) 1")
     if scales is None:
         scales = torch.tensor(DISTANCE_SCALES, device=d.device)

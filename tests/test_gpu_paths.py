@@ -361,8 +361,11 @@ def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_m
     in that mode as one static graph (``dynamic=False``) per bucket of object counts — batches of 4 and 7 objects pad
     to ``compile_bucket=8`` and share one graph, one of 9 pads to 16 and makes a second — each step is marked as a new
     CUDA-graph step, and the loss handed on is not the graph's own buffer; an unknown mode or a bucket below 1 is
-    refused by name. Dynamo's ``eager`` backend: ``fullgraph=True`` still fails on any graph break, and the test
-    above compiles the training loss through aot_eager (its backward traced too)."""
+    refused by name, and so is compiling the pruned search (``auto`` compiles the dense one). Dynamo's ``eager``
+    backend: ``fullgraph=True`` still fails on any graph break, and the test above compiles the training loss through
+    aot_eager (its backward traced too)."""
+    import dataclasses
+
     from spread.model import ModelConfig
     from spread.model.module import SceneDiffusion
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
@@ -378,7 +381,8 @@ def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_m
     monkeypatch.setattr(torch, "compile", lambda fn, mode=None, **kw: modes.append((mode, kw))
                         or real_compile(fn, backend=counting_backend, **kw))
     monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
-    config = ModelConfig(num_points=16, nearest="dense", dim=32, depth=1, num_latents=8, heads=2)
+    # auto: the pruned search on CPU eagerly, the dense one while compiling (fullgraph fails on the pruned blocks)
+    config = ModelConfig(num_points=16, nearest="auto", dim=32, depth=1, num_latents=8, heads=2)
     torch.manual_seed(0)
     model = SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="reduce-overhead").train()
     batch = synthetic_batch(2, 4, 16)
@@ -412,6 +416,8 @@ def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_m
     assert any(p.grad is not None for p in eager.parameters())  # other modes leave them to Lightning
     with pytest.raises(ValueError, match="compile_mode.*'fast'"):
         SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="fast")
+    with pytest.raises(ValueError, match="model.compile=true cannot compile model.config.nearest=pruned"):
+        SceneDiffusion("geometry", dataclasses.replace(config, nearest="pruned"), bounds=BOUNDS, compile=True)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match=f"compile_bucket must be an integer >= 1.*{bad!r}"):
             SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_bucket=bad)

@@ -43,11 +43,13 @@ SEARCHES = ("auto", "pruned", "dense")
 
 
 def resolve_search(search: str, device: torch.device) -> str:
-    """``auto`` → the fastest exact search for ``device``: ``dense`` on CUDA (one kernel), ``pruned`` on CPU."""
+    """``auto`` → the fastest exact search for ``device``: ``dense`` on CUDA (one kernel), ``pruned`` on CPU — but
+    ``dense`` inside ``torch.compile`` anywhere (the pruned search's blocks have data-dependent sizes: no one graph)."""
     if search not in SEARCHES:
         raise ValueError(f"model.config.nearest: unknown search '{search}' (choose from {SEARCHES})")
     if search == "auto":
-        return "dense" if torch.device(device).type == "cuda" else "pruned"
+        cuda = torch.device(device).type == "cuda"
+        return "dense" if cuda or torch.compiler.is_compiling() else "pruned"
     return search
 
 

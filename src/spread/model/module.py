@@ -119,9 +119,14 @@ COMPILE_RECOMPILE_LIMIT = 64
 def compiled_step(fn, mode: str):
     """``fn`` compiled as one graph (``fullgraph``) per input shape, each static (``dynamic=False``: Dynamo's
     automatic dynamic shapes would turn the second object count into one dynamic-shape graph, minutes to compile at
-    paper size and slower to run); the process's recompile limit raised to :data:`COMPILE_RECOMPILE_LIMIT`."""
+    paper size and slower to run); the process's recompile limit raised to :data:`COMPILE_RECOMPILE_LIMIT`. einops'
+    backends for tensors and parameters are registered first: Dynamo guards on the size of einops' registry, which
+    its first trace grows by one (a parameter), and the second step would compile the same graph again."""
+    import einops
     import torch._dynamo
 
+    for kind in (torch.zeros(1, 1), torch.nn.Parameter(torch.zeros(1, 1))):
+        einops.rearrange(kind, "a b -> b a")
     config = torch._dynamo.config
     name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
     setattr(config, name, max(getattr(config, name), COMPILE_RECOMPILE_LIMIT))
@@ -164,6 +169,9 @@ class SceneDiffusion(L.LightningModule):
             raise ValueError(f"model.support_quantile must be in (0, 1), got {support_quantile}")
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"model.compile_mode must be one of {COMPILE_MODES}, got '{compile_mode}'")
+        if compile and variant == "geometry" and cfg.nearest == "pruned":
+            raise ValueError("model.compile=true cannot compile model.config.nearest=pruned (its blocks have "
+                             "data-dependent sizes): use nearest=auto or dense")
         if isinstance(compile_bucket, bool) or not isinstance(compile_bucket, int) or compile_bucket < 1:
             raise ValueError(f"model.compile_bucket must be an integer >= 1 (objects), got {compile_bucket!r}")
         if lr_schedule not in LR_SCHEDULES:

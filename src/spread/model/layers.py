@@ -114,6 +114,11 @@ class Attention(nn.Module):
         return self.to_out(rearrange(out, "b h n d -> b n (h d)"))
 
 
+def round_up(n: int, multiple: int) -> int:
+    """``n`` rounded up to a multiple of ``multiple`` (a token's padded channels, a batch's bucket of objects)."""
+    return -(-int(n) // int(multiple)) * int(multiple)
+
+
 def key_bias(key_mask: torch.Tensor) -> torch.Tensor:
     """(B, Nk) bool real keys → the additive mask (B, 1, 1, Nk) float32: 0 for real keys, −inf for the rest."""
     zero = torch.zeros((), device=key_mask.device)

@@ -46,6 +46,7 @@ from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, 
                                     epsilon_from_prediction, loss_weights, prediction_target, training_scheduler,
                                     x0_from_prediction)
 from spread.model.ema import EMA
+from spread.model.layers import round_up
 from spread.model.network import SceneDenoiser, upgrade_state_dict
 from spread.model.parts_distance import PartPlanes
 from spread.model.parts_term import parts_excess
@@ -104,11 +105,6 @@ def slice_batch(batch: dict, count: int) -> dict:
 ARGS = SceneDiffusionConfig
 #: torch.compile's modes for ``model.compile_mode``.
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-
-
-def bucketed(n: int, bucket: int) -> int:
-    """``n`` objects rounded up to a multiple of ``bucket``."""
-    return -(-int(n) // int(bucket)) * int(bucket)
 
 
 #: Dynamo's recompile limit while a step is compiled per bucket of object counts (its default, 8, is the buckets of
@@ -367,7 +363,7 @@ class SceneDiffusion(L.LightningModule):
             if getattr(self, "_compiled_loss", None) is None:
                 self._compiled_loss = compiled_step(self.training_loss, mode)
             bucket = self.hparams.get("compile_bucket", ARGS.compile_bucket)
-            batch = pad_objects(batch, bucketed(batch["x"].shape[1], bucket))  # one graph per bucket of counts
+            batch = pad_objects(batch, round_up(batch["x"].shape[1], bucket))  # one graph per bucket of counts
             if mode == "reduce-overhead":  # a new step: the graphs' outputs of the last one may be overwritten
                 torch.compiler.cudagraph_mark_step_begin()
                 loss = self._compiled_loss(batch).clone()  # logged after the next replay: not the graph's buffer

@@ -33,7 +33,7 @@ from einops import rearrange, repeat
 from torch import nn
 
 from spread.model.encodings import fourier_dim, fourier_features, sinusoidal_embedding
-from spread.model.layers import Attention, FeedForward, key_bias
+from spread.model.layers import Attention, FeedForward, key_bias, round_up
 
 #: Length scales (metres) of the squashed signed-distance channels.
 DISTANCE_SCALES = (0.01, 0.05, 0.25)
@@ -72,15 +72,15 @@ def static_tokens(points: torch.Tensor, mask: torch.Tensor, num_bands: int, max_
     channels = point_token_dim(num_bands, index_dim)
     multiple = token_multiple(points.device) if multiple is None else multiple
     index = sinusoidal_embedding(torch.arange(N, device=points.device), index_dim)  # (N, E)
-    index = F.pad(index, (0, padded_dim(channels, multiple) - channels))  # (N, E + P), the padding last in the token
+    index = F.pad(index, (0, round_up(channels, multiple) - channels))  # (N, E + P), the padding last in the token
     return StaticTokens(rearrange(fourier_features(points, num_bands, max_frequency), "b n m c -> b (n m) c"),
                         repeat(index, "n e -> b (n m) e", b=B, m=M),
                         key_bias(repeat(mask.bool(), "b n -> b (n m)", m=M)))
 
 
 def point_tokens(distance: torch.Tensor, static: StaticTokens, scales: torch.Tensor | None = None) -> torch.Tensor:
-    """Signed distances (B, N, M) and the sample's :class:`StaticTokens` → (B, N·M, padded_dim(point_token_dim(...)))
-    tokens [Fourier(xyz), d, tanh(d / s) for s in DISTANCE_SCALES, index code, zeros] (module docstring; the zeros
+    """Signed distances (B, N, M) and the sample's :class:`StaticTokens` → (B, N·M, C + P)
+    tokens [Fourier(xyz), d, tanh(d / s) for s in DISTANCE_SCALES, index code, P zeros] (module docstring; the zeros
     pad to the multiple the static tokens were made for, :func:`token_multiple`); ``scales``: the DISTANCE_SCALES
     as a tensor on the device (made here when not given)."""
     d = rearrange(distance, "b n m -> b (n m) 1")
@@ -133,11 +133,6 @@ def pair_features(pair: torch.Tensor) -> torch.Tensor:
 def point_token_dim(num_bands: int, index_dim: int) -> int:
     """Channels of a point token (its zero padding not counted: what the LayerNorm normalises over)."""
     return fourier_dim(3, num_bands) + 1 + len(DISTANCE_SCALES) + index_dim
-
-
-def padded_dim(channels: int, multiple: int = CHANNEL_MULTIPLE) -> int:
-    """``channels`` rounded up to a multiple of ``multiple``."""
-    return -(-channels // multiple) * multiple
 
 
 class GeometryPerceiver(nn.Module):

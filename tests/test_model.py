@@ -515,12 +515,43 @@ def test_import_needs_no_heavy_optional_modules():
     assert out.strip() == "[]"
 
 
-def test_attention_context_projection_is_the_composition():
+@pytest.mark.parametrize("heads,queries,bias", [(2, 1, True), (4, 3, True), (1, 2, False)])
+def test_attention_over_a_projected_context_never_forms_keys_and_values_and_is_the_same_function(heads, queries, bias):
+    """With ``context_proj`` the queries are carried into the raw context's space (Attention.absorbed): in float64
+    the output, a key mask's effect and every gradient equal attention over ``to_kv(proj(context))`` formed in full
+    (the projection's bias included); and the full keys/values (B, Nk, 2·heads·dim_head) are never made."""
     from torch import nn
 
     from spread.model.layers import Attention
 
     torch.manual_seed(0)
-    attn, proj = Attention(32, heads=2, dim_head=8), nn.Linear(6, 32)
-    x, ctx = torch.randn(3, 1, 32), torch.randn(3, 5, 6)
-    assert torch.allclose(attn(x, ctx, context_proj=proj), attn(x, proj(ctx)), atol=1e-5)
+    attn, proj = Attention(32, heads=heads, dim_head=8).double(), nn.Linear(6, 32, bias=bias).double()
+    with torch.no_grad():
+        if bias:
+            proj.bias.normal_()
+    x, ctx = torch.randn(3, queries, 32, dtype=torch.float64), torch.randn(3, 5, 6, dtype=torch.float64)
+    keys = torch.tensor([[1, 1, 1, 1, 1], [1, 0, 1, 0, 0], [0, 0, 0, 0, 1]], dtype=torch.bool)
+    for mask in (None, keys):
+        fast = attn(x, ctx, key_mask=mask, context_proj=proj)
+        grads_fast = torch.autograd.grad(fast.square().sum(), [*attn.parameters(), *proj.parameters()])
+        full = attn(x, proj(ctx), key_mask=mask)
+        grads_full = torch.autograd.grad(full.square().sum(), [*attn.parameters(), *proj.parameters()])
+        assert torch.allclose(fast, full, atol=1e-12, rtol=0)
+        for a, b in zip(grads_fast, grads_full):
+            assert torch.allclose(a, b, atol=1e-11, rtol=0)
+    masked = attn(x, ctx, key_mask=keys, context_proj=proj)  # the mask does something: the last scene sees one key
+    assert not torch.allclose(masked[2], attn(x, ctx, context_proj=proj)[2])
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    widest = []  # the channels of every (B, Nk, ·) tensor the call makes
+
+    class Widest(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            if isinstance(out, torch.Tensor) and out.dim() == 3 and out.shape[:2] == (3, 5):
+                widest.append(out.shape[-1])
+            return out
+
+    with torch.no_grad(), Widest():
+        attn(x, ctx, context_proj=proj)
+    assert max(widest, default=0) < 2 * heads * 8  # no (B, Nk, 2·heads·dim_head) keys/values

@@ -65,10 +65,12 @@ class Attention(nn.Module):
     ``to_q``/``to_kv`` load into it) or ``given`` (the caller passes the projected ``kv`` (B, Nk, 2·heads·dim_head),
     e.g. computed for several layers in one product).
 
-    ``context_proj`` (a Linear shared by several layers, e.g. the shape-token projection) makes the
-    keys and values ``to_kv(context_proj(context))``; it is computed as one Linear with the composed
-    weights, which is the same function but much cheaper when the raw context is narrower than
-    ``context_dim`` (256 shape tokens of 64 channels per object vs 512).
+    ``context_proj`` (a Linear shared by several layers, e.g. the shape-token projection) makes the keys and values
+    ``to_kv(context_proj(context))``. Then neither is formed: each head's query is carried into the raw context's
+    space instead (:meth:`absorbed`: ``q·(W_k P c) = (Pᵀ W_kᵀ q)·c``, the value product after the weighted sum), the
+    same function, which for a narrow raw context and few queries (each object's one query per head over its 256
+    shape tokens of 64 channels, vs keys and values of 2 × 512 channels per token, per block, per denoising step) is a
+    small fraction of the work and memory.
     """
 
     def __init__(self, dim: int, context_dim: int | None = None, heads: int = 8, dim_head: int = 64,
@@ -96,22 +98,45 @@ class Attention(nn.Module):
             q = rearrange(self.to_q(x), "b n (h d) -> b h n d", h=self.heads)
             if self.kv == "context":
                 context = x if context is None else context
-                if context_proj is None:
-                    kv = self.to_kv(context)
-                else:
-                    weight = self.to_kv.weight @ context_proj.weight
-                    bias = None if context_proj.bias is None else self.to_kv.weight @ context_proj.bias
-                    kv = F.linear(context, weight, bias)
+                if context_proj is not None:
+                    return self.absorbed(q, context, context_proj, _mask(key_mask, key_bias, q.dtype))
+                kv = self.to_kv(context)
             elif kv is None:
                 raise ValueError("Attention(kv='given') needs kv=")
             k, v = rearrange(kv, "b n (two h d) -> two b h n d", two=2, h=self.heads)
-        mask = key_bias
-        if mask is None and key_mask is not None:
-            mask = rearrange(key_mask, "b k -> b 1 1 k")
-        if mask is not None and mask.is_floating_point() and mask.dtype != q.dtype:
-            mask = mask.to(q.dtype)
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=_mask(key_mask, key_bias, q.dtype))
         return self.to_out(rearrange(out, "b h n d -> b n (h d)"))
+
+    def absorbed(self, q: torch.Tensor, context: torch.Tensor, proj: nn.Linear,
+                 mask: torch.Tensor | None) -> torch.Tensor:
+        """Attention of queries q (B, heads, Nq, dim_head) over keys and values ``to_kv(proj(context))`` without
+        forming them: with A_h = W_k,h·P and V_h = W_v,h·P (dim_head × raw), head h's logits are
+        ``(q_h·A_h)·c_j`` (the key bias W_k·b shifts a query's logits alike: softmax ignores it) and its output
+        ``V_h·(Σ_j a_j c_j) + W_v,h·b``. The heads share the raw context c (B, Nk, raw), so they attend as B × (heads·Nq)
+        queries of one head. Output (B, Nq, dim)."""
+        B, heads, Nq, dim_head = q.shape
+        raw = context.shape[-1]  # (explicit sizes throughout: B may be a data-dependent size under torch.compile)
+        key_weight, value_weight = self.to_kv.weight.chunk(2, dim=0)  # (heads·dim_head, context_dim) each
+        to_raw = (key_weight @ proj.weight).view(heads, dim_head, raw)  # A_h
+        from_raw = (value_weight @ proj.weight).view(heads, dim_head, raw)  # V_h
+        q_raw = torch.einsum("bhnd,hdr->bhnr", q, to_raw.to(q.dtype)).reshape(B, 1, heads * Nq, raw)
+        c = context[:, None].to(q_raw.dtype)
+        mixed = F.scaled_dot_product_attention(q_raw, c, c, attn_mask=mask, scale=dim_head ** -0.5)
+        out = torch.einsum("bhnr,hdr->bnhd", mixed.reshape(B, heads, Nq, raw), from_raw.to(mixed.dtype))
+        if proj.bias is not None:
+            out = out + (value_weight @ proj.bias).view(heads, dim_head).to(out.dtype)
+        return self.to_out(out.reshape(B, Nq, heads * dim_head))
+
+
+def _mask(key_mask: torch.Tensor | None, key_bias: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:
+    """The attention mask of :class:`Attention`: ``key_bias`` (B, 1, 1, Nk) as given, else ``key_mask`` (B, Nk) as
+    (B, 1, 1, Nk) bool; a float mask in the queries' dtype."""
+    mask = key_bias
+    if mask is None and key_mask is not None:
+        mask = rearrange(key_mask, "b k -> b 1 1 k")
+    if mask is not None and mask.is_floating_point() and mask.dtype != dtype:
+        mask = mask.to(dtype)
+    return mask
 
 
 def round_up(n: int, multiple: int) -> int:

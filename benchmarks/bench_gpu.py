@@ -449,7 +449,8 @@ def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
     a DDIM-2 sample and scaled to 100. One row more in the earlier slots' layout (``mixed``: one batch of the first B
     scenes, every size padded to the largest room), for comparison with their figures. Then the guidance after
     trained-like samples (:class:`Oracle`: the rooms' poses jittered by 3 cm, and exactly), its cost per iteration, and
-    the recipe estimated from it: the untrained network's degenerate poses are the guidance's worst case, not its use."""
+    the recipe estimated from it: the untrained network's degenerate poses are the guidance's worst case, not its
+    use."""
     import torch
 
     from spread.assets.library import AssetLibrary

@@ -58,11 +58,52 @@ def test_dense_search_finds_the_pruned_searchs_nearest_points_but_exact_ties(see
     assert mask.gather(1, owner.clamp(max=mask.shape[1] - 1))[keep].all(), "never a padding object"
 
 
-def test_dense_features_equal_the_pruned_features_within_1e_5():
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_tree_search_finds_the_exact_nearest_distance_and_refuses_nothing_the_others_find(seed):
+    """``nearest=tree`` (a k-d tree per object, the CPU's default): every query's distance is brute force's, taken in
+    float64 over every other real object (so at least as near as the float32 searches'), indices equal but at ties,
+    never the query's own object or a padding one; index 0 for padding and a lone object's points; diverged (NaN)
+    points answered as the pruned search answers them; and ``auto`` chooses it on the CPU, ``dense`` on CUDA and
+    inside a compiled step."""
+    from spread.model.geometry import resolve_search
+    from spread.model.nearest import nearest_other_point_tree
+
+    points, normals, t, R, mask = scenes(seed=seed)
+    world = torch.einsum("bnij,bnmj->bnmi", R, points) + t[:, :, None]
+    B, N, M, _ = world.shape
+    tree = nearest_other_point_tree(world, mask)
+    flat = world.reshape(B, N * M, 3).double()
+    d2 = torch.cdist(flat, flat).square()
+    owner = torch.arange(N * M) // M
+    blocked = (owner[:, None] == owner[None, :])[None] | ~mask.repeat_interleave(M, 1)[:, None, :]
+    d2 = d2.masked_fill(blocked, float("inf"))
+    exact = d2.argmin(-1)
+    real = mask.repeat_interleave(M, 1) & (mask.sum(1, keepdim=True) > 1)
+    d_tree, d_exact = distances_of(world.double(), tree), distances_of(world.double(), exact)
+    assert torch.allclose(d_tree[real], d_exact[real], atol=1e-12, rtol=0)
+    assert ((tree != exact) & real).sum() <= 0.001 * real.sum()
+    assert (owner[tree][real] != owner[None].expand(B, -1)[real]).all()
+    assert mask.gather(1, (tree // M).clamp(max=N - 1))[real].all()
+    assert (tree[~real] == 0).all()
+    pruned = nearest_other_point(world, points, t, R, mask)
+    assert (distances_of(world.double(), pruned)[real] >= d_tree[real] - 1e-12).all()
+    diverged = world.clone()
+    diverged[0, 1, 2, 0] = float("nan")  # no tree takes it: the pruned search's answer, as before
+    eye, zero = torch.eye(3).expand(B, N, 3, 3), torch.zeros(B, N, 3)
+    assert torch.equal(nearest_other_point_tree(diverged, mask),
+                       nearest_other_point(diverged, diverged, zero, eye, mask))
+    assert resolve_search("auto", torch.device("cpu")) == "tree"
+    assert resolve_search("auto", torch.device("cuda")) == "dense"
+    assert torch.compile(lambda: resolve_search("auto", torch.device("cpu")), backend="eager", fullgraph=True)() \
+        == "dense"
+
+
+def test_dense_and_tree_features_equal_the_pruned_features_within_1e_5():
     points, normals, t, R, mask = scenes(sizes=(6, 4, 2), n_max=7, m=90, seed=4, spread=0.6)
     a = signed_chamfer_features(points, normals, t, R, mask, search="pruned")
     b = signed_chamfer_features(points, normals, t, R, mask, search="dense")
-    assert (a - b).abs().max() < 1e-5
+    c = signed_chamfer_features(points, normals, t, R, mask, search="tree")
+    assert (a - b).abs().max() < 1e-5 and (a - c).abs().max() < 1e-5
     assert (a[..., 3] < 0).any(), "penetrating points occur (both signs checked)"
     # the network's path: a per-sample cloud in Morton order gives the same set of features, reordered
     cloud = prepare_points(points, normals, mask, morton=True)
@@ -416,8 +457,9 @@ def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_m
     assert any(p.grad is not None for p in eager.parameters())  # other modes leave them to Lightning
     with pytest.raises(ValueError, match="compile_mode.*'fast'"):
         SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_mode="fast")
-    with pytest.raises(ValueError, match="model.compile=true cannot compile model.config.nearest=pruned"):
-        SceneDiffusion("geometry", dataclasses.replace(config, nearest="pruned"), bounds=BOUNDS, compile=True)
+    for search in ("pruned", "tree"):
+        with pytest.raises(ValueError, match=f"model.compile=true cannot compile model.config.nearest={search}"):
+            SceneDiffusion("geometry", dataclasses.replace(config, nearest=search), bounds=BOUNDS, compile=True)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match=f"compile_bucket must be an integer >= 1.*{bad!r}"):
             SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_bucket=bad)

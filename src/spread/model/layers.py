@@ -112,8 +112,8 @@ class Attention(nn.Module):
         """Attention of queries q (B, heads, Nq, dim_head) over keys and values ``to_kv(proj(context))`` without
         forming them: with A_h = W_k,h·P and V_h = W_v,h·P (dim_head × raw), head h's logits are
         ``(q_h·A_h)·c_j`` (the key bias W_k·b shifts a query's logits alike: softmax ignores it) and its output
-        ``V_h·(Σ_j a_j c_j) + W_v,h·b``. The heads share the raw context c (B, Nk, raw), so they attend as B × (heads·Nq)
-        queries of one head. Output (B, Nq, dim)."""
+        ``V_h·(Σ_j a_j c_j) + W_v,h·b``. The heads share the raw context c (B, Nk, raw), so they attend as
+        B × (heads·Nq) queries of one head. Output (B, Nq, dim)."""
         B, heads, Nq, dim_head = q.shape
         raw = context.shape[-1]  # (explicit sizes throughout: B may be a data-dependent size under torch.compile)
         key_weight, value_weight = self.to_kv.weight.chunk(2, dim=0)  # (heads·dim_head, context_dim) each

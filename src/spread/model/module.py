@@ -48,6 +48,7 @@ from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, 
 from spread.model.ema import EMA
 from spread.model.layers import round_up
 from spread.model.network import SceneDenoiser, upgrade_state_dict
+from spread.model.geometry import UNCOMPILABLE
 from spread.model.parts_distance import PartPlanes
 from spread.model.parts_term import parts_excess
 from spread.model.penetration import penetration_excess, support_error
@@ -165,9 +166,10 @@ class SceneDiffusion(L.LightningModule):
             raise ValueError(f"model.support_quantile must be in (0, 1), got {support_quantile}")
         if compile_mode not in COMPILE_MODES:
             raise ValueError(f"model.compile_mode must be one of {COMPILE_MODES}, got '{compile_mode}'")
-        if compile and variant == "geometry" and cfg.nearest == "pruned":
-            raise ValueError("model.compile=true cannot compile model.config.nearest=pruned (its blocks have "
-                             "data-dependent sizes): use nearest=auto or dense")
+        if compile and variant == "geometry" and cfg.nearest in UNCOMPILABLE:
+            raise ValueError(f"model.compile=true cannot compile model.config.nearest={cfg.nearest} (the tree search "
+                             "runs on the host, the pruned one's blocks have data-dependent sizes): use nearest=auto "
+                             "or dense")
         if isinstance(compile_bucket, bool) or not isinstance(compile_bucket, int) or compile_bucket < 1:
             raise ValueError(f"model.compile_bucket must be an integer >= 1 (objects), got {compile_bucket!r}")
         if lr_schedule not in LR_SCHEDULES:

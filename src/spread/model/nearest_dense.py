@@ -23,8 +23,9 @@ point's normal — as two registered custom operators, each one Triton kernel on
 
 **CPU** (and CUDA when Triton cannot build a kernel, which is then said once as a warning): the same arithmetic in
 torch — posing as :func:`spread.model.poses.pose_points` does; the search by brute force, all objects of all scenes
-at once per chunk of queries, for small problems, and beyond ``BRUTE_FORCE_LIMIT`` distances by the exact pruned
-search of :mod:`spread.model.nearest` (the same answer; the CPU has not the arithmetic for brute force at paper size).
+at once per chunk of queries, for small problems, and beyond ``BRUTE_FORCE_LIMIT`` distances by an exact search of
+:mod:`spread.model.nearest` — the k-d trees on the CPU, the pruned search on CUDA (the same answer; the CPU has not
+the arithmetic for brute force at paper size).
 
 Being registered operators, each is one launch on CUDA, opaque to ``torch.compile`` and to CUDA-graph capture (no
 host synchronisation inside), and counted as one by :mod:`spread.model.opcount`. Neither is differentiable:
@@ -84,6 +85,10 @@ def _pruned(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -
 def _search_torch(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
     B, P, _ = points.shape
     if B * P * P > BRUTE_FORCE_LIMIT:
+        if points.device.type == "cpu":  # a k-d tree per object (the CPU's fastest)
+            from spread.model.nearest import nearest_other_point_tree
+
+            return nearest_other_point_tree(points.view(B, P // points_per_object, points_per_object, 3), valid)
         return _pruned(points, valid, points_per_object)
     return _brute_force(points.float(), valid.repeat_interleave(points_per_object, dim=1), points_per_object)
 

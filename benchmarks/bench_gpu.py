@@ -99,6 +99,7 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
     from spread.model.opcount import OperatorCounter
 
     perceiver.token_multiple = lambda device: perceiver.CHANNEL_MULTIPLE  # CUDA's tokens (the CPU's are unpadded)
+    perceiver.cross_mode = lambda device: "formed"  # CUDA's cross-attentions (the CPU's are absorbed)
     out = {}
     for variant in ("base", "geometry"):
         m = model(variant, M)
@@ -174,12 +175,19 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: 
                pruned: bool = False, mode: str | None = None, variants=("base", "geometry"),
                profile_out: Path | None = None) -> dict:
     """``mode``: torch.compile's mode for the compiled step (``reduce-overhead``: CUDA graphs); ``profile``: the top
-    CUDA kernels of one step printed (8 rows), or appended to ``profile_out`` (30 rows, headed by the row's name)."""
+    CUDA kernels of one step printed (8 rows), or appended to ``profile_out`` (30 rows, headed by the row's name).
+    A variant ``geometry:absorbed`` is +Geometry with the perceiver's cross-attentions absorbed (CUDA's default is
+    ``formed``: :func:`spread.model.perceiver.cross_mode`), to time both ways on one GPU."""
     import torch
+
+    import spread.model.perceiver as perceiver
 
     out = {}
     rows = [(v, "dense") for v in variants] + ([("geometry", "pruned")] if pruned else [])
+    device_mode = perceiver.cross_mode
     for variant, nearest in rows:
+        variant, _, cross = variant.partition(":")
+        perceiver.cross_mode = (lambda device, cross=cross: cross) if cross else device_mode
         m = model(variant, M, "cuda", nearest=nearest)
         m.train()
         batch = synthetic_batch(B, N, M, device="cuda")
@@ -199,8 +207,8 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: 
         torch.cuda.reset_peak_memory_stats()
         n = steps if nearest == "dense" else max(2, steps // 4)
         median, _ = cuda_time(step, 3, n)
-        name = variant + ("" if nearest == "dense" else " (pruned search)") + (" compiled" if compile_step else "") \
-            + (f" {mode}" if compile_step and mode else "")
+        name = variant + (f" ({cross})" if cross else "") + ("" if nearest == "dense" else " (pruned search)") \
+            + (" compiled" if compile_step else "") + (f" {mode}" if compile_step and mode else "")
         if profile and profile_out is not None:
             with open(profile_out, "a") as f:
                 f.write(f"## train {name}: B={B} N={N} M={M}, {median:.4f} s/step\n{profile_step(step, 30)}\n\n")
@@ -211,9 +219,12 @@ def train_rows(B: int, N: int, M: int, steps: int, compile_step: bool, profile: 
         print(f"  train {name}: {median:.4f} s/step", flush=True)
         del m, opt, batch
         torch.cuda.empty_cache()
+    perceiver.cross_mode = device_mode
     tag = (" compiled" if compile_step else "") + (f" {mode}" if compile_step and mode else "")
-    if f"train/base{tag}/s_per_step" in out and f"train/geometry{tag}/s_per_step" in out:
-        out[f"train{tag}/ratio"] = round(out[f"train/geometry{tag}/s_per_step"] / out[f"train/base{tag}/s_per_step"], 3)
+    for geometry in ("geometry", "geometry (absorbed)"):
+        if f"train/base{tag}/s_per_step" in out and f"train/{geometry}{tag}/s_per_step" in out:
+            out[f"train{tag}/ratio" + ("" if geometry == "geometry" else " (absorbed)")] = round(
+                out[f"train/{geometry}{tag}/s_per_step"] / out[f"train/base{tag}/s_per_step"], 3)
     return out
 
 
@@ -562,7 +573,8 @@ def main() -> None:
     ap.add_argument("--profile-out", type=Path, default=None,
                     help="with --profile: append 30 kernel rows per training row (eager and compiled) to this file")
     ap.add_argument("--compile-mode", default=None, help="torch.compile mode of the compiled step (reduce-overhead)")
-    ap.add_argument("--variants", nargs="*", default=["base", "geometry"], help="variants of the compiled step")
+    ap.add_argument("--variants", nargs="*", default=["base", "geometry"],
+                    help="variants of the training rows (geometry:absorbed: the perceiver's absorbed cross-attention)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args()
@@ -591,7 +603,7 @@ def main() -> None:
     if torch.cuda.is_available():
         torch.backends.cuda.matmul.allow_tf32 = False  # float32 means float32 (the kernel's comparisons too)
         cuda_parts = {"train": lambda: train_rows(B, N, M, steps, False, profile=args.profile,
-                                                  profile_out=args.profile_out),
+                                                  profile_out=args.profile_out, variants=args.variants),
                       "nearest": lambda: nearest_rows(N, M),
                       "sample": lambda: sample_rows(4 if args.quick else 64, N, M, 5 if args.quick else 50),
                       "compile": lambda: train_rows(B, N, M, steps, True, mode=args.compile_mode,

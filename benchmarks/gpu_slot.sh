@@ -2,18 +2,19 @@
 # One short GPU slot, in order of what is still unmeasured (issue 29), each part under its own time limit so a slot
 # that ends early still returns what was measured (everything lands in $OUT, default ./gpu_out). PARTS chooses:
 #   compile   the CUDA-graph'd training step (torch.compile reduce-overhead), base and +Geometry at paper size: the
-#             issue's <= 1.3x ratio with today's code (last measured at stop 40: 0.0127 / 0.0316 s, 2.49x);
+#             issue's <= 1.3x ratio with today's code (last measured at stop 40: 0.0127 / 0.0316 s, 2.49x), and
+#             +Geometry with the perceiver's cross-attention absorbed (geometry:absorbed: the CPU's way since stop 57);
 #   pipeline  the guided pipeline on real rooms at batch 64: DDPM-1000, refine on the untrained network's degenerate
 #             poses, and refine after trained-like samples (bench_gpu.Oracle: the rooms' poses jittered by 3 cm);
-#   profile   where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base and +Geometry,
-#             and of two eager bf16 denoising steps at batch 64 (profile_train.txt);
+#   profile   where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base, +Geometry and
+#             geometry:absorbed, and of two eager bf16 denoising steps at batch 64 (profile_train.txt);
 #   lightning spread-train through Lightning with the CUDA-graph'd step, +Geometry at paper size on the carried rooms
 #             (2-51 objects: one static graph per bucket of 8 object counts, model.compile_bucket; the fifth slot's
 #             run, before the buckets, recompiled per count): perf/steps_per_s in lightning_metrics.csv, Dynamo's
 #             recompiles in lightning.log;
 #   sample    DDIM-50 at batch 64 (eager, CUDA graph, bf16; met at the fifth slot: 0.0387 s/scene);
 #   detect    the guidance's triangle pairs on the GPU against python-fcl (answered at the fifth slot: equal).
-# The default PARTS="compile pipeline profile" fits one device call (limits 200 + 160 + 75 s); a second call
+# The default PARTS="compile pipeline profile" fits one device call (limits 260 + 160 + 90 s); a second call
 # PARTS=lightning (280 s). (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
@@ -33,8 +34,8 @@ quiet() { grep -v "^W1\|^ *\^\|━"; }
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$OUT/gpu.txt" 2>&1
 
 if want compile; then
-  timeout "${COMPILE_S:-200}" $PY benchmarks/bench_gpu.py --skip-counts --only compile --compile-mode reduce-overhead \
-    --variants base geometry --json "$OUT/compile.json" 2>&1 | quiet | tail -12
+  timeout "${COMPILE_S:-260}" $PY benchmarks/bench_gpu.py --skip-counts --only compile --compile-mode reduce-overhead \
+    --variants base geometry geometry:absorbed --json "$OUT/compile.json" 2>&1 | quiet | tail -12
   mark "compiled training step (reduce-overhead)"
 fi
 
@@ -45,8 +46,9 @@ if want pipeline; then
 fi
 
 if want profile; then
-  timeout "${PROFILE_S:-75}" $PY benchmarks/bench_gpu.py --skip-counts --only train sample_profile --profile \
-    --profile-out "$OUT/profile_train.txt" --json "$OUT/train_profiled.json" 2>&1 | quiet | tail -6
+  timeout "${PROFILE_S:-90}" $PY benchmarks/bench_gpu.py --skip-counts --only train sample_profile --profile \
+    --variants base geometry geometry:absorbed --profile-out "$OUT/profile_train.txt" \
+    --json "$OUT/train_profiled.json" 2>&1 | quiet | tail -6
   mark "profile"
 fi
 

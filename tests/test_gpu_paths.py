@@ -206,16 +206,21 @@ def test_old_checkpoints_convert_and_new_ones_round_trip():
     assert all(torch.equal(a, b) for a, b in zip(again.state_dict().values(), new_state.values()))
 
 
-def test_a_step_reads_nothing_on_the_host_and_geometry_launches_at_most_half_again_base():
+def test_a_step_reads_nothing_on_the_host_and_geometry_launches_at_most_half_again_base(monkeypatch):
     """The paper config's widths at a small batch (the count does not depend on the sizes: 10 and 40 objects give
     the same): +Geometry dispatches at most 1.5× base's kernel operators per denoising step and per training step
     (issue 29; RESULTS.md has the paper-size counts), no Python loop over objects, blocks or points makes it grow,
-    and no operator of a denoising step reads a tensor value on the host."""
+    and no operator of a denoising step reads a tensor value on the host. Counted on CPU tensors taking CUDA's
+    paths (padded point tokens, formed keys/values: what a GPU launches), as the benchmark counts them."""
+    import spread.model.perceiver as perceiver
     from spread.model import ModelConfig
     from spread.model.module import SceneDiffusion
     from spread.model.opcount import OperatorCounter
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
     from bench_model import synthetic_batch
+
+    monkeypatch.setattr(perceiver, "token_multiple", lambda device: perceiver.CHANNEL_MULTIPLE)
+    monkeypatch.setattr(perceiver, "cross_mode", lambda device: "formed")
 
     def count(variant, n, train=False):
         torch.manual_seed(0)
@@ -540,6 +545,58 @@ def test_point_tokens_are_padded_to_a_multiple_of_8_on_cuda_and_the_keys_values_
                 normed = F.layer_norm(plain, (C,), perceiver.context_scale[layer], perceiver.context_shift[layer])
                 expected = F.linear(normed, perceiver.context_kv[layer])
                 assert torch.allclose(kv, expected, atol=1e-5, rtol=1e-5), float((kv - expected).abs().max())
+
+
+@pytest.mark.parametrize("multiple", [1, 8])
+def test_the_perceivers_absorbed_cross_attention_is_the_formed_one_and_never_makes_the_keys_and_values(multiple):
+    """The perceiver's two ways to its cross-attentions (``cross_mode``: absorbed on the CPU, formed on CUDA) are one
+    function: in float64 the latents and every parameter's gradient agree, unpadded tokens (the CPU's) and padded
+    (CUDA's), two heads, padding objects masked out; the absorbed way never makes the (B, N·M, depth·2·heads·dim_head)
+    keys/values the formed one makes; an unknown way is refused by name."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from spread.model.perceiver import GeometryPerceiver, cross_mode, static_tokens
+
+    assert cross_mode(torch.device("cpu")) == "absorbed" and cross_mode(torch.device("cuda")) == "formed"
+    torch.manual_seed(0)
+    perceiver = GeometryPerceiver(dim=32, num_latents=8, depth=3, cross_heads=2, cross_dim_head=8, heads=2,
+                                  dim_head=8, num_bands=6, index_dim=64).double()
+    with torch.no_grad():  # layers that differ: a wrong fold shows
+        perceiver.context_scale.normal_(1.0, 0.3)
+        perceiver.context_shift.normal_(0.0, 0.3)
+    B, N, M = 2, 3, 40
+    mask = torch.tensor([[True, True, True], [True, True, False]])
+    points = ((torch.rand(B, N, M, 3) - 0.5) * mask[..., None, None]).double()
+    distance = torch.randn(B, N, M, dtype=torch.float64)
+    static = static_tokens(points, mask, 6, perceiver.max_frequency, 64, multiple=multiple)
+    out, grads = {}, {}
+    for mode in ("formed", "absorbed"):
+        out[mode] = perceiver(distance, static, mode)
+        grads[mode] = torch.autograd.grad(out[mode].square().sum(), list(perceiver.parameters()))
+    assert torch.allclose(out["formed"], out["absorbed"], atol=1e-10, rtol=0)
+    for name, a, b in zip([n for n, _ in perceiver.named_parameters()], grads["formed"], grads["absorbed"]):
+        assert torch.allclose(a, b, atol=1e-9, rtol=0), name
+    assert grads["absorbed"][[n for n, _ in perceiver.named_parameters()].index("context_shift")].abs().sum() > 0
+
+    kv_shape = (N * M, 3 * 2 * 2 * 8)
+
+    class Shapes(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.seen = set()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            result = func(*args, **(kwargs or {}))
+            if isinstance(result, torch.Tensor):
+                self.seen.add(tuple(result.shape[-2:]))
+            return result
+
+    for mode, makes in (("formed", True), ("absorbed", False)):
+        with torch.no_grad(), Shapes() as shapes:
+            perceiver(distance, static, mode)
+        assert (kv_shape in shapes.seen) == makes, mode
+    with pytest.raises(ValueError, match="mode must be one of .*'fused'"):
+        perceiver(distance, static, "fused")
 
 
 def test_the_benchmarks_oracle_samples_the_rooms_own_poses_and_its_jitter_moves_only_translations_by_centimetres():

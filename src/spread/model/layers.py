@@ -99,7 +99,11 @@ class Attention(nn.Module):
             if self.kv == "context":
                 context = x if context is None else context
                 if context_proj is not None:
-                    return self.absorbed(q, context, context_proj, _mask(key_mask, key_bias, q.dtype))
+                    key_weight, value_weight = self.to_kv.weight.chunk(2, dim=0)  # (heads·dim_head, context_dim)
+                    value_bias = None if context_proj.bias is None else value_weight @ context_proj.bias
+                    return self.absorbed(q, context, key_weight @ context_proj.weight,
+                                         value_weight @ context_proj.weight, value_bias,
+                                         _mask(key_mask, key_bias, q.dtype))
                 kv = self.to_kv(context)
             elif kv is None:
                 raise ValueError("Attention(kv='given') needs kv=")
@@ -107,25 +111,31 @@ class Attention(nn.Module):
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=_mask(key_mask, key_bias, q.dtype))
         return self.to_out(rearrange(out, "b h n d -> b n (h d)"))
 
-    def absorbed(self, q: torch.Tensor, context: torch.Tensor, proj: nn.Linear,
-                 mask: torch.Tensor | None) -> torch.Tensor:
-        """Attention of queries q (B, heads, Nq, dim_head) over keys and values ``to_kv(proj(context))`` without
-        forming them: with A_h = W_k,h·P and V_h = W_v,h·P (dim_head × raw), head h's logits are
-        ``(q_h·A_h)·c_j`` (the key bias W_k·b shifts a query's logits alike: softmax ignores it) and its output
-        ``V_h·(Σ_j a_j c_j) + W_v,h·b``. The heads share the raw context c (B, Nk, raw), so they attend as
-        B × (heads·Nq) queries of one head. Output (B, Nq, dim)."""
+    def absorbed(self, q: torch.Tensor, context: torch.Tensor, key_weight: torch.Tensor, value_weight: torch.Tensor,
+                 value_bias: torch.Tensor | None, mask: torch.Tensor | None) -> torch.Tensor:
+        """Attention of queries q (B, heads, Nq, dim_head) over the keys ``key_weight·c (+ a key bias)`` and values
+        ``value_weight·c + value_bias`` of a raw context c (B, Nk, raw) without forming them (key_weight,
+        value_weight (heads·dim_head, raw); value_bias (heads·dim_head,) or None): with A_h, V_h head h's rows of
+        the two weights, its logits are ``(q_h·A_h)·c_j`` (a key bias shifts a query's logits alike: softmax ignores
+        it) and its output ``V_h·(Σ_j a_j c_j) + value_bias_h``. The heads share c, so they attend as B × (heads·Nq)
+        queries of one head. Output ``to_out`` of it, (B, Nq, dim)."""
         B, heads, Nq, dim_head = q.shape
         raw = context.shape[-1]  # (explicit sizes throughout: B may be a data-dependent size under torch.compile)
-        key_weight, value_weight = self.to_kv.weight.chunk(2, dim=0)  # (heads·dim_head, context_dim) each
-        to_raw = (key_weight @ proj.weight).view(heads, dim_head, raw)  # A_h
-        from_raw = (value_weight @ proj.weight).view(heads, dim_head, raw)  # V_h
+        to_raw, from_raw = key_weight.view(heads, dim_head, raw), value_weight.view(heads, dim_head, raw)
         q_raw = torch.einsum("bhnd,hdr->bhnr", q, to_raw.to(q.dtype)).reshape(B, 1, heads * Nq, raw)
         c = context[:, None].to(q_raw.dtype)
         mixed = F.scaled_dot_product_attention(q_raw, c, c, attn_mask=mask, scale=dim_head ** -0.5)
         out = torch.einsum("bhnr,hdr->bnhd", mixed.reshape(B, heads, Nq, raw), from_raw.to(mixed.dtype))
-        if proj.bias is not None:
-            out = out + (value_weight @ proj.bias).view(heads, dim_head).to(out.dtype)
+        if value_bias is not None:
+            out = out + value_bias.view(heads, dim_head).to(out.dtype)
         return self.to_out(out.reshape(B, Nq, heads * dim_head))
+
+    def attend_raw(self, x: torch.Tensor, context: torch.Tensor, key_weight: torch.Tensor, value_weight: torch.Tensor,
+                   value_bias: torch.Tensor | None = None, key_bias: torch.Tensor | None = None) -> torch.Tensor:
+        """Queries x (B, Nq, dim) attending to keys/values given as weights on a raw context (:meth:`absorbed`);
+        ``key_bias`` (B, 1, 1, Nk) the additive mask. Output (B, Nq, dim)."""
+        q = rearrange(self.to_q(x), "b n (h d) -> b h n d", h=self.heads)
+        return self.absorbed(q, context, key_weight, value_weight, value_bias, _mask(None, key_bias, q.dtype))
 
 
 def _mask(key_mask: torch.Tensor | None, key_bias: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:

@@ -52,6 +52,19 @@ def token_multiple(device: torch.device) -> int:
     return CHANNEL_MULTIPLE if torch.device(device).type == "cuda" else 1
 
 
+#: How the cross-attentions read the point tokens (:func:`cross_mode`).
+CROSS_MODES = ("formed", "absorbed")
+
+
+def cross_mode(device: torch.device) -> str:
+    """How the cross-attentions over the point tokens are computed on ``device`` (the same function either way,
+    :class:`GeometryPerceiver`): ``absorbed`` on the CPU (measured there: the perceiver's forward + backward 1.24×
+    faster at batch 4 × 20 × 2,000, 1.10–1.32× at the tiny config's sizes; ``benchmarks/RESULTS.md``, stop 57),
+    ``formed`` on CUDA, where the absorbed form trades the keys/values tensor for 1.75× the attention arithmetic and
+    is not yet timed (``bench_gpu.py --variants geometry:absorbed``)."""
+    return "formed" if torch.device(device).type == "cuda" else "absorbed"
+
+
 @dataclass
 class StaticTokens:
     """The pose-independent channels of the point tokens, made once per sample: ``xyz`` (B, N·M, F) Fourier
@@ -145,7 +158,13 @@ class GeometryPerceiver(nn.Module):
     ``to_kv(LN(x)·w + b) = (W·diag(w))·LN(x) + W·b``, the same function. Checkpoints with one LayerNorm and
     ``to_kv`` per layer load into it. Padded tokens (CUDA: :func:`token_multiple`): the normalisation's mean and
     variance are those of a token's C real channels, its zero padding is normalised too and met by zero columns of
-    the product's weight."""
+    the product's weight.
+
+    Two ways to the same function (:func:`cross_mode`, by device): ``formed`` makes those keys and values
+    (B, N·M, depth·2·heads·dim_head); ``absorbed`` never does — each cross-attention carries its queries into the
+    normalised tokens' space and attends over the tokens themselves (:meth:`spread.model.layers.Attention.absorbed`:
+    the layer's key and value weights with its LayerNorm scale folded in; its shift's key part dropped, as softmax
+    ignores it, its value part added after)."""
 
     def __init__(self, dim: int, num_latents: int = 256, depth: int = 4, self_per_cross: int = 2,
                  cross_heads: int = 1, cross_dim_head: int = 64, heads: int = 8, dim_head: int = 64,
@@ -180,27 +199,50 @@ class GeometryPerceiver(nn.Module):
         """The sample's :class:`StaticTokens` (canonical points (B, N, M, 3), zero at padding; mask (B, N))."""
         return static_tokens(points, mask, self.num_bands, self.max_frequency, self.index_dim)
 
+    def normalise(self, tokens: torch.Tensor) -> torch.Tensor:
+        """Point tokens (B, K, C + P) — C channels, then P zeros (:func:`point_tokens`) — LayerNormed over their C
+        real channels without the affine part (biased variance, as nn.LayerNorm), all C + P of them (B, K, C + P)."""
+        channels = self.context_kv.shape[-1]
+        if tokens.shape[-1] == channels:  # unpadded (the CPU)
+            return self.context_norm(tokens)
+        var, mean = torch.var_mean(tokens[..., :channels], dim=-1, correction=0, keepdim=True)
+        rstd = torch.rsqrt(var + self.context_norm.eps)
+        return torch.addcmul(-mean * rstd, tokens, rstd)  # (x − μ)/σ
+
+    def layer_weights(self, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each cross-attention's key/value weight on the normalised tokens (depth, 2·heads·dim_head, ``width``: its
+        LayerNorm scale folded in, zero columns for the padding) and bias (depth, 2·heads·dim_head)."""
+        weight = self.context_kv * self.context_scale[:, None, :]
+        bias = torch.einsum("lkc,lc->lk", self.context_kv, self.context_shift)
+        return F.pad(weight, (0, width - weight.shape[-1])), bias
+
     def context(self, tokens: torch.Tensor) -> torch.Tensor:
         """Keys and values (B, K, depth·2·heads·dim_head) of every cross-attention for point tokens (B, K, C + P):
         C channels, then P zeros (:func:`point_tokens`)."""
-        depth, width, channels = self.context_kv.shape
-        weight = (self.context_kv * self.context_scale[:, None, :]).reshape(depth * width, channels)
-        bias = torch.einsum("lkc,lc->lk", self.context_kv, self.context_shift).reshape(depth * width)
-        if tokens.shape[-1] == channels:  # unpadded (the CPU)
-            return F.linear(self.context_norm(tokens), weight.to(tokens.dtype), bias.to(tokens.dtype))
-        weight = F.pad(weight, (0, tokens.shape[-1] - channels))  # zero columns for the padding
-        # LayerNorm over the C real channels (biased variance, as nn.LayerNorm), applied to all C + P
-        var, mean = torch.var_mean(tokens[..., :channels], dim=-1, correction=0, keepdim=True)
-        rstd = torch.rsqrt(var + self.context_norm.eps)
-        normed = torch.addcmul(-mean * rstd, tokens, rstd)  # (x − μ)/σ
-        return F.linear(normed, weight.to(tokens.dtype), bias.to(tokens.dtype))
+        weight, bias = self.layer_weights(tokens.shape[-1])
+        normed = self.normalise(tokens)
+        return F.linear(normed, weight.flatten(0, 1).to(normed.dtype), bias.flatten().to(normed.dtype))
 
-    def forward(self, distance: torch.Tensor, static: StaticTokens) -> torch.Tensor:
-        """Signed distances (B, N, M) (metres) of the sample's points → scene tokens (B, num_latents, dim)."""
-        kv = self.context(point_tokens(distance, static, self.distance_scales)).chunk(len(self.layers), dim=-1)
+    def forward(self, distance: torch.Tensor, static: StaticTokens, mode: str | None = None) -> torch.Tensor:
+        """Signed distances (B, N, M) (metres) of the sample's points → scene tokens (B, num_latents, dim);
+        ``mode``: one of :data:`CROSS_MODES` (None: :func:`cross_mode` of the device)."""
+        mode = cross_mode(distance.device) if mode is None else mode
+        if mode not in CROSS_MODES:
+            raise ValueError(f"GeometryPerceiver: mode must be one of {CROSS_MODES}, got {mode!r}")
+        tokens = point_tokens(distance, static, self.distance_scales)
+        if mode == "formed":
+            kv = self.context(tokens).chunk(len(self.layers), dim=-1)
+        else:
+            normed = self.normalise(tokens)
+            weight, bias = self.layer_weights(tokens.shape[-1])
+            half = weight.shape[1] // 2
         z = repeat(self.latents, "l d -> b l d", b=distance.shape[0])
-        for (norm_z, cross, norm_ff, ff, self_layers), layer_kv in zip(self.layers, kv):
-            z = z + cross(norm_z(z), kv=layer_kv, key_bias=static.key_bias)
+        for i, (norm_z, cross, norm_ff, ff, self_layers) in enumerate(self.layers):
+            if mode == "formed":
+                z = z + cross(norm_z(z), kv=kv[i], key_bias=static.key_bias)
+            else:
+                z = z + cross.attend_raw(norm_z(z), normed, weight[i, :half], weight[i, half:], bias[i, half:],
+                                         key_bias=static.key_bias)
             z = z + ff(norm_ff(z))
             for norm_a, attn, norm_f, ff_self in self_layers:
                 z = z + attn(norm_a(z))

@@ -150,14 +150,14 @@ def nearest_other_point_tree(world: torch.Tensor, valid: torch.Tensor) -> torch.
     tree per object (scipy's ``cKDTree``, on the host; float64 distances of the float32 points: exact, the smallest
     distance whatever the tie). world (B, N, M, 3) posed points, valid (B, N) bool; padding queries and those of an
     object alone in its scene get index 0 (the caller masks them). Non-finite points (diverged poses) go to
-:func:`nearest_other_point` instead, which returns an index for them as it always did.
+    :func:`nearest_other_point` instead, which returns an index for them as it always did.
 
     For each real object i of a scene, the other real objects are visited nearest world box first (the distance from a
     query to object j's axis-aligned world box is a lower bound of its distance to any point of j); object j is
     searched only for the queries whose lower bound does not exceed their best distance so far, and its tree stops at
     the largest of those bests. The Python loops are over scenes and objects (a few hundred tree calls per batch), the
-    work in the trees: on one CPU thread 5–6× faster than :func:`nearest_other_point` at 4 scenes × 20 objects ×
-    1,000–2,000 points (``benchmarks/RESULTS.md``)."""
+    work in the trees: on one CPU thread 7–10× faster than :func:`nearest_other_point` at 4 scenes × 20 objects ×
+    1,000–2,000 points (``benchmarks/RESULTS.md``, stop 57)."""
     import numpy as np
     from scipy.spatial import cKDTree
 

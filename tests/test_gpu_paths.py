@@ -91,7 +91,7 @@ def test_the_tree_search_finds_the_exact_nearest_distance_and_refuses_nothing_th
     diverged[0, 1, 2, 0] = float("nan")  # no tree takes it: the pruned search's answer, as before
     eye, zero = torch.eye(3).expand(B, N, 3, 3), torch.zeros(B, N, 3)
     assert torch.equal(nearest_other_point_tree(diverged, mask),
-                       nearest_other_point(diverged, diverged, zero, eye, mask))
+                       nearest_other_point(diverged, diverged, zero, eye, mask))  # written out: the test's own answer
     assert resolve_search("auto", torch.device("cpu")) == "tree"
     assert resolve_search("auto", torch.device("cuda")) == "dense"
     assert torch.compile(lambda: resolve_search("auto", torch.device("cpu")), backend="eager", fullgraph=True)() \

@@ -141,6 +141,14 @@ def nearest_other_point(world: torch.Tensor, points_local: torch.Tensor, transla
     return nearest.view(B, N * M)
 
 
+def nearest_other_point_posed(world: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """:func:`nearest_other_point` of already posed points (B, N, M, 3): each object's frame taken as the world's
+    (identity poses, its boxes those of the posed points)."""
+    B, N = world.shape[:2]
+    eye = torch.eye(3, dtype=world.dtype, device=world.device).expand(B, N, 3, 3)
+    return nearest_other_point(world, world, torch.zeros_like(world[:, :, 0]), eye, valid)
+
+
 #: Relative slack of the tree search's object culling (a box distance in float64 against a float64 tree distance).
 TREE_SLACK = 1e-9
 
@@ -164,8 +172,7 @@ def nearest_other_point_tree(world: torch.Tensor, valid: torch.Tensor) -> torch.
     B, N, M, _ = world.shape
     points = world.detach().to("cpu", torch.float64).numpy()
     if not np.isfinite(points).all():  # diverged poses: no tree takes them; the pruned search answers as it always did
-        eye = torch.eye(3, dtype=world.dtype, device=world.device).expand(B, N, 3, 3)
-        return nearest_other_point(world, world, torch.zeros_like(world[:, :, 0]), eye, valid)
+        return nearest_other_point_posed(world, valid)
     real = valid.detach().cpu().numpy().astype(bool)
     out = np.zeros((B, N * M), dtype=np.int64)
     for b in range(B):

@@ -70,26 +70,15 @@ def _brute_force(points: torch.Tensor, valid_point: torch.Tensor, points_per_obj
     return out
 
 
-def _pruned(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
-    """The pruned exact search on flat points: each object's frame taken as the world's (identity poses)."""
-    from spread.model.nearest import nearest_other_point
-
-    B, P, _ = points.shape
-    N = P // points_per_object
-    world = points.view(B, N, points_per_object, 3)
-    eye = torch.eye(3, dtype=points.dtype, device=points.device).expand(B, N, 3, 3)
-    zero = torch.zeros(B, N, 3, dtype=points.dtype, device=points.device)
-    return nearest_other_point(world, world, zero, eye, valid)
-
-
 def _search_torch(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
     B, P, _ = points.shape
     if B * P * P > BRUTE_FORCE_LIMIT:
-        if points.device.type == "cpu":  # a k-d tree per object (the CPU's fastest)
-            from spread.model.nearest import nearest_other_point_tree
+        from spread.model.nearest import nearest_other_point_posed, nearest_other_point_tree
 
-            return nearest_other_point_tree(points.view(B, P // points_per_object, points_per_object, 3), valid)
-        return _pruned(points, valid, points_per_object)
+        world = points.view(B, P // points_per_object, points_per_object, 3)
+        if points.device.type == "cpu":  # a k-d tree per object (the CPU's fastest)
+            return nearest_other_point_tree(world, valid)
+        return nearest_other_point_posed(world, valid)
     return _brute_force(points.float(), valid.repeat_interleave(points_per_object, dim=1), points_per_object)
 
 

@@ -153,6 +153,21 @@ def nearest_other_point_posed(world: torch.Tensor, valid: torch.Tensor) -> torch
 TREE_SLACK = 1e-9
 
 
+def _box_distance2(queries, lo, hi):
+    """(R, Q) float64 squared distances from queries (Q, 3) to R axis-aligned boxes ``lo``/``hi`` (R, 3) (zero
+    inside); one coordinate at a time over contiguous (R, Q) arrays (numpy: a reduction over a last axis of 3 is slow)."""
+    import numpy as np
+
+    total = None
+    for k in range(3):
+        q = queries[None, :, k]
+        gap = np.maximum(lo[:, k, None] - q, q - hi[:, k, None])
+        np.maximum(gap, 0.0, out=gap)
+        np.multiply(gap, gap, out=gap)
+        total = gap if total is None else np.add(total, gap, out=total)
+    return total
+
+
 def nearest_other_point_tree(world: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(B, N·M) int64 flat index (object·M + point) of each point's nearest point on another real object, by one k-d
     tree per object (scipy's ``cKDTree``, on the host; float64 distances of the float32 points: exact, the smallest
@@ -163,9 +178,10 @@ def nearest_other_point_tree(world: torch.Tensor, valid: torch.Tensor) -> torch.
     For each real object i of a scene, the other real objects are visited nearest world box first (the distance from a
     query to object j's axis-aligned world box is a lower bound of its distance to any point of j); object j is
     searched only for the queries whose lower bound does not exceed their best distance so far, and its tree stops at
-    the largest of those bests. The Python loops are over scenes and objects (a few hundred tree calls per batch), the
-    work in the trees: on one CPU thread 7–10× faster than :func:`nearest_other_point` at 4 scenes × 20 objects ×
-    1,000–2,000 points (``benchmarks/RESULTS.md``, stop 57)."""
+    the largest of those bests; once an object's nearest bound exceeds every query's best, no later object is visited.
+    The Python loops are over scenes and objects (a few hundred tree calls per batch), the work in the trees: on one
+    CPU thread 5–7× faster than :func:`nearest_other_point` at 4 scenes × 20 objects × 1,000–2,000 points, 3.7× at
+    the tiny config's 16 × 20 × 256 (``python benchmarks/bench_tree.py``; ``benchmarks/RESULTS.md``, stops 57–58)."""
     import numpy as np
     from scipy.spatial import cKDTree
 
@@ -175,6 +191,7 @@ def nearest_other_point_tree(world: torch.Tensor, valid: torch.Tensor) -> torch.
         return nearest_other_point_posed(world, valid)
     real = valid.detach().cpu().numpy().astype(bool)
     out = np.zeros((B, N * M), dtype=np.int64)
+    slack2 = (1 + TREE_SLACK) ** 2
     for b in range(B):
         objects = np.flatnonzero(real[b])
         if len(objects) < 2:
@@ -183,20 +200,23 @@ def nearest_other_point_tree(world: torch.Tensor, valid: torch.Tensor) -> torch.
         trees = [cKDTree(points[b, j]) for j in objects]
         for a, i in enumerate(objects):
             queries = points[b, i]  # (M, 3)
-            gap = np.maximum(lo[None] - queries[:, None], 0) + np.maximum(queries[:, None] - hi[None], 0)
-            lower = np.sqrt((gap * gap).sum(-1))  # (M, R)
-            lower[:, a] = np.inf  # never its own object
-            best = np.full(M, np.inf)
+            lower2 = _box_distance2(queries, lo, hi)  # (R, M) squared lower bounds
+            lower2[a] = np.inf  # never its own object
+            first = lower2.min(1)  # (R,) each object's bound for the nearest of these queries
+            best, best2 = np.full(M, np.inf), np.full(M, np.inf)
             index = np.zeros(M, dtype=np.int64)
-            for c in np.argsort(lower.min(0), kind="stable")[:len(objects) - 1]:
-                need = np.flatnonzero(lower[:, c] <= best * (1 + TREE_SLACK))
+            for c in np.argsort(first, kind="stable")[:len(objects) - 1]:
+                if first[c] > best2.max() * slack2:
+                    break  # this object's bound, and every later one's, exceeds every query's best
+                need = np.flatnonzero(lower2[c] <= best2 * slack2)
                 if need.size == 0:
                     continue
                 bound = best[need].max()
                 d, k = trees[c].query(queries[need], k=1,
                                       distance_upper_bound=np.inf if np.isinf(bound) else bound * (1 + TREE_SLACK))
                 better = d < best[need]
-                best[need[better]] = d[better]
-                index[need[better]] = objects[c] * M + k[better]
+                hit = need[better]
+                best[hit], best2[hit] = d[better], d[better] ** 2
+                index[hit] = objects[c] * M + k[better]
             out[b, i * M:(i + 1) * M] = index
     return torch.from_numpy(out).to(world.device)

@@ -630,3 +630,51 @@ def test_the_benchmarks_oracle_samples_the_rooms_own_poses_and_its_jitter_moves_
     assert 0.015 < shift.std().item() < 0.045 and shift.abs().max().item() < 0.2
     assert torch.allclose(jittered.rotation, truth.rotation, atol=1e-4)
     assert not calls
+
+
+def test_the_shape_tokenizers_absorbed_cross_attention_is_the_formed_one_and_chosen_only_where_it_is_no_more_work():
+    """The point-cloud tokenizer's cross-attention two ways (``shape_tokens.cross_mode``): in float64 the tokens and
+    every parameter's gradient agree; the absorbed way never makes the (objects, points, 2·width) keys/values; it is
+    chosen on the CPU for the tiny config's sizes (16 queries, width 64) and not for the paper's (256 queries, width
+    128: 2.7× the arithmetic) nor on CUDA; an unknown way is refused by name."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from spread.configs import model_config
+    from spread.model.shape_tokens import PointCloudTokenizer, cross_mode
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    tiny, paper = model_config("tiny"), model_config("paper")
+    assert cross_mode(cpu, tiny.shape_tokens, tiny.tokenizer_width, tiny.tokenizer_heads) == "absorbed"
+    assert cross_mode(cpu, paper.shape_tokens, paper.tokenizer_width, paper.tokenizer_heads) == "formed"
+    assert cross_mode(cuda, tiny.shape_tokens, tiny.tokenizer_width, tiny.tokenizer_heads) == "formed"
+    torch.manual_seed(0)
+    tokenizer = PointCloudTokenizer(num_tokens=4, token_dim=8, width=16, heads=2, num_points=24).double()
+    V, P = 5, 24
+    points = torch.rand(V, P, 3, dtype=torch.float64) - 0.5
+    normals = torch.nn.functional.normalize(torch.randn(V, P, 3, dtype=torch.float64), dim=-1)
+    out, grads = {}, {}
+    for mode in ("formed", "absorbed"):
+        out[mode] = tokenizer.encode(points, normals, mode)
+        grads[mode] = torch.autograd.grad(out[mode].square().sum(), list(tokenizer.parameters()))
+    assert torch.allclose(out["formed"], out["absorbed"], atol=1e-12, rtol=0)
+    for name, a, b in zip([n for n, _ in tokenizer.named_parameters()], grads["formed"], grads["absorbed"]):
+        assert torch.allclose(a, b, atol=1e-11, rtol=0), name
+    assert grads["absorbed"][[n for n, _ in tokenizer.named_parameters()].index("cross.to_kv.weight")].abs().sum() > 0
+
+    class Shapes(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.seen = set()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            result = func(*args, **(kwargs or {}))
+            if isinstance(result, torch.Tensor):
+                self.seen.add(tuple(result.shape))
+            return result
+
+    for mode, makes in (("formed", True), ("absorbed", False)):
+        with torch.no_grad(), Shapes() as shapes:
+            tokenizer.encode(points, normals, mode)
+        assert ((V, P, 2 * 16) in shapes.seen) == makes, mode
+    with pytest.raises(ValueError, match="mode must be one of .*'fused'"):
+        tokenizer.encode(points, normals, "fused")

@@ -678,3 +678,39 @@ def test_the_shape_tokenizers_absorbed_cross_attention_is_the_formed_one_and_cho
         assert ((V, P, 2 * 16) in shapes.seen) == makes, mode
     with pytest.raises(ValueError, match="mode must be one of .*'fused'"):
         tokenizer.encode(points, normals, "fused")
+
+
+def test_queries_only_attention_equals_sdpa_and_is_chosen_only_for_grad_free_contexts_on_the_cpu_within_its_budget():
+    """``layers.attend_queries_only`` (two products and a softmax) is ``F.scaled_dot_product_attention`` with the
+    context as keys and values: in float64 the output and the queries' gradient agree, with a bool and an additive
+    mask; ``queries_only`` picks it only on the CPU, with gradients on, for queries that need them over a context that
+    does not, within ``QUERIES_ONLY_SCORES``."""
+    import torch.nn.functional as F
+
+    from spread.model import layers
+    from spread.model.layers import attend_queries_only, key_bias, queries_only
+
+    torch.manual_seed(0)
+    B, Nq, Nk, C = 3, 5, 17, 6
+    q = torch.randn(B, 1, Nq, C, dtype=torch.float64, requires_grad=True)
+    c = torch.randn(B, 1, Nk, C, dtype=torch.float64)
+    real = torch.rand(B, Nk) > 0.3
+    real[:, 0] = True
+    for mask in (real[:, None, None, :], key_bias(real).double(), None):
+        expected = F.scaled_dot_product_attention(q, c, c, attn_mask=mask, scale=0.3)
+        got = attend_queries_only(q, c, mask, 0.3)
+        assert torch.allclose(got, expected, atol=1e-12, rtol=0)
+        g_expected, = torch.autograd.grad(expected.square().sum(), q)
+        g_got, = torch.autograd.grad(got.square().sum(), q)
+        assert torch.allclose(g_got, g_expected, atol=1e-11, rtol=0)
+    assert queries_only(q, c, None)
+    assert not queries_only(q, c.clone().requires_grad_(), None)  # the context's gradient is wanted: flash
+    assert not queries_only(q.detach(), c, None)
+    with torch.no_grad():
+        assert not queries_only(q, c, None)  # without gradients the flash kernel is faster
+    budget = layers.QUERIES_ONLY_SCORES
+    try:
+        layers.QUERIES_ONLY_SCORES = B * Nq * Nk - 1
+        assert not queries_only(q, c, None)
+    finally:
+        layers.QUERIES_ONLY_SCORES = budget

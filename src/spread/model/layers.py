@@ -124,7 +124,10 @@ class Attention(nn.Module):
         to_raw, from_raw = key_weight.view(heads, dim_head, raw), value_weight.view(heads, dim_head, raw)
         q_raw = torch.einsum("bhnd,hdr->bhnr", q, to_raw.to(q.dtype)).reshape(B, 1, heads * Nq, raw)
         c = context[:, None].to(q_raw.dtype)
-        mixed = F.scaled_dot_product_attention(q_raw, c, c, attn_mask=mask, scale=dim_head ** -0.5)
+        if queries_only(q_raw, c, mask):
+            mixed = attend_queries_only(q_raw, c, mask, dim_head ** -0.5)
+        else:
+            mixed = F.scaled_dot_product_attention(q_raw, c, c, attn_mask=mask, scale=dim_head ** -0.5)
         out = torch.einsum("bhnr,hdr->bnhd", mixed.reshape(B, heads, Nq, raw), from_raw.to(mixed.dtype))
         if value_bias is not None:
             out = out + value_bias.view(heads, dim_head).to(out.dtype)
@@ -136,6 +139,34 @@ class Attention(nn.Module):
         ``key_bias`` (B, 1, 1, Nk) the additive mask. Output (B, Nq, dim)."""
         q = rearrange(self.to_q(x), "b n (h d) -> b h n d", h=self.heads)
         return self.absorbed(q, context, key_weight, value_weight, value_bias, _mask(None, key_bias, q.dtype))
+
+
+#: The largest attention matrix (elements: batch × queries × keys) :func:`attend_queries_only` keeps for its backward.
+QUERIES_ONLY_SCORES = 1 << 24
+
+
+def queries_only(q: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None) -> bool:
+    """Whether :func:`attend_queries_only` should replace ``F.scaled_dot_product_attention`` for queries q
+    (B, 1, Nq, C) over a context (B, 1, Nk, C) used as both keys and values: on the CPU, in a step that will take
+    gradients of the queries but not of the context (the perceiver's normalised point tokens, precomputed shape
+    tokens), with an attention matrix of at most :data:`QUERIES_ONLY_SCORES` elements. There PyTorch's CPU flash
+    attention still computes the context's two gradients in its backward; at the tiny config's perceiver the queries-only
+    form is 1.8× faster forward + backward, at the paper's 1.4× (but its 4 × 256 × 40,000 matrix is over the limit).
+    Without gradients the flash kernel is 2× faster and is kept (``benchmarks/RESULTS.md``, stop 58)."""
+    return (q.device.type == "cpu" and torch.is_grad_enabled() and q.requires_grad and not context.requires_grad
+            and (mask is None or not mask.requires_grad)
+            and q.shape[0] * q.shape[1] * q.shape[2] * context.shape[2] <= QUERIES_ONLY_SCORES)
+
+
+def attend_queries_only(q: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None,
+                        scale: float) -> torch.Tensor:
+    """``softmax(q·cᵀ·scale + mask)·c`` for q (B, 1, Nq, C) and c (B, 1, Nk, C) (keys = values = c) by two matrix
+    products and a softmax (the same function as ``F.scaled_dot_product_attention(q, c, c, mask, scale=scale)``);
+    ``mask`` (B, 1, 1, Nk): bool (True = real key) or additive float."""
+    logits = torch.matmul(q, context.transpose(-1, -2)) * scale
+    if mask is not None:
+        logits = logits.masked_fill(~mask, float("-inf")) if mask.dtype == torch.bool else logits + mask
+    return torch.matmul(logits.softmax(-1), context)
 
 
 def _mask(key_mask: torch.Tensor | None, key_bias: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:

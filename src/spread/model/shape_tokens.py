@@ -15,8 +15,9 @@ objects; the denoiser projects the tokens to its width with one Linear (paper §
   Fourier features of xyz + normal → Linear → L learned queries cross-attend to the points → self-
   attention → Linear to ``token_dim``. The cross-attention has two ways to the same function
   (:func:`cross_mode`): keys and values formed from the points, or the queries carried into the points'
-  channels (:meth:`~spread.model.layers.Attention.attend_raw`), chosen by device and size. It reads the first ``num_points`` samples of each object (the
-  dataset's per-asset subsets are random, so this is a fixed random subset per asset).
+  channels (:meth:`~spread.model.layers.Attention.attend_raw`), chosen by device and size. It reads the
+  first ``num_points`` samples of each object (the dataset's per-asset subsets are random, so this is a
+  fixed random subset per asset).
 * :class:`PrecomputedShapeTokens`: tokens computed offline (e.g. the reference's ``miche_feature``,
   256 × 64) passed in ``batch['shape_tokens']`` (B, N, L, token_dim); returned as they are.
 """

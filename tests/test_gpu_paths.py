@@ -672,8 +672,8 @@ def test_the_shape_tokenizers_absorbed_cross_attention_is_the_formed_one_and_cho
 def test_queries_only_attention_equals_sdpa_and_is_chosen_only_for_grad_free_contexts_on_the_cpu_within_its_budget():
     """``layers.attend_queries_only`` (two products and a softmax) is ``F.scaled_dot_product_attention`` with the
     context as keys and values: in float64 the output and the queries' gradient agree, with a bool and an additive
-    mask; ``queries_only`` picks it only on the CPU, with gradients on, for queries that need them over a context that
-    does not, within ``QUERIES_ONLY_SCORES``."""
+    mask; ``queries_only`` picks it only on the CPU, in float32/64, with gradients on, for queries that need them over a
+    context that does not, within ``QUERIES_ONLY_SCORES``."""
     import torch.nn.functional as F
 
     from spread.model import layers
@@ -695,6 +695,7 @@ def test_queries_only_attention_equals_sdpa_and_is_chosen_only_for_grad_free_con
     assert queries_only(q, c, None)
     assert not queries_only(q, c.clone().requires_grad_(), None)  # the context's gradient is wanted: flash
     assert not queries_only(q.detach(), c, None)
+    assert not queries_only(q.detach().bfloat16().requires_grad_(), c.bfloat16(), None)  # bf16: flash's float32 sums
     with torch.no_grad():
         assert not queries_only(q, c, None)  # without gradients the flash kernel is faster
     budget = layers.QUERIES_ONLY_SCORES

@@ -149,11 +149,12 @@ def queries_only(q: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | No
     """Whether :func:`attend_queries_only` should replace ``F.scaled_dot_product_attention`` for queries q
     (B, 1, Nq, C) over a context (B, 1, Nk, C) used as both keys and values: on the CPU, in a step that will take
     gradients of the queries but not of the context (the perceiver's normalised point tokens, precomputed shape
-    tokens), with an attention matrix of at most :data:`QUERIES_ONLY_SCORES` elements. There PyTorch's CPU flash
+    tokens), in float32 or float64, with an attention matrix of at most :data:`QUERIES_ONLY_SCORES` elements. There PyTorch's CPU flash
     attention still computes the context's two gradients in its backward; at the tiny config's perceiver the queries-only
     form is 1.8× faster forward + backward, at the paper's 1.4× (but its 4 × 256 × 40,000 matrix is over the limit).
     Without gradients the flash kernel is 2× faster and is kept (``benchmarks/RESULTS.md``, stop 58)."""
-    return (q.device.type == "cpu" and torch.is_grad_enabled() and q.requires_grad and not context.requires_grad
+    return (q.device.type == "cpu" and q.dtype in (torch.float32, torch.float64)  # bf16: flash keeps float32 sums
+            and torch.is_grad_enabled() and q.requires_grad and not context.requires_grad
             and (mask is None or not mask.requires_grad)
             and q.shape[0] * q.shape[1] * q.shape[2] * context.shape[2] <= QUERIES_ONLY_SCORES)
 

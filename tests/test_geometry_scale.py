@@ -107,7 +107,8 @@ def test_the_blind_features_are_made_once_per_sample_and_change_no_state(monkeyp
 
     once, n_once = run(1.0)
     cfg_once, n_cfg = run(3.0)
-    assert (n_once, n_cfg) == (4 + 1, 2 * 4 + 1)  # a posed pass per step and branch; one blind pass in all
+    # a posed pass per step, which graph guidance's two branches share (sharing_geometry); one blind pass in all
+    assert (n_once, n_cfg) == (4 + 1, 4 + 1)
     monkeypatch.setattr(network_module, "reusable", lambda: False)  # made again at every step, as before
     every, n_every = run(1.0)
     cfg_every, n_cfg_every = run(3.0)

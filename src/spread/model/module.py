@@ -47,7 +47,7 @@ from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, 
                                     x0_from_prediction)
 from spread.model.ema import EMA
 from spread.model.layers import round_up
-from spread.model.network import SceneDenoiser, upgrade_state_dict
+from spread.model.network import SceneDenoiser, sharing_geometry, upgrade_state_dict
 from spread.model.geometry import UNCOMPILABLE
 from spread.model.parts_distance import PartPlanes
 from spread.model.parts_term import parts_excess
@@ -483,10 +483,11 @@ class SceneDiffusion(L.LightningModule):
         null = network.null_condition(cond) if graph_scale != 1.0 else None
 
         def eps_fn(x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            eps = self.epsilon(self.network_output(network, x_t, t, cond, geometry_scale), x_t, t)
             if null is None:
-                return eps
-            eps_null = self.epsilon(self.network_output(network, x_t, t, null, geometry_scale), x_t, t)
+                return self.epsilon(self.network_output(network, x_t, t, cond, geometry_scale), x_t, t)
+            with sharing_geometry(cond):  # both branches read the scene posed at x_t: its geometry made once
+                eps = self.epsilon(self.network_output(network, x_t, t, cond, geometry_scale), x_t, t)
+                eps_null = self.epsilon(self.network_output(network, x_t, t, null, geometry_scale), x_t, t)
             return eps_null + graph_scale * (eps - eps_null)
 
         return eps_fn, cond.mask

@@ -12,8 +12,9 @@ runs the perceiver, then the graph transformer.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import torch
 from torch import nn
@@ -54,6 +55,23 @@ class Condition:
     #: reused by every later step — keyed by the states' dtype and the autocast in force; shared with
     #: :meth:`SceneDenoiser.null_condition` (the blind features read no graph either)
     blind: dict = field(default_factory=dict, repr=False, compare=False)
+    #: geometry variant, sampling: while :func:`sharing_geometry` holds, the posed features last made without
+    #: gradients, with the states tensor and network they were made for; shared with :meth:`SceneDenoiser.null_condition`
+    posed: dict = field(default_factory=dict, repr=False, compare=False)
+
+
+@contextmanager
+def sharing_geometry(cond: Condition) -> Iterator[None]:
+    """Within it, the geometry features of a scene posed at a states tensor are made once (without gradients, by one
+    network) and reused by every condition that shares ``cond``'s store — :meth:`SceneDenoiser.null_condition`'s: the
+    features read no graph, so classifier-free guidance on the graphs searches and runs the perceiver once a step, not
+    twice. Nothing is kept after it (the weights or the states may change in place between steps)."""
+    cond.posed.clear()
+    cond.posed["open"] = True
+    try:
+        yield
+    finally:
+        cond.posed.clear()
 
 
 def upgrade_state_dict(network: nn.Module, state: dict) -> dict:
@@ -192,6 +210,15 @@ class SceneDenoiser(nn.Module):
                     return features
                 cond.blind[key] = features
             return cond.blind[key]
+        if not blind and cond.posed and not torch.is_grad_enabled():  # sharing_geometry: made once for these states
+            key = (x_t._version, blind_key(x_t))
+            made = cond.posed.get("made")
+            if made is not None and made[0] is x_t and made[1] is self and made[2] == key:
+                return made[3]
+            features = self._geometry_features(x_t, cond, False)
+            if reusable():
+                cond.posed["made"] = (x_t, self, key, features)
+            return features
         return self._geometry_features(x_t, cond, blind)
 
     def _geometry_features(self, x_t: torch.Tensor, cond: Condition, blind: bool) -> tuple[torch.Tensor, ...]:

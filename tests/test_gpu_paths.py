@@ -669,7 +669,8 @@ def test_the_shape_tokenizers_absorbed_cross_attention_is_the_formed_one_and_cho
         tokenizer.encode(points, normals, "fused")
 
 
-def test_queries_only_attention_equals_sdpa_and_is_chosen_only_for_grad_free_contexts_on_the_cpu_within_its_budget():
+def test_queries_only_attention_equals_sdpa_and_is_chosen_only_for_grad_free_contexts_on_the_cpu_within_its_budget(
+        monkeypatch):
     """``layers.attend_queries_only`` (two products and a softmax) is ``F.scaled_dot_product_attention`` with the
     context as keys and values: in float64 the output and the queries' gradient agree, with a bool and an additive
     mask; ``queries_only`` picks it only on the CPU, in float32/64, with gradients on, for queries that need them over a
@@ -698,12 +699,8 @@ def test_queries_only_attention_equals_sdpa_and_is_chosen_only_for_grad_free_con
     assert not queries_only(q.detach().bfloat16().requires_grad_(), c.bfloat16(), None)  # bf16: flash's float32 sums
     with torch.no_grad():
         assert not queries_only(q, c, None)  # without gradients the flash kernel is faster
-    budget = layers.QUERIES_ONLY_SCORES
-    try:
-        layers.QUERIES_ONLY_SCORES = B * Nq * Nk - 1
-        assert not queries_only(q, c, None)
-    finally:
-        layers.QUERIES_ONLY_SCORES = budget
+    monkeypatch.setattr(layers, "QUERIES_ONLY_SCORES", B * Nq * Nk - 1)
+    assert not queries_only(q, c, None)
 
 
 def test_graph_guidance_makes_each_steps_posed_geometry_once_and_samples_exactly_as_when_each_branch_makes_it(

@@ -51,6 +51,9 @@ class FeedForward(nn.Module):
 
 #: How an :class:`Attention` gets its keys and values.
 KV_SOURCES = ("context", "self", "given")
+#: Two ways to one cross-attention over a raw context (the perceiver's and the shape tokenizer's ``cross_mode``):
+#: keys and values ``formed`` from it, or the queries carried into its channels (:meth:`Attention.absorbed`).
+CROSS_MODES = ("formed", "absorbed")
 
 
 class Attention(nn.Module):
@@ -149,9 +152,10 @@ def queries_only(q: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | No
     """Whether :func:`attend_queries_only` should replace ``F.scaled_dot_product_attention`` for queries q
     (B, 1, Nq, C) over a context (B, 1, Nk, C) used as both keys and values: on the CPU, in a step that will take
     gradients of the queries but not of the context (the perceiver's normalised point tokens, precomputed shape
-    tokens), in float32 or float64, with an attention matrix of at most :data:`QUERIES_ONLY_SCORES` elements. There PyTorch's CPU flash
-    attention still computes the context's two gradients in its backward; at the tiny config's perceiver the queries-only
-    form is 1.8× faster forward + backward, at the paper's 1.4× (but its 4 × 256 × 40,000 matrix is over the limit).
+    tokens), in float32 or float64, with an attention matrix of at most :data:`QUERIES_ONLY_SCORES` elements. There
+    PyTorch's CPU flash attention still computes the context's two gradients in its backward; at the tiny config's
+    perceiver the queries-only form is 1.8× faster forward + backward, at the paper's 1.4× (but its 4 × 256 × 40,000
+    matrix is over the limit).
     Without gradients the flash kernel is 2× faster and is kept (``benchmarks/RESULTS.md``, stop 58)."""
     return (q.device.type == "cpu" and q.dtype in (torch.float32, torch.float64)  # bf16: flash keeps float32 sums
             and torch.is_grad_enabled() and q.requires_grad and not context.requires_grad

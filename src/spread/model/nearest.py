@@ -155,7 +155,8 @@ TREE_SLACK = 1e-9
 
 def _box_distance2(queries, lo, hi):
     """(R, Q) float64 squared distances from queries (Q, 3) to R axis-aligned boxes ``lo``/``hi`` (R, 3) (zero
-    inside); one coordinate at a time over contiguous (R, Q) arrays (numpy: a reduction over a last axis of 3 is slow)."""
+    inside); one coordinate at a time over contiguous (R, Q) arrays (numpy: a reduction over a last axis of 3 is
+    slow)."""
     import numpy as np
 
     total = None

@@ -56,7 +56,8 @@ class Condition:
     #: :meth:`SceneDenoiser.null_condition` (the blind features read no graph either)
     blind: dict = field(default_factory=dict, repr=False, compare=False)
     #: geometry variant, sampling: while :func:`sharing_geometry` holds, the posed features last made without
-    #: gradients, with the states tensor and network they were made for; shared with :meth:`SceneDenoiser.null_condition`
+    #: gradients, with the states tensor and network they were made for; shared with
+    #: :meth:`SceneDenoiser.null_condition`
     posed: dict = field(default_factory=dict, repr=False, compare=False)
 
 

@@ -33,7 +33,7 @@ from einops import rearrange, repeat
 from torch import nn
 
 from spread.model.encodings import fourier_dim, fourier_features, sinusoidal_embedding
-from spread.model.layers import Attention, FeedForward, key_bias, round_up
+from spread.model.layers import CROSS_MODES, Attention, FeedForward, key_bias, round_up
 
 #: Length scales (metres) of the squashed signed-distance channels.
 DISTANCE_SCALES = (0.01, 0.05, 0.25)
@@ -50,10 +50,6 @@ def token_multiple(device: torch.device) -> int:
     """The multiple a point token's channels are padded to on ``device``: :data:`CHANNEL_MULTIPLE` on CUDA, 1 (no
     padding) elsewhere."""
     return CHANNEL_MULTIPLE if torch.device(device).type == "cuda" else 1
-
-
-#: How the cross-attentions read the point tokens (:func:`cross_mode`).
-CROSS_MODES = ("formed", "absorbed")
 
 
 def cross_mode(device: torch.device) -> str:

@@ -29,11 +29,7 @@ from einops import repeat
 from torch import nn
 
 from spread.model.encodings import fourier_dim, fourier_features
-from spread.model.layers import Attention, FeedForward
-
-
-#: How the tokenizer's cross-attention reads the points (:func:`cross_mode`).
-CROSS_MODES = ("formed", "absorbed")
+from spread.model.layers import CROSS_MODES, Attention, FeedForward
 
 
 def cross_mode(device: torch.device, num_tokens: int, width: int, heads: int) -> str:

@@ -6,6 +6,8 @@
 #             +Geometry with the perceiver's cross-attention absorbed (geometry:absorbed: the CPU's way since stop 57);
 #   pipeline  the guided pipeline on real rooms at batch 64: DDPM-1000, refine on the untrained network's degenerate
 #             poses, and refine after trained-like samples (bench_gpu.Oracle: the rooms' poses jittered by 3 cm);
+#   search    the nearest-point search kernel at other tile sizes (queries a program, keys a tile, warps), the same
+#             answer each (benchmarks/search_blocks.py): the search is ~30 % of a denoising step;
 #   profile   where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base, +Geometry and
 #             geometry:absorbed, and of two eager bf16 denoising steps at batch 64 (profile_train.txt);
 #   lightning spread-train through Lightning with the CUDA-graph'd step, +Geometry at paper size on the carried rooms
@@ -14,13 +16,13 @@
 #             recompiles in lightning.log;
 #   sample    DDIM-50 at batch 64 (eager, CUDA graph, bf16; met at the fifth slot: 0.0387 s/scene);
 #   detect    the guidance's triangle pairs on the GPU against python-fcl (answered at the fifth slot: equal).
-# The default PARTS="compile pipeline profile" fits one device call (limits 260 + 160 + 90 s); a second call
-# PARTS=lightning (280 s). (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
+# The default PARTS="compile pipeline search profile" fits one device call (limits 245 + 160 + 70 + 80 s); a second
+# call PARTS=lightning (280 s). (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
 set -u
 OUT=${OUT:-gpu_out}; ROOMS=${ROOMS:-.gpudata/rooms}; OLD=${OLD:-}; PY=${PY:-python3}
-PARTS=" ${PARTS:-compile pipeline profile} "
+PARTS=" ${PARTS:-compile pipeline search profile} "
 want() { [[ "$PARTS" == *" $1 "* ]]; }
 mkdir -p "$OUT"
 if ! $PY -c "import hydra, diffusers" 2>/dev/null && [ -d .whl ]; then  # a bare machine: the carried wheels
@@ -34,7 +36,7 @@ quiet() { grep -v "^W1\|^ *\^\|━"; }
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$OUT/gpu.txt" 2>&1
 
 if want compile; then
-  timeout "${COMPILE_S:-260}" $PY benchmarks/bench_gpu.py --skip-counts --only compile --compile-mode reduce-overhead \
+  timeout "${COMPILE_S:-245}" $PY benchmarks/bench_gpu.py --skip-counts --only compile --compile-mode reduce-overhead \
     --variants base geometry geometry:absorbed --json "$OUT/compile.json" 2>&1 | quiet | tail -12
   mark "compiled training step (reduce-overhead)"
 fi
@@ -45,8 +47,13 @@ if want pipeline; then
   mark "pipeline"
 fi
 
+if want search; then
+  timeout "${SEARCH_S:-70}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -48
+  mark "search tile sizes"
+fi
+
 if want profile; then
-  timeout "${PROFILE_S:-90}" $PY benchmarks/bench_gpu.py --skip-counts --only train sample_profile --profile \
+  timeout "${PROFILE_S:-80}" $PY benchmarks/bench_gpu.py --skip-counts --only train sample_profile --profile \
     --variants base geometry geometry:absorbed --profile-out "$OUT/profile_train.txt" \
     --json "$OUT/train_profiled.json" 2>&1 | quiet | tail -6
   mark "profile"

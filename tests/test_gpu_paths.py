@@ -114,7 +114,7 @@ def test_dense_and_tree_features_equal_the_pruned_features_within_1e_5():
 
 
 KERNEL_CHECK = """
-import torch, warnings
+import itertools, torch, warnings
 import spread.model.nearest_dense as nd
 from spread.model.nearest import morton_order
 assert nd.triton_available(torch.device('cpu'))
@@ -127,7 +127,11 @@ nrm = torch.nn.functional.normalize(torch.randn(B, N, M, 3, generator=g), dim=-1
 off, scale = torch.tensor([0.0, 1.2, 0.0]), torch.tensor([3.0, 1.2, 3.0])
 vp = mask[:, :, None].expand(B, N, M).reshape(B, N * M)
 real = vp & (mask.sum(1, keepdim=True) > 1)
-for order in (None, morton_order(pts)[..., None].expand(-1, -1, -1, 3)):
+# the default, and smaller tiles with the index kept apart from d² (benchmarks/search_blocks.py times both)
+blocks = [(nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS), (16, 32, 2, not nd.PACKED_KEYS)]
+orders = (None, morton_order(pts)[..., None].expand(-1, -1, -1, 3))
+for (bq, bk, warps, packed), order in itertools.product(blocks, orders):
+    nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = bq, bk, warps, packed
     p = pts if order is None else pts.gather(2, order)
     n = nrm if order is None else nrm.gather(2, order)
     world, normals, boxes = torch.ops.spread.pose_states(x, off, scale, p, n, nd.BLOCK_K)
@@ -139,6 +143,26 @@ for order in (None, morton_order(pts)[..., None].expand(-1, -1, -1, 3)):
     assert (d - ref_d).abs().max() < 1e-6, (d - ref_d).abs().max()
     assert torch.equal(index[real], ref_index[real]) and (index[~real] == 0).all()
     assert (d.view(B, N, M)[2, 0] == 10.0).all() and (d.view(B, N, M)[1, 2:] == 0).all()
+    other = nd.tile_boxes(world, bk // 2)  # boxes made for another tile size: refused by name, not searched wrongly
+    try:
+        torch.ops.spread.signed_nearest(world, normals, other, mask, 10.0)
+        raise AssertionError("boxes of another block were searched")
+    except ValueError as error:
+        assert "BLOCK_K" in str(error)
+# exact ties: points repeated within a tile, and objects 1 and 2 of scene 0 the same points at the same pose in
+# reverse order (other tiles: a search may meet object 2's copy first) — the smallest index wins (torch's argmin
+# rule), either way of keeping the nearest
+tx, tp = x.clone(), pts.clone()
+tp[:, :, 1::2] = tp[:, :, 0:-1:2]
+tx[0, 2], tp[0, 2] = tx[0, 1], tp[0, 1].flip(0)
+for bq, bk, warps, packed in blocks:
+    nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = bq, bk, warps, packed
+    world, normals, boxes = torch.ops.spread.pose_states(tx, off, scale, tp, nrm, nd.BLOCK_K)
+    index, _ = torch.ops.spread.signed_nearest(world, normals, boxes, mask, 10.0)
+    assert torch.equal(index[real], nd._brute_force(world.reshape(B, -1, 3), vp, M)[real]), (bq, packed)
+    hit = index[0].view(N, M)  # scene 0: objects 0, 3, 4 never find object 2 (object 1 is it, smaller); nor a point
+    assert not ((hit[[0, 3, 4]] // M) == 2).any() and ((hit % M) % 2 == 0)[hit // M != 2].all(), (bq, packed)  # copy
+nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = blocks[0]
 assert not nd._BROKEN
 # a kernel Triton cannot build: said once, and the torch path gives the same answer
 class Broken:
@@ -162,8 +186,10 @@ print("kernels ok")
 def test_the_triton_kernels_match_torch_under_the_interpreter_and_fall_back_when_they_fail(tmp_path):
     """The CUDA kernels' code (pose; signed search), run by Triton's interpreter on CPU tensors (TRITON_INTERPRET=1
     must be set before the kernels are defined: a process of its own), against the torch implementations and exact
-    brute force — with and without Morton order, padding, a lone object, a ragged last tile; and a kernel that fails
-    to build leaves the torch path running, with one warning each."""
+    brute force — with and without Morton order, padding, a lone object, a ragged last tile, at the default tile sizes
+    and smaller ones, the nearest kept as one packed key or d² and index apart (``benchmarks/search_blocks.py``), exact
+    ties going to the smallest index; boxes made for another tile size are refused; and a kernel
+    that fails to build leaves the torch path running, with one warning each."""
     pytest.importorskip("triton")
     script = tmp_path / "kernels.py"
     script.write_text(KERNEL_CHECK)
@@ -741,3 +767,20 @@ def test_graph_guidance_makes_each_steps_posed_geometry_once_and_samples_exactly
     separate = model.sample(batch, "ddim-4", generator=torch.Generator().manual_seed(0), graph_scale=2.0)
     assert calls.count(False) == 8
     assert torch.equal(shared.translation, separate.translation) and torch.equal(shared.rotation, separate.rotation)
+
+
+def test_the_tile_size_benchmark_runs_every_choice_and_each_gives_the_defaults_answer(tmp_path):
+    """``python benchmarks/search_blocks.py --json OUT`` as a GPU slot runs it (here on the CPU's torch path, at its
+    toy size): a row for every (BLOCK_Q, BLOCK_K, warps, keys) choice and both poses, no index differing from the
+    default's."""
+    from helpers import load_script
+
+    out = tmp_path / "blocks.json"
+    script = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "search_blocks.py")
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    done = subprocess.run([sys.executable, script, "--json", str(out)], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = {k: v for k, v in json.loads(out.read_text()).items() if k.startswith("search/")}
+    assert len(rows) == 2 * len(load_script("search_blocks").CHOICES) and all(v["indices_differ"] == 0 and v["max_distance_diff"] == 0 for v in rows.values())
+    assert "q16_k32_w2_apart" in " ".join(rows) and "| 16 | 32 | 2 | apart |" in done.stdout

@@ -40,9 +40,15 @@ import warnings
 import torch
 
 #: Query points per search program (32: 1.7–1.8× faster than 64 on an H200, RESULTS.md); keys per tile (also the
-#: pose kernel's tile of points).
+#: pose kernel's tile of points, so the boxes the search skips by are made for it); warps per search program.
+#: ``benchmarks/search_blocks.py`` times other choices on a GPU (any choice gives the same answer).
 BLOCK_Q = 32
 BLOCK_K = 64
+NUM_WARPS = 4
+#: How the search keeps each query's nearest: True, one int64 (d²'s float32 bits above the index: one ``min`` a
+#: tile); False, d² and the index apart (the tile's ``min`` with its first position, then a nearer-or-smaller-index
+#: test) — fewer 64-bit operations a distance. The same answer; ``benchmarks/search_blocks.py`` times both.
+PACKED_KEYS = True
 #: Relative slack on the culling test (float32 rounding of the box distance can never drop the nearest tile).
 CULL_SLACK = 1e-5
 #: Added to the Gram–Schmidt norms (spread.data.rotation.EPS).
@@ -99,7 +105,7 @@ def sign_distances(points: torch.Tensor, normals: torch.Tensor, index: torch.Ten
 
 
 def pose_torch(states: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor, points: torch.Tensor,
-               normals: torch.Tensor, block: int = BLOCK_K) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               normals: torch.Tensor, block: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Posed points and normals (B, N, M, 3) and tile boxes (B, N, KT, 6) of states (B, N, 9) (module docstring)."""
     from spread.data.rotation import rot6d_to_matrix
     from spread.model.poses import pose_points
@@ -110,10 +116,12 @@ def pose_torch(states: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor, 
     return world, torch.einsum("bnij,bnmj->bnmi", R, normals), tile_boxes(world, block)
 
 
-def tile_boxes(world: torch.Tensor, block: int = BLOCK_K) -> torch.Tensor:
-    """(B, N, KT, 6) [min xyz, max xyz] of each object's tiles of ``block`` consecutive points (the last tile padded
-    by repeating the object's last point, which leaves its box unchanged) of posed points (B, N, M, 3)."""
+def tile_boxes(world: torch.Tensor, block: int | None = None) -> torch.Tensor:
+    """(B, N, KT, 6) [min xyz, max xyz] of each object's tiles of ``block`` (None: :data:`BLOCK_K`) consecutive points
+    (the last tile padded by repeating the object's last point, which leaves its box unchanged) of posed points
+    (B, N, M, 3)."""
     B, N, M, _ = world.shape
+    block = BLOCK_K if block is None else block
     KT = -(-M // block)
     padded = world if KT * block == M else torch.cat([world, world[:, :, -1:].expand(B, N, KT * block - M, 3)], 2)
     tiles = padded.view(B, N, KT, block, 3)
@@ -122,12 +130,13 @@ def tile_boxes(world: torch.Tensor, block: int = BLOCK_K) -> torch.Tensor:
 
 # ---- the Triton kernels (CUDA) --------------------------------------------------------------------------------------
 _KERNELS = None
+_search_fold = _search_d2 = None  # the search kernel's helpers, made with the kernels
 _BROKEN: set[str] = set()  # kernels Triton failed to build or run here (the torch path runs instead)
 
 
 def _triton_kernels():
     """The kernels (compiled on first use), or None when Triton is not importable."""
-    global _KERNELS
+    global _KERNELS, _search_fold, _search_d2  # the search kernel's helpers: a kernel resolves names in the module
     if _KERNELS is not None:
         return _KERNELS or None
     try:
@@ -185,8 +194,33 @@ def _triton_kernels():
         tl.store(box + 5, tl.max(tl.where(m, wz, -inf), 0))
 
     @triton.jit
+    def _search_fold(best, best_i, d2, k0, PACKED: tl.constexpr):
+        # each query's nearest so far, with a tile's squared distances d2 (BQ, BK) of keys k0, k0 + 1, …: nearer, or as
+        # near with a smaller index (torch's argmin rule). PACKED: best is one int64 a query, d²'s float32 bits above
+        # the index (one min); else best (float32 d²) and best_i (int64 index), the tile's min with its first position
+        if PACKED:
+            ki = k0 + tl.arange(0, d2.shape[1]).to(tl.int64)
+            key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki[None, :]
+            out, out_i = tl.minimum(best, tl.min(key, 1)), best_i
+        else:
+            td, pos = tl.min(d2, 1, return_indices=True, return_indices_tie_break_left=True)
+            ti = k0 + pos.to(tl.int64)
+            take = (td < best) | ((td == best) & (ti < best_i))
+            out, out_i = tl.where(take, td, best), tl.where(take, ti, best_i)
+        return out, out_i
+
+    @triton.jit
+    def _search_d2(best, PACKED: tl.constexpr):
+        if PACKED:
+            d2 = (best >> 32).to(tl.int32).to(tl.float32, bitcast=True)
+        else:
+            d2 = best
+        return d2
+
+    @triton.jit
     def search_kernel(pts_ptr, nrm_ptr, box_ptr, valid_ptr, idx_ptr, dist_ptr, N, M, KT, QT, NO_NEIGHBOUR,
-                      BQ: tl.constexpr, BK: tl.constexpr, SLACK: tl.constexpr, KTP: tl.constexpr):
+                      BQ: tl.constexpr, BK: tl.constexpr, SLACK: tl.constexpr, KTP: tl.constexpr,
+                      PACKED: tl.constexpr):
         pid = tl.program_id(0)
         b = tl.program_id(1).to(tl.int64)
         o = pid // QT
@@ -206,7 +240,11 @@ def _triton_kernels():
         qhix = tl.max(tl.where(qm, qx, -inf), 0)
         qhiy = tl.max(tl.where(qm, qy, -inf), 0)
         qhiz = tl.max(tl.where(qm, qz, -inf), 0)
-        best = tl.full([BQ], 0x7F800000, tl.int64) << 32  # d² = inf, index 0
+        if PACKED:
+            best = tl.full([BQ], 0x7F800000, tl.int64) << 32  # d² = inf, index 0
+        else:
+            best = tl.full([BQ], float("inf"), tl.float32)
+        best_i = tl.zeros([BQ], tl.int64)
         # pass 1: the tile of another real object whose box centre is nearest the query box's centre, in full (an
         # upper bound for every query; half the tiles of an every-S-th-key pass, the same pass 2)
         tiles = tl.arange(0, KTP)
@@ -238,14 +276,14 @@ def _triton_kernels():
             dy = qy[:, None] - ky[None, :]
             dz = qz[:, None] - kz[None, :]
             d2 = tl.where(km[None, :], dx * dx + dy * dy + dz * dz, inf)
-            key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki.to(tl.int64)[None, :]
-            best = tl.minimum(best, tl.min(key, 1))
+            k0 = ((seed_t // KT) * M + (seed_t % KT) * BK).to(tl.int64)
+            best, best_i = _search_fold(best, best_i, d2, k0, PACKED)
         # pass 2: the tiles of the other real objects whose boxes can still hold a nearer point
         vo = tl.load(vbase + o) != 0
         if vo:
             for j in range(0, N):
                 if (j != o) & (tl.load(vbase + j) != 0):
-                    worst = tl.max(tl.where(qm, (best >> 32).to(tl.int32).to(tl.float32, bitcast=True), 0.0), 0)
+                    worst = tl.max(tl.where(qm, _search_d2(best, PACKED), 0.0), 0)
                     boxes = box_ptr + ((b * N + j) * KT + tiles) * 6
                     tm = tiles < KT
                     vx = tl.maximum(tl.maximum(tl.load(boxes + 0, mask=tm, other=inf) - qhix,
@@ -272,13 +310,13 @@ def _triton_kernels():
                             dy = qy[:, None] - ky[None, :]
                             dz = qz[:, None] - kz[None, :]
                             d2 = tl.where(km[None, :], dx * dx + dy * dy + dz * dz, inf)
-                            key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki.to(tl.int64)[None, :]
-                            best = tl.minimum(best, tl.min(key, 1))
-                            worst = tl.max(tl.where(qm, (best >> 32).to(tl.int32).to(tl.float32, bitcast=True),
-                                                    0.0), 0)
+                            best, best_i = _search_fold(best, best_i, d2, (j * M + kt * BK).to(tl.int64), PACKED)
+                            worst = tl.max(tl.where(qm, _search_d2(best, PACKED), 0.0), 0)
         # every query of an object with another real object has found one (each such object is visited in pass 2)
-        found = ((best >> 32) != 0x7F800000) & vo
-        idx = tl.where(found, best & 0xFFFFFFFF, 0)
+        found = (_search_d2(best, PACKED) != inf) & vo
+        if PACKED:
+            best_i = best & 0xFFFFFFFF
+        idx = tl.where(found, best_i, 0)
         tl.store(idx_ptr + b * P + qi, idx, mask=qm)
         # the signed distance to the neighbour, by the neighbour's normal
         nx_ = tl.load(base + idx * 3 + 0, mask=qm, other=0.0)
@@ -361,6 +399,9 @@ def signed_nearest(points: torch.Tensor, normals: torch.Tensor, boxes: torch.Ten
     object alone in its scene index 0 and ``no_neighbour``."""
     B, N, M, _ = points.shape
     valid = valid.bool()
+    if boxes.shape[2] != -(-M // BLOCK_K):
+        raise ValueError(f"signed_nearest: boxes of {boxes.shape[2]} tiles an object, but BLOCK_K = {BLOCK_K} makes "
+                         f"{-(-M // BLOCK_K)} of {M} points (make the boxes with the same block)")
     if _use_kernel("search", points.device):
         try:
             triton, _, search_kernel = _triton_kernels()
@@ -370,7 +411,7 @@ def signed_nearest(points: torch.Tensor, normals: torch.Tensor, boxes: torch.Ten
             search_kernel[(N * QT, B)](points.float().contiguous(), normals.float().contiguous(), boxes.float().contiguous(),
                                        valid.to(torch.int8).contiguous(), index, distance, N, M, KT, QT,
                                        float(no_neighbour), BQ=BLOCK_Q, BK=BLOCK_K, SLACK=CULL_SLACK,
-                                       KTP=triton.next_power_of_2(KT))
+                                       KTP=triton.next_power_of_2(KT), PACKED=PACKED_KEYS, num_warps=NUM_WARPS)
             return index, distance
         except Exception as error:  # noqa: BLE001
             _kernel_failed("search", error)

@@ -1,0 +1,148 @@
+"""The nearest-point search kernel at other tile sizes: queries a program (BLOCK_Q), keys a tile (BLOCK_K, and the boxes
+made for it), warps a program (NUM_WARPS), and how it keeps each query's nearest (PACKED_KEYS: one int64 key, or d²
+and the index apart) — each one's CUDA time on the same posed points, and that each gives
+the default's answer (indices and signed distances). Then, on any machine, the distances each choice computes,
+replayed on the CPU (``search_tiles.simulate``: the kernel's culling decisions, exact), so a GPU's times can be read
+beside the arithmetic they did.
+
+Why: the search is ~30 % of a +Geometry denoising step on an H200 (RESULTS.md, fifth slot); BLOCK_Q 64 → 32 made it
+1.7–1.8× faster (fourth slot) where the replay counted only 1.2× fewer distances, and the replay counts 1.58× fewer
+again at 16 × 32 (RESULTS.md, stop 59). Any choice is exact; only a GPU can say which is fastest.
+
+    python benchmarks/search_blocks.py [--json OUT.json]          # a GPU: 16 and 64 rooms × 20 objects × 2,000 points
+    TRITON_INTERPRET=1 python benchmarks/search_blocks.py         # CPU: the kernels' answers at a toy size
+    python benchmarks/search_blocks.py --replay --points 1024     # CPU: distances per query of each choice (~6 min)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+#: (BLOCK_Q, BLOCK_K, NUM_WARPS, PACKED_KEYS): the default first.
+CHOICES = [(32, 64, 4, True), (32, 64, 4, False), (16, 64, 4, True), (16, 64, 2, False), (32, 32, 2, True),
+           (32, 32, 2, False), (16, 32, 2, True), (16, 32, 2, False), (16, 32, 1, False), (16, 16, 1, False)]
+
+
+def timed(fn) -> tuple[float, tuple]:
+    """Median CUDA ms of 5 calls after 2 (without CUDA: 0 ms, one call) and the last result."""
+    if not torch.cuda.is_available():
+        return 0.0, fn()
+    for _ in range(2):
+        result = fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(5):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        result = fn()
+        end.record()
+        torch.cuda.synchronize()
+        times.append(start.elapsed_time(end))
+    return sorted(times)[2], result
+
+
+def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None) -> tuple[dict, list[str]]:
+    """Each choice's time and answer against the default's, ``save(out)`` after each (a slot cut short keeps them)."""
+    from bench_gpu import BOUNDS, synthetic_batch
+
+    import spread.model.nearest_dense as nd
+    from spread.model.poses import denormalize_affine
+
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    offset, scale = denormalize_affine(torch.tensor(BOUNDS, device=dev))
+    sizes = [(16, 20, 2000), (64, 20, 2000)] if dev == "cuda" else [(2, 5, 150)]
+    default = (nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS)
+    out, rows = {}, []
+    for B, N, M in sizes:
+        batch = synthetic_batch(B, N, M, device=dev)
+        for poses in ("rest", "noise"):
+            x = batch["x"] if poses == "rest" else torch.randn(B, N, 9, generator=torch.Generator().manual_seed(1)).to(dev)
+            world, normals, _ = nd.pose_torch(x, offset, scale, batch["points"], batch["normals"])
+            reference = None
+            for bq, bk, warps, packed in choices:
+                nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = bq, bk, warps, packed
+                try:
+                    boxes = nd.tile_boxes(world, bk)
+                    ms, (index, distance) = timed(
+                        lambda: torch.ops.spread.signed_nearest(world, normals, boxes, batch["mask"], 10.0))
+                finally:
+                    nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = default
+                if reference is None:
+                    reference = (index, distance, ms)
+                differ = int((index != reference[0]).sum())
+                diff = float((distance - reference[1]).abs().max())
+                key = f"search/B{B}_N{N}_M{M}/{poses}/q{bq}_k{bk}_w{warps}_{'packed' if packed else 'apart'}"
+                out[key] = {"ms": round(ms, 3), "indices_differ": differ, "max_distance_diff": diff}
+                speed = f"{reference[2] / ms:.2f}×" if ms else "–"
+                rows.append(f"| {B} × {N} × {M} | {poses} | {bq} | {bk} | {warps} | {'packed' if packed else 'apart'} | "
+                            f"{ms:.2f} | {speed} | {differ} | {diff:.1e} |")
+                save(out)
+            print(f"  {B} × {N} × {M}, {poses}: {len(choices)} choices timed", flush=True)
+    out["broken"] = sorted(nd._BROKEN)
+    return out, rows
+
+
+def replay_rows(choices: list[tuple[int, int, int, bool]], rooms: int, objects: int, points: int) -> tuple[dict, list[str]]:
+    """Distances per query each (BLOCK_Q, BLOCK_K) computes, the kernel's decisions replayed (warps and keys do not
+    change them)."""
+    from bench_gpu import BOUNDS, synthetic_batch
+    from search_tiles import simulate
+
+    from spread.model.nearest_dense import pose_torch
+    from spread.model.poses import denormalize_affine
+
+    batch = synthetic_batch(rooms, objects, points)
+    offset, scale = denormalize_affine(torch.tensor(BOUNDS))
+    noise = torch.randn(rooms, objects, 9, generator=torch.Generator().manual_seed(1))
+    out, rows = {}, []
+    blocks = list(dict.fromkeys((bq, bk) for bq, bk, _, _ in choices))
+    for poses, states in (("rest", batch["x"]), ("noise", noise)):
+        world = pose_torch(states, offset, scale, batch["points"], batch["normals"])[0]
+        for bq, bk in blocks:
+            r = simulate(world, "neartile", BQ=bq, BK=bk)
+            per_query = r["total"] * bk
+            out[f"replay/{poses}/q{bq}_k{bk}"] = {"tiles_per_program": round(r["total"], 2),
+                                                  "fewest": round(r["fewest pass 2"], 2),
+                                                  "distances_per_query": round(per_query)}
+            rows.append(f"| {poses} | {bq} | {bk} | {r['total']:.1f} | {r['fewest pass 2']:.1f} | {per_query:.0f} |")
+            print(rows[-1], flush=True)
+    return out, rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--replay", action="store_true", help="the CPU replay of the distances each choice computes")
+    ap.add_argument("--rooms", type=int, default=2, help="--replay: rooms of synthetic boxes")
+    ap.add_argument("--objects", type=int, default=20)
+    ap.add_argument("--points", type=int, default=1024, help="--replay: per object, a multiple of 64")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    torch.set_num_threads(int(os.environ.get("THREADS", "1")) if not torch.cuda.is_available() else 8)
+    if args.replay:
+        out, rows = replay_rows(CHOICES, args.rooms, args.objects, args.points)
+        head = ("| poses | BLOCK_Q | BLOCK_K | tiles a program | fewest any order | distances a query |\n"
+                "|---|---|---|---|---|---|")
+        print(f"\nthe kernel's decisions replayed: {args.rooms} rooms × {args.objects} objects × {args.points} points")
+    else:
+        out, rows = kernel_rows(CHOICES, lambda out: args.json and args.json.write_text(json.dumps(out, indent=1)))
+        where = torch.cuda.get_device_name() if torch.cuda.is_available() else (
+            "cpu, Triton's interpreter" if os.environ.get("TRITON_INTERPRET") == "1" else "cpu, the torch paths")
+        print(f"\ndevice: {where}; kernels fell back: {out['broken'] or 'none'}")
+        head = ("| B × N × M | poses | BLOCK_Q | BLOCK_K | warps | nearest kept | ms | vs default | indices that differ | "
+                "max distance diff |\n|---|---|---|---|---|---|---|---|---|---|")
+    print(head)
+    print("\n".join(rows))
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

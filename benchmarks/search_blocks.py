@@ -64,7 +64,8 @@ def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None
     for B, N, M in sizes:
         batch = synthetic_batch(B, N, M, device=dev)
         for poses in ("rest", "noise"):
-            x = batch["x"] if poses == "rest" else torch.randn(B, N, 9, generator=torch.Generator().manual_seed(1)).to(dev)
+            noise = torch.randn(B, N, 9, generator=torch.Generator().manual_seed(1)).to(dev)
+            x = batch["x"] if poses == "rest" else noise
             world, normals, _ = nd.pose_torch(x, offset, scale, batch["points"], batch["normals"])
             reference = None
             for bq, bk, warps, packed in choices:
@@ -82,15 +83,17 @@ def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None
                 key = f"search/B{B}_N{N}_M{M}/{poses}/q{bq}_k{bk}_w{warps}_{'packed' if packed else 'apart'}"
                 out[key] = {"ms": round(ms, 3), "indices_differ": differ, "max_distance_diff": diff}
                 speed = f"{reference[2] / ms:.2f}×" if ms else "–"
-                rows.append(f"| {B} × {N} × {M} | {poses} | {bq} | {bk} | {warps} | {'packed' if packed else 'apart'} | "
-                            f"{ms:.2f} | {speed} | {differ} | {diff:.1e} |")
+                kept = "packed" if packed else "apart"
+                rows.append(f"| {B} × {N} × {M} | {poses} | {bq} | {bk} | {warps} | {kept} | {ms:.2f} | {speed} | "
+                            f"{differ} | {diff:.1e} |")
                 save(out)
             print(f"  {B} × {N} × {M}, {poses}: {len(choices)} choices timed", flush=True)
     out["broken"] = sorted(nd._BROKEN)
     return out, rows
 
 
-def replay_rows(choices: list[tuple[int, int, int, bool]], rooms: int, objects: int, points: int) -> tuple[dict, list[str]]:
+def replay_rows(choices: list[tuple[int, int, int, bool]], rooms: int, objects: int,
+                points: int) -> tuple[dict, list[str]]:
     """Distances per query each (BLOCK_Q, BLOCK_K) computes, the kernel's decisions replayed (warps and keys do not
     change them)."""
     from bench_gpu import BOUNDS, synthetic_batch
@@ -130,14 +133,15 @@ def main() -> None:
         out, rows = replay_rows(CHOICES, args.rooms, args.objects, args.points)
         head = ("| poses | BLOCK_Q | BLOCK_K | tiles a program | fewest any order | distances a query |\n"
                 "|---|---|---|---|---|---|")
-        print(f"\nthe kernel's decisions replayed: {args.rooms} rooms × {args.objects} objects × {args.points} points")
+        print(f"\nthe kernel's decisions replayed: {args.rooms} rooms × {args.objects} objects × {args.points} "
+              "points")
     else:
         out, rows = kernel_rows(CHOICES, lambda out: args.json and args.json.write_text(json.dumps(out, indent=1)))
         where = torch.cuda.get_device_name() if torch.cuda.is_available() else (
             "cpu, Triton's interpreter" if os.environ.get("TRITON_INTERPRET") == "1" else "cpu, the torch paths")
         print(f"\ndevice: {where}; kernels fell back: {out['broken'] or 'none'}")
-        head = ("| B × N × M | poses | BLOCK_Q | BLOCK_K | warps | nearest kept | ms | vs default | indices that differ | "
-                "max distance diff |\n|---|---|---|---|---|---|---|---|---|---|")
+        head = ("| B × N × M | poses | BLOCK_Q | BLOCK_K | warps | nearest kept | ms | vs default | "
+                "indices that differ | max distance diff |\n|---|---|---|---|---|---|---|---|---|---|")
     print(head)
     print("\n".join(rows))
     if args.json:

@@ -782,5 +782,6 @@ def test_the_tile_size_benchmark_runs_every_choice_and_each_gives_the_defaults_a
                           timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = {k: v for k, v in json.loads(out.read_text()).items() if k.startswith("search/")}
-    assert len(rows) == 2 * len(load_script("search_blocks").CHOICES) and all(v["indices_differ"] == 0 and v["max_distance_diff"] == 0 for v in rows.values())
+    assert len(rows) == 2 * len(load_script("search_blocks").CHOICES)
+    assert all(v["indices_differ"] == 0 and v["max_distance_diff"] == 0 for v in rows.values())
     assert "q16_k32_w2_apart" in " ".join(rows) and "| 16 | 32 | 2 | apart |" in done.stdout

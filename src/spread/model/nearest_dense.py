@@ -195,9 +195,10 @@ def _triton_kernels():
 
     @triton.jit
     def _search_fold(best, best_i, d2, k0, PACKED: tl.constexpr):
-        # each query's nearest so far, with a tile's squared distances d2 (BQ, BK) of keys k0, k0 + 1, …: nearer, or as
-        # near with a smaller index (torch's argmin rule). PACKED: best is one int64 a query, d²'s float32 bits above
-        # the index (one min); else best (float32 d²) and best_i (int64 index), the tile's min with its first position
+        # each query's nearest so far, with a tile's squared distances d2 (BQ, BK) of keys k0, k0 + 1, …: nearer,
+        # or as near with a smaller index (torch's argmin rule). PACKED: best is one int64 a query, d²'s float32 bits
+        # above the index (one min); else best (float32 d²) and best_i (int64 index), the tile's min and its first
+        # position
         if PACKED:
             ki = k0 + tl.arange(0, d2.shape[1]).to(tl.int64)
             key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki[None, :]

@@ -12,11 +12,12 @@ point's normal — as two registered custom operators, each one Triton kernel on
 * ``torch.ops.spread.signed_nearest(points, normals, boxes, valid, no_neighbour)`` → (index (B, P) int64, signed
   distance (B, P) float32). A program takes ``BLOCK_Q`` query points of one object and keeps, per query, the nearest
   candidate as one int64 (the float32 bits of d², monotonic for d² ≥ 0, above the key's index: one ``min`` gives the
-  nearest point and, among exact ties, the smallest index — torch's ``argmin`` rule). It first visits, in full, the
+  nearest point and, among exact ties, the smallest index — torch's ``argmin`` rule; ``PACKED_KEYS = False`` keeps d²
+  and the index apart, with the same rule). It first visits, in full, the
   tile of another object whose box centre is nearest its queries' box centre (an upper bound for every query), then,
   object by object, skips an object whose tiles are all out of reach (one vector test of its boxes) and visits the
-  tiles of the others whose box can still hold a point nearer than the worst current best; only those BLOCK_Q × BLOCK_K distances are computed, as
-  differences (``dx² + dy² + dz²`` in float32, no ``‖q‖² − 2p·q`` cancellation). Then it signs each query's distance
+  tiles of the others whose box can still hold a point nearer than the worst current best; only those BLOCK_Q ×
+  BLOCK_K distances are computed, as differences (``dx² + dy² + dz²`` in float32, no ``‖q‖² − 2p·q`` cancellation). Then it signs each query's distance
   by the neighbour's normal (``(p − q)·n_q ≥ 0``: outside, +) and writes ``no_neighbour`` for an object alone in
   its scene, 0 for padding. When each object's points are in Morton order (made once per sample) the tiles are
   compact surface patches and most are skipped; the answer never depends on it.
@@ -194,13 +195,13 @@ def _triton_kernels():
         tl.store(box + 5, tl.max(tl.where(m, wz, -inf), 0))
 
     @triton.jit
-    def _search_fold(best, best_i, d2, k0, PACKED: tl.constexpr):
+    def _search_fold(best, best_i, d2, k0, BK: tl.constexpr, PACKED: tl.constexpr):
         # each query's nearest so far, with a tile's squared distances d2 (BQ, BK) of keys k0, k0 + 1, …: nearer,
         # or as near with a smaller index (torch's argmin rule). PACKED: best is one int64 a query, d²'s float32 bits
         # above the index (one min); else best (float32 d²) and best_i (int64 index), the tile's min and its first
         # position
         if PACKED:
-            ki = k0 + tl.arange(0, d2.shape[1]).to(tl.int64)
+            ki = k0 + tl.arange(0, BK).to(tl.int64)
             key = (d2.to(tl.int32, bitcast=True).to(tl.int64) << 32) | ki[None, :]
             out, out_i = tl.minimum(best, tl.min(key, 1)), best_i
         else:
@@ -278,7 +279,7 @@ def _triton_kernels():
             dz = qz[:, None] - kz[None, :]
             d2 = tl.where(km[None, :], dx * dx + dy * dy + dz * dz, inf)
             k0 = ((seed_t // KT) * M + (seed_t % KT) * BK).to(tl.int64)
-            best, best_i = _search_fold(best, best_i, d2, k0, PACKED)
+            best, best_i = _search_fold(best, best_i, d2, k0, BK, PACKED)
         # pass 2: the tiles of the other real objects whose boxes can still hold a nearer point
         vo = tl.load(vbase + o) != 0
         if vo:
@@ -311,7 +312,7 @@ def _triton_kernels():
                             dy = qy[:, None] - ky[None, :]
                             dz = qz[:, None] - kz[None, :]
                             d2 = tl.where(km[None, :], dx * dx + dy * dy + dz * dz, inf)
-                            best, best_i = _search_fold(best, best_i, d2, (j * M + kt * BK).to(tl.int64), PACKED)
+                            best, best_i = _search_fold(best, best_i, d2, (j * M + kt * BK).to(tl.int64), BK, PACKED)
                             worst = tl.max(tl.where(qm, _search_d2(best, PACKED), 0.0), 0)
         # every query of an object with another real object has found one (each such object is visited in pass 2)
         found = (_search_d2(best, PACKED) != inf) & vo

@@ -13,14 +13,14 @@ point's normal — as two registered custom operators, each one Triton kernel on
   distance (B, P) float32). A program takes ``BLOCK_Q`` query points of one object and keeps, per query, the nearest
   candidate as one int64 (the float32 bits of d², monotonic for d² ≥ 0, above the key's index: one ``min`` gives the
   nearest point and, among exact ties, the smallest index — torch's ``argmin`` rule; ``PACKED_KEYS = False`` keeps d²
-  and the index apart, with the same rule). It first visits, in full, the
-  tile of another object whose box centre is nearest its queries' box centre (an upper bound for every query), then,
-  object by object, skips an object whose tiles are all out of reach (one vector test of its boxes) and visits the
-  tiles of the others whose box can still hold a point nearer than the worst current best; only those BLOCK_Q ×
-  BLOCK_K distances are computed, as differences (``dx² + dy² + dz²`` in float32, no ``‖q‖² − 2p·q`` cancellation). Then it signs each query's distance
-  by the neighbour's normal (``(p − q)·n_q ≥ 0``: outside, +) and writes ``no_neighbour`` for an object alone in
-  its scene, 0 for padding. When each object's points are in Morton order (made once per sample) the tiles are
-  compact surface patches and most are skipped; the answer never depends on it.
+  and the index apart, with the same rule). It first visits, in full, the tile of another object whose box centre is
+  nearest its queries' box centre (an upper bound for every query), then, object by object, skips an object whose
+  tiles are all out of reach (one vector test of its boxes) and visits the tiles of the others whose box can still
+  hold a point nearer than the worst current best; only those BLOCK_Q × BLOCK_K distances are computed, as differences
+  (``dx² + dy² + dz²`` in float32, no ``‖q‖² − 2p·q`` cancellation). Then it signs each query's distance by the
+  neighbour's normal (``(p − q)·n_q ≥ 0``: outside, +) and writes ``no_neighbour`` for an object alone in its scene, 0
+  for padding. When each object's points are in Morton order (made once per sample) the tiles are compact surface
+  patches and most are skipped; the answer never depends on it.
 
 **CPU** (and CUDA when Triton cannot build a kernel, which is then said once as a warning): the same arithmetic in
 torch — posing as :func:`spread.model.poses.pose_points` does; the search by brute force, all objects of all scenes

@@ -6,8 +6,8 @@
 #             +Geometry with the perceiver's cross-attention absorbed (geometry:absorbed: the CPU's way since stop 57);
 #   pipeline  the guided pipeline on real rooms at batch 64: DDPM-1000, refine on the untrained network's degenerate
 #             poses, and refine after trained-like samples (bench_gpu.Oracle: the rooms' poses jittered by 3 cm);
-#   search    the nearest-point search kernel at other tile sizes (queries a program, keys a tile, warps), the same
-#             answer each (benchmarks/search_blocks.py): the search is ~30 % of a denoising step;
+#   search    the nearest-point search kernel at other tile sizes (queries a program, keys a tile, warps, keys packed
+#             or apart), the same answer each (search_blocks.py; batch 64 shown, all in search_blocks.json);
 #   profile   where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base, +Geometry and
 #             geometry:absorbed, and of two eager bf16 denoising steps at batch 64 (profile_train.txt);
 #   lightning spread-train through Lightning with the CUDA-graph'd step, +Geometry at paper size on the carried rooms
@@ -48,7 +48,7 @@ if want pipeline; then
 fi
 
 if want search; then
-  timeout "${SEARCH_S:-70}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -48
+  timeout "${SEARCH_S:-70}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -21
   mark "search tile sizes"
 fi
 

@@ -48,7 +48,7 @@ if want pipeline; then
 fi
 
 if want search; then
-  timeout "${SEARCH_S:-70}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -21
+  timeout "${SEARCH_S:-70}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -21  # the device line and the batch-64 rows
   mark "search tile sizes"
 fi
 

@@ -139,9 +139,9 @@ def main() -> None:
         out, rows = kernel_rows(CHOICES, lambda out: args.json and args.json.write_text(json.dumps(out, indent=1)))
         where = torch.cuda.get_device_name() if torch.cuda.is_available() else (
             "cpu, Triton's interpreter" if os.environ.get("TRITON_INTERPRET") == "1" else "cpu, the torch paths")
-        print(f"\ndevice: {where}; kernels fell back: {out['broken'] or 'none'}")
         head = ("| B × N × M | poses | BLOCK_Q | BLOCK_K | warps | nearest kept | ms | vs default | "
                 "indices that differ | max distance diff |\n|---|---|---|---|---|---|---|---|---|---|")
+        rows.append(f"device: {where}; kernels fell back: {out['broken'] or 'none'}")
     print(head)
     print("\n".join(rows))
     if args.json:

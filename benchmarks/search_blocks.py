@@ -12,6 +12,7 @@ again at 16 × 32 (RESULTS.md, stop 59). Any choice is exact; only a GPU can say
     python benchmarks/search_blocks.py [--json OUT.json]          # a GPU: 16 and 64 rooms × 20 objects × 2,000 points
     TRITON_INTERPRET=1 python benchmarks/search_blocks.py         # CPU: the kernels' answers at a toy size
     python benchmarks/search_blocks.py --replay --points 1024     # CPU: distances per query of each choice (~6 min)
+    python benchmarks/search_blocks.py --registers [90]           # CPU: each choice compiled for sm_90, its registers
 """
 
 from __future__ import annotations
@@ -26,9 +27,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-#: (BLOCK_Q, BLOCK_K, NUM_WARPS, PACKED_KEYS): the default first.
+#: (BLOCK_Q, BLOCK_K, NUM_WARPS, PACKED_KEYS): the default first; the last, 64 queries, the default before the
+#: fourth slot (1.7–1.8× slower there), as a check that this run's times agree with that slot's.
 CHOICES = [(32, 64, 4, True), (32, 64, 4, False), (16, 64, 4, True), (16, 64, 2, False), (32, 32, 2, True),
-           (32, 32, 2, False), (16, 32, 2, True), (16, 32, 2, False), (16, 32, 1, False), (16, 16, 1, False)]
+           (32, 32, 2, False), (16, 32, 2, True), (16, 32, 2, False), (16, 32, 1, False), (16, 16, 1, False),
+           (64, 64, 4, True)]
 
 
 def timed(fn) -> tuple[float, tuple]:
@@ -47,6 +50,49 @@ def timed(fn) -> tuple[float, tuple]:
         torch.cuda.synchronize()
         times.append(start.elapsed_time(end))
     return sorted(times)[2], result
+
+
+#: The search kernel's arguments as Triton types, for compiling it without a GPU (:func:`compiled`).
+SEARCH_SIGNATURE = {"pts_ptr": "*fp32", "nrm_ptr": "*fp32", "box_ptr": "*fp32", "valid_ptr": "*i8", "idx_ptr": "*i64",
+                    "dist_ptr": "*fp32", "N": "i32", "M": "i32", "KT": "i32", "QT": "i32", "NO_NEIGHBOUR": "fp32",
+                    "BQ": "constexpr", "BK": "constexpr", "SLACK": "constexpr", "KTP": "constexpr",
+                    "PACKED": "constexpr"}
+
+
+def compiled(choice: tuple[int, int, int, bool], arch: int = 90, points: int = 2000) -> dict:
+    """The search kernel at ``choice`` compiled for CUDA compute capability ``arch`` (90: H100/H200) without a GPU —
+    Triton's compiler and its bundled ``ptxas`` — and what the machine code needs per thread: ``registers``,
+    ``stack`` and ``local`` (spilled) bytes, as ``cuobjdump --dump-resource-usage`` reads them from the cubin, and
+    ``warps_per_sm`` (of 64) that many registers leave room for (65,536 a multiprocessor)."""
+    import re
+    import subprocess
+    import tempfile
+
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    import spread.model.nearest_dense as nd
+
+    bq, bk, warps, packed = choice
+    kernels = nd._triton_kernels()
+    if kernels is None:
+        raise RuntimeError("search_blocks: Triton is not importable here")
+    constexprs = {"BQ": bq, "BK": bk, "SLACK": nd.CULL_SLACK, "KTP": triton.next_power_of_2(-(-points // bk)),
+                  "PACKED": packed}
+    kernel = triton.compile(ASTSource(fn=kernels[2], signature=SEARCH_SIGNATURE, constexprs=constexprs),
+                            target=GPUTarget("cuda", arch, 32), options={"num_warps": warps})
+    tool = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "cuobjdump"
+    with tempfile.TemporaryDirectory() as tmp:
+        cubin = Path(tmp) / "search.cubin"
+        cubin.write_bytes(kernel.asm["cubin"])
+        usage = subprocess.run([str(tool), "--dump-resource-usage", str(cubin)], capture_output=True, text=True,
+                               check=True).stdout
+    found = {k.lower(): int(v) for k, v in re.findall(r"\b(REG|STACK|LOCAL):(\d+)", usage)}
+    registers = found["reg"]
+    blocks = min(32, 65536 // (registers * 32 * warps))  # blocks a multiprocessor holds by registers alone
+    return {"registers": registers, "stack": found.get("stack", 0), "local": found.get("local", 0),
+            "warps_per_sm": min(64, blocks * warps)}
 
 
 def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None) -> tuple[dict, list[str]]:
@@ -120,16 +166,36 @@ def replay_rows(choices: list[tuple[int, int, int, bool]], rooms: int, objects: 
     return out, rows
 
 
+def register_rows(choices: list[tuple[int, int, int, bool]], arch: int) -> tuple[dict, list[str]]:
+    """:func:`compiled` for every choice (no GPU needed)."""
+    out, rows = {}, []
+    for choice in choices:
+        bq, bk, warps, packed = choice
+        r = compiled(choice, arch)
+        out[f"compiled/sm{arch}/q{bq}_k{bk}_w{warps}_{'packed' if packed else 'apart'}"] = r
+        rows.append(f"| {bq} | {bk} | {warps} | {'packed' if packed else 'apart'} | {r['registers']} | {r['stack']} | "
+                    f"{r['local']} | {r['warps_per_sm']} |")
+    return out, rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--replay", action="store_true", help="the CPU replay of the distances each choice computes")
+    ap.add_argument("--registers", type=int, metavar="ARCH", nargs="?", const=90, default=None,
+                    help="compile each choice for CUDA compute capability ARCH (90: H100/H200) here, no GPU needed, "
+                         "and print its registers, stack and spills")
     ap.add_argument("--rooms", type=int, default=2, help="--replay: rooms of synthetic boxes")
     ap.add_argument("--objects", type=int, default=20)
     ap.add_argument("--points", type=int, default=1024, help="--replay: per object, a multiple of 64")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("THREADS", "1")) if not torch.cuda.is_available() else 8)
-    if args.replay:
+    if args.registers is not None:
+        out, rows = register_rows(CHOICES, args.registers)
+        print(f"the search kernel compiled for sm_{args.registers} (Triton's compiler and ptxas, no GPU)")
+        head = ("| BLOCK_Q | BLOCK_K | warps | nearest kept | registers a thread | stack bytes | spilled bytes | "
+                "warps a multiprocessor holds |\n|---|---|---|---|---|---|---|---|")
+    elif args.replay:
         out, rows = replay_rows(CHOICES, args.rooms, args.objects, args.points)
         head = ("| poses | BLOCK_Q | BLOCK_K | tiles a program | fewest any order | distances a query |\n"
                 "|---|---|---|---|---|---|")

@@ -128,7 +128,7 @@ off, scale = torch.tensor([0.0, 1.2, 0.0]), torch.tensor([3.0, 1.2, 3.0])
 vp = mask[:, :, None].expand(B, N, M).reshape(B, N * M)
 real = vp & (mask.sum(1, keepdim=True) > 1)
 # the default, and smaller tiles with the index kept apart from d² (benchmarks/search_blocks.py times both)
-blocks = [(nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS), (16, 32, 2, not nd.PACKED_KEYS)]
+blocks = [(nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS), (16, 32, 4, not nd.PACKED_KEYS)]
 orders = (None, morton_order(pts)[..., None].expand(-1, -1, -1, 3))
 for (bq, bk, warps, packed), order in itertools.product(blocks, orders):
     nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = bq, bk, warps, packed
@@ -784,7 +784,7 @@ def test_the_tile_size_benchmark_runs_every_choice_and_each_gives_the_defaults_a
     rows = {k: v for k, v in json.loads(out.read_text()).items() if k.startswith("search/")}
     assert len(rows) == 2 * len(load_script("search_blocks").CHOICES)
     assert all(v["indices_differ"] == 0 and v["max_distance_diff"] == 0 for v in rows.values())
-    assert "q16_k32_w2_apart" in " ".join(rows) and "| 16 | 32 | 2 | apart |" in done.stdout
+    assert "q16_k32_w4_apart" in " ".join(rows) and "| 16 | 32 | 4 | apart |" in done.stdout
 
 
 def test_the_kernels_compile_for_an_h100_here_without_a_gpu():
@@ -806,7 +806,7 @@ def test_the_kernels_compile_for_an_h100_here_without_a_gpu():
     default = blocks.compiled(blocks.CHOICES[0], 90)
     assert blocks.CHOICES[0] == (nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS)
     assert 0 < default["registers"] <= 255 and default["local"] == 0
-    assert blocks.compiled((16, 32, 2, False), 90)["registers"] > 0
+    assert blocks.compiled((16, 32, 4, False), 90)["registers"] > 0
     pose = nd._triton_kernels()[1]
     signature = {**{name: "*fp32" for name in ("x_ptr", "off_ptr", "scale_ptr", "pts_ptr", "nrm_ptr", "world_ptr",
                                                "wnrm_ptr", "box_ptr")}, "M": "i32", "KT": "i32",

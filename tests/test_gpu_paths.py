@@ -787,10 +787,12 @@ def test_the_tile_size_benchmark_runs_every_choice_and_each_gives_the_defaults_a
     assert "q16_k32_w4_apart" in " ".join(rows) and "| 16 | 32 | 4 | apart |" in done.stdout
 
 
-def test_the_kernels_compile_for_an_h100_here_without_a_gpu():
-    """Triton compiles the pose and search kernels for compute capability 9.0 (H100/H200) on this CPU machine, with
-    the ptxas its wheel carries — what the interpreter cannot check (types of the machine code, the constexpr
-    branches); the default search needs no spilled registers; the kept-apart variant at 16 × 32 compiles too."""
+@pytest.mark.parametrize("arch", [80, 90])
+def test_the_kernels_compile_for_an_a100_and_an_h100_here_without_a_gpu(arch):
+    """Triton compiles the pose and search kernels for compute capability 8.0 (A100) and 9.0 (H100/H200) on this CPU
+    machine, with the ptxas its wheel carries — what the interpreter cannot check (types of the machine code, the
+    constexpr branches); the default search needs no spilled registers; the kept-apart variant at 16 × 32 compiles
+    too."""
     triton = pytest.importorskip("triton")
     from pathlib import Path
 
@@ -803,14 +805,14 @@ def test_the_kernels_compile_for_an_h100_here_without_a_gpu():
     import spread.model.nearest_dense as nd
 
     blocks = load_script("search_blocks")
-    default = blocks.compiled(blocks.CHOICES[0], 90)
+    default = blocks.compiled(blocks.CHOICES[0], arch)
     assert blocks.CHOICES[0] == (nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS)
     assert 0 < default["registers"] <= 255 and default["local"] == 0
-    assert blocks.compiled((16, 32, 4, False), 90)["registers"] > 0
+    assert blocks.compiled((16, 32, 4, False), arch)["registers"] > 0
     pose = nd._triton_kernels()[1]
     signature = {**{name: "*fp32" for name in ("x_ptr", "off_ptr", "scale_ptr", "pts_ptr", "nrm_ptr", "world_ptr",
                                                "wnrm_ptr", "box_ptr")}, "M": "i32", "KT": "i32",
                  "BK": "constexpr", "EPS": "constexpr"}
     kernel = triton.compile(ASTSource(fn=pose, signature=signature, constexprs={"BK": nd.BLOCK_K, "EPS": nd.ROT_EPS}),
-                            target=GPUTarget("cuda", 90, 32))
+                            target=GPUTarget("cuda", arch, 32))
     assert len(kernel.asm["cubin"]) > 0

@@ -97,7 +97,8 @@ def compiled(choice: tuple[int, int, int, bool], arch: int = 90, points: int = 2
 
 
 def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None) -> tuple[dict, list[str]]:
-    """Each choice's time and answer against the default's, ``save(out)`` after each (a slot cut short keeps them)."""
+    """Each choice's time and answer against the default's, ``save(out)`` after each (a slot cut short keeps them); a
+    choice Triton cannot build is marked as fallen back (the torch path answered it) and the next gets its own try."""
     from bench_gpu import BOUNDS, synthetic_batch
 
     import spread.model.nearest_dense as nd
@@ -107,7 +108,7 @@ def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None
     offset, scale = denormalize_affine(torch.tensor(BOUNDS, device=dev))
     sizes = [(16, 20, 2000), (64, 20, 2000)] if dev == "cuda" else [(2, 5, 150)]
     default = (nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS)
-    out, rows = {}, []
+    out, rows, failed = {}, [], set()
     for B, N, M in sizes:
         batch = synthetic_batch(B, N, M, device=dev)
         for poses in ("rest", "noise"):
@@ -123,19 +124,25 @@ def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None
                         lambda: torch.ops.spread.signed_nearest(world, normals, boxes, batch["mask"], 10.0))
                 finally:
                     nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = default
+                fell_back = "search" in nd._BROKEN  # Triton failed this choice: the torch path answered, not timed
+                if fell_back:
+                    failed.add((bq, bk, warps, packed))
+                    nd._BROKEN.discard("search")  # the next choice gets its own try
                 if reference is None:
                     reference = (index, distance, ms)
                 differ = int((index != reference[0]).sum())
                 diff = float((distance - reference[1]).abs().max())
                 key = f"search/B{B}_N{N}_M{M}/{poses}/q{bq}_k{bk}_w{warps}_{'packed' if packed else 'apart'}"
-                out[key] = {"ms": round(ms, 3), "indices_differ": differ, "max_distance_diff": diff}
-                speed = f"{reference[2] / ms:.2f}×" if ms else "–"
+                out[key] = {"ms": round(ms, 3), "indices_differ": differ, "max_distance_diff": diff,
+                            "fell_back": fell_back}
+                speed = f"{reference[2] / ms:.2f}×" if ms and not fell_back else "–"
                 kept = "packed" if packed else "apart"
-                rows.append(f"| {B} × {N} × {M} | {poses} | {bq} | {bk} | {warps} | {kept} | {ms:.2f} | {speed} | "
+                time_text = "fell back" if fell_back else f"{ms:.2f}"
+                rows.append(f"| {B} × {N} × {M} | {poses} | {bq} | {bk} | {warps} | {kept} | {time_text} | {speed} | "
                             f"{differ} | {diff:.1e} |")
                 save(out)
             print(f"  {B} × {N} × {M}, {poses}: {len(choices)} choices timed", flush=True)
-    out["broken"] = sorted(nd._BROKEN)
+    out["broken"] = [f"q{bq}_k{bk}_w{w}_{'packed' if p else 'apart'}" for bq, bk, w, p in sorted(failed)]
     return out, rows
 
 

@@ -788,7 +788,7 @@ def test_the_tile_size_benchmark_runs_every_choice_and_each_gives_the_defaults_a
 
 
 @pytest.mark.parametrize("arch", [80, 90])
-def test_the_kernels_compile_for_an_a100_and_an_h100_here_without_a_gpu(arch):
+def test_the_kernels_compile_for_an_a100_and_an_h100_here_without_a_gpu(arch, tmp_path, monkeypatch):
     """Triton compiles the pose and search kernels for compute capability 8.0 (A100) and 9.0 (H100/H200) on this CPU
     machine, with the ptxas its wheel carries — what the interpreter cannot check (types of the machine code, the
     constexpr branches); the default search needs no spilled registers; the kept-apart variant at 16 × 32 compiles
@@ -796,6 +796,7 @@ def test_the_kernels_compile_for_an_a100_and_an_h100_here_without_a_gpu(arch):
     triton = pytest.importorskip("triton")
     from pathlib import Path
 
+    monkeypatch.setenv("TRITON_CACHE_DIR", str(tmp_path))  # compiled here, from scratch, and left in the test's folder
     if not (Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "ptxas").exists():
         pytest.skip("this Triton has no NVIDIA backend")
     from helpers import load_script

@@ -34,24 +34,6 @@ CHOICES = [(32, 64, 4, True), (32, 64, 8, True), (16, 64, 4, True), (16, 64, 8, 
            (16, 32, 4, False), (64, 64, 4, True)]
 
 
-def timed(fn) -> tuple[float, tuple]:
-    """Median CUDA ms of 5 calls after 2 (without CUDA: 0 ms, one call) and the last result."""
-    if not torch.cuda.is_available():
-        return 0.0, fn()
-    for _ in range(2):
-        result = fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(5):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        result = fn()
-        end.record()
-        torch.cuda.synchronize()
-        times.append(start.elapsed_time(end))
-    return sorted(times)[2], result
-
-
 #: The search kernel's arguments as Triton types, for compiling it without a GPU (:func:`compiled`).
 SEARCH_SIGNATURE = {"pts_ptr": "*fp32", "nrm_ptr": "*fp32", "box_ptr": "*fp32", "valid_ptr": "*i8", "idx_ptr": "*i64",
                     "dist_ptr": "*fp32", "N": "i32", "M": "i32", "KT": "i32", "QT": "i32", "NO_NEIGHBOUR": "fp32",
@@ -100,6 +82,7 @@ def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None
     """Each choice's time and answer against the default's, ``save(out)`` after each (a slot cut short keeps them); a
     choice Triton cannot build is marked as fallen back (the torch path answered it) and the next gets its own try."""
     from bench_gpu import BOUNDS, synthetic_batch
+    from search_ab import timed
 
     import spread.model.nearest_dense as nd
     from spread.model.poses import denormalize_affine
@@ -120,8 +103,8 @@ def kernel_rows(choices: list[tuple[int, int, int, bool]], save=lambda out: None
                 nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = bq, bk, warps, packed
                 try:
                     boxes = nd.tile_boxes(world, bk)
-                    ms, (index, distance) = timed(
-                        lambda: torch.ops.spread.signed_nearest(world, normals, boxes, batch["mask"], 10.0))
+                    ms, (index, distance) = timed(torch.ops.spread.signed_nearest,
+                                                  (world, normals, boxes, batch["mask"], 10.0))
                 finally:
                     nd.BLOCK_Q, nd.BLOCK_K, nd.NUM_WARPS, nd.PACKED_KEYS = default
                 fell_back = "search" in nd._BROKEN  # Triton failed this choice: the torch path answered, not timed

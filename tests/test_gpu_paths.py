@@ -769,10 +769,12 @@ def test_graph_guidance_makes_each_steps_posed_geometry_once_and_samples_exactly
     assert torch.equal(shared.translation, separate.translation) and torch.equal(shared.rotation, separate.rotation)
 
 
-def test_the_tile_size_benchmark_runs_every_choice_and_each_gives_the_defaults_answer(tmp_path):
-    """``python benchmarks/search_blocks.py --json OUT`` as a GPU slot runs it (here on the CPU's torch path, at its
-    toy size): a row for every (BLOCK_Q, BLOCK_K, warps, keys) choice and both poses, no index differing from the
-    default's."""
+def test_the_tile_size_benchmark_runs_every_choice_end_to_end(tmp_path):
+    """``python benchmarks/search_blocks.py --json OUT`` as a GPU slot runs it, here on the CPU's torch path at its
+    toy size: a row for every (BLOCK_Q, BLOCK_K, warps, keys) choice and both poses, each choice's boxes accepted for
+    its tile size, the answers compared and saved. (The torch path ignores the tile sizes, so equal answers here say
+    the script compares them; that the kernel's choices agree is the interpreter test's, and the script's own run
+    under ``TRITON_INTERPRET=1``.)"""
     from helpers import load_script
 
     out = tmp_path / "blocks.json"

@@ -68,7 +68,7 @@ def sharing_geometry(cond: Condition) -> Iterator[None]:
     features read no graph, so classifier-free guidance on the graphs searches and runs the perceiver once a step, not
     twice. Nothing is kept after it (the weights or the states may change in place between steps)."""
     cond.posed.clear()
-    cond.posed["open"] = True
+    cond.posed["open"] = True  # what geometry_features asks; "made": the last features, with what they were made of
     try:
         yield
     finally:
@@ -211,7 +211,7 @@ class SceneDenoiser(nn.Module):
                     return features
                 cond.blind[key] = features
             return cond.blind[key]
-        if not blind and cond.posed and not torch.is_grad_enabled():  # sharing_geometry: made once for these states
+        if not blind and cond.posed.get("open") and not torch.is_grad_enabled():  # sharing_geometry: made once
             key = (x_t._version, blind_key(x_t))
             made = cond.posed.get("made")
             if made is not None and made[0] is x_t and made[1] is self and made[2] == key:

@@ -1,6 +1,7 @@
 """The CPU's nearest-other-object point searches on the same posed points, one table: ``pruned`` (torch, blocks of
 queries against the boxes' survivors), ``tree`` (scipy k-d trees, :func:`spread.model.nearest.nearest_other_point_tree`)
-and, with ``--old REV``, the tree search of another commit; seconds a call (best of ``--repeats`` after one warm-up,
+and, with ``--old REV``, the tree search of another commit, with ``--brute`` brute force in torch (what ``nearest=dense``
+ran on the CPU for up to 2²⁸ distances until stop 60; now the trees); seconds a call (best of ``--repeats`` after one warm-up,
 one thread), and how many indices differ from this commit's tree (ties aside they should not).
 
 Rooms are bench_gpu's (boxes of 0.2–1.2 m on a 6 m floor, Morton-ordered surface points) at their own poses
@@ -9,6 +10,7 @@ the room's bounds and beyond).
 
     python benchmarks/bench_tree.py --old 57298c8                 # ~1 minute
     python benchmarks/bench_tree.py --sizes 16x20x256 4x20x2000
+    python benchmarks/bench_tree.py --brute --no-pruned --sizes 2x6x64 2x20x64 8x20x64 2x20x256 4x20x256 2x40x256
 """
 
 from __future__ import annotations
@@ -55,17 +57,20 @@ def main() -> None:
     ap.add_argument("--old", help="a commit whose tree search to time beside this one's")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-pruned", action="store_true", help="leave out the (slow) pruned search")
+    ap.add_argument("--brute", action="store_true", help="time brute force in torch beside the tree (small sizes)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     from bench_gpu import BOUNDS, synthetic_batch
 
     from spread.model.nearest import nearest_other_point, nearest_other_point_tree
+    from spread.model.nearest_dense import _brute_force
     from spread.model.poses import pose_points, poses_from_state
 
     previous = old_tree(args.old) if args.old else None
     bounds = torch.tensor(BOUNDS)
     print(f"| B × N × M | poses | pruned s | tree{' ' + args.old if args.old else ''} s | tree s (this) | "
-          "speed-up | indices ≠ |\n|---|---|---:|---:|---:|---:|---:|")
+          f"speed-up | indices ≠ |{' brute force s | brute / tree | brute ≠ tree |' if args.brute else ''}\n"
+          f"|---|---|---:|---:|---:|---:|---:|{'---:|---:|---:|' if args.brute else ''}")
     for size in args.sizes:
         B, N, M = (int(v) for v in size.split("x"))
         batch = synthetic_batch(B, N, M)
@@ -89,8 +94,12 @@ def main() -> None:
                 base = t_old
             else:
                 cells.append("–")
-            print(f"| {B} × {N} × {M} | {poses} | {' | '.join(cells)} | {t_new:.3f} | {base / t_new:.2f}× | "
-                  f"{differ} |", flush=True)
+            row = f"| {B} × {N} × {M} | {poses} | {' | '.join(cells)} | {t_new:.3f} | {base / t_new:.2f}× | {differ} |"
+            if args.brute:
+                flat, valid = world.reshape(B, N * M, 3), batch["mask"].bool().repeat_interleave(M, dim=1)
+                t_b, i_b = best_of(_brute_force, (flat, valid, M), 1)
+                row += f" {t_b:.4f} | {t_b / t_new:.1f}× | {int(((i_b != i_new) & valid).sum())} |"
+            print(row, flush=True)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from model_fixture import FIXTURE, network, outputs, seeded_state
 from spread.model.geometry import prepare_points, signed_chamfer_features, signed_distances
 from spread.model.nearest import nearest_other_point
+import spread.model.nearest_dense as nd
 from spread.model.nearest_dense import nearest_dense_search
 
 BOUNDS = [-3.0, 0.0, -3.0, 3.0, 2.5, 3.0]
@@ -39,12 +40,16 @@ def distances_of(world, index):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_dense_search_finds_the_pruned_searchs_nearest_points_but_exact_ties(seed):
+def test_dense_search_finds_the_pruned_searchs_and_brute_forces_nearest_points_but_exact_ties(seed):
+    """On the CPU ``dense`` searches with the k-d trees; brute force (CUDA's search without Triton, up to its limit)
+    is checked here beside it."""
     points, normals, t, R, mask = scenes(seed=seed)
     world = torch.einsum("bnij,bnmj->bnmi", R, points) + t[:, :, None]
     dense = nearest_dense_search(world, mask)
     pruned = nearest_other_point(world, points, t, R, mask)
     full = nearest_other_point(world, points, t, R, mask, prune=False)
+    M = points.shape[2]
+    brute = nd._brute_force(world.reshape(world.shape[0], -1, 3), mask.repeat_interleave(M, dim=1), M)
     real = mask[:, :, None].expand(-1, -1, points.shape[2]).reshape(mask.shape[0], -1)
     lone = (mask.sum(1) == 1)[:, None].expand_as(real)
     keep = real & ~lone
@@ -53,6 +58,8 @@ def test_dense_search_finds_the_pruned_searchs_nearest_points_but_exact_ties(see
     assert torch.allclose(d_dense[keep], d_pruned[keep], atol=1e-6), "same nearest distance everywhere"
     assert (differ.sum() <= 0.001 * keep.sum()), "indices differ only at (near-)ties"
     assert ((dense != full) & keep).sum() <= 0.001 * keep.sum()
+    assert torch.allclose(distances_of(world, brute)[keep], d_dense[keep], atol=1e-6)
+    assert ((dense != brute) & keep).sum() <= 0.001 * keep.sum()
     owner = dense.div(points.shape[2], rounding_mode="floor")
     own = torch.arange(real.shape[1])[None].div(points.shape[2], rounding_mode="floor")
     assert (owner != own)[keep].all(), "never a point of the query's own object"

@@ -23,10 +23,10 @@ point's normal — as two registered custom operators, each one Triton kernel on
   patches and most are skipped; the answer never depends on it.
 
 **CPU** (and CUDA when Triton cannot build a kernel, which is then said once as a warning): the same arithmetic in
-torch — posing as :func:`spread.model.poses.pose_points` does; the search by brute force, all objects of all scenes
-at once per chunk of queries, for small problems, and beyond ``BRUTE_FORCE_LIMIT`` distances by an exact search of
-:mod:`spread.model.nearest` — the k-d trees on the CPU, the pruned search on CUDA (the same answer; the CPU has not
-the arithmetic for brute force at paper size).
+torch — posing as :func:`spread.model.poses.pose_points` does; the search on the CPU by the k-d trees of
+:mod:`spread.model.nearest` (2.6–50× faster than brute force from 2 × 6 × 64 to 2 × 40 × 256 points, the same
+answer; ``benchmarks/RESULTS.md``, stop 60), on CUDA by brute force, all objects of all scenes at once per chunk of
+queries, up to ``BRUTE_FORCE_LIMIT`` distances, and beyond by the pruned search (the same answer).
 
 Being registered operators, each is one launch on CUDA, opaque to ``torch.compile`` and to CUDA-graph capture (no
 host synchronisation inside), and counted as one by :mod:`spread.model.opcount`. Neither is differentiable:
@@ -54,9 +54,9 @@ PACKED_KEYS = True
 CULL_SLACK = 1e-5
 #: Added to the Gram–Schmidt norms (spread.data.rotation.EPS).
 ROT_EPS = 1e-8
-#: CPU: larger problems (B·P² distances) go through the pruned exact search instead of brute force.
+#: CUDA without Triton: larger problems (B·P² distances) go through the pruned exact search instead of brute force.
 BRUTE_FORCE_LIMIT = 1 << 28
-#: CPU: entries of one chunk's distance block.
+#: Entries of one chunk of brute force's distance block.
 CHUNK_ELEMENTS = 1 << 23
 
 
@@ -79,12 +79,14 @@ def _brute_force(points: torch.Tensor, valid_point: torch.Tensor, points_per_obj
 
 def _search_torch(points: torch.Tensor, valid: torch.Tensor, points_per_object: int) -> torch.Tensor:
     B, P, _ = points.shape
-    if B * P * P > BRUTE_FORCE_LIMIT:
-        from spread.model.nearest import nearest_other_point_posed, nearest_other_point_tree
+    world = points.view(B, P // points_per_object, points_per_object, 3)
+    if points.device.type == "cpu":  # a k-d tree per object: the CPU's fastest at every size
+        from spread.model.nearest import nearest_other_point_tree
 
-        world = points.view(B, P // points_per_object, points_per_object, 3)
-        if points.device.type == "cpu":  # a k-d tree per object (the CPU's fastest)
-            return nearest_other_point_tree(world, valid)
+        return nearest_other_point_tree(world, valid)
+    if B * P * P > BRUTE_FORCE_LIMIT:
+        from spread.model.nearest import nearest_other_point_posed
+
         return nearest_other_point_posed(world, valid)
     return _brute_force(points.float(), valid.repeat_interleave(points_per_object, dim=1), points_per_object)
 

@@ -502,6 +502,9 @@ def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_m
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match=f"compile_bucket must be an integer >= 1.*{bad!r}"):
             SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_bucket=bad)
+    for variant in ("geometry", "base"):  # refused when the model is made, not at its first training step
+        with pytest.raises(ValueError, match="model.config.nearest: unknown search 'kd'"):
+            SceneDiffusion(variant, dataclasses.replace(config, nearest="kd"), bounds=BOUNDS)
 
 
 def test_the_training_noise_is_diffusers_add_noise_to_the_bit_from_a_buffer_that_moves_with_the_module():

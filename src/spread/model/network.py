@@ -23,7 +23,8 @@ from spread.data.collate import PHYSICAL_PAD, SPATIAL_PAD
 from spread.model.config import ModelConfig
 from spread.model.denoiser import GraphDenoiser, real_objects
 from spread.data.parts import check_geometry_distance
-from spread.model.geometry import PointCloud, batch_cloud, blind_distances, resolve_search, state_distances
+from spread.model.geometry import (SEARCHES, PointCloud, batch_cloud, blind_distances, resolve_search,
+                                   state_distances)
 from spread.model.graph_attention import EdgeEncoder
 from spread.model.perceiver import (PAIR_DIM, SUMMARY_DIM, GeometryPerceiver, StaticTokens, object_summary,
                                     pair_features)
@@ -130,6 +131,8 @@ class SceneDenoiser(nn.Module):
             raise ValueError(f"unknown variant '{variant}' (choose from {VARIANTS})")
         self.config, self.variant = config, variant
         check_geometry_distance(getattr(config, "geometry_distance", "chamfer"))
+        if getattr(config, "nearest", "auto") not in SEARCHES:  # refused here, not at the first training step
+            raise ValueError(f"model.config.nearest: unknown search {config.nearest!r} (choose from {SEARCHES})")
         self.shape_encoder = build_shape_encoder(config)
         self.edge_encoder = EdgeEncoder(config.edge_dim)
         self.perceiver = None

@@ -359,6 +359,60 @@ def test_bf16_and_cuda_graph_settings_sample_on_cpu_and_bf16_stays_close(tmp_pat
         ScenePipeline(model, None, "ddim-5", precision="fp8")
 
 
+def test_cuda_graphs_record_by_default_only_the_models_whose_step_reads_nothing_on_the_host():
+    """``sampling.cuda_graph=null`` (the default) records a step where the model says it reads nothing on the host
+    (``cuda_graph_capturable``) — and each such SPREAD configuration's step does read nothing (counted, with CUDA's
+    search: ``dense``); ``true`` records or refuses by name, ``false`` never; the tree and pruned searches, the parts
+    distance and the release's network are left eager by default (the pruned search's reads counted)."""
+    import dataclasses
+
+    from spread.methods.release import ReleaseDiffusion
+    from spread.model import ModelConfig
+    from spread.model.module import SceneDiffusion
+    from spread.model.opcount import OperatorCounter
+    from spread.sampling.pipeline import ScenePipeline, resolve_cuda_graph
+    from model_fixture import CONFIG, batch
+
+    assert resolve_cuda_graph(None, True) is True
+    assert resolve_cuda_graph(None, None) is False and resolve_cuda_graph(None, False) is False
+    assert resolve_cuda_graph(True, None) is True and resolve_cuda_graph(False, True) is False
+    with pytest.raises(ValueError, match="cuda_graph must be true, false or null.*'yes'"):
+        resolve_cuda_graph("yes", True)
+    assert ReleaseDiffusion.cuda_graph_capturable is False
+    b = batch()
+    x, t = torch.randn(*b["x"].shape), torch.full((b["x"].shape[0],), 400)
+
+    def host_reads(model, graph_scale=1.0, geometry_scale=1.0):
+        extra = {"geometry_scale": geometry_scale} if geometry_scale != 1.0 else {}
+        with torch.no_grad():
+            problem = model.denoising(b, True, graph_scale, **extra)
+            problem.eps_fn(x, t)
+            with OperatorCounter() as counter:
+                problem.eps_fn(x, t)
+        return counter.syncs
+
+    config = ModelConfig(**CONFIG)
+    for variant, fields, graph_scale, geometry_scale in [
+            ("base", {}, 1.0, 1.0), ("base", {}, 2.0, 1.0), ("geometry", {"nearest": "auto"}, 1.0, 1.0),
+            ("geometry", {"nearest": "dense"}, 2.0, 2.0),
+            ("geometry", {"nearest": "dense", "geometry_at": "x0_hat", "geometry_summary": True}, 2.0, 2.0)]:
+        model = SceneDiffusion(variant, dataclasses.replace(config, **fields), bounds=BOUNDS).eval()
+        assert model.cuda_graph_capturable, (variant, fields)
+        assert ScenePipeline(model, None, "ddim-5").cuda_graph is True
+        assert ScenePipeline(model, None, "ddim-5", cuda_graph=False).cuda_graph is False
+        cuda_search = dataclasses.replace(config, **{**fields, "nearest": "dense"})  # auto's search on CUDA
+        counted = SceneDiffusion(variant, cuda_search, bounds=BOUNDS).eval()
+        assert host_reads(counted, graph_scale, geometry_scale) == 0, (variant, fields, graph_scale)
+    for fields in ({"nearest": "tree"}, {"nearest": "pruned"}, {"geometry_distance": "parts"}):
+        model = SceneDiffusion("geometry", dataclasses.replace(config, **fields), bounds=BOUNDS).eval()
+        assert not model.cuda_graph_capturable, fields
+        assert ScenePipeline(model, None, "ddim-5").cuda_graph is False
+        with pytest.raises(ValueError, match="cuda_graph=true: a .* step cannot be captured.*cuda_graph=false"):
+            ScenePipeline(model, None, "ddim-5", cuda_graph=True)
+        if fields["nearest" if "nearest" in fields else "geometry_distance"] == "pruned":
+            assert host_reads(model) > 0  # its blocks' sizes are read every step
+
+
 def test_the_training_loss_compiles_as_one_graph_and_equals_eager():
     """``model.compile=true`` compiles the loss whole (no data-dependent shapes or branches: the shape tokens of a
     compiled step encode every slot and zero the padding; the bounds check is eager-only) and changes nothing:

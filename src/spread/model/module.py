@@ -506,6 +506,18 @@ class SceneDiffusion(L.LightningModule):
         return self.network.perceiver is not None
 
     @property
+    def cuda_graph_capturable(self) -> bool:
+        """Whether a sampling step on CUDA reads nothing on the host, so ``sampling.cuda_graph`` can record it (and
+        does by default): base always; +Geometry with the release's chamfer feature searched by ``dense`` (``auto`` on
+        CUDA: one Triton kernel). The ``tree`` and ``pruned`` searches (host work, data-dependent block sizes) and the
+        ``parts`` distance (one ``nonzero`` a step) read the host every step."""
+        config = self.network.config
+        if not self.has_geometry:
+            return True
+        return (getattr(config, "geometry_distance", "chamfer") == "chamfer"
+                and getattr(config, "nearest", "auto") not in UNCOMPILABLE)
+
+    @property
     def bounds(self) -> torch.Tensor:
         """(6,) translation bounds [min xyz, max xyz], metres: the normalisation of a state's translation."""
         return self.network.bounds

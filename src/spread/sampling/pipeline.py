@@ -102,6 +102,16 @@ def sampling_kind(model) -> str:
     return "pipeline" if hasattr(model, "denoising") else "own"
 
 
+def resolve_cuda_graph(setting: bool | None, capturable: bool | None) -> bool:
+    """``sampling.cuda_graph`` for a model whose ``cuda_graph_capturable`` is ``capturable`` (None: the model does not
+    say): the setting when given, else (null) on only for a model that says its step reads nothing on the host."""
+    if setting is None:
+        return capturable is True
+    if not isinstance(setting, bool):
+        raise ValueError(f"sampling.cuda_graph must be true, false or null (the model's own), got {setting!r}")
+    return setting
+
+
 class ScenePipeline:
     """A trained model, its data encoder, a sampler and a guidance config (module docstring).
 
@@ -112,7 +122,7 @@ class ScenePipeline:
     """
 
     def __init__(self, model, dataset, sampler, guidance=None, use_ema: bool = True, graph_scale: float = 1.0,
-                 cuda_graph: bool = False, precision: str = "32", geometry_scale: float = 1.0):
+                 cuda_graph: bool | None = None, precision: str = "32", geometry_scale: float = 1.0):
         import math
 
         from spread.guidance import GuidanceConfig
@@ -128,9 +138,12 @@ class ScenePipeline:
             kind = ", ".join(f"{k} {hparams[k]}" for k in ("method", "variant") if k in hparams) or type(model).__name__
             raise ValueError(f"geometry_scale={geometry_scale}: this model ({kind}) has no geometry features to guide; "
                              f"sample it with geometry_scale=1")
-        if cuda_graph and not getattr(model, "cuda_graph_capturable", True):
+        capturable = getattr(model, "cuda_graph_capturable", None)  # None: the method does not say
+        # null: record where the model says its step can be; on CUDA only (on_device)
+        self.cuda_graph = resolve_cuda_graph(cuda_graph, capturable)
+        if cuda_graph is True and capturable is False:
             raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
-                             f"step cannot be captured as a CUDA graph (it reads the batch on the host at every step); "
+                             f"step cannot be captured as a CUDA graph (it reads tensors on the host at every step); "
                              f"sample it with cuda_graph=false")
         self.model, self.dataset = model, dataset
         self.sampler = Sampler.from_config(sampler)
@@ -139,7 +152,7 @@ class ScenePipeline:
             config = model.resolve_guidance(config)
         self.guidance = config if config.active else None
         self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), float(graph_scale), geometry_scale
-        self.cuda_graph, self.precision = bool(cuda_graph), str(precision)
+        self.precision = str(precision)
         self.guidance_stats: dict = {}
 
     def encode(self, sources: Sequence[Scene], paths: Sequence[str] | None = None) -> dict:

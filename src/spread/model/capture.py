@@ -49,6 +49,9 @@ class GraphedStep:
             for _ in range(self.warmup):
                 self.fn(self.static_x, self.static_t)
         torch.cuda.current_stream(x.device).wait_stream(stream)
+        # the warm-up's freed blocks stay cached for the side stream, where the graph's own memory pool cannot reuse
+        # them: given back to the device, the pool can take that memory instead of adding to it (large batches)
+        torch.cuda.empty_cache()
         self.graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(self.graph), torch.no_grad():
             self.static_out = self.fn(self.static_x, self.static_t)

@@ -170,6 +170,29 @@ def test_diffusion_baselines_sample_through_the_one_loop_as_their_own_loops_did(
 
 # ---- ATISS -------------------------------------------------------------------------------------------
 
+def test_diffusion_baselines_steps_read_nothing_on_the_host_so_cuda_graphs_record_them_by_default(batch, facts):
+    """DiffuScene's and InstructScene's network calls in the one loop (with and without classifier-free guidance on
+    the graph, and the imputation hook) read no tensor on the host: ``sampling.cuda_graph=null`` records them on CUDA,
+    as SPREAD's (issue 29: the same for the baselines that share the loop)."""
+    from spread.methods.diffuscene import DiffuScene
+    from spread.methods.instructscene import InstructScene
+    from spread.model.opcount import OperatorCounter
+    from spread.sampling.pipeline import ScenePipeline
+
+    for cls in (DiffuScene, InstructScene):
+        model = cls("tiny", **facts).eval()
+        assert ScenePipeline(model, None, "ddim-5").cuda_graph is True
+        for graph_scale in (1.0, 2.0):
+            with torch.no_grad():
+                problem = model.denoising(batch, True, graph_scale)
+                x = torch.randn(*problem.mask.shape, problem.state_dim)
+                t = torch.full((problem.mask.shape[0],), 300)
+                problem.eps_fn(x, t)
+                with OperatorCounter() as counter:
+                    problem.x0_hook(problem.eps_fn(x, t), None)
+            assert counter.total > 100 and counter.syncs == 0, (cls.__name__, graph_scale)
+
+
 def test_atiss_likelihood_does_not_depend_on_context_order(batch, facts):
     from spread.methods.atiss import ATISS
 

@@ -169,6 +169,8 @@ class GraphBoxDenoiser(nn.Module):
 
 class InstructScene(BaselineModule):
     method = "instructscene"
+    #: its step reads nothing on the host (counted in tests): recorded as a CUDA graph by default (sampling.cuda_graph)
+    cuda_graph_capturable = True
     config_class = InstructSceneConfig
 
     def __init__(self, config="tiny", bounds=None, categories=None, size_bounds=None, lr: float = 1e-4,

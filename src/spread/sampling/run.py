@@ -92,9 +92,9 @@ class SamplingConfig:
     max_objects: int | None = None
     #: CUDA: record each batch's network call once as a CUDA graph and replay it every step (the same kernels, far
     #: fewer launches, the same numbers; spread.model.capture). null (default): on for a model that says its step
-    #: reads nothing on the host (``cuda_graph_capturable``: SPREAD's base, and +Geometry with the chamfer feature
-    #: searched by ``dense``/``auto``), off for the rest; true: record, or refuse a model that cannot be; false:
-    #: never. Ignored on CPU.
+    #: reads nothing on the host (``cuda_graph_capturable``: SPREAD's base, +Geometry with the chamfer feature
+    #: searched by ``dense``/``auto``, DiffuScene, InstructScene), off for the rest; true: record, or refuse a model
+    #: that cannot be; false: never. Ignored on CPU.
     cuda_graph: bool | None = None
     #: The network's arithmetic: "32" (float32) or "bf16" (bfloat16 autocast; geometry features stay float32).
     precision: str = "32"

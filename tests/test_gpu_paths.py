@@ -553,6 +553,8 @@ def test_the_compile_setting_compiles_the_step_once_per_bucket_in_its_mode_and_m
     for search in ("pruned", "tree"):
         with pytest.raises(ValueError, match=f"model.compile=true cannot compile model.config.nearest={search}"):
             SceneDiffusion("geometry", dataclasses.replace(config, nearest=search), bounds=BOUNDS, compile=True)
+    with pytest.raises(ValueError, match="model.compile=true cannot compile model.config.geometry_distance=parts"):
+        SceneDiffusion("geometry", dataclasses.replace(config, geometry_distance="parts"), bounds=BOUNDS, compile=True)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match=f"compile_bucket must be an integer >= 1.*{bad!r}"):
             SceneDiffusion("geometry", config, bounds=BOUNDS, compile=True, compile_bucket=bad)

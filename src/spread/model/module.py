@@ -170,6 +170,10 @@ class SceneDiffusion(L.LightningModule):
             raise ValueError(f"model.compile=true cannot compile model.config.nearest={cfg.nearest} (the tree search "
                              "runs on the host, the pruned one's blocks have data-dependent sizes): use nearest=auto "
                              "or dense")
+        if compile and variant == "geometry" and getattr(cfg, "geometry_distance", "chamfer") == "parts":
+            raise ValueError("model.compile=true cannot compile model.config.geometry_distance=parts (it finds the "
+                             "parts near each point with a nonzero and branches on its result every step: "
+                             "data-dependent sizes): use geometry_distance=chamfer or model.compile=false")
         if isinstance(compile_bucket, bool) or not isinstance(compile_bucket, int) or compile_bucket < 1:
             raise ValueError(f"model.compile_bucket must be an integer >= 1 (objects), got {compile_bucket!r}")
         if lr_schedule not in LR_SCHEDULES:

@@ -543,6 +543,33 @@ def test_bad_settings_end_in_one_line_before_any_work(tmp_path, monkeypatch):
     assert "cannot be created" in out_dir_problem(str(tmp_path / "new" / "run"))
 
 
+def test_a_device_this_process_cannot_use_is_refused_in_one_line_before_any_sample(dataset, checkpoint, tmp_path,
+                                                                                   monkeypatch):
+    """Before: ``spread-sample device=cuda`` on a machine without a GPU, or ``device=gpu``, ended in torch's traceback
+    from inside the model's loading, after the progress bar and the run's sampling.json were written."""
+    import torch
+
+    from spread.sampling.worker import resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == "cpu" and resolve_device("cpu") == "cpu"
+    with pytest.raises(ValueError, match=r"device='cuda': this process sees no CUDA device"):
+        resolve_device("cuda")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert resolve_device("auto") == "cuda" and resolve_device("cuda:1") == "cuda:1"
+    with pytest.raises(ValueError, match=r"device='cuda:2': this process sees 2 CUDA device\(s\) \(cuda:0..cuda:1\)"):
+        resolve_device("cuda:2")
+    monkeypatch.undo()
+    out = tmp_path / "out"
+    proc = run_quietly("spread-sample", f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}", "device=gpu",
+                       "workers=0", "logger=none", "renders=0", "figures=0")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]  # one line: no progress bar before it
+    assert proc.stderr.startswith("spread-sample: device='gpu' is not a torch device (auto, cpu, cuda, cuda:N)")
+    assert not (out / "sampling.json").exists() and not (out / "scenes").exists()
+
+
 @pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_training_and_ray_print_no_known_third_party_noise(dataset, tmp_path, capfd):
     from spread.runtime.ray import RaySettings, ray_session

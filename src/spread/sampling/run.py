@@ -318,6 +318,10 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     from tqdm.auto import tqdm
 
     started = time.perf_counter()
+    if cfg.workers <= 0:  # sampled in this process: a device it cannot use is refused before anything is written
+        from spread.sampling.worker import resolve_device  # (Ray's workers check their own: a GPU node's may differ)
+
+        resolve_device(cfg.device)
     out = Path(cfg.out_dir)
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)

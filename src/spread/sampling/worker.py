@@ -29,11 +29,23 @@ from spread.scene import Scene
 
 
 def resolve_device(device: str) -> str:
-    """``auto``: ``cuda`` when a GPU is visible, else ``cpu``."""
+    """``auto``: ``cuda`` when a GPU is visible, else ``cpu``; any other a torch device that this process can use
+    (checked where the model is loaded: a Ray worker on a GPU node may see a GPU its driver does not)."""
     import torch
 
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"device={device!r} is not a torch device (auto, cpu, cuda, cuda:N): {exc}") from None
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ValueError(f"device={device!r}: this process sees no CUDA device (torch.cuda.is_available() is "
+                             f"False); use device=auto or device=cpu")
+        if parsed.index is not None and parsed.index >= count:
+            raise ValueError(f"device={device!r}: this process sees {count} CUDA device(s) (cuda:0..cuda:{count - 1})")
     return device
 
 

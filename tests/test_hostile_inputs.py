@@ -570,6 +570,48 @@ def test_a_device_this_process_cannot_use_is_refused_in_one_line_before_any_samp
     assert not (out / "sampling.json").exists() and not (out / "scenes").exists()
 
 
+def test_a_model_setting_refused_inside_hydras_instantiate_and_a_gpu_trainer_without_a_gpu_end_in_one_line(
+        dataset, tmp_path, monkeypatch):
+    """Before: a ValueError from the model's constructor came wrapped in Hydra's four-line "Error in call to target"
+    message, and ``trainer=gpu`` on a machine without a GPU in Lightning's "No supported gpu backend found!" after the
+    data and the model were built."""
+    import torch
+    from hydra.errors import InstantiationException
+
+    from spread.cli.errors import user_error
+    from spread.training.fit import check_accelerator
+
+    try:
+        raise InstantiationException("Error in call to target 'x'") from ValueError("model.x must be 1")
+    except InstantiationException as wrapped:
+        assert str(user_error(wrapped)) == "model.x must be 1"
+    try:
+        raise InstantiationException("Error in call to target 'x'") from RuntimeError("a bug, not a setting")
+    except InstantiationException as wrapped:
+        assert user_error(wrapped) is None  # a bug keeps its traceback
+    proc = run_quietly("spread-train", "experiment=quick", f"data.root={dataset}", f"out_dir={tmp_path / 'a'}",
+                       "model.compile_bucket=0", "logger=none")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr and "Error in call" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip() == ("spread-train: model.compile_bucket must be an integer >= 1 (objects), got 0 "
+                                   "(HYDRA_FULL_ERROR=1 shows the traceback)")
+    from spread.configs import compose
+
+    gpu = compose("train", ["trainer=gpu"])
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    check_accelerator(gpu)  # a GPU is there: nothing to say
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="trainer.accelerator=gpu .trainer=gpu.: this process sees no CUDA device"):
+        check_accelerator(gpu)
+    check_accelerator(compose("train", []))  # the CPU trainer: nothing to say
+    monkeypatch.undo()
+    if not torch.cuda.is_available():  # as a user without a GPU types it
+        proc = run_quietly("spread-train", "experiment=quick", f"data.root={dataset}", f"out_dir={tmp_path / 'b'}",
+                           "trainer=gpu", "logger=none")
+        assert proc.returncode == 1 and proc.stderr.strip().startswith(
+            "spread-train: trainer.accelerator=gpu (trainer=gpu): this process sees no CUDA device"), proc.stderr
+        assert not (tmp_path / "b" / "checkpoints").exists()
+
+
 @pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_training_and_ray_print_no_known_third_party_noise(dataset, tmp_path, capfd):
     from spread.runtime.ray import RaySettings, ray_session

@@ -4,8 +4,8 @@
   line *before* Hydra makes the run folder: an existing file, a read-only or unwritable folder is refused in
   one line (Hydra would stop with a traceback from deep inside itself).
 * :func:`one_line` wraps the task function inside the Hydra app: a bad setting or input (``ValueError``,
-  ``FileNotFoundError``, a refused file or folder) ends the command with ``<command>: <message>`` and exit
-  status 1. ``HYDRA_FULL_ERROR=1`` (or ``SPREAD_DEBUG=1``) shows the full traceback instead.
+  ``FileNotFoundError``, a refused file or folder — also when a constructor raised it inside Hydra's ``instantiate``)
+  ends the command with ``<command>: <message>`` and exit status 1. ``HYDRA_FULL_ERROR=1`` (or ``SPREAD_DEBUG=1``) shows the full traceback instead.
 """
 
 from __future__ import annotations
@@ -28,6 +28,21 @@ def user_error_types() -> tuple[type[BaseException], ...]:
             RunFolderBusy, UnsafeOutputError)
 
 
+def user_error(exc: BaseException) -> BaseException | None:
+    """The user error ``exc`` reports (:func:`user_error_types`), or None: ``exc`` itself, or the error a setting's
+    constructor raised inside Hydra's ``instantiate`` (which wraps it, naming the target, in an
+    ``InstantiationException`` whose cause it is)."""
+    if isinstance(exc, user_error_types()):
+        return exc
+    try:
+        from hydra.errors import InstantiationException
+    except ImportError:  # pragma: no cover — Hydra is a dependency of every console script
+        return None
+    if isinstance(exc, InstantiationException) and isinstance(exc.__cause__, user_error_types()):
+        return exc.__cause__
+    return None
+
+
 def one_line(name: str):
     """Decorator of a Hydra task function: user errors become ``SystemExit("<name>: <message>")``."""
 
@@ -39,10 +54,11 @@ def one_line(name: str):
             silence_known_noise()
             try:
                 return task(*args, **kwargs)
-            except user_error_types() as exc:
-                if verbose():
+            except Exception as exc:  # noqa: BLE001 — only user errors are turned into one line
+                cause = user_error(exc)
+                if cause is None or verbose():
                     raise
-                message = " ".join(str(exc).split()) or type(exc).__name__
+                message = " ".join(str(cause).split()) or type(cause).__name__
                 raise SystemExit(f"{name}: {message} (HYDRA_FULL_ERROR=1 shows the traceback)") from None
 
         return run

@@ -546,7 +546,8 @@ def test_bad_settings_end_in_one_line_before_any_work(tmp_path, monkeypatch):
 def test_a_device_this_process_cannot_use_is_refused_in_one_line_before_any_sample(dataset, checkpoint, tmp_path,
                                                                                    monkeypatch):
     """Before: ``spread-sample device=cuda`` on a machine without a GPU, or ``device=gpu``, ended in torch's traceback
-    from inside the model's loading, after the progress bar and the run's sampling.json were written."""
+    from inside the model's loading, after the progress bar and the run's sampling.json were written; ``device=cuda
+    workers=2`` without ``ray.num_gpus_per_worker`` started Ray workers that each saw no GPU."""
     import torch
 
     from spread.sampling.worker import resolve_device
@@ -567,6 +568,13 @@ def test_a_device_this_process_cannot_use_is_refused_in_one_line_before_any_samp
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]  # one line: no progress bar before it
     assert proc.stderr.startswith("spread-sample: device='gpu' is not a torch device (auto, cpu, cuda, cuda:N)")
+    assert not (out / "sampling.json").exists() and not (out / "scenes").exists()
+    proc = run_quietly("spread-sample", f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}", "device=cuda",
+                       "workers=2", "logger=none")  # Ray's workers would each see no GPU: refused before Ray starts
+    assert proc.returncode == 1 and proc.stderr.strip() == (
+        "spread-sample: device=cuda with workers=2: Ray gives a worker no GPU unless it asks for one; set "
+        "ray.num_gpus_per_worker=1 (a fraction shares a GPU between workers) or workers=0 (HYDRA_FULL_ERROR=1 shows the "
+        "traceback)"), proc.stderr[-2000:]
     assert not (out / "sampling.json").exists() and not (out / "scenes").exists()
 
 

@@ -206,6 +206,20 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
     return decision.reason
 
 
+def check_device(cfg: SamplingConfig) -> None:
+    """A device the samplers cannot use, refused before anything is written: in this process (``workers=0``) one it
+    does not see (:func:`spread.sampling.worker.resolve_device`); on Ray's workers (each checks its own device: a GPU
+    node's may differ from the driver's) ``cuda`` without ``ray.num_gpus_per_worker`` — Ray hides every GPU from a
+    worker that asks for none (its ``CUDA_VISIBLE_DEVICES`` is empty), so each would fail."""
+    if cfg.workers <= 0:
+        from spread.sampling.worker import resolve_device
+
+        resolve_device(cfg.device)
+    elif str(cfg.device).startswith("cuda") and not cfg.ray.num_gpus_per_worker > 0:
+        raise ValueError(f"device={cfg.device} with workers={cfg.workers}: Ray gives a worker no GPU unless it asks for "
+                         f"one; set ray.num_gpus_per_worker=1 (a fraction shares a GPU between workers) or workers=0")
+
+
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
     """Sample the batches in this process with one model."""
     from spread.sampling.worker import SampleWorker
@@ -318,10 +332,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     from tqdm.auto import tqdm
 
     started = time.perf_counter()
-    if cfg.workers <= 0:  # sampled in this process: a device it cannot use is refused before anything is written
-        from spread.sampling.worker import resolve_device  # (Ray's workers check their own: a GPU node's may differ)
-
-        resolve_device(cfg.device)
+    check_device(cfg)
     out = Path(cfg.out_dir)
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)

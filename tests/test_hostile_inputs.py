@@ -611,6 +611,7 @@ def test_a_model_setting_refused_inside_hydras_instantiate_and_a_gpu_trainer_wit
     with pytest.raises(ValueError, match="trainer.accelerator=gpu .trainer=gpu.: this process sees no CUDA device"):
         check_accelerator(gpu)
     check_accelerator(compose("train", []))  # the CPU trainer: nothing to say
+    check_accelerator(gpu, "cpu")  # a launcher's CPU workers (Ray Train without use_gpu): nothing to say
     monkeypatch.undo()
     if not torch.cuda.is_available():  # as a user without a GPU types it
         proc = run_quietly("spread-train", "experiment=quick", f"data.root={dataset}", f"out_dir={tmp_path / 'b'}",

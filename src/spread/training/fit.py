@@ -153,11 +153,12 @@ def feed_the_device(trainer, datamodule) -> None:
                     "data.num_workers=4 data.persistent_workers=true builds them beside it")
 
 
-def check_accelerator(cfg: DictConfig) -> None:
+def check_accelerator(cfg: DictConfig, override: str | None = None) -> None:
     """``trainer.accelerator=gpu`` (``trainer=gpu``) in a process that sees no CUDA device is refused by name before
     any work (Lightning's "No supported gpu backend found!" came from inside Hydra's instantiate, after the data and
-    the model were built). Checked where training runs: a launcher's workers on GPU nodes check their own."""
-    accelerator = str(OmegaConf.select(cfg, "trainer.accelerator", default="") or "")
+    the model were built). Checked where training runs: a launcher's workers on GPU nodes check their own;
+    ``override``: the accelerator a launcher gives the Trainer instead (Ray Train's ``use_gpu``)."""
+    accelerator = str(override or OmegaConf.select(cfg, "trainer.accelerator", default="") or "")
     if accelerator in ("gpu", "cuda"):
         import torch
 
@@ -180,7 +181,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     from spread.tracking.loggers import as_logger_config, lightning_loggers
     from spread.training.monitors import monitors
 
-    check_accelerator(cfg)
+    check_accelerator(cfg, (trainer_overrides or {}).get("accelerator"))
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     from spread.runtime.quiet import silence_known_noise

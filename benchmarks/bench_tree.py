@@ -1,8 +1,9 @@
 """The CPU's nearest-other-object point searches on the same posed points, one table: ``pruned`` (torch, blocks of
 queries against the boxes' survivors), ``tree`` (scipy k-d trees, :func:`spread.model.nearest.nearest_other_point_tree`)
-and, with ``--old REV``, the tree search of another commit, with ``--brute`` brute force in torch (what ``nearest=dense``
-ran on the CPU for up to 2²⁸ distances until stop 60; now the trees); seconds a call (best of ``--repeats`` after one warm-up,
-one thread), and how many indices differ from this commit's tree (ties aside they should not).
+and, with ``--old REV``, the tree search of another commit, with ``--brute`` brute force in torch (what
+``nearest=dense`` ran on the CPU for up to 2²⁸ distances until stop 60; now the trees); seconds a call (best of
+``--repeats`` after one warm-up, one thread), and how many indices differ from this commit's tree (ties aside they
+should not).
 
 Rooms are bench_gpu's (boxes of 0.2–1.2 m on a 6 m floor, Morton-ordered surface points) at their own poses
 (``rest``) and at standard-normal states (``noise``: a training step's x_t at large t, objects overlapping anywhere in

@@ -4,8 +4,9 @@
   line *before* Hydra makes the run folder: an existing file, a read-only or unwritable folder is refused in
   one line (Hydra would stop with a traceback from deep inside itself).
 * :func:`one_line` wraps the task function inside the Hydra app: a bad setting or input (``ValueError``,
-  ``FileNotFoundError``, a refused file or folder — also when a constructor raised it inside Hydra's ``instantiate``)
-  ends the command with ``<command>: <message>`` and exit status 1. ``HYDRA_FULL_ERROR=1`` (or ``SPREAD_DEBUG=1``) shows the full traceback instead.
+  ``FileNotFoundError``, a refused file or folder — also when a constructor raised it inside Hydra's
+  ``instantiate``) ends the command with ``<command>: <message>`` and exit status 1. ``HYDRA_FULL_ERROR=1`` (or
+  ``SPREAD_DEBUG=1``) shows the full traceback instead.
 """
 
 from __future__ import annotations

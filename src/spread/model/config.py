@@ -53,7 +53,8 @@ class ModelConfig:
     num_points: int = 2000  # M
     # how the geometry features' exact nearest other-object point is searched (the same answer every way):
     # "tree" (a k-d tree per object, on the host: best on CPU), "pruned" (object pruning, Python loop over point
-    # blocks, on the tensors' device), "dense" (one operator: a Triton kernel on CUDA, on CPU the trees inside it), "auto" (dense on CUDA and in a compiled step, tree on CPU)
+    # blocks, on the tensors' device), "dense" (one operator: a Triton kernel on CUDA, on CPU the trees inside it),
+    # "auto" (dense on CUDA and in a compiled step, tree on CPU)
     nearest: str = "auto"
     # what the geometry features' distance d(p) is: "chamfer" (the release's: nearest sampled point of another
     # object, signed by its normal) | "parts" (signed distance to the other objects' convex parts, exact sign,

@@ -216,8 +216,9 @@ def check_device(cfg: SamplingConfig) -> None:
 
         resolve_device(cfg.device)
     elif str(cfg.device).startswith("cuda") and not cfg.ray.num_gpus_per_worker > 0:
-        raise ValueError(f"device={cfg.device} with workers={cfg.workers}: Ray gives a worker no GPU unless it asks for "
-                         f"one; set ray.num_gpus_per_worker=1 (a fraction shares a GPU between workers) or workers=0")
+        raise ValueError(f"device={cfg.device} with workers={cfg.workers}: Ray gives a worker no GPU unless it asks "
+                         f"for one; set ray.num_gpus_per_worker=1 (a fraction shares a GPU between workers) or "
+                         f"workers=0")
 
 
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:

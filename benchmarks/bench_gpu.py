@@ -554,6 +554,73 @@ def pipeline_rows(data: Path, B: int, quick: bool) -> dict:
     return out
 
 
+def graph_rows(data: Path, quick: bool) -> dict:
+    """``sampling.cuda_graph`` at its default (null: the step recorded where the model says it reads nothing on the
+    host) against eager (``false``), for each model that samples through the one loop — SPREAD base and +Geometry,
+    DiffuScene, InstructScene (small initialised networks, weights drawn small and random so the states move; the
+    dataset's first 16 training rooms): the same states, how many graphs were recorded, and the seconds of a DDIM-20
+    batch after a warm one. On the CPU both ways run eagerly (a check of the script)."""
+    import torch
+
+    from spread.data import SceneDataModule
+    from spread.data.stats import load_stats
+    from spread.methods.base import dataset_facts
+    from spread.methods.diffuscene import DiffuScene
+    from spread.methods.instructscene import InstructScene
+    from spread.model import ModelConfig
+    from spread.model.diffusion import denoise
+    from spread.model.module import SceneDiffusion
+    from spread.sampling.pipeline import ScenePipeline
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    M = 64 if quick else 256
+    dm = SceneDataModule(data, batch_size=4 if quick else 16, num_points=M)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    B = batch["x"].shape[0]
+    facts = dataset_facts(data)
+    config = ModelConfig(num_points=M, dim=64, depth=2, num_latents=16)
+    bounds = load_stats(data / "stats.json")["bounds_translations"]
+    torch.manual_seed(0)
+    models = {"spread base": SceneDiffusion("base", config, bounds=bounds),
+              "spread geometry": SceneDiffusion("geometry", config, bounds=bounds),
+              "diffuscene": DiffuScene("tiny", **facts), "instructscene": InstructScene("tiny", **facts)}
+    out = {}
+    for name, model in models.items():
+        model = untrained_but_live(model).to(device).eval()
+        if getattr(model, "ema", None) is not None:  # sampling reads the EMA's weights
+            with torch.no_grad():
+                for p, q in zip(model.ema.module.parameters(), model.network.parameters()):
+                    p.copy_(q)
+        states, seconds = {}, {}
+        for setting in (None, False):
+            pipe = ScenePipeline(model, None, "ddim-20", cuda_graph=setting)
+            with torch.no_grad():
+                problem = pipe.on_device(model.denoising(batch))
+
+            def run():
+                return denoise(problem, pipe.sampler, [torch.Generator().manual_seed(i) for i in range(B)])
+
+            run()  # warm: kernels built, the graph recorded
+            if device == "cuda":
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            states[setting] = run()
+            if device == "cuda":
+                torch.cuda.synchronize()
+            seconds[setting] = time.perf_counter() - t0
+            if setting is None:
+                out[f"graphs/{name}/recorded_by_default"] = bool(pipe.cuda_graph and device == "cuda")
+                out[f"graphs/{name}/graphs_recorded"] = int(getattr(problem.eps_fn, "captures", 0))
+        out[f"graphs/{name}/max_diff_default_vs_eager"] = float((states[None] - states[False]).abs().max())
+        out[f"graphs/{name}/states_move"] = float(states[False].abs().max())
+        out[f"graphs/{name}/s_per_batch_default_eager"] = [round(seconds[None], 4), round(seconds[False], 4)]
+        print(f"  {name}: recorded {out[f'graphs/{name}/recorded_by_default']}, "
+              f"max diff {out[f'graphs/{name}/max_diff_default_vs_eager']:.2e}, "
+              f"s per DDIM-20 batch of {B} {seconds[None]:.4f} (default) / {seconds[False]:.4f} (eager)", flush=True)
+    return out
+
+
 def table(results: dict) -> str:
     lines = ["| measurement | value |", "|---|---|"]
     for key, value in results.items():
@@ -567,7 +634,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, help="a dataset folder: adds the guided pipeline rows")
     ap.add_argument("--skip-counts", action="store_true")
     ap.add_argument("--only", nargs="*", default=None,
-                    help="parts: train nearest sample compile pipeline sample_profile (the last only when named)")
+                    help="parts: train nearest sample compile pipeline graphs sample_profile (the last two only "
+                         "when named; pipeline and graphs need --data)")
     ap.add_argument("--compile", action="store_true", help="also a torch.compile'd training step")
     ap.add_argument("--profile", action="store_true", help="print the top CUDA kernels of one training step")
     ap.add_argument("--profile-out", type=Path, default=None,
@@ -615,6 +683,9 @@ def main() -> None:
             if part in parts:
                 results |= cuda_parts[part]()
                 save()
+    if args.data is not None and "graphs" in parts:
+        results |= graph_rows(args.data, args.quick)
+        save()
     if args.data is not None and "pipeline" in parts:
         results |= pipeline_rows(args.data, 4 if args.quick else 64, args.quick)
     save()

@@ -10,19 +10,23 @@
 #             or apart), the same answer each (search_blocks.py; batch 64 shown, all in search_blocks.json);
 #   profile   where a step's GPU time goes: the top 30 CUDA kernels of one eager training step, base, +Geometry and
 #             geometry:absorbed, and of two eager bf16 denoising steps at batch 64 (profile_train.txt);
+#   graphs    sampling.cuda_graph at its default (null since stop 60: recorded where the model says its step reads
+#             nothing on the host) against eager, SPREAD base and +Geometry, DiffuScene, InstructScene (small
+#             networks): the same states, graphs recorded, s per DDIM-20 batch (bench_gpu.py --only graphs);
 #   lightning spread-train through Lightning with the CUDA-graph'd step, +Geometry at paper size on the carried rooms
 #             (2-51 objects: one static graph per bucket of 8 object counts, model.compile_bucket; the fifth slot's
 #             run, before the buckets, recompiled per count): perf/steps_per_s in lightning_metrics.csv, Dynamo's
 #             recompiles in lightning.log;
 #   sample    DDIM-50 at batch 64 (eager, CUDA graph, bf16; met at the fifth slot: 0.0387 s/scene);
 #   detect    the guidance's triangle pairs on the GPU against python-fcl (answered at the fifth slot: equal).
-# The default PARTS="compile pipeline search profile" fits one device call (limits 245 + 160 + 70 + 80 s); a second
-# call PARTS=lightning (280 s). (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
+# The default PARTS="compile pipeline search profile graphs" fits one device call (limits 245 + 160 + 70 + 80 s, then
+# graphs in what is left of the call's 580 s: 40 s at most); a second call PARTS=lightning (280 s).
+# (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
 set -u
 OUT=${OUT:-gpu_out}; ROOMS=${ROOMS:-.gpudata/rooms}; OLD=${OLD:-}; PY=${PY:-python3}
-PARTS=" ${PARTS:-compile pipeline search profile} "
+PARTS=" ${PARTS:-compile pipeline search profile graphs} "
 want() { [[ "$PARTS" == *" $1 "* ]]; }
 mkdir -p "$OUT"
 if ! $PY -c "import hydra, diffusers" 2>/dev/null && [ -d .whl ]; then  # a bare machine: the carried wheels
@@ -57,6 +61,12 @@ if want profile; then
     --variants base geometry geometry:absorbed --profile-out "$OUT/profile_train.txt" \
     --json "$OUT/train_profiled.json" 2>&1 | quiet | tail -6
   mark "profile"
+fi
+
+if want graphs; then
+  timeout "${GRAPHS_S:-40}" $PY benchmarks/bench_gpu.py --skip-counts --only graphs --data "$ROOMS" \
+    --json "$OUT/graphs.json" 2>&1 | quiet | tail -6
+  mark "cuda_graph default against eager"
 fi
 
 if want lightning; then

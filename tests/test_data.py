@@ -277,6 +277,46 @@ def test_dataloader_workers_match_single_process(root):
     assert len(list(dm.test_dataloader())) == 2
 
 
+def test_unset_loader_workers_are_chosen_by_the_trainers_device_and_give_the_same_batches(root, caplog):
+    """``data.num_workers=null`` (the config's default): none with a CPU trainer; beside a GPU up to 4 a training
+    process, one CPU of its share left to it, kept across epochs — the batches are those of the loop's own loading.
+    An explicit count is left alone (0 beside a GPU: a warning)."""
+    from spread.configs import compose
+    from spread.data import SceneDataModule
+    from spread.data.datamodule import loader_workers
+    from spread.training.fit import feed_the_device
+
+    assert compose("train", []).data.num_workers is None and compose("train", []).data.persistent_workers is None
+    assert [loader_workers(1, 16), loader_workers(8, 16), loader_workers(8, 64), loader_workers(1, 2),
+            loader_workers(1, 1)] == [4, 1, 4, 1, 0]
+
+    def trainer(kind: str, devices: int = 1):
+        return type("Trainer", (), {"accelerator": type(kind, (), {})(), "num_devices": devices})()
+
+    auto = SceneDataModule(root, batch_size=4, num_workers=None, persistent_workers=None, num_points=M, seed=3)
+    feed_the_device(trainer("CPUAccelerator"), auto)
+    assert auto.num_workers == 0 and not auto.pin_memory and not auto.persistent_workers
+    auto.setup("fit")
+    inline = [list(auto.train_dataloader()), list(auto.val_dataloader())]
+    feed_the_device(trainer("CUDAAccelerator"), auto)
+    assert auto.pin_memory and auto.num_workers == loader_workers(1) and auto.hparams["num_workers"] == auto.num_workers
+    assert auto.persistent_workers == (auto.num_workers > 0)
+    auto.use_workers(2)  # what a GPU machine's CPUs give (this one may have fewer): the batches are the same
+    loaded = [list(auto.train_dataloader()), list(auto.val_dataloader())]
+    assert auto.train_dataloader().num_workers == 2 and auto.train_dataloader().persistent_workers
+    for split in range(2):
+        _same_batches(inline[split], loaded[split])
+    kept = SceneDataModule(root, num_workers=None, persistent_workers=False, num_points=M)
+    feed_the_device(trainer("CUDAAccelerator", devices=8), kept)
+    assert kept.num_workers == loader_workers(8) and not kept.persistent_workers
+    explicit = SceneDataModule(root, num_workers=0, num_points=M)
+    with caplog.at_level("WARNING"):
+        feed_the_device(trainer("CUDAAccelerator"), explicit)
+    assert explicit.num_workers == 0 and "data.num_workers=0" in caplog.text
+    with pytest.raises(ValueError, match="data.num_workers must be >= 0.*-1"):
+        SceneDataModule(root, num_workers=-1)
+
+
 def test_size_buckets_batch_rooms_of_similar_object_count_and_keep_a_resumable_order():
     from spread.data.order import EpochOrder
 

@@ -59,18 +59,36 @@ class SymmetricScenes(torch.utils.data.Dataset):
         return self.dataset.item(index % n, index // n)
 
 
+#: At most this many loader processes for a training process beside a GPU (``data.num_workers=null``).
+AUTO_WORKERS = 4
+
+
+def loader_workers(devices: int = 1, cpus: int | None = None) -> int:
+    """Loader processes for each of the ``devices`` training processes of this node beside a GPU
+    (``data.num_workers=null``): up to :data:`AUTO_WORKERS`, leaving each process one CPU of its share of ``cpus``
+    (default: the CPUs this process may run on)."""
+    if cpus is None:
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(0, min(AUTO_WORKERS, int(cpus) // max(1, int(devices)) - 1))
+
+
 class SceneDataModule(L.LightningDataModule):
     """Dataloaders over ``<root>/{train,val,test}`` with :func:`collate_scenes` batching."""
 
-    def __init__(self, root: str | os.PathLike, batch_size: int = 8, num_workers: int = 0,
+    def __init__(self, root: str | os.PathLike, batch_size: int = 8, num_workers: int | None = 0,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, pin_memory: bool = False,
-                 persistent_workers: bool = False, multiprocessing_context: str | None = None,
+                 persistent_workers: bool | None = False, multiprocessing_context: str | None = None,
                  augment: bool = False, cache: bool = True, bucket_batches: int = 0,
                  geometry_distance: str = "chamfer"):
         super().__init__()
         self.root = Path(root)
         self.batch_size = int(batch_size)
-        self.num_workers = int(num_workers)
+        #: ``num_workers=None`` (the config's default, ``null``): the trainer's device decides (:meth:`use_workers`:
+        #: none on a CPU trainer, a few beside a GPU); until then none
+        self.auto_workers = num_workers is None
+        self.num_workers = 0 if num_workers is None else int(num_workers)
+        if self.num_workers < 0:
+            raise ValueError(f"data.num_workers must be >= 0 (or null: chosen by the trainer's device), got {num_workers}")
         self.num_points = int(num_points)
         self.seed = int(seed)
         self.augment = bool(augment)
@@ -80,7 +98,9 @@ class SceneDataModule(L.LightningDataModule):
         if self.bucket_batches < 0:
             raise ValueError(f"data.bucket_batches must be >= 0 (0: off), got {bucket_batches}")
         self.pin_memory = bool(pin_memory)
+        self._persistent_setting = persistent_workers  # None: with the workers, when the trainer's device gives some
         self.persistent_workers = bool(persistent_workers) and self.num_workers > 0
+        self._context_setting = multiprocessing_context
         self.multiprocessing_context = multiprocessing_context if self.num_workers > 0 else None
         self.save_hyperparameters({"root": str(self.root), "batch_size": self.batch_size,
                                    "num_workers": self.num_workers, "num_points": self.num_points,
@@ -88,6 +108,16 @@ class SceneDataModule(L.LightningDataModule):
                                    "bucket_batches": self.bucket_batches})
         self._library = None
         self._datasets: dict[str, SceneDataset] = {}
+
+    def use_workers(self, count: int) -> None:
+        """``count`` loader processes for a ``num_workers=None`` module (the trainer's choice; :func:`loader_workers`),
+        kept across epochs unless ``persistent_workers`` was set false; an explicit ``num_workers`` is left alone."""
+        if not self.auto_workers:
+            return
+        self.num_workers = max(0, int(count))
+        self.persistent_workers = self.num_workers > 0 and self._persistent_setting is not False
+        self.multiprocessing_context = self._context_setting if self.num_workers > 0 else None
+        self.hparams["num_workers"] = self.num_workers
 
     @property
     def library(self):

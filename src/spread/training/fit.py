@@ -141,13 +141,20 @@ def mark_attempt_started() -> None:
 
 
 def feed_the_device(trainer, datamodule) -> None:
-    """On a GPU, batches come from pinned memory (asynchronous copies) and, when ``data.num_workers`` is 0, a warning
-    says that loading runs in the training loop (``perf/data_wait_share`` shows its cost)."""
+    """On a GPU, batches come from pinned memory (asynchronous copies), built by loader processes beside the training
+    loop when ``data.num_workers`` is null (the default: :func:`~spread.data.datamodule.loader_workers`, up to 4 a
+    training process, kept across epochs; on a CPU trainer none, as the training uses the cores); an explicit
+    ``data.num_workers=0`` gets a warning that loading runs in the training loop (``perf/data_wait_share`` shows its
+    cost)."""
     accelerator = type(getattr(trainer, "accelerator", None)).__name__.lower()
     if "cuda" not in accelerator and "gpu" not in accelerator:
         return
     if hasattr(datamodule, "pin_memory"):
         datamodule.pin_memory = True
+    if getattr(datamodule, "auto_workers", False):
+        from spread.data.datamodule import loader_workers
+
+        datamodule.use_workers(loader_workers(int(getattr(trainer, "num_devices", 1) or 1)))
     if getattr(datamodule, "num_workers", 1) == 0:
         log.warning("training on a GPU with data.num_workers=0: batches are built in the training loop; "
                     "data.num_workers=4 data.persistent_workers=true builds them beside it")

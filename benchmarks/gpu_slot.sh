@@ -19,8 +19,9 @@
 #             recompiles in lightning.log;
 #   sample    DDIM-50 at batch 64 (eager, CUDA graph, bf16; met at the fifth slot: 0.0387 s/scene);
 #   detect    the guidance's triangle pairs on the GPU against python-fcl (answered at the fifth slot: equal).
-# The default PARTS="compile pipeline search profile graphs" fits one device call (limits 245 + 160 + 70 + 80 s, then
-# graphs in what is left of the call's 580 s: 40 s at most); a second call PARTS=lightning (280 s).
+# The default PARTS="compile pipeline search profile graphs" is one device call: limits 245 + 160 + 70 + 80 s, then
+# graphs (40 s) — 595 s against the call's 580, so graphs, last, is what a call whose parts all run to their limits
+# cuts short; a second call PARTS=lightning (280 s).
 # (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default

@@ -317,6 +317,26 @@ def test_unset_loader_workers_are_chosen_by_the_trainers_device_and_give_the_sam
         SceneDataModule(root, num_workers=-1)
 
 
+def test_unset_loader_workers_in_a_ray_worker_follow_the_cpus_ray_gave_it():
+    """A Ray Train worker, a sweep's trial or an ablation's training task sees the whole node's CPUs: its loaders take
+    what Ray reserved for it, one left to the training (the driver, not a worker, keeps its own count)."""
+    import ray
+
+    from spread.data.datamodule import loader_workers, ray_cpus
+
+    ray.init(address="local", num_cpus=3, include_dashboard=False, log_to_driver=False)  # never another test's cluster
+    try:
+        assert ray_cpus() is None  # the driver
+
+        @ray.remote
+        def workers() -> int:
+            return loader_workers()
+
+        assert ray.get([workers.options(num_cpus=n).remote() for n in (1, 2, 3)]) == [0, 1, 2]
+    finally:
+        ray.shutdown()
+
+
 def test_size_buckets_batch_rooms_of_similar_object_count_and_keep_a_resumable_order():
     from spread.data.order import EpochOrder
 

@@ -359,7 +359,7 @@ def test_bf16_and_cuda_graph_settings_sample_on_cpu_and_bf16_stays_close(tmp_pat
         ScenePipeline(model, None, "ddim-5", precision="fp8")
 
 
-def test_cuda_graphs_record_by_default_only_the_models_whose_step_reads_nothing_on_the_host():
+def test_cuda_graphs_record_by_default_only_the_models_whose_step_reads_nothing_on_the_host(monkeypatch):
     """``sampling.cuda_graph=null`` (the default) records a step where the model says it reads nothing on the host
     (``cuda_graph_capturable``) — and each such SPREAD configuration's step does read nothing (counted, with CUDA's
     search: ``dense``); ``true`` records or refuses by name, ``false`` never; the tree and pruned searches, the parts
@@ -398,19 +398,32 @@ def test_cuda_graphs_record_by_default_only_the_models_whose_step_reads_nothing_
             ("geometry", {"nearest": "dense", "geometry_at": "x0_hat", "geometry_summary": True}, 2.0, 2.0)]:
         model = SceneDiffusion(variant, dataclasses.replace(config, **fields), bounds=BOUNDS).eval()
         assert model.cuda_graph_capturable, (variant, fields)
-        assert ScenePipeline(model, None, "ddim-5").cuda_graph is True
-        assert ScenePipeline(model, None, "ddim-5", cuda_graph=False).cuda_graph is False
+        assert ScenePipeline(model, None, "ddim-50").cuda_graph is True
+        assert ScenePipeline(model, None, "ddim-50", cuda_graph=False).cuda_graph is False
+        # a loop too short to earn its recording back (three calls) stays eager by default, unless asked
+        assert ScenePipeline(model, None, "ddim-5").cuda_graph is False
+        assert ScenePipeline(model, None, "ddim-5", {"mode": "refine", "iterations": 10}).network_calls() == 15
+        assert ScenePipeline(model, None, "ddim-5", cuda_graph=True).cuda_graph is True
         cuda_search = dataclasses.replace(config, **{**fields, "nearest": "dense"})  # auto's search on CUDA
         counted = SceneDiffusion(variant, cuda_search, bounds=BOUNDS).eval()
         assert host_reads(counted, graph_scale, geometry_scale) == 0, (variant, fields, graph_scale)
     for fields in ({"nearest": "tree"}, {"nearest": "pruned"}, {"geometry_distance": "parts"}):
         model = SceneDiffusion("geometry", dataclasses.replace(config, **fields), bounds=BOUNDS).eval()
         assert not model.cuda_graph_capturable, fields
-        assert ScenePipeline(model, None, "ddim-5").cuda_graph is False
+        assert ScenePipeline(model, None, "ddim-50").cuda_graph is False
         with pytest.raises(ValueError, match="cuda_graph=true: a .* step cannot be captured.*cuda_graph=false"):
             ScenePipeline(model, None, "ddim-5", cuda_graph=True)
         if fields["nearest" if "nearest" in fields else "geometry_distance"] == "pruned":
             assert host_reads(model) > 0  # its blocks' sizes are read every step
+    # on a CUDA device where the search kernel failed, dense falls back to torch (the pruned search beyond its limit)
+    import spread.model.nearest_dense as dense
+
+    monkeypatch.setattr(dense, "_BROKEN", {"search"})
+    assert not dense.graph_safe("cuda") and dense.graph_safe("cpu")
+    monkeypatch.setattr(dense, "graph_safe", lambda device: False)
+    model = SceneDiffusion("geometry", config, bounds=BOUNDS).eval()
+    assert not model.cuda_graph_capturable and ScenePipeline(model, None, "ddim-50").cuda_graph is False
+    assert SceneDiffusion("base", config, bounds=BOUNDS).cuda_graph_capturable
 
 
 def test_the_training_loss_compiles_as_one_graph_and_equals_eager():

@@ -39,8 +39,10 @@ def user_error(exc: BaseException) -> BaseException | None:
         from hydra.errors import InstantiationException
     except ImportError:  # pragma: no cover — Hydra is a dependency of every console script
         return None
-    if isinstance(exc, InstantiationException) and isinstance(exc.__cause__, user_error_types()):
-        return exc.__cause__
+    while isinstance(exc, InstantiationException) and exc.__cause__ is not None:  # nested instantiates too
+        exc = exc.__cause__
+        if isinstance(exc, user_error_types()):
+            return exc
     return None
 
 

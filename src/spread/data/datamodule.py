@@ -66,10 +66,31 @@ AUTO_WORKERS = 4
 def loader_workers(devices: int = 1, cpus: int | None = None) -> int:
     """Loader processes for each of the ``devices`` training processes of this node beside a GPU
     (``data.num_workers=null``): up to :data:`AUTO_WORKERS`, leaving each process one CPU of its share of ``cpus``
-    (default: the CPUs this process may run on)."""
+    (default: the CPUs this process may run on — in a Ray worker, those Ray gave it: a Ray Train worker, a sweep's
+    trial, an ablation's training task; each of its loaders, training and validation, gets that many)."""
     if cpus is None:
         cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        reserved = ray_cpus()
+        if reserved is not None:
+            return max(0, min(AUTO_WORKERS, int(reserved) - 1))
     return max(0, min(AUTO_WORKERS, int(cpus) // max(1, int(devices)) - 1))
+
+
+def ray_cpus() -> float | None:
+    """The CPUs Ray reserved for this process when it is a Ray worker (a task or actor), else None (not under Ray,
+    or Ray's driver). Ray is not imported here: only asked when this process already runs it."""
+    import sys
+
+    ray = sys.modules.get("ray")
+    if ray is None or not ray.is_initialized():
+        return None
+    try:
+        context = ray.get_runtime_context()
+        if context.worker.mode != ray.WORKER_MODE:
+            return None
+        return context.get_assigned_resources().get("CPU")
+    except Exception:  # noqa: BLE001 — an older or newer Ray without these: the process's own CPUs
+        return None
 
 
 class SceneDataModule(L.LightningDataModule):

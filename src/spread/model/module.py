@@ -513,13 +513,16 @@ class SceneDiffusion(L.LightningModule):
     def cuda_graph_capturable(self) -> bool:
         """Whether a sampling step on CUDA reads nothing on the host, so ``sampling.cuda_graph`` can record it (and
         does by default): base always; +Geometry with the release's chamfer feature searched by ``dense`` (``auto`` on
-        CUDA: one Triton kernel). The ``tree`` and ``pruned`` searches (host work, data-dependent block sizes) and the
-        ``parts`` distance (one ``nonzero`` a step) read the host every step."""
+        CUDA) where its Triton kernel runs (:func:`~spread.model.nearest_dense.graph_safe`). The ``tree`` and
+        ``pruned`` searches (host work, data-dependent block sizes), ``dense``'s torch fallback on a CUDA device without
+        the kernel and the ``parts`` distance (one ``nonzero`` a step) read the host every step."""
+        from spread.model.nearest_dense import graph_safe
+
         config = self.network.config
         if not self.has_geometry:
             return True
         return (getattr(config, "geometry_distance", "chamfer") == "chamfer"
-                and getattr(config, "nearest", "auto") not in UNCOMPILABLE)
+                and getattr(config, "nearest", "auto") not in UNCOMPILABLE and graph_safe(self.device))
 
     @property
     def bounds(self) -> torch.Tensor:

@@ -24,7 +24,7 @@ point's normal — as two registered custom operators, each one Triton kernel on
 
 **CPU** (and CUDA when Triton cannot build a kernel, which is then said once as a warning): the same arithmetic in
 torch — posing as :func:`spread.model.poses.pose_points` does; the search on the CPU by the k-d trees of
-:mod:`spread.model.nearest` (2.6–50× faster than brute force from 2 × 6 × 64 to 2 × 40 × 256 points, the same
+:mod:`spread.model.nearest` (2.6–51× faster than brute force from 2 × 6 × 64 to 2 × 40 × 256 points, the same
 answer; ``benchmarks/RESULTS.md``, stop 60), on CUDA by brute force, all objects of all scenes at once per chunk of
 queries, up to ``BRUTE_FORCE_LIMIT`` distances, and beyond by the pruned search (the same answer).
 
@@ -350,6 +350,14 @@ def triton_available(device: torch.device) -> bool:
     if device.type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
         return False
     return _triton_kernels() is not None
+
+
+def graph_safe(device: torch.device | str) -> bool:
+    """Whether the dense search reads nothing on the host on ``device``, so a CUDA graph can record it: on CUDA only
+    through its Triton kernel (the torch fallback's pruned search, beyond ``BRUTE_FORCE_LIMIT``, reads its blocks'
+    sizes); elsewhere CUDA graphs do not apply (True)."""
+    device = torch.device(device)
+    return device.type != "cuda" or _use_kernel("search", device)
 
 
 def _use_kernel(name: str, device: torch.device) -> bool:

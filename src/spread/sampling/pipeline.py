@@ -102,6 +102,11 @@ def sampling_kind(model) -> str:
     return "pipeline" if hasattr(model, "denoising") else "own"
 
 
+#: ``sampling.cuda_graph=null`` records a batch's step only when its loop calls the network at least this often:
+#: recording costs about three calls (two warm-up, one recorded), which a short schedule would not earn back.
+AUTO_GRAPH_MIN_CALLS = 10
+
+
 def resolve_cuda_graph(setting: bool | None, capturable: bool | None) -> bool:
     """``sampling.cuda_graph`` for a model whose ``cuda_graph_capturable`` is ``capturable`` (None: the model does not
     say): the setting when given, else (null) on only for a model that says its step reads nothing on the host."""
@@ -152,8 +157,20 @@ class ScenePipeline:
             config = model.resolve_guidance(config)
         self.guidance = config if config.active else None
         self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), float(graph_scale), geometry_scale
+        self.cuda_graph_setting = cuda_graph
+        if cuda_graph is None and self.network_calls() < AUTO_GRAPH_MIN_CALLS:
+            self.cuda_graph = False  # too short to earn its recording back
         self.precision = str(precision)
         self.guidance_stats: dict = {}
+
+    def network_calls(self) -> int:
+        """Network calls of a batch's loop: the sampler's steps and, in ``refine``/``release`` mode, one per
+        denoising projection of the guidance's iterations."""
+        calls = int(self.sampler.steps)
+        g = self.guidance
+        if g is not None and g.mode in ("refine", "release") and g.denoise_every:
+            calls += -(-int(g.iterations) // int(g.denoise_every))
+        return calls
 
     def encode(self, sources: Sequence[Scene], paths: Sequence[str] | None = None) -> dict:
         """The collated batch of ``sources`` (encoded as in training)."""
@@ -229,7 +246,12 @@ class ScenePipeline:
         if self.cuda_graph and device.type == "cuda":
             from spread.model.capture import GraphedStep
 
-            fn = GraphedStep(fn)
+            if self.cuda_graph_setting is None:  # the default: eager again, with a warning, where it cannot record
+                model = self.model
+                fn = GraphedStep(fn, check=lambda: getattr(model, "cuda_graph_capturable", False) is True,
+                                 fallback=True)
+            else:
+                fn = GraphedStep(fn)
         return problem if fn is problem.eps_fn else dataclasses.replace(problem, eps_fn=fn)
 
     def __call__(self, sources: Sequence[Scene], generators, paths: Sequence[str] | None = None,

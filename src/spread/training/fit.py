@@ -156,8 +156,8 @@ def feed_the_device(trainer, datamodule) -> None:
 
         datamodule.use_workers(loader_workers(int(getattr(trainer, "num_devices", 1) or 1)))
     if getattr(datamodule, "num_workers", 1) == 0:
-        log.warning("training on a GPU with data.num_workers=0: batches are built in the training loop; "
-                    "data.num_workers=4 data.persistent_workers=true builds them beside it")
+        log.warning("training on a GPU with data.num_workers=0: batches are built in the training loop; leave "
+                    "data.num_workers unset (null: up to 4 loader processes beside a GPU) or give a count")
 
 
 def check_accelerator(cfg: DictConfig, override: str | None = None) -> None:

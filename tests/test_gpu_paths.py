@@ -373,7 +373,7 @@ def test_cuda_graphs_record_by_default_only_the_models_whose_step_reads_nothing_
     from spread.sampling.pipeline import ScenePipeline, resolve_cuda_graph
     from model_fixture import CONFIG, batch
 
-    assert resolve_cuda_graph(None, True) is True
+    assert resolve_cuda_graph(None, True) is True and resolve_cuda_graph(None, True, calls=9) is False
     assert resolve_cuda_graph(None, None) is False and resolve_cuda_graph(None, False) is False
     assert resolve_cuda_graph(True, None) is True and resolve_cuda_graph(False, True) is False
     with pytest.raises(ValueError, match="cuda_graph must be true, false or null.*'yes'"):

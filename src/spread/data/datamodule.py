@@ -69,10 +69,10 @@ def loader_workers(devices: int = 1, cpus: int | None = None) -> int:
     (default: the CPUs this process may run on — in a Ray worker, those Ray gave it: a Ray Train worker, a sweep's
     trial, an ablation's training task; each of its loaders, training and validation, gets that many)."""
     if cpus is None:
-        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         reserved = ray_cpus()
         if reserved is not None:
             return max(0, min(AUTO_WORKERS, int(reserved) - 1))
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return max(0, min(AUTO_WORKERS, int(cpus) // max(1, int(devices)) - 1))
 
 

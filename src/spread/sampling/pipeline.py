@@ -107,11 +107,12 @@ def sampling_kind(model) -> str:
 AUTO_GRAPH_MIN_CALLS = 10
 
 
-def resolve_cuda_graph(setting: bool | None, capturable: bool | None) -> bool:
+def resolve_cuda_graph(setting: bool | None, capturable: bool | None, calls: int = AUTO_GRAPH_MIN_CALLS) -> bool:
     """``sampling.cuda_graph`` for a model whose ``cuda_graph_capturable`` is ``capturable`` (None: the model does not
-    say): the setting when given, else (null) on only for a model that says its step reads nothing on the host."""
+    say) and a loop of ``calls`` network calls: the setting when given, else (null) on only for a model that says its
+    step reads nothing on the host, in a loop of at least :data:`AUTO_GRAPH_MIN_CALLS`."""
     if setting is None:
-        return capturable is True
+        return capturable is True and calls >= AUTO_GRAPH_MIN_CALLS
     if not isinstance(setting, bool):
         raise ValueError(f"sampling.cuda_graph must be true, false or null (the model's own), got {setting!r}")
     return setting
@@ -144,8 +145,7 @@ class ScenePipeline:
             raise ValueError(f"geometry_scale={geometry_scale}: this model ({kind}) has no geometry features to guide; "
                              f"sample it with geometry_scale=1")
         capturable = getattr(model, "cuda_graph_capturable", None)  # None: the method does not say
-        # null: record where the model says its step can be; on CUDA only (on_device)
-        self.cuda_graph = resolve_cuda_graph(cuda_graph, capturable)
+        resolve_cuda_graph(cuda_graph, capturable)  # a setting that is not true, false or null: refused here
         if cuda_graph is True and capturable is False:
             raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
                              f"step cannot be captured as a CUDA graph (it reads tensors on the host at every step); "
@@ -158,8 +158,8 @@ class ScenePipeline:
         self.guidance = config if config.active else None
         self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), float(graph_scale), geometry_scale
         self.cuda_graph_setting = cuda_graph
-        if cuda_graph is None and self.network_calls() < AUTO_GRAPH_MIN_CALLS:
-            self.cuda_graph = False  # too short to earn its recording back
+        # null: where the model says its step can be recorded and the loop is long enough; on CUDA only (on_device)
+        self.cuda_graph = resolve_cuda_graph(cuda_graph, capturable, self.network_calls())
         self.precision = str(precision)
         self.guidance_stats: dict = {}
 

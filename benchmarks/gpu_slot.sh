@@ -19,11 +19,12 @@
 #             recompiles in lightning.log;
 #   sample    DDIM-50 at batch 64 (eager, CUDA graph, bf16; met at the fifth slot: 0.0387 s/scene);
 #   detect    the guidance's triangle pairs on the GPU against python-fcl (answered at the fifth slot: equal).
-# The default PARTS="graphs compile pipeline profile search" is one device call, run in that order: limits 40 +
-# 245 + 160 + 80 + 70 s, 595 s against the call's 580, so search (kernel constants: an optimisation), last, is
-# what a call whose parts all run to their limits cuts short. graphs runs first because it checks a default every
-# GPU user meets (sampling.cuda_graph=null records four methods' steps) that no GPU has run yet. A second call:
-# PARTS=lightning (280 s).
+# The default PARTS="graphs compile pipeline profile search" is one device call, run in that order: limits 60 +
+# 245 + 160 + 80 + 50 s, 595 s against the call's 580, so search (kernel constants: an optimisation; it writes each
+# choice as it is timed), last, is what a call whose parts all run to their limits cuts short. graphs runs first
+# because it checks a default every GPU user meets (sampling.cuda_graph=null records four methods' steps) that no
+# GPU has run yet; its 60 s include the first Triton compile of the geometry kernels on a fresh machine (cached for
+# the parts after). A second call: PARTS=lightning (280 s).
 # (The search a/b of the earlier slots is done; OLD=<file> runs it again.)
 # On a bare machine (docs/gpu.md): carry .whl and .gpudata (made here by `bash benchmarks/gpu_carry.sh`), then
 #   bash benchmarks/gpu_slot.sh            # ROOMS=.gpudata/rooms by default
@@ -43,7 +44,7 @@ quiet() { grep -v "^W1\|^ *\^\|━"; }
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > "$OUT/gpu.txt" 2>&1
 
 if want graphs; then
-  timeout "${GRAPHS_S:-40}" $PY benchmarks/bench_gpu.py --skip-counts --only graphs --data "$ROOMS" \
+  timeout "${GRAPHS_S:-60}" $PY benchmarks/bench_gpu.py --skip-counts --only graphs --data "$ROOMS" \
     --json "$OUT/graphs.json" 2>&1 | quiet | tail -6
   mark "cuda_graph default against eager"
 fi
@@ -68,7 +69,7 @@ if want profile; then
 fi
 
 if want search; then
-  timeout "${SEARCH_S:-70}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -21  # the device line and the batch-64 rows
+  timeout "${SEARCH_S:-50}" $PY benchmarks/search_blocks.py --json "$OUT/search_blocks.json" 2>&1 | quiet | tail -21  # the device line and the batch-64 rows
   mark "search tile sizes"
 fi
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import shutil
 import statistics
 import subprocess
 import sys
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
 
     def train(side: str, steps: int) -> float:
         out = work / f"train_{side}_{steps}"
-        subprocess.call(["rm", "-rf", str(out)])
+        shutil.rmtree(out, ignore_errors=True)
         return sh([str(trees[side] / ".venv/bin/spread-train"), "experiment=cpu_hour", f"data.root={rooms}",
                    f"out_dir={out}", f"trainer.max_steps={steps}", "trainer.check_val_every_n_epoch=100000",
                    "model.sample_every_n_epochs=100000", "logger=none", "seed=0", "trainer.enable_progress_bar=false",
@@ -99,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
             per_step = (train(side, many) - train(side, few)) / (many - few)
             times.setdefault(("train s/step", side), []).append(per_step)
             out = work / f"sample_{side}"
-            subprocess.call(["rm", "-rf", str(out)])
+            shutil.rmtree(out, ignore_errors=True)
             took = sh([str(trees[side] / ".venv/bin/spread-sample"),
                        f"ckpt={work / f'train_{side}_{many}' / 'checkpoints' / 'last.ckpt'}", f"data.root={rooms}",
                        f"out_dir={out}", "sampler=ddim50", "graph_scale=2.0", "seed=0", "batch_size=4",

@@ -144,12 +144,6 @@ class ScenePipeline:
             kind = ", ".join(f"{k} {hparams[k]}" for k in ("method", "variant") if k in hparams) or type(model).__name__
             raise ValueError(f"geometry_scale={geometry_scale}: this model ({kind}) has no geometry features to guide; "
                              f"sample it with geometry_scale=1")
-        capturable = getattr(model, "cuda_graph_capturable", None)  # None: the method does not say
-        resolve_cuda_graph(cuda_graph, capturable)  # a setting that is not true, false or null: refused here
-        if cuda_graph is True and capturable is False:
-            raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
-                             f"step cannot be captured as a CUDA graph (it reads tensors on the host at every step); "
-                             f"sample it with cuda_graph=false")
         self.model, self.dataset = model, dataset
         self.sampler = Sampler.from_config(sampler)
         config = GuidanceConfig.from_config(guidance)
@@ -157,6 +151,11 @@ class ScenePipeline:
             config = model.resolve_guidance(config)
         self.guidance = config if config.active else None
         self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), float(graph_scale), geometry_scale
+        capturable = getattr(model, "cuda_graph_capturable", None)  # None: the method does not say
+        if cuda_graph is True and capturable is False:
+            raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "
+                             f"step cannot be captured as a CUDA graph (it reads tensors on the host at every step); "
+                             f"sample it with cuda_graph=false")
         self.cuda_graph_setting = cuda_graph
         # null: where the model says its step can be recorded and the loop is long enough; on CUDA only (on_device)
         self.cuda_graph = resolve_cuda_graph(cuda_graph, capturable, self.network_calls())

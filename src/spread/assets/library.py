@@ -145,6 +145,8 @@ class AssetRecord:
 
     @classmethod
     def from_dict(cls, d: dict) -> "AssetRecord":
+        for key in ("mesh_file", "parts_file"):
+            inside_library(key, d[key])
         return cls(
             asset_id=d["asset_id"], category=d["category"], variant=int(d["variant"]), role=d["role"],
             extents=np.asarray(d["extents"], dtype=np.float64), volume=float(d["volume"]),
@@ -155,6 +157,18 @@ class AssetRecord:
             support_surfaces=[SupportSurface.from_dict(s) for s in d.get("support_surfaces", [])],
             tags=list(d.get("tags", [])), source=dict(d.get("source") or {}),
         )
+
+
+def inside_library(key: str, value) -> str:
+    """A record's file (``mesh_file``, ``parts_file``) as a relative path that stays inside the library's folder:
+    ``ValueError`` naming the key and value for an absolute path, a ``..`` step, a backslash or an empty name (an
+    index must not make the library read files of another tree)."""
+    from pathlib import PurePosixPath
+
+    text = value if isinstance(value, str) else ""
+    if not text or "\\" in text or PurePosixPath(text).is_absolute() or ".." in PurePosixPath(text).parts:
+        raise ValueError(f"{key}={value!r}: not a relative path inside the library (no absolute path, '..' or '\\')")
+    return text
 
 
 def _sidecar(root: Path, asset_id: str) -> Path:

@@ -10,7 +10,8 @@
 3. Fan the rest out as Ray tasks (:func:`~spread.evaluation.fanout.fan_out`); the driver appends each
    record as it arrives and advances the progress bar.
 4. ``metrics.json`` (atomic) is computed from the file's deduplicated lines of this folder's scenes, so a
-   resumed run reports exactly what a single run would; with each metric its 95 % bootstrap interval over
+   resumed run reports exactly what a single run would; it keeps the sampling identity of the scenes it measured
+   (``sampled_with``: :func:`sampled_with`); with each metric its 95 % bootstrap interval over
    scenes (``<metric>_lo`` / ``_hi``, ``bootstrap``: :mod:`~spread.evaluation.bootstrap`, seeded by the
    protocol's seed). FID reference statistics are computed by Ray tasks too when an extractor is available;
    otherwise FID is null with the reason.
@@ -152,6 +153,23 @@ def input_hashes(files: list[Path], keys: list[str], folder: Path) -> tuple[dict
     return inputs, refused
 
 
+def sampled_with(scenes) -> dict | None:
+    """The sampling identity of the scenes evaluated (``<scenes>/../sampling.json``'s fingerprint, when the folder
+    is a sampling run's ``scenes/``; None for scenes of no sampling run: ground truth, imports), read when their
+    numbers are summed, so ``metrics.json`` keeps what its numbers measured after that folder is sampled again with
+    other settings (``spread-report`` asks it, not the sampling folder as it is then)."""
+    from spread.io import read_json_object
+
+    path = Path(str(scenes)).parent / "sampling.json"
+    if Path(str(scenes)).name != "scenes" or not path.is_file():
+        return None
+    try:
+        fingerprint = read_json_object(path).get("fingerprint")
+    except (OSError, ValueError):
+        return None
+    return fingerprint if isinstance(fingerprint, dict) and "sampling" in fingerprint else None
+
+
 def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
     """Evaluate every scene file of ``cfg.scenes`` (module docstring); ``before_work()`` runs once the checks
     passed (the command records its config there). The run holds ``out_dir``'s lock
@@ -227,7 +245,8 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
         "failed_metrics": [{"scene_id": r["scene_id"], "metric": name, "error": error} for r in records if usable(r)
                            for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
-        "scenes": str(cfg.scenes), "reference": str(cfg.reference), "reference_split": cfg.reference_split,
+        "scenes": str(cfg.scenes), "sampled_with": sampled_with(cfg.scenes),
+        "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(), "redone_because": redone_because,
         "run": {"evaluated_this_run": len(todo), "resumed": len(files) - len(todo),
                 "skipped_as_done": len(files) - len(todo), "redone_input_changed": len(changed),

@@ -25,33 +25,43 @@ def checkpoint_method(hparams: dict) -> str:
     return checkpoint_identity({"hyper_parameters": hparams})["method"]
 
 
-def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> None:
-    """Before a network is allocated from a checkpoint's hyperparameters: build it on PyTorch's ``meta``
-    device (no memory) and compare the shapes of the weights both have, so a checkpoint whose config asks for
-    ``dim=2e6`` (terabytes) or whose weights belong to another size is refused in one line
-    (:class:`spread.safe_load.CheckpointMismatchError`); weights made after construction (a baseline's EMA
-    copy) are left to the strict ``load_state_dict``. A class that cannot be built on ``meta`` is not checked
-    here (its strict ``load_state_dict`` still refuses a mismatch, after allocation)."""
+def meta_module(cls, checkpoint: dict):
+    """The module a checkpoint's hyperparameters build, on PyTorch's ``meta`` device (no memory, no weights loaded),
+    or None when the class cannot be built there (as saved first; then without bounds: the platform's set_bounds
+    reads values, which meta tensors lack). A :class:`spread.safe_load.CheckpointMismatchError` is raised as is."""
     import torch
 
     from spread.safe_load import CheckpointMismatchError
 
     hp = dict(checkpoint.get("hyper_parameters") or {})
-    shapes = None
-    # as saved first; then without bounds (the platform's set_bounds reads values, which meta tensors lack)
     for attempt in (hp, {**hp, "bounds": None} if "bounds" in hp else None):
         if attempt is None:
             continue
         try:
             with torch.device("meta"):
-                shapes = {k: tuple(v.shape) for k, v in cls(**attempt).state_dict().items()}
-            break
+                return cls(**attempt)
         except CheckpointMismatchError:
             raise
         except Exception:  # noqa: BLE001 - not buildable on meta this way
             continue
-    if shapes is None:  # not buildable on meta: leave it to load_state_dict
-        return
+    return None
+
+
+def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint"):
+    """Before a network is allocated from a checkpoint's hyperparameters: build it on PyTorch's ``meta``
+    device (:func:`meta_module`: no memory) and compare the shapes of the weights both have, so a checkpoint whose
+    config asks for ``dim=2e6`` (terabytes) or whose weights belong to another size is refused in one line
+    (:class:`spread.safe_load.CheckpointMismatchError`); weights made after construction (a baseline's EMA
+    copy) are left to the strict ``load_state_dict``. A class that cannot be built on ``meta`` is not checked
+    here (its strict ``load_state_dict`` still refuses a mismatch, after allocation). Returns the meta module (None:
+    not buildable there), on which settings can be checked against the model before any work."""
+    from spread.safe_load import CheckpointMismatchError
+
+    hp = dict(checkpoint.get("hyper_parameters") or {})
+    module = meta_module(cls, checkpoint)
+    if module is None:  # not buildable on meta: leave it to load_state_dict
+        return None
+    shapes = {k: tuple(v.shape) for k, v in module.state_dict().items()}
     weights = checkpoint.get("state_dict") or {}
     held = {k: tuple(getattr(v, "shape", ())) for k, v in weights.items()}
     for name, shape in shapes.items():
@@ -63,6 +73,7 @@ def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint") -> No
         raise CheckpointMismatchError(
             f"{source}: none of its {len(held)} weights belongs to the '{checkpoint_method(hp)}' network its "
             f"hyperparameters describe (first: {sorted(held)[:1]}); refused before allocating")
+    return module
 
 
 def module_from_checkpoint(checkpoint: dict, map_location="cpu", source: str = "checkpoint"):

@@ -3,7 +3,11 @@
 
 Deterministic by seed: room ``k`` draws from ``np.random.default_rng([seed, k, attempt])`` and settles
 in a fresh physics client, so its file does not depend on how many processes run or in which order.
-Resumable: rooms whose file exists are not generated again; every file is written atomically.
+Resumable: rooms whose file exists are not generated again; every file is written atomically. ``generation.json``
+pins what the rooms are made with (:meth:`DatasetConfig.fingerprint`) before the first room is written; a re-run with
+other settings (another seed, room or settle config, split fractions, assets) or asking fewer rooms than the folder
+holds is refused by name before any work, so a folder never mixes two datasets and its manifest never describes rooms
+made otherwise.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +60,11 @@ class DatasetConfig:
     assets: AssetSource = field(default_factory=AssetSource)
     room: RoomConfig = field(default_factory=RoomConfig)
     settle: SettleConfig = field(default_factory=SettleConfig)
+
+    def fingerprint(self) -> dict:
+        """What the rooms' files depend on (:func:`fingerprint_of`): everything but how many rooms, processes and
+        renders, and where the assets were copied from."""
+        return fingerprint_of(asdict(self))
 
 
 def split_of(index: int, config: DatasetConfig) -> str:
@@ -114,6 +123,61 @@ def _make_room(args) -> dict:
 
 # ---- driver --------------------------------------------------------------------------------------
 
+#: Settings a room file does not depend on: how many rooms (room k is the same in a dataset of any size), how
+#: many processes make them, how many renders, where the asset library was copied from (its content is the index).
+NOT_IN_FINGERPRINT = ("rooms", "processes", "renders")
+PIN = "generation.json"
+
+
+def fingerprint_of(config: dict) -> dict:
+    """What a dataset's room files depend on, from a :class:`DatasetConfig` as a dict (a manifest's ``config``, with
+    whatever else the command held: ``out_dir``, ``progress`` are left out), with the generator's version."""
+    keep = {f.name for f in fields(DatasetConfig)} - set(NOT_IN_FINGERPRINT)
+    out = {k: v for k, v in config.items() if k in keep}
+    if isinstance(out.get("assets"), dict):
+        out["assets"] = {k: v for k, v in out["assets"].items() if k != "copy_from"}
+    return {"generator": GENERATOR_VERSION, **out}
+
+
+def check_folder(out: Path, config: DatasetConfig) -> None:
+    """Refuse, in one line naming what differs, a dataset folder whose rooms were made otherwise (module docstring):
+    the fingerprint pinned in ``generation.json`` (or, for a folder made before that pin, its manifest's ``config``)
+    against this run's (settings added after the record was written are not compared); rooms without either record; more rooms of the seed than ``rooms`` asks. Then pin this run's
+    fingerprint (``status: running``)."""
+    from spread.runtime.fingerprint import described_changes, normalised
+
+    now = normalised(config.fingerprint())
+    present = sorted(p for s in SPLITS if (out / s).is_dir() for p in (out / s).glob("*.npz"))
+    before = None
+    for path, key in ((out / PIN, "fingerprint"), (out / "manifest.json", "config")):
+        if path.exists():
+            try:
+                record = read_json(path).get(key)
+            except (OSError, ValueError, AttributeError):
+                raise ValueError(f"{path}: not a readable record of the rooms' settings; generate into another "
+                                 f"out_dir, or delete {out} to start over") from None
+            if isinstance(record, dict):
+                before = record if key == "fingerprint" else normalised(fingerprint_of(record))
+                break
+    if present and before is None:
+        raise ValueError(f"out_dir={out} holds {len(present)} room file(s) ({present[0].name}, ...) without a record "
+                         f"of the settings they were made with ({PIN}, manifest.json); generate into another out_dir")
+    if before is not None:
+        changed = described_changes(before, now, held_only=True)
+        if changed:
+            shown = "; ".join(changed[:4])
+            raise ValueError(f"out_dir={out} holds rooms generated with other settings (changed: {shown}"
+                             f"{'; ...' if len(changed) > 4 else ''}); generate into another out_dir, or delete "
+                             f"{out} to start over")
+    planned = {f"{scene_id_of(i, config.seed)}.npz" for i in range(config.rooms)}
+    extra = [p for p in present if p.name not in planned]
+    if extra:
+        raise ValueError(f"out_dir={out} holds {len(extra)} room(s) beyond rooms={config.rooms} ({extra[0].name}, ...;"
+                         f" {len(present)} in all); give rooms={len(present)} or more to keep and complete them, or "
+                         f"generate a smaller dataset into another out_dir")
+    write_json_atomic(out / PIN, {"fingerprint": now, "status": "running"})
+
+
 def check_config(config: DatasetConfig) -> list[str]:
     """Refuse settings that cannot make a dataset (before any work); return warnings for ones that make an
     unusual one (a split that gets no rooms), which the manifest records and the command prints."""
@@ -158,6 +222,7 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
         logging.getLogger("spread.generate").warning(message)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    check_folder(out, config)
     t0 = time.perf_counter()
     if config.assets.copy_from and not (out / "assets" / "index.json").exists():
         import shutil
@@ -236,6 +301,8 @@ def write_dataset_files(out: Path, config: DatasetConfig, library, results: list
     for r in results:
         removed.update(r.get("removed", {}))
     failed = [r["index"] for r in results if not r["ok"]]
+    from spread.runtime.fingerprint import normalised
+
     cfg = asdict(config)
     manifest = {
         "generator": GENERATOR_VERSION,
@@ -258,6 +325,7 @@ def write_dataset_files(out: Path, config: DatasetConfig, library, results: list
         },
     }
     write_json_atomic(out / "manifest.json", manifest)
+    write_json_atomic(out / PIN, {"fingerprint": normalised(config.fingerprint()), "status": "done"})
     return manifest
 
 

@@ -3,8 +3,9 @@
 A **run folder** (DESIGN §4) is a folder with an evaluation ``metrics.json`` (one that has ``col_mesh``):
 ``spread-evaluate``'s out_dir, or a ``spread-sample evaluate=true`` out_dir. Its **identity** is what its numbers
 were made with, as recorded beside them (:mod:`spread.runtime.fingerprint`): ``point.json``'s fingerprint, else the
-``sampling.json`` fingerprint of the scenes (its own, or the sampling run's whose scenes it evaluated) with the
-evaluation's ``protocol.json``, else what ``.hydra/config.yaml`` (the composed config) gives. A record carries its
+sampling fingerprint of the scenes its ``metrics.json`` recorded when it summed them (``sampled_with``; for an
+evaluation written before that record: the ``sampling.json`` of its own folder, or of the sampling run whose scenes
+it evaluated, as it is now) with the evaluation's ``protocol.json``, else what ``.hydra/config.yaml`` (the composed config) gives. A record carries its
 flat :func:`~spread.runtime.fingerprint.settings` (``settings``: every guidance term's weight by name,
 ``guidance.iterations``, the sampler, the protocol, ...), ``identity`` (their short digest: runs alike in
 everything share it) and each metric's value and confidence interval (:mod:`spread.reporting.intervals`: from
@@ -150,15 +151,30 @@ def folder_identity(path: Path, metrics: dict) -> dict:
         from omegaconf import OmegaConf
 
         identity |= config_identity(OmegaConf.to_container(OmegaConf.create(read_text_checked(hydra)), resolve=False))
+    if "sampled_with" in metrics:  # what the evaluation measured, as it recorded it (None: no sampling run's scenes)
+        if isinstance(metrics["sampled_with"], dict):
+            identity |= metrics["sampled_with"]
+    else:  # an evaluation written before it recorded that: the sampling folder as it is now
+        identity = recorded_sampling(path, metrics, identity)
+    protocol = optional_json(path / "protocol.json")
+    if isinstance(protocol.get("protocol"), dict):
+        identity["evaluation"] = protocol
+    return identity
+
+
+def recorded_sampling(path: Path, metrics: dict, identity: dict) -> dict:
+    """``identity`` with the sampling identity an evaluation without ``sampled_with`` is given: its scenes' sampling
+    folder's ``sampling.json`` fingerprint as it is when the report reads it (or, for older manifests, its guidance
+    where ``identity`` has none)."""
+    from spread.runtime.fingerprint import config_identity
+
+    identity = dict(identity)
     for sampling in sampling_manifests(path, metrics):
         manifest = read_json_object(sampling, RunError)
         if isinstance(manifest.get("fingerprint"), dict) and "sampling" in manifest["fingerprint"]:
             identity |= manifest["fingerprint"]
         elif "guidance" in manifest and "guidance" not in identity:
             identity |= config_identity({"guidance": manifest["guidance"] or "none"})
-    protocol = optional_json(path / "protocol.json")
-    if isinstance(protocol.get("protocol"), dict):
-        identity["evaluation"] = protocol
     return identity
 
 

@@ -100,6 +100,24 @@ def changed_keys(before: dict, now: dict, prefix: str = "") -> list[str]:
     return out
 
 
+def described_changes(before: dict, now: dict, held_only: bool = False) -> list[str]:
+    """``key: old -> new`` for each of :func:`changed_keys` (nested keys dotted; a key one side lacks: None).
+    ``held_only``: keys ``before`` does not hold (settings added after it was recorded, at their defaults) are not
+    compared."""
+    def held(record, shape):
+        return {k: held(v, shape[k]) if isinstance(v, dict) and isinstance(shape.get(k), dict) else v
+                for k, v in record.items() if k in shape}
+
+    if held_only:
+        now = held(now, before)
+    def value(record, key):
+        for part in key.split("."):
+            record = record.get(part) if isinstance(record, dict) else None
+        return record
+
+    return [f"{k}: {value(before, k)!r} -> {value(now, k)!r}" for k in changed_keys(before, now)]
+
+
 def normalised(obj):
     """A JSON round trip (tuples → lists, paths → str), as an identity is recorded on disk."""
     return json.loads(canonical(obj))

@@ -118,6 +118,26 @@ def resolve_cuda_graph(setting: bool | None, capturable: bool | None, calls: int
     return setting
 
 
+def check_values(graph_scale, geometry_scale, precision: str) -> tuple[float, float]:
+    """The sampling settings that need no model, refused in one line (``ValueError``) when they cannot be sampled
+    with: each guidance scale a finite number, ``precision`` one of :data:`PRECISIONS`; returns the two scales as
+    floats. Checked where a :class:`spread.sampling.SamplingConfig` is made and by every :class:`ScenePipeline`."""
+    import math
+
+    scales = []
+    for name, value in (("graph_scale", graph_scale), ("geometry_scale", geometry_scale)):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if isinstance(value, bool) or not math.isfinite(number):
+            raise ValueError(f"{name}={value}: a finite number (1: the model as trained)")
+        scales.append(number)
+    if precision not in PRECISIONS:
+        raise ValueError(f"sampling precision must be one of {PRECISIONS}, got '{precision}'")
+    return scales[0], scales[1]
+
+
 class ScenePipeline:
     """A trained model, its data encoder, a sampler and a guidance config (module docstring).
 
@@ -129,16 +149,10 @@ class ScenePipeline:
 
     def __init__(self, model, dataset, sampler, guidance=None, use_ema: bool = True, graph_scale: float = 1.0,
                  cuda_graph: bool | None = None, precision: str = "32", geometry_scale: float = 1.0):
-        import math
-
         from spread.guidance import GuidanceConfig
         from spread.model import Sampler
 
-        if precision not in PRECISIONS:
-            raise ValueError(f"sampling precision must be one of {PRECISIONS}, got '{precision}'")
-        geometry_scale = float(geometry_scale)
-        if not math.isfinite(geometry_scale):
-            raise ValueError(f"geometry_scale={geometry_scale}: a finite number (1: the model as trained)")
+        graph_scale, geometry_scale = check_values(graph_scale, geometry_scale, precision)
         if geometry_scale != 1.0 and not getattr(model, "has_geometry", False):
             hparams = getattr(model, "hparams", {})
             kind = ", ".join(f"{k} {hparams[k]}" for k in ("method", "variant") if k in hparams) or type(model).__name__
@@ -150,7 +164,7 @@ class ScenePipeline:
         if config.active and hasattr(model, "resolve_guidance"):  # the method's own realisation of a mode
             config = model.resolve_guidance(config)
         self.guidance = config if config.active else None
-        self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), float(graph_scale), geometry_scale
+        self.use_ema, self.graph_scale, self.geometry_scale = bool(use_ema), graph_scale, geometry_scale
         capturable = getattr(model, "cuda_graph_capturable", None)  # None: the method does not say
         if cuda_graph is True and capturable is False:
             raise ValueError(f"sampling.cuda_graph=true: a '{getattr(model, 'method', type(model).__name__)}' model's "

@@ -104,6 +104,9 @@ class SamplingConfig:
             self.sampler = Sampler.from_config(self.sampler)
         if not isinstance(self.guidance, GuidanceConfig):
             self.guidance = GuidanceConfig.from_config(self.guidance)
+        from spread.sampling.pipeline import check_values
+
+        check_values(self.graph_scale, self.geometry_scale, self.precision)
         unknown = [k for k in self.figure_kinds if k not in FIGURE_KINDS]
         if unknown:
             raise ValueError(f"figure_kinds: unknown {unknown} (choose from {list(FIGURE_KINDS)})")
@@ -172,14 +175,20 @@ def read_graphs(data_root: str | Path, split: str, max_objects: int | None = Non
     return graphs, skipped
 
 
-def check_checkpoint(path) -> dict:
-    """The checkpoint (tensors memory-mapped) once it reads safely and its weights fit the network its
-    hyperparameters describe (:func:`spread.methods.check_weight_shapes`: nothing is allocated). The one
-    read of the file in this process (:func:`spread.readonce.checkpoint`): the workers build from it."""
+def check_checkpoint(cfg: SamplingConfig) -> dict:
+    """The checkpoint (tensors memory-mapped) once it reads safely, its weights fit the network its
+    hyperparameters describe (:func:`spread.methods.check_weight_shapes`: nothing is allocated) and the sampling
+    settings fit that network (:func:`spread.sampling.worker.check_settings` on it, built on the ``meta`` device:
+    a setting it cannot sample with is refused before the output folder is touched). The one read of the file in
+    this process (:func:`spread.readonce.checkpoint`): the workers build from it."""
     from spread.methods import check_weight_shapes, checkpoint_method, module_class
+    from spread.sampling.worker import check_settings
 
-    checkpoint = readonce.checkpoint(path)
-    check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint, str(path))
+    checkpoint = readonce.checkpoint(cfg.ckpt)
+    meta = check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint,
+                               str(cfg.ckpt))
+    if meta is not None:
+        check_settings(cfg, meta)
     return checkpoint
 
 
@@ -204,6 +213,20 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
             old.unlink()
     write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": decision.reason})
     return decision.reason
+
+
+def remove_unplanned(batches: list[BatchPlan], out: Path) -> list[str]:
+    """Delete the folder's scene files that are not in this run's plan, with their renders and figures: samples of a
+    larger ``samples_per_graph``, or of graphs this run does not sample (``max_objects``), left by an earlier run of
+    the same identity (neither is part of it: more samples resume). The folder then holds exactly the scenes its
+    ``sampling.json`` counts, so an evaluation of it never scores another run's samples; returns their names."""
+    planned = {item.name for b in batches for item in b.items}
+    removed = sorted(p.stem for p in (out / "scenes").glob("*.npz") if p.stem not in planned)
+    for name in removed:
+        (out / "scenes" / f"{name}.npz").unlink(missing_ok=True)
+        for suffix in ("", *FIGURE_KINDS.values()):
+            (out / "renders" / f"{name}{suffix}.png").unlink(missing_ok=True)
+    return removed
 
 
 def check_device(cfg: SamplingConfig) -> None:
@@ -337,7 +360,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     out = Path(cfg.out_dir)
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
-    check_checkpoint(cfg.ckpt)  # missing, damaged, unsafe or self-contradictory: a clear error before any work
+    check_checkpoint(cfg)  # missing, damaged, unsafe, self-contradictory or not for these settings: before any work
     limit = object_limit(cfg.data.root, cfg.max_objects)
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
@@ -345,6 +368,10 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
 
     settings = normalised(sampling_identity(cfg))  # the checkpoint hashed once per process
     redone_because = check_fingerprint(out, settings, cfg.resume)
+    unplanned = remove_unplanned(batches, out)
+    if unplanned:
+        print(f"{scenes_dir}: removed {len(unplanned)} scene file(s) this run does not plan (samples_per_graph="
+              f"{cfg.samples_per_graph}, {len(graphs)} graphs), e.g. {unplanned[0]}", flush=True)
     if before_work is not None:
         before_work()
     damaged = remove_unreadable(batches, scenes_dir)
@@ -384,7 +411,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
         "graphs": len(graphs), "samples": total,
         "skipped_graphs": skipped_graphs, "max_objects": limit, "written_this_run": len(written),
-        "resumed": total - pending, "redone_unreadable": len(damaged), "batches": len(batches),
+        "resumed": total - pending, "redone_unreadable": len(damaged), "removed_unplanned": len(unplanned),
+        "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],
         "sampler": cfg.sampler.label, "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,

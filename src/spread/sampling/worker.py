@@ -111,15 +111,30 @@ def load_pipeline(cfg) -> ScenePipeline:
     from spread import readonce
 
     model = cached_model(cfg.ckpt, cfg.device)
+    check_settings(cfg, model)
+    warn_graph_guidance(cfg.guidance, model, cfg.ckpt)
+    data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
+    dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"], data["geometry_distance"])
+    return pipeline_of(cfg, model, dataset)
+
+
+def pipeline_of(cfg, model, dataset) -> ScenePipeline:
+    """The :class:`~spread.sampling.pipeline.ScenePipeline` of a config's settings around ``model`` and ``dataset``."""
+    return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,
+                         cuda_graph=cfg.cuda_graph, precision=cfg.precision, geometry_scale=cfg.geometry_scale)
+
+
+def check_settings(cfg, model) -> None:
+    """The config's sampling settings against the model they would sample, refused in one line (``ValueError``) where
+    they cannot run: guidance on a method that samples its own way, and every check of the pipeline's (precision,
+    the guidance scales, ``cuda_graph=true`` on a model whose step cannot be recorded). The driver runs it on the
+    checkpoint's model built on the ``meta`` device before anything in the output folder is touched
+    (:func:`spread.sampling.run.check_checkpoint`); a worker again on its real model."""
     if cfg.guidance.active and sampling_kind(model) != "pipeline":
         raise ValueError(f"guidance={cfg.guidance.mode}: guidance steers the methods that sample through the pipeline's "
                          f"loop; {cfg.ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
                          f"(sample it with guidance=none)")
-    warn_graph_guidance(cfg.guidance, model, cfg.ckpt)
-    data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
-    dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"], data["geometry_distance"])
-    return ScenePipeline(model, dataset, cfg.sampler, cfg.guidance, cfg.use_ema, cfg.graph_scale,
-                         cuda_graph=cfg.cuda_graph, precision=cfg.precision, geometry_scale=cfg.geometry_scale)
+    pipeline_of(cfg, model, None)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,

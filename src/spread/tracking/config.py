@@ -68,3 +68,18 @@ def previous_wandb_id(run_dir: Path) -> str | None:
     """The id of the newest wandb run in ``<run folder>/wandb`` (``latest-run`` → ``…-run-<time>-<id>``)."""
     latest = Path(run_dir) / "wandb" / "latest-run"
     return latest.resolve().name.rsplit("-", 1)[-1] if latest.exists() else None
+
+
+def room_type_scalars(metrics: dict) -> dict:
+    """The per-room-type breakdown of an evaluation's ``metrics.json`` as flat scalars, ``room/<type>/<entry>``, the
+    same keys for wandb and MLflow. A room type is any text a scene file holds (an importer's, a user's): one that is
+    not a plain name (``[A-Za-z0-9._-]``: ``Küche (groß)``, ``kitchen: open-plan``, ``a/b``) goes in as
+    :func:`spread.io.safe_name` makes it (unsafe characters ``_``, a hash of the text appended, so two types never
+    share a key), which every tracker accepts as part of a metric name."""
+    from spread.io import safe_name
+
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    return {f"room/{safe_name(str(room))}/{k}": v for room, values in (metrics.get("per_room_type") or {}).items()
+            for k, v in (values or {}).items() if number(v)}

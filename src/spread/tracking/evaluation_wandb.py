@@ -30,11 +30,12 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
     renders."""
     import wandb
 
+    from spread.tracking.config import room_type_scalars
+
     scalars = scalar_metrics(metrics)
     boot = metrics.get("bootstrap") or {}  # the intervals' settings, flat (what spread-report reads back)
     scalars |= {f"ci_{k}": boot[k] for k in ("level", "resamples", "seed") if k in boot}
-    scalars |= {f"room/{room}/{k}": v for room, values in (metrics.get("per_room_type") or {}).items()
-                for k, v in scalar_metrics(values or {}).items()}  # the per-room-type breakdown
+    scalars |= room_type_scalars(metrics)  # the per-room-type breakdown
     run.log(scalars)
     run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
     from spread.metrics.registry import value_spec

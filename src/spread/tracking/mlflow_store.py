@@ -289,10 +289,11 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
 
 def scalar_metrics(metrics: dict) -> dict:
     """The numeric top-level entries of ``metrics.json`` (each metric, ``<m>_lo``/``<m>_hi``, counts), the
-    per-room-type ones as ``room/<type>/<entry>``, and the bootstrap settings as ``ci_<key>``."""
-    out = {k: v for k, v in metrics.items() if is_number(v)}
-    for room, values in (metrics.get("per_room_type") or {}).items():
-        out |= {f"room/{room}/{k}": v for k, v in (values or {}).items() if is_number(v)}
+    per-room-type ones as ``room/<type>/<entry>`` (:func:`spread.tracking.config.room_type_scalars`), and the
+    bootstrap settings as ``ci_<key>``."""
+    from spread.tracking.config import room_type_scalars
+
+    out = {k: v for k, v in metrics.items() if is_number(v)} | room_type_scalars(metrics)
     boot = metrics.get("bootstrap") or {}
     out |= {f"ci_{k}": boot[k] for k in ("level", "resamples", "seed") if is_number(boot.get(k))}
     return out

@@ -62,13 +62,61 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
             + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
 
 
-def check_resume_checkpoint(path: Path, model) -> None:
+#: Hyperparameters a resumed run may change, as they change none of the trained numbers: the model's validation-time
+#: sampling, its compilation (the same loss) and its start weights (read by a new run only); the loaders' processes
+#: and memory.
+RESUMABLE = {"model": ("sample_every_n_epochs", "val_sampler", "val_sample_scenes", "init_from", "compile",
+                       "compile_mode", "compile_bucket"),
+             "data": ("num_workers", "pin_memory", "persistent_workers")}
+
+
+def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
+    """``model.<key>: held -> now`` / ``data.<key>: ...`` for each hyperparameter this run's model (and datamodule)
+    would train with that differs from what the checkpoint was trained with, but :data:`RESUMABLE`; keys the
+    checkpoint does not hold (hyperparameters added after it was written, at their defaults) are not compared; the
+    data folder is compared as a resolved path, and the model's translation bounds (set from the data when fitting
+    starts) as the datamodule's data gives them now."""
+    from spread.runtime.fingerprint import described_changes, normalised
+
+    out = []
+    for prefix, held, now in (("model", checkpoint.get("hyper_parameters"), getattr(model, "hparams", None)),
+                              ("data", checkpoint.get("datamodule_hyper_parameters"),
+                               getattr(datamodule, "hparams", None) if datamodule is not None else None)):
+        if not held or now is None:
+            continue
+        held, now = normalised(dict(held)), normalised(dict(now))
+        for key in RESUMABLE[prefix]:
+            held.pop(key, None)
+            now.pop(key, None)
+        if prefix == "model" and now.get("bounds") is None:  # set from the data at fit's start: the data's now
+            bounds = getattr(datamodule, "translation_bounds", None)
+            if bounds is None:
+                held.pop("bounds", None)
+                now.pop("bounds", None)
+            else:
+                now["bounds"] = [float(b) for b in bounds()]
+        if prefix == "data" and "root" in held and "root" in now:
+            held["root"], now["root"] = (str(Path(str(r)).resolve()) for r in (held["root"], now["root"]))
+        out += [f"{prefix}.{change}" for change in described_changes(held, now, held_only=True)]
+    return out
+
+
+def check_resume_checkpoint(path: Path, model, datamodule=None) -> None:
     """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
-    another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`)."""
+    another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`), or trained with other
+    settings than this run's (:func:`resumed_changes`: a resumed run restores the checkpoint's optimiser, schedule and
+    data order, so a changed learning rate, batch size, seed or dataset would not apply as the new checkpoint would
+    record it); a new run from its weights (``model.init_from``) takes new settings."""
     from spread.safe_load import checkpoint_identity, expect_checkpoint
 
     own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
-    expect_checkpoint(path, "ckpt_path", **own)
+    checkpoint = expect_checkpoint(path, "ckpt_path", **own)
+    changed = resumed_changes(checkpoint, model, datamodule)
+    if changed:
+        shown = "; ".join(changed[:4]) + ("; ..." if len(changed) > 4 else "")
+        raise ValueError(f"ckpt_path={path}: trained with other settings than this run's ({shown}); resume it with "
+                         f"the settings it was trained with, or start a new run from its weights with "
+                         f"model.init_from={path} in another out_dir")
 
 
 def takes_images(cfg: DictConfig) -> bool:
@@ -204,7 +252,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
-        check_resume_checkpoint(ckpt_path, model)
+        check_resume_checkpoint(ckpt_path, model, datamodule)
     newest = CheckpointStep()
     overrides = dict(trainer_overrides or {})
     plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]

@@ -1,0 +1,172 @@
+"""Hostile inputs and features that meet, round 5 (docs/robustness.md): a re-run with other settings never reports,
+keeps or mixes what was made with the first ones, and never loses it to a setting it then refuses.
+
+* ``spread-sample``: a setting the model cannot sample with (a non-finite scale, a geometry scale for a model without
+  geometry features, an unknown precision) is refused before the finished folder is touched; fewer samples per graph
+  leave exactly the planned scenes;
+* ``spread-evaluate`` / ``spread-report``: an evaluation keeps the sampling identity of the scenes it measured;
+* ``spread-train ckpt_path=last`` with other settings than the checkpoint was trained with is refused by name;
+* ``spread-generate`` into a folder of rooms made otherwise (or more of them) is refused by name;
+* MLflow takes any room type as part of a metric name; an asset index cannot point outside its library.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from helpers import FAST_TRAIN, SMALL_MODEL, make_dataset, sample_in_process, train_in_process, user_error
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("r5data"))
+
+
+@pytest.fixture(scope="module")
+def run(dataset, tmp_path_factory) -> Path:
+    """A base model's run folder after 2 training steps (checkpoints/last.ckpt)."""
+    out = tmp_path_factory.mktemp("r5run") / "run"
+    train_in_process(out, "experiment=quick", "model.variant=base", f"data.root={dataset}", "trainer.max_time=null",
+                     "trainer.max_steps=2", *SMALL_MODEL, *FAST_TRAIN)
+    return out
+
+
+def folder_state(out: Path) -> dict:
+    """The results of a sampling folder by name, with their bytes: the scenes, renders and ``sampling.json``."""
+    files = [out / "sampling.json", *(out / "scenes").glob("*"), *(out / "renders").glob("*")]
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(files) if p.is_file()}
+
+
+def test_a_scale_or_precision_the_model_cannot_sample_with_is_refused_before_the_finished_folder_is_touched(
+        dataset, run, tmp_path):
+    ckpt = run / "checkpoints" / "last.ckpt"
+    out = tmp_path / "s"
+    sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0")
+    before = folder_state(out)
+    assert sum(name.startswith("scenes/") for name in before) == 3
+    line, _ = user_error("spread-sample", f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "workers=0",
+                         "graph_scale=inf", "logger=none")
+    assert "graph_scale=inf: a finite number" in line
+    with pytest.raises(ValueError, match=r"geometry_scale=2.0: this model \(.*base.*\) has no geometry features"):
+        sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "geometry_scale=2")
+    with pytest.raises(ValueError, match="geometry_scale=nan: a finite number"):
+        sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "geometry_scale=nan")
+    with pytest.raises(ValueError, match="precision must be one of"):
+        sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "precision=fp8")
+    assert folder_state(out) == before  # sampling.json too: not pinned to the refused settings
+
+
+def test_fewer_samples_per_graph_leave_exactly_the_planned_scenes_and_their_renders(dataset, run, tmp_path):
+    ckpt = run / "checkpoints" / "last.ckpt"
+    out = tmp_path / "s"
+    two = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=2",
+                            "renders=6")
+    assert len(list((out / "scenes").glob("*.npz"))) == 6 and len(list((out / "renders").glob("*_k1.png"))) == 3
+    kept = {p.name: p.read_bytes() for p in two.files if p.stem.endswith("_k0")}
+    one = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=1",
+                            "renders=6")
+    assert sorted(p.name for p in (out / "scenes").glob("*.npz")) == sorted(kept)
+    assert {p.name: p.read_bytes() for p in one.files} == kept  # the planned scenes resumed, not sampled again
+    assert not list((out / "renders").glob("*_k1*.png"))
+    assert one.manifest["removed_unplanned"] == 3 and one.manifest["samples"] == 3
+    assert one.manifest["written_this_run"] == 0
+
+
+def test_a_report_gives_an_evaluation_the_sampling_settings_it_measured_after_its_folder_is_sampled_again(
+        dataset, run, tmp_path):
+    from spread.commands.evaluate import evaluate
+    from spread.reporting.runs import folder_identity
+
+    from helpers import compose
+
+    ckpt = run / "checkpoints" / "last.ckpt"
+    out = tmp_path / "s"
+    sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "seed=0")
+    measured = evaluate(compose("evaluate", f"scenes={out / 'scenes'}", f"reference={dataset}",
+                                f"out_dir={tmp_path / 'e'}", "logger=none", "metrics=[grecall]", "fid.enabled=false",
+                                "ray.num_cpus=1", "progress=false", "renders=0")).metrics
+    assert measured["sampled_with"]["sampling"]["seed"] == 0
+    again = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "seed=5")
+    assert again.manifest["redone_because"] == "changed: sampling.seed"
+    metrics = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    assert folder_identity(tmp_path / "e", metrics)["sampling"]["seed"] == 0
+    del metrics["sampled_with"]  # an evaluation written before the record: the folder as it is now (the old way)
+    assert folder_identity(tmp_path / "e", metrics)["sampling"]["seed"] == 5
+
+
+def test_resuming_a_checkpoint_with_other_training_settings_is_refused_by_name(dataset, run, tmp_path):
+    folder = tmp_path / "run"
+    shutil.copytree(run, folder)
+    common = ["experiment=quick", "model.variant=base", f"data.root={dataset}", "trainer.max_time=null",
+              *SMALL_MODEL, *FAST_TRAIN, "ckpt_path=last"]
+    held = (folder / "checkpoints" / "last.ckpt").read_bytes()
+    with pytest.raises(ValueError, match=r"trained with other settings than this run's \(model.lr: 0.0005 -> 0.01; "
+                                         r"model.seed: 0 -> 3; data.batch_size: 4 -> 2; data.seed: 0 -> 3\).*"
+                                         r"model.init_from="):
+        train_in_process(folder, *common, "trainer.max_steps=4", "model.lr=0.01", "seed=3", "data.batch_size=2")
+    assert (folder / "checkpoints" / "last.ckpt").read_bytes() == held
+    # what changes none of the trained numbers resumes: more steps, loader processes, validation sampling
+    summary = train_in_process(folder, *common, "trainer.max_steps=3", "data.num_workers=1",
+                               "model.sample_every_n_epochs=0")
+    assert summary["global_step"] == 3 and summary["resumed_from"]
+
+
+def test_spread_generate_refuses_a_folder_of_rooms_made_otherwise_or_more_of_them(tmp_path):
+    from spread.procgen.dataset import AssetSource, DatasetConfig, generate_dataset
+    from spread.procgen.room_types import RoomConfig
+
+    data = make_dataset(tmp_path)  # 12 rooms, seed 7, at most 8 objects, 20 % val, 30 % test
+    rooms = sorted(p.relative_to(data) for p in data.rglob("*.npz"))
+    base = ["renders=0", "processes=1", "rooms=12", "seed=7", "val_fraction=0.2", "test_fraction=0.3"]
+    line, _ = user_error("spread-generate", f"out_dir={data}", *base, "room.max_objects=10")
+    assert "holds rooms generated with other settings (changed: room.max_objects: 8 -> 10)" in line
+    config = DatasetConfig(rooms=12, seed=7, processes=1, renders=0, val_fraction=0.2, test_fraction=0.3,
+                           assets=AssetSource(copy_from=str(tmp_path / "assets")), room=RoomConfig(max_objects=8))
+    with pytest.raises(ValueError, match=r"changed: seed: 7 -> 8"):
+        generate_dataset(data, DatasetConfig(**{**config.__dict__, "seed": 8}), progress=False)
+    with pytest.raises(ValueError, match=r"holds 2 room\(s\) beyond rooms=10 .*give rooms=12 or more"):
+        generate_dataset(data, DatasetConfig(**{**config.__dict__, "rooms": 10}), progress=False)
+    (data / "generation.json").unlink()  # a folder made before the pin: its manifest's config says the same
+    with pytest.raises(ValueError, match=r"changed: room.max_objects: 8 -> 10"):
+        generate_dataset(data, DatasetConfig(**{**config.__dict__, "room": RoomConfig(max_objects=10)}),
+                         progress=False)
+    manifest = generate_dataset(data, config, progress=False)  # the same settings: complete (nothing to do)
+    assert manifest["this_run"]["rooms_generated"] == 0 and sum(manifest["counts"].values()) == 12
+    assert sorted(p.relative_to(data) for p in data.rglob("*.npz")) == rooms
+    assert json.loads((data / "generation.json").read_text())["status"] == "done"
+
+
+def test_mlflow_takes_any_room_type_as_part_of_a_metric_name_and_two_types_never_share_one():
+    from mlflow.utils.validation import _validate_metric_name
+
+    from spread.tracking.mlflow_store import scalar_metrics
+
+    types = ["bedroom", "Küche (groß)", "kitchen: open-plan", "kitchen/open", "kitchen_open", "../x", ""]
+    metrics = {"grecall": 0.5, "per_room_type": {t: {"grecall": float(i), "n_scenes": 1} for i, t in enumerate(types)}}
+    keys = scalar_metrics(metrics)
+    for key in keys:
+        _validate_metric_name(key)
+    assert keys["room/bedroom/grecall"] == 0.0  # a plain name is kept as it is
+    assert sorted(v for k, v in keys.items() if k.endswith("/grecall") and k.startswith("room/")) == [
+        float(i) for i in range(len(types))]  # one key per type
+    assert all(k.count("/") == 2 for k in keys if k.startswith("room/"))
+
+
+@pytest.mark.parametrize("mesh_file", ["../../elsewhere.glb", "/etc/passwd", "meshes/../../x.glb", "a\\..\\b", ""])
+def test_an_asset_index_pointing_outside_its_library_is_refused_by_key_and_value(tmp_path, mesh_file):
+    from spread.assets.library import AssetLibrary
+
+    from helpers import asset_library
+
+    lib = tmp_path / "assets"
+    asset_library(lib, categories=["mug"])
+    index = json.loads((lib / "index.json").read_text())
+    first = next(iter(index["assets"]))
+    index["assets"][first]["mesh_file"] = mesh_file
+    (lib / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match=rf"asset '{first}' has a bad record .*mesh_file="):
+        AssetLibrary.load(lib)

@@ -188,7 +188,12 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
     meta = check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint,
                                str(cfg.ckpt))
     if meta is not None:
-        check_settings(cfg, meta)
+        try:
+            check_settings(cfg, meta)
+        except ValueError:
+            raise
+        except Exception:  # noqa: BLE001 - a model whose checks read real tensors: its workers check them
+            pass
     return checkpoint
 
 

@@ -170,3 +170,74 @@ def test_an_asset_index_pointing_outside_its_library_is_refused_by_key_and_value
     (lib / "index.json").write_text(json.dumps(index))
     with pytest.raises(ValueError, match=rf"asset '{first}' has a bad record .*mesh_file="):
         AssetLibrary.load(lib)
+
+
+# ---- round 5, second review: sweeps, ablations, exports -------------------------------------------------------
+
+def test_an_object_limit_that_leaves_out_other_graphs_is_another_sampling_run_and_a_table_names_it(dataset, run,
+                                                                                                   tmp_path):
+    from spread.runtime.fingerprint import settings
+
+    ckpt = run / "checkpoints" / "last.ckpt"
+    out = tmp_path / "s"
+    first = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0")
+    assert first.manifest["samples"] == 3 and "graphs_over_limit" not in first.manifest["fingerprint"]["sampling"]
+    same = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "max_objects=8")
+    assert same.manifest["redone_because"] is None and same.manifest["written_this_run"] == 0  # leaves none out
+    fewer = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "max_objects=6")
+    assert fewer.manifest["redone_because"] == "changed: sampling.graphs_over_limit"
+    assert fewer.manifest["samples"] == 2 and sorted(p.stem for p in (out / "scenes").glob("*.npz")) == [
+        "s7_000007_k0", "s7_000008_k0"]
+    assert settings(fewer.manifest["fingerprint"])["graphs_over_limit"] == "s7_000009"
+    assert settings(first.manifest["fingerprint"])["graphs_over_limit"] == "none"
+
+
+def test_spread_sweep_refuses_one_value_twice_a_sweep_of_its_own_settings_and_a_misspelled_key_in_one_line(
+        dataset, run):
+    from spread.experiments.sweep import parse_arguments
+
+    with pytest.raises(ValueError, match=r"guidance.collision=0.0,0,0.0075: 0.0 and 0 are one setting"):
+        parse_arguments(["guidance.collision=0.0,0,0.0075", "out_dir=x"])
+    with pytest.raises(ValueError, match=r"model.lr=1e-3,0.001: 0.001 is listed twice"):
+        parse_arguments(["command=train", "model.lr=1e-3,0.001", "out_dir=x"])
+    with pytest.raises(ValueError, match=r"seeds=1,2: 'seeds' is a setting of the sweep itself"):
+        parse_arguments(["seeds=1,2", "guidance.collision=0.0,0.1", "out_dir=x"])
+    with pytest.raises(ValueError, match=r"name=\['a', 'b'\]: one text value"):
+        parse_arguments(["name=[a,b]", "guidance.collision=0.0,0.1", "out_dir=x"])
+    line, _ = user_error("spread-sweep", f"ckpt={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}",
+                         "guidance=refine", "guidance.colision=0.1", "guidance.gravity=0.0,0.001", "out_dir=unused")
+    assert "Could not override 'guidance.colision'" in line and "Key 'colision' not in 'GuidanceConfig'" in line
+
+
+def test_spread_ablate_refuses_a_seed_twice_and_a_stage_list_that_does_not_compose_before_any_stage(dataset, run,
+                                                                                                    tmp_path):
+    from spread.commands.ablate import ablate
+
+    from helpers import compose
+
+    common = ["variants=[base]", f"train.ckpt.base={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}",
+              "logger=none", "figures=false", f"out_dir={tmp_path / 'a'}"]
+    with pytest.raises(ValueError, match=r"seeds=\[0, 0\]: seed 0 is listed twice"):
+        ablate(compose("ablate", *common, "seeds=[0,0]"))
+    line, _ = user_error("spread-ablate", *common, 'sample.extra=["sampler.steps=5","guidance.colision=0.1"]')
+    assert line.startswith("spread-ablate: sample/base: its overrides") and "guidance.colision" in line
+    with pytest.raises(ValueError, match=r"evaluate: .*protocol.stability_runs=x.*could not be converted to Integer"):
+        ablate(compose("ablate", *common, 'evaluate.extra=["protocol.stability_runs=x"]'))
+    assert not (tmp_path / "a" / "samples").exists() and not (tmp_path / "a" / "eval").exists()
+
+
+def test_spread_export_never_lets_one_scene_overwrite_another_or_its_own_report(dataset, tmp_path):
+    from spread.export import export_folder
+    from spread.scene import read_scene, write_scene
+
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    source = read_scene(sorted((dataset / "test").glob("*.npz"))[0])
+    for file, scene_id in [("0first", "X__b"), ("a", "X"), ("b", "X"), ("c", "export.json"), ("d", "export.log")]:
+        write_scene(source.with_poses(source.translation, source.rotation, scene_id=scene_id), scenes / f"{file}.npz")
+    report = export_folder(scenes, dataset.parent / "assets", tmp_path / "out", "sceneeval")
+    assert not report.failed and len(report.written) == 5
+    assert len({Path(p).name for p in report.written.values()}) == 5  # five outputs, none over another
+    assert set(report.written) == {"X__b", "X", "X__b_2", "export.json__c", "export.log__d"}
+    assert (tmp_path / "out" / "export.json").is_file()
+    assert json.loads((tmp_path / "out" / "export.json").read_text())["written"] == report.written

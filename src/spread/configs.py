@@ -147,6 +147,19 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfi
         return hydra_compose(config_name=name, overrides=list(overrides))
 
 
+def error_message(error: BaseException) -> str:
+    """A user error's message on one line; Hydra's composition errors with the first line of their cause (``Value
+    'abc' could not be converted to Float``, ``Key 'colision' not in 'GuidanceConfig'``), which says what was
+    wrong with the override."""
+    from hydra.errors import ConfigCompositionException
+
+    message = " ".join(str(error).split()) or type(error).__name__
+    inner = error.__cause__
+    if isinstance(error, ConfigCompositionException) and inner is not None and str(inner).strip():
+        message += f" ({str(inner).strip().splitlines()[0]})"
+    return message
+
+
 def to_object(cfg: DictConfig):
     """A composed config as its schema's dataclass (nested records included), validated."""
     return OmegaConf.to_object(cfg)

@@ -23,10 +23,14 @@ def verbose() -> bool:
 
 def user_error_types() -> tuple[type[BaseException], ...]:
     """Exceptions that report a bad setting or input (not a bug): their message is the whole story."""
+    from hydra.errors import ConfigCompositionException, OverrideParseException
+
     from spread.io import RunFolderBusy, UnsafeOutputError
 
+    # Hydra's: an override that names no key of the config or does not parse (a command that composes configs
+    # itself, as spread-sweep and spread-ablate do for their points and stages)
     return (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-            RunFolderBusy, UnsafeOutputError)
+            RunFolderBusy, UnsafeOutputError, ConfigCompositionException, OverrideParseException)
 
 
 def user_error(exc: BaseException) -> BaseException | None:
@@ -61,8 +65,9 @@ def one_line(name: str):
                 cause = user_error(exc)
                 if cause is None or verbose():
                     raise
-                message = " ".join(str(cause).split()) or type(cause).__name__
-                raise SystemExit(f"{name}: {message} (HYDRA_FULL_ERROR=1 shows the traceback)") from None
+                from spread.configs import error_message
+
+                raise SystemExit(f"{name}: {error_message(cause)} (HYDRA_FULL_ERROR=1 shows the traceback)") from None
 
         return run
 

@@ -27,8 +27,14 @@ def main(argv: list[str] | None = None) -> None:
     logger.setLevel(logging.INFO)
     try:
         result = sweep(args)
-    except ValueError as exc:  # a bad setting, refused before any trial: one line
-        message = " ".join(str(exc).split())
+    except Exception as exc:  # noqa: BLE001 - a bad setting, refused before any trial: one line
+        from spread.cli.errors import user_error, verbose
+        from spread.configs import error_message
+
+        cause = user_error(exc)
+        if cause is None or verbose():
+            raise
+        message = error_message(cause)
         raise SystemExit(message if message.startswith("spread-sweep") else f"spread-sweep: {message}") from None
     from spread.io import read_text_checked
 

@@ -95,6 +95,10 @@ def ablate(cfg: DictConfig):
 
     spec = ablation_spec(cfg)
     name = f"ablation/{cfg.name}"
+    seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
+    twice = sorted({x for x in seeds if seeds.count(x) > 1})
+    if twice:  # one run counted as two seeds, with no spread between them
+        raise ValueError(f"seeds={seeds}: seed {twice[0]} is listed twice; give each training seed once")
 
     def body(commands, logger, config, run):
         def log_table(records, png):
@@ -106,7 +110,6 @@ def ablate(cfg: DictConfig):
                 mlflow_log.log_table(run, records, "variant", sorted(Path(png).parent.glob(Path(png).stem + ".*")))
 
         logged = log_table if logger.wandb or run is not None else None
-        seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
         if seeds:
             from spread.experiments.ablation_seeds import run_seeded_ablation
 

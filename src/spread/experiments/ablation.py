@@ -132,6 +132,7 @@ class Ablation:
         self.engine = StageEngine(spec, commands, self, LEDGER)
         self.out = spec.out_dir
         self.check_trained_variants()
+        self.engine.check_lists(list(spec.variants))
 
     def check_trained_variants(self) -> None:
         """Each row this ablation trains composes to that row's model (:meth:`StagesSpec.check_trained`):

@@ -296,6 +296,25 @@ class StageEngine:
         self.status: dict[str, str] = {}
         self.errors: dict[str, str] = {}
 
+    def check_lists(self, rows: list[str]) -> None:
+        """Every row's ``spread-sample`` list and the ``spread-evaluate`` list compose to their commands' typed
+        configs, before any stage runs: a misspelled key, a value of the wrong type or a refused setting is a
+        ``ValueError`` naming the stage and the override (a stage that failed on it turned its finished row of the
+        table to –)."""
+        from hydra.errors import ConfigCompositionException, OverrideParseException
+
+        from spread.configs import compose, error_message, to_object
+
+        lists = {f"sample/{row}": ("sample", [*self.study.sample_lists(row), "ckpt=unset", "data.root=unset",
+                                              "out_dir=unset"]) for row in rows}
+        lists["evaluate"] = ("evaluate", [*self.spec.evaluate, "scenes=unset", "reference=unset", "out_dir=unset"])
+        for name, (command, overrides) in lists.items():
+            try:
+                to_object(compose(command, self.spec.named(overrides)))
+            except (ValueError, ConfigCompositionException, OverrideParseException) as exc:
+                raise ValueError(f"{name}: its overrides {overrides[:-3]} do not make a spread-{command} command: "
+                                 f"{error_message(exc)}") from None
+
     # ---- folders ----
     def train_dir(self, variant: str) -> Path:
         return self.out / "train" / variant

@@ -79,6 +79,9 @@ class SweepSettings:
     def __post_init__(self) -> None:
         if self.out_dir in ("???", None, ""):
             raise ValueError("spread-sweep: out_dir is required (the sweep folder)")
+        for key in ("out_dir", "command", "name", "search", "metric", "mode"):
+            if not isinstance(getattr(self, key), str):
+                raise ValueError(f"spread-sweep: {key}={getattr(self, key)!r}: one text value")
         if self.command not in COMMANDS:
             raise ValueError(f"spread-sweep: command={self.command}: choose from {COMMANDS}")
         from spread.experiments.tuning import search_spec, trial_scheduler_spec
@@ -175,7 +178,10 @@ def parse_arguments(argv: list[str]) -> SweepPlan:
     fixed, swept = [], {}
     for override in parser.parse_overrides([a for a in argv if a.strip()]):
         key = override.key_or_group
-        if key in own and not override.is_sweep_override():
+        if key in own and override.is_sweep_override():
+            raise ValueError(f"spread-sweep: {override.input_line}: '{key}' is a setting of the sweep itself and takes "
+                             f"one value, not a sweep over values")
+        if key in own:
             settings[key] = None if override.value() is None else override.value()
         elif override.is_sweep_override():
             swept[override.get_key_element()] = dimension(override)
@@ -212,11 +218,24 @@ def check_dimensions(dims: list[Dimension]) -> None:
 
 
 def dimension(override) -> Dimension:
+    """The swept key of one override; ``ValueError`` naming two of its listed values that are one setting (``0.0``
+    and ``0``, ``1e-3`` and ``0.001``: the same point twice, and with ``seeds`` its runs counted as more seeds)."""
     key = override.get_key_element()
     if override.is_interval_sweep():
         value = override.value()
         return Dimension(key, low=float(value.start), high=float(value.end), log="log" in (value.tags or set()))
-    return Dimension(key, values=[str(v) for v in override.sweep_string_iterator()])
+    from spread.runtime.fingerprint import canonical
+
+    values = [str(v) for v in override.sweep_string_iterator()]
+    seen: dict = {}
+    for text, typed in zip(values, override.sweep_iterator()):
+        same = float(typed) if isinstance(typed, (int, float)) and not isinstance(typed, bool) else canonical(typed)
+        if same in seen:
+            twice = f"{seen[same]} and {text} are one setting" if seen[same] != text else f"{text} is listed twice"
+            raise ValueError(f"spread-sweep: {override.input_line}: {twice} (the same point twice); give each value "
+                             f"once")
+        seen[same] = text
+    return Dimension(key, values=values)
 
 
 def preset_params(command: str, fixed: list[str]) -> dict:

@@ -164,6 +164,33 @@ class ExportReport:
                 "duplicates": self.duplicates}
 
 
+#: The export command's own files in its output folder, which no scene's output may take.
+OWN_FILES = ("export.json", "export.log")
+
+
+def output_clash(scene_id: str, report: "ExportReport", out_dir, fmt: str) -> str | None:
+    """Why ``scene_id``'s output cannot be written as named (another scene of this export has the id or the same
+    output name, or the name is one of :data:`OWN_FILES`), or None."""
+    name = export_path(out_dir, scene_id, fmt).name
+    if name in OWN_FILES:
+        return f"names the export's own {name}"
+    taken = {Path(p).name: i for i, p in report.written.items()}
+    if scene_id in report.written or name in taken:
+        first = report.sources[scene_id if scene_id in report.written else taken[name]]
+        return f"gives the output name of {first}"
+    return None
+
+
+def free_id(wanted: str, report: "ExportReport", out_dir, fmt: str) -> str:
+    """``wanted``, or ``wanted_2``, ``wanted_3``, ...: the first id whose output clashes with nothing
+    (:func:`output_clash`)."""
+    candidate, n = wanted, 1
+    while output_clash(candidate, report, out_dir, fmt):
+        n += 1
+        candidate = f"{wanted}_{n}"
+    return candidate
+
+
 def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir: str | os.PathLike, fmt: str,
                   floor: bool = True, progress: bool = False) -> ExportReport:
     """Export every scene file of ``scenes`` (asset library ``assets``) in ``fmt`` to ``out_dir``.
@@ -188,11 +215,10 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
     for path in iterator:
         try:
             scene = read_scene(path, assets=library)
-            if str(scene.scene_id) in report.written:  # outputs are named by id: a second one would overwrite
-                first = report.sources[str(scene.scene_id)]
-                renamed = f"{scene.scene_id}__{path.stem}"
-                report.duplicates[str(path)] = (f"scene id '{scene.scene_id}' is also the id of {first}; exported "
-                                                f"as '{renamed}'")
+            clash = output_clash(str(scene.scene_id), report, out_dir, fmt)
+            if clash:  # outputs are named by id: this one would overwrite another output or the report
+                renamed = free_id(f"{scene.scene_id}__{path.stem}", report, out_dir, fmt)
+                report.duplicates[str(path)] = f"scene id '{scene.scene_id}' {clash}; exported as '{renamed}'"
                 scene.scene_id = renamed
             report.written[str(scene.scene_id)] = str(export_scene(scene, library, out_dir, fmt, floor=floor))
             report.sources[str(scene.scene_id)] = str(path)

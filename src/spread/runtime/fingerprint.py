@@ -165,8 +165,9 @@ def done_check(before: dict | None, now: dict, *, present: bool, finished: bool 
 #: Sampling settings added after runs were recorded: spelled in an identity only where they differ from these
 #: defaults (so the runs made before keep their fingerprints), and filled back in by :func:`settings` (so a table
 #: still sees them differ). precision: "bf16" changes the numbers; geometry_scale: classifier-free guidance on the
-#: geometry features (:class:`~spread.sampling.SamplingConfig`).
-SAMPLING_DEFAULTS = {"precision": "32", "geometry_scale": 1.0}
+#: geometry features (:class:`~spread.sampling.SamplingConfig`); graphs_over_limit: the split's graphs a run leaves out
+#: for its object limit (``max_objects``; none at the default limit on most data).
+SAMPLING_DEFAULTS = {"precision": "32", "geometry_scale": 1.0, "graphs_over_limit": []}
 
 
 def unspelled_defaults_dropped(values: dict) -> dict:
@@ -191,8 +192,10 @@ def sampling_identity(cfg) -> dict:
             "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
             "sampling": {"sampler": cfg.sampler.fingerprint(), "seed": int(cfg.seed), "batch_size": int(cfg.batch_size),
                          "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale), "device": str(cfg.device),
-                         **unspelled_defaults_dropped({"precision": str(getattr(cfg, "precision", "32")),
-                                                       "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0))})},
+                         **unspelled_defaults_dropped({
+                             "precision": str(getattr(cfg, "precision", "32")),
+                             "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0)),
+                             "graphs_over_limit": cfg.graphs_over_limit() if hasattr(cfg, "graphs_over_limit") else []})},
             "guidance": cfg.guidance.fingerprint(), "numbers_version": NUMBERS_VERSION}
 
 
@@ -282,7 +285,7 @@ def settings(identity: dict) -> dict:
             out[key.removesuffix("_sha256")] = str(value)[:12]
         elif not isinstance(value, dict):
             out[key] = value
-    return {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in out.items()}
+    return {k: (",".join(map(str, v)) or "none") if isinstance(v, list) else v for k, v in out.items()}
 
 
 def unflatten(config: dict) -> dict:

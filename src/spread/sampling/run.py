@@ -112,6 +112,12 @@ class SamplingConfig:
             raise ValueError(f"figure_kinds: unknown {unknown} (choose from {list(FIGURE_KINDS)})")
 
 
+    def graphs_over_limit(self) -> list[str]:
+        """The split's graphs (scene file names) this run leaves out for the object limit in effect
+        (:func:`object_limit`): part of the run's identity, as they change what it samples."""
+        return graphs_over(self.data.root, self.data.split, object_limit(self.data.root, self.max_objects))
+
+
 @dataclass
 class SamplingResult:
     """files: every scene file of the run (in plan order); written: files written by this call."""
@@ -139,6 +145,27 @@ def object_limit(data_root: str | Path, max_objects: int | None) -> int | None:
 
     largest = read_json_object(stats).get("max_objects")
     return 2 * int(largest) if isinstance(largest, int) and largest > 0 else None
+
+
+def graphs_over(data_root: str | Path, split: str, limit: int | None) -> list[str]:
+    """Names of the split's scene files of more than ``limit`` objects (None: no limit), read once per process
+    (:mod:`spread.readonce`, as :func:`read_graphs` reads them); a folder or file that does not read gives none (its
+    run names it)."""
+    if limit is None or not (Path(data_root) / split).is_dir():
+        return []
+    from spread.scene import SceneFormatError, list_scene_files
+
+    assets = Path(data_root) / "assets"
+    library = readonce.asset_library(assets) if (assets / "index.json").is_file() else None
+    out = []
+    for path in list_scene_files(Path(data_root) / split):
+        try:
+            scene = readonce.scene(path, library)
+        except (SceneFormatError, OSError, ValueError):
+            continue
+        if scene.num_objects > limit:
+            out.append(path.stem)
+    return out
 
 
 def read_graphs(data_root: str | Path, split: str, max_objects: int | None = None) -> tuple[list[Graph], list[dict]]:

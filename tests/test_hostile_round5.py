@@ -204,6 +204,8 @@ def test_spread_sweep_refuses_one_value_twice_a_sweep_of_its_own_settings_and_a_
         parse_arguments(["seeds=1,2", "guidance.collision=0.0,0.1", "out_dir=x"])
     with pytest.raises(ValueError, match=r"name=\['a', 'b'\]: one text value"):
         parse_arguments(["name=[a,b]", "guidance.collision=0.0,0.1", "out_dir=x"])
+    with pytest.raises(ValueError, match=r"max_concurrent=2.7: a whole number of trials"):  # before: 2, silently
+        parse_arguments(["max_concurrent=2.7", "guidance.collision=0.0,0.1", "out_dir=x"])
     line, _ = user_error("spread-sweep", f"ckpt={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}",
                          "guidance=refine", "guidance.colision=0.1", "guidance.gravity=0.0,0.001", "out_dir=unused")
     assert "Could not override 'guidance.colision'" in line and "Key 'colision' not in 'GuidanceConfig'" in line
@@ -241,3 +243,14 @@ def test_spread_export_never_lets_one_scene_overwrite_another_or_its_own_report(
     assert set(report.written) == {"X__b", "X", "X__b_2", "export.json__c", "export.log__d"}
     assert (tmp_path / "out" / "export.json").is_file()
     assert json.loads((tmp_path / "out" / "export.json").read_text())["written"] == report.written
+
+
+def test_a_3d_front_splits_file_that_puts_one_room_in_two_splits_is_refused_by_line(tmp_path):
+    from spread.importers.threed_front import read_splits
+
+    splits = tmp_path / "splits.csv"
+    splits.write_text("RoomId,split\nBedroom-1,train\nLivingRoom-2,test\nBedroom-1,train\n")
+    assert read_splits(splits) == {"Bedroom-1": "train", "LivingRoom-2": "test"}  # the same line twice: one room
+    splits.write_text("RoomId,split\nBedroom-1,train\nLivingRoom-2,test\nBedroom-1,test\n")
+    with pytest.raises(ValueError, match=r"splits.csv: line 4: room 'Bedroom-1' is listed in 'train' and 'test'"):
+        read_splits(splits)

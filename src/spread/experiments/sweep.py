@@ -97,8 +97,8 @@ class SweepSettings:
             raise ValueError(f"spread-sweep: scheduler={self.scheduler}: {exc}") from exc
         if self.mode not in ("min", "max"):
             raise ValueError(f"spread-sweep: mode={self.mode}: min or max")
-        if int(self.max_concurrent) < 1:
-            raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: at least 1")
+        if isinstance(self.max_concurrent, bool) or not isinstance(self.max_concurrent, int) or self.max_concurrent < 1:
+            raise ValueError(f"spread-sweep: max_concurrent={self.max_concurrent}: a whole number of trials, at least 1")
         if isinstance(self.num_samples, bool) or not isinstance(self.num_samples, int) or self.num_samples < 1:
             raise ValueError(f"spread-sweep: num_samples={self.num_samples}: a whole number ≥ 1 (Ray Tune reads -1 "
                              f"as 'for ever')")

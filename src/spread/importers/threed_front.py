@@ -86,6 +86,9 @@ def read_splits(path: Path) -> dict[str, str]:
                 if line_no == 1:
                     continue  # a header line
                 raise ValueError(f"{path}: line {line_no}: expected 'RoomId,train|val|test', got {','.join(row)!r}")
+            if row[0] in out and out[row[0]] != row[1]:  # a room in two splits: the import would leak it between them
+                raise ValueError(f"{path}: line {line_no}: room {row[0]!r} is listed in {out[row[0]]!r} and "
+                                 f"{row[1]!r}; give each room one split")
             out[row[0]] = row[1]
     return out
 

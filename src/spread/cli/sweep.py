@@ -28,11 +28,11 @@ def main(argv: list[str] | None = None) -> None:
     try:
         result = sweep(args)
     except Exception as exc:  # noqa: BLE001 - a bad setting, refused before any trial: one line
-        from spread.cli.errors import user_error, verbose
+        from spread.cli.errors import user_error
         from spread.configs import error_message
 
         cause = user_error(exc)
-        if cause is None or verbose():
+        if cause is None:
             raise
         message = error_message(cause)
         raise SystemExit(message if message.startswith("spread-sweep") else f"spread-sweep: {message}") from None

@@ -13,6 +13,7 @@ keeps or mixes what was made with the first ones, and never loses it to a settin
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -254,3 +255,73 @@ def test_a_3d_front_splits_file_that_puts_one_room_in_two_splits_is_refused_by_l
     splits.write_text("RoomId,split\nBedroom-1,train\nLivingRoom-2,test\nBedroom-1,test\n")
     with pytest.raises(ValueError, match=r"splits.csv: line 4: room 'Bedroom-1' is listed in 'train' and 'test'"):
         read_splits(splits)
+
+
+# ---- round 5, third review: one identity, one unit -------------------------------------------------------------
+
+def test_the_same_metrics_in_another_order_are_one_protocol():
+    from spread.evaluation.protocol import EvalProtocol
+
+    given = EvalProtocol(metrics=["stability", "grecall", "asd", "col_mesh"])
+    assert given.metrics == EvalProtocol().metrics == ["col_mesh", "grecall", "asd", "stability"]
+    assert given.fingerprint() == EvalProtocol().fingerprint()
+    assert EvalProtocol(metrics=["grecall"]).fingerprint() != EvalProtocol().fingerprint()
+
+
+def test_trackers_log_asd_in_mm_keyed_so_and_the_readers_take_it_back_in_metres(tmp_path):
+    from spread.metrics.registry import in_stored_units
+    from spread.reporting.runs import read_wandb_run
+    from spread.tracking.mlflow_store import log_table, scalar_metrics
+
+    metrics = {"asd": 0.0123, "asd_lo": 0.01, "asd_hi": 0.02, "grecall": 0.9, "col_mesh": 0.2, "n_scenes": 3,
+               "per_room_type": {"bedroom": {"asd": 0.004, "n_scenes": 1}}}
+    logged = scalar_metrics(metrics)
+    assert logged["asd_mm"] == pytest.approx(12.3) and logged["asd_mm_lo"] == pytest.approx(10.0)
+    assert logged["room/bedroom/asd_mm"] == pytest.approx(4.0) and "asd" not in logged and "room/bedroom/asd" not in logged
+    assert logged["grecall"] == 0.9 and logged["n_scenes"] == 3  # a share and a count keep their keys
+    back = in_stored_units({k: v for k, v in logged.items() if "/" not in k})
+    assert back["asd"] == pytest.approx(0.0123) and back["asd_hi"] == pytest.approx(0.02)
+
+    class Run:
+        def __init__(self):
+            self.metrics = {}
+
+        def log_metrics(self, values):
+            self.metrics |= values
+
+    run = Run()
+    log_table(run, [{"variant": "base", "asd": 0.002, "grecall": 0.5}], "variant")
+    assert run.metrics == {"base/asd_mm": pytest.approx(2.0), "base/grecall": 0.5}
+    # a wandb run as an older wandb wrote it (files/wandb-summary.json): read back in metres, as metrics.json has it
+    folder = tmp_path / "wandb" / "offline-run-20261130_000000-abc"
+    (folder / "files").mkdir(parents=True)
+    (folder / "files" / "wandb-summary.json").write_text(json.dumps(logged))
+    (folder / "files" / "config.yaml").write_text("{}\n")
+    record = read_wandb_run(folder)
+    assert record["asd"] == pytest.approx(0.0123) and record["asd_lo"] == pytest.approx(0.01)
+
+
+def test_a_row_whose_seeds_ran_with_other_settings_is_not_averaged_and_the_table_says_why():
+    from spread.experiments.ablation_seeds import aggregate, differ_note
+
+    def record(variant, seed, value, sampler):
+        return {"variant": variant, "status": "ok", "grecall": value, "col_mesh": 0.1,
+                "settings": {"ckpt": f"c{seed}{variant}", "seed": seed, "protocol.seed": seed, "sampler": sampler}}
+
+    per_seed = {0: [record("base", 0, 0.5, "ddim-5"), record("geometry", 0, 0.6, "ddim-5")],
+                1: [record("base", 1, 0.7, "ddim-10"), record("geometry", 1, 0.8, "ddim-5")]}
+    rows = {r["variant"]: r for r in aggregate(per_seed)}
+    assert rows["geometry"]["grecall"] == pytest.approx(0.7) and rows["geometry"]["seeds"] == 2  # seeds differ only
+    assert rows["base"]["grecall"] is None and rows["base"]["seeds"] == 0
+    assert rows["base"]["status"] == "not averaged: its seeds' runs differ in sampler (ddim-10, ddim-5)"
+    assert "Ours (base): sampler (ddim-10, ddim-5)" in differ_note(list(rows.values()))
+
+
+def test_eta_on_a_sampler_that_ignores_it_is_refused_rather_than_made_a_second_identity():
+    from spread.model.diffusion import Sampler
+
+    for kind in ("ddpm", "dpmsolver++"):
+        with pytest.raises(ValueError, match=rf"sampler.eta=0.5: only the ddim sampler reads eta \({re.escape(kind)} "):
+            Sampler(kind, 10, eta=0.5)
+        assert Sampler(kind, 10, eta=0.0).label == f"{kind}-10"
+    assert Sampler("ddim", 10, eta=0.5).label == "ddim-10-eta0.5"

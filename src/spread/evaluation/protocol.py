@@ -101,9 +101,12 @@ class EvalProtocol:
         if self.physics_sleep and self.physics != "mujoco":
             raise ValueError(f"protocol.physics_sleep=true needs protocol.physics=mujoco (got {self.physics!r}: "
                              "only C MuJoCo's runs have sleeping islands here)")
-        from spread.metrics.registry import selected_metrics
+        from spread.metrics.registry import METRICS, selected_metrics
 
-        self.metrics = [spec.name for spec in selected_metrics([str(m) for m in self.metrics])]
+        # a set of metrics, in the registry's order: [grecall, col_mesh] and [col_mesh, grecall] are one protocol
+        chosen = [spec.name for spec in selected_metrics([str(m) for m in self.metrics])]
+        rank = {name: i for i, name in enumerate(METRICS.names())}
+        self.metrics = sorted(chosen, key=lambda name: rank.get(name, len(rank)))  # stable: the rest as given
 
     def physics_params(self):
         """The settings of the Stability world, whose type picks the engine (:func:`spread.physics.get_world`):

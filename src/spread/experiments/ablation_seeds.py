@@ -59,6 +59,23 @@ def mean_sd(values: list[float]) -> tuple[float | None, float | None]:
     return mean, sd
 
 
+def settings_across_seeds(records: list[dict]) -> str:
+    """The settings in which one row's runs over the seeds differ, besides what the seed changes by design (the
+    checkpoint and every ``seed``): ``"sampler (ddim-10, ddim-5)"``; empty when none does."""
+    from spread.runtime.fingerprint import differing
+
+    rows = [r.get("settings") or {} for r in records]
+    keys = [k for k in differing(rows) if k != "ckpt" and "seed" not in k.rsplit(".", 1)[-1]]
+    return "; ".join(f"{k} ({', '.join(sorted({str(r.get(k)) for r in rows}))})" for k in keys)
+
+
+def differ_note(rows: list[dict]) -> str:
+    """The table's line naming the rows whose seeds' runs differ in a setting (empty when none)."""
+    named = [f"{r['method']}: {r['not_averaged']}" for r in rows if r.get("not_averaged")]
+    return ("Not averaged (– in the table), as their seeds' runs were made with other settings: " + "; ".join(named)
+            + ".") if named else ""
+
+
 def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
     """One record per variant over the seeds' records (module docstring)."""
     variants = [r["variant"] for r in next(iter(per_seed.values()))] if per_seed else []
@@ -69,6 +86,10 @@ def aggregate(per_seed: dict[int, list[dict]]) -> list[dict]:
         ok = [r for r in mine if r.get("status") == "ok"]
         row = {"variant": variant, "method": LABELS[variant], "seeds": len(ok),
                "status": "ok" if len(ok) == len(mine) else f"{len(mine) - len(ok)} of {len(mine)} seeds failed"}
+        differ = settings_across_seeds(ok)
+        if differ:  # runs made with other settings are never averaged (a seed's row carried over from another run)
+            row["not_averaged"] = differ
+            row["status"], row["seeds"], ok = f"not averaged: its seeds' runs differ in {differ}", 0, []
         carried = sorted({str(r["carried_from"]) for r in mine if r.get("carried_from")})
         if carried:
             row["carried_from"] = ", ".join(carried)
@@ -92,7 +113,7 @@ def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str 
     caption = title or f"Ablation over training seeds {seeds}"
     note = (f"Each cell: mean ± sd across {len(seeds)} training seeds {seeds} (sample sd), then (± h): half the "
             "width of the 95 % bootstrap interval over scenes, averaged over the seeds.")
-    note = " ".join(n for n in (note, carried_note(rows)) if n)
+    note = " ".join(n for n in (note, carried_note(rows), differ_note(rows)) if n)
     paths = write_tables(rows, columns, stem, caption=caption, label="tab:ablation_seeds", note=note,
                          csv_keys=["variant", "method", "seeds", *[k for c in metrics for k in (c.key, f"{c.key}_sd")],
                                    "status", "carried_from"])

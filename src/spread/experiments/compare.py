@@ -355,8 +355,10 @@ def log_table1(records: list[dict], columns: list[Column], out_dir: str | Path, 
         for row in rows:
             table.add_data(*row)
         run.log({"table1": table})
-        run.summary.update({f"{r['method_key']}/{c.key}": r.get(c.key) for r in records for c in columns
-                            if c.key != "method"})
+        from spread.metrics.registry import in_display_units
+
+        run.summary.update({f"{r['method_key']}/{key}": value for r in records for key, value in in_display_units(
+            {c.key: r.get(c.key) for c in columns if c.key != "method"}).items()})  # display units (asd_mm)
         return run_folder(run)
     finally:
         run.finish()

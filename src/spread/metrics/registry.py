@@ -310,6 +310,50 @@ def value_spec(name: str) -> ValueSpec | None:
     return None
 
 
+BOUND_SUFFIXES = ("_lo", "_hi")
+
+
+def _split_bound(key: str) -> tuple[str, str]:
+    for end in BOUND_SUFFIXES:
+        if key.endswith(end):
+            return key[: -len(end)], end
+    return key, ""
+
+
+def in_display_units(values: dict) -> dict:
+    """Flat scalars keyed as ``metrics.json`` keys them (a value, its ``_lo``/``_hi``) in their display units, keyed
+    as a table's header names them (``asd`` in m → ``asd_mm`` in mm: :attr:`ValueSpec.key`), for the trackers
+    (wandb summaries, MLflow metrics); a key of no value with a unit is kept as it is. :func:`in_stored_units`
+    reads them back."""
+    out = {}
+    for key, value in values.items():
+        base, end = _split_bound(str(key))
+        spec = value_spec(base) if end else value_spec(str(key))
+        if spec is None or not spec.unit:
+            out[key] = value
+        else:
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            out[f"{spec.key}{end}"] = spec.display(value) if number else value
+    return out
+
+
+def in_stored_units(values: dict) -> dict:
+    """:func:`in_display_units`'s scalars back as ``metrics.json`` keys and units (``asd_mm`` in mm → ``asd`` in
+    m); a key already stored so (a run logged before the trackers took display units) is kept as it is."""
+    by_key = {spec.key: spec for _, metric in METRICS.items() for spec in metric.values if spec.unit}
+    by_key |= {spec.key: spec for spec in SET_METRICS if spec.unit}
+    out = {}
+    for key, value in values.items():
+        base, end = _split_bound(str(key))
+        spec = by_key.get(base) if end else by_key.get(str(key))
+        if spec is None or (spec.name + end) in values:
+            out[key] = value
+        else:
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            out[f"{spec.name}{end}"] = float(value) / spec.scale if number else value
+    return out
+
+
 def display_spec(name: str):
     """The display of a metric or set metric by name (None for neither)."""
     for spec in SET_METRICS:

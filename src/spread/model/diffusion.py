@@ -258,6 +258,9 @@ class Sampler:
             self.steps = spec.steps
         if not 1 <= self.steps <= TRAIN_SCHEDULER_CONFIG["num_train_timesteps"]:
             raise ValueError(f"sampler steps must be in [1, 1000], got {self.steps}")
+        if float(self.eta) != 0.0 and self.kind != "ddim":  # one computation, one identity: eta is DDIM's alone
+            raise ValueError(f"sampler.eta={self.eta:g}: only the ddim sampler reads eta ({self.kind} ignores it, so "
+                             f"its samples would be the same as at eta 0); leave it at 0 or use sampler=ddim")
 
     @classmethod
     def from_config(cls, config: "Sampler | Mapping | str | None") -> "Sampler":

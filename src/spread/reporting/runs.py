@@ -291,7 +291,9 @@ def read_wandb_run(path: str | Path) -> dict:
         if not found:
             raise RunError(f"{path}: no .wandb file and no files/wandb-summary.json (not a wandb run folder)")
         run = read_wandb_file(found[0])
-    summary = run["summary"]
+    from spread.metrics.registry import in_stored_units
+
+    summary = in_stored_units(run["summary"])  # the trackers' display units (asd_mm) back to metrics.json's
     if not any(k in summary for k in metric_names()):
         raise RunError(f"{path}: the wandb run has no registered metric in its summary (not an evaluation run)")
     from spread.runtime.fingerprint import config_identity

@@ -1,6 +1,7 @@
 """The ablation table on wandb: a ``wandb.Table`` (one row per variant; each metric in its display unit, headed as
 in the CSV (``asd_mm``), its bootstrap bounds and the bootstrap's seed beside it), the bar plot, the figures (``ablation_<row>.png`` in ``out_dir``: one test graph per
-row in 3D with its relation matrix), and per-variant summary values (``<variant>/<metric>``, ``_lo``, ``_hi``).
+row in 3D with its relation matrix), and per-variant summary values (``<variant>/<metric>``, ``_lo``, ``_hi``; in
+display units, keyed so: ``<variant>/asd_mm``).
 Offline by default: files under ``out_dir/wandb``, ``wandb sync`` uploads them later; ``mode="disabled"`` writes
 nothing and opens no connection."""
 
@@ -39,8 +40,11 @@ def log_ablation(records: list[dict], png: str | Path | None, out_dir: str | Pat
             if figure.exists():
                 payload[f"ablation_figure/{k}"] = wandb.Image(str(figure))
         run.log(payload)
-        run.summary.update({f"{r['variant']}/{key}": r.get(key) for r in records for c in columns_of(records)
-                            for key in (c.key, f"{c.key}_lo", f"{c.key}_hi") if key in r})
+        from spread.metrics.registry import in_display_units
+
+        run.summary.update({f"{r['variant']}/{key}": value for r in records for key, value in in_display_units(
+            {key: r.get(key) for c in columns_of(records) for key in (c.key, f"{c.key}_lo", f"{c.key}_hi")
+             if key in r}).items()})
         return run_folder(run)
     finally:
         run.finish()

@@ -31,7 +31,9 @@ def run_record(run, experiments: dict) -> dict | None:
     from spread.reporting.runs import RunError, identity_fields, is_finished_run, read_run_folder, record_metrics
     from spread.runtime.fingerprint import config_identity
 
-    tags, metrics, params = run.data.tags, run.data.metrics, run.data.params
+    from spread.metrics.registry import in_stored_units
+
+    tags, metrics, params = run.data.tags, in_stored_units(run.data.metrics), run.data.params
     if tags.get("spread.kind") or not any(m in metrics for m in record_metrics()):
         return None
     record = None

@@ -75,11 +75,13 @@ def room_type_scalars(metrics: dict) -> dict:
     same keys for wandb and MLflow. A room type is any text a scene file holds (an importer's, a user's): one that is
     not a plain name (``[A-Za-z0-9._-]``: ``Küche (groß)``, ``kitchen: open-plan``, ``a/b``) goes in as
     :func:`spread.io.safe_name` makes it (unsafe characters ``_``, a hash of the text appended, so two types never
-    share a key), which every tracker accepts as part of a metric name."""
+    share a key), which every tracker accepts as part of a metric name; each value in its display unit, keyed so
+    (``room/<type>/asd_mm``)."""
     from spread.io import safe_name
+    from spread.metrics.registry import in_display_units
 
     def number(v) -> bool:
         return isinstance(v, (int, float)) and not isinstance(v, bool)
 
     return {f"room/{safe_name(str(room))}/{k}": v for room, values in (metrics.get("per_room_type") or {}).items()
-            for k, v in (values or {}).items() if number(v)}
+            for k, v in in_display_units({k: v for k, v in (values or {}).items() if number(v)}).items()}

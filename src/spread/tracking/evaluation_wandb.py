@@ -21,8 +21,12 @@ def table_columns(metrics: dict) -> list[str]:
 
 
 def scalar_metrics(metrics: dict) -> dict:
-    """The numeric top-level entries of ``metrics.json`` (what wandb can chart)."""
-    return {k: v for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    """The numeric top-level entries of ``metrics.json`` (what wandb can chart), each value in its display unit
+    and keyed so (``asd_mm``: :func:`spread.metrics.registry.in_display_units`), as the run's tables show it."""
+    from spread.metrics.registry import in_display_units
+
+    numbers = {k: v for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    return in_display_units(numbers)
 
 
 def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:

@@ -288,12 +288,14 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
 
 
 def scalar_metrics(metrics: dict) -> dict:
-    """The numeric top-level entries of ``metrics.json`` (each metric, ``<m>_lo``/``<m>_hi``, counts), the
+    """The numeric top-level entries of ``metrics.json`` (each metric, ``<m>_lo``/``<m>_hi``, counts; in display
+    units, keyed so: ``asd_mm``, :func:`spread.metrics.registry.in_display_units`), the
     per-room-type ones as ``room/<type>/<entry>`` (:func:`spread.tracking.config.room_type_scalars`), and the
     bootstrap settings as ``ci_<key>``."""
+    from spread.metrics.registry import in_display_units
     from spread.tracking.config import room_type_scalars
 
-    out = {k: v for k, v in metrics.items() if is_number(v)} | room_type_scalars(metrics)
+    out = in_display_units({k: v for k, v in metrics.items() if is_number(v)}) | room_type_scalars(metrics)
     boot = metrics.get("bootstrap") or {}
     out |= {f"ci_{k}": boot[k] for k in ("level", "resamples", "seed") if is_number(boot.get(k))}
     return out
@@ -423,11 +425,14 @@ def system_monitor(run: MlflowRun):
 
 def log_table(run: MlflowRun, records: Iterable[dict], label_key: str, files: Iterable = ()) -> None:
     """A results table (an ablation's or a comparison's) into ``run``: each row's numeric entries as
-    ``<row label>/<key>`` metrics, and ``files`` (the table's md/csv/tex/png) as artifacts."""
+    ``<row label>/<key>`` metrics (in display units, keyed so: ``<row>/asd_mm``), and ``files`` (the table's md/csv/tex/png) as artifacts."""
+    from spread.metrics.registry import in_display_units
+
     values = {}
     for r in records:
         label = safe_name(r.get(label_key))
-        values |= {f"{label}/{k}": v for k, v in r.items() if is_number(v)}
+        numbers = in_display_units({k: v for k, v in r.items() if is_number(v)})
+        values |= {f"{label}/{k}": v for k, v in numbers.items()}
     run.log_metrics(values)
     for path in files:
         run.log_artifact(path, "table")

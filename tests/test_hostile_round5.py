@@ -325,3 +325,47 @@ def test_eta_on_a_sampler_that_ignores_it_is_refused_rather_than_made_a_second_i
             Sampler(kind, 10, eta=0.5)
         assert Sampler(kind, 10, eta=0.0).label == f"{kind}-10"
     assert Sampler("ddim", 10, eta=0.5).label == "ddim-10-eta0.5"
+
+
+def test_a_training_stage_is_known_by_the_settings_its_overrides_compose_to_not_by_their_spelling(tmp_path):
+    from spread.experiments.stages import Ledger, Stage, StageError, run_stage, typed_training
+
+    folder = tmp_path / "abl" / "train" / "base"
+    ledger, runs = Ledger(tmp_path / "abl" / "ledger.json"), []
+
+    def train(resume: bool) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "metrics.json").write_text("{}")
+        runs.append(resume)
+
+    def stage(*overrides, data="d1", where=str(tmp_path / "abl")):
+        lists = ["experiment=quick", *overrides, f"data.root={where}/data", f"out_dir={where}/train/base",
+                 "experiment_name=ablate_x"]
+        inputs = {"overrides": lists, **({"data_sha256": data} if data else {})}
+        return Stage("train/base", folder, [folder / "metrics.json"], inputs, train, derived=False,
+                     typed=typed_training)
+
+    assert run_stage(stage("model.lr=1e-3"), ledger) == "done" and len(runs) == 1
+    # the same settings spelled otherwise, the folder named relative to another working directory: re-used
+    assert run_stage(stage("model.lr=0.001", where="abl"), ledger) == "skipped"
+    assert run_stage(stage("model.lr=1.0e-3", "logger=csv"), ledger) == "skipped"
+    with pytest.raises(StageError, match=r"changed: config.model.lr"):
+        run_stage(stage("model.lr=0.01"), ledger)
+    with pytest.raises(StageError, match=r"changed: data_sha256"):  # other rooms at the same path
+        run_stage(stage("model.lr=1e-3", data="d2"), ledger)
+    old = Ledger(tmp_path / "abl" / "old_ledger.json")  # a ledger written before stages kept the data's content
+    assert run_stage(stage("model.lr=1e-3", data=None), old) == "skipped"
+    assert run_stage(stage("model.lr=0.001", data="d1"), old) == "skipped"
+    assert len(runs) == 1
+
+
+def test_a_copy_of_the_dataset_elsewhere_resumes_a_sampling_run_and_the_record_says_where_it_now_lies(dataset, run,
+                                                                                                       tmp_path):
+    ckpt = run / "checkpoints" / "last.ckpt"
+    out = tmp_path / "s"
+    sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0")
+    copy = tmp_path / "moved"
+    shutil.copytree(dataset.parent, copy)  # the data and its asset library: the same content at another path
+    again = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0")
+    assert again.manifest["redone_because"] is None and again.manifest["written_this_run"] == 0
+    assert again.manifest["fingerprint"]["data_root"] == str((copy / "data").resolve())

@@ -155,6 +155,9 @@ class Stage:
     derived: bool = True
     complete: Callable[[], bool] | None = None
     exclusive: bool = False
+    #: the typed identity of a recorded ``inputs`` (this run's and the ledger's alike), compared instead of the
+    #: record itself: the settings its overrides compose to, not how they were spelled (None: the record itself)
+    typed: Callable[[dict], dict] | None = None
 
     def finished(self) -> bool:
         return all(p.exists() for p in self.outputs) and (self.complete is None or self.complete())
@@ -210,6 +213,21 @@ class Ledger:
         forget_begun(self.path, name)
 
 
+def typed_inputs(stage: Stage, before: dict, now: dict) -> tuple[dict, dict]:
+    """(recorded, this run's) inputs as the done-check compares them: through :attr:`Stage.typed` when the stage
+    has it (a part only this run's record holds — one added since the ledger was written — is left out of both),
+    else as recorded; a record the typed identity cannot read (overrides that no longer compose) as recorded."""
+    from spread.runtime.fingerprint import normalised
+
+    if stage.typed is None:
+        return before, now
+    try:
+        held, wanted = normalised(stage.typed(before)), normalised(stage.typed(now))
+    except Exception:  # noqa: BLE001 - an old record this version cannot compose: compared as written
+        return before, now
+    return held, {k: v for k, v in wanted.items() if k in held}
+
+
 def run_stage(stage: Stage, ledger: Ledger) -> str:
     """Skip, continue, redo or refuse the stage (module docstring, *Resume*) by the platform's done-check
     (:func:`spread.runtime.fingerprint.done_check`); returns "skipped" or "done"."""
@@ -226,7 +244,7 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
     if before is None:  # outputs the ledger does not know: its command re-uses or redoes them by its own record
         decision = done_check(inputs, inputs, present=present, finished=finished and not stage.derived)
     else:
-        decision = done_check(before, inputs, present=present, finished=finished)
+        decision = done_check(*typed_inputs(stage, before, inputs), present=present, finished=finished)
     if decision.reuse:
         if before is None:
             ledger.record(stage.name, inputs, None)
@@ -247,6 +265,35 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
         raise StageError(f"{stage.name}: the command returned but its outputs are missing: {missing}")
     ledger.record(stage.name, inputs, round(time.perf_counter() - started, 3), decision.reason, started_at=started_at)
     return "done"
+
+
+#: Settings of a composed ``spread-train`` config that change none of its trained numbers: where it is written and
+#: logged (the run folder, the runs' root, the tracking, the wandb group) and where the data lies (its content is
+#: the stage's ``data_sha256``).
+UNTRAINED = ("out_dir", "paths", "logger", "experiment_name", "tags")
+
+
+def typed_training(inputs: dict) -> dict:
+    """A training stage's identity: the ``spread-train`` config its overrides compose to, less :data:`UNTRAINED`
+    and ``data.root``, with the data's content (``data_sha256``, in records made since it was kept)."""
+    from omegaconf import OmegaConf
+
+    from spread.configs import compose
+
+    config = OmegaConf.to_container(compose("train", list(inputs["overrides"])), resolve=False)
+    for key in UNTRAINED:
+        config.pop(key, None)
+    (config.get("data") or {}).pop("root", None)
+    return {"config": config, **({"data_sha256": inputs["data_sha256"]} if "data_sha256" in inputs else {})}
+
+
+def typed_generation(inputs: dict) -> dict:
+    """A data stage's identity: what its rooms depend on (:meth:`spread.procgen.dataset.DatasetConfig.fingerprint`)
+    and how many, from the ``spread-generate`` config its overrides compose to."""
+    from spread.configs import compose, to_object
+
+    command = to_object(compose("generate", list(inputs["overrides"])))
+    return {"fingerprint": command.fingerprint(), "rooms": int(command.rooms)}
 
 
 def command_line(command: str, overrides: list[str]) -> str:
@@ -342,7 +389,8 @@ class StageEngine:
             log.info("  ≙ %s", command_line("spread-generate", overrides))
             self.commands.generate(overrides)
 
-        return Stage("data", root, [root / "manifest.json"], {"overrides": overrides}, run, derived=False)
+        return Stage("data", root, [root / "manifest.json"], {"overrides": overrides}, run, derived=False,
+                     typed=typed_generation)
 
     def timed(self, name: str, run: Callable[[bool], None]) -> Callable[[bool], None]:
         """A stage body as it runs: the study's ``timed`` wrapper when it has one (e.g. to record its CPU time)."""
@@ -354,14 +402,17 @@ class StageEngine:
         last = folder / "checkpoints" / "last.ckpt"
         overrides = self.spec.named([*self.study.train_lists(trained), f"data.root={self.spec.dataset}",
                                      f"out_dir={folder}"])
+        from spread.runtime.fingerprint import dataset_digest
+
+        inputs = {"overrides": overrides, "data_sha256": dataset_digest(self.spec.dataset, ["train", "val"])}
 
         def run(resume: bool) -> None:
             extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]
             log.info("  ≙ %s", command_line("spread-train", overrides + extra))
             self.commands.train(overrides + extra, folder)
 
-        return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], {"overrides": overrides},
-                     self.timed(f"train/{trained}", run), derived=False)
+        return Stage(f"train/{trained}", folder, [folder / "metrics.json", last], inputs,
+                     self.timed(f"train/{trained}", run), derived=False, typed=typed_training)
 
     def sample_stage(self, variant: str) -> Stage:
         from spread.configs import compose, to_object
@@ -444,8 +495,11 @@ class StageEngine:
             return False
         from spread.runtime.fingerprint import done_check
 
+        from spread.runtime.fingerprint import normalised
+
         before = self.ledger.begun(stage.name) or self.ledger.inputs(stage.name)
-        return before is not None and done_check(before, stage.inputs, present=True, finished=stage.finished()).reuse
+        return before is not None and done_check(*typed_inputs(stage, before, normalised(stage.inputs)), present=True,
+                                                 finished=stage.finished()).reuse
 
     def attempt(self, name: str, build: Callable[[], Stage | None], needs: list[str]) -> bool:
         """Build and run one stage unless a stage it needs failed; record the outcome; True when finished."""

@@ -154,7 +154,8 @@ def done_check(before: dict | None, now: dict, *, present: bool, finished: bool 
         return Decision("redo", "resume=false")
     if not isinstance(before, dict):
         return Decision("redo", unknown)
-    changed = changed_keys(normalised(before), normalised(now))
+    # where the inputs lie is not what they are (the data's content is its own key): a moved or copied dataset resumes
+    changed = [k for k in changed_keys(normalised(before), normalised(now)) if k.split(".")[0] not in WHERE]
     if changed:
         return Decision("redo", f"changed: {', '.join(changed)}")
     return Decision("reuse" if finished else "resume")

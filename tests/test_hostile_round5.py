@@ -129,7 +129,7 @@ def test_spread_generate_refuses_a_folder_of_rooms_made_otherwise_or_more_of_the
                            assets=AssetSource(copy_from=str(tmp_path / "assets")), room=RoomConfig(max_objects=8))
     with pytest.raises(ValueError, match=r"changed: seed: 7 -> 8"):
         generate_dataset(data, DatasetConfig(**{**config.__dict__, "seed": 8}), progress=False)
-    with pytest.raises(ValueError, match=r"holds 2 room\(s\) beyond rooms=10 .*give rooms=12 or more"):
+    with pytest.raises(ValueError, match=r"holds 2 room\(s\) this run would not make .*give rooms=12 or more"):
         generate_dataset(data, DatasetConfig(**{**config.__dict__, "rooms": 10}), progress=False)
     (data / "generation.json").unlink()  # a folder made before the pin: its manifest's config says the same
     with pytest.raises(ValueError, match=r"changed: room.max_objects: 8 -> 10"):
@@ -139,6 +139,21 @@ def test_spread_generate_refuses_a_folder_of_rooms_made_otherwise_or_more_of_the
     assert manifest["this_run"]["rooms_generated"] == 0 and sum(manifest["counts"].values()) == 12
     assert sorted(p.relative_to(data) for p in data.rglob("*.npz")) == rooms
     assert json.loads((data / "generation.json").read_text())["status"] == "done"
+    # a run that failed before its first room left only its pin: the next run, with other settings, goes ahead
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "generation.json").write_text(json.dumps({"fingerprint": {"seed": 99}, "status": "running"}))
+    from spread.procgen.dataset import check_folder
+
+    check_folder(empty, config)
+    assert json.loads((empty / "generation.json").read_text())["fingerprint"]["seed"] == 7
+    # rooms of an earlier version's run stopped before its manifest (no record): continued when this run makes them
+    shutil.copytree(data / "train", empty / "train")
+    (empty / "generation.json").unlink()
+    check_folder(empty, config)
+    (empty / "generation.json").unlink()
+    with pytest.raises(ValueError, match=r"without a record of the settings"):  # not rooms seed 8 would make
+        check_folder(empty, DatasetConfig(**{**config.__dict__, "seed": 8}))
 
 
 def test_mlflow_takes_any_room_type_as_part_of_a_metric_name_and_two_types_never_share_one():
@@ -205,6 +220,7 @@ def test_spread_sweep_refuses_one_value_twice_a_sweep_of_its_own_settings_and_a_
         parse_arguments(["seeds=1,2", "guidance.collision=0.0,0.1", "out_dir=x"])
     with pytest.raises(ValueError, match=r"name=\['a', 'b'\]: one text value"):
         parse_arguments(["name=[a,b]", "guidance.collision=0.0,0.1", "out_dir=x"])
+    assert parse_arguments(["name=2024", "guidance.collision=0.0,0.1", "out_dir=x"]).settings.name == "2024"
     with pytest.raises(ValueError, match=r"max_concurrent=2.7: a whole number of trials"):  # before: 2, silently
         parse_arguments(["max_concurrent=2.7", "guidance.collision=0.0,0.1", "out_dir=x"])
     from spread.cli.sweep import main  # the console script's main, in this process (no process start)
@@ -324,12 +340,17 @@ def test_a_row_whose_seeds_ran_with_other_settings_is_not_averaged_and_the_table
 
 def test_eta_on_a_sampler_that_ignores_it_is_refused_rather_than_made_a_second_identity():
     from spread.model.diffusion import Sampler
+    from spread.runtime.fingerprint import settings
+    from spread.sampling import SamplingConfig
 
     for kind in ("ddpm", "dpmsolver++"):
         with pytest.raises(ValueError, match=rf"sampler.eta=0.5: only the ddim sampler reads eta \({re.escape(kind)} "):
-            Sampler(kind, 10, eta=0.5)
+            SamplingConfig(ckpt="c", out_dir="o", sampler={"kind": kind, "steps": 10, "eta": 0.5})
         assert Sampler(kind, 10, eta=0.0).label == f"{kind}-10"
-    assert Sampler("ddim", 10, eta=0.5).label == "ddim-10-eta0.5"
+    assert SamplingConfig(ckpt="c", out_dir="o", sampler="ddim-10-eta0.5").sampler.label == "ddim-10-eta0.5"
+    # a run recorded with one before the refusal still reads back (spread-report, spread.results)
+    recorded = {"sampling": {"sampler": {"kind": "ddpm", "steps": 10, "eta": 0.5, "clip_x0": True}}}
+    assert settings(recorded)["sampler"] == "ddpm-10-eta0.5"
 
 
 def test_a_training_stage_is_known_by_the_settings_its_overrides_compose_to_not_by_their_spelling(tmp_path):
@@ -374,3 +395,22 @@ def test_a_copy_of_the_dataset_elsewhere_resumes_a_sampling_run_and_the_record_s
     again = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0")
     assert again.manifest["redone_because"] is None and again.manifest["written_this_run"] == 0
     assert again.manifest["fingerprint"]["data_root"] == str((copy / "data").resolve())
+
+
+@pytest.mark.parametrize("experiment", ["quick", "atiss_quick", "diffuscene_quick"])
+def test_a_resume_with_the_checkpoints_own_settings_is_never_refused_whatever_the_model_takes_from_the_data(
+        dataset, experiment):
+    import hydra
+
+    from spread.training.fit import resumed_changes
+
+    from helpers import compose
+
+    cfg = compose("train", f"experiment={experiment}", f"data.root={dataset}", "data.augment=true")
+    model, datamodule = hydra.utils.instantiate(cfg.model), hydra.utils.instantiate(cfg.data)
+    # the checkpoint as fitting writes it: what setup() took from the data filled in
+    held = {**dict(model.hparams), **model.data_hparams(datamodule)}
+    checkpoint = {"hyper_parameters": held, "datamodule_hyper_parameters": dict(datamodule.hparams)}
+    assert resumed_changes(checkpoint, model, datamodule) == []
+    other = {**checkpoint, "hyper_parameters": {**held, "lr": float(held["lr"]) * 10}}
+    assert [c.split(":")[0] for c in resumed_changes(other, model, datamodule)] == ["model.lr"]

@@ -119,6 +119,12 @@ class BaselineModule(L.LightningModule):
         self.network = self.make_network()
         self.ema = EMA(self.network, self.hparams.ema_decay)
 
+    def data_hparams(self, datamodule) -> dict:
+        """The hyperparameters :meth:`setup` takes from ``datamodule``'s data when fitting starts (those not given:
+        ``bounds``, ``categories``, ``size_bounds``), as it would set them now; {} without a data folder."""
+        root = getattr(datamodule, "root", None)
+        return {} if root is None else dataset_facts(root)
+
     def setup(self, stage: str | None = None) -> None:
         datamodule = self.trainer.datamodule if self._trainer is not None else None
         root = getattr(datamodule, "root", None)

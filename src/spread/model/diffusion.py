@@ -258,7 +258,12 @@ class Sampler:
             self.steps = spec.steps
         if not 1 <= self.steps <= TRAIN_SCHEDULER_CONFIG["num_train_timesteps"]:
             raise ValueError(f"sampler steps must be in [1, 1000], got {self.steps}")
-        if float(self.eta) != 0.0 and self.kind != "ddim":  # one computation, one identity: eta is DDIM's alone
+
+    def check_eta(self) -> None:
+        """``ValueError`` for an ``eta`` other than 0 on a sampler that does not read it (every kind but ``ddim``):
+        its samples would be those at eta 0 under a second fingerprint and label. Checked where a run is configured
+        (:class:`spread.sampling.SamplingConfig`), not where a recorded sampler is read back."""
+        if float(self.eta) != 0.0 and self.kind != "ddim":
             raise ValueError(f"sampler.eta={self.eta:g}: only the ddim sampler reads eta ({self.kind} ignores it, so "
                              f"its samples would be the same as at eta 0); leave it at 0 or use sampler=ddim")
 

@@ -236,6 +236,12 @@ class SceneDiffusion(L.LightningModule):
 
         self.set_bounds(load_stats(root / "stats.json")["bounds_translations"])
 
+    def data_hparams(self, datamodule) -> dict:
+        """The hyperparameters :meth:`setup` takes from ``datamodule``'s data when fitting starts: ``bounds``, as its
+        datasets normalise with them (:meth:`~spread.data.SceneDataModule.translation_bounds`; {} otherwise)."""
+        bounds = getattr(datamodule, "translation_bounds", None)
+        return {} if bounds is None else {"bounds": [float(b) for b in bounds()]}
+
     def initialise_from(self, path: str) -> list[str]:
         """Start the network (and its EMA) from the EMA weights of checkpoint ``path``: every weight of the
         same name and shape; the rest (a ``geometry`` model's perceiver and geometry attention, starting from a

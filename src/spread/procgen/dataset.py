@@ -142,15 +142,22 @@ def fingerprint_of(config: dict) -> dict:
 def check_folder(out: Path, config: DatasetConfig) -> None:
     """Refuse, in one line naming what differs, a dataset folder whose rooms were made otherwise (module docstring):
     the fingerprint pinned in ``generation.json`` (or, for a folder made before that pin, its manifest's ``config``)
-    against this run's (settings added after the record was written are not compared); rooms without either record; more rooms of the seed than ``rooms`` asks. Then pin this run's
-    fingerprint (``status: running``)."""
+    against this run's (settings added after the record was written are not compared); more rooms than ``rooms``
+    asks, or rooms this run would not make. A folder without rooms takes this run's settings (a run that failed
+    before its first room); rooms without any record (a run of an earlier version stopped before its manifest) are
+    continued when each is one this run would make, with a warning. Then pin this run's fingerprint
+    (``status: running``)."""
+    import logging
+
     from spread.runtime.fingerprint import described_changes, normalised
 
     now = normalised(config.fingerprint())
     present = sorted(p for s in SPLITS if (out / s).is_dir() for p in (out / s).glob("*.npz"))
+    planned = {(split_of(i, config), f"{scene_id_of(i, config.seed)}.npz") for i in range(config.rooms)}
+    extra = [p for p in present if (p.parent.name, p.name) not in planned]
     before = None
     for path, key in ((out / PIN, "fingerprint"), (out / "manifest.json", "config")):
-        if path.exists():
+        if present and path.exists():
             try:
                 record = read_json(path).get(key)
             except (OSError, ValueError, AttributeError):
@@ -160,8 +167,13 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
                 before = record if key == "fingerprint" else normalised(fingerprint_of(record))
                 break
     if present and before is None:
-        raise ValueError(f"out_dir={out} holds {len(present)} room file(s) ({present[0].name}, ...) without a record "
-                         f"of the settings they were made with ({PIN}, manifest.json); generate into another out_dir")
+        if extra:
+            raise ValueError(f"out_dir={out} holds {len(present)} room file(s) ({extra[0].name}, ...) without a "
+                             f"record of the settings they were made with ({PIN}, manifest.json); generate into "
+                             f"another out_dir")
+        logging.getLogger("spread.generate").warning(
+            "%s: %d room file(s) without a record of their settings (a run stopped before its manifest); continuing "
+            "them as rooms of these settings (seed %d)", out, len(present), config.seed)
     if before is not None:
         changed = described_changes(before, now, held_only=True)
         if changed:
@@ -169,12 +181,10 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
             raise ValueError(f"out_dir={out} holds rooms generated with other settings (changed: {shown}"
                              f"{'; ...' if len(changed) > 4 else ''}); generate into another out_dir, or delete "
                              f"{out} to start over")
-    planned = {f"{scene_id_of(i, config.seed)}.npz" for i in range(config.rooms)}
-    extra = [p for p in present if p.name not in planned]
     if extra:
-        raise ValueError(f"out_dir={out} holds {len(extra)} room(s) beyond rooms={config.rooms} ({extra[0].name}, ...;"
-                         f" {len(present)} in all); give rooms={len(present)} or more to keep and complete them, or "
-                         f"generate a smaller dataset into another out_dir")
+        raise ValueError(f"out_dir={out} holds {len(extra)} room(s) this run would not make ({extra[0].parent.name}/"
+                         f"{extra[0].name}, ...; {len(present)} in all; rooms={config.rooms}); give rooms="
+                         f"{len(present)} or more to keep and complete them, or generate into another out_dir")
     write_json_atomic(out / PIN, {"fingerprint": now, "status": "running"})
 
 

@@ -151,10 +151,9 @@ def folder_identity(path: Path, metrics: dict) -> dict:
         from omegaconf import OmegaConf
 
         identity |= config_identity(OmegaConf.to_container(OmegaConf.create(read_text_checked(hydra)), resolve=False))
-    if "sampled_with" in metrics:  # what the evaluation measured, as it recorded it (None: no sampling run's scenes)
-        if isinstance(metrics["sampled_with"], dict):
-            identity |= metrics["sampled_with"]
-    else:  # an evaluation written before it recorded that: the sampling folder as it is now
+    if isinstance(metrics.get("sampled_with"), dict):  # what the evaluation measured, as it recorded it
+        identity |= metrics["sampled_with"]
+    else:  # none recorded (written before that record, or scenes of no fingerprinted run): the folders as they are
         identity = recorded_sampling(path, metrics, identity)
     protocol = optional_json(path / "protocol.json")
     if isinstance(protocol.get("protocol"), dict):
@@ -163,9 +162,9 @@ def folder_identity(path: Path, metrics: dict) -> dict:
 
 
 def recorded_sampling(path: Path, metrics: dict, identity: dict) -> dict:
-    """``identity`` with the sampling identity an evaluation without ``sampled_with`` is given: its scenes' sampling
-    folder's ``sampling.json`` fingerprint as it is when the report reads it (or, for older manifests, its guidance
-    where ``identity`` has none)."""
+    """``identity`` with the sampling identity an evaluation without a ``sampled_with`` record is given: its
+    scenes' sampling folder's ``sampling.json`` fingerprint as it is when the report reads it (or, for older
+    manifests, its guidance where ``identity`` has none)."""
     from spread.runtime.fingerprint import config_identity
 
     identity = dict(identity)

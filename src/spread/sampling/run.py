@@ -102,6 +102,8 @@ class SamplingConfig:
     def __post_init__(self) -> None:  # Python callers may give a sampler name or a guidance mode
         if not isinstance(self.sampler, Sampler) and self.sampler is not MISSING:
             self.sampler = Sampler.from_config(self.sampler)
+        if isinstance(self.sampler, Sampler):
+            self.sampler.check_eta()
         if not isinstance(self.guidance, GuidanceConfig):
             self.guidance = GuidanceConfig.from_config(self.guidance)
         from spread.sampling.pipeline import check_values

@@ -130,7 +130,10 @@ class ParentRun:
         handle = MlflowRun(client, child.info.run_id, self.run.uri)
         metrics = read_evaluation(folder)
         values = scalar_metrics(metrics) if metrics else {}
-        values |= {k: v for k, v in row.items() if is_number(v) and k not in NOT_METRICS and k not in values}
+        from spread.metrics.registry import in_display_units
+
+        row_values = in_display_units({k: v for k, v in row.items() if is_number(v) and k not in NOT_METRICS})
+        values |= {k: v for k, v in row_values.items() if k not in values}  # one unit a value, as scalar_metrics
         handle.log_metrics({safe_key(k): v for k, v in values.items()})
         handle.finish()
         return child.info.run_id

@@ -73,9 +73,10 @@ RESUMABLE = {"model": ("sample_every_n_epochs", "val_sampler", "val_sample_scene
 def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
     """``model.<key>: held -> now`` / ``data.<key>: ...`` for each hyperparameter this run's model (and datamodule)
     would train with that differs from what the checkpoint was trained with, but :data:`RESUMABLE`; keys the
-    checkpoint does not hold (hyperparameters added after it was written, at their defaults) are not compared; the
-    data folder is compared as a resolved path, and the model's translation bounds (set from the data when fitting
-    starts) as the datamodule's data gives them now."""
+    checkpoint does not hold (hyperparameters added after it was written, at their defaults) are not compared; what
+    the model takes from the data when fitting starts (``data_hparams``: SceneDiffusion's translation bounds, a
+    baseline's bounds, categories and size bounds) as the data gives it now; the data folder by its content
+    (:func:`moved_data`)."""
     from spread.runtime.fingerprint import described_changes, normalised
 
     out = []
@@ -88,17 +89,30 @@ def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
         for key in RESUMABLE[prefix]:
             held.pop(key, None)
             now.pop(key, None)
-        if prefix == "model" and now.get("bounds") is None:  # set from the data at fit's start: the data's now
-            bounds = getattr(datamodule, "translation_bounds", None)
-            if bounds is None:
-                held.pop("bounds", None)
-                now.pop("bounds", None)
-            else:
-                now["bounds"] = [float(b) for b in bounds()]
-        if prefix == "data" and "root" in held and "root" in now:
-            held["root"], now["root"] = (str(Path(str(r)).resolve()) for r in (held["root"], now["root"]))
+        if prefix == "model":  # what the model takes from the data when fitting starts: as the data gives it now
+            facts = getattr(model, "data_hparams", None)
+            given = normalised(facts(datamodule)) if facts is not None and datamodule is not None else {}
+            now |= {k: v for k, v in given.items() if now.get(k) is None}
+            for key in [k for k, v in now.items() if v is None and held.get(k) is not None]:  # set at fit, unknown
+                held.pop(key)
+                now.pop(key)
+        if prefix == "data" and "root" in held and "root" in now:  # where the data lies is not what it is
+            out += moved_data(str(held.pop("root")), str(now.pop("root")))
         out += [f"{prefix}.{change}" for change in described_changes(held, now, held_only=True)]
     return out
+
+
+def moved_data(before: str, now: str) -> list[str]:
+    """``data.root: before -> now (other rooms)`` when the checkpoint's data folder still exists and holds other
+    training or validation rooms than this run's; a moved or copied dataset (or one no longer there) is no change."""
+    from spread.runtime.fingerprint import dataset_digest
+
+    a, b = Path(before), Path(now)
+    if not a.is_dir() or a.resolve() == b.resolve():
+        return []
+    if dataset_digest(a, ["train", "val"]) == dataset_digest(b, ["train", "val"]):
+        return []
+    return [f"data.root: {before!r} -> {now!r} (other rooms)"]
 
 
 def check_resume_checkpoint(path: Path, model, datamodule=None) -> None:

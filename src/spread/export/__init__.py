@@ -168,24 +168,20 @@ class ExportReport:
 OWN_FILES = ("export.json", "export.log")
 
 
-def output_clash(scene_id: str, report: "ExportReport", out_dir, fmt: str) -> str | None:
-    """Why ``scene_id``'s output cannot be written as named (another scene of this export has the id or the same
-    output name, or the name is one of :data:`OWN_FILES`), or None."""
+def output_clash(scene_id: str, taken: dict[str, str], out_dir, fmt: str) -> str | None:
+    """Why ``scene_id``'s output cannot be written as named — its output name is one of :data:`OWN_FILES`, or in
+    ``taken`` (output name → the scene file written under it by this export) — or None."""
     name = export_path(out_dir, scene_id, fmt).name
     if name in OWN_FILES:
         return f"names the export's own {name}"
-    taken = {Path(p).name: i for i, p in report.written.items()}
-    if scene_id in report.written or name in taken:
-        first = report.sources[scene_id if scene_id in report.written else taken[name]]
-        return f"gives the output name of {first}"
-    return None
+    return f"gives the output name of {taken[name]}" if name in taken else None
 
 
-def free_id(wanted: str, report: "ExportReport", out_dir, fmt: str) -> str:
+def free_id(wanted: str, taken: dict[str, str], out_dir, fmt: str) -> str:
     """``wanted``, or ``wanted_2``, ``wanted_3``, ...: the first id whose output clashes with nothing
     (:func:`output_clash`)."""
     candidate, n = wanted, 1
-    while output_clash(candidate, report, out_dir, fmt):
+    while output_clash(candidate, taken, out_dir, fmt):
         n += 1
         candidate = f"{wanted}_{n}"
     return candidate
@@ -212,16 +208,19 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
         from tqdm import tqdm
 
         iterator = tqdm(files, desc=f"export {fmt}", unit="scene")
+    taken: dict[str, str] = {}  # output name → the scene file written under it (renamed ids included)
     for path in iterator:
         try:
             scene = read_scene(path, assets=library)
-            clash = output_clash(str(scene.scene_id), report, out_dir, fmt)
+            clash = output_clash(str(scene.scene_id), taken, out_dir, fmt)
             if clash:  # outputs are named by id: this one would overwrite another output or the report
-                renamed = free_id(f"{scene.scene_id}__{path.stem}", report, out_dir, fmt)
+                renamed = free_id(f"{scene.scene_id}__{path.stem}", taken, out_dir, fmt)
                 report.duplicates[str(path)] = f"scene id '{scene.scene_id}' {clash}; exported as '{renamed}'"
                 scene.scene_id = renamed
-            report.written[str(scene.scene_id)] = str(export_scene(scene, library, out_dir, fmt, floor=floor))
+            written = export_scene(scene, library, out_dir, fmt, floor=floor)
+            report.written[str(scene.scene_id)] = str(written)
             report.sources[str(scene.scene_id)] = str(path)
+            taken[Path(written).name] = str(path)
         except Exception as exc:  # one bad scene does not stop the export
             report.failed[path.stem] = f"{path}: {type(exc).__name__}: {exc}"
             if os.environ.get("SPREAD_DEBUG"):

@@ -111,7 +111,7 @@ def load_pipeline(cfg) -> ScenePipeline:
     from spread import readonce
 
     model = cached_model(cfg.ckpt, cfg.device)
-    check_settings(cfg, model)
+    check_sampling_kind(cfg, model)
     warn_graph_guidance(cfg.guidance, model, cfg.ckpt)
     data = checkpoint_data_settings(readonce.checkpoint(cfg.ckpt), model)
     dataset = cached_dataset(cfg.data.root, cfg.data.split, data["num_points"], data["seed"], data["geometry_distance"])
@@ -129,12 +129,18 @@ def check_settings(cfg, model) -> None:
     they cannot run: guidance on a method that samples its own way, and every check of the pipeline's (precision,
     the guidance scales, ``cuda_graph=true`` on a model whose step cannot be recorded). The driver runs it on the
     checkpoint's model built on the ``meta`` device before anything in the output folder is touched
-    (:func:`spread.sampling.run.check_checkpoint`); a worker again on its real model."""
+    (:func:`spread.sampling.run.check_checkpoint`); a worker's :func:`load_pipeline` makes the same checks on its
+    real model as it builds the pipeline."""
+    check_sampling_kind(cfg, model)
+    pipeline_of(cfg, model, None)
+
+
+def check_sampling_kind(cfg, model) -> None:
+    """``ValueError`` for guidance on a method that samples its own way (not through the pipeline's loop)."""
     if cfg.guidance.active and sampling_kind(model) != "pipeline":
         raise ValueError(f"guidance={cfg.guidance.mode}: guidance steers the methods that sample through the pipeline's "
                          f"loop; {cfg.ckpt} is a '{model.hparams.method}' checkpoint, which samples its own way "
                          f"(sample it with guidance=none)")
-    pipeline_of(cfg, model, None)
 
 
 def generated_scene(source: Scene, translation: np.ndarray, rotation: np.ndarray, item: SampleItem,

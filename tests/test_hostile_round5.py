@@ -67,14 +67,24 @@ def test_fewer_samples_per_graph_leave_exactly_the_planned_scenes_and_their_rend
     two = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=2",
                             "renders=6")
     assert len(list((out / "scenes").glob("*.npz"))) == 6 and len(list((out / "renders").glob("*_k1.png"))) == 3
-    kept = {p.name: p.read_bytes() for p in two.files if p.stem.endswith("_k0")}
+    first = {p.name: p.read_bytes() for p in two.files}
+    kept = {name: data for name, data in first.items() if name.endswith("_k0.npz")}
     one = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=1",
                             "renders=6")
     assert sorted(p.name for p in (out / "scenes").glob("*.npz")) == sorted(kept)
     assert {p.name: p.read_bytes() for p in one.files} == kept  # the planned scenes resumed, not sampled again
     assert not list((out / "renders").glob("*_k1*.png"))
-    assert one.manifest["removed_unplanned"] == 3 and one.manifest["samples"] == 3
+    assert one.manifest["set_aside_unplanned"] == 3 and one.manifest["samples"] == 3
     assert one.manifest["written_this_run"] == 0
+    # nothing sampled is lost: the k1 scenes and their renders wait in unplanned/ for a run that plans them
+    assert len(list((out / "unplanned" / "scenes").glob("*_k1.npz"))) == 3
+    assert len(list((out / "unplanned" / "renders").glob("*_k1.png"))) == 3
+    again = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=2",
+                              "renders=6")
+    assert again.manifest["taken_back"] == 3 and again.manifest["written_this_run"] == 0
+    assert {p.name: p.read_bytes() for p in again.files} == first
+    assert not list((out / "unplanned" / "scenes").glob("*.npz"))
+    assert len(list((out / "renders").glob("*_k1.png"))) == 3
 
 
 def test_a_report_gives_an_evaluation_the_sampling_settings_it_measured_after_its_folder_is_sampled_again(
@@ -395,6 +405,9 @@ def test_a_copy_of_the_dataset_elsewhere_resumes_a_sampling_run_and_the_record_s
     again = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0")
     assert again.manifest["redone_because"] is None and again.manifest["written_this_run"] == 0
     assert again.manifest["fingerprint"]["data_root"] == str((copy / "data").resolve())
+    # device=auto resolved as the samplers resolve it: the same run as device=cpu on a machine without a GPU
+    spelled = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0", "device=cpu")
+    assert spelled.manifest["redone_because"] is None and spelled.manifest["written_this_run"] == 0
 
 
 @pytest.mark.parametrize("experiment", ["quick", "atiss_quick", "diffuscene_quick"])

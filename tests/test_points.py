@@ -170,3 +170,82 @@ def test_a_point_spelled_by_another_sweep_is_found_by_its_fingerprint_not_its_na
     finish(made, check_point(point["cfg"](), made))
     assert point_folder(wanted, fingerprint) == made
     assert point_folder(impostor, fingerprint) == impostor  # a folder that exists is its own point
+
+
+def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spelling_is_read_as_meant(point):
+    """The device is the kind the samplers run on (``auto`` resolved as they resolve it, ``cuda:N`` as ``cuda``); a
+    disabled FID's other settings change nothing; a point recorded by an earlier version (``device: auto``, a
+    disabled FID with its backbone) is the same point, and another device is a change."""
+    from spread.evaluation.protocol import FIDConfig
+    from spread.runtime.fingerprint import done_check, upgraded
+    from spread.sampling import SamplingConfig
+
+    cfg = point["cfg"]
+    assert point_fingerprint(cfg("device=auto")) == point_fingerprint(cfg("device=cpu"))  # no GPU on this machine
+    assert point_fingerprint(cfg("device=cpu"))["sampling"]["device"] == "cpu"
+    typed = dict(ckpt="m.ckpt", out_dir="o")
+    assert SamplingConfig(**typed, device="cuda:1").sampling_device() == "cuda"
+    on_ray = SamplingConfig(**typed, device="auto", workers=2)
+    assert on_ray.sampling_device() == "cpu"  # Ray hides every GPU from a worker that asks for none
+    on_ray.ray.num_gpus_per_worker = 1
+    assert on_ray.sampling_device() == "cuda"
+    assert FIDConfig(enabled=False, feature_model="clip_vit_b_32").fingerprint() == FIDConfig(enabled=False).fingerprint()
+    assert FIDConfig(feature_model="clip_vit_b_32").fingerprint() != FIDConfig().fingerprint()
+    off = ["evaluation.fid.enabled=false"]
+    assert point_fingerprint(cfg(*off, "evaluation.fid.feature_model=clip_vit_b_32")) == point_fingerprint(cfg(*off))
+
+    now = point_fingerprint(cfg(*off))
+    earlier = json.loads(json.dumps(now))
+    earlier["sampling"]["device"] = "auto"
+    earlier["evaluation"]["fid"] = {"enabled": False, "feature_model": "inception_v3", "weights_path": None,
+                                    "extractor": None}
+    assert upgraded(earlier, now) == now
+    assert done_check(earlier, now, present=True, finished=True).reuse
+    earlier["sampling"]["device"] = "cuda:0"
+    assert done_check(earlier, now, present=True).reason == "changed: sampling.device"
+    earlier["sampling"]["device"], earlier["evaluation"]["fid"]["enabled"] = "auto", True
+    assert done_check(earlier, now, present=True).fresh  # an enabled FID is compared field by field
+
+
+def test_a_point_keeps_its_folder_when_its_dataset_moves_and_one_named_by_the_earlier_short_name_is_found(point):
+    """Where the data lies is not part of a point's short name; a folder named by an earlier version (whose short
+    name held ``data_root``) is found by its values and the fingerprint its point.json records."""
+    import shutil
+
+    from spread.experiments.points import point_folder
+    from spread.runtime.fingerprint import digest
+
+    (point["data"] / "assets").mkdir()
+    (point["data"] / "assets" / "index.json").write_text("{}")
+    fingerprint = point_fingerprint(point["cfg"]())
+    moved = point["data"].parent / "moved"
+    shutil.copytree(point["data"], moved)
+    elsewhere = point_fingerprint(point["cfg"](f"data.root={moved}"))
+    assert elsewhere["data_root"] != fingerprint["data_root"] and short(elsewhere) == short(fingerprint)
+    points = point["out"].parent / "points"
+    earlier = points / f"c0.1_{digest(fingerprint)[:8]}"  # the earlier short name: data_root included
+    assert earlier.name != f"c0.1_{short(fingerprint)}"
+    earlier.mkdir(parents=True)
+    finish(earlier, check_point(point["cfg"](), earlier))
+    assert point_folder(points / f"c0.1_{short(elsewhere)}", elsewhere) == earlier
+    assert check_point(point["cfg"](f"data.root={moved}"), earlier).reuse
+    other = point_fingerprint(point["cfg"]("seed=4"))  # the same values, another setting: not that folder
+    assert point_folder(points / f"c0.1_{short(other)}", other) == points / f"c0.1_{short(other)}"
+
+
+def test_a_hydra_sweeps_point_folder_named_by_an_earlier_short_name_is_found_by_its_record(point):
+    """``spread-sample -m +sweep=guidance_grid``: ``${point_dir:...}`` names a point's folder as ``spread-sweep`` does."""
+    from pathlib import Path
+
+    from test_ablate_report import compose_hydra
+
+    sweep = point["out"].parent / "grid"
+    base = ["+sweep=guidance_grid", f"ckpt={point['ckpt']}", f"data.root={point['data']}", f"sweep_dir={sweep}"]
+    fresh = Path(compose_hydra("sample", *base).out_dir)
+    assert fresh.parent == sweep and fresh.name.startswith("c0.0075_g0.001_r0.001_")
+    earlier = fresh.with_name("c0.0075_g0.001_r0.001_0123abcd")
+    earlier.mkdir(parents=True)
+    finish(earlier, check_point(compose("sample", *base, f"out_dir={earlier}"), earlier))
+    assert compose_hydra("sample", *base).out_dir == str(earlier)
+    other = Path(compose_hydra("sample", *base, "seed=3").out_dir)
+    assert other != earlier and other.name.startswith("c0.0075_g0.001_r0.001_")

@@ -95,15 +95,18 @@ def _evaluation() -> None:
 
 def register_resolvers() -> None:
     """``${point_fp:}`` (the short point fingerprint: :func:`spread.runtime.fingerprint.point_short`),
+    ``${point_dir:<sweep folder>/<values>}`` (a point's run folder: :func:`spread.runtime.fingerprint.point_dir`),
     ``${launch_id:}`` (unique per launching process) and ``${wandb_mode:}``
     (:func:`spread.tracking.config.wandb_mode`)."""
     from omegaconf import OmegaConf
 
-    from spread.runtime.fingerprint import launch_id, point_short
+    from spread.runtime.fingerprint import launch_id, point_dir, point_short
     from spread.tracking.config import wandb_mode
 
     if not OmegaConf.has_resolver("point_fp"):
         OmegaConf.register_new_resolver("point_fp", point_short, use_cache=False)
+    if not OmegaConf.has_resolver("point_dir"):
+        OmegaConf.register_new_resolver("point_dir", point_dir, use_cache=False)
     if not OmegaConf.has_resolver("launch_id"):
         OmegaConf.register_new_resolver("launch_id", launch_id)
     if not OmegaConf.has_resolver("wandb_mode"):

@@ -53,7 +53,10 @@ class FIDConfig:
     device: str = "cpu"
 
     def fingerprint(self) -> dict:
-        """The fields that change FID / KID values (not the device)."""
+        """The fields that change FID / KID values (not the device); disabled, only ``{"enabled": False}`` (the
+        other fields change nothing then: a disabled FID with another backbone is the same evaluation)."""
+        if not self.enabled:
+            return {"enabled": False}
         d = asdict(self)
         d.pop("device")
         return d

@@ -28,9 +28,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from spread.io import read_json, write_json_atomic
+from spread.io import write_json_atomic
 
-POINT = "point.json"
+from spread.runtime.fingerprint import POINT, point_folder, read_point_record  # noqa: F401 - point_folder: named here too
 #: the folder, in the sweep folder beside ``points/``, that holds one lock file per point (:func:`point_lock`);
 #: outside ``points/``, whose every entry is a point
 LOCKS = ".point-locks"
@@ -50,30 +50,8 @@ class PointDecision:
 
 
 def read_point(out_dir) -> dict | None:
-    path = Path(out_dir) / POINT
-    try:
-        data = read_json(path)
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def point_folder(folder, fingerprint: dict) -> Path:
-    """Where a point with ``fingerprint`` lives: ``folder`` (``<values>_<short fingerprint>``), or a folder beside it
-    with the same short fingerprint whose ``point.json`` records this very fingerprint — the same setting reached
-    through another spelling of the sweep (a swept key kept to one value, a key left at its default), re-used
-    rather than made again under a second name."""
-    from spread.runtime.fingerprint import normalised
-
-    folder = Path(folder)
-    if folder.exists() or not folder.parent.is_dir():
-        return folder
-    wanted = normalised(fingerprint)
-    for other in sorted(folder.parent.glob(f"*_{folder.name.rsplit('_', 1)[-1]}")):
-        record = read_point(other)
-        if other.is_dir() and record is not None and record.get("fingerprint") == wanted:
-            return other
-    return folder
+    """A folder's ``point.json`` (None: none, or unreadable)."""
+    return read_point_record(out_dir)
 
 
 def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:

@@ -54,8 +54,9 @@ def digest(obj) -> str:
 
 
 def short(fingerprint: dict, n: int = 8) -> str:
-    """The fingerprint's short name (first ``n`` hex digits of its sha256)."""
-    return digest(fingerprint)[:n]
+    """The fingerprint's short name (first ``n`` hex digits of the sha256 of what it holds but :data:`WHERE`: a
+    point folder's name stays when its dataset moves)."""
+    return digest({k: v for k, v in fingerprint.items() if k not in WHERE})[:n]
 
 
 def file_digest(path) -> str:
@@ -155,10 +156,34 @@ def done_check(before: dict | None, now: dict, *, present: bool, finished: bool 
     if not isinstance(before, dict):
         return Decision("redo", unknown)
     # where the inputs lie is not what they are (the data's content is its own key): a moved or copied dataset resumes
-    changed = [k for k in changed_keys(normalised(before), normalised(now)) if k.split(".")[0] not in WHERE]
+    changed = [k for k in changed_keys(upgraded(before, now), normalised(now)) if k.split(".")[0] not in WHERE]
     if changed:
         return Decision("redo", f"changed: {', '.join(changed)}")
     return Decision("reuse" if finished else "resume")
+
+
+def upgraded(before: dict, now: dict) -> dict:
+    """An identity recorded by an earlier version (``before``) in today's spelling, normalised, so that what it
+    recorded is compared, not how, wherever the part sits (a stage's inputs nest identities): a sampling ``device``
+    recorded as asked (``auto``: read as the device this run resolves, as the two were compared before; ``cuda:N``:
+    ``cuda``), and a disabled FID's other settings, which change nothing, dropped."""
+    def walk(node, here):
+        if not isinstance(node, dict):
+            return node
+        out = {}
+        for key, value in node.items():
+            there = here.get(key) if isinstance(here, dict) else None
+            if key == "fid" and isinstance(value, dict) and value.get("enabled") is False:
+                value = {"enabled": False}
+            elif key == "sampling" and isinstance(value, dict) and isinstance(value.get("device"), str):
+                device = value["device"]
+                if device == "auto" and isinstance(there, dict) and "device" in there:
+                    device = there["device"]
+                value = {**value, "device": "cuda" if device.startswith("cuda:") else device}
+            out[key] = walk(value, there)
+        return out
+
+    return walk(normalised(before), normalised(now))
 
 
 # ---- identities ----------------------------------------------------------------------------------------------
@@ -192,7 +217,8 @@ def sampling_identity(cfg) -> dict:
     return {"ckpt_sha256": file_digest(cfg.ckpt), "data": dataset_digest(cfg.data.root, [cfg.data.split]),
             "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
             "sampling": {"sampler": cfg.sampler.fingerprint(), "seed": int(cfg.seed), "batch_size": int(cfg.batch_size),
-                         "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale), "device": str(cfg.device),
+                         "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale),
+                         "device": cfg.sampling_device() if hasattr(cfg, "sampling_device") else str(cfg.device),
                          **unspelled_defaults_dropped({
                              "precision": str(getattr(cfg, "precision", "32")),
                              "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0)),
@@ -244,6 +270,50 @@ def point_fingerprint(cfg) -> dict:
 def point_short(*, _root_) -> str:
     """OmegaConf resolver ``${point_fp:}``: the short point fingerprint of the config it sits in."""
     return short(point_fingerprint(_root_))
+
+
+def point_dir(values: str, *, _root_) -> str:
+    """OmegaConf resolver ``${point_dir:<sweep folder>/<values>}``: the run folder of the config it sits in,
+    ``<values>_<short fingerprint>`` or the folder beside it that holds the same setting (:func:`point_folder`)."""
+    fingerprint = point_fingerprint(_root_)
+    return str(point_folder(Path(f"{values}_{short(fingerprint)}"), fingerprint))
+
+
+#: A sweep point's record (``spread.experiments.points``): its fingerprint, short name, status, tags.
+POINT = "point.json"
+
+
+def read_point_record(out_dir) -> dict | None:
+    """A folder's ``point.json`` (None: none, or not a readable JSON object)."""
+    from spread.io import read_json
+
+    try:
+        data = read_json(Path(out_dir) / POINT)
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def point_folder(folder, fingerprint: dict) -> Path:
+    """Where a point with ``fingerprint`` lives: ``folder`` (``<values>_<short fingerprint>``), or a folder beside it
+    whose ``point.json`` records this very setting by the done-check (:func:`done_check`) — one with the same short
+    fingerprint reached through another spelling of the sweep (a swept key kept to one value, a key left at its
+    default), or one with the same values named by an earlier version's short fingerprint (one that held where the
+    data lay, or the device as asked) — re-used rather than made again under a second name."""
+    folder = Path(folder)
+    if folder.exists() or not folder.parent.is_dir():
+        return folder
+    wanted = normalised(fingerprint)
+    values, short_name = folder.name.rsplit("_", 1) if "_" in folder.name else ("", folder.name)
+    for other in sorted(folder.parent.iterdir()):
+        if not other.is_dir() or not (other.name.endswith(f"_{short_name}") or other.name.rsplit("_", 1)[0] == values):
+            continue
+        record = read_point_record(other)
+        if record is None or not isinstance(record.get("fingerprint"), dict):
+            continue
+        if record["fingerprint"] == wanted or not done_check(record["fingerprint"], wanted, present=True).fresh:
+            return other
+    return folder
 
 
 # ---- what reports name per run --------------------------------------------------------------------------------

@@ -9,7 +9,9 @@
    file is written; a re-launch into a folder made with other settings (or scene files
    without a record) redoes it from scratch and records why (``redone_because: "changed: <keys>"``), so a
    folder never mixes two runs and never passes old scenes off as new ones. ``resume=false`` deletes the
-   folder's scene files first and samples everything.
+   folder's scene files first and samples everything. Scenes of the same identity this run does not plan (a larger
+   ``samples_per_graph`` before) wait in ``out_dir/unplanned/`` for a run that plans them
+   (:func:`set_aside_unplanned`): ``scenes/`` holds exactly what ``sampling.json`` counts, and nothing is lost.
 4. Fan out: ``workers`` Ray actors (one model each, ``threads`` CPUs and ``num_gpus_per_worker`` GPUs each),
    one batch per task, the next batch to whichever actor finishes first; ``workers=0`` samples in this
    process. Actors that die are restarted and their task retried (``ray.max_retries``).
@@ -113,6 +115,20 @@ class SamplingConfig:
         if unknown:
             raise ValueError(f"figure_kinds: unknown {unknown} (choose from {list(FIGURE_KINDS)})")
 
+
+    def sampling_device(self) -> str:
+        """The kind of device the samplers run on, ``cpu`` or ``cuda`` (part of the run's identity, as the device
+        changes the numbers' rounding): ``auto`` resolved as the samplers resolve it — in this process
+        (``workers=0``) ``cuda`` when it sees a GPU; on Ray's workers ``cuda`` only with ``ray.num_gpus_per_worker``
+        > 0 (Ray hides every GPU from a worker that asks for none) —, ``cuda:N`` as ``cuda``."""
+        device = str(self.device)
+        if device == "auto":
+            if self.workers > 0:
+                return "cuda" if self.ray.num_gpus_per_worker > 0 else "cpu"
+            import torch
+
+            return "cuda" if torch.cuda.is_available() else "cpu"
+        return device.split(":", 1)[0]
 
     def graphs_over_limit(self) -> list[str]:
         """The split's graphs (scene file names) this run leaves out for the object limit in effect
@@ -229,8 +245,8 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
 def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
     """Resume, or redo from scratch (module docstring, step 3; ``resume=false``: always) by the platform's
     done-check (:func:`spread.runtime.fingerprint.done_check`); returns why the folder is redone (None: a resume
-    or a new folder). A redo deletes the folder's scene files and renders (no file of an earlier run stays beside
-    the new ones); then (either way) ``sampling.json``
+    or a new folder). A redo deletes the folder's scene files and renders, and those set aside (no file of an earlier
+    run stays beside the new ones); then (either way) ``sampling.json``
     is pinned to ``settings`` (``status: running``) before any file is written, so a run killed mid-way is
     resumed only by a re-launch with the same settings."""
     from spread.runtime.fingerprint import done_check
@@ -243,24 +259,49 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
     decision = done_check(before, settings, present=any(scenes.glob("*.npz")), resume=resume,
                           unknown=f"its scenes have no readable {MANIFEST} fingerprint")
     if decision.fresh:
-        for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png")]:
+        for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png"), *(out / ASIDE).glob("scenes/*.npz"),
+                    *(out / ASIDE).glob("renders/*.png")]:
             old.unlink()
     write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": decision.reason})
     return decision.reason
 
 
-def remove_unplanned(batches: list[BatchPlan], out: Path) -> list[str]:
-    """Delete the folder's scene files that are not in this run's plan, with their renders and figures: samples of a
-    larger ``samples_per_graph``, or of graphs this run does not sample (``max_objects``), left by an earlier run of
-    the same identity (neither is part of it: more samples resume). The folder then holds exactly the scenes its
-    ``sampling.json`` counts, so an evaluation of it never scores another run's samples; returns their names."""
+#: Where a run keeps the scene files (and renders) of an earlier run of the same identity that it does not plan.
+ASIDE = "unplanned"
+
+
+def move_file(source: Path, target: Path) -> None:
+    """``source`` to ``target`` (same file system: an atomic rename); a target already there stays."""
+    if source.is_file() and not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        source.replace(target)
+
+
+def set_aside_unplanned(batches: list[BatchPlan], out: Path) -> tuple[list[str], list[str]]:
+    """Keep the folder to exactly this run's plan without losing what was sampled: scene files that are not in the
+    plan — samples of a larger ``samples_per_graph``, or of graphs this run does not sample (``max_objects``), left
+    by an earlier run of the same identity (neither is part of it: more samples resume) — move with their renders and
+    figures to ``out/unplanned/``, and planned ones kept there by an earlier run come back (the same identity, so the
+    same scenes: a redo deletes ``unplanned/``). An evaluation of ``scenes/`` thus never scores another run's samples;
+    returns (names set aside, names taken back)."""
     planned = {item.name for b in batches for item in b.items}
-    removed = sorted(p.stem for p in (out / "scenes").glob("*.npz") if p.stem not in planned)
-    for name in removed:
-        (out / "scenes" / f"{name}.npz").unlink(missing_ok=True)
-        for suffix in ("", *FIGURE_KINDS.values()):
-            (out / "renders" / f"{name}{suffix}.png").unlink(missing_ok=True)
-    return removed
+    aside = out / ASIDE
+    renders = [f"{{}}{suffix}.png" for suffix in ("", *FIGURE_KINDS.values())]
+
+    def move(name: str, source: Path, target: Path) -> None:
+        move_file(source / "scenes" / f"{name}.npz", target / "scenes" / f"{name}.npz")
+        for pattern in renders:
+            move_file(source / "renders" / pattern.format(name), target / "renders" / pattern.format(name))
+
+    set_aside = sorted(p.stem for p in (out / "scenes").glob("*.npz") if p.stem not in planned)
+    for name in set_aside:
+        (aside / "scenes" / f"{name}.npz").unlink(missing_ok=True)  # a stale copy never shadows the newer file
+        move(name, out, aside)
+    taken_back = sorted(p.stem for p in (aside / "scenes").glob("*.npz")
+                        if p.stem in planned and not (out / "scenes" / p.name).exists())
+    for name in taken_back:
+        move(name, aside, out)
+    return set_aside, taken_back
 
 
 def check_device(cfg: SamplingConfig) -> None:
@@ -402,10 +443,13 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
 
     settings = normalised(sampling_identity(cfg))  # the checkpoint hashed once per process
     redone_because = check_fingerprint(out, settings, cfg.resume)
-    unplanned = remove_unplanned(batches, out)
+    unplanned, taken_back = set_aside_unplanned(batches, out)
     if unplanned:
-        print(f"{scenes_dir}: removed {len(unplanned)} scene file(s) this run does not plan (samples_per_graph="
-              f"{cfg.samples_per_graph}, {len(graphs)} graphs), e.g. {unplanned[0]}", flush=True)
+        print(f"{scenes_dir}: set {len(unplanned)} scene file(s) this run does not plan aside in {out / ASIDE} "
+              f"(samples_per_graph={cfg.samples_per_graph}, {len(graphs)} graphs), e.g. {unplanned[0]}; a run that "
+              f"plans them takes them back", flush=True)
+    if taken_back:
+        print(f"{scenes_dir}: took {len(taken_back)} planned scene file(s) back from {out / ASIDE}", flush=True)
     if before_work is not None:
         before_work()
     damaged = remove_unreadable(batches, scenes_dir)
@@ -445,7 +489,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
         "graphs": len(graphs), "samples": total,
         "skipped_graphs": skipped_graphs, "max_objects": limit, "written_this_run": len(written),
-        "resumed": total - pending, "redone_unreadable": len(damaged), "removed_unplanned": len(unplanned),
+        "resumed": total - pending, "redone_unreadable": len(damaged), "set_aside_unplanned": len(unplanned), "taken_back": len(taken_back),
         "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],

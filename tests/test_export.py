@@ -188,6 +188,29 @@ def test_bad_scene_is_reported_and_the_others_exported(data, tmp_path):
         export_path(tmp_path, "x", "sdf")
 
 
+def test_a_reexport_removes_the_outputs_it_no_longer_writes_and_nothing_else(data, tmp_path):
+    import copy
+
+    root, _, scene = data
+    scenes, out = tmp_path / "scenes", tmp_path / "out"
+    for name in ("a", "b", "c"):
+        one = copy.deepcopy(scene)
+        one.scene_id = name
+        write_scene(one, scenes / f"{name}.npz")
+    assert len(export_folder(scenes, root / "assets", out, "mjcf").written) == 3
+    (out / "mine.txt").write_text("a user's own file")
+    (scenes / "b.npz").unlink()
+    (scenes / "c.npz").write_bytes(b"not a scene")
+    report = export_folder(scenes, root / "assets", out, "mjcf")
+    assert report.removed_stale == ["b.xml", "c.xml"] and list(report.failed) == ["c"]
+    assert sorted(os.listdir(out)) == ["a.xml", "export.json", "mine.txt"]  # what export.json lists, and the user's
+    saved = json.loads((out / "export.json").read_text())
+    saved["written"] = {"x": str(tmp_path / "scenes" / "a.npz"), "y": str(out / "mine.txt"), "z": str(out / "export.json")}
+    (out / "export.json").write_text(json.dumps(saved))  # a report naming files outside, or its own: nothing of them goes
+    export_folder(scenes, root / "assets", out, "glb")
+    assert (scenes / "a.npz").exists() and sorted(os.listdir(out)) == ["a.glb", "a.xml", "export.json", "mine.txt"]
+
+
 def export_command(*args: str) -> subprocess.CompletedProcess:
     """``spread-export`` (its Hydra main, run as a module so the test needs no installed console script)."""
     return subprocess.run([sys.executable, "-m", "spread.cli.export", *args], capture_output=True, text=True,

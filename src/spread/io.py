@@ -69,9 +69,11 @@ def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueErro
         except InputFileError as exc:
             raise error(str(exc)) from None
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(decoded(path.read_bytes(), path))
     except json.JSONDecodeError as exc:
         raise error(f"{path}: not valid JSON ({exc})") from exc
+    except NotUtf8 as exc:
+        raise error(str(exc)) from None
     if not isinstance(data, dict):
         raise error(f"{path}: expected a JSON object, got {type(data).__name__}")
     return data
@@ -226,11 +228,25 @@ def check_input_file(path: str | os.PathLike, root: str | os.PathLike | None = N
     return path
 
 
+def decoded(data: bytes, path) -> str:
+    """``data`` (the bytes of file ``path``) as UTF-8 text, a byte-order mark dropped (spreadsheets write one);
+    not UTF-8: :class:`NotUtf8` (a ``ValueError``) naming the file and the byte."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise NotUtf8(f"{path}: not UTF-8 text (byte {exc.start}: {exc.object[exc.start:exc.start + 1]!r})") from None
+
+
+class NotUtf8(ValueError):
+    """A text file that is not UTF-8 (:func:`decoded`)."""
+
+
 def read_text_checked(path: str | os.PathLike, root: str | os.PathLike | None = None,
                       max_bytes: int | None = None) -> str:
     """The UTF-8 text of ``path`` once :func:`check_input_file` passed it (the one door every reader of a run's
-    or a user's text file goes through: a FIFO, a device or a link out of ``root`` is refused, never opened)."""
-    return Path(check_input_file(path, root, max_bytes)).read_text(encoding="utf-8")
+    or a user's text file goes through: a FIFO, a device or a link out of ``root`` is refused, never opened); a
+    leading byte-order mark dropped; not UTF-8: a ``ValueError`` naming the file (:func:`decoded`)."""
+    return decoded(Path(check_input_file(path, root, max_bytes)).read_bytes(), path)
 
 
 def read_bytes_checked(path: str | os.PathLike, root: str | os.PathLike | None = None,

@@ -149,6 +149,18 @@ def _coacd(mesh, settings: dict, timeout: float = COACD_TIMEOUT) -> list[np.ndar
     return list(np.split(verts, np.cumsum(counts)[:-1])) if len(counts) else []
 
 
+def check_decomposition(method: str, settings: dict) -> None:
+    """``ValueError`` naming the method or the settings :func:`convex_decomposition` would refuse (checked before an
+    import's first mesh, so a misspelled method never fails every asset)."""
+    if method not in METHODS:
+        raise ValueError(f"decomposition={method!r}: unknown method (expected one of {', '.join(METHODS)})")
+    known = {"coacd": {*COACD_DEFAULTS, "preprocess_mode"}, "vhacd": {"max_hulls", "resolution"}, "hull": set()}
+    unknown = set(settings) - known[method]
+    if unknown:
+        raise ValueError(f"decomposition_settings: {sorted(unknown)} are not settings of {method!r}"
+                         + (f" (it takes {sorted(known[method])})" if known[method] else " (it takes none)"))
+
+
 def convex_decomposition(mesh, method: str = DEFAULT_METHOD, seed: int = 0, **settings) -> Decomposition:
     """Convex parts approximating ``mesh`` (module docstring). A closed convex mesh is its own single part.
 

@@ -58,6 +58,18 @@ class ImportSettings:
     density: float = DEFAULT_DENSITY
     fidelity_samples: int = 2000
 
+    def check(self) -> None:
+        """``ValueError`` naming the setting an import could not build an asset with (before its first asset)."""
+        import math
+
+        from spread.assets.decompose import check_decomposition
+
+        check_decomposition(str(self.decomposition), dict(self.decomposition_settings))
+        if not (isinstance(self.density, (int, float)) and math.isfinite(self.density) and self.density > 0):
+            raise ValueError(f"density={self.density!r}: a finite number of kg/m³ > 0")
+        if not (isinstance(self.fidelity_samples, int) and self.fidelity_samples >= 0):
+            raise ValueError(f"fidelity_samples={self.fidelity_samples!r}: a whole number ≥ 0 (0: not measured)")
+
     def fingerprint(self) -> dict:
         return {"decomposition": self.decomposition, "decomposition_settings": dict(self.decomposition_settings),
                 "density": float(self.density), "fidelity_samples": int(self.fidelity_samples)}

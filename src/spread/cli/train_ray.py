@@ -19,11 +19,14 @@ register()
 @one_line("spread-train-ray")
 def _main(cfg: DictConfig) -> None:
     from spread.commands.common import record_config
-    from spread.training.fit import run_folder
+    from spread.io import run_lock
+    from spread.training.fit import check_start, run_folder
     from spread.training.ray_train import run_ray_train
 
-    record_config(cfg, run_folder(cfg))()
-    result = run_ray_train(cfg, run_folder(cfg))
+    with run_lock(run_folder(cfg), "spread-train"):  # the folder's one training run, as spread-train holds it
+        check_start(cfg, run_folder(cfg))  # refused here in one line, before Ray starts and the config is recorded
+        record_config(cfg, run_folder(cfg))()
+        result = run_ray_train(cfg, run_folder(cfg))
     summary = result.return_value or {}
     print(f"run folder {run_folder(cfg)}: step {summary.get('global_step')}, epoch {summary.get('epoch')}, "
           f"{summary.get('world_size')} Ray Train workers, checkpoint {summary.get('last_checkpoint')}; "

@@ -24,5 +24,4 @@ def train(cfg: DictConfig, run_dir: Path | None = None, overrides: list[str] | N
     ranks = ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID", "OMPI_COMM_WORLD_RANK", "PMI_RANK")
     launcher = all(os.environ.get(v, "0") in ("", "0") for v in ranks)  # rank 0 of every launcher we know
     with run_lock(run_dir, "spread-train") if launcher else contextlib.nullcontext():
-        record_config(cfg, run_dir, overrides)()
-        return fit(cfg, run_dir=run_dir)
+        return fit(cfg, run_dir=run_dir, before_work=record_config(cfg, run_dir, overrides))

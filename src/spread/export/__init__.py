@@ -157,11 +157,45 @@ class ExportReport:
     failed: dict[str, str] = field(default_factory=dict)
     sources: dict[str, str] = field(default_factory=dict)  # exported id → its scene file
     duplicates: dict[str, str] = field(default_factory=dict)  # scene file → why and under which id it was exported
+    removed_stale: list[str] = field(default_factory=list)  # outputs of the export before that this one did not write
 
     def to_dict(self) -> dict:
         return {"format": self.format, "out_dir": self.out_dir, "n_written": len(self.written),
                 "n_failed": len(self.failed), "written": self.written, "failed": self.failed,
-                "duplicates": self.duplicates}
+                "duplicates": self.duplicates, "removed_stale": self.removed_stale}
+
+
+def remove_stale_exports(out_dir, written: dict[str, str]) -> list[str]:
+    """Remove the outputs the folder's previous ``export.json`` lists that this export did not write (a scene
+    removed, renamed or failing now, another format): the folder then holds what its ``export.json`` lists. Only a
+    direct child of ``out_dir`` named as the export names its scene's output (:func:`export_path`), and not one of
+    :data:`OWN_FILES`, is removed, whatever the old report says; returns the names removed."""
+    import shutil
+
+    from spread.io import read_json
+
+    out = Path(out_dir).resolve()
+    try:
+        before = read_json(out / "export.json")
+    except (OSError, ValueError):
+        return []
+    listed = before.get("written") if isinstance(before, dict) else None
+    fmt = before.get("format") if isinstance(before, dict) else None
+    if not isinstance(listed, dict) or fmt not in FORMATS:
+        return []
+    kept = {Path(p).name for p in written.values()}
+    removed = []
+    for scene_id, old in listed.items():
+        path = out / Path(str(old)).name
+        if (Path(str(old)).parent != out or path.name != export_path(out, str(scene_id), fmt).name
+                or path.name in kept or path.name in OWN_FILES or not path.exists()):  # an export's output only
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+        removed.append(path.name)
+    return sorted(removed)
 
 
 #: The export command's own files in its output folder, which no scene's output may take.
@@ -192,7 +226,8 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
     """Export every scene file of ``scenes`` (asset library ``assets``) in ``fmt`` to ``out_dir``.
 
     A scene that cannot be read or exported is reported in ``failed`` (its file and the error) and the others
-    go on. ``out_dir/export.json`` (atomic) records the report.
+    go on. The outputs of an export before into ``out_dir`` that this one did not write are removed
+    (:func:`remove_stale_exports`); ``out_dir/export.json`` (atomic) records the report.
     """
     from spread.assets import AssetLibrary
     from spread.io import write_json_atomic
@@ -225,5 +260,6 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
             report.failed[path.stem] = f"{path}: {type(exc).__name__}: {exc}"
             if os.environ.get("SPREAD_DEBUG"):
                 traceback.print_exc()
+    report.removed_stale = remove_stale_exports(out_dir, report.written)
     write_json_atomic(Path(out_dir) / "export.json", report.to_dict())
     return report

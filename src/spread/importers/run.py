@@ -67,6 +67,20 @@ class ImportConfig:
     fidelity_samples: int = 2000
     relations: RelationsOptions = field(default_factory=RelationsOptions)
 
+    def check(self) -> None:
+        """``ValueError`` naming the option an import could not run with, before the source is read or the folder
+        touched (a misspelled ``decomposition`` failed every asset, and the re-import then deleted every scene)."""
+        import math
+
+        if self.stats not in ("source", "computed"):
+            raise ValueError(f"stats={self.stats!r}: expected 'source' or 'computed'")
+        if not (isinstance(self.val_fraction, (int, float)) and math.isfinite(self.val_fraction)
+                and 0 <= self.val_fraction < 1):
+            raise ValueError(f"val_fraction={self.val_fraction!r}: a number in [0, 1) (the share of train rooms "
+                             f"that become val where the source has no val split)")
+        self.settings().check()
+        self.relations.check()
+
     def settings(self):
         from spread.assets.imported import ImportSettings
 
@@ -272,13 +286,43 @@ def import_dataset(cfg: ImportConfig) -> dict:
     import holds ``out_dir``'s lock (:func:`spread.io.run_lock`) once the source has been checked."""
     from spread.io import run_lock
 
-    if cfg.stats not in ("source", "computed"):
-        raise ValueError(f"stats={cfg.stats!r}: expected 'source' or 'computed'")
-    cfg.relations.check()
+    cfg.check()
+    check_not_another_kind(Path(cfg.out_dir))
     source = make_source(cfg)  # fails early (missing split file, bad options) before anything is written
+    if cfg.stats == "source":
+        from spread.importers.spread_release import read_dataset_stats
+
+        read_dataset_stats(Path(cfg.src) / "dataset_stats.txt")  # bad bounds named now, not after every room
     room_list = source.rooms()
     with run_lock(cfg.out_dir, "spread-import"):
         return _import_dataset(cfg, source, room_list)
+
+
+def check_not_another_kind(out: Path) -> None:
+    """``ValueError`` when ``out`` holds a dataset an import did not make (``spread-generate``'s rooms: its
+    ``generation.json``, or a ``manifest.json`` of another generator): an import would replace its asset index,
+    statistics and manifest and leave its rooms pointing at assets the index no longer has."""
+    from spread.io import read_json
+
+    try:
+        manifest = read_json(out / "manifest.json") if (out / "manifest.json").is_file() else {}
+    except (OSError, ValueError):
+        manifest = {}
+    maker = manifest.get("generator") if isinstance(manifest, dict) else None
+    if (out / "generation.json").exists() or (isinstance(maker, str) and not maker.startswith("spread-import")):
+        raise ValueError(f"out_dir={out}: holds a dataset made by {maker or 'spread-generate'} (not an import); an "
+                         f"import would replace its assets, statistics and manifest — import into another out_dir")
+
+
+def check_some_room_imported(room_list, failed_refs: list, room_errors: list, earlier: int, out: Path) -> None:
+    """``ValueError`` when this import made no room at all while earlier imports' scenes are there: its failures
+    (a source folder not mounted, a broken mesh tool) are said, and those scenes kept, not deleted as rooms that
+    no longer import."""
+    if room_list.rooms and len({ref.tag for ref in failed_refs}) >= len(room_list.rooms) and earlier:
+        first = room_errors[0] if room_errors else {}
+        raise ValueError(f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
+                           f"{first.get('file')}: {first.get('error')}); the {earlier} scene file(s) of earlier "
+                           f"imports in {out} are kept — see {out / 'import' / 'rooms.jsonl'}")
 
 
 def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
@@ -292,6 +336,7 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
     refuse_links(log_path, out / "manifest.json", out / "stats.json")  # before any work: see spread.io
     history = read_jsonl(log_path)
     done = {r["tag"]: r for r in history if r.get("ok")}
+    earlier = sum(1 for split in SPLITS for _ in (out / split).glob("*.npz"))
     t0 = time.perf_counter()
     processes = max(1, int(cfg.processes))
     pool = mp.get_context("spawn").Pool(processes, initializer=_init_worker, initargs=(cfg,)) if processes > 1 else None
@@ -314,6 +359,14 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         t_assets = time.perf_counter() - t1
         records = {r["asset_id"]: AssetRecord.from_dict(r["record"]) for r in asset_results if r["record"]}
         failed_assets = {r["asset_id"]: r["error"] for r in asset_results if r["error"]}
+        usable = [ref for ref in room_list.rooms if not scans[ref.tag]["error"]
+                  and not any(req.asset_id in failed_assets for req in scans[ref.tag]["requests"])]
+        if room_list.rooms and not usable and earlier:  # before the library's index is replaced
+            first = next((scans[r.tag]["error"] for r in room_list.rooms if scans[r.tag]["error"]), None) or {
+                "tag": "an asset", **next(iter(failed_assets.values()), {})}
+            raise ValueError(f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
+                             f"{first.get('file')}: {first.get('error')}); the {earlier} scene file(s) of earlier "
+                             f"imports in {out} and their asset library are kept")
         library = AssetLibrary(out / "assets", records)
         library.save_index(build={"importer": IMPORTER_VERSION, **source.info()})
         t2 = time.perf_counter()
@@ -363,6 +416,7 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         else:
             room_errors.append(r["error"])
             failed_refs.append(by_tag[r["tag"]])
+    check_some_room_imported(room_list, failed_refs, room_errors, earlier, out)
     for ref in failed_refs:  # a file left by an earlier run of a room that fails now is not data any more
         done.pop(ref.tag, None)
         (out / ref.split / f"{ref.scene_id}.npz").unlink(missing_ok=True)

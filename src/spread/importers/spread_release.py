@@ -182,8 +182,26 @@ class SpreadRelease(Source):
 
 
 def read_dataset_stats(path: Path) -> dict | None:
-    """The source's ``dataset_stats.txt`` (JSON) or None when absent; errors name the file."""
-    return read_json_object(path) if path.is_file() else None
+    """The source's ``dataset_stats.txt`` (JSON) or None when absent; errors name the file and, for a value an
+    import would use, the key: ``class_labels`` / ``object_types`` lists of names, ``bounds_translations`` six
+    finite numbers [min xyz, max xyz] (metres) with min ≤ max."""
+    import math
+
+    if not path.is_file():
+        return None
+    stats = read_json_object(path)
+    for key in ("class_labels", "object_types"):
+        names = stats.get(key)
+        if names is not None and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+            raise ValueError(f"{path}: key {key!r}: expected a list of names, got {str(names)[:80]!r}")
+    bounds = stats.get("bounds_translations")
+    if bounds is not None:
+        numbers = isinstance(bounds, list) and len(bounds) == 6 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in bounds)
+        if not numbers or any(bounds[i] > bounds[i + 3] for i in range(3)):
+            raise ValueError(f"{path}: key 'bounds_translations': expected six finite numbers [min x, min y, min z, "
+                             f"max x, max y, max z] with min ≤ max, got {str(bounds)[:120]}")
+    return stats
 
 
 register_importer("spread_release", lambda cfg: SpreadRelease(cfg.src, room_type=cfg.room_type,

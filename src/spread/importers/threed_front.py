@@ -128,7 +128,9 @@ class ThreedFront(Source):
         stats_path = self.src / "dataset_stats.txt"
         if not stats_path.is_file():
             raise FileNotFoundError(f"{stats_path}: missing (it names the one-hot class_labels columns)")
-        self.stats = read_json_object(stats_path)
+        from spread.importers.spread_release import read_dataset_stats
+
+        self.stats = read_dataset_stats(stats_path)
         self.class_labels = [str(c) for c in self.stats.get("class_labels") or []]
         self.object_types = [str(c) for c in self.stats.get("object_types") or []]
         if not self.class_labels and not self.object_types:

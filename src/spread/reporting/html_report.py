@@ -77,14 +77,14 @@ def has_evaluation(path: Path) -> bool:
 def read_curves(folder: Path, refused: list | None = None) -> dict[str, list[tuple[float, float]]]:
     """Curve name → (step, value) points of a training run, over all its ``csv/version_<n>`` launches (a file
     :func:`~spread.io.check_input_file` refuses is skipped, and named in ``refused``)."""
-    from spread.io import InputFileError, read_text_checked
+    from spread.io import InputFileError, NotUtf8, read_text_checked
 
     curves: dict[str, dict[float, float]] = {}
     versions = sorted(folder.glob("csv/version_*/metrics.csv"), key=lambda p: version_number(p.parent.name))
     for path in versions:
         try:
             text = read_text_checked(path, root=folder)
-        except (InputFileError, OSError, UnicodeDecodeError) as exc:
+        except (InputFileError, OSError, NotUtf8) as exc:
             if refused is not None:
                 refused.append(f"{path}: {exc}" if str(path) not in str(exc) else str(exc))
             continue

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Callable
 
 import hydra
+from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from spread.training.checkpoints import CheckpointStep, atomic_checkpoint_io, resolve_ckpt_path, save_final_checkpoint
@@ -54,12 +55,42 @@ def route_lightning_logs() -> None:
 
 def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
     """ModelCheckpoint into ``<run folder>/checkpoints``, the training clock (steps, scenes and seconds of each
-    checkpoint in ``clock.jsonl``, :mod:`~spread.training.clock`) plus the ``callbacks`` of the config."""
+    checkpoint in ``clock.jsonl``, :mod:`~spread.training.clock`), the training data's digest in every checkpoint
+    (:class:`DataDigest`) plus the ``callbacks`` of the config."""
     from spread.training.clock import TrainingClock
 
     checkpoint = hydra.utils.instantiate(cfg.checkpoint, dirpath=str(run_dir / "checkpoints"))
-    return ([checkpoint, TrainingClock(run_dir)]
+    return ([checkpoint, TrainingClock(run_dir), DataDigest()]
             + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
+
+
+#: The checkpoint key of the training data's content (:class:`DataDigest`).
+DATA_DIGEST = "spread_data_sha256"
+
+
+def data_digest(datamodule) -> str | None:
+    """The content of the rooms a datamodule trains and validates on (:func:`spread.runtime.fingerprint.dataset_digest`
+    of its ``root``'s train and val splits); None for a datamodule without a ``root``."""
+    from spread.runtime.fingerprint import dataset_digest
+
+    root = getattr(datamodule, "hparams", {}).get("root") if hasattr(datamodule, "hparams") else None
+    return dataset_digest(root, ["train", "val"]) if root else None
+
+
+class DataDigest(Callback):
+    """Records the training data's content (:func:`data_digest`, computed once when fitting starts) in every
+    checkpoint under :data:`DATA_DIGEST`, so a resume compares what the rooms are, wherever they lie
+    (:func:`resumed_changes`): rooms added, removed or rewritten in the same folder are a change."""
+
+    def __init__(self):
+        self.digest: str | None = None
+
+    def on_fit_start(self, trainer, pl_module) -> None:
+        self.digest = data_digest(getattr(trainer, "datamodule", None))
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        if self.digest is not None:
+            checkpoint[DATA_DIGEST] = self.digest
 
 
 #: Hyperparameters a resumed run may change, as they change none of the trained numbers: the model's validation-time
@@ -75,8 +106,8 @@ def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
     would train with that differs from what the checkpoint was trained with, but :data:`RESUMABLE`; keys the
     checkpoint does not hold (hyperparameters added after it was written, at their defaults) are not compared; what
     the model takes from the data when fitting starts (``data_hparams``: SceneDiffusion's translation bounds, a
-    baseline's bounds, categories and size bounds) as the data gives it now; the data folder by its content
-    (:func:`moved_data`)."""
+    baseline's bounds, categories and size bounds) as the data gives it now; the data by its content (the digest the
+    checkpoint recorded, :class:`DataDigest`; for one written before, :func:`moved_data`)."""
     from spread.runtime.fingerprint import described_changes, normalised
 
     out = []
@@ -97,7 +128,13 @@ def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
                 held.pop(key)
                 now.pop(key)
         if prefix == "data" and "root" in held and "root" in now:  # where the data lies is not what it is
-            out += moved_data(str(held.pop("root")), str(now.pop("root")))
+            recorded = checkpoint.get(DATA_DIGEST)
+            before_root, now_root = str(held.pop("root")), str(now.pop("root"))
+            if isinstance(recorded, str):  # the rooms it trained on, by content
+                if recorded != data_digest(datamodule):
+                    out.append(f"data.root: {before_root!r} -> {now_root!r} (other rooms than it was trained on)")
+            else:  # a checkpoint written before the digest: its folder compared, where it still is
+                out += moved_data(before_root, now_root)
         out += [f"{prefix}.{change}" for change in described_changes(held, now, held_only=True)]
     return out
 
@@ -236,15 +273,27 @@ def check_accelerator(cfg: DictConfig, override: str | None = None) -> None:
                              f"(torch.cuda.is_available() is False); use trainer=cpu")
 
 
+def check_start(cfg: DictConfig, run_dir: Path) -> None:
+    """What a training launch checks before it records its config or starts any work (``spread-train-ray``'s driver,
+    before Ray starts; ``spread-train`` within :func:`train`): the folder holds one history (:func:`one_history`) and a
+    resumed checkpoint was trained with this run's settings (:func:`check_resume_checkpoint`)."""
+    ckpt_path = resolve_ckpt_path(cfg, run_dir)
+    one_history(cfg, run_dir, ckpt_path)
+    if ckpt_path is not None:
+        check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), hydra.utils.instantiate(cfg.data))
+
+
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
           extra_callbacks: list | None = None, prepare: Callable | None = None,
-          resume_from: Path | None = None) -> dict:
+          resume_from: Path | None = None, before_work: Callable[[], None] | None = None) -> dict:
     """Fit the configured model on the configured data into ``run_dir``; returns the summary.
 
     The keyword arguments let another launcher run this same code (Ray Train,
     :mod:`spread.training.ray_train`): ``trainer_overrides`` replace Trainer arguments of ``cfg.trainer``
     (strategy, plugins, devices, ...), ``extra_callbacks`` join the config's, ``prepare(trainer) -> trainer``
-    runs before ``fit``, and ``resume_from`` (a checkpoint file) wins over ``ckpt_path``."""
+    runs before ``fit``, and ``resume_from`` (a checkpoint file) wins over ``ckpt_path``; ``before_work()`` runs once
+    the checks passed (the command records its config there, so a refused launch leaves the folder's record as it
+    was)."""
     import lightning as L
 
     from spread.tracking.loggers import as_logger_config, lightning_loggers
@@ -267,6 +316,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
         check_resume_checkpoint(ckpt_path, model, datamodule)
+    if before_work is not None:
+        before_work()
     newest = CheckpointStep()
     overrides = dict(trainer_overrides or {})
     plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import pytest
@@ -135,8 +136,6 @@ def train_two_steps(out: Path, data: Path, *more: str) -> dict:
 
 def test_a_refused_training_launch_leaves_the_recorded_config_and_a_resume_sees_rooms_changed_in_place(
         dataset, tmp_path):
-    import shutil
-
     shutil.copytree(dataset.parent, tmp_path / "copy")
     data = tmp_path / "copy" / dataset.name
     out = tmp_path / "run"
@@ -175,3 +174,91 @@ def test_spread_train_ray_holds_the_run_folders_lock_and_refuses_a_changed_resum
     with run_lock(out, "spread-train"):
         line, _ = user_error("spread-train-ray", *args, "ckpt_path=last", "trainer.max_steps=4")
     assert "in use by" in line and not (out / "ray_train").exists()
+
+
+# ---- evaluation and reports ---------------------------------------------------------------------------------------
+
+def evaluate_fast(scenes: Path, reference: Path, out: Path, *more: str):
+    from spread.commands.evaluate import evaluate
+
+    from helpers import compose
+
+    return evaluate(compose("evaluate", f"scenes={scenes}", f"reference={reference}", f"out_dir={out}", "logger=none",
+                            "metrics=[grecall]", "fid.enabled=false", "ray.num_cpus=1", "progress=false", "renders=0",
+                            *more))
+
+
+def test_an_evaluation_is_reported_by_what_it_measured_with_its_reference_and_scenes_included(dataset, tmp_path):
+    from spread.evaluation.protocol import EvalProtocol, FIDConfig
+    from spread.evaluation.run import check_protocol
+    from spread.reporting.intervals import folder_records, row_intervals
+    from spread.reporting.runs import RunError, folder_identity
+    from spread.runtime.fingerprint import differing, settings
+
+    out = tmp_path / "e"
+    first = evaluate_fast(dataset / "test", dataset, out, "bootstrap_resamples=0").metrics
+    assert first["evaluated_with"]["reference_split"] == "test" and first["bootstrap_resamples"] == 0
+    assert first["evaluated_scenes"] == sorted(p.stem for p in (dataset / "test").glob("*.npz"))
+    assert row_intervals(first, out) == {}  # none asked for: none drawn from the per-scene lines
+    # another reference split: the same per-scene lines, another FID/KID real set, named as a differing setting
+    shutil.copytree(out, tmp_path / "v")
+    (tmp_path / "v" / ".spread.lock").unlink(missing_ok=True)
+    second = evaluate_fast(dataset / "test", dataset, tmp_path / "v", "reference_split=val").metrics
+    assert second["run"]["evaluated_this_run"] == 0
+    rows = [settings(folder_identity(f, m)) for f, m in ((out, first), (tmp_path / "v", second))]
+    assert {"reference_split", "reference"} <= set(differing(rows))
+    # a line of a scene the evaluation did not count (another folder evaluated into it) is not its number
+    with (out / "per_scene.jsonl").open("a") as fh:
+        fh.write(json.dumps({"scene_id": "zz_other", "grecall": 0.0}) + "\n")
+    assert [r["scene_id"] for r in folder_records(out)] == first["evaluated_scenes"]
+    # a re-run from scratch (resume=false) with another protocol removes the old result before its record says so
+    check_protocol(out, EvalProtocol(metrics=["grecall"], stability_runs=5), FIDConfig(enabled=False), False,
+                   str(dataset / "assets"))
+    assert not (out / "metrics.json").exists() and not (out / "per_scene.jsonl").exists()
+    (tmp_path / "v" / ".hydra" / "config.yaml").write_text("protocol: [1, 2\n")
+    with pytest.raises(RunError, match=r"v/.hydra/config.yaml: not a readable config"):
+        folder_identity(tmp_path / "v", second)
+
+
+def test_a_fid_backbone_that_cannot_load_is_refused_before_a_finished_evaluation_is_touched(dataset, tmp_path):
+    from spread.evaluation.protocol import FIDConfig
+    from spread.evaluation.run import check_fid
+
+    out = tmp_path / "e"
+    evaluate_fast(dataset / "test", dataset, out)
+    kept = {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.is_file() and p.name != ".spread.lock"}
+    with pytest.raises(ValueError, match=r"fid.extractor=nosuch_mod:make: cannot be loaded \(ModuleNotFoundError"):
+        check_fid(FIDConfig(extractor="nosuch_mod:make"))
+    with pytest.raises(ValueError, match="fid.extractor=nosuch_mod:make: cannot be loaded"):
+        evaluate_fast(dataset / "test", dataset, out, "fid.enabled=true", "+fid.extractor=nosuch_mod:make")
+    assert {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.is_file() and p.name != ".spread.lock"} == kept
+
+
+def test_a_refused_second_run_of_a_folder_writes_no_tracker_record_and_an_older_mlflow_run_keeps_its_numbers(
+        dataset, tmp_path):
+    import subprocess
+    import sys
+    from types import SimpleNamespace
+
+    from spread.io import RunFolderBusy
+    from spread.reporting.report import shown_key
+    from spread.results.store import made_the_folder
+
+    out = tmp_path / "e"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from spread.io import run_lock\n"
+                               f"with run_lock({str(out)!r}, 'spread-evaluate'):\n print('held', flush=True); "
+                               "time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RunFolderBusy, match="in use by a running spread-evaluate"):
+            evaluate_fast(dataset / "test", dataset, out, "logger=mlflow",
+                          f"logger.tracking_uri={tmp_path / 'mlflow.db'}")
+        assert sorted(p.name for p in out.iterdir()) == [".spread.lock"]  # no mlflow_run.json, no .hydra
+    finally:
+        holder.kill()
+        holder.wait()
+    (out / "mlflow_run.json").write_text(json.dumps({"run_id": "later"}))
+    assert made_the_folder(SimpleNamespace(info=SimpleNamespace(run_id="later")), out)
+    assert not made_the_folder(SimpleNamespace(info=SimpleNamespace(run_id="earlier")), out)
+    assert shown_key("asd") == ("asd_mm", "mm") and shown_key("grecall") == ("grecall", None)

@@ -335,7 +335,9 @@ def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
     """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``
     (released by the kernel when the process ends, so a killed run never leaves a stale lock). A second run
     on the same folder is refused at once with :class:`RunFolderBusy` naming the holder (command, pid, start),
-    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``)."""
+    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``). Re-entrant
+    within a process: a command holding it (taken before it opens its trackers) runs the library call that takes it
+    again."""
     import fcntl
     import time
 
@@ -343,6 +345,10 @@ def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_FILE
     refuse_links(path)
+    held = str(path.resolve())
+    if held in _HELD_LOCKS:  # this process holds it already (a command takes it before its trackers, then the run)
+        yield path
+        return
     fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0), 0o666)
     import stat
 
@@ -361,6 +367,14 @@ def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
                                 f"out_dir") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{command} (pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
-        yield path
+        _HELD_LOCKS.add(held)
+        try:
+            yield path
+        finally:
+            _HELD_LOCKS.discard(held)
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+#: The run locks this process holds (resolved lock-file paths): :func:`run_lock` is re-entrant within a process.
+_HELD_LOCKS: set[str] = set()

@@ -14,11 +14,18 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     """``spread-evaluate``: evaluate ``cfg.scenes``; logs to wandb with ``logger=wandb``; returns the
     :class:`~spread.evaluation.EvaluationResult`. The config is recorded in ``out_dir/.hydra`` once the
     protocol check passed."""
+    from spread.io import run_lock
+
+    command = to_object(cfg)
+    with run_lock(command.out_dir, "spread-evaluate"):  # before the trackers: a refused second run writes no record
+        return _evaluate(cfg, command, overrides)
+
+
+def _evaluate(cfg: DictConfig, command, overrides: list[str] | None):
     from spread.evaluation import run_evaluation
     from spread.tracking.evaluation_wandb import log_evaluation
     from spread.tracking import mlflow_store as mlflow_log
 
-    command = to_object(cfg)
     tags = {"spread.seed": command.seed, "spread.scenes": str(command.scenes),
             "spread.dataset_fingerprint": mlflow_log.dataset_fingerprint(command.reference)}
     lineage = scenes_lineage(command.scenes)

@@ -40,12 +40,19 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     finished sweep point (``evaluate=true``, ``resume=true``, ``metrics.json`` there) is left as it is
     and (None, None) returned when its fingerprint matches, else redone (:mod:`spread.experiments.points`).
     ``log=False``: no wandb or MLflow run (the ablation logs its table instead)."""
+    from spread.io import run_lock
+
+    command = to_object(cfg)
+    with run_lock(command.out_dir, "spread-sample"):  # before the point's record and the trackers: a refused second
+        return _sample(cfg, command, log, overrides)  # run writes neither
+
+
+def _sample(cfg: DictConfig, command, log: bool, overrides: list[str] | None):
     from spread.tracking import mlflow_store as mlflow_log
     from spread.sampling import run_sampling
     from spread.tracking.sampling_mlflow import sampling_run_tags
     from spread.tracking.sampling_wandb import log_sampling, open_sampling_run
 
-    command = to_object(cfg)
     before_work = record_config(cfg, command.out_dir, overrides)
     if command.evaluate:  # a sweep point: re-used only when its fingerprint matches (experiments.points)
         from spread.experiments.points import check_point, finish_point, start_point

@@ -81,8 +81,9 @@ class EvaluationResult:
 def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool, assets: str) -> str | None:
     """Pin ``protocol.json`` (:func:`spread.runtime.fingerprint.evaluation_identity`: what a per-scene line depends
     on besides its scene file); returns why the folder is redone from scratch by the platform's done-check (None:
-    a resume or a new folder): lines measured with anything else are deleted with the old ``metrics.json`` and
-    renders."""
+    a resume or a new folder): lines measured with anything else (or any, with ``resume=false``) are deleted with
+    the old ``metrics.json`` and renders before the new record is pinned, so a run stopped then leaves no result
+    beside settings that did not make it."""
     from spread.runtime.fingerprint import done_check, evaluation_identity, normalised
 
     path = out / PROTOCOL
@@ -91,8 +92,8 @@ def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bo
         before = read_json(path)
     except (OSError, ValueError):
         before = None
-    decision = done_check(before, fingerprint, present=resume and (out / PER_SCENE).exists(),
-                          unknown=f"its {PER_SCENE} has no readable {PROTOCOL}")
+    decision = done_check(before, fingerprint, present=(out / PER_SCENE).exists() or (out / METRICS).exists(),
+                          resume=resume, unknown=f"its {PER_SCENE} has no readable {PROTOCOL}")
     if decision.fresh:
         for old in [out / PER_SCENE, out / METRICS, *(out / "renders").glob("*.png")]:
             old.unlink(missing_ok=True)
@@ -170,6 +171,31 @@ def sampled_with(scenes) -> dict | None:
     return fingerprint if isinstance(fingerprint, dict) and "sampling" in fingerprint else None
 
 
+def check_fid(fid: FIDConfig) -> None:
+    """``ValueError`` naming the FID setting whose backbone cannot be loaded (``fid.extractor`` that does not import,
+    an unknown ``fid.feature_model``), asked of this process's extractor (:func:`worker_extractor`, loaded once: the
+    reference's features need it here anyway) before an evaluation touches its folder."""
+    if not fid.enabled:
+        return
+    try:
+        worker_extractor(fid)
+    except ValueError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - an import or factory error of a user's backbone: named in one line
+        what = f"fid.extractor={fid.extractor}" if fid.extractor else f"fid.feature_model={fid.feature_model}"
+        raise ValueError(f"{what}: cannot be loaded ({type(exc).__name__}: {exc})") from None
+
+
+def evaluated_with(cfg: EvaluationConfig, assets: str) -> dict:
+    """What ``metrics.json``'s numbers were measured with (``spread-report`` asks it, not ``protocol.json`` as it
+    is when the report runs): the evaluation identity (:func:`spread.runtime.fingerprint.evaluation_identity`), the
+    reference split and its content (FID/KID's real set), in the shape a sweep point records them."""
+    from spread.runtime.fingerprint import evaluation_identity, normalised, tree_digest
+
+    return normalised({**evaluation_identity(cfg.protocol, cfg.fid, assets), "reference_split": str(cfg.reference_split),
+                       "reference": tree_digest(Path(cfg.reference) / cfg.reference_split)})
+
+
 def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
     """Evaluate every scene file of ``cfg.scenes`` (module docstring); ``before_work()`` runs once the checks
     passed (the command records its config there). The run holds ``out_dir``'s lock
@@ -199,11 +225,10 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     ref_dir = Path(cfg.reference) / cfg.reference_split
     reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
     per_scene = out / PER_SCENE
+    check_fid(cfg.fid)  # a backbone that cannot be loaded is refused before the folder is touched
     redone_because = check_protocol(out, cfg.protocol, cfg.fid, cfg.resume, assets)
     if before_work is not None:
         before_work()
-    if not cfg.resume:
-        per_scene.unlink(missing_ok=True)
     inputs, refused = input_hashes(files, keys, Path(cfg.scenes))
     finished, changed = load_finished(per_scene, retry_failed=cfg.retry_failed, inputs=inputs)
     for key, record in refused.items():  # never sent to a worker: recorded here, the run goes on
@@ -246,6 +271,8 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
                            for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
         "scenes": str(cfg.scenes), "sampled_with": sampled_with(cfg.scenes),
+        "evaluated_with": evaluated_with(cfg, assets), "evaluated_scenes": [r["scene_id"] for r in records],
+        "bootstrap_resamples": int(cfg.bootstrap_resamples),
         "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(), "redone_because": redone_because,
         "run": {"evaluated_this_run": len(todo), "resumed": len(files) - len(todo),

@@ -15,11 +15,17 @@ What it shows, for the scene picked in the side panel:
   ``trajectory_translation`` (T, N, 3) and ``trajectory_rotation`` (T, N, 3, 3)).
 
 :func:`collect` reads what to show from a scene file, a folder of them, or a run folder (``scenes/``).
+
+Every text the panel takes from data files (category names, scene ids, file names) is escaped first: the legend
+is HTML (viser sets it as the element's inner HTML: :func:`html_text`), the scene's caption markdown
+(:func:`markdown_text`), so a category ``<img src=x onerror=...>`` shows as those characters and runs nothing.
 """
 
 from __future__ import annotations
 
+import html
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +46,23 @@ class ViewItem:
     ground_truth: Path | None = None
 
 
+def html_text(text) -> str:
+    """``text`` (from a data file) as HTML text: ``<``, ``>``, ``&`` and quotes as entities."""
+    return html.escape(str(text), quote=True)
+
+
+#: ASCII punctuation markdown may read as syntax (emphasis, links, code, tables, headings, MDX braces, math),
+#: but ``&<>"'``, which :func:`html_text` turns into entities
+MARKDOWN_SPECIALS = re.compile(r"""([!#$%()*+,\-./:;=?@\[\\\]^_`{|}~])""")
+
+
+def markdown_text(text) -> str:
+    """``text`` (from a data file) as literal markdown text on one line: every ASCII punctuation character markdown
+    may read as syntax backslash-escaped (CommonMark), then HTML's specials as entities, so that no tag, link,
+    emphasis or heading comes from it; line breaks and runs of white space become one space."""
+    return html_text(MARKDOWN_SPECIALS.sub(r"\\\1", " ".join(str(text).split())))
+
+
 def library_candidates(path: Path, data_root: Path | None) -> list[Path]:
     folder = path if path.is_dir() else path.parent
     out = [folder / "assets", folder.parent / "assets", folder.parent.parent / "assets"]
@@ -54,7 +77,7 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
     folder; errors name the path. Every file goes through :func:`spread.io.check_input_file` before it is opened:
     a FIFO, a device or a link out of the folder among the scenes is left out and named in ``refused`` (a
     named file that is refused is an error)."""
-    from spread.io import InputFileError, check_input_file, read_json_object
+    from spread.io import InputFileError, check_input_file
     from spread.scene import list_scene_files
 
     path = Path(path)
@@ -62,10 +85,7 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
         raise FileNotFoundError(f"spread-view: {path}: no such file or folder")
     data_root, split = None, None
     if path.is_dir() and (path / "sampling.json").exists():
-        manifest = read_json_object(path / "sampling.json")
-        fingerprint = manifest.get("fingerprint") or {}
-        data_root = Path(fingerprint["data_root"]) if fingerprint.get("data_root") else None
-        split = fingerprint.get("split")
+        data_root, split = ground_truth_source(path / "sampling.json")
     scenes_dir = path / "scenes" if (path / "scenes").is_dir() else path
     if not path.is_dir():
         try:
@@ -97,6 +117,36 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
         raise FileNotFoundError(f"spread-view: no asset library for {path} (looked beside it and in the dataset); "
                                 "give assets=DIR")
     return items, library
+
+
+def ground_truth_source(manifest_path: Path) -> tuple[Path | None, str | None]:
+    """(the dataset folder, the split) a run's ``sampling.json`` names (``fingerprint.data_root``, ``split``), each
+    None when not given; ``ValueError`` naming the file and the key when one is not what a sampling run writes (a
+    run folder whose record is damaged is refused, as one whose file is not JSON)."""
+    from spread.io import read_json_object
+
+    manifest = read_json_object(manifest_path, error=lambda why: ValueError(f"spread-view: {why}"))
+    fingerprint = manifest.get("fingerprint")
+    if fingerprint is None:
+        return None, None
+    if not isinstance(fingerprint, dict):
+        raise ValueError(f"spread-view: {manifest_path}: 'fingerprint' holds {type(fingerprint).__name__}, expected "
+                         f"an object (data_root, split: where the ground truth is); not a sampling run's record")
+    values = {}
+    for key in ("data_root", "split"):
+        value = fingerprint.get(key)
+        if value is not None and not isinstance(value, str):
+            raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.{key}' holds {type(value).__name__} "
+                             f"{value!r}, expected a {'folder path' if key == 'data_root' else 'split name'} (text)")
+        values[key] = value or None
+    split = values["split"]
+    if split is not None and (split in (".", "..") or "/" in split or "\\" in split or "\0" in split):
+        raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.split' holds {split!r}, expected a split "
+                         f"folder's name (train, val, test)")
+    if values["data_root"] is not None and "\0" in values["data_root"]:
+        raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.data_root' holds {values['data_root']!r}, "
+                         f"not a folder path")
+    return (Path(values["data_root"]) if values["data_root"] else None), split
 
 
 def ground_truth_id(path: Path) -> str:
@@ -141,7 +191,7 @@ def legend_html(scene) -> str:
     from spread.render.figures import legend_entries
 
     rows = "".join(f'<div><span style="display:inline-block;width:12px;height:12px;margin-right:6px;'
-                   f'background:rgb{tuple(colour)}"></span>{label}</div>'
+                   f'background:rgb{tuple(int(c) for c in colour)}"></span>{html_text(label)}</div>'
                    for label, colour in legend_entries([str(c) for c in scene.category]))
     return f'<div style="font-size:0.8em">{rows}</div>'
 
@@ -205,11 +255,13 @@ class SceneViewer:
         self.bounds = []
         self.add_group("scene", scene, (0.0, 0.0, 0.0), f"{item.name}")
         step = width_x(scene, self.library) + GAP
-        lines = [f"**{item.name}**: {scene.num_objects} objects"]
+        named = "" if str(scene.scene_id) == item.name else f" (scene {markdown_text(scene.scene_id)})"
+        lines = [f"**{markdown_text(item.name)}**{named}: {scene.num_objects} objects"]
         x = step
         if self.truth.value and item.ground_truth is not None:
             truth = read_scene(item.ground_truth)
             self.add_group("ground_truth", truth, (x, 0.0, 0.0), f"ground truth {truth.scene_id}")
+            lines.append(f"ground truth beside it: {markdown_text(truth.scene_id)}")
             x += max(step, width_x(truth, self.library) + GAP)
         elif item.ground_truth is None:
             lines.append("ground truth: not known for this file")

@@ -35,26 +35,42 @@ def row_intervals(metrics: dict, folder: str | Path | None) -> dict:
     ``metrics`` nor ``folder/per_scene.jsonl`` gives them."""
     if metrics.get("bootstrap"):
         return {**{k: metrics.get(k) for k in interval_keys(metrics)}, "bootstrap": metrics["bootstrap"]}
+    if metrics.get("bootstrap_resamples") == 0:  # the evaluation was asked for none
+        return {}
     records = folder_records(folder)
     if records is None:
         return {}
-    return bootstrap_intervals(records, seed=protocol_seed(metrics))
+    return bootstrap_intervals(records, seed=protocol_seed(metrics, folder))
 
 
-def protocol_seed(metrics: dict) -> int:
-    """The evaluation's seed (``metrics.json``'s ``protocol.seed``; 0 when it has none)."""
-    return int((metrics.get("protocol") or {}).get("seed", 0))
+def protocol_seed(metrics: dict, folder=None) -> int:
+    """The evaluation's seed (``metrics.json``'s ``protocol.seed``; 0 when it has none); ``ValueError`` naming the
+    file and key when it is not a whole number."""
+    protocol = metrics.get("protocol") if isinstance(metrics.get("protocol"), dict) else {}
+    seed = protocol.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        where = Path(folder) / "metrics.json" if folder is not None else "metrics.json"
+        raise ValueError(f"{where}: protocol.seed={seed!r}: not a whole number")
+    return seed
 
 
 def folder_records(folder: str | Path | None) -> list[dict] | None:
-    """The deduplicated ``per_scene.jsonl`` lines of an evaluation folder sorted by scene id, None without it."""
+    """The deduplicated ``per_scene.jsonl`` lines of an evaluation folder sorted by scene id, None without it: those
+    of the scenes its ``metrics.json`` counted (``evaluated_scenes``; lines of other scenes, left by an evaluation of
+    another scene folder into it, are not its numbers), all of them for a ``metrics.json`` written before that
+    record."""
     path = Path(folder) / "per_scene.jsonl" if folder is not None else None
     if path is None or not path.exists():
         return None
     from spread.evaluation.resume import dedupe
-    from spread.io import read_jsonl
+    from spread.io import read_json_object, read_jsonl
 
-    return [r for _, r in sorted(dedupe(read_jsonl(path)).items())]
+    try:
+        counted = read_json_object(Path(folder) / "metrics.json").get("evaluated_scenes")
+    except (OSError, ValueError):
+        counted = None
+    keep = set(map(str, counted)) if isinstance(counted, list) else None
+    return [r for k, r in sorted(dedupe(read_jsonl(path)).items()) if keep is None or str(k) in keep]
 
 
 def grouped_intervals(records: Iterable[dict], group_of: Callable[[str], str | None], metrics: Iterable[str],

@@ -141,10 +141,19 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, 
         "unfinished": [str(p) for p in unfinished],
         "refused": result.html.get("refused", []),
         "tables": {k: str(v) for k, v in result.tables.items()},
-        "plots": [{"metric": m, "setting": w, "png": str(p), "points": pts}
-                  for (m, w), (p, pts) in result.plots.items()],
+        "plots": [{"metric": shown_key(m)[0], "unit": shown_key(m)[1], "setting": w, "png": str(p), "points": pts}
+                  for (m, w), (p, pts) in result.plots.items()],  # points in the plot's (display) unit, keyed so
     })
     return result
+
+
+def shown_key(key: str) -> tuple[str, str | None]:
+    """(the key a value is shown under, its unit): ``asd`` (metres) is plotted in mm as ``asd_mm``
+    (:attr:`spread.metrics.registry.ValueSpec.key`); a value without a unit keeps its key."""
+    from spread.metrics.registry import value_spec
+
+    spec = value_spec(key)
+    return (spec.key, spec.unit) if spec is not None and spec.unit else (key, None)
 
 
 def runs_argument(value) -> list[str]:

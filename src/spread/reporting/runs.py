@@ -150,14 +150,27 @@ def folder_identity(path: Path, metrics: dict) -> dict:
     if hydra.exists():
         from omegaconf import OmegaConf
 
-        identity |= config_identity(OmegaConf.to_container(OmegaConf.create(read_text_checked(hydra)), resolve=False))
+        text = read_text_checked(hydra)
+        try:
+            tree = OmegaConf.to_container(OmegaConf.create(text), resolve=False)
+        except Exception as exc:  # noqa: BLE001 - YAML's and OmegaConf's parse errors: the file named in one line
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise RunError(f"{hydra}: not a readable config ({first})") from None
+        try:
+            identity |= config_identity(tree if isinstance(tree, dict) else {})
+        except (ValueError, TypeError) as exc:
+            raise RunError(f"{hydra}: {exc}") from None
     if isinstance(metrics.get("sampled_with"), dict):  # what the evaluation measured, as it recorded it
         identity |= metrics["sampled_with"]
     else:  # none recorded (written before that record, or scenes of no fingerprinted run): the folders as they are
         identity = recorded_sampling(path, metrics, identity)
-    protocol = optional_json(path / "protocol.json")
-    if isinstance(protocol.get("protocol"), dict):
-        identity["evaluation"] = protocol
+    recorded = metrics.get("evaluated_with")
+    if isinstance(recorded, dict) and isinstance(recorded.get("protocol"), dict):  # what its numbers measured with
+        identity["evaluation"] = recorded
+    else:  # written before that record: the folder's protocol.json as it is
+        protocol = optional_json(path / "protocol.json")
+        if isinstance(protocol.get("protocol"), dict):
+            identity["evaluation"] = protocol
     return identity
 
 

@@ -26,6 +26,23 @@ def parsed(text: str):
         return {"True": True, "False": False, "None": None}.get(text, text)
 
 
+def made_the_folder(run, folder) -> bool:
+    """Whether the run folder's numbers are this MLflow run's: its ``mlflow_run.json`` names this run (a folder
+    evaluated again since holds a later run's numbers and settings; this run's own logged values are its record),
+    or names none (a folder written before that record)."""
+    from spread.io import read_json_object
+    from spread.tracking.mlflow_store import RUN_FILE
+
+    path = Path(str(folder)) / RUN_FILE
+    if not path.is_file():
+        return True
+    try:
+        named = read_json_object(path).get("run_id")
+    except (OSError, ValueError):
+        return False
+    return named is None or named == run.info.run_id
+
+
 def run_record(run, experiments: dict) -> dict | None:
     """The record of one MLflow run (module docstring); None for a parent run or a run without a metric."""
     from spread.reporting.runs import RunError, identity_fields, is_finished_run, read_run_folder, record_metrics
@@ -38,7 +55,7 @@ def run_record(run, experiments: dict) -> dict | None:
         return None
     record = None
     folder = tags.get("spread.run_folder") or params.get("out_dir")
-    if folder and is_finished_run(folder) and tags.get("spread.reused") != "true":
+    if folder and is_finished_run(folder) and tags.get("spread.reused") != "true" and made_the_folder(run, folder):
         try:
             record = read_run_folder(folder)
         except RunError:

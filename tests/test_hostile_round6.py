@@ -262,3 +262,18 @@ def test_a_refused_second_run_of_a_folder_writes_no_tracker_record_and_an_older_
     assert made_the_folder(SimpleNamespace(info=SimpleNamespace(run_id="later")), out)
     assert not made_the_folder(SimpleNamespace(info=SimpleNamespace(run_id="earlier")), out)
     assert shown_key("asd") == ("asd_mm", "mm") and shown_key("grecall") == ("grecall", None)
+
+
+def test_a_training_workers_bad_setting_is_found_through_rays_wrappers():
+    from ray.exceptions import RayTaskError
+    from ray.train.base_trainer import TrainingFailedError
+
+    from spread.training.ray_train import worker_user_error
+
+    cause = ValueError("trainer.accelerator=gpu (trainer=gpu): this process sees no CUDA device")
+    wrapped = TrainingFailedError("Training failed")
+    wrapped.__cause__ = RayTaskError("train_fn", "Traceback ...", cause).as_instanceof_cause()
+    assert worker_user_error(wrapped) is cause  # spread-train-ray then says it in one line, not 53
+    crash = TrainingFailedError("Training failed")
+    crash.__cause__ = RayTaskError("train_fn", "Traceback ...", RuntimeError("CUDA error")).as_instanceof_cause()
+    assert worker_user_error(crash) is None  # a crash stays a traceback

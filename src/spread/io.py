@@ -331,13 +331,13 @@ LOCK_FILE = ".spread.lock"
 
 
 @contextlib.contextmanager
-def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
+def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Iterator[Path]:
     """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``
     (released by the kernel when the process ends, so a killed run never leaves a stale lock). A second run
     on the same folder is refused at once with :class:`RunFolderBusy` naming the holder (command, pid, start),
-    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``). Re-entrant
-    within a process: a command holding it (taken before it opens its trackers) runs the library call that takes it
-    again."""
+    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``).
+    ``nest=True``: a run in this process that takes it again inside is part of this one (a command holds it
+    before it opens its trackers, then calls the library run that takes it); any other hold is a second run."""
     import fcntl
     import time
 
@@ -346,7 +346,7 @@ def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
     path = folder / LOCK_FILE
     refuse_links(path)
     held = str(path.resolve())
-    if held in _HELD_LOCKS:  # this process holds it already (a command takes it before its trackers, then the run)
+    if _HELD_LOCKS.get(held):  # this process holds it for a run that nests this one (``nest``)
         yield path
         return
     fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0), 0o666)
@@ -367,14 +367,14 @@ def run_lock(folder: str | os.PathLike, command: str) -> Iterator[Path]:
                                 f"out_dir") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{command} (pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
-        _HELD_LOCKS.add(held)
+        _HELD_LOCKS[held] = nest
         try:
             yield path
         finally:
-            _HELD_LOCKS.discard(held)
+            _HELD_LOCKS.pop(held, None)
     finally:
         os.close(fd)  # closing the descriptor releases the lock
 
 
-#: The run locks this process holds (resolved lock-file paths): :func:`run_lock` is re-entrant within a process.
-_HELD_LOCKS: set[str] = set()
+#: The run locks this process holds (resolved lock-file path → whether a run inside may take it again: ``nest``).
+_HELD_LOCKS: dict[str, bool] = {}

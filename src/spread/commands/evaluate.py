@@ -17,7 +17,7 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     from spread.io import run_lock
 
     command = to_object(cfg)
-    with run_lock(command.out_dir, "spread-evaluate"):  # before the trackers: a refused second run writes no record
+    with run_lock(command.out_dir, "spread-evaluate", nest=True):  # before the trackers: a refused second run writes no record
         return _evaluate(cfg, command, overrides)
 
 

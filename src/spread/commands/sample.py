@@ -43,7 +43,7 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     from spread.io import run_lock
 
     command = to_object(cfg)
-    with run_lock(command.out_dir, "spread-sample"):  # before the point's record and the trackers: a refused second
+    with run_lock(command.out_dir, "spread-sample", nest=True):  # before the point's record and the trackers: a refused second
         return _sample(cfg, command, log, overrides)  # run writes neither
 
 

@@ -140,8 +140,24 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     with ray_session(ray_settings, owner=run_dir):
         result = trainer.fit()
     if result.error is not None:
-        raise result.error
+        raise worker_user_error(result.error) or result.error
     return result
+
+
+def worker_user_error(error: BaseException) -> BaseException | None:
+    """The bad setting or input (a ``ValueError``, ``FileNotFoundError``, ``PermissionError``: what the console
+    scripts report in one line) a training worker raised, found through Ray's wrappers (``TrainingFailedError``,
+    ``RayTaskError`` — whose dual classes are skipped —: their ``cause`` or ``__cause__``); None for any other
+    failure."""
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, (ValueError, FileNotFoundError, PermissionError)) and \
+                "ray" not in type(error).__module__.split(".")[0] and "RayTaskError" not in type(error).__name__:
+            return error
+        error = getattr(error, "cause", None) if isinstance(getattr(error, "cause", None), BaseException) \
+            else error.__cause__
+    return None
 
 
 def private_cluster_trainer():

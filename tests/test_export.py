@@ -211,6 +211,20 @@ def test_a_reexport_removes_the_outputs_it_no_longer_writes_and_nothing_else(dat
     assert (scenes / "a.npz").exists() and sorted(os.listdir(out)) == ["a.glb", "a.xml", "export.json", "mine.txt"]
 
 
+def test_a_sampling_runs_scenes_export_with_the_asset_library_of_the_dataset_they_were_sampled_from(data, tmp_path):
+    from spread.export import assets_of
+
+    root, _, scene = data
+    run = tmp_path / "run"
+    write_scene(scene, run / "scenes" / "a.npz")
+    with pytest.raises(FileNotFoundError, match="give assets=DIR"):
+        assets_of(run / "scenes", None)
+    (run / "sampling.json").write_text(json.dumps({"fingerprint": {"data_root": str(root)}}))
+    assert assets_of(run / "scenes", None) == root / "assets"
+    report = export_folder(run / "scenes", assets_of(run / "scenes", None), run / "mjcf", "mjcf")
+    assert list(report.written) == ["room|1"]
+
+
 def export_command(*args: str) -> subprocess.CompletedProcess:
     """``spread-export`` (its Hydra main, run as a module so the test needs no installed console script)."""
     return subprocess.run([sys.executable, "-m", "spread.cli.export", *args], capture_output=True, text=True,

@@ -85,6 +85,14 @@ def test_fewer_samples_per_graph_leave_exactly_the_planned_scenes_and_their_rend
     assert {p.name: p.read_bytes() for p in again.files} == first
     assert not list((out / "unplanned" / "scenes").glob("*.npz"))
     assert len(list((out / "renders").glob("*_k1.png"))) == 3
+    # scenes set aside by a run of other settings never come back under new ones, even with scenes/ emptied by hand
+    sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=1", "renders=0")
+    for scene in (out / "scenes").glob("*.npz"):
+        scene.unlink()
+    other = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "samples_per_graph=2",
+                              "renders=0", "seed=1")
+    assert other.manifest["taken_back"] == 0 and other.manifest["redone_because"] == "changed: sampling.seed"
+    assert all(p.read_bytes() != first[p.name] for p in other.files)
 
 
 def test_a_report_gives_an_evaluation_the_sampling_settings_it_measured_after_its_folder_is_sampled_again(

@@ -66,6 +66,11 @@ def test_a_source_whose_every_room_fails_keeps_the_earlier_scenes_and_their_libr
                                          r"file\(s\) of earlier imports in .* are kept"):
         import_dataset(ImportConfig("threed_front", str(front["src"]), str(front["out"]), **front["options"]))
     assert imported(front["out"]) == before
+    for room in [p for p in front["src"].iterdir() if p.is_dir()]:
+        shutil.rmtree(room)  # the source lists no room at all
+    with pytest.raises(ValueError, match=r"the source lists no room \(src=.*\); the 4 scene file\(s\) of earlier"):
+        import_dataset(ImportConfig("threed_front", str(front["src"]), str(front["out"]), **front["options"]))
+    assert imported(front["out"]) == before
 
 
 def test_an_import_into_a_folder_of_generated_rooms_is_refused_before_it_is_touched(tmp_path, front):
@@ -159,6 +164,20 @@ def test_a_refused_training_launch_leaves_the_recorded_config_and_a_resume_sees_
         train_two_steps(out, data, "ckpt_path=last", "trainer.max_steps=3")
     summary = train_two_steps(out, moved / dataset.name, "ckpt_path=last", "trainer.max_steps=3")
     assert summary["global_step"] == 3
+
+
+def test_the_data_digest_a_checkpoint_records_is_what_the_rooms_are_wherever_they_lie(dataset, tmp_path):
+    from types import SimpleNamespace
+
+    from spread.training.fit import data_digest
+
+    for name in ("a", "b"):
+        shutil.copytree(dataset.parent, tmp_path / name)
+        shutil.rmtree(tmp_path / name / dataset.name / "val")  # no val split: trained with limit_val_batches=0
+    a, b = (SimpleNamespace(hparams={"root": str(tmp_path / n / dataset.name)}) for n in ("a", "b"))
+    assert data_digest(a) == data_digest(b)
+    next((tmp_path / "b" / dataset.name / "train").glob("*.npz")).unlink()
+    assert data_digest(a) != data_digest(b)
 
 
 def test_spread_train_ray_holds_the_run_folders_lock_and_refuses_a_changed_resume_before_ray_starts(dataset, tmp_path):

@@ -199,11 +199,18 @@ def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spe
     earlier["sampling"]["device"] = "auto"
     earlier["evaluation"]["fid"] = {"enabled": False, "feature_model": "inception_v3", "weights_path": None,
                                     "extractor": None}
-    assert upgraded(earlier, now) == now
+    assert upgraded(earlier) == now
     assert done_check(earlier, now, present=True, finished=True).reuse
+    assert upgraded(earlier, resolve_auto=False)["sampling"]["device"] == "auto"  # a report: as written
     earlier["sampling"]["device"] = "cuda:0"
     assert done_check(earlier, now, present=True).reason == "changed: sampling.device"
-    earlier["sampling"]["device"], earlier["evaluation"]["fid"]["enabled"] = "auto", True
+    earlier["sampling"]["device"] = "auto"
+    import torch
+
+    with pytest.MonkeyPatch.context() as patch:  # on a GPU machine an old auto run sampled on CUDA: not a cpu run
+        patch.setattr(torch.cuda, "is_available", lambda: True)
+        assert done_check(earlier, now, present=True).reason == "changed: sampling.device"
+    earlier["evaluation"]["fid"]["enabled"] = True
     assert done_check(earlier, now, present=True).fresh  # an enabled FID is compared field by field
 
 

@@ -51,17 +51,34 @@ class ExportConfig:
 
 
 def assets_of(scenes: str | os.PathLike, assets: str | os.PathLike | None) -> Path:
-    """The asset library folder: ``assets`` if given, else ``assets/`` beside the scenes folder or inside it."""
+    """The asset library folder: ``assets`` if given, else ``assets/`` beside the scenes folder or inside it, else
+    that of the dataset a sampling run's scenes came from (:func:`sampled_from`)."""
     if assets:
         path = Path(assets)
         if not (path / "index.json").exists():
             raise FileNotFoundError(f"assets={assets}: not an asset library (no index.json)")
         return path
-    for candidate in (Path(scenes).parent / "assets", Path(scenes) / "assets"):
-        if (candidate / "index.json").exists():
+    for candidate in (Path(scenes).parent / "assets", Path(scenes) / "assets", sampled_from(scenes)):
+        if candidate is not None and (candidate / "index.json").exists():
             return candidate
-    raise FileNotFoundError(f"no asset library beside scenes={scenes} (looked for ../assets and assets/); "
-                            "give assets=DIR")
+    raise FileNotFoundError(f"no asset library beside scenes={scenes} (looked for ../assets, assets/ and the dataset "
+                            "a sampling run's sampling.json names); give assets=DIR")
+
+
+def sampled_from(scenes) -> Path | None:
+    """``<data_root>/assets`` of the dataset a sampling run's scenes were sampled from (``../sampling.json``'s
+    ``fingerprint.data_root``, where its asset library is); None for scenes of no sampling run or an unreadable
+    record."""
+    from spread.io import read_json_object
+
+    record = Path(scenes).parent / "sampling.json"
+    if Path(scenes).name != "scenes" or not record.is_file():
+        return None
+    try:
+        root = (read_json_object(record).get("fingerprint") or {}).get("data_root")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return Path(root) / "assets" if isinstance(root, str) and root and "\0" not in root else None
 SUFFIX = {"urdf": "", "mjcf": ".xml", "usd": ".usda", "glb": ".glb", "sceneeval": ""}
 
 

@@ -361,12 +361,15 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         failed_assets = {r["asset_id"]: r["error"] for r in asset_results if r["error"]}
         usable = [ref for ref in room_list.rooms if not scans[ref.tag]["error"]
                   and not any(req.asset_id in failed_assets for req in scans[ref.tag]["requests"])]
-        if room_list.rooms and not usable and earlier:  # before the library's index is replaced
+        if not usable and earlier:  # before the library's index is replaced (a source listing no room too)
             first = next((scans[r.tag]["error"] for r in room_list.rooms if scans[r.tag]["error"]), None) or {
                 "tag": "an asset", **next(iter(failed_assets.values()), {})}
-            raise ValueError(f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
-                             f"{first.get('file')}: {first.get('error')}); the {earlier} scene file(s) of earlier "
-                             f"imports in {out} and their asset library are kept")
+            what = (f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
+                    f"{first.get('file')}: {first.get('error')})" if room_list.rooms else
+                    f"the source lists no room (src={cfg.src}: not mounted, or emptied?"
+                    + (f"; {room_list.errors[0]}" if room_list.errors else "") + ")")
+            raise ValueError(f"{what}; the {earlier} scene file(s) of earlier imports in {out} and their asset "
+                             f"library are kept")
         library = AssetLibrary(out / "assets", records)
         library.save_index(build={"importer": IMPORTER_VERSION, **source.info()})
         t2 = time.perf_counter()

@@ -139,7 +139,16 @@ def identity_fields(identity: dict) -> dict:
 
 
 def folder_identity(path: Path, metrics: dict) -> dict:
-    """What a run folder's numbers were made with, as recorded beside them (module docstring)."""
+    """What a run folder's numbers were made with, as recorded beside them (module docstring), in today's spelling
+    (:func:`spread.runtime.fingerprint.upgraded`: a record of an earlier version names the same settings the same
+    way; a recorded ``device: auto`` is kept as written)."""
+    from spread.runtime.fingerprint import upgraded
+
+    return upgraded(recorded_identity(path, metrics), resolve_auto=False)
+
+
+def recorded_identity(path: Path, metrics: dict) -> dict:
+    """:func:`folder_identity` as the folder's records spell it."""
     from spread.runtime.fingerprint import config_identity
 
     point = optional_json(path / "point.json")

@@ -156,34 +156,42 @@ def done_check(before: dict | None, now: dict, *, present: bool, finished: bool 
     if not isinstance(before, dict):
         return Decision("redo", unknown)
     # where the inputs lie is not what they are (the data's content is its own key): a moved or copied dataset resumes
-    changed = [k for k in changed_keys(upgraded(before, now), normalised(now)) if k.split(".")[0] not in WHERE]
+    changed = [k for k in changed_keys(upgraded(before), normalised(now)) if k.split(".")[0] not in WHERE]
     if changed:
         return Decision("redo", f"changed: {', '.join(changed)}")
     return Decision("reuse" if finished else "resume")
 
 
-def upgraded(before: dict, now: dict) -> dict:
-    """An identity recorded by an earlier version (``before``) in today's spelling, normalised, so that what it
-    recorded is compared, not how, wherever the part sits (a stage's inputs nest identities): a sampling ``device``
-    recorded as asked (``auto``: read as the device this run resolves, as the two were compared before; ``cuda:N``:
-    ``cuda``), and a disabled FID's other settings, which change nothing, dropped."""
-    def walk(node, here):
+def upgraded(record: dict, resolve_auto: bool = True) -> dict:
+    """An identity recorded by an earlier version in today's spelling, normalised, so that what it recorded is
+    compared, not how, wherever the part sits (a stage's inputs nest identities): a disabled FID's other settings,
+    which change nothing, dropped; a sampling ``device`` recorded as asked — ``cuda:N`` as ``cuda``, and, with
+    ``resolve_auto`` (the done-check), ``auto`` as what it resolves to in this process (:func:`auto_device`: the same
+    machine's ``auto`` run is the same run; on a GPU machine an old ``auto`` record is not a ``device=cpu`` one).
+    Reports keep a recorded ``auto`` as written (``resolve_auto=False``): where it ran is not known there."""
+    def walk(node):
         if not isinstance(node, dict):
             return node
         out = {}
         for key, value in node.items():
-            there = here.get(key) if isinstance(here, dict) else None
             if key == "fid" and isinstance(value, dict) and value.get("enabled") is False:
                 value = {"enabled": False}
             elif key == "sampling" and isinstance(value, dict) and isinstance(value.get("device"), str):
                 device = value["device"]
-                if device == "auto" and isinstance(there, dict) and "device" in there:
-                    device = there["device"]
+                if device == "auto" and resolve_auto:
+                    device = auto_device()
                 value = {**value, "device": "cuda" if device.startswith("cuda:") else device}
-            out[key] = walk(value, there)
+            out[key] = walk(value)
         return out
 
-    return walk(normalised(before), normalised(now))
+    return walk(normalised(record))
+
+
+def auto_device() -> str:
+    """What ``device=auto`` resolves to in this process: ``cuda`` when it sees a GPU, else ``cpu``."""
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 # ---- identities ----------------------------------------------------------------------------------------------

@@ -256,7 +256,8 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
         before = read_json(path).get("fingerprint")
     except (OSError, ValueError, AttributeError):
         before = None
-    decision = done_check(before, settings, present=any(scenes.glob("*.npz")), resume=resume,
+    present = any(scenes.glob("*.npz")) or any((out / ASIDE / "scenes").glob("*.npz"))  # set aside: theirs too
+    decision = done_check(before, settings, present=present, resume=resume,
                           unknown=f"its scenes have no readable {MANIFEST} fingerprint")
     if decision.fresh:
         for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png"), *(out / ASIDE).glob("scenes/*.npz"),

@@ -109,6 +109,7 @@ def test_a_report_gives_an_evaluation_the_sampling_settings_it_measured_after_it
                                 f"out_dir={tmp_path / 'e'}", "logger=none", "metrics=[grecall]", "fid.enabled=false",
                                 "ray.num_cpus=1", "progress=false", "renders=0")).metrics
     assert measured["sampled_with"]["sampling"]["seed"] == 0
+    assert measured["sampled_with"]["samples_per_graph"] == 1  # what was scored, though a run may grow
     again = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "renders=0", "seed=5")
     assert again.manifest["redone_because"] == "changed: sampling.seed"
     metrics = json.loads((tmp_path / "e" / "metrics.json").read_text())

@@ -85,6 +85,19 @@ def test_over_seeds_gives_the_mean_and_a_student_t_interval_per_point(tmp_path):
     assert one["n_seeds"].tolist() == [1] and math.isnan(one["grecall_lo"][0])
 
 
+def test_over_seeds_counts_a_run_drawn_twice_once_and_reads_an_evaluation_seed_that_follows_the_seed_as_the_seed():
+    rows = [{"guidance.collision": 0.0075, "seed": seed, "protocol.seed": seed, "point": f"c0.0075_seed{seed}_ab",
+             "grecall": value} for seed, value in ((0, 0.2), (0, 0.2), (0, 0.2), (1, 0.4), (1, 0.4), (1, 0.4))]
+    df = pd.DataFrame(rows)
+    df.attrs = {"settings": ["guidance.collision", "seed", "protocol.seed"], "metrics": ["grecall"]}
+    out = over_seeds(df, "grecall")
+    assert len(out) == 1 and out["n_seeds"].tolist() == [2] and out["seeds"].tolist() == [[0, 1]]
+    half = 12.706204736174698 * math.sqrt(0.02) / math.sqrt(2)  # two runs, t(0.975, 1): not six
+    assert out["grecall_hi"][0] == pytest.approx(0.3 + half)
+    df.loc[df["seed"] == 1, "protocol.seed"] = 7  # an evaluation seed of its own is a setting
+    assert len(over_seeds(df, "grecall")) == 2
+
+
 def test_paired_difference_matches_scenes_and_gives_a_seeded_bootstrap_interval(tmp_path):
     a_vals = {f"g{i}_k0": 0.5 + 0.1 * (i % 3) for i in range(8)}
     b_vals = {f"g{i}_k0": 0.4 + 0.05 * (i % 2) for i in range(2, 10)}  # g2..g9: shares g2..g7 with A

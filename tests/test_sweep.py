@@ -143,6 +143,32 @@ def test_the_results_table_names_every_other_setting_that_differs_between_points
     assert "sampler=ddim-4" in md
 
 
+def test_a_drawing_search_is_another_search_when_its_checkpoint_or_data_change_at_the_same_paths(tmp_path):
+    """A resumed random or Optuna search would report its restored trials: new weights or rooms at the same paths
+    are another search (its identity holds their content), not a resume."""
+    import os
+
+    from spread.experiments.sweep import search_identity
+
+    ckpt, data = tmp_path / "m.ckpt", tmp_path / "data"
+    ckpt.write_bytes(b"weights-1")
+    (data / "test").mkdir(parents=True)
+    (data / "test" / "a.npz").write_bytes(b"scene-a")
+    plan = parse_arguments([f"ckpt={ckpt}", f"data.root={data}", "guidance=refine", "guidance.gravity=0.001",
+                            "guidance.collision=interval(0.0,0.03)", *QUICK, "search=random", "num_samples=2",
+                            f"out_dir={tmp_path / 'S'}"])
+    shared = {"fixed": plan.fixed, "points": str(tmp_path / "S" / "points"), "name": plan.settings.name,
+              "metric": plan.settings.metric, "scheduler": plan.settings.scheduler, "seeds": plan.settings.seeds,
+              "cwd": os.getcwd()}
+    first = search_identity(plan, shared)
+    assert first == search_identity(plan, shared) and first["inputs"]["ckpt_sha256"]
+    ckpt.write_bytes(b"weights-2")
+    assert search_identity(plan, shared)["inputs"]["ckpt_sha256"] != first["inputs"]["ckpt_sha256"]
+    ckpt.write_bytes(b"weights-1")
+    (data / "test" / "a.npz").write_bytes(b"scene-a, rewritten")
+    assert search_identity(plan, shared)["inputs"]["data"] != first["inputs"]["data"]
+
+
 def test_seeds_give_one_csv_row_per_seed_and_one_table_line_per_point_with_its_interval_over_seeds(tmp_path):
     """``seeds=2``: results.csv keeps every seed's row (ASD in mm), results.md one line per point, each metric the
     mean over its seeds ± half the 95 % Student-t interval over them (t(0.975, 1) = 12.706), the best point by
@@ -161,6 +187,8 @@ def test_seeds_give_one_csv_row_per_seed_and_one_table_line_per_point_with_its_i
     assert first["grecall"] == pytest.approx(0.85) and first["grecall_sd"] == pytest.approx(0.1 / 2 ** 0.5)
     assert first["grecall_lo"] == pytest.approx(0.85 - half, abs=1e-3) and first["n_seeds"] == 2
     assert first["seeds"] == [0, 1] and points[1]["grecall_hi"] == pytest.approx(0.7)  # no spread: zero width
+    drawn_twice = seed_means([*rows, *[dict(r) for r in rows[:2]]], plan)  # a random search repeating a point
+    assert drawn_twice[0]["n_seeds"] == 2 and drawn_twice[0]["grecall_lo"] == pytest.approx(first["grecall_lo"])
     best = mark_best(points, "grecall", "max")
     for r in rows:
         r["best"] = r["guidance.collision"] == best["guidance.collision"]

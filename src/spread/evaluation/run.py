@@ -165,10 +165,14 @@ def sampled_with(scenes) -> dict | None:
     if Path(str(scenes)).name != "scenes" or not path.is_file():
         return None
     try:
-        fingerprint = read_json_object(path).get("fingerprint")
+        manifest = read_json_object(path)
     except (OSError, ValueError):
         return None
-    return fingerprint if isinstance(fingerprint, dict) and "sampling" in fingerprint else None
+    fingerprint = manifest.get("fingerprint")
+    if not isinstance(fingerprint, dict) or "sampling" not in fingerprint:
+        return None
+    count = manifest.get("samples_per_graph")  # not part of the sampling identity (a run grows), but of what was scored
+    return {**fingerprint, **({"samples_per_graph": count} if isinstance(count, int) else {})}
 
 
 def check_fid(fid: FIDConfig) -> None:

@@ -577,7 +577,8 @@ SEED_LEVEL = 0.95
 def seed_means(rows: list[dict], plan: SweepPlan) -> list[dict]:
     """One row per point (what :func:`spread.results.over_seeds` gives for a frame) from its rows of ``seeds=K``
     sampling seeds: each metric the mean over the seeds, ``<metric>_sd`` their sample sd and ``<metric>_lo`` / ``_hi`` the Student-t interval at :data:`SEED_LEVEL` over
-    the seeds (not over scenes); ``seeds`` the seeds, ``status`` ok when every seed's is."""
+    the seeds (not over scenes); ``seeds`` the seeds, ``status`` ok when every seed's is. Rows of one run (the same
+    point folder and seed: a drawing search repeating a point) count once."""
     from spread.reporting.tables import columns_of
     from spread.results.stats import t_interval
 
@@ -586,7 +587,9 @@ def seed_means(rows: list[dict], plan: SweepPlan) -> list[dict]:
     for r in rows:
         groups.setdefault(values_of(r, plan), []).append(r)
     points = []
-    for mine in groups.values():
+    for rows_of_point in groups.values():
+        mine = list({(r.get("point"), r.get("seed")): r for r in reversed(rows_of_point)}.values())[::-1]
+        # a run drawn twice (a random search repeating a point) is one run of its seed, never a second seed
         ok = [r for r in mine if r.get("status") == "ok"]
         first = mine[0]
         row = {**{d.key: first.get(d.key) for d in plan.dimensions}, "seeds": [r.get("seed") for r in mine],
@@ -681,7 +684,7 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
         check_resources(s, [{"CPU": float(s.num_cpus)}], keys=("trial_cpus",))
     with ray_session(settings, owner=out):
         check_resources(s)
-        if resumable(plan, out):  # the same search launched before: its searcher and trials where they stopped
+        if resumable(plan, out, shared):  # the same search on the same inputs: its searcher and trials where they stopped
             log.info("spread-sweep: resuming the search recorded in %s", storage / s.folder_name)
             tuner = tune.Tuner.restore(str(storage / s.folder_name), trainable=trainable, resume_unfinished=True,
                                        resume_errored=True, param_space=space)
@@ -699,16 +702,33 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
 SEARCH_RECORD = "search.json"
 
 
-def search_identity(plan: SweepPlan) -> dict:
-    """What a drawing search's suggestions depend on: the fixed overrides, the dimensions, the search, its seed,
-    trial count, metric, mode, trial scheduler and seeds."""
+def search_identity(plan: SweepPlan, shared: dict | None = None) -> dict:
+    """What a drawing search's suggestions and its trials' results depend on: the fixed overrides, the dimensions, the
+    search, its seed, trial count, metric, mode, trial scheduler and seeds, and (with ``shared``, the trials' plan)
+    the content those overrides point to (:func:`search_inputs`)."""
     s = plan.settings
     return {"fixed": list(plan.fixed), "dimensions": [vars(d) for d in plan.dimensions], "search": s.search,
             "search_seed": s.search_seed, "num_samples": s.num_samples, "metric": s.metric, "mode": s.mode,
-            "scheduler": s.scheduler, "asha": dict(s.asha or {}), "seeds": s.seeds, "command": s.command}
+            "scheduler": s.scheduler, "asha": dict(s.asha or {}), "seeds": s.seeds, "command": s.command,
+            **({"inputs": search_inputs(plan, shared)} if shared is not None else {})}
 
 
-def resumable(plan: SweepPlan, out: Path) -> bool:
+def search_inputs(plan: SweepPlan, shared: dict) -> dict:
+    """The content the sweep's fixed settings point to, the same for every point: a sampling sweep's checkpoint,
+    data and reference (a point's fingerprint at the dimensions' first values, those parts), a training sweep's data.
+    New weights or rooms at the same paths are another search (a resumed one would report the old trials)."""
+    from spread.runtime.fingerprint import point_fingerprint
+
+    first = {d.key: probe_values(d)[0] for d in plan.dimensions}
+    if plan.settings.command != "sample":
+        return {"data": train_point(first, shared)[1].get("data")}
+    fingerprint = point_fingerprint(sample_point(first, shared)[1])
+    evaluation = fingerprint.get("evaluation") or {}
+    return {"ckpt_sha256": fingerprint.get("ckpt_sha256"), "data": fingerprint.get("data"),
+            "reference": evaluation.get("reference"), "assets_sha256": evaluation.get("assets_sha256")}
+
+
+def resumable(plan: SweepPlan, out: Path, shared: dict | None = None) -> bool:
     """Whether this launch resumes the Ray Tune experiment in ``out`` (a drawing search — random, Optuna, … — killed
     or finished before, with the same :func:`search_identity`): Tune restores the searcher's state (Optuna's study
     and sampler, the random generator) and the trials where they stopped, so the resumed sweep makes the same
@@ -724,7 +744,7 @@ def resumable(plan: SweepPlan, out: Path) -> bool:
     state, record = out / "tune" / s.folder_name, out / SEARCH_RECORD
     if s.grid:
         return False
-    identity = normalised(search_identity(plan))
+    identity = normalised(search_identity(plan, shared))
     try:
         before = read_json(record) if record.exists() else None
     except (OSError, ValueError):

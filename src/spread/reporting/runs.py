@@ -194,6 +194,8 @@ def recorded_sampling(path: Path, metrics: dict, identity: dict) -> dict:
         manifest = read_json_object(sampling, RunError)
         if isinstance(manifest.get("fingerprint"), dict) and "sampling" in manifest["fingerprint"]:
             identity |= manifest["fingerprint"]
+            if isinstance(manifest.get("samples_per_graph"), int):
+                identity.setdefault("samples_per_graph", manifest["samples_per_graph"])
         elif "guidance" in manifest and "guidance" not in identity:
             identity |= config_identity({"guidance": manifest["guidance"] or "none"})
     return identity

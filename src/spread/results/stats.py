@@ -43,10 +43,18 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float, float]
 def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "seed") -> pd.DataFrame:
     """One row per point (module docstring): its settings, ``<metric>`` (the mean over seeds), ``<metric>_lo`` /
     ``<metric>_hi`` (the Student-t interval at ``level``; NaN with one seed), ``<metric>_sd``, ``n_seeds`` and
-    ``seeds`` (the seeds, sorted)."""
+    ``seeds`` (the seeds, sorted). Rows of one run (the same ``point`` folder and seed) count once; an evaluation
+    seed that follows the sampling seed (``protocol.seed`` equal to ``seed`` in every row) is part of the seed, not a
+    setting."""
     if metric not in df.columns:
         raise ValueError(f"over_seeds: no column {metric!r} (columns: {list(df.columns)})")
-    keys = [k for k in settings_of(df, exclude=(seed,)) if df[k].nunique(dropna=True) > 1]
+    attrs = dict(df.attrs)
+    if "point" in df.columns and seed in df.columns:  # one run drawn twice by a search is one seed, not two
+        df = df.drop_duplicates(subset=["point", seed], keep="last").copy()
+        df.attrs = dict(attrs)
+    follows = [k for k in ("protocol.seed",) if k in df.columns and seed in df.columns and
+               (pd.to_numeric(df[k], errors="coerce") == pd.to_numeric(df[seed], errors="coerce")).all()]
+    keys = [k for k in settings_of(df, exclude=(seed, *follows)) if df[k].nunique(dropna=True) > 1]
     rows = []
     groups = df.groupby(keys, dropna=False, sort=True) if keys else [((), df)]
     for values, group in groups:

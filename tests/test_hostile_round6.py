@@ -296,3 +296,61 @@ def test_a_training_workers_bad_setting_is_found_through_rays_wrappers():
     crash = TrainingFailedError("Training failed")
     crash.__cause__ = RayTaskError("train_fn", "Traceback ...", RuntimeError("CUDA error")).as_instanceof_cause()
     assert worker_user_error(crash) is None  # a crash stays a traceback
+
+
+@pytest.mark.parametrize("key, value, named", [
+    ("mass", float("nan"), "mass=nan: expected a finite number of kg > 0"),
+    ("mass", float("inf"), "mass=inf"),
+    ("extents", [float("nan")] * 3, "extents=\\[nan, nan, nan\\]: expected three finite sizes > 0"),
+    ("extents", [0.5, 0.5], "extents=\\[0.5, 0.5\\]"),
+    ("extents", [], "extents=\\[\\]"),
+    ("density", -1.0, "density=-1.0: expected a finite number ≥ 0"),
+])
+def test_an_asset_index_with_a_measure_no_physics_or_model_can_use_is_refused_naming_asset_and_key(
+        dataset, tmp_path, key, value, named):
+    from spread.assets import AssetLibrary
+
+    library = tmp_path / "assets"
+    shutil.copytree(dataset / "assets", library)
+    index = json.loads((library / "index.json").read_text())
+    records = index["assets"]
+    first = sorted(records)[0]
+    records[first][key] = value
+    (library / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match=rf"index.json: asset '{first}' has a bad record \(ValueError: {named}"):
+        AssetLibrary.load(library)
+
+
+def test_a_baseline_is_not_sampled_on_a_dataset_whose_category_list_differs_from_its_training(dataset, tmp_path):
+    from helpers import FAST_TRAIN, sample_in_process, train_in_process
+
+    out = tmp_path / "run"
+    train_in_process(out, "experiment=atiss_quick", f"data.root={dataset}", "trainer.max_time=null",
+                     "trainer.max_steps=2", *FAST_TRAIN)
+    shutil.copytree(dataset.parent, tmp_path / "copy")
+    data = tmp_path / "copy" / dataset.name
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["categories"] = manifest["categories"][::-1]
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"trained on \d+ categories that differ from the \d+ of .*manifest.json "
+                                         r"\(first at column 0"):
+        sample_in_process(f"ckpt={out / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
+                          f"out_dir={tmp_path / 's'}", "renders=0")
+    assert not (tmp_path / "s" / "scenes").exists() or not list((tmp_path / "s" / "scenes").iterdir())
+
+
+def test_a_manifest_whose_category_list_lacks_a_used_category_is_named_before_training_starts(dataset, tmp_path):
+    from spread.data import SceneDataset
+
+    shutil.copytree(dataset.parent, tmp_path / "copy")
+    data = tmp_path / "copy" / dataset.name
+    manifest = json.loads((data / "manifest.json").read_text())
+    assert len(SceneDataset(data, "train")) > 0  # the dataset as written is accepted
+    from spread.scene import read_scene
+
+    first = next(iter(sorted((data / "train").glob("*.npz"))))
+    dropped = str(read_scene(first).category[0])
+    manifest["categories"] = [c for c in manifest["categories"] if c != dropped]
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=rf"manifest.json: key 'categories' lacks '{dropped}'.*, used by .*\.npz"):
+        SceneDataset(data, "train")

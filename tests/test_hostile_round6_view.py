@@ -136,6 +136,27 @@ def test_spread_view_refuses_a_damaged_sampling_record_in_one_line_and_shows_a_r
     assert collect(run, library)[0][0].ground_truth == tmp_path / "data" / "test" / "g.npz"
 
 
+def test_spread_view_leaves_out_a_scene_that_does_not_read_and_a_conditioned_on_that_is_not_a_file_name(
+        library, tmp_path):
+    """Before: a scene with a NaN pose first in the folder ended spread-view in a 29-line traceback; a 300-character
+    ``conditioned_on`` in an OSError (file name too long), and ``../x`` read ground truth outside the split."""
+    from spread.render.viewer import collect, ground_truth_id
+    from spread.safe_load import load_npz
+
+    run = write_run(tmp_path, library, {"data_root": str(tmp_path / "data"), "split": "test"})
+    with load_npz(run / "scenes" / "g_k0.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez(run / "scenes" / "a_bad.npz", **{**arrays, "translation": np.full_like(arrays["translation"], np.nan)})
+    np.savez(run / "scenes" / "h_k0.npz", **{**arrays, "conditioned_on": np.asarray("x" * 300)})
+    np.savez(run / "scenes" / "u_k0.npz", **{**arrays, "conditioned_on": np.asarray("../test/g")})
+    refused: list[str] = []
+    items, _ = collect(run, library, refused)
+    assert [i.name for i in items] == ["g_k0", "h_k0", "u_k0"] and len(refused) == 1
+    assert "a_bad.npz" in refused[0] and "translation" in refused[0]
+    assert ground_truth_id(run / "scenes" / "u_k0.npz") == "u"  # not a path: the name's own graph
+    assert [i.ground_truth for i in items] == [tmp_path / "data" / "test" / "g.npz", None, None]
+
+
 # ---- spread-release-ckpt ----------------------------------------------------------------------------------------
 
 @pytest.fixture

@@ -147,6 +147,7 @@ class AssetRecord:
     def from_dict(cls, d: dict) -> "AssetRecord":
         for key in ("mesh_file", "parts_file"):
             inside_library(key, d[key])
+        check_measures(d)
         return cls(
             asset_id=d["asset_id"], category=d["category"], variant=int(d["variant"]), role=d["role"],
             extents=np.asarray(d["extents"], dtype=np.float64), volume=float(d["volume"]),
@@ -157,6 +158,26 @@ class AssetRecord:
             support_surfaces=[SupportSurface.from_dict(s) for s in d.get("support_surfaces", [])],
             tags=list(d.get("tags", [])), source=dict(d.get("source") or {}),
         )
+
+
+def check_measures(d: dict) -> None:
+    """``ValueError`` naming the key and value of a record's measure that no physics, statistic or model can use:
+    ``extents`` not three finite numbers > 0 (metres), ``mass`` not a finite number > 0 (kg), ``volume`` or
+    ``density`` not finite and ≥ 0 (a NaN mass made pybullet's world wrong for every later scene of its worker; a
+    NaN extent on an unused asset made a baseline's size bounds, and every weight, NaN)."""
+    import math
+
+    def number(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+    extents = d.get("extents")
+    if not (isinstance(extents, (list, tuple)) and len(extents) == 3 and all(number(v) and v > 0 for v in extents)):
+        raise ValueError(f"extents={extents!r}: expected three finite sizes > 0 (metres)")
+    if not (number(d.get("mass")) and d["mass"] > 0):
+        raise ValueError(f"mass={d.get('mass')!r}: expected a finite number of kg > 0")
+    for key in ("volume", "density"):
+        if not (number(d.get(key)) and d[key] >= 0):
+            raise ValueError(f"{key}={d.get(key)!r}: expected a finite number ≥ 0")
 
 
 def inside_library(key: str, value) -> str:

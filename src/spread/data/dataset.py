@@ -63,20 +63,25 @@ def load_manifest_categories(path: Path) -> list[str] | None:
     return list(cats)
 
 
-def screen_scene_files(files: list[Path], library, reader=None) -> tuple[list[Path], list[dict]]:
+def screen_scene_files(files: list[Path], library, reader=None,
+                       used: dict[str, str] | None = None) -> tuple[list[Path], list[dict]]:
     """(the files that read back as valid, plausible scenes of ``library``; one ``{"file", "error"}`` per
     other one): a damaged, hostile or absurd file is skipped, counted and named in a warning instead of
     stopping a run mid-epoch (every file is read once here; reading is a few ms per scene). ``reader(path,
-    library)``: how a file is read (default :func:`~spread.scene.read_scene`)."""
+    library)``: how a file is read (default :func:`~spread.scene.read_scene`); ``used``: filled with each category
+    the good files use → the first file using it."""
     good, skipped = [], []
     for path in files:
         try:
-            (reader or read_scene)(path, library)
+            scene = (reader or read_scene)(path, library)
         except Exception as exc:  # SceneFormatError names file and key; anything else still names the file
             message = str(exc) if str(path) in str(exc) else f"{path}: {type(exc).__name__}: {exc}"
             skipped.append({"file": str(path), "error": message})
         else:
             good.append(path)
+            if used is not None:
+                for category in getattr(scene, "category", ()):
+                    used.setdefault(str(category), str(path))
     if skipped:
         import logging
 
@@ -113,13 +118,18 @@ class SceneDataset(torch.utils.data.Dataset):
         self._library = library if library is not None else AssetLibrary.load(self.root / "assets")
         self._library_root = Path(self._library.root)
         self.reader = reader  # (path, library) → Scene; None: read_scene (spread.readonce.scene: once per process)
-        self.files, self.skipped = screen_scene_files(self.files, self._library, reader)
+        used: dict[str, str] = {}
+        self.files, self.skipped = screen_scene_files(self.files, self._library, reader, used)
         if not self.files:
             raise ValueError(f"{self.root / split}: none of its {len(self.skipped)} scene files is usable "
                              f"(first: {self.skipped[0]['error']})")
         self.asset_ids: list[str] = sorted(self._library.records)
         self.categories: list[str] = (load_manifest_categories(self.root / "manifest.json")
                                       or list(self._library.categories))
+        unlisted = sorted(set(used) - set(self.categories))
+        if unlisted:  # the manifest is the bad file: said now, not when the first such scene is encoded mid-epoch
+            raise ValueError(f"{self.root / 'manifest.json'}: key 'categories' lacks {', '.join(map(repr, unlisted[:4]))}"
+                             f"{' …' if len(unlisted) > 4 else ''}, used by {used[unlisted[0]]} (and perhaps others)")
         self._asset_index = {a: i for i, a in enumerate(self.asset_ids)}
         self._category_index = {c: i for i, c in enumerate(self.categories)}
         self._points: dict[str, tuple[np.ndarray, np.ndarray]] = {}

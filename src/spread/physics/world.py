@@ -189,9 +189,11 @@ class PhysicsWorld:
         self._com = np.stack([s.com for s in shapes]) if shapes else np.zeros((0, 3))
         self._axes = np.stack([s.axes for s in shapes]) if shapes else np.zeros((0, 3, 3))
         self._mass = np.array([float(library[aid].mass) for aid in scene.asset_id])
-        if (self._mass <= 0).any():
-            bad = scene.asset_id[int(np.argmax(self._mass <= 0))]
-            raise ValueError(f"asset '{bad}' has mass {self._mass.min()} kg; physics needs a positive mass")
+        unusable = ~np.isfinite(self._mass) | (self._mass <= 0)
+        if unusable.any():  # a NaN or infinite mass would leave the world wrong for every later scene too
+            first = int(np.argmax(unusable))
+            raise ValueError(f"asset '{scene.asset_id[first]}' has mass {self._mass[first]} kg; physics needs a "
+                             f"finite positive mass")
         self._inertia = np.stack([s.inertia_per_kg for s in shapes]) * self._mass[:, None] if shapes \
             else np.zeros((0, 3))
         pos, quat = scene_to_body(scene.translation, scene.rotation, self._com, self._axes)

@@ -219,6 +219,18 @@ def check_config(config: DatasetConfig) -> list[str]:
     return warnings
 
 
+def reads_back(path: Path, library) -> bool:
+    """Whether a room file reads back as a valid scene of ``library`` (a relaunch makes the others again: a room is
+    a function of its index and the seed)."""
+    from spread.scene import read_scene
+
+    try:
+        read_scene(path, library)
+    except Exception:  # noqa: BLE001 - any reason it does not read back: made again
+        return False
+    return True
+
+
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or complete) the dataset folder; returns the manifest written."""
     import logging
@@ -244,11 +256,18 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
     library = build_library(out / "assets", variants=config.assets.variants, seed=config.assets.seed,
                             categories=config.assets.categories, processes=config.processes, progress=progress)
     t_assets = time.perf_counter() - t0
-    todo = []
+    todo, damaged = [], []
     for index in range(config.rooms):
         path = out / split_of(index, config) / f"{scene_id_of(index, config.seed)}.npz"
+        if path.exists() and not reads_back(path, library):  # cut short or damaged outside the platform's writes
+            path.unlink()
+            damaged.append(path.name)
         if not path.exists():
             todo.append((index, str(out), config))
+    if damaged:
+        logging.getLogger("spread.generate").warning(
+            "%d room file(s) did not read back as valid scenes and are made again: %s", len(damaged),
+            ", ".join(damaged[:3]) + (" …" if len(damaged) > 3 else ""))
     results = []
     t1 = time.perf_counter()
     if todo:

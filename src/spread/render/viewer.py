@@ -108,7 +108,7 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
         truth = None
         if data_root is not None and split:
             truth = data_root / split / f"{ground_truth_id(f)}.npz"
-        items.append(ViewItem(f.stem, f, truth if truth is not None and truth.exists() else None))
+        items.append(ViewItem(f.stem, f, truth if truth is not None and is_file(truth) else None))
     if assets:
         library = Path(assets)
     else:
@@ -116,7 +116,43 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
     if library is None or not (library / "index.json").exists():
         raise FileNotFoundError(f"spread-view: no asset library for {path} (looked beside it and in the dataset); "
                                 "give assets=DIR")
+    items = readable(items, library, refused if path.is_dir() else None)
     return items, library
+
+
+def is_file(path: Path) -> bool:
+    """``path.is_file()``, False where the file system cannot even look (a name too long)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
+def readable(items: list[ViewItem], library: Path, refused: list | None) -> list[ViewItem]:
+    """The items whose scene file reads as a valid scene of ``library``: in a folder (``refused`` given) one that does
+    not is named in ``refused`` and left out, the others shown (before: the first bad one ended the viewer with a
+    traceback); a single named file that does not is an error naming it."""
+    from spread import readonce
+    from spread.scene import read_scene
+
+    known = set(readonce.asset_library(library))
+    kept = []
+    for item in items:
+        try:  # as the viewer shows it: the file read and checked, each asset's mesh from the library
+            unknown = sorted({str(a) for a in read_scene(item.path).asset_id} - known)
+            if unknown:
+                raise ValueError(f"{item.path}: asset(s) {', '.join(map(repr, unknown[:3]))} not in the library "
+                                 f"{library}")
+        except Exception as exc:  # noqa: BLE001 - any unreadable or invalid scene: named, never shown half
+            if refused is None:
+                raise ValueError(f"spread-view: {exc}") from None
+            refused.append(f"{item.path}: {exc}" if str(item.path) not in str(exc) else str(exc))
+            continue
+        kept.append(item)
+    if not kept:
+        raise FileNotFoundError(f"spread-view: no scene here reads as a valid scene ({len(items)} refused: "
+                                f"{refused[0] if refused else ''})")
+    return kept
 
 
 def ground_truth_source(manifest_path: Path) -> tuple[Path | None, str | None]:
@@ -150,13 +186,18 @@ def ground_truth_source(manifest_path: Path) -> tuple[Path | None, str | None]:
 
 
 def ground_truth_id(path: Path) -> str:
-    """The graph a generated scene was conditioned on (``conditioned_on``), else its name without ``_k<i>``."""
+    """The graph a generated scene was conditioned on (``conditioned_on``, when it is one plain file name), else its
+    name without ``_k<i>``."""
     from spread.safe_load import load_npz
+
+    from spread.io import safe_name
 
     try:
         with load_npz(path) as data:
-            if "conditioned_on" in data.files:
-                return str(data["conditioned_on"])
+            if "conditioned_on" in data.files and np.asarray(data["conditioned_on"]).ndim == 0:
+                named = str(data["conditioned_on"])
+                if named and safe_name(named) == named:  # one plain file name: never a path out of the split
+                    return named
     except (OSError, ValueError):  # not an npz of arrays: the viewer names the problem when it shows the file
         pass
     stem = path.stem

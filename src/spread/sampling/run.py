@@ -230,6 +230,7 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
     from spread.sampling.worker import check_settings
 
     checkpoint = readonce.checkpoint(cfg.ckpt)
+    check_categories(checkpoint, cfg)
     meta = check_weight_shapes(module_class(checkpoint_method(checkpoint.get("hyper_parameters") or {})), checkpoint,
                                str(cfg.ckpt))
     if meta is not None:
@@ -240,6 +241,24 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
         except Exception:  # noqa: BLE001 - a model whose checks read real tensors: its workers check them
             pass
     return checkpoint
+
+
+def check_categories(checkpoint: dict, cfg: SamplingConfig) -> None:
+    """``ValueError`` when the checkpoint's model was trained on another category list than the dataset's
+    (``hyper_parameters.categories`` — a baseline's one-hot columns — against ``manifest.json``'s): its samples would
+    be conditioned on the wrong classes under the right names (training refuses the same mismatch)."""
+    held = (checkpoint.get("hyper_parameters") or {}).get("categories")
+    if not isinstance(held, (list, tuple)) or not held:
+        return
+    from spread.methods.base import dataset_facts
+
+    now = dataset_facts(cfg.data.root)["categories"]
+    if [str(c) for c in held] != [str(c) for c in now]:
+        first = next((i for i, (a, b) in enumerate(zip(held, now)) if str(a) != str(b)), min(len(held), len(now)))
+        raise ValueError(f"ckpt={cfg.ckpt}: trained on {len(held)} categories that differ from the "
+                         f"{len(now)} of {Path(str(cfg.data.root)) / 'manifest.json'} (first at column {first}: "
+                         f"{held[first] if first < len(held) else None!r} vs {now[first] if first < len(now) else None!r});"
+                         f" sample it on the dataset it was trained on")
 
 
 def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:

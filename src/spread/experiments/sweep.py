@@ -554,7 +554,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
             rows.extend(done) if done is not None else todo.append(config)
         space = {POINT_KEY: tune.grid_search(todo)} if todo else None
     if space is not None:
-        rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out)
+        rows += tune_rows(s, trainable, space, searcher, scheduler, samples, plan, out, shared)
     rows.sort(key=lambda r: (values_of(r, plan), r.get("seed") or 0))
     point_settings(rows, out / "points")
     points = seed_means(rows, plan) if s.seeds > 1 else rows
@@ -670,8 +670,9 @@ def grid_points(plan: SweepPlan) -> list[dict]:
 
 
 def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: int, plan: SweepPlan,
-              out: Path) -> list[dict]:
-    """Run the trials on Ray Tune (one Ray session) and return their rows."""
+              out: Path, shared: dict | None = None) -> list[dict]:
+    """Run the trials on Ray Tune (one Ray session) and return their rows; ``shared``: the trials' plan (what the
+    search's identity reads its inputs through, :func:`search_inputs`)."""
     from ray import tune
 
     from spread.runtime.ray import RaySettings, ray_session

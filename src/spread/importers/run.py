@@ -163,6 +163,9 @@ def _asset_job(request: AssetRequest) -> dict:
         from spread.scene import check_asset_extents
 
         check_asset_extents(request.asset_id, record.extents, str(request.path))  # before any room uses it
+        from spread.assets.library import check_measures
+
+        check_measures(record.to_dict())  # what the library would refuse on load (a flat mesh: mass 0): this asset's
         return {"asset_id": request.asset_id, "record": record.to_dict(), "built": built,
                 "seconds": time.perf_counter() - started, "error": None}
     except Exception as exc:

@@ -60,6 +60,15 @@ def run_script(name: str, *args: str, timeout: int = 600, ok: bool = True) -> su
     return proc
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now (for a server a test starts and stops)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def user_error(name: str, *args: str, timeout: int = 300) -> tuple[str, subprocess.CompletedProcess]:
     """A console script run as a user runs it (no HYDRA_FULL_ERROR, wandb disabled) that must be refused: the one
     stderr line it ends with (``<name>: ...``, no traceback), and the process."""

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import time
 import urllib.request
@@ -14,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, train_in_process
+from helpers import FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, free_port, make_dataset, train_in_process
 
 
 #: A small library (a quarter less work than all categories): bedrooms, a few kitchens and studies.
@@ -104,12 +103,6 @@ def test_the_sampling_run_on_wandb_has_a_name_per_room_type_metrics_and_lineage(
     lineage = run["config"]["lineage"]
     assert lineage["spread.training_run_folder"] == str(train_dir.resolve())
     assert lineage["spread.training_run_id"] == runs_by_job(uri)["train"].info.run_id
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def get(url: str, data: dict | None = None):

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import make_dataset
+from helpers import free_port, make_dataset
 
 PLUGIN = Path(__file__).parent / "data" / "hostile_plugin"
 SCRIPTS = Path(sys.executable).parent
@@ -57,12 +57,6 @@ def refused_in_process(main, argv: list[str], capsys=None) -> str:
     message = str(stop.value.code)
     assert stop.value.code not in (0, None) and "\n" not in message and "Traceback" not in message, message
     return message
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

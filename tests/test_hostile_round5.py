@@ -414,8 +414,11 @@ def test_a_copy_of_the_dataset_elsewhere_resumes_a_sampling_run_and_the_record_s
     again = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0")
     assert again.manifest["redone_because"] is None and again.manifest["written_this_run"] == 0
     assert again.manifest["fingerprint"]["data_root"] == str((copy / "data").resolve())
-    # device=auto resolved as the samplers resolve it: the same run as device=cpu on a machine without a GPU
-    spelled = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0", "device=cpu")
+    # device=auto resolved as the samplers resolve it: the same run as the device it resolves to here
+    from spread.runtime.fingerprint import auto_device
+
+    spelled = sample_in_process(f"ckpt={ckpt}", f"data.root={copy / 'data'}", f"out_dir={out}", "renders=0",
+                                f"device={auto_device()}")
     assert spelled.manifest["redone_because"] is None and spelled.manifest["written_this_run"] == 0
 
 

@@ -13,22 +13,15 @@ import hashlib
 import json
 import os
 import re
-import socket
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from helpers import scene_of, user_error
+from helpers import free_port, scene_of, user_error
 
 HOSTILE_CATEGORY = "<img src=x onerror=alert(1)>"
 HOSTILE_ID = "<script>alert(1)</script>"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -172,7 +172,8 @@ def test_a_point_spelled_by_another_sweep_is_found_by_its_fingerprint_not_its_na
     assert point_folder(impostor, fingerprint) == impostor  # a folder that exists is its own point
 
 
-def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spelling_is_read_as_meant(point):
+def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spelling_is_read_as_meant(point,
+                                                                                                      monkeypatch):
     """The device is the kind the samplers run on (``auto`` resolved as they resolve it, ``cuda:N`` as ``cuda``); a
     disabled FID's other settings change nothing; a point recorded by an earlier version (``device: auto``, a
     disabled FID with its backbone) is the same point, and another device is a change."""
@@ -180,8 +181,11 @@ def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spe
     from spread.runtime.fingerprint import done_check, upgraded
     from spread.sampling import SamplingConfig
 
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a machine without a GPU, whatever this one has
     cfg = point["cfg"]
-    assert point_fingerprint(cfg("device=auto")) == point_fingerprint(cfg("device=cpu"))  # no GPU on this machine
+    assert point_fingerprint(cfg("device=auto")) == point_fingerprint(cfg("device=cpu"))
     assert point_fingerprint(cfg("device=cpu"))["sampling"]["device"] == "cpu"
     typed = dict(ckpt="m.ckpt", out_dir="o")
     assert SamplingConfig(**typed, device="cuda:1").sampling_device() == "cuda"
@@ -205,11 +209,8 @@ def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spe
     earlier["sampling"]["device"] = "cuda:0"
     assert done_check(earlier, now, present=True).reason == "changed: sampling.device"
     earlier["sampling"]["device"] = "auto"
-    import torch
-
-    with pytest.MonkeyPatch.context() as patch:  # on a GPU machine an old auto run sampled on CUDA: not a cpu run
-        patch.setattr(torch.cuda, "is_available", lambda: True)
-        assert done_check(earlier, now, present=True).reason == "changed: sampling.device"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # on a GPU machine an old auto run sampled on CUDA
+    assert done_check(earlier, now, present=True).reason == "changed: sampling.device"  # not this cpu run
     earlier["evaluation"]["fid"]["enabled"] = True
     assert done_check(earlier, now, present=True).fresh  # an enabled FID is compared field by field
 

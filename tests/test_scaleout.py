@@ -16,7 +16,6 @@ import copy
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -29,8 +28,8 @@ from lightning.pytorch.callbacks import Callback
 
 from spread.scene import list_scene_files
 
-from helpers import (FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, sample_in_process,
-                     train_in_process)
+from helpers import (FAST_SAMPLE, FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, free_port, make_dataset,
+                     sample_in_process, train_in_process)
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
@@ -58,12 +57,6 @@ def reference(dataset, ckpt, tmp_path_factory) -> dict[str, bytes]:
     out = tmp_path_factory.mktemp("soref") / "ref"
     result = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", *SAMPLE, "workers=0")
     return {p.name: p.read_bytes() for p in result.files}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def script_env(**extra: str) -> dict:

@@ -17,7 +17,8 @@ def evaluate(cfg: DictConfig, overrides: list[str] | None = None):
     from spread.io import run_lock
 
     command = to_object(cfg)
-    with run_lock(command.out_dir, "spread-evaluate", nest=True):  # before the trackers: a refused second run writes no record
+    # the lock before the trackers: a refused second run writes no tracker record
+    with run_lock(command.out_dir, "spread-evaluate", nest=True):
         return _evaluate(cfg, command, overrides)
 
 

@@ -43,8 +43,9 @@ def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None
     from spread.io import run_lock
 
     command = to_object(cfg)
-    with run_lock(command.out_dir, "spread-sample", nest=True):  # before the point's record and the trackers: a refused second
-        return _sample(cfg, command, log, overrides)  # run writes neither
+    # the lock before the point's record and the trackers: a refused second run writes neither
+    with run_lock(command.out_dir, "spread-sample", nest=True):
+        return _sample(cfg, command, log, overrides)
 
 
 def _sample(cfg: DictConfig, command, log: bool, overrides: list[str] | None):

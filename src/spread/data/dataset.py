@@ -128,8 +128,9 @@ class SceneDataset(torch.utils.data.Dataset):
                                       or list(self._library.categories))
         unlisted = sorted(set(used) - set(self.categories))
         if unlisted:  # the manifest is the bad file: said now, not when the first such scene is encoded mid-epoch
-            raise ValueError(f"{self.root / 'manifest.json'}: key 'categories' lacks {', '.join(map(repr, unlisted[:4]))}"
-                             f"{' …' if len(unlisted) > 4 else ''}, used by {used[unlisted[0]]} (and perhaps others)")
+            shown = ", ".join(map(repr, unlisted[:4])) + (" …" if len(unlisted) > 4 else "")
+            raise ValueError(f"{self.root / 'manifest.json'}: key 'categories' lacks {shown}, used by "
+                             f"{used[unlisted[0]]} (and perhaps others)")
         self._asset_index = {a: i for i, a in enumerate(self.asset_ids)}
         self._category_index = {c: i for i, c in enumerate(self.categories)}
         self._points: dict[str, tuple[np.ndarray, np.ndarray]] = {}

@@ -196,7 +196,8 @@ def evaluated_with(cfg: EvaluationConfig, assets: str) -> dict:
     reference split and its content (FID/KID's real set), in the shape a sweep point records them."""
     from spread.runtime.fingerprint import evaluation_identity, normalised, tree_digest
 
-    return normalised({**evaluation_identity(cfg.protocol, cfg.fid, assets), "reference_split": str(cfg.reference_split),
+    return normalised({**evaluation_identity(cfg.protocol, cfg.fid, assets),
+                       "reference_split": str(cfg.reference_split),
                        "reference": tree_digest(Path(cfg.reference) / cfg.reference_split)})
 
 

@@ -30,7 +30,8 @@ from pathlib import Path
 
 from spread.io import write_json_atomic
 
-from spread.runtime.fingerprint import POINT, point_folder, read_point_record  # noqa: F401 - point_folder: named here too
+from spread.runtime.fingerprint import POINT, point_folder  # noqa: F401 - named here too
+from spread.runtime.fingerprint import read_point_record as read_point  # a folder's point.json (None: none, unreadable)
 #: the folder, in the sweep folder beside ``points/``, that holds one lock file per point (:func:`point_lock`);
 #: outside ``points/``, whose every entry is a point
 LOCKS = ".point-locks"
@@ -47,11 +48,6 @@ class PointDecision:
     fresh: bool
     reason: str | None
     fingerprint: dict
-
-
-def read_point(out_dir) -> dict | None:
-    """A folder's ``point.json`` (None: none, or unreadable)."""
-    return read_point_record(out_dir)
 
 
 def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:

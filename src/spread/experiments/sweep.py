@@ -588,8 +588,10 @@ def seed_means(rows: list[dict], plan: SweepPlan) -> list[dict]:
         groups.setdefault(values_of(r, plan), []).append(r)
     points = []
     for rows_of_point in groups.values():
-        mine = list({(r.get("point"), r.get("seed")): r for r in reversed(rows_of_point)}.values())[::-1]
-        # a run drawn twice (a random search repeating a point) is one run of its seed, never a second seed
+        runs: dict[tuple, dict] = {}  # a run drawn twice (a search repeating a point) is one run of its seed
+        for r in rows_of_point:
+            runs.setdefault((r.get("point"), r.get("seed")), r)
+        mine = list(runs.values())
         ok = [r for r in mine if r.get("status") == "ok"]
         first = mine[0]
         row = {**{d.key: first.get(d.key) for d in plan.dimensions}, "seeds": [r.get("seed") for r in mine],
@@ -685,7 +687,7 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
         check_resources(s, [{"CPU": float(s.num_cpus)}], keys=("trial_cpus",))
     with ray_session(settings, owner=out):
         check_resources(s)
-        if resumable(plan, out, shared):  # the same search on the same inputs: its searcher and trials where they stopped
+        if resumable(plan, out, shared):  # the same search, same inputs: its searcher and trials where they stopped
             log.info("spread-sweep: resuming the search recorded in %s", storage / s.folder_name)
             tuner = tune.Tuner.restore(str(storage / s.folder_name), trainable=trainable, resume_unfinished=True,
                                        resume_errored=True, param_space=space)

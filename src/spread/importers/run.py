@@ -160,12 +160,11 @@ def _asset_job(request: AssetRequest) -> dict:
     cfg = _WORKER["cfg"]
     try:
         record, built = _WORKER["source"].import_asset(Path(cfg.out_dir) / "assets", request, cfg.settings())
+        from spread.assets.library import check_measures
         from spread.scene import check_asset_extents
 
         check_asset_extents(request.asset_id, record.extents, str(request.path))  # before any room uses it
-        from spread.assets.library import check_measures
-
-        check_measures(record.to_dict())  # what the library would refuse on load (a flat mesh: mass 0): this asset's
+        check_measures(record.to_dict())  # what a library refuses on load (a flat mesh's mass 0) fails this asset alone
         return {"asset_id": request.asset_id, "record": record.to_dict(), "built": built,
                 "seconds": time.perf_counter() - started, "error": None}
     except Exception as exc:
@@ -317,15 +316,25 @@ def check_not_another_kind(out: Path) -> None:
                          f"import would replace its assets, statistics and manifest — import into another out_dir")
 
 
-def check_some_room_imported(room_list, failed_refs: list, room_errors: list, earlier: int, out: Path) -> None:
-    """``ValueError`` when this import made no room at all while earlier imports' scenes are there: its failures
-    (a source folder not mounted, a broken mesh tool) are said, and those scenes kept, not deleted as rooms that
-    no longer import."""
-    if room_list.rooms and len({ref.tag for ref in failed_refs}) >= len(room_list.rooms) and earlier:
-        first = room_errors[0] if room_errors else {}
-        raise ValueError(f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
-                           f"{first.get('file')}: {first.get('error')}); the {earlier} scene file(s) of earlier "
-                           f"imports in {out} are kept — see {out / 'import' / 'rooms.jsonl'}")
+def check_some_room_imported(room_list, failed: set[str], first: dict | None, earlier: int, out: Path,
+                             src: str, index_written: bool = False) -> None:
+    """``ValueError`` when this import makes no room at all — every listed room failed (``failed``: their tags;
+    ``first``: the first failure), or the source lists none — while earlier imports' scenes are there: what failed
+    (a source folder not mounted, a broken mesh tool) is said, and those scenes kept, not deleted as rooms that no
+    longer import. Checked before the library's index is written (it is kept too) and again once the rooms are
+    (``index_written``)."""
+    if not earlier or (room_list.rooms and len(failed) < len(room_list.rooms)):
+        return
+    if room_list.rooms:
+        first = first or {}
+        what = (f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
+                f"{first.get('file')}: {first.get('error')})")
+    else:
+        what = (f"the source lists no room (src={src}: not mounted, or emptied?"
+                + (f"; {room_list.errors[0]}" if room_list.errors else "") + ")")
+    kept = "are kept" if index_written else "and their asset library are kept"
+    raise ValueError(f"{what}; the {earlier} scene file(s) of earlier imports in {out} {kept} — see "
+                     f"{out / 'import' / 'rooms.jsonl'}")
 
 
 def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
@@ -362,17 +371,11 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         t_assets = time.perf_counter() - t1
         records = {r["asset_id"]: AssetRecord.from_dict(r["record"]) for r in asset_results if r["record"]}
         failed_assets = {r["asset_id"]: r["error"] for r in asset_results if r["error"]}
-        usable = [ref for ref in room_list.rooms if not scans[ref.tag]["error"]
-                  and not any(req.asset_id in failed_assets for req in scans[ref.tag]["requests"])]
-        if not usable and earlier:  # before the library's index is replaced (a source listing no room too)
-            first = next((scans[r.tag]["error"] for r in room_list.rooms if scans[r.tag]["error"]), None) or {
-                "tag": "an asset", **next(iter(failed_assets.values()), {})}
-            what = (f"every one of the {len(room_list.rooms)} rooms failed (first: {first.get('tag')}: "
-                    f"{first.get('file')}: {first.get('error')})" if room_list.rooms else
-                    f"the source lists no room (src={cfg.src}: not mounted, or emptied?"
-                    + (f"; {room_list.errors[0]}" if room_list.errors else "") + ")")
-            raise ValueError(f"{what}; the {earlier} scene file(s) of earlier imports in {out} and their asset "
-                             f"library are kept")
+        unusable = {ref.tag for ref in room_list.rooms if scans[ref.tag]["error"]
+                    or any(req.asset_id in failed_assets for req in scans[ref.tag]["requests"])}
+        first = next((scans[r.tag]["error"] for r in room_list.rooms if scans[r.tag]["error"]), None) or {
+            "tag": "an asset", **next(iter(failed_assets.values()), {})}
+        check_some_room_imported(room_list, unusable, first, earlier, out, cfg.src)  # before the index is replaced
         library = AssetLibrary(out / "assets", records)
         library.save_index(build={"importer": IMPORTER_VERSION, **source.info()})
         t2 = time.perf_counter()
@@ -422,7 +425,8 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         else:
             room_errors.append(r["error"])
             failed_refs.append(by_tag[r["tag"]])
-    check_some_room_imported(room_list, failed_refs, room_errors, earlier, out)
+    check_some_room_imported(room_list, {ref.tag for ref in failed_refs}, room_errors[0] if room_errors else None,
+                             earlier, out, cfg.src, index_written=True)
     for ref in failed_refs:  # a file left by an earlier run of a room that fails now is not data any more
         done.pop(ref.tag, None)
         (out / ref.split / f"{ref.scene_id}.npz").unlink(missing_ok=True)

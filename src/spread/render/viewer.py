@@ -175,8 +175,10 @@ def ground_truth_source(manifest_path: Path) -> tuple[Path | None, str | None]:
             raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.{key}' holds {type(value).__name__} "
                              f"{value!r}, expected a {'folder path' if key == 'data_root' else 'split name'} (text)")
         values[key] = value or None
+    from spread.io import safe_name
+
     split = values["split"]
-    if split is not None and (split in (".", "..") or "/" in split or "\\" in split or "\0" in split):
+    if split is not None and safe_name(split) != split:  # one plain folder name: never a path out of the dataset
         raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.split' holds {split!r}, expected a split "
                          f"folder's name (train, val, test)")
     if values["data_root"] is not None and "\0" in values["data_root"]:

@@ -319,7 +319,7 @@ def point_folder(folder, fingerprint: dict) -> Path:
         record = read_point_record(other)
         if record is None or not isinstance(record.get("fingerprint"), dict):
             continue
-        if record["fingerprint"] == wanted or not done_check(record["fingerprint"], wanted, present=True).fresh:
+        if not done_check(record["fingerprint"], wanted, present=True).fresh:
             return other
     return folder
 

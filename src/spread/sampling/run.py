@@ -121,13 +121,13 @@ class SamplingConfig:
         changes the numbers' rounding): ``auto`` resolved as the samplers resolve it — in this process
         (``workers=0``) ``cuda`` when it sees a GPU; on Ray's workers ``cuda`` only with ``ray.num_gpus_per_worker``
         > 0 (Ray hides every GPU from a worker that asks for none) —, ``cuda:N`` as ``cuda``."""
+        from spread.runtime.fingerprint import auto_device
+
         device = str(self.device)
         if device == "auto":
             if self.workers > 0:
                 return "cuda" if self.ray.num_gpus_per_worker > 0 else "cpu"
-            import torch
-
-            return "cuda" if torch.cuda.is_available() else "cpu"
+            return auto_device()
         return device.split(":", 1)[0]
 
     def graphs_over_limit(self) -> list[str]:
@@ -255,10 +255,10 @@ def check_categories(checkpoint: dict, cfg: SamplingConfig) -> None:
     now = dataset_facts(cfg.data.root)["categories"]
     if [str(c) for c in held] != [str(c) for c in now]:
         first = next((i for i, (a, b) in enumerate(zip(held, now)) if str(a) != str(b)), min(len(held), len(now)))
+        a, b = (names[first] if first < len(names) else None for names in (held, now))
         raise ValueError(f"ckpt={cfg.ckpt}: trained on {len(held)} categories that differ from the "
                          f"{len(now)} of {Path(str(cfg.data.root)) / 'manifest.json'} (first at column {first}: "
-                         f"{held[first] if first < len(held) else None!r} vs {now[first] if first < len(now) else None!r});"
-                         f" sample it on the dataset it was trained on")
+                         f"{a!r} vs {b!r}); sample it on the dataset it was trained on")
 
 
 def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
@@ -306,12 +306,11 @@ def set_aside_unplanned(batches: list[BatchPlan], out: Path) -> tuple[list[str],
     returns (names set aside, names taken back)."""
     planned = {item.name for b in batches for item in b.items}
     aside = out / ASIDE
-    renders = [f"{{}}{suffix}.png" for suffix in ("", *FIGURE_KINDS.values())]
 
-    def move(name: str, source: Path, target: Path) -> None:
-        move_file(source / "scenes" / f"{name}.npz", target / "scenes" / f"{name}.npz")
-        for pattern in renders:
-            move_file(source / "renders" / pattern.format(name), target / "renders" / pattern.format(name))
+    def move(name: str, source: Path, target: Path) -> None:  # a sample's scene file, its render and figures
+        files = [f"scenes/{name}.npz", *(f"renders/{name}{suffix}.png" for suffix in ("", *FIGURE_KINDS.values()))]
+        for file in files:
+            move_file(source / file, target / file)
 
     set_aside = sorted(p.stem for p in (out / "scenes").glob("*.npz") if p.stem not in planned)
     for name in set_aside:
@@ -509,7 +508,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
         "graphs": len(graphs), "samples": total,
         "skipped_graphs": skipped_graphs, "max_objects": limit, "written_this_run": len(written),
-        "resumed": total - pending, "redone_unreadable": len(damaged), "set_aside_unplanned": len(unplanned), "taken_back": len(taken_back),
+        "resumed": total - pending, "redone_unreadable": len(damaged),
+        "set_aside_unplanned": len(unplanned), "taken_back": len(taken_back),
         "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],

@@ -33,8 +33,10 @@ def resolve_device(device: str) -> str:
     (checked where the model is loaded: a Ray worker on a GPU node may see a GPU its driver does not)."""
     import torch
 
+    from spread.runtime.fingerprint import auto_device
+
     if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+        return auto_device()
     try:
         parsed = torch.device(device)
     except (RuntimeError, TypeError) as exc:

@@ -155,8 +155,8 @@ def worker_user_error(error: BaseException) -> BaseException | None:
         if isinstance(error, (ValueError, FileNotFoundError, PermissionError)) and \
                 "ray" not in type(error).__module__.split(".")[0] and "RayTaskError" not in type(error).__name__:
             return error
-        error = getattr(error, "cause", None) if isinstance(getattr(error, "cause", None), BaseException) \
-            else error.__cause__
+        cause = getattr(error, "cause", None)  # RayTaskError's; the others chain as __cause__
+        error = cause if isinstance(cause, BaseException) else error.__cause__
     return None
 
 

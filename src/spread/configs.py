@@ -58,9 +58,15 @@ class PathsConfig:
 
 
 def _store(group: str | None, name: str, node) -> None:
+    """Store ``node`` once per process (a schema is a fixed dataclass; storing it again re-builds its OmegaConf
+    node, a good part of a :func:`compose`'s time)."""
     from hydra.core.config_store import ConfigStore
 
-    ConfigStore.instance().store(group=group, name=name, node=node)
+    store = ConfigStore.instance()
+    where = store.repo.get(group, {}) if group else store.repo
+    if f"{name}.yaml" in where:
+        return
+    store.store(group=group, name=name, node=node)
 
 
 def _common() -> None:

@@ -4,6 +4,7 @@ import json
 import pickle
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -395,3 +396,58 @@ def test_import_pulls_no_heavy_optional_modules():
             "print(sorted(m for m in ('pybullet', 'ray', 'wandb', 'lightning') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+# ---- the object limit of the training rooms (data.max_objects) -----------------------------------------------
+
+def test_rooms_over_the_object_limit_are_skipped_and_named_and_the_others_kept(root):
+    from spread.data.datamodule import SceneDataModule
+
+    every = SceneDataset(root, "train", num_points=M)
+    counts = dict(zip((f.name for f in every.files), every.sizes()))
+    limit = sorted(counts.values())[len(counts) // 2]
+    kept = SceneDataset(root, "train", num_points=M, max_objects=limit)
+    assert {f.name for f in kept.files} == {n for n, c in counts.items() if c <= limit}
+    over = {n for n, c in counts.items() if c > limit}
+    assert over and {Path(s["file"]).name for s in kept.skipped} == over
+    assert all(f"more than the object limit {limit} (data.max_objects)" in s["error"] for s in kept.skipped)
+    dm = SceneDataModule(root, batch_size=2, num_points=M, max_objects=limit)
+    dm.setup("fit")
+    assert sorted(sid for b in dm.train_dataloader() for sid in b["scene_id"]) == sorted(
+        n.removesuffix(".npz") for n, c in counts.items() if c <= limit)
+    assert dm.hparams["max_objects"] == limit and max(dm.dataset("train").sizes()) <= limit
+    with pytest.raises(ValueError, match=r"train: none of its 6 scene files is usable .*object limit 1 "):
+        SceneDataset(root, "train", num_points=M, max_objects=1)
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "12"])
+def test_an_object_limit_that_is_not_a_whole_number_of_at_least_one_is_refused_naming_data_max_objects(root, bad):
+    from spread.data.datamodule import SceneDataModule
+
+    with pytest.raises(ValueError, match=r"^data\.max_objects=.*: a whole number of objects >= 1 \(or null: no limit\)"):
+        SceneDataModule(root, max_objects=bad)
+
+
+def test_the_object_limit_at_its_default_leaves_training_identities_as_they_were_and_a_set_one_is_another():
+    """``data.max_objects`` came after stages and sweep points were trained: at its default (null) a training
+    identity does not spell it (they are re-used); a limit is another identity, and a resumed checkpoint trained
+    before it (on every room) is refused under a limit."""
+    from spread.experiments.stages import typed_training
+    from spread.runtime.fingerprint import training_config_identity
+    from spread.training.fit import resumed_changes
+
+    plain = typed_training({"overrides": ["experiment=quick", "data.root=/d"]})
+    assert "max_objects" not in plain["config"]["data"] and "seed" in plain["config"]["data"]
+    limited = typed_training({"overrides": ["experiment=quick", "data.root=/d", "data.max_objects=30"]})
+    assert limited["config"]["data"]["max_objects"] == 30 and limited != plain
+    config = {"data": {"max_objects": None, "seed": 1}, "seed": 1}
+    assert training_config_identity(config) == {"data": {"seed": 1}, "seed": 1} and config["data"]["max_objects"] is None
+
+    class Held:  # a datamodule's hyperparameters as a checkpoint written before the limit holds them
+        hparams = {"batch_size": 2, "seed": 0}
+
+    before = {"datamodule_hyper_parameters": dict(Held.hparams)}
+    Held.hparams = {"batch_size": 2, "seed": 0, "max_objects": None}
+    assert resumed_changes(before, object(), Held) == []
+    Held.hparams = {"batch_size": 2, "seed": 0, "max_objects": 12}
+    assert resumed_changes(before, object(), Held) == ["data.max_objects: None -> 12"]

@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from spread.data.collate import collate_scenes
-from spread.data.dataset import SceneDataset
+from spread.data.dataset import SceneDataset, check_max_objects
 from spread.data.points import DEFAULT_NUM_POINTS
 from spread.data.stats import load_stats
 
@@ -100,7 +100,7 @@ class SceneDataModule(L.LightningDataModule):
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, pin_memory: bool = False,
                  persistent_workers: bool | None = False, multiprocessing_context: str | None = None,
                  augment: bool = False, cache: bool = True, bucket_batches: int = 0,
-                 geometry_distance: str = "chamfer"):
+                 geometry_distance: str = "chamfer", max_objects: int | None = None):
         super().__init__()
         self.root = Path(root)
         self.batch_size = int(batch_size)
@@ -115,6 +115,7 @@ class SceneDataModule(L.LightningDataModule):
         self.augment = bool(augment)
         self.cache = bool(cache)
         self.bucket_batches = int(bucket_batches)
+        self.max_objects = check_max_objects(max_objects)  # rooms of more objects are skipped and named
         self.geometry_distance = str(geometry_distance)  # the model's (ModelConfig.geometry_distance): what it reads
         if self.bucket_batches < 0:
             raise ValueError(f"data.bucket_batches must be >= 0 (0: off), got {bucket_batches}")
@@ -126,7 +127,7 @@ class SceneDataModule(L.LightningDataModule):
         self.save_hyperparameters({"root": str(self.root), "batch_size": self.batch_size,
                                    "num_workers": self.num_workers, "num_points": self.num_points,
                                    "seed": self.seed, "pin_memory": self.pin_memory, "augment": self.augment,
-                                   "bucket_batches": self.bucket_batches})
+                                   "bucket_batches": self.bucket_batches, "max_objects": self.max_objects})
         self._library = None
         self._datasets: dict[str, SceneDataset] = {}
 
@@ -162,7 +163,8 @@ class SceneDataModule(L.LightningDataModule):
         if split not in self._datasets:
             self._datasets[split] = SceneDataset(self.root, split, library=self.library, num_points=self.num_points,
                                                  seed=self.seed, bounds=self.translation_bounds(), cache=self.cache,
-                                                 geometry_distance=self.geometry_distance)
+                                                 geometry_distance=self.geometry_distance,
+                                                 max_objects=self.max_objects)
         return self._datasets[split]
 
     def setup(self, stage: str | None = None) -> None:

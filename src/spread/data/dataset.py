@@ -63,13 +63,14 @@ def load_manifest_categories(path: Path) -> list[str] | None:
     return list(cats)
 
 
-def screen_scene_files(files: list[Path], library, reader=None,
-                       used: dict[str, str] | None = None) -> tuple[list[Path], list[dict]]:
+def screen_scene_files(files: list[Path], library, reader=None, used: dict[str, str] | None = None,
+                       max_objects: int | None = None) -> tuple[list[Path], list[dict]]:
     """(the files that read back as valid, plausible scenes of ``library``; one ``{"file", "error"}`` per
     other one): a damaged, hostile or absurd file is skipped, counted and named in a warning instead of
     stopping a run mid-epoch (every file is read once here; reading is a few ms per scene). ``reader(path,
     library)``: how a file is read (default :func:`~spread.scene.read_scene`); ``used``: filled with each category
-    the good files use → the first file using it."""
+    the good files use → the first file using it; ``max_objects``: a scene of more objects is skipped and named too
+    (``data.max_objects``: a room too large to train on fails its batch on memory, mid-epoch, otherwise)."""
     good, skipped = [], []
     for path in files:
         try:
@@ -78,6 +79,10 @@ def screen_scene_files(files: list[Path], library, reader=None,
             message = str(exc) if str(path) in str(exc) else f"{path}: {type(exc).__name__}: {exc}"
             skipped.append({"file": str(path), "error": message})
         else:
+            if max_objects is not None and int(scene.num_objects) > int(max_objects):
+                skipped.append({"file": str(path), "error": f"{path}: {int(scene.num_objects)} objects, more than the "
+                                                           f"object limit {int(max_objects)} (data.max_objects)"})
+                continue
             good.append(path)
             if used is not None:
                 for category in getattr(scene, "category", ()):
@@ -91,12 +96,22 @@ def screen_scene_files(files: list[Path], library, reader=None,
     return good, skipped
 
 
+def check_max_objects(value) -> int | None:
+    """``data.max_objects``: None (no limit) or a whole number ≥ 1, else a ValueError naming the value."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < 1:
+        raise ValueError(f"data.max_objects={value!r}: a whole number of objects >= 1 (or null: no limit)")
+    return int(value)
+
+
 class SceneDataset(torch.utils.data.Dataset):
     """Scenes of ``<root>/<split>`` encoded as tensors (see the module docstring for the keys)."""
 
     def __init__(self, root: str | os.PathLike, split: str, library=None,
                  num_points: int = DEFAULT_NUM_POINTS, seed: int = 0, bounds: list[float] | None = None,
-                 cache: bool = False, reader=None, geometry_distance: str = "chamfer"):
+                 cache: bool = False, reader=None, geometry_distance: str = "chamfer",
+                 max_objects: int | None = None):
         from spread.assets.library import AssetLibrary
         from spread.data.parts import READS_PARTS, check_geometry_distance
 
@@ -119,7 +134,8 @@ class SceneDataset(torch.utils.data.Dataset):
         self._library_root = Path(self._library.root)
         self.reader = reader  # (path, library) → Scene; None: read_scene (spread.readonce.scene: once per process)
         used: dict[str, str] = {}
-        self.files, self.skipped = screen_scene_files(self.files, self._library, reader, used)
+        self.max_objects = check_max_objects(max_objects)
+        self.files, self.skipped = screen_scene_files(self.files, self._library, reader, used, self.max_objects)
         if not self.files:
             raise ValueError(f"{self.root / split}: none of its {len(self.skipped)} scene files is usable "
                              f"(first: {self.skipped[0]['error']})")

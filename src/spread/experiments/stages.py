@@ -279,12 +279,13 @@ def typed_training(inputs: dict) -> dict:
     from omegaconf import OmegaConf
 
     from spread.configs import compose
+    from spread.runtime.fingerprint import training_config_identity
 
     config = OmegaConf.to_container(compose("train", list(inputs["overrides"])), resolve=False)
     for key in UNTRAINED:
         config.pop(key, None)
     (config.get("data") or {}).pop("root", None)
-    return {"config": config, **({"data_sha256": inputs["data_sha256"]} if "data_sha256" in inputs else {})}
+    return {"config": training_config_identity(config), **({"data_sha256": inputs["data_sha256"]} if "data_sha256" in inputs else {})}
 
 
 def typed_generation(inputs: dict) -> dict:

@@ -217,6 +217,24 @@ def unspelled_defaults_dropped(values: dict) -> dict:
     return {k: v for k, v in values.items() if not (k in SAMPLING_DEFAULTS and at_default(k, v))}
 
 
+#: Training settings added after runs were recorded (dotted keys of a composed ``spread-train`` config): left out of a
+#: training identity where they hold these defaults, so the stages and points trained before keep their identities.
+#: data.max_objects: the object limit of the training rooms (null: none).
+TRAINING_DEFAULTS = {"data.max_objects": None}
+
+
+def training_config_identity(config: dict) -> dict:
+    """A composed ``spread-train`` config (a plain dict) as a training identity holds it: without the
+    :data:`TRAINING_DEFAULTS` it holds at their defaults (a copy; ``config`` is left as it was)."""
+    out = dict(config)
+    for dotted, default in TRAINING_DEFAULTS.items():
+        section, _, key = dotted.rpartition(".")
+        node = out.get(section)
+        if isinstance(node, dict) and key in node and node[key] == default:
+            out[section] = {k: v for k, v in node.items() if k != key}
+    return out
+
+
 def sampling_identity(cfg) -> dict:
     """What a generated scene file depends on (module docstring); ``cfg``: a typed
     :class:`~spread.sampling.SamplingConfig` (its ``sampler`` a Sampler, its ``guidance`` a GuidanceConfig).

@@ -128,6 +128,8 @@ def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
         if not held or now is None:
             continue
         held, now = normalised(dict(held)), normalised(dict(now))
+        if prefix == "data":  # a checkpoint written before the object limit trained on every room: no limit
+            held.setdefault("max_objects", None)
         for key in RESUMABLE[prefix]:
             held.pop(key, None)
             now.pop(key, None)

@@ -223,6 +223,11 @@ def test_a_sampling_runs_scenes_export_with_the_asset_library_of_the_dataset_the
     assert assets_of(run / "scenes", None) == root / "assets"
     report = export_folder(run / "scenes", assets_of(run / "scenes", None), run / "mjcf", "mjcf")
     assert list(report.written) == ["room|1"]
+    # a damaged record is named with the refusal (the viewer's reader: spread.io.sampled_data), never a path
+    (run / "sampling.json").write_text(json.dumps({"fingerprint": {"data_root": 7}}))
+    with pytest.raises(FileNotFoundError, match=r"sampling\.json: 'fingerprint\.data_root' holds int 7, expected a "
+                                                r"folder path \(text\)\); give assets=DIR"):
+        assets_of(run / "scenes", None)
 
 
 def export_command(*args: str) -> subprocess.CompletedProcess:

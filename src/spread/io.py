@@ -275,6 +275,35 @@ SAFE_NAME_MAX = 120
 _HASH_LEN = 10
 
 
+def sampled_data(record: str | os.PathLike) -> tuple[Path | None, str | None]:
+    """(the dataset folder, the split) a sampling run's ``sampling.json`` at ``record`` names
+    (``fingerprint.data_root``, ``fingerprint.split``), each None when not given: the one reader of where a run's
+    scenes were sampled from (``spread-view``'s ground truth, ``spread-export``'s asset library). ``ValueError``
+    naming the file and the key when the file is not JSON or a value is not what a sampling run writes (a split
+    that is not one plain folder name: never a path out of the dataset)."""
+    record = Path(record)
+    fingerprint = read_json_object(record).get("fingerprint")
+    if fingerprint is None:
+        return None, None
+    if not isinstance(fingerprint, dict):
+        raise ValueError(f"{record}: 'fingerprint' holds {type(fingerprint).__name__}, expected an object (data_root, "
+                         f"split: where the ground truth is); not a sampling run's record")
+    values = {}
+    for key in ("data_root", "split"):
+        value = fingerprint.get(key)
+        if value is not None and not isinstance(value, str):
+            raise ValueError(f"{record}: 'fingerprint.{key}' holds {type(value).__name__} {value!r}, expected a "
+                             f"{'folder path' if key == 'data_root' else 'split name'} (text)")
+        values[key] = value or None
+    split, root = values["split"], values["data_root"]
+    if split is not None and safe_name(split) != split:
+        raise ValueError(f"{record}: 'fingerprint.split' holds {split!r}, expected a split folder's name (train, val, "
+                         f"test)")
+    if root is not None and "\0" in root:
+        raise ValueError(f"{record}: 'fingerprint.data_root' holds {root!r}, not a folder path")
+    return (Path(root) if root else None), split
+
+
 def safe_name(text: str) -> str:
     """``text`` (any id: a dataset tag, an asset name) as one safe path component.
 

@@ -58,27 +58,33 @@ def assets_of(scenes: str | os.PathLike, assets: str | os.PathLike | None) -> Pa
         if not (path / "index.json").exists():
             raise FileNotFoundError(f"assets={assets}: not an asset library (no index.json)")
         return path
-    for candidate in (Path(scenes).parent / "assets", Path(scenes) / "assets", sampled_from(scenes)):
-        if candidate is not None and (candidate / "index.json").exists():
+    for candidate in (Path(scenes).parent / "assets", Path(scenes) / "assets"):
+        if (candidate / "index.json").exists():
             return candidate
+    try:
+        recorded, why = sampled_from(scenes), ""
+    except ValueError as exc:  # a damaged record: said with the refusal, which asks for assets=
+        recorded, why = None, f"; {exc}"
+    if recorded is not None and (recorded / "index.json").exists():
+        return recorded
     raise FileNotFoundError(f"no asset library beside scenes={scenes} (looked for ../assets, assets/ and the dataset "
-                            "a sampling run's sampling.json names); give assets=DIR")
+                            f"a sampling run's sampling.json names{why}); give assets=DIR")
 
 
 def sampled_from(scenes) -> Path | None:
     """``<data_root>/assets`` of the dataset a sampling run's scenes were sampled from (``../sampling.json``'s
-    ``fingerprint.data_root``, where its asset library is); None for scenes of no sampling run or an unreadable
+    ``fingerprint.data_root``, read by :func:`spread.io.sampled_data`, where its asset library is); None for scenes
+    of no sampling run or a record that names no dataset; ``ValueError`` naming the file and key for a damaged
     record."""
-    from spread.io import read_json_object
+    from spread.io import sampled_data
 
     record = Path(scenes).parent / "sampling.json"
     if Path(scenes).name != "scenes" or not record.is_file():
         return None
-    try:
-        root = (read_json_object(record).get("fingerprint") or {}).get("data_root")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return Path(root) / "assets" if isinstance(root, str) and root and "\0" not in root else None
+    root, _ = sampled_data(record)
+    return root / "assets" if root is not None else None
+
+
 SUFFIX = {"urdf": "", "mjcf": ".xml", "usd": ".usda", "glb": ".glb", "sceneeval": ""}
 
 

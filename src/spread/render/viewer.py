@@ -156,35 +156,15 @@ def readable(items: list[ViewItem], library: Path, refused: list | None) -> list
 
 
 def ground_truth_source(manifest_path: Path) -> tuple[Path | None, str | None]:
-    """(the dataset folder, the split) a run's ``sampling.json`` names (``fingerprint.data_root``, ``split``), each
-    None when not given; ``ValueError`` naming the file and the key when one is not what a sampling run writes (a
-    run folder whose record is damaged is refused, as one whose file is not JSON)."""
-    from spread.io import read_json_object
+    """(the dataset folder, the split) a run's ``sampling.json`` names (:func:`spread.io.sampled_data`), each None
+    when not given; ``ValueError`` naming the file and the key when one is not what a sampling run writes (a run
+    folder whose record is damaged is refused, as one whose file is not JSON)."""
+    from spread.io import sampled_data
 
-    manifest = read_json_object(manifest_path, error=lambda why: ValueError(f"spread-view: {why}"))
-    fingerprint = manifest.get("fingerprint")
-    if fingerprint is None:
-        return None, None
-    if not isinstance(fingerprint, dict):
-        raise ValueError(f"spread-view: {manifest_path}: 'fingerprint' holds {type(fingerprint).__name__}, expected "
-                         f"an object (data_root, split: where the ground truth is); not a sampling run's record")
-    values = {}
-    for key in ("data_root", "split"):
-        value = fingerprint.get(key)
-        if value is not None and not isinstance(value, str):
-            raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.{key}' holds {type(value).__name__} "
-                             f"{value!r}, expected a {'folder path' if key == 'data_root' else 'split name'} (text)")
-        values[key] = value or None
-    from spread.io import safe_name
-
-    split = values["split"]
-    if split is not None and safe_name(split) != split:  # one plain folder name: never a path out of the dataset
-        raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.split' holds {split!r}, expected a split "
-                         f"folder's name (train, val, test)")
-    if values["data_root"] is not None and "\0" in values["data_root"]:
-        raise ValueError(f"spread-view: {manifest_path}: 'fingerprint.data_root' holds {values['data_root']!r}, "
-                         f"not a folder path")
-    return (Path(values["data_root"]) if values["data_root"] else None), split
+    try:
+        return sampled_data(manifest_path)
+    except ValueError as exc:
+        raise ValueError(f"spread-view: {exc}") from None
 
 
 def ground_truth_id(path: Path) -> str:

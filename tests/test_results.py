@@ -85,6 +85,15 @@ def test_over_seeds_gives_the_mean_and_a_student_t_interval_per_point(tmp_path):
     assert one["n_seeds"].tolist() == [1] and math.isnan(one["grecall_lo"][0])
 
 
+
+def test_a_mean_over_seeds_shows_its_sd_in_the_unit_of_its_mean_and_bounds(tmp_path):
+    """ASD over seeds: mean, bounds and sd all in mm under ``asd_mm*`` (the sd stayed in metres as ``asd_sd``)."""
+    sweep = write_sweep(tmp_path / "S", [(0.0, 2, s, {"asd": v}) for s, v in enumerate((0.002, 0.004))])
+    shown = display(over_seeds(load(sweep), "asd"))
+    assert shown["asd_mm"][0] == pytest.approx(3.0) and shown["asd_mm_sd"][0] == pytest.approx(1000 * math.sqrt(2e-6))
+    assert shown["asd_mm_lo"][0] < 3.0 < shown["asd_mm_hi"][0] and "asd_sd" not in shown.columns
+
+
 def test_over_seeds_counts_a_run_drawn_twice_once_and_reads_an_evaluation_seed_that_follows_the_seed_as_the_seed():
     rows = [{"guidance.collision": 0.0075, "seed": seed, "protocol.seed": seed, "point": f"c0.0075_seed{seed}_ab",
              "grecall": value} for seed, value in ((0, 0.2), (0, 0.2), (0, 0.2), (1, 0.4), (1, 0.4), (1, 0.4))]

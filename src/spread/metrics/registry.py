@@ -81,6 +81,10 @@ class ValueSpec:
         return unit_key(self.name, self.unit)
 
 
+#: The columns beside a value that share its unit: its interval's bounds and its standard deviation over seeds.
+SCALED_SUFFIXES = ("_lo", "_hi", "_sd")
+
+
 def unit_key(key: str, unit: str) -> str:
     """``key`` with its display unit, as table headers name a value shown in it (``asd`` in mm: ``asd_mm``)."""
     unit = "".join(c if c.isalnum() else "_" for c in unit)

@@ -205,9 +205,11 @@ def display_rows(records: Sequence[dict], keys: Sequence[str],
     """(header, rows) of ``keys`` in display units: a key with a unit (a column's, else a registered value's) and
     its ``_lo`` / ``_hi`` bounds and ``_sd`` are headed ``<key>_<unit>`` (``asd_mm``, ``asd_mm_lo``) and scaled; the
     rest as they are. What CSV files and wandb tables hold."""
+    from spread.metrics.registry import SCALED_SUFFIXES
+
     header, convert = [], []
     for key in keys:
-        base = key[:-3] if key.endswith(("_lo", "_hi", "_sd")) else key
+        base = key[:-3] if key.endswith(SCALED_SUFFIXES) else key
         column = value_column(key, columns) or (value_column(base, columns) if base != key else None)
         if column is not None and column.unit:
             header.append(column.csv_key + key[len(base):] if base != key and column.key == base else column.csv_key)

@@ -44,9 +44,9 @@ def unit_of(metric: str) -> tuple[str, float]:
 
 
 def display(df: pd.DataFrame) -> pd.DataFrame:
-    """A copy of ``df`` with each metric and its bounds in its display unit, the column headed with the unit
+    """A copy of ``df`` with each metric, its bounds and its sd over seeds in its display unit, the column headed with the unit
     (``asd`` in metres → ``asd_mm`` in millimetres), as the platform's tables show them."""
-    from spread.metrics.registry import unit_key, value_spec
+    from spread.metrics.registry import SCALED_SUFFIXES, unit_key, value_spec
 
     out = df.copy()
     renamed = {}
@@ -54,7 +54,7 @@ def display(df: pd.DataFrame) -> pd.DataFrame:
         spec = value_spec(metric)
         if spec is None or not spec.unit:
             continue
-        for key in (metric, f"{metric}_lo", f"{metric}_hi"):
+        for key in (metric, *(metric + suffix for suffix in SCALED_SUFFIXES)):
             if key in out.columns:
                 out[key] = pd.to_numeric(out[key], errors="coerce") * float(spec.scale)
                 renamed[key] = unit_key(metric, spec.unit) + key[len(metric):]

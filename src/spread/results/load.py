@@ -75,13 +75,13 @@ def sweep_records(folder: Path) -> list[dict]:
 def stored_units(record: dict) -> None:
     """``results.csv`` holds each metric in its display unit, headed so (``asd_mm``): back to the stored value
     under its own name (``asd`` in metres), unless the point folder's record gave that already."""
-    from spread.metrics.registry import METRICS, display_values, unit_key
+    from spread.metrics.registry import METRICS, SCALED_SUFFIXES, display_values, unit_key
 
     for value in display_values(METRICS.names()):
         shown = unit_key(value.name, value.unit)
         if shown == value.name:
             continue
-        for suffix in ("", "_lo", "_hi", "_sd"):
+        for suffix in ("", *SCALED_SUFFIXES):
             cell = record.pop(shown + suffix, None)
             if isinstance(cell, (int, float)) and not isinstance(cell, bool) and value.name + suffix not in record:
                 record[value.name + suffix] = cell / float(value.scale)

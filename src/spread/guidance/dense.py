@@ -10,7 +10,9 @@ loop. This module finds the same things where the poses are, in a fixed number o
   object pair, every (face of i, face of j) pair whose triangle AABBs overlap, then the exact separating-axis test
   of two triangles (:func:`triangles_intersect`, the 17 axes the release's BVH tests: both normals, the 9 edge ×
   edge directions, the 6 in-plane edge normals). Touching counts as intersecting. The pairs are those python-fcl
-  reports (tests compare them) but for triangles that only touch, where the two tests may disagree; at most
+  reports (tests compare them) but for triangles that only touch, where the two tests may disagree (flush faces
+  too: coplanar within rounding, as two boxes at one height overlapping sideways have; their steps can then differ
+  widely, docs/DESIGN.md §7); at most
   ``max_contacts`` per object pair, the first in (face of i, face of j) order (fcl keeps the first its traversal
   meets). Memory is bounded by doing the object pairs in chunks of ``CHUNK_ELEMENTS`` triangle pairs, and their
   candidate triangle pairs ``CANDIDATES`` at a time (interpenetrating early predictions have millions).

@@ -127,6 +127,27 @@ def test_resume_skips_existing_rooms(library_dir, tmp_path):
     assert manifest["this_run"]["rooms_generated"] == 1 and victim.read_bytes() == content  # made again, not fatal
 
 
+def test_a_relaunch_reads_each_kept_room_once(library_dir, tmp_path, monkeypatch):
+    """A finished dataset relaunched reads each room file once (checked, then counted in the statistics)."""
+    import spread.procgen.dataset as dataset_module
+    import spread.scene
+
+    config = DatasetConfig(rooms=3, seed=5, processes=1, renders=0, assets=AssetSource(copy_from=str(library_dir)))
+    generate_dataset(tmp_path, config, progress=False)
+    reads = []
+    real = spread.scene.read_scene
+
+    def counted(path, *args, **kwargs):
+        reads.append(Path(path).name)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(spread.scene, "read_scene", counted)
+    monkeypatch.setattr(dataset_module, "read_scene", counted)
+    manifest = generate_dataset(tmp_path, config, progress=False)
+    assert manifest["this_run"]["rooms_generated"] == 0
+    assert sorted(reads) == sorted(p.name for s in ("train", "val", "test") for p in (tmp_path / s).glob("*.npz"))
+
+
 def test_command_line(library_dir, tmp_path):
     exe = Path(sys.executable).parent / "spread-generate"
     env = dict(os.environ, WANDB_MODE="disabled")

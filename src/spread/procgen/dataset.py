@@ -219,16 +219,15 @@ def check_config(config: DatasetConfig) -> list[str]:
     return warnings
 
 
-def reads_back(path: Path, library) -> bool:
-    """Whether a room file reads back as a valid scene of ``library`` (a relaunch makes the others again: a room is
-    a function of its index and the seed)."""
+def read_back(path: Path, library):
+    """The room file's scene when it reads back as a valid scene of ``library``, else None (a relaunch makes the
+    others again: a room is a function of its index and the seed)."""
     from spread.scene import read_scene
 
     try:
-        read_scene(path, library)
+        return read_scene(path, library)
     except Exception:  # noqa: BLE001 - any reason it does not read back: made again
-        return False
-    return True
+        return None
 
 
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
@@ -256,12 +255,15 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
     library = build_library(out / "assets", variants=config.assets.variants, seed=config.assets.seed,
                             categories=config.assets.categories, processes=config.processes, progress=progress)
     t_assets = time.perf_counter() - t0
-    todo, damaged = [], []
+    todo, damaged, kept = [], [], {}
     for index in range(config.rooms):
         path = out / split_of(index, config) / f"{scene_id_of(index, config.seed)}.npz"
-        if path.exists() and not reads_back(path, library):  # cut short or damaged outside the platform's writes
-            path.unlink()
-            damaged.append(path.name)
+        if path.exists():
+            kept[path] = read_back(path, library)
+            if kept[path] is None:  # cut short or damaged outside the platform's writes
+                del kept[path]
+                path.unlink()
+                damaged.append(path.name)
         if not path.exists():
             todo.append((index, str(out), config))
     if damaged:
@@ -282,7 +284,7 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
             for item in tqdm(todo, disable=not progress, desc="rooms", unit="room"):
                 results.append(_make_room(item))
     t_rooms = time.perf_counter() - t1
-    manifest = write_dataset_files(out, config, library, results, t_assets, t_rooms)
+    manifest = write_dataset_files(out, config, library, results, t_assets, t_rooms, read=kept)
     if config.renders > 0:
         write_renders(out, library, config.renders)
     return manifest
@@ -318,11 +320,15 @@ def dataset_statistics(scenes) -> dict:
 
 
 def write_dataset_files(out: Path, config: DatasetConfig, library, results: list[dict], t_assets: float,
-                        t_rooms: float) -> dict:
+                        t_rooms: float, read: dict | None = None) -> dict:
+    """The statistics, manifest and dataset card of the rooms in ``out``; ``read``: room files already read back
+    (path → scene; files not rewritten since), not read again."""
     from spread.data.stats import compute_stats, save_stats
 
+    read = read or {}
     splits = {s: sorted((out / s).glob("*.npz")) if (out / s).exists() else [] for s in SPLITS}
-    scenes = {s: [read_scene(p, assets=library) for p in files] for s, files in splits.items()}
+    scenes = {s: [read[p] if p in read else read_scene(p, assets=library) for p in files]
+              for s, files in splits.items()}
     train = scenes["train"] or [sc for v in scenes.values() for sc in v]
     save_stats(out / "stats.json", compute_stats(train))
     all_scenes = [sc for v in scenes.values() for sc in v]

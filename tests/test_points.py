@@ -257,3 +257,41 @@ def test_a_hydra_sweeps_point_folder_named_by_an_earlier_short_name_is_found_by_
     assert compose_hydra("sample", *base).out_dir == str(earlier)
     other = Path(compose_hydra("sample", *base, "seed=3").out_dir)
     assert other != earlier and other.name.startswith("c0.0075_g0.001_r0.001_")
+
+
+def test_a_point_whose_folder_was_sampled_or_evaluated_into_by_another_command_is_redone_and_reported_as_measured(
+        point):
+    """A plain ``spread-sample`` (other sampler) or ``spread-evaluate`` (other protocol) run into a finished point's
+    folder does not write ``point.json``: the relaunched point is redone, not re-used under its old record, and a
+    report names what ``metrics.json`` measured with (it named the point's record)."""
+    from spread.reporting.runs import recorded_identity
+
+    out, cfg = point["out"], point["cfg"]
+    out.mkdir()
+    decision = check_point(cfg(), out)
+    fingerprint = decision.fingerprint
+    sampling = {k: v for k, v in fingerprint.items() if k not in ("samples_per_graph", "evaluation")}
+    finish(out, decision)
+    (out / "sampling.json").write_text(json.dumps({"fingerprint": sampling, "samples_per_graph": 1}))
+    measured = {"col_mesh": 0.1, "sampled_with": {**sampling, "samples_per_graph": fingerprint["samples_per_graph"]},
+                "evaluated_with": fingerprint["evaluation"]}
+    (out / "metrics.json").write_text(json.dumps(measured))
+    assert check_point(cfg(), out).reuse  # every record agrees: re-used
+    other = json.loads(json.dumps(sampling))
+    other["sampling"]["sampler"]["steps"] = 2
+    (out / "sampling.json").write_text(json.dumps({"fingerprint": other}))  # re-sampled, not evaluated yet
+    again = check_point(cfg(), out)
+    assert not again.reuse and again.fresh and "sampling.json was sampled with other settings" in again.reason
+    assert "sampling.sampler.steps" in again.reason
+    (out / "sampling.json").write_text(json.dumps({"fingerprint": sampling}))
+    protocol = json.loads(json.dumps(fingerprint["evaluation"]))
+    protocol["protocol"]["stability_runs"] = 7
+    (out / "metrics.json").write_text(json.dumps({**measured, "evaluated_with": protocol}))  # evaluated otherwise
+    again = check_point(cfg(), out)
+    assert again.fresh and "evaluation.protocol.stability_runs" in again.reason, again.reason
+    assert recorded_identity(out, json.loads((out / "metrics.json").read_text()))["evaluation"] == protocol
+    (out / "metrics.json").write_text("{not json")
+    assert not check_point(cfg(), out).reuse  # a damaged result is not a finished one
+    (out / "metrics.json").write_text(json.dumps(measured))
+    (out / "sampling.json").write_text("[1, 2")
+    assert "its sampling.json does not read" in check_point(cfg(), out).reason

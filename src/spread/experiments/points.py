@@ -62,9 +62,50 @@ def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
     decision = done_check(None if record is None else record.get("fingerprint") or {}, fingerprint,
                           present=finished or record is not None, finished=finished, resume=resume,
                           unknown="metrics.json has no fingerprint (made before fingerprints)")
-    if decision.reuse and record.get("status") != "finished":
-        finish_point(out_dir)
+    if decision.reuse:
+        other = made_otherwise(out_dir, fingerprint)
+        if other:  # another command sampled or evaluated into the folder since: its record no longer says
+            return PointDecision(False, True, other, fingerprint)
+        if record.get("status") != "finished":
+            finish_point(out_dir)
     return PointDecision(decision.reuse, decision.fresh, decision.reason, fingerprint)
+
+
+def made_otherwise(out_dir, fingerprint: dict) -> str | None:
+    """Why a point folder whose ``point.json`` matches ``fingerprint`` holds results of other settings (None: it
+    does not): its ``sampling.json`` pins another sampling identity, or its ``metrics.json`` records that it measured
+    other scenes or with other settings (``sampled_with``, ``evaluated_with``) — a plain ``spread-sample`` or
+    ``spread-evaluate`` run into the folder, which does not write ``point.json``. A file that is not there, and
+    records a version wrote without these keys, are not asked; a damaged file is a reason."""
+    from spread.io import read_json_object
+    from spread.runtime.fingerprint import WHERE, changed_keys, upgraded
+
+    def what(changed: list[str]) -> list[str]:  # where the data lies is not what it is (as the done-check says)
+        return [k for k in changed if k.split(".")[0] not in WHERE]
+
+    out, now = Path(out_dir), upgraded(fingerprint)
+    sampling_part = {k: v for k, v in now.items() if k not in ("samples_per_graph", "evaluation")}
+    records = {}
+    for name in ("sampling.json", "metrics.json"):
+        try:
+            records[name] = read_json_object(out / name) if (out / name).is_file() else {}
+        except (OSError, ValueError) as exc:
+            return f"its {name} does not read ({exc})"
+    manifest, metrics = records["sampling.json"], records["metrics.json"]
+    pinned = manifest.get("fingerprint")
+    if isinstance(pinned, dict) and "sampling" in pinned:
+        changed = what(changed_keys(upgraded(pinned), sampling_part))
+        if changed:
+            return f"its sampling.json was sampled with other settings since ({', '.join(changed[:4])})"
+    made = {}
+    if isinstance(metrics.get("sampled_with"), dict):
+        made |= upgraded(metrics["sampled_with"])
+    if isinstance(metrics.get("evaluated_with"), dict):
+        made["evaluation"] = upgraded(metrics["evaluated_with"])
+    changed = what(changed_keys(made, {k: now.get(k) for k in made}))
+    if changed:
+        return f"its metrics.json measured other scenes or settings ({', '.join(changed[:4])})"
+    return None
 
 
 def start_point(out_dir, decision: PointDecision) -> None:

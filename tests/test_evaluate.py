@@ -191,6 +191,36 @@ def test_resume_after_a_torn_line_counts_every_scene_once(cli_run, dataset, scen
     assert comparable(metrics) == comparable(cli_run[1])
 
 
+def test_an_evaluation_in_the_sampling_runs_own_folder_leaves_its_renders_as_they_are(cli_run, dataset, scenes_dir,
+                                                                                      tmp_path):
+    """``spread-sample evaluate=true`` / ``spread-evaluate out_dir=<run>``: the folder's ``renders/`` are the sampling
+    run's (ground truth | generated, named by scene as the evaluation's top-downs are): an evaluation neither writes
+    over them nor deletes them when it is redone with another protocol (it did both)."""
+    from spread.evaluation import EvalProtocol, FIDConfig
+    from spread.evaluation.run import check_protocol
+
+    run = tmp_path / "run"
+    shutil.copytree(scenes_dir, run / "scenes")
+    for name in ("per_scene.jsonl", "protocol.json", "metrics.json"):
+        shutil.copy(cli_run[0] / name, run / name)
+    ids = [p.stem for p in list_scene_files(scenes_dir)][:2]
+    for sid in ids:
+        (run / "renders").mkdir(exist_ok=True)
+        (run / "renders" / f"{sid}.png").write_bytes(b"ground truth | generated")
+        (run / "renders" / f"{sid}_3d.png").write_bytes(b"3d card")
+    run_in_process(*args(run / "scenes", dataset, run, "logger=none"))
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["run"]["evaluated_this_run"] == 0  # resumed: every scene's line was there
+    assert sorted(p.name for p in (run / "renders").iterdir()) == sorted(f"{s}{x}.png" for s in ids for x in ("", "_3d"))
+    assert {(run / "renders" / f"{s}.png").read_bytes() for s in ids} == {b"ground truth | generated"}
+    other = EvalProtocol(stability_runs=1)
+    assert check_protocol(run, other, FIDConfig(), True, str(dataset / "assets"), own_renders=False)
+    assert not (run / "metrics.json").exists() and len(list((run / "renders").glob("*.png"))) == 4
+    shutil.copy(cli_run[0] / "per_scene.jsonl", run / "per_scene.jsonl")  # lines of the first protocol again
+    assert check_protocol(run, EvalProtocol(), FIDConfig(), True, str(dataset / "assets"))  # its own folder's: cleared
+    assert not list((run / "renders").glob("*.png"))
+
+
 @pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it
 def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_run, dataset, scenes_dir, tmp_path):
     out = tmp_path / "run"

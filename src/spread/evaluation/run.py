@@ -15,7 +15,8 @@
    scenes (``<metric>_lo`` / ``_hi``, ``bootstrap``: :mod:`~spread.evaluation.bootstrap`, seeded by the
    protocol's seed). FID reference statistics are computed by Ray tasks too when an extractor is available;
    otherwise FID is null with the reason.
-5. A few top-down renders of evaluated scenes go to ``out_dir/renders/``.
+5. A few top-down renders of evaluated scenes go to ``out_dir/renders/`` (none in the sampling run's own folder,
+   whose renders show them already: :func:`sampling_folder`).
 """
 
 from __future__ import annotations
@@ -78,12 +79,21 @@ class EvaluationResult:
     out_dir: Path
 
 
-def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool, assets: str) -> str | None:
+def sampling_folder(out: Path, scenes) -> bool:
+    """Whether ``out`` is the sampling run folder whose ``scenes/`` are evaluated (``spread-sample evaluate=true``,
+    ``spread-evaluate scenes=<run>/scenes out_dir=<run>``): its ``renders/`` then are the sampling run's (ground
+    truth | generated, 3D figures), which the evaluation neither writes over nor deletes."""
+    return Path(str(scenes)).name == "scenes" and Path(out).resolve() == Path(str(scenes)).resolve().parent
+
+
+def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bool, assets: str,
+                   own_renders: bool = True) -> str | None:
     """Pin ``protocol.json`` (:func:`spread.runtime.fingerprint.evaluation_identity`: what a per-scene line depends
     on besides its scene file); returns why the folder is redone from scratch by the platform's done-check (None:
     a resume or a new folder): lines measured with anything else (or any, with ``resume=false``) are deleted with
-    the old ``metrics.json`` and renders before the new record is pinned, so a run stopped then leaves no result
-    beside settings that did not make it."""
+    the old ``metrics.json`` and renders (``own_renders``: the folder's renders are the evaluation's, not a sampling
+    run's: :func:`sampling_folder`) before the new record is pinned, so a run stopped then leaves no result beside
+    settings that did not make it."""
     from spread.runtime.fingerprint import done_check, evaluation_identity, normalised
 
     path = out / PROTOCOL
@@ -95,7 +105,7 @@ def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bo
     decision = done_check(before, fingerprint, present=(out / PER_SCENE).exists() or (out / METRICS).exists(),
                           resume=resume, unknown=f"its {PER_SCENE} has no readable {PROTOCOL}")
     if decision.fresh:
-        for old in [out / PER_SCENE, out / METRICS, *(out / "renders").glob("*.png")]:
+        for old in [out / PER_SCENE, out / METRICS, *((out / "renders").glob("*.png") if own_renders else ())]:
             old.unlink(missing_ok=True)
     write_json_atomic(path, fingerprint)
     return decision.reason
@@ -231,7 +241,8 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
     per_scene = out / PER_SCENE
     check_fid(cfg.fid)  # a backbone that cannot be loaded is refused before the folder is touched
-    redone_because = check_protocol(out, cfg.protocol, cfg.fid, cfg.resume, assets)
+    in_sampling_run = sampling_folder(out, cfg.scenes)
+    redone_because = check_protocol(out, cfg.protocol, cfg.fid, cfg.resume, assets, own_renders=not in_sampling_run)
     if before_work is not None:
         before_work()
     inputs, refused = input_hashes(files, keys, Path(cfg.scenes))
@@ -288,5 +299,6 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
                         "scheduling_strategy": cfg.ray.scheduling_strategy}},
     })
     write_json_atomic(out / METRICS, metrics)
-    renders = write_renders(out, records, assets, cfg.renders)
+    # in the sampling run's folder its renders show these scenes already (reports find them there)
+    renders = [] if in_sampling_run else write_renders(out, records, assets, cfg.renders)
     return EvaluationResult(metrics, records, renders, out)

@@ -148,6 +148,21 @@ def test_importance_ranks_the_setting_that_explains_the_variance():
     assert out["eta_squared"].tolist() == pytest.approx([16 / 17, 1 / 17]) and out["levels"].tolist() == [2, 2]
 
 
+
+def test_an_evaluation_seed_that_follows_the_seed_is_not_ranked_or_shown_as_a_swept_setting():
+    """A ``seeds=K`` sweep sets ``protocol.seed`` to each run's seed: the seed, not a setting (the analysis ranked
+    it first, η² 0.98, ahead of the swept weight); one that does not follow the seed is a setting."""
+    from spread.results.frame import swept_settings
+
+    df = pd.DataFrame({"a": [0, 0, 1, 1], "seed": [0, 1, 0, 1], "protocol.seed": [0, 1, 0, 1],
+                       "grecall": [1.0, 5.0, 1.2, 5.2]})
+    df.attrs["settings"] = ["a", "seed", "protocol.seed"]
+    assert importance(df, "grecall")["setting"].tolist() == ["a"] and swept_settings(df) == ["a"]
+    df["protocol.seed"] = [3, 3, 4, 4]  # set on its own: a swept setting
+    assert importance(df, "grecall")["setting"].tolist() == ["a", "protocol.seed"]
+    assert swept_settings(df) == ["a", "protocol.seed"]
+
+
 def test_pareto_keeps_only_rows_no_other_row_beats_in_both():
     df = pd.DataFrame({"run": list("abcde"), "col_mesh": [0.1, 0.2, 0.3, 0.2, 0.05],
                        "grecall": [0.5, 0.7, 0.9, 0.6, 0.4]})

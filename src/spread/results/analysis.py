@@ -60,12 +60,12 @@ def analysis_section(sweep: str | Path, out_dir: str | Path, compare: Sequence[s
     ``{"md": path, "html": fragment, "tables": {name: path}}``."""
     from spread.reporting.tables import Column, write_tables
     from spread.results import importance, load, over_seeds, paired_difference, pareto, stopped_trials
-    from spread.results.frame import settings_of
+    from spread.results.frame import swept_settings
 
     sweep, out = Path(sweep), Path(out_dir)
     df = load(sweep)
     metrics = [m for m in METRICS if m in df.columns and pd.to_numeric(df[m], errors="coerce").notna().any()]
-    swept = [k for k in settings_of(df) if df[k].astype(str).nunique() > 1]
+    swept = swept_settings(df)  # the seed and an evaluation seed following it are not ranked
     parts, fragments, tables = [f"# Analysis of sweep {sweep.name} ({len(df)} runs)"], [], {}
 
     def add(name: str, title: str, rows: list[dict], columns: list, note: str = "") -> None:

@@ -63,6 +63,23 @@ def display(df: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+#: Settings that may follow the seed: an evaluation seed set to the sampling seed (a sweep's ``seeds=K``).
+SEED_FOLLOWERS = ("protocol.seed",)
+
+
+def seed_columns(df: pd.DataFrame, seed: str = "seed") -> list[str]:
+    """``seed`` and the settings that follow it (:data:`SEED_FOLLOWERS` equal to it in every row): the seed, not
+    settings (a mean over seeds pools them; a ranking of settings leaves them out)."""
+    follows = [k for k in SEED_FOLLOWERS if k in df.columns and seed in df.columns and
+               (pd.to_numeric(df[k], errors="coerce") == pd.to_numeric(df[seed], errors="coerce")).all()]
+    return [seed, *follows]
+
+
+def swept_settings(df: pd.DataFrame, seed: str = "seed") -> list[str]:
+    """The settings of ``df`` that take more than one value, the seed and those following it left out."""
+    return [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if df[k].astype(str).nunique() > 1]
+
+
 def settings_of(df: pd.DataFrame, exclude=("seed",)) -> list[str]:
     """The setting columns of ``df`` (``attrs["settings"]``, else every column not a metric, bound or record
     field), less ``exclude``."""

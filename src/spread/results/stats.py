@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spread.results.frame import settings_of
+from spread.results.frame import seed_columns, settings_of
 
 
 def t_interval(values, level: float = 0.95) -> tuple[float, float, float, float]:
@@ -52,9 +52,7 @@ def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "
     if "point" in df.columns and seed in df.columns:  # one run drawn twice by a search is one seed, not two
         df = df.drop_duplicates(subset=["point", seed], keep="last").copy()
         df.attrs = dict(attrs)
-    follows = [k for k in ("protocol.seed",) if k in df.columns and seed in df.columns and
-               (pd.to_numeric(df[k], errors="coerce") == pd.to_numeric(df[seed], errors="coerce")).all()]
-    keys = [k for k in settings_of(df, exclude=(seed, *follows)) if df[k].nunique(dropna=True) > 1]
+    keys = [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if df[k].nunique(dropna=True) > 1]
     rows = []
     groups = df.groupby(keys, dropna=False, sort=True) if keys else [((), df)]
     for values, group in groups:
@@ -121,7 +119,7 @@ def paired_difference(folder_a, folder_b, metric: str, resamples: int = 1000, se
 
 def importance(df: pd.DataFrame, metric: str, settings: list[str] | None = None) -> pd.DataFrame:
     """Per setting that takes more than one value (``settings``: those to rank; default every setting but
-    ``seed`` of the frame): ``eta_squared`` (module docstring), ``levels`` (its distinct values), ``n`` (rows with a
+    the seed and those following it, :func:`~spread.results.frame.seed_columns`): ``eta_squared`` (module docstring), ``levels`` (its distinct values), ``n`` (rows with a
     value of ``metric``); sorted by ``eta_squared``, largest first."""
     if metric not in df.columns:
         raise ValueError(f"importance: no column {metric!r}")
@@ -129,7 +127,7 @@ def importance(df: pd.DataFrame, metric: str, settings: list[str] | None = None)
     y = data[metric].to_numpy(float)
     total = float(((y - y.mean()) ** 2).sum()) if len(y) else 0.0
     rows = []
-    for key in settings if settings is not None else settings_of(df):
+    for key in settings if settings is not None else settings_of(df, exclude=tuple(seed_columns(df))):
         column = data[key].astype(str)  # a setting's levels (a list or a missing value is a level too)
         levels = column.nunique()
         if levels < 2:

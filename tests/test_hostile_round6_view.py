@@ -129,6 +129,22 @@ def test_spread_view_refuses_a_damaged_sampling_record_in_one_line_and_shows_a_r
     assert collect(run, library)[0][0].ground_truth == tmp_path / "data" / "test" / "g.npz"
 
 
+def test_a_runs_scenes_folder_or_one_scene_file_is_shown_with_its_runs_dataset_as_spread_export_finds_it(library,
+                                                                                                     tmp_path):
+    """``spread-view <run>/scenes`` (or one file there) finds the dataset the run's ``sampling.json`` names: its
+    asset library and the ground truth (before: "no asset library … give assets=DIR", where spread-export worked)."""
+    import shutil
+
+    from spread.render.viewer import collect
+
+    run = write_run(tmp_path, library, {"data_root": str(tmp_path / "data"), "split": "test"})
+    shutil.copytree(library, tmp_path / "data" / "assets")
+    for given in (run / "scenes", run / "scenes" / "g_k0.npz"):
+        items, found = collect(given)
+        assert found == tmp_path / "data" / "assets", given
+        assert [(i.name, i.ground_truth) for i in items] == [("g_k0", tmp_path / "data" / "test" / "g.npz")], given
+
+
 def test_spread_view_leaves_out_a_scene_that_does_not_read_and_a_conditioned_on_that_is_not_a_file_name(
         library, tmp_path):
     """Before: a scene with a NaN pose first in the folder ended spread-view in a 29-line traceback; a 300-character

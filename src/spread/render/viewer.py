@@ -84,8 +84,9 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
     if not path.exists() and not path.is_symlink():
         raise FileNotFoundError(f"spread-view: {path}: no such file or folder")
     data_root, split = None, None
-    if path.is_dir() and (path / "sampling.json").exists():
-        data_root, split = ground_truth_source(path / "sampling.json")
+    record = run_record(path)
+    if record is not None:
+        data_root, split = ground_truth_source(record)
     scenes_dir = path / "scenes" if (path / "scenes").is_dir() else path
     if not path.is_dir():
         try:
@@ -118,6 +119,17 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
                                 "give assets=DIR")
     items = readable(items, library, refused if path.is_dir() else None)
     return items, library
+
+
+def run_record(path: Path) -> Path | None:
+    """The ``sampling.json`` of the sampling run ``path`` belongs to: the run folder's own, or its ``scenes/``
+    folder's or one scene file's there (``spread-view <run>/scenes``: as ``spread-export`` finds it); None for
+    scenes of no sampling run."""
+    folder = path if path.is_dir() else path.parent
+    for candidate in (folder / "sampling.json", *((folder.parent / "sampling.json",) if folder.name == "scenes" else ())):
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def is_file(path: Path) -> bool:

@@ -93,6 +93,20 @@ def test_the_ablation_table_says_in_words_whether_geometry_beats_base_on_col_mes
                                              "features, no physics term) against base, unguided Col_mesh")
 
 
+def test_the_ablation_caption_names_the_rows_it_holds_and_claims_the_same_settings_only_when_they_are(tmp_path):
+    """The caption said "base, +geometry perceiver, +guidance (same test graphs, seeds and protocol)" whatever the
+    rows: a table of two rows carried over from runs with another sampler and FID setting said so too."""
+    from spread.experiments.ablation import write_ablation_table
+
+    rows = [dict(r, settings={"sampler": "ddim-50", "fid.enabled": True}) for r in ROWS[1:]]
+    first = write_ablation_table(rows, tmp_path / "same")["md"].read_text().splitlines()[0]
+    assert "Ablation: +Geometry, +Guidance (same test graphs, seeds and protocol)" in first
+    rows[1]["settings"] = {"sampler": "ddim-2", "fid.enabled": False}
+    text = write_ablation_table(rows, tmp_path / "differ")["md"].read_text()
+    assert "Ablation: +Geometry, +Guidance (the rows differ in " in text and "same test graphs" not in text
+    assert "sampler" in text.splitlines()[0] and "Ours (base)" not in text
+
+
 def test_ablation_bar_plot_draws_every_row(tmp_path):
     from PIL import Image
 

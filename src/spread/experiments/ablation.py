@@ -373,6 +373,16 @@ def col_mesh_reading(geometry: dict | None, base: dict | None, when: str, name: 
             f"against {b[0]:.3f} [{b[1]:.3f}, {b[2]:.3f}], {verdict}.")
 
 
+def ablation_caption(records: list[dict], differ: list[str]) -> str:
+    """The table's caption: the rows it holds, and "same test graphs, seeds and protocol" only when no setting
+    differs between them (``differ``: :func:`spread.reporting.runs.name_differences`), else the settings that do."""
+    rows = ", ".join(str(r.get("method") or r.get("variant")) for r in records)
+    if not differ:
+        return f"Ablation: {rows} (same test graphs, seeds and protocol)"
+    shown = ", ".join(differ[:4]) + (", …" if len(differ) > 4 else "")
+    return f"Ablation: {rows} (the rows differ in {shown}: named under the table)"
+
+
 def write_ablation_table(records: list[dict], stem: Path, title: str = "",
                          figures: dict[str, str] | None = None) -> dict[str, Path]:
     """``stem.md``, ``.csv``, ``.tex`` (booktabs, best value bold, ± the bootstrap interval) and ``.png`` (bars
@@ -384,7 +394,7 @@ def write_ablation_table(records: list[dict], stem: Path, title: str = "",
 
     records = [dict(r) for r in records]
     differ = name_differences(records)
-    caption = title or "Ablation: base, +geometry perceiver, +guidance (same test graphs, seeds and protocol)"
+    caption = title or ablation_caption(records, differ)
     shown = "".join(f"\n\n**{r['method']}**: " + ", ".join(f"{k}={r.get(k)}" for k in differ) for r in records
                     if differ)
     shown = f"What differs between the rows:{shown}" if shown else ""

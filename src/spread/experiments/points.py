@@ -78,12 +78,9 @@ def made_otherwise(out_dir, fingerprint: dict) -> str | None:
     ``spread-evaluate`` run into the folder, which does not write ``point.json``. A file that is not there, and
     records a version wrote without these keys, are not asked; a damaged file is a reason."""
     from spread.io import read_json_object
-    from spread.runtime.fingerprint import WHERE, changed_keys, upgraded
+    from spread.runtime.fingerprint import identity_changes
 
-    def what(changed: list[str]) -> list[str]:  # where the data lies is not what it is (as the done-check says)
-        return [k for k in changed if k.split(".")[0] not in WHERE]
-
-    out, now = Path(out_dir), upgraded(fingerprint)
+    out, now = Path(out_dir), fingerprint
     sampling_part = {k: v for k, v in now.items() if k not in ("samples_per_graph", "evaluation")}
     records = {}
     for name in ("sampling.json", "metrics.json"):
@@ -94,15 +91,15 @@ def made_otherwise(out_dir, fingerprint: dict) -> str | None:
     manifest, metrics = records["sampling.json"], records["metrics.json"]
     pinned = manifest.get("fingerprint")
     if isinstance(pinned, dict) and "sampling" in pinned:
-        changed = what(changed_keys(upgraded(pinned), sampling_part))
+        changed = identity_changes(pinned, sampling_part)
         if changed:
             return f"its sampling.json was sampled with other settings since ({', '.join(changed[:4])})"
     made = {}
     if isinstance(metrics.get("sampled_with"), dict):
-        made |= upgraded(metrics["sampled_with"])
+        made |= metrics["sampled_with"]
     if isinstance(metrics.get("evaluated_with"), dict):
-        made["evaluation"] = upgraded(metrics["evaluated_with"])
-    changed = what(changed_keys(made, {k: now.get(k) for k in made}))
+        made["evaluation"] = metrics["evaluated_with"]
+    changed = identity_changes(made, {k: now.get(k) for k in made})
     if changed:
         return f"its metrics.json measured other scenes or settings ({', '.join(changed[:4])})"
     return None

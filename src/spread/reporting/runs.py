@@ -144,7 +144,7 @@ def folder_identity(path: Path, metrics: dict) -> dict:
     way; a recorded ``device: auto`` is kept as written)."""
     from spread.runtime.fingerprint import upgraded
 
-    return upgraded(recorded_identity(path, metrics), resolve_auto=False)
+    return upgraded(recorded_identity(path, metrics))
 
 
 def recorded_identity(path: Path, metrics: dict) -> dict:

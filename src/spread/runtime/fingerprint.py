@@ -155,20 +155,43 @@ def done_check(before: dict | None, now: dict, *, present: bool, finished: bool 
         return Decision("redo", "resume=false")
     if not isinstance(before, dict):
         return Decision("redo", unknown)
-    # where the inputs lie is not what they are (the data's content is its own key): a moved or copied dataset resumes
-    changed = [k for k in changed_keys(upgraded(before), normalised(now)) if k.split(".")[0] not in WHERE]
+    changed = identity_changes(before, now)
     if changed:
         return Decision("redo", f"changed: {', '.join(changed)}")
     return Decision("reuse" if finished else "resume")
 
 
-def upgraded(record: dict, resolve_auto: bool = True) -> dict:
+def identity_changes(before: dict, now: dict) -> list[str]:
+    """The done-check's comparison (:func:`done_check`): the dotted keys in which the identity ``before`` (recorded,
+    read in today's spelling by :func:`upgraded`) differs from ``now``, where the inputs lie left out (:data:`WHERE`:
+    the data's content is its own key, so a moved or copied dataset resumes). A sampling ``device`` an earlier
+    version recorded as ``auto`` matches the device this run records: the record does not say where it ran (in the
+    process, or on Ray's workers, which see no GPU unless given one)."""
+    now = normalised(now)
+    return [k for k in changed_keys(auto_as_now(upgraded(before), now), now)
+            if k.split(".")[0] not in WHERE]
+
+
+def auto_as_now(before, now):
+    """``before`` with each ``sampling.device: auto`` it holds given ``now``'s device at the same place."""
+    if not isinstance(before, dict) or not isinstance(now, dict):
+        return before
+    out = {}
+    for key, value in before.items():
+        other = now.get(key)
+        if key == "sampling" and isinstance(value, dict) and isinstance(other, dict) and value.get("device") == "auto" \
+                and isinstance(other.get("device"), str):
+            value = {**value, "device": other["device"]}
+        out[key] = auto_as_now(value, other)
+    return out
+
+
+def upgraded(record: dict) -> dict:
     """An identity recorded by an earlier version in today's spelling, normalised, so that what it recorded is
     compared, not how, wherever the part sits (a stage's inputs nest identities): a disabled FID's other settings,
-    which change nothing, dropped; a sampling ``device`` recorded as asked — ``cuda:N`` as ``cuda``, and, with
-    ``resolve_auto`` (the done-check), ``auto`` as what it resolves to in this process (:func:`auto_device`: the same
-    machine's ``auto`` run is the same run; on a GPU machine an old ``auto`` record is not a ``device=cpu`` one).
-    Reports keep a recorded ``auto`` as written (``resolve_auto=False``): where it ran is not known there."""
+    which change nothing, dropped; a ``protocol.metrics`` list as a set in the registry's order; a sampling
+    ``device`` recorded as asked — ``cuda:N`` as ``cuda``; ``auto`` is kept as written (where such a run sampled is
+    not known: the done-check lets it match this run's, :func:`identity_changes`)."""
     def walk(node):
         if not isinstance(node, dict):
             return node
@@ -176,15 +199,24 @@ def upgraded(record: dict, resolve_auto: bool = True) -> dict:
         for key, value in node.items():
             if key == "fid" and isinstance(value, dict) and value.get("enabled") is False:
                 value = {"enabled": False}
+            elif key == "protocol" and isinstance(value, dict) and isinstance(value.get("metrics"), list):
+                value = {**value, "metrics": metric_set(value["metrics"])}
             elif key == "sampling" and isinstance(value, dict) and isinstance(value.get("device"), str):
                 device = value["device"]
-                if device == "auto" and resolve_auto:
-                    device = auto_device()
                 value = {**value, "device": "cuda" if device.startswith("cuda:") else device}
             out[key] = walk(value)
         return out
 
     return walk(normalised(record))
+
+
+def metric_set(names: list) -> list:
+    """A recorded ``protocol.metrics`` as :class:`~spread.evaluation.EvalProtocol` now spells it: a set, in the
+    registry's order (an evaluation recorded ``[grecall, col_mesh]`` as given)."""
+    from spread.metrics.registry import METRICS
+
+    rank = {name: i for i, name in enumerate(METRICS.names())}
+    return sorted(names, key=lambda name: rank.get(name, len(rank)) if isinstance(name, str) else len(rank))
 
 
 def auto_device() -> str:

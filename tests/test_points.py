@@ -176,7 +176,7 @@ def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spe
                                                                                                       monkeypatch):
     """The device is the kind the samplers run on (``auto`` resolved as they resolve it, ``cuda:N`` as ``cuda``); a
     disabled FID's other settings change nothing; a point recorded by an earlier version (``device: auto``, a
-    disabled FID with its backbone) is the same point, and another device is a change."""
+    disabled FID with its backbone, metrics in another order) is the same point, and another device is a change."""
     from spread.evaluation.protocol import FIDConfig
     from spread.runtime.fingerprint import done_check, upgraded
     from spread.sampling import SamplingConfig
@@ -203,14 +203,21 @@ def test_one_setting_spelled_two_ways_is_one_identity_and_an_earlier_records_spe
     earlier["sampling"]["device"] = "auto"
     earlier["evaluation"]["fid"] = {"enabled": False, "feature_model": "inception_v3", "weights_path": None,
                                     "extractor": None}
-    assert upgraded(earlier) == now
+    assert upgraded(earlier) == {**now, "sampling": {**now["sampling"], "device": "auto"}}  # as written: a report
     assert done_check(earlier, now, present=True, finished=True).reuse
-    assert upgraded(earlier, resolve_auto=False)["sampling"]["device"] == "auto"  # a report: as written
     earlier["sampling"]["device"] = "cuda:0"
     assert done_check(earlier, now, present=True).reason == "changed: sampling.device"
     earlier["sampling"]["device"] = "auto"
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # on a GPU machine an old auto run sampled on CUDA
-    assert done_check(earlier, now, present=True).reason == "changed: sampling.device"  # not this cpu run
+    # on a GPU machine an old auto run sampled on CUDA in the process, or on Ray's workers on the CPU (they see no
+    # GPU): the record does not say which, so it matches what this run records (it was redone, its scenes deleted)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert done_check(earlier, now, present=True, finished=True).reuse
+    assert done_check(earlier, {**now, "sampling": {**now["sampling"], "device": "cuda"}}, present=True,
+                      finished=True).reuse
+    # an evaluation recorded its metrics in the order given: the same set
+    earlier["evaluation"]["protocol"]["metrics"] = list(reversed(now["evaluation"]["protocol"]["metrics"]))
+    assert len(now["evaluation"]["protocol"]["metrics"]) > 1 and done_check(earlier, now, present=True,
+                                                                            finished=True).reuse
     earlier["evaluation"]["fid"]["enabled"] = True
     assert done_check(earlier, now, present=True).fresh  # an enabled FID is compared field by field
 
@@ -295,3 +302,21 @@ def test_a_point_whose_folder_was_sampled_or_evaluated_into_by_another_command_i
     (out / "metrics.json").write_text(json.dumps(measured))
     (out / "sampling.json").write_text("[1, 2")
     assert "its sampling.json does not read" in check_point(cfg(), out).reason
+
+
+def test_a_sweep_point_is_named_by_the_device_its_trial_samples_on_not_the_drivers(point, monkeypatch, tmp_path):
+    """A trial that asks for no GPU samples on the CPU (Ray hides the GPUs from it) while the driver of a GPU machine
+    sees one: the driver named its points by ``cuda``, found none finished and sent each back to a trial."""
+    import torch
+
+    from spread.experiments.sweep import sample_point
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # the driver of a GPU machine
+    fixed = [f"ckpt={point['ckpt']}", f"data.root={point['data']}", "evaluate=true", "guidance=refine", "workers=0"]
+    plan = {"fixed": fixed, "points": str(tmp_path / "points"), "name": "s", "trial_gpus": 0.0}
+    folder, cfg, overrides = sample_point({"guidance.collision": 0.5}, plan)
+    assert point_fingerprint(cfg)["sampling"]["device"] == "cpu" and "device=cpu" in overrides
+    _, on_gpu, overrides = sample_point({"guidance.collision": 0.5}, {**plan, "trial_gpus": 1.0})
+    assert point_fingerprint(on_gpu)["sampling"]["device"] == "cuda" and "device=cpu" not in overrides
+    _, given, _ = sample_point({"guidance.collision": 0.5}, {**plan, "fixed": [*fixed, "device=cuda"]})
+    assert str(given.device) == "cuda"  # a device the user gave is kept

@@ -387,6 +387,11 @@ def sample_point(config: dict, plan: dict, seed: int | None = None):
     overrides = [*plan["fixed"], *trial_overrides(config), *([] if seed is None else [f"seed={seed}"]),
                  f"experiment_name={plan['name']}", f"logger.run_name={plan['name']}/{name}"]
     cfg = compose("sample", [*overrides, "out_dir=unset"])
+    if not plan.get("trial_gpus") and str(cfg.device) == "auto" and int(cfg.workers) == 0:
+        # the trial samples in its own process, which Ray gives no GPU when it asks for none: auto is the CPU
+        # there, and so here (the driver may see a GPU: it found no finished point and sent each back to a trial)
+        overrides.append("device=cpu")
+        cfg.device = "cpu"
     fingerprint = point_fingerprint(cfg)
     folder = point_folder(Path(plan["points"]) / f"{name}_{short(fingerprint)}", fingerprint)
     cfg.out_dir = str(folder)
@@ -536,7 +541,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     trial = sample_trial if s.command == "sample" else train_trial
     trial = nested_trial(trial)  # its runs nest under the sweep's parent run (spread.tracking.parent)
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
-              "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd()}
+              "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd(), "trial_gpus": float(s.trial_gpus or 0)}
     check_inert_dimensions(plan, shared)  # before anything is written
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}

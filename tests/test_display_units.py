@@ -161,3 +161,14 @@ def test_the_docs_show_asd_in_mm():
     metres = re.compile(r"ASD[^|\n]{0,20}\((m|metres)\)|ASD \(m\)")
     found = [f"{p.name}: {m.group(0)}" for p in docs for m in metres.finditer(p.read_text())]
     assert not found, found
+
+
+def test_the_trackers_log_a_values_bounds_and_sd_over_seeds_in_its_display_unit_and_read_them_back():
+    """A seeded row's ``asd_sd`` went to MLflow in metres beside ``asd_mm`` in millimetres."""
+    from spread.metrics.registry import in_display_units, in_stored_units
+
+    stored = {"asd": 0.012, "asd_lo": 0.011, "asd_hi": 0.013, "asd_sd": 0.002, "grecall_sd": 0.1}
+    shown = in_display_units(stored)
+    assert shown == pytest.approx({"asd_mm": 12.0, "asd_mm_lo": 11.0, "asd_mm_hi": 13.0, "asd_mm_sd": 2.0,
+                                   "grecall_sd": 0.1})
+    assert in_stored_units(shown) == pytest.approx(stored)

@@ -314,19 +314,16 @@ def value_spec(name: str) -> ValueSpec | None:
     return None
 
 
-BOUND_SUFFIXES = ("_lo", "_hi")
-
-
 def _split_bound(key: str) -> tuple[str, str]:
-    for end in BOUND_SUFFIXES:
+    for end in SCALED_SUFFIXES:
         if key.endswith(end):
             return key[: -len(end)], end
     return key, ""
 
 
 def in_display_units(values: dict) -> dict:
-    """Flat scalars keyed as ``metrics.json`` keys them (a value, its ``_lo``/``_hi``) in their display units, keyed
-    as a table's header names them (``asd`` in m → ``asd_mm`` in mm: :attr:`ValueSpec.key`), for the trackers
+    """Flat scalars keyed as ``metrics.json`` keys them (a value, its ``_lo``/``_hi``, its ``_sd`` over seeds) in
+    their display units, keyed as a table's header names them (``asd`` in m → ``asd_mm`` in mm: :attr:`ValueSpec.key`), for the trackers
     (wandb summaries, MLflow metrics); a key of no value with a unit is kept as it is. :func:`in_stored_units`
     reads them back."""
     out = {}

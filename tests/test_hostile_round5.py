@@ -240,6 +240,7 @@ def test_spread_sweep_refuses_one_value_twice_a_sweep_of_its_own_settings_and_a_
     with pytest.raises(ValueError, match=r"name=\['a', 'b'\]: one text value"):
         parse_arguments(["name=[a,b]", "guidance.collision=0.0,0.1", "out_dir=x"])
     assert parse_arguments(["name=2024", "guidance.collision=0.0,0.1", "out_dir=x"]).settings.name == "2024"
+    assert parse_arguments(["guidance.collision=0.0,0.1", "out_dir=2024"]).settings.out_dir == "2024"  # a folder
     with pytest.raises(ValueError, match=r"max_concurrent=2.7: a whole number of trials"):  # before: 2, silently
         parse_arguments(["max_concurrent=2.7", "guidance.collision=0.0,0.1", "out_dir=x"])
     from spread.cli.sweep import main  # the console script's main, in this process (no process start)

@@ -79,8 +79,10 @@ class SweepSettings:
     def __post_init__(self) -> None:
         if self.out_dir in ("???", None, ""):
             raise ValueError("spread-sweep: out_dir is required (the sweep folder)")
-        if isinstance(self.name, (int, float)) and not isinstance(self.name, bool):  # name=2024: a name all the same
-            self.name = str(self.name)
+        for key in ("name", "out_dir"):  # name=2024, out_dir=2024: a name and a folder all the same
+            value = getattr(self, key)
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                setattr(self, key, str(value))
         for key in ("out_dir", "command", "name", "search", "metric", "mode"):
             if not isinstance(getattr(self, key), str):
                 raise ValueError(f"spread-sweep: {key}={getattr(self, key)!r}: one text value")

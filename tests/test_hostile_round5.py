@@ -267,6 +267,8 @@ def test_spread_ablate_refuses_a_seed_twice_and_a_stage_list_that_does_not_compo
         ablate(compose("ablate", *common, 'sample.extra=["sampler.steps=5","guidance.colision=0.1"]'))
     with pytest.raises(ValueError, match=r"evaluate: .*protocol.stability_runs=x.*could not be converted to Integer"):
         ablate(compose("ablate", *common, 'evaluate.extra=["protocol.stability_runs=x"]'))
+    with pytest.raises(ValueError, match=r"evaluate: .*fid.extractor=nosuch_mod:make: cannot be loaded"):
+        ablate(compose("ablate", *common, 'evaluate.extra=["fid.enabled=true","+fid.extractor=nosuch_mod:make"]'))
     assert not (tmp_path / "a" / "samples").exists() and not (tmp_path / "a" / "eval").exists()
 
 

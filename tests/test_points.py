@@ -320,3 +320,16 @@ def test_a_sweep_point_is_named_by_the_device_its_trial_samples_on_not_the_drive
     assert point_fingerprint(on_gpu)["sampling"]["device"] == "cuda" and "device=cpu" not in overrides
     _, given, _ = sample_point({"guidance.collision": 0.5}, {**plan, "fixed": [*fixed, "device=cuda"]})
     assert str(given.device) == "cuda"  # a device the user gave is kept
+
+
+def test_a_sweep_point_whose_fid_backbone_cannot_load_is_refused_before_its_sampling(point):
+    """``spread-sample evaluate=true`` loaded the FID backbone only after sampling every scene (a sweep's every point
+    sampled, then failed); ablations and comparisons check their evaluate list before any stage
+    (``StageEngine.check_lists``)."""
+    from spread.commands.sample import sample
+
+    out = point["out"]
+    cfg = point["cfg"]("logger=none", "+evaluation.fid.extractor=nosuch_mod:make")
+    with pytest.raises(ValueError, match=r"fid.extractor=nosuch_mod:make: cannot be loaded"):
+        sample(cfg, log=False)
+    assert not (out / "scenes").exists() and not (out / POINT).exists() and not (out / "sampling.json").exists()

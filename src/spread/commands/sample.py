@@ -62,6 +62,9 @@ def _sample(cfg: DictConfig, command, log: bool, overrides: list[str] | None):
         if point.reuse:
             print(f"{command.out_dir}: finished earlier with the same fingerprint, re-used")
             return None, None
+        from spread.evaluation.run import check_fid
+
+        check_fid(command.evaluation.fid)  # a backbone that cannot load: refused before the sampling, not after
         if point.reason:  # sampling and evaluation then keep what their own fingerprints still match
             print(f"{command.out_dir}: redone ({point.reason})")
         record = before_work

@@ -356,9 +356,13 @@ class StageEngine:
         lists = {f"sample/{row}": ("sample", [*self.study.sample_lists(row), "ckpt=unset", "data.root=unset",
                                               "out_dir=unset"]) for row in rows}
         lists["evaluate"] = ("evaluate", [*self.spec.evaluate, "scenes=unset", "reference=unset", "out_dir=unset"])
+        from spread.evaluation.run import check_fid
+
         for name, (command, overrides) in lists.items():
             try:
-                to_object(compose(command, self.spec.named(overrides)))
+                typed = to_object(compose(command, self.spec.named(overrides)))
+                if command == "evaluate":  # a FID backbone that cannot load: said before training and sampling
+                    check_fid(typed.fid)
             except (ValueError, ConfigCompositionException, OverrideParseException) as exc:
                 raise ValueError(f"{name}: its overrides {overrides[:-3]} do not make a spread-{command} command: "
                                  f"{error_message(exc)}") from None

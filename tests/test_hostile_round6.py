@@ -354,3 +354,17 @@ def test_a_manifest_whose_category_list_lacks_a_used_category_is_named_before_tr
     (data / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ValueError, match=rf"manifest.json: key 'categories' lacks '{dropped}'.*, used by .*\.npz"):
         SceneDataset(data, "train")
+
+
+def test_an_import_whose_every_room_fails_on_its_assets_names_an_asset_not_none():
+    from types import SimpleNamespace
+
+    from spread.importers.run import first_failure
+
+    rooms = SimpleNamespace(rooms=[SimpleNamespace(tag="r1"), SimpleNamespace(tag="r2")])
+    scans = {"r1": {"error": None}, "r2": {"error": None}}
+    assets = {"a7": {"tag": None, "file": "models/a7/raw_model.obj", "error": "no faces"}}
+    assert first_failure(rooms, scans, assets) == {"tag": "an asset", "file": "models/a7/raw_model.obj",
+                                                   "error": "no faces"}
+    scans["r2"]["error"] = {"tag": "r2", "file": "r2.json", "error": "bad"}
+    assert first_failure(rooms, scans, assets)["tag"] == "r2"

@@ -316,6 +316,16 @@ def check_not_another_kind(out: Path) -> None:
                          f"import would replace its assets, statistics and manifest — import into another out_dir")
 
 
+def first_failure(room_list, scans: dict, failed_assets: dict) -> dict:
+    """The first room's failure (``{"tag", "file", "error"}``), else the first failed asset's, tagged "an asset"
+    (an asset's record has no room tag: the message read "None: ...")."""
+    room = next((scans[r.tag]["error"] for r in room_list.rooms if scans[r.tag]["error"]), None)
+    if room:
+        return room
+    asset = next(iter(failed_assets.values()), {})
+    return {**asset, "tag": asset.get("tag") or "an asset"}
+
+
 def check_some_room_imported(room_list, failed: set[str], first: dict | None, earlier: int, out: Path,
                              src: str, index_written: bool = False) -> None:
     """``ValueError`` when this import makes no room at all — every listed room failed (``failed``: their tags;
@@ -373,8 +383,7 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
         failed_assets = {r["asset_id"]: r["error"] for r in asset_results if r["error"]}
         unusable = {ref.tag for ref in room_list.rooms if scans[ref.tag]["error"]
                     or any(req.asset_id in failed_assets for req in scans[ref.tag]["requests"])}
-        first = next((scans[r.tag]["error"] for r in room_list.rooms if scans[r.tag]["error"]), None) or {
-            "tag": "an asset", **next(iter(failed_assets.values()), {})}
+        first = first_failure(room_list, scans, failed_assets)
         check_some_room_imported(room_list, unusable, first, earlier, out, cfg.src)  # before the index is replaced
         library = AssetLibrary(out / "assets", records)
         library.save_index(build={"importer": IMPORTER_VERSION, **source.info()})

@@ -105,6 +105,11 @@ def test_over_seeds_counts_a_run_drawn_twice_once_and_reads_an_evaluation_seed_t
     assert out["grecall_hi"][0] == pytest.approx(0.3 + half)
     df.loc[df["seed"] == 1, "protocol.seed"] = 7  # an evaluation seed of its own is a setting
     assert len(over_seeds(df, "grecall")) == 2
+    # rows of no point folder (failed trials) are not one run drawn twice: each counts
+    failed = pd.DataFrame([{"guidance.collision": c, "seed": 0, "point": None, "grecall": g}
+                           for c, g in ((0.5, 0.1), (0.7, 0.2))])
+    failed.attrs = {"settings": ["guidance.collision", "seed"], "metrics": ["grecall"]}
+    assert sorted(over_seeds(failed, "grecall")["grecall"].tolist()) == [0.1, 0.2]
 
 
 def test_paired_difference_matches_scenes_and_gives_a_seeded_bootstrap_interval(tmp_path):

@@ -50,7 +50,8 @@ def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "
         raise ValueError(f"over_seeds: no column {metric!r} (columns: {list(df.columns)})")
     attrs = dict(df.attrs)
     if "point" in df.columns and seed in df.columns:  # one run drawn twice by a search is one seed, not two
-        df = df.drop_duplicates(subset=["point", seed], keep="last").copy()
+        named = df["point"].notna()  # rows of no point folder (a failed trial) are not one run
+        df = pd.concat([df[named].drop_duplicates(subset=["point", seed], keep="last"), df[~named]]).sort_index()
         df.attrs = dict(attrs)
     keys = [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if df[k].nunique(dropna=True) > 1]
     rows = []

@@ -238,6 +238,12 @@ def test_report_bad_input_names_the_path(tmp_path):
         find_runs([str(tmp_path / "empty")])
     records, unfinished = read_runs([str(tmp_path / "sweep" / "c0.0*")])  # a glob: unfinished skipped
     assert [r["run"] for r in records] == ["c0.0_g0.001_r0.001", "c0.015_g0.002_r0.0"]
+    training = tmp_path / "train" / "wandb" / "offline-run-20260101_000000-abc"  # a training run's wandb record
+    (training / "files").mkdir(parents=True)
+    (training / "files" / "wandb-summary.json").write_text(json.dumps({"train/loss": 0.3}))
+    assert find_runs([str(tmp_path / "*" / "wandb" / "offline-run-*")])[0] == []  # a glob: skipped, not an error
+    with pytest.raises(RunError, match="no registered metric in its summary"):  # named: an error
+        read_runs([str(training)])
     assert unfinished == [runs["unfinished"]]
     proc = run_script("spread-report", f"runs={tmp_path / 'nope'}", f"out_dir={tmp_path / 'r'}", ok=False)
     assert proc.returncode != 0 and f"{tmp_path / 'nope'}: no such folder" in proc.stderr

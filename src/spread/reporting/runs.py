@@ -378,6 +378,8 @@ def find_runs(entries: str | Iterable[str]) -> tuple[list[tuple[str, Path]], lis
             if not path.exists():
                 raise RunError(f"runs: {path}: no such folder")
             if is_wandb_run(path):
+                if pattern and not is_eval_wandb_run(path):  # a glob's training or ablation run: not a result
+                    continue
                 found.append(("wandb", path))
             elif (path / "metrics.json").exists():
                 found.append(("folder", path))

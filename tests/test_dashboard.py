@@ -206,6 +206,12 @@ def test_report_of_a_sampling_run_and_a_training_run_is_one_self_contained_html_
     assert "<script" not in page
     md = (tmp_path / "R" / "report.md").read_text()
     assert "## Training runs (1)" in md and (tmp_path / "R" / "report_training.csv").exists()
+    # the steps trained, as metrics.json and the console say them (the last logged step, 0-based, said 5 for 6)
+    from spread.reporting.html_report import read_curves, steps_trained
+    from spread.reporting.tables import read_csv
+
+    assert read_csv(tmp_path / "R" / "report_training.csv")[0]["steps"] == 6
+    assert steps_trained(tmp_path / "nowhere", read_curves(train_dir)) == 6  # no metrics.json: last logged + 1
 
 
 @pytest.mark.slow  # the console script's start-up (Hydra, imports) is most of it; run_report is tested above

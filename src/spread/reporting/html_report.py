@@ -326,8 +326,7 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         held["training_runs"], held["curves"] = len(runs), keys
         parts.append(f"<h2>Training curves ({len(runs)} runs)</h2>")
         parts.append(img(data, "training curves") if data else "<p>no logged curves</p>")
-        rows = [{"run": name, "last_step": max((p[0] for v in c.values() for p in v), default=None),
-                 **{k: (c.get(k) or [(None, None)])[-1][1] for k in keys}} for name, c in runs.items()]
+        rows = [training_row(name, f, c, keys) for (name, c), f in zip(runs.items(), training)]
         parts.append(html_table(rows, training_columns(keys)))
     if records:
         parts.append(f"<h2>Evaluated runs ({len(records)})</h2>")
@@ -379,17 +378,36 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
 
 
 def training_columns(keys: Sequence[str]) -> list[Column]:
-    """The training-runs table's columns: run, last step, each curve's last value."""
-    return [Column("run", "run"), Column("last_step", "last step", None), *[Column(k, f"last {k}", 4) for k in keys]]
+    """The training-runs table's columns: run, the steps trained, each curve's last value."""
+    return [Column("run", "run"), Column("steps", "steps", None), *[Column(k, f"last {k}", 4) for k in keys]]
+
+
+def steps_trained(folder: Path, curves: dict) -> int | None:
+    """The optimiser steps a training run made: its ``metrics.json``'s ``global_step`` (what the console said), else
+    the last logged step + 1 (a curve's step is the 0-based index of the batch it was logged at)."""
+    from spread.io import read_json_object
+
+    try:
+        step = read_json_object(Path(folder) / "metrics.json").get("global_step")
+    except (OSError, ValueError):
+        step = None
+    if isinstance(step, int) and not isinstance(step, bool):
+        return step
+    last = max((p[0] for v in curves.values() for p in v if p[0] is not None), default=None)
+    return None if last is None else int(last) + 1
+
+
+def training_row(name: str, folder: Path, curves: dict, keys: Sequence[str]) -> dict:
+    """One training run's row: ``run``, ``source``, ``steps`` (:func:`steps_trained`), each curve's last value."""
+    return {"run": name, "source": str(folder), "steps": steps_trained(folder, curves),
+            **{k: (curves.get(k) or [(None, None)])[-1][1] for k in keys}}
 
 
 def training_rows(training: Sequence[Path]) -> tuple[list[str], list[dict]]:
-    """(curve keys, one record per training run: ``run``, ``source``, ``last_step`` and each curve's last value)."""
+    """(curve keys, one record per training run: :func:`training_row`)."""
     runs = {str(f): read_curves(f) for f in training}
     keys = curve_keys(runs)
-    rows = [{"run": Path(f).name, "source": f, "last_step": max((p[0] for v in c.values() for p in v), default=None),
-             **{k: (c.get(k) or [(None, None)])[-1][1] for k in keys}} for f, c in runs.items()]
-    return keys, rows
+    return keys, [training_row(Path(f).name, Path(f), c, keys) for f, c in runs.items()]
 
 
 def write_training_tables(training: Sequence[Path], stem: Path, append: bool) -> dict[str, Path]:
@@ -404,5 +422,5 @@ def write_training_tables(training: Sequence[Path], stem: Path, append: bool) ->
     md = Path(stem).with_suffix(".md")
     before = read_text_checked(md) + "\n" if append and md.exists() else ""
     write_text_atomic(md, before + f"## Training runs ({len(rows)})\n\n" + markdown_table(rows, columns) + "\n")
-    return {"md": md, "training_csv": write_csv(rows, ["run", "last_step", *keys, "source"],
+    return {"md": md, "training_csv": write_csv(rows, ["run", "steps", *keys, "source"],
                                                 Path(f"{stem}_training.csv"))}

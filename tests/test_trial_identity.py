@@ -111,3 +111,35 @@ def test_a_sweep_with_relative_paths_runs_its_trials_in_the_launch_folder(tmp_pa
     assert Path(os.getcwd()) == launch
     in_launch_folder({"cwd": str(tmp_path / "not_on_this_node")})  # another node's folder: stays
     assert Path(os.getcwd()) == launch
+
+
+def test_a_training_point_is_the_weights_it_starts_from_and_not_where_its_data_lies(tmp_path):
+    """``model.init_from`` names a file: other weights at that path are another training (a relaunched training sweep
+    re-used its points trained from the old weights); the same rooms at another path are the same point (they were
+    trained again). The ablation's and comparison's training stages hold the weights' content too."""
+    import shutil
+
+    from spread.experiments.stages import typed_training
+    from spread.experiments.sweep import train_point
+    from spread.runtime.fingerprint import done_check
+
+    data = tmp_path / "data"
+    for split in ("train", "val"):
+        (data / split).mkdir(parents=True)
+        (data / split / "a.npz").write_bytes(b"room " + split.encode())
+    init = tmp_path / "init.ckpt"
+    init.write_bytes(b"weights-1")
+    plan = {"fixed": ["experiment=quick", f"data.root={data}", f"model.init_from={init}"], "name": "s",
+            "points": str(tmp_path / "points")}
+    (tmp_path / "points").mkdir()
+    folder, first, _ = train_point({"model.lr": 0.001}, plan)
+    stage = typed_training({"overrides": plan["fixed"]})
+    init.write_bytes(b"weights-2")
+    _, other, _ = train_point({"model.lr": 0.001}, plan)
+    assert done_check(first, other, present=True, finished=True).reason == "changed: config.model.init_from_sha256"
+    assert typed_training({"overrides": plan["fixed"]}) != stage
+    moved = tmp_path / "moved"
+    shutil.copytree(data, moved)
+    _, there, _ = train_point({"model.lr": 0.001}, {**plan, "fixed": [f"data.root={moved}" if o.startswith("data.root")
+                                                                      else o for o in plan["fixed"]]})
+    assert done_check(other, there, present=True, finished=True).reuse

@@ -81,12 +81,18 @@ def tree_digest(folder, pattern: str = "*.npz") -> str:
 
 def dataset_digest(root, splits) -> str:
     """The content of a dataset folder as far as a run reads it: the splits' scene files, the asset index and
-    the normalisation statistics."""
+    the normalisation statistics (a split or file that is not there: ``empty`` / ``missing``, wherever it is)."""
     root = Path(str(root))
-    parts = {f"split:{s}": tree_digest(root / s) for s in sorted({str(s) for s in splits if s})}
-    parts["assets"] = file_digest(root / "assets" / "index.json")
-    parts["stats"] = file_digest(root / "stats.json")
+    parts = {f"split:{s}": placeless(tree_digest(root / s)) for s in sorted({str(s) for s in splits if s})}
+    parts["assets"] = placeless(file_digest(root / "assets" / "index.json"))
+    parts["stats"] = placeless(file_digest(root / "stats.json"))
     return digest(parts)
+
+
+def placeless(value: str) -> str:
+    """A digest without the path its ``empty:`` / ``missing:`` marker names: what the data is, not where (a moved
+    dataset without a val split, or without statistics, is the same data)."""
+    return value.split(":", 1)[0] if value.startswith(("empty:", "missing:")) else value
 
 
 def changed_keys(before: dict, now: dict, prefix: str = "") -> list[str]:
@@ -168,8 +174,12 @@ def identity_changes(before: dict, now: dict) -> list[str]:
     version recorded as ``auto`` matches the device this run records: the record does not say where it ran (in the
     process, or on Ray's workers, which see no GPU unless given one)."""
     now = normalised(now)
-    return [k for k in changed_keys(auto_as_now(upgraded(before), now), now)
-            if k.split(".")[0] not in WHERE]
+    return [k for k in changed_keys(auto_as_now(upgraded(before), now), now) if not says_where(k)]
+
+
+def says_where(key: str) -> bool:
+    """Whether the dotted identity key says where an input lies, not what it is (:data:`WHERE`, :data:`WHERE_PATHS`)."""
+    return key.split(".")[0] in WHERE or any(key == p or key.startswith(p + ".") for p in WHERE_PATHS)
 
 
 def auto_as_now(before, now):
@@ -257,13 +267,18 @@ TRAINING_DEFAULTS = {"data.max_objects": None}
 
 def training_config_identity(config: dict) -> dict:
     """A composed ``spread-train`` config (a plain dict) as a training identity holds it: without the
-    :data:`TRAINING_DEFAULTS` it holds at their defaults (a copy; ``config`` is left as it was)."""
+    :data:`TRAINING_DEFAULTS` it holds at their defaults, and with the content of the weights ``model.init_from``
+    starts from (``model.init_from_sha256``: other weights at the same path are another training) (a copy;
+    ``config`` is left as it was)."""
     out = dict(config)
     for dotted, default in TRAINING_DEFAULTS.items():
         section, _, key = dotted.rpartition(".")
         node = out.get(section)
         if isinstance(node, dict) and key in node and node[key] == default:
             out[section] = {k: v for k, v in node.items() if k != key}
+    model = out.get("model")
+    if isinstance(model, dict) and isinstance(model.get("init_from"), str) and model["init_from"]:
+        out["model"] = {**model, "init_from_sha256": file_digest(model["init_from"])}
     return out
 
 
@@ -378,6 +393,9 @@ def point_folder(folder, fingerprint: dict) -> Path:
 
 #: Identity keys that say where, not what (left out of :func:`settings`).
 WHERE = ("data_root",)
+#: Dotted identity keys that say where, deeper in: a training sweep point's data folder (its content is the point's
+#: ``data`` digest: a moved or copied dataset is the same point).
+WHERE_PATHS = ("config.data.root",)
 
 
 def settings(identity: dict) -> dict:

@@ -69,23 +69,13 @@ DATA_DIGEST = "spread_data_sha256"
 
 
 def data_digest(datamodule) -> str | None:
-    """The content of the rooms a datamodule trains and validates on, wherever they lie: the sha256 of its ``root``'s
-    train and val scene files (a split that is missing or empty is ``empty``), its asset index and its statistics
-    (``missing`` when absent); None for a datamodule without a ``root``."""
-    from spread.runtime.fingerprint import digest, file_digest, tree_digest
+    """The content of the rooms a datamodule trains and validates on, wherever they lie
+    (:func:`spread.runtime.fingerprint.dataset_digest` of its ``root``'s train and val splits); None for a datamodule
+    without a ``root``."""
+    from spread.runtime.fingerprint import dataset_digest
 
     root = getattr(datamodule, "hparams", {}).get("root") if hasattr(datamodule, "hparams") else None
-    if not root:
-        return None
-    root = Path(str(root))
-
-    def placeless(value: str) -> str:  # the digests' markers name the path: not what the data is
-        return value.split(":", 1)[0] if value.startswith(("empty:", "missing:")) else value
-
-    parts = {f"split:{s}": placeless(tree_digest(root / s)) for s in ("train", "val")}
-    parts |= {"assets": placeless(file_digest(root / "assets" / "index.json")),
-              "stats": placeless(file_digest(root / "stats.json"))}
-    return digest(parts)
+    return dataset_digest(Path(str(root)), ["train", "val"]) if root else None
 
 
 class DataDigest(Callback):

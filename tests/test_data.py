@@ -451,3 +451,22 @@ def test_the_object_limit_at_its_default_leaves_training_identities_as_they_were
     assert resumed_changes(before, object(), Held) == []
     Held.hparams = {"batch_size": 2, "seed": 0, "max_objects": 12}
     assert resumed_changes(before, object(), Held) == ["data.max_objects: None -> 12"]
+
+
+def test_a_val_split_the_object_limit_empties_is_no_refusal_for_a_trainer_that_does_not_validate(root):
+    from types import SimpleNamespace
+
+    from spread.data.datamodule import SceneDataModule
+
+    val = SceneDataset(root, "val", num_points=M).sizes()
+    train = SceneDataset(root, "train", num_points=M).sizes()
+    limit = min(val) - 1
+    assert any(c <= limit for c in train)  # the fixture's rooms (seed 0): train has smaller rooms than any of val's
+    dm = SceneDataModule(root, batch_size=2, num_points=M, max_objects=limit)
+    dm.trainer = SimpleNamespace(limit_val_batches=0, check_val_every_n_epoch=1)
+    dm.setup("fit")  # the val split is never read
+    assert "val" not in dm._datasets and len(dm.dataset("train")) == sum(c <= limit for c in train)
+    validating = SceneDataModule(root, batch_size=2, num_points=M, max_objects=limit)
+    validating.trainer = SimpleNamespace(limit_val_batches=1.0, check_val_every_n_epoch=1)
+    with pytest.raises(ValueError, match=r"val: none of its 2 scene files is usable .*object limit"):
+        validating.setup("fit")

@@ -168,12 +168,19 @@ class SceneDataModule(L.LightningDataModule):
         return self._datasets[split]
 
     def setup(self, stage: str | None = None) -> None:
-        wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
+        wanted = {"fit": ("train", "val") if self.validates() else ("train",), "validate": ("val",),
+                  "test": ("test",), "predict": ("test",)}
         for split in wanted.get(stage, SPLITS) if stage else SPLITS:
             if (self.root / split).is_dir():
                 self.dataset(split)
         if stage == "fit":
             self.check_fit()
+
+    def validates(self) -> bool:
+        """Whether the trainer runs validation (no trainer yet: assumed so); a run that does not never reads the
+        val split (``trainer.limit_val_batches=0``: a val split the object limit empties is no reason to refuse)."""
+        trainer = self.trainer
+        return trainer is None or (trainer.limit_val_batches != 0 and trainer.check_val_every_n_epoch is not None)
 
     def check_fit(self) -> None:
         """Before training: the train split has scenes, and so does val when the trainer validates (a run that
@@ -181,8 +188,7 @@ class SceneDataModule(L.LightningDataModule):
         if not self.scene_files("train"):
             raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'train'} to train on")
         trainer = self.trainer
-        validates = trainer is None or (trainer.limit_val_batches != 0 and trainer.check_val_every_n_epoch is not None)
-        if validates and not self.scene_files("val"):
+        if self.validates() and not self.scene_files("val"):
             raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'val'}, and the trainer "
                              f"validates every {getattr(trainer, 'check_val_every_n_epoch', 1)} epochs; give a dataset "
                              f"with a val split (spread-generate writes one from 10 rooms on) or set "

@@ -61,6 +61,11 @@ def one_line(name: str):
             silence_known_noise()
             try:
                 return task(*args, **kwargs)
+            except KeyboardInterrupt:  # Ctrl-C: one line, the shell's exit status for it (128 + SIGINT)
+                if verbose():
+                    raise
+                print(f"{name}: interrupted (Ctrl-C)", file=sys.stderr, flush=True)
+                raise SystemExit(130) from None
             except Exception as exc:  # noqa: BLE001 — only user errors are turned into one line
                 cause = user_error(exc)
                 if cause is None or verbose():

@@ -4,13 +4,16 @@ The run folder's ``checkpoints/`` holds ``last.ckpt`` (what ``ckpt_path=last`` r
 periodic one. ``ckpt_path``: ``null`` starts a new run; a path resumes from that checkpoint (weights, EMA,
 optimizer, global step, loop state); ``last`` resumes ``<run folder>/checkpoints/last.ckpt`` when it
 exists, else the newest ``<paths.runs_dir>/train/<experiment_name>/*/checkpoints/last.ckpt``, else starts a
-new run (so a preempted job can always be relaunched with ``ckpt_path=last out_dir=<its folder>``).
+new run (so a preempted job can always be relaunched with ``ckpt_path=last out_dir=<its folder>``). Ctrl-C
+stops after the step in progress and saves it as ``last.ckpt`` (:func:`stop_on_interrupt`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from pathlib import Path
+from typing import Callable, Iterator
 
 from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig
@@ -89,3 +92,35 @@ def atomic_checkpoint_io():
             return load_checkpoint(path, map_location="cpu" if map_location is None else map_location)
 
     return AtomicCheckpointIO()
+
+
+@contextlib.contextmanager
+def stop_on_interrupt(trainer) -> Iterator[Callable[[], bool]]:
+    """Ctrl-C while ``trainer`` fits: the first one stops training after the step in progress (``trainer.should_stop``:
+    the caller then saves that step's checkpoint, :func:`save_final_checkpoint`, and raises KeyboardInterrupt), a
+    second one stops at once. Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
+    ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a failed stage and went on.
+    Yields ``asked()``: whether Ctrl-C came. Only in the main thread (a signal handler is set there only)."""
+    import signal
+    import sys
+    import threading
+
+    asked: list[bool] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum, frame):
+        if asked:  # the second Ctrl-C: now
+            raise KeyboardInterrupt
+        asked.append(True)
+        trainer.should_stop = True
+        print("spread-train: Ctrl-C: stopping after this step and saving its checkpoint (Ctrl-C again: stop now)",
+              file=sys.stderr, flush=True)
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield lambda: bool(asked)
+    finally:
+        signal.signal(signal.SIGINT, previous)

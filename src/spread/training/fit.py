@@ -18,7 +18,8 @@ import hydra
 from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from spread.training.checkpoints import CheckpointStep, atomic_checkpoint_io, resolve_ckpt_path, save_final_checkpoint
+from spread.training.checkpoints import (CheckpointStep, atomic_checkpoint_io, resolve_ckpt_path, save_final_checkpoint,
+                                         stop_on_interrupt)
 from spread.training.determinism import ExactResume
 
 log = logging.getLogger("spread.train")
@@ -336,8 +337,14 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     feed_the_device(trainer, datamodule)
     if ckpt_path is not None and trainer.is_global_zero:
         print(f"spread-train: resuming {ckpt_path}", flush=True)
-    trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
+    with stop_on_interrupt(trainer) as interrupted:
+        trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
     save_final_checkpoint(trainer, run_dir, newest)
+    if interrupted():  # the steps made are saved; no summary (the run is not finished): the caller stops too
+        if trainer.is_global_zero:
+            print(f"spread-train: interrupted at step {trainer.global_step}: {run_dir / 'checkpoints' / 'last.ckpt'} "
+                  f"holds it; relaunch with ckpt_path=last to go on", flush=True)
+        raise KeyboardInterrupt
     skipped = datamodule.skipped_files() if hasattr(datamodule, "skipped_files") else {}
     summary = write_summary(trainer, run_dir, ckpt_path, skipped)
     if trainer.is_global_zero:

@@ -470,3 +470,22 @@ def test_a_val_split_the_object_limit_empties_is_no_refusal_for_a_trainer_that_d
     validating.trainer = SimpleNamespace(limit_val_batches=1.0, check_val_every_n_epoch=1)
     with pytest.raises(ValueError, match=r"val: none of its 2 scene files is usable .*object limit"):
         validating.setup("fit")
+
+
+def test_the_resume_position_counts_an_epochs_last_partial_accumulation_as_one_step(root):
+    """``trainer.accumulate_grad_batches=3`` over 3 batches an epoch of 6 rooms at batch 2: 1 step an epoch; over
+    5 batches (batch 1 ... limited): ⌈5/3⌉ = 2 steps. The position is (epoch, rooms of it trained) at each step
+    (``global_step × 3`` batches ran past the epochs made, and training stalled on one batch, exit 0)."""
+    from types import SimpleNamespace
+
+    from spread.data.datamodule import SceneDataModule
+
+    dm = SceneDataModule(root, batch_size=1, num_points=M)
+    dm.trainer = SimpleNamespace(limit_train_batches=5, accumulate_grad_batches=3, global_step=0)
+    positions = []
+    for step in range(5):
+        dm.trainer.global_step = step
+        positions.append(dm.train_position())
+    assert positions == [(0, 0), (0, 3), (1, 0), (1, 3), (2, 0)]
+    dm.trainer = SimpleNamespace(limit_train_batches=1.0, accumulate_grad_batches=1, global_step=7)
+    assert dm.train_position() == (1, 1)  # 6 batches an epoch: step 7 is the second of epoch 1

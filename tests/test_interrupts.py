@@ -74,3 +74,24 @@ def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path):
         engine.attempt("train/base", stage, [])
     assert engine.status == {} and engine.errors == {}  # not recorded as a failed stage
     assert torch.load(out / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")["global_step"] == 2
+
+
+def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_trains_every_step(tmp_path):
+    """How many batches a step takes decides where in the data a resumed run stands: a checkpoint records it and a
+    resume with another is refused (it was resumed, and with 3 training stalled on one batch, exit 0)."""
+    from spread.training.fit import TRAINER_SETTINGS
+
+    from helpers import train_in_process
+
+    data = make_dataset(tmp_path / "d")
+    out = tmp_path / "run"
+    common = ["experiment=quick", f"data.root={data}", *SMALL_MODEL, *FAST_TRAIN, "trainer.max_time=null",
+              "trainer.limit_val_batches=0", "logger=none"]
+    summary = train_in_process(out, *common, "trainer.max_steps=5", "trainer.accumulate_grad_batches=3")
+    assert summary["global_step"] == 5  # 2 batches an epoch at batch 4 (6 rooms): one step an epoch
+    last = out / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False, map_location="cpu")[TRAINER_SETTINGS] == {"accumulate_grad_batches": 3}
+    with pytest.raises(ValueError, match=r"trainer\.accumulate_grad_batches: 3 -> 1"):
+        train_in_process(out, *common, "trainer.max_steps=6", "ckpt_path=last")
+    assert train_in_process(out, *common, "trainer.max_steps=6", "trainer.accumulate_grad_batches=3",
+                            "ckpt_path=last")["global_step"] == 6

@@ -247,15 +247,19 @@ class SceneDataModule(L.LightningDataModule):
             persistent_workers=self.persistent_workers, multiprocessing_context=self.multiprocessing_context)
 
     def train_position(self) -> tuple[int, int]:
-        """(epoch, train items already seen in it), from the trainer's global step (:mod:`spread.data.order`)."""
+        """(epoch, train items already seen in it), from the trainer's global step (:mod:`spread.data.order`): with
+        ``accumulate_grad_batches`` = a, an optimiser step takes a batches, and the epoch's last ones (fewer than a)
+        one more step, so an epoch of b batches is ⌈b / a⌉ steps (``global_step × a`` batches drifted past the epochs
+        made: the start left fewer batches than one step, and training stalled, exit 0)."""
         from spread.data.order import batches_per_epoch
 
         trainer = self.trainer
         if trainer is None:
             return 0, 0
-        per_epoch = batches_per_epoch(len(self.dataset("train")), self.batch_size, trainer.limit_train_batches)
-        epoch, within = divmod(trainer.global_step * trainer.accumulate_grad_batches, max(1, per_epoch))
-        return epoch, within * self.batch_size
+        per_epoch = max(1, batches_per_epoch(len(self.dataset("train")), self.batch_size, trainer.limit_train_batches))
+        accumulate = max(1, int(trainer.accumulate_grad_batches))
+        epoch, steps = divmod(trainer.global_step, -(-per_epoch // accumulate))
+        return epoch, steps * accumulate * self.batch_size
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", shuffle=False)

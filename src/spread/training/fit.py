@@ -93,7 +93,13 @@ class DataDigest(Callback):
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         if self.digest is not None:
             checkpoint[DATA_DIGEST] = self.digest
+        checkpoint[TRAINER_SETTINGS] = {k: getattr(trainer, k, None) for k in TRAINER_KEYS}
 
+
+#: Trainer settings a resumed run must keep, recorded in every checkpoint (under :data:`TRAINER_SETTINGS`, by
+#: :class:`DataDigest`): how many batches a step takes decides where in the data a resumed run stands.
+TRAINER_KEYS = ("accumulate_grad_batches",)
+TRAINER_SETTINGS = "spread_trainer"
 
 #: Hyperparameters a resumed run may change, as they change none of the trained numbers: the model's validation-time
 #: sampling, its compilation (the same loss) and its start weights (read by a new run only); the loaders' processes
@@ -103,7 +109,7 @@ RESUMABLE = {"model": ("sample_every_n_epochs", "val_sampler", "val_sample_scene
              "data": ("num_workers", "pin_memory", "persistent_workers")}
 
 
-def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
+def resumed_changes(checkpoint: dict, model, datamodule=None, trainer_settings: dict | None = None) -> list[str]:
     """``model.<key>: held -> now`` / ``data.<key>: ...`` for each hyperparameter this run's model (and datamodule)
     would train with that differs from what the checkpoint was trained with, but :data:`RESUMABLE`; keys the
     checkpoint does not hold (hyperparameters added after it was written, at their defaults) are not compared; what
@@ -140,6 +146,10 @@ def resumed_changes(checkpoint: dict, model, datamodule=None) -> list[str]:
             else:  # a checkpoint written before the digest: its folder compared, where it still is
                 out += moved_data(before_root, now_root)
         out += [f"{prefix}.{change}" for change in described_changes(held, now, held_only=True)]
+    held = checkpoint.get(TRAINER_SETTINGS)  # a checkpoint written before this record: not compared
+    if isinstance(held, dict) and trainer_settings is not None:
+        out += [f"trainer.{change}" for change in described_changes(normalised(held), normalised(trainer_settings),
+                                                                     held_only=True)]
     return out
 
 
@@ -156,7 +166,7 @@ def moved_data(before: str, now: str) -> list[str]:
     return [f"data.root: {before!r} -> {now!r} (other rooms)"]
 
 
-def check_resume_checkpoint(path: Path, model, datamodule=None) -> None:
+def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings: dict | None = None) -> None:
     """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
     another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`), or trained with other
     settings than this run's (:func:`resumed_changes`: a resumed run restores the checkpoint's optimiser, schedule and
@@ -166,7 +176,7 @@ def check_resume_checkpoint(path: Path, model, datamodule=None) -> None:
 
     own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
     checkpoint = expect_checkpoint(path, "ckpt_path", **own)
-    changed = resumed_changes(checkpoint, model, datamodule)
+    changed = resumed_changes(checkpoint, model, datamodule, trainer_settings)
     if changed:
         shown = "; ".join(changed[:4]) + ("; ..." if len(changed) > 4 else "")
         raise ValueError(f"ckpt_path={path}: trained with other settings than this run's ({shown}); resume it with "
@@ -277,6 +287,12 @@ def check_accelerator(cfg: DictConfig, override: str | None = None) -> None:
                              f"(torch.cuda.is_available() is False); use trainer=cpu")
 
 
+def trainer_settings_of(cfg: DictConfig) -> dict:
+    """The :data:`TRAINER_KEYS` settings a run's trainer will hold (Lightning's defaults where the config is silent)."""
+    defaults = {"accumulate_grad_batches": 1}
+    return {k: OmegaConf.select(cfg, f"trainer.{k}", default=defaults.get(k)) for k in TRAINER_KEYS}
+
+
 def check_start(cfg: DictConfig, run_dir: Path) -> None:
     """What a training launch checks before it records its config or starts any work (``spread-train-ray``'s driver,
     before Ray starts; ``spread-train`` within :func:`train`): the folder holds one history (:func:`one_history`) and a
@@ -284,7 +300,8 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
     ckpt_path = resolve_ckpt_path(cfg, run_dir)
     one_history(cfg, run_dir, ckpt_path)
     if ckpt_path is not None:
-        check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), hydra.utils.instantiate(cfg.data))
+        check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), hydra.utils.instantiate(cfg.data),
+                                trainer_settings_of(cfg))
 
 
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
@@ -319,7 +336,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
-        check_resume_checkpoint(ckpt_path, model, datamodule)
+        check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg))
     if before_work is not None:
         before_work()
     newest = CheckpointStep()

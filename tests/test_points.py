@@ -333,3 +333,16 @@ def test_a_sweep_point_whose_fid_backbone_cannot_load_is_refused_before_its_samp
     with pytest.raises(ValueError, match=r"fid.extractor=nosuch_mod:make: cannot be loaded"):
         sample(cfg, log=False)
     assert not (out / "scenes").exists() and not (out / POINT).exists() and not (out / "sampling.json").exists()
+
+
+def test_a_spread_sweep_of_the_hydra_grid_preset_logs_its_trials_in_the_sweeps_experiment(point, tmp_path):
+    """``spread-sweep +sweep=guidance_grid``: the preset's ``sweep_dir`` named the trials' experiment
+    ``<name>/guidance_grid`` (MLflow, wandb group) while the sweep's parent run sat in ``<name>``."""
+    from spread.commands.sample import experiment_of
+    from spread.configs import to_object
+    from spread.experiments.sweep import sample_point
+
+    fixed = ["+sweep=guidance_grid", f"ckpt={point['ckpt']}", f"data.root={point['data']}", "workers=0"]
+    plan = {"fixed": fixed, "points": str(tmp_path / "points"), "name": "tune", "trial_gpus": 0.0}
+    _, cfg, _ = sample_point({"guidance.collision": 0.5}, plan)
+    assert experiment_of(to_object(cfg)) == "tune"

@@ -387,7 +387,8 @@ def sample_point(config: dict, plan: dict, seed: int | None = None):
 
     name = point_name(config) + ("" if seed is None else f"_seed{seed}")
     overrides = [*plan["fixed"], *trial_overrides(config), *([] if seed is None else [f"seed={seed}"]),
-                 f"experiment_name={plan['name']}", f"logger.run_name={plan['name']}/{name}"]
+                 f"experiment_name={plan['name']}", f"logger.run_name={plan['name']}/{name}",
+                 "sweep_dir=null"]  # a Hydra grid preset's folder (+sweep=guidance_grid): this sweep is out_dir
     cfg = compose("sample", [*overrides, "out_dir=unset"])
     if not plan.get("trial_gpus") and str(cfg.device) == "auto" and int(cfg.workers) == 0:
         # the trial samples in its own process, which Ray gives no GPU when it asks for none: auto is the CPU

@@ -324,6 +324,27 @@ def test_ray_train_two_cpu_workers_report_a_checkpoint(dataset, tmp_path):
     assert newest["global_step"] == 3 and same_tensors(newest["state_dict"], last["state_dict"])
 
 
+@pytest.mark.slow  # three launches of Ray Train (~50 s each on 2 cores): make test-slow runs it
+def test_spread_train_ray_relaunched_resumes_its_last_checkpoint_and_fresh_starts_over(dataset, tmp_path):
+    """Ray Train restores a run of the same name from its storage: a relaunch of the folder's run started from the
+    previous launch's epoch-end checkpoint, which ``ckpt_path=last`` refused as another history, and ``fresh=true``
+    resumed instead of starting over. Each launch is its own Ray run; the folder's ``last.ckpt`` is what resumes."""
+    out = tmp_path / "run"
+    common = [sys.executable, "-m", "spread.cli.train_ray", *TRAIN, f"data.root={dataset}", f"out_dir={out}",
+              "ray_train.num_workers=1", "ray_train.num_cpus=1", "ray_train.log_to_driver=false"]
+
+    def launch(*more):
+        proc = subprocess.run([*common, *more], env=script_env(), capture_output=True, text=True, timeout=500)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
+        return json.loads((out / "metrics.json").read_text())
+
+    assert launch("trainer.max_steps=2")["global_step"] == 2
+    again = launch("trainer.max_steps=4", "ckpt_path=last")
+    assert again["global_step"] == 4 and again["resumed_from"] == str(out / "checkpoints" / "last.ckpt")
+    fresh = launch("trainer.max_steps=1", "fresh=true")
+    assert fresh["global_step"] == 1 and fresh["resumed_from"] is None and (out / "previous").is_dir()
+
+
 @pytest.mark.slow
 def test_ray_train_restarts_a_failed_worker_group_from_its_newest_checkpoint(dataset, tmp_path, monkeypatch):
     """Rank 1 dies after step 3, before that epoch's report: Ray restarts both workers

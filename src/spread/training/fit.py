@@ -312,7 +312,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     The keyword arguments let another launcher run this same code (Ray Train,
     :mod:`spread.training.ray_train`): ``trainer_overrides`` replace Trainer arguments of ``cfg.trainer``
     (strategy, plugins, devices, ...), ``extra_callbacks`` join the config's, ``prepare(trainer) -> trainer``
-    runs before ``fit``, and ``resume_from`` (a checkpoint file) wins over ``ckpt_path``; ``before_work()`` runs once
+    runs before ``fit``, and ``resume_from`` (a checkpoint file of this run: a launcher's restart after a failure) wins
+    over ``ckpt_path``; ``before_work()`` runs once
     the checks passed (the command records its config there, so a refused launch leaves the folder's record as it
     was)."""
     import lightning as L
@@ -330,7 +331,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     set_threads(cfg.get("threads"))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     ckpt_path = Path(resume_from) if resume_from is not None else resolve_ckpt_path(cfg, run_dir)
-    one_history(cfg, run_dir, ckpt_path)
+    if resume_from is None:  # a launcher's restart of this very run (Ray Train's) continues its own history
+        one_history(cfg, run_dir, ckpt_path)
     mark_attempt_started()
     resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
     datamodule = hydra.utils.instantiate(cfg.data)

@@ -103,11 +103,29 @@ def train_worker(config: dict) -> dict:
                         prepare=prepare_trainer, resume_from=resume_from)
         return {**summary, "world_size": ray.train.get_context().get_world_size()}
 
-    checkpoint = ray.train.get_checkpoint()  # set when Ray restarted the workers after a failure
+    checkpoint = ray.train.get_checkpoint()  # set when Ray restarted this launch's workers after a failure
     if checkpoint is None:
         return run(None)
-    with checkpoint.as_directory() as folder:
-        return run(Path(folder) / RayTrainReportCallback.CHECKPOINT_NAME)
+    with checkpoint.as_directory() as folder:  # the newer of Ray's epoch-end checkpoint and the run's last.ckpt
+        return run(newest_checkpoint([Path(folder) / RayTrainReportCallback.CHECKPOINT_NAME,
+                                      run_dir / "checkpoints" / "last.ckpt"]))
+
+
+def newest_checkpoint(paths: list[Path]) -> Path:
+    """The checkpoint file of ``paths`` at the highest ``global_step`` (read safely; the first on a tie; files that are
+    not there or do not read are passed over): Ray's epoch-end checkpoint can be older than the run's periodic
+    ``last.ckpt``, which resuming from would lose."""
+    from spread.safe_load import load_checkpoint
+
+    best, step = paths[0], -1
+    for path in paths:
+        try:
+            held = int(load_checkpoint(path).get("global_step", -1)) if path.is_file() else -1
+        except Exception:  # noqa: BLE001 - a torn or foreign file is no candidate
+            held = -1
+        if held > step:
+            best, step = path, held
+    return best
 
 
 def run_ray_train(cfg: DictConfig, run_dir: Path):
@@ -131,7 +149,7 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
         train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu)},
         scaling_config=ScalingConfig(num_workers=int(settings.num_workers), use_gpu=bool(settings.use_gpu),
                                      resources_per_worker=resources),
-        run_config=RunConfig(name=run_dir.name, storage_path=str(storage),
+        run_config=RunConfig(name=launch_name(run_dir), storage_path=str(storage),
                              failure_config=FailureConfig(max_failures=int(settings.max_failures)),
                              checkpoint_config=CheckpointConfig(num_to_keep=settings.num_to_keep)),
     )
@@ -142,6 +160,17 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     if result.error is not None:
         raise worker_user_error(result.error) or result.error
     return result
+
+
+def launch_name(run_dir: Path) -> str:
+    """This launch's Ray Train run name, its own: Ray Train restores a run of the same name from its storage, so
+    a relaunch named as the folder started from the previous launch's last epoch-end checkpoint (refused as another
+    history, or, with ``fresh=true``, resumed instead of started over). A relaunch goes on from the run folder's
+    ``last.ckpt`` (``ckpt_path=last``); Ray restores only within a launch (``ray_train.max_failures``)."""
+    import os
+    import time
+
+    return f"{run_dir.name}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
 
 
 def worker_user_error(error: BaseException) -> BaseException | None:

@@ -253,3 +253,8 @@ def test_an_mlflow_store_loads_as_runs_with_their_folders_settings_parent_and_re
     first = df[~df["reused"]].sort_values("guidance.iterations")
     assert first["guidance.iterations"].tolist() == [2, 4] and first["grecall_lo"].tolist() == pytest.approx([0.45, 0.35])
     assert made["made_by_run_id"].tolist() == [first["run_id"].iloc[0]]
+    # the re-used point's child has the point's settings (it had none: the swept value was a metric, not a setting),
+    # and a mean over seeds counts the point's run once (the relaunch made it two "seeds")
+    assert made["guidance.iterations"].tolist() == [2] and made["identity"].tolist() == [first["identity"].iloc[0]]
+    means = over_seeds(df, "grecall").sort_values("guidance.iterations")
+    assert means["n_seeds"].tolist() == [1, 1] and means["grecall"].tolist() == [0.5, 0.4]

@@ -43,15 +43,19 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float, float]
 def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "seed") -> pd.DataFrame:
     """One row per point (module docstring): its settings, ``<metric>`` (the mean over seeds), ``<metric>_lo`` /
     ``<metric>_hi`` (the Student-t interval at ``level``; NaN with one seed), ``<metric>_sd``, ``n_seeds`` and
-    ``seeds`` (the seeds, sorted). Rows of one run (the same ``point`` folder and seed) count once; an evaluation
+    ``seeds`` (the seeds, sorted). Rows of one run (the same ``point`` folder — or, in a store's frame, ``source``
+    folder — seed and identity) count once; an evaluation
     seed that follows the sampling seed (``protocol.seed`` equal to ``seed`` in every row) is part of the seed, not a
     setting."""
     if metric not in df.columns:
         raise ValueError(f"over_seeds: no column {metric!r} (columns: {list(df.columns)})")
     attrs = dict(df.attrs)
-    if "point" in df.columns and seed in df.columns:  # one run drawn twice by a search is one seed, not two
-        named = df["point"].notna()  # rows of no point folder (a failed trial) are not one run
-        df = pd.concat([df[named].drop_duplicates(subset=["point", seed], keep="last"), df[~named]]).sort_index()
+    where = "point" if "point" in df.columns else "source" if "source" in df.columns else None
+    if where is not None and seed in df.columns:  # one run read twice is one seed, not two: a point a search drew
+        # twice, an MLflow store's runs of one folder (a relaunch that re-used or resumed it) with the same identity
+        same = [where, seed, *(["identity"] if "identity" in df.columns else [])]
+        named = df[where].notna()  # rows of no folder (a failed trial) are not one run
+        df = pd.concat([df[named].drop_duplicates(subset=same, keep="last"), df[~named]]).sort_index()
         df.attrs = dict(attrs)
     keys = [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if df[k].nunique(dropna=True) > 1]
     rows = []

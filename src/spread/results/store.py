@@ -55,7 +55,13 @@ def run_record(run, experiments: dict) -> dict | None:
         return None
     record = None
     folder = tags.get("spread.run_folder") or params.get("out_dir")
-    if folder and is_finished_run(folder) and tags.get("spread.reused") != "true" and made_the_folder(run, folder):
+    reused = tags.get("spread.reused") == "true"
+    made_by = run
+    if reused and tags.get("spread.made_by_run_id"):  # a relaunch's child that re-used a point: the point's run
+        from types import SimpleNamespace
+
+        made_by = SimpleNamespace(info=SimpleNamespace(run_id=tags["spread.made_by_run_id"]))
+    if folder and is_finished_run(folder) and (not reused or made_by is not run) and made_the_folder(made_by, folder):
         try:
             record = read_run_folder(folder)
         except RunError:
@@ -69,7 +75,7 @@ def run_record(run, experiments: dict) -> dict | None:
         record.update({k: v for k, v in metrics.items() if "/" not in k})
     record.update(kind="mlflow", run_id=run.info.run_id, experiment=experiments.get(run.info.experiment_id),
                   run_name=run.info.run_name, status=run.info.status, parent_run_id=tags.get("mlflow.parentRunId"),
-                  reused=tags.get("spread.reused") == "true", made_by_run_id=tags.get("spread.made_by_run_id"))
+                  reused=reused, made_by_run_id=tags.get("spread.made_by_run_id"))
     return record
 
 

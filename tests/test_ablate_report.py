@@ -328,8 +328,10 @@ def test_ablation_resumes_stage_by_stage(tmp_path):
     assert all(p.exists() for p in first.tables.values())
 
     commands.calls.clear()  # everything finished: nothing runs, the table stays
-    again = run_ablation(spec(tmp_path), commands)
+    logged = []
+    again = run_ablation(spec(tmp_path), commands, lambda records, png: logged.append([r["variant"] for r in records]))
     assert commands.calls == [] and set(again.stages.values()) == {"skipped"}
+    assert logged == [["base", "geometry", "guidance"]]  # this launch's tracker run shows the table (it was empty)
 
     out = tmp_path / "abl"
     (out / "eval" / "geometry" / "metrics.json").unlink()      # a missing output: that stage only, resumed

@@ -204,6 +204,8 @@ def test_table_is_logged_to_wandb_offline(tmp_path, monkeypatch):
     assert result.ok and len(logged) == 1
     runs = list((tmp_path / "cmp" / "wandb").glob("offline-run-*"))
     assert len(runs) == 1 and list(runs[0].glob("*.wandb"))
+    again = run_comparison(spec(tmp_path, methods=("atiss", "spread")), FakeCommands(), log_table)
+    assert again.stages["table"] == "skipped" and len(logged) == 2  # a relaunch's tracker run shows the table too
 
 
 def test_bad_specs_name_the_key(tmp_path):

@@ -329,6 +329,9 @@ class Comparison:
                                registered())
         self.engine.attempt("table", lambda: self.table_stage(records, log_table), [])
         stem = self.out / TABLE
+        if self.engine.status.get("table") == "skipped" and log_table is not None:  # this launch's run shows it too
+            rows = [dict(r) for r in records]  # (a relaunch's parent run was left empty)
+            log_table(rows, self.columns(self.layout(), rows))
         done = self.engine.result(records, {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}, started)
         return CompareResult(**vars(done), layout=self.layout())
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -103,6 +104,28 @@ def test_the_sampling_run_on_wandb_has_a_name_per_room_type_metrics_and_lineage(
     lineage = run["config"]["lineage"]
     assert lineage["spread.training_run_folder"] == str(train_dir.resolve())
     assert lineage["spread.training_run_id"] == runs_by_job(uri)["train"].info.run_id
+
+
+
+def test_tracker_records_name_the_checkpoint_and_data_the_numbers_were_measured_with_as_the_folder_does(store):
+    """A report of wandb runs (or of the MLflow store) gave runs of two checkpoints one identity: the config has
+    the checkpoint's path, not its content; the trackers now carry ``metrics.json``'s record of it."""
+    from spread.reporting.runs import read_run_folder, read_wandb_run
+    from spread.results import load
+
+    root, uri, train_dir, sample_dir = store
+    folder = read_run_folder(sample_dir)
+    (wandb_run,) = (sample_dir / "wandb").glob("offline-run-*")
+    logged = read_wandb_run(wandb_run)
+    assert "ckpt" in folder["settings"] and logged["settings"] == folder["settings"]
+    assert logged["identity"] == folder["identity"]
+    shutil.move(str(sample_dir / "metrics.json"), str(root / "metrics.json.aside"))  # the folder's record gone
+    try:
+        rows = load(str(root / "mlflow.db"))
+    finally:
+        shutil.move(str(root / "metrics.json.aside"), str(sample_dir / "metrics.json"))
+    row = rows[rows["run_name"] == "sample"].iloc[0]
+    assert row["identity"] == folder["identity"] and row["ckpt"] == folder["settings"]["ckpt"]
 
 
 def get(url: str, data: dict | None = None):

@@ -325,10 +325,11 @@ def read_wandb_run(path: str | Path) -> dict:
     summary = in_stored_units(run["summary"])  # the trackers' display units (asd_mm) back to metrics.json's
     if not any(k in summary for k in metric_names()):
         raise RunError(f"{path}: the wandb run has no registered metric in its summary (not an evaluation run)")
-    from spread.runtime.fingerprint import config_identity
+    from spread.runtime.fingerprint import config_identity, tracked_identity, upgraded
 
-    record = {"run": run.get("name") or run["id"], "source": str(path), "kind": "wandb",
-              **identity_fields(config_identity(run["config"]))}
+    measured = tracked_identity(run["config"].get("spread_identity"))  # what it measured with, as metrics.json says
+    identity = upgraded(measured) if measured is not None else config_identity(run["config"])
+    record = {"run": run.get("name") or run["id"], "source": str(path), "kind": "wandb", **identity_fields(identity)}
     record.update({k: summary.get(k) for k in record_metrics()})
     bounds = [f"{m}_{b}" for m in record_metrics() for b in ("lo", "hi")]
     record.update({k: summary.get(k) for k in (*bounds, *CI_SETTINGS) if k in summary})

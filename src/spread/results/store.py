@@ -46,9 +46,8 @@ def made_the_folder(run, folder) -> bool:
 def run_record(run, experiments: dict) -> dict | None:
     """The record of one MLflow run (module docstring); None for a parent run or a run without a metric."""
     from spread.reporting.runs import RunError, identity_fields, is_finished_run, read_run_folder, record_metrics
-    from spread.runtime.fingerprint import config_identity
-
     from spread.metrics.registry import in_stored_units
+    from spread.runtime.fingerprint import config_identity, tracked_identity, upgraded
 
     tags, metrics, params = run.data.tags, in_stored_units(run.data.metrics), run.data.params
     if tags.get("spread.kind") or not any(m in metrics for m in record_metrics()):
@@ -67,8 +66,10 @@ def run_record(run, experiments: dict) -> dict | None:
         except RunError:
             record = None
     if record is None:
+        measured = tracked_identity(tags.get("spread.identity"))  # what its numbers measured with (metrics.json's)
         try:
-            identity = config_identity({k: parsed(v) for k, v in params.items()})
+            identity = upgraded(measured) if measured is not None else \
+                config_identity({k: parsed(v) for k, v in params.items() if k != "spread_identity"})
         except Exception:  # a config this version cannot type (an older run): its params as they are
             identity = {}
         record = {"run": run.info.run_name, "source": folder, **identity_fields(identity)}

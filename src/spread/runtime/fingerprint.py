@@ -307,6 +307,31 @@ def evaluation_identity(protocol, fid, assets) -> dict:
             "assets_sha256": file_digest(Path(str(assets)) / "index.json"), "numbers_version": NUMBERS_VERSION}
 
 
+def measured_identity(metrics: dict) -> dict | None:
+    """What an evaluation's numbers were measured with, as its ``metrics.json`` records it: the scenes' sampling
+    identity (``sampled_with``, samples per graph included) and the evaluation's (``evaluated_with``, under
+    ``evaluation``), in a sweep point's shape; None when it records neither (an earlier version's). The trackers
+    carry it beside the numbers (wandb config ``spread_identity``, MLflow tag ``spread.identity``), so a report of
+    tracker records names the checkpoint and data as a report of the folder does."""
+    out: dict = {}
+    if isinstance(metrics.get("sampled_with"), dict):
+        out |= metrics["sampled_with"]
+    recorded = metrics.get("evaluated_with")
+    if isinstance(recorded, dict) and isinstance(recorded.get("protocol"), dict):
+        out["evaluation"] = recorded
+    return out or None
+
+
+def tracked_identity(value) -> dict | None:
+    """A :func:`measured_identity` as a tracker gives it back (a dict, or its JSON text), else None."""
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except ValueError:
+            return None
+    return value if isinstance(value, dict) and value else None
+
+
 def point_identity(command) -> dict:
     """A ``spread-sample`` run's identity (a sweep point's; ``command``: the typed ``SampleCommand``): its
     :func:`sampling_identity`, ``samples_per_graph`` and, with ``evaluate``, the :func:`evaluation_identity` with

@@ -42,6 +42,11 @@ def log_metrics(run, metrics: dict, records: list[dict], renders: list) -> None:
     scalars |= room_type_scalars(metrics)  # the per-room-type breakdown
     run.log(scalars)
     run.summary.update({**scalars, "fid_status": metrics["fid_status"]})
+    from spread.runtime.fingerprint import measured_identity
+
+    identity = measured_identity(metrics)  # what the numbers measured with (a report of wandb runs reads it)
+    if identity is not None:
+        run.config.update({"spread_identity": identity}, allow_val_change=True)
     from spread.metrics.registry import value_spec
 
     by_name = {Path(p).stem: p for p in renders}

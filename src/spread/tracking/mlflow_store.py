@@ -304,8 +304,12 @@ def scalar_metrics(metrics: dict) -> dict:
 def log_evaluation(run: MlflowRun, metrics: dict, out_dir: str | os.PathLike, renders: Iterable = ()) -> None:
     """An evaluation into ``run``: :func:`scalar_metrics`, ``fid_status`` as a tag, and ``metrics.json``,
     ``per_scene.jsonl`` and ``renders`` (files) as artifacts."""
+    from spread.runtime.fingerprint import canonical, measured_identity
+
     run.log_metrics(scalar_metrics(metrics))
-    run.set_tags({"spread.fid_status": metrics.get("fid_status")})
+    identity = measured_identity(metrics)  # what the numbers measured with (spread.results.load of a store reads it)
+    run.set_tags({"spread.fid_status": metrics.get("fid_status"),
+                  **({"spread.identity": canonical(identity)} if identity is not None else {})})
     for name in ("metrics.json", "per_scene.jsonl"):
         run.log_artifact(Path(out_dir) / name)
     for path in renders:

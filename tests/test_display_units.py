@@ -172,3 +172,11 @@ def test_the_trackers_log_a_values_bounds_and_sd_over_seeds_in_its_display_unit_
     assert shown == pytest.approx({"asd_mm": 12.0, "asd_mm_lo": 11.0, "asd_mm_hi": 13.0, "asd_mm_sd": 2.0,
                                    "grecall_sd": 0.1})
     assert in_stored_units(shown) == pytest.approx(stored)
+
+
+def test_a_setting_is_named_by_its_last_part_on_a_plot_unless_another_ends_alike():
+    from spread.reporting.plots import short_name
+
+    keys = ["guidance.collision", "seed", "protocol.seed"]
+    assert [short_name(k, keys) for k in keys] == ["collision", "seed", "protocol.seed"]
+    assert short_name("protocol.seed", ["protocol.seed"]) == "seed" and short_name("guidance.collision") == "collision"

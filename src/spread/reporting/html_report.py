@@ -36,7 +36,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from spread.reporting.plots import figure, number, readable_axes, shown
+from spread.reporting.plots import figure, number, readable_axes, short_name, shown
 from spread.reporting.tables import Column, html_table
 
 #: Training curves drawn, in this order (``lr-*`` stands for every learning-rate column).
@@ -149,7 +149,8 @@ def varying(records: Sequence[dict], key: str) -> bool:
     return len({number(r.get(key)) for r in records if number(r.get(key)) is not None}) > 1
 
 
-def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> tuple[str | None, list]:
+def metric_plot(records: Sequence[dict], metric: Column, weight: str | None,
+                among: Sequence[str] = ()) -> tuple[str | None, list]:
     """(base64 PNG, points (x, value, lo, hi, run)): ``metric`` against ``weight`` (None: against the run), each
     run a labelled point with its interval as an error bar."""
     points = []
@@ -178,7 +179,7 @@ def metric_plot(records: Sequence[dict], metric: Column, weight: str | None) -> 
         ax.tick_params(axis="x", labelrotation=30)
         ax.set_xlabel(weight, fontsize=8)
     ax.set_ylabel(metric.label + metric.arrow, fontsize=8)
-    ax.set_title(f"{metric.label}" + (f" vs {weight.split('.')[-1]}" if weight else " per run") +
+    ax.set_title(f"{metric.label}" + (f" vs {short_name(weight, among)}" if weight else " per run") +
                  f" (n = {len(points)})", fontsize=9)
     ax.tick_params(labelsize=7)
     ax.margins(x=0.15, y=0.2)
@@ -212,7 +213,7 @@ def parallel_coordinates(records: Sequence[dict], axes: Sequence[Column]) -> str
         lo, hi = bounds[c.key]
         ax.annotate(f"{hi:.3g}", (i, 1.0), xytext=(0, 4), textcoords="offset points", ha="center", fontsize=6)
         ax.annotate(f"{lo:.3g}", (i, 0.0), xytext=(0, -10), textcoords="offset points", ha="center", fontsize=6)
-    ax.set_xticks(range(len(axes)), [c.label.split(".")[-1] for c in axes], fontsize=7)
+    ax.set_xticks(range(len(axes)), [short_name(c.label, [a.label for a in axes]) for c in axes], fontsize=7)
     ax.set_yticks([])
     ax.set_ylim(-0.12, 1.12)
     ax.set_title(f"{len(records)} runs (colour: {colour.label})", fontsize=9)
@@ -338,7 +339,7 @@ def write_html(path: Path, title: str, training: list[Path], records: Sequence[d
         plots = []
         for c in columns:
             for w in (varied or [None]):
-                data, points = metric_plot(records, c, w)
+                data, points = metric_plot(records, c, w, varied)
                 if data:
                     plots.append(f"<figure>{img(data, f'{c.key} vs {w}')}</figure>")
         held["metric_plots"] = len(plots)

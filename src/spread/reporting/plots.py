@@ -92,6 +92,13 @@ def error_bars(records: Sequence[dict], column: Column, values: list) -> list[li
     return [below, above] if found else None
 
 
+def short_name(key: str, among: Sequence[str] = ()) -> str:
+    """A setting's name on a plot: its last dotted part (``guidance.collision`` → ``collision``), or the whole key
+    where another key ``among`` ends alike (``protocol.seed`` beside ``seed``: both read "seed")."""
+    tail = key.split(".")[-1]
+    return key if any(k != key and k.split(".")[-1] == tail for k in among) else tail
+
+
 def tick_label(name: str, width: int = 18) -> str:
     """A bar's label on at most two lines of ``width`` characters, broken at spaces (a longer one ends in "…")."""
     lines = textwrap.wrap(name, width) or [""]
@@ -159,7 +166,7 @@ def metric_vs_weight(records: Sequence[dict], metric: Column, weight: str, path:
             for r in rows:
                 by_x[number(r.get(weight))].append(shown(metric, r.get(metric.key)))
             xs = sorted(by_x)
-            name = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in zip(others, values)) or "runs"
+            name = ", ".join(f"{short_name(k, [weight, *others])}={v}" for k, v in zip(others, values)) or "runs"
             colour = f"C{n % 10}"
             ax.scatter([x for x in xs for _ in by_x[x]], [v for x in xs for v in by_x[x]], s=18, alpha=0.6,
                        color=colour)
@@ -172,7 +179,7 @@ def metric_vs_weight(records: Sequence[dict], metric: Column, weight: str, path:
     ax.tick_params(axis="x", labelrotation=30, labelsize=7)
     ax.set_xlabel(weight)
     ax.set_ylabel(metric.label + metric.arrow)
-    ax.set_title(f"{metric.label} vs {weight.split('.')[-1]} (n = {len(points)})", fontsize=9)
+    ax.set_title(f"{metric.label} vs {short_name(weight, [weight, *others])} (n = {len(points)})", fontsize=9)
     fig.tight_layout()
     save(fig, path)
     return points

@@ -409,7 +409,7 @@ def test_spread_sweep_refuses_trials_no_node_can_hold_and_keeps_ray_tune_inside_
     an absolute path as the name."""
     import ray
 
-    from spread.experiments.sweep import SweepSettings, check_resources, read_results_csv
+    from spread.experiments.sweep import SweepSettings, check_resources
 
     base = [f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={dataset}", "num_cpus=1"]
     proc = run("spread-sweep", *base, "seed=0,1", f"out_dir={tmp_path / 'big'}", "trial_cpus=64", timeout=240)
@@ -423,7 +423,16 @@ def test_spread_sweep_refuses_trials_no_node_can_hold_and_keeps_ray_tune_inside_
                                              r"largest has 0, over 1 node"):
             check_resources(SweepSettings(out_dir=str(tmp_path), trial_gpus=1))
         check_resources(SweepSettings(out_dir=str(tmp_path), trial_cpus=2))  # fits: no error
+    for name in ("../../escaped", str(tmp_path / "absolute")):  # Ray Tune's folder: one plain name in out_dir
+        folder = SweepSettings(out_dir=str(tmp_path), name=name).folder_name
+        assert "/" not in folder and not folder.startswith(".")
 
+
+@pytest.mark.slow  # a Ray Tune run (~35 s on 2 cores): make test-slow runs it; the name's folder is checked above
+def test_a_sweep_named_out_of_its_folder_keeps_ray_tune_inside_out_dir(dataset, tmp_path):
+    from spread.experiments.sweep import SweepSettings, read_results_csv
+
+    base = [f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={dataset}", "num_cpus=1"]
     out = tmp_path / "deep" / "er" / "sweep"
     proc = run("spread-sweep", *base, "seed=0", f"out_dir={out}", "name=../../escaped", timeout=300)
     assert proc.returncode != 0 and "1 trial(s) failed" in proc.stderr  # the checkpoint does not exist
@@ -431,8 +440,6 @@ def test_spread_sweep_refuses_trials_no_node_can_hold_and_keeps_ray_tune_inside_
     tune = [p.name for p in (out / "tune").iterdir()]
     assert tune == [SweepSettings(out_dir=str(out), name="../../escaped").folder_name] and "/" not in tune[0]
     assert [r["status"] for r in read_results_csv(out / "results.csv")] == ["error"]
-    absolute = SweepSettings(out_dir=str(out), name=str(tmp_path / "absolute")).folder_name
-    assert "/" not in absolute and not absolute.startswith(".")
 
 
 # ---- 5. converters refuse bad weights --------------------------------------------------------------------------

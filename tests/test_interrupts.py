@@ -41,10 +41,12 @@ def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_o
     saved = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")["global_step"]
     assert saved >= 3 and f"interrupted at step {saved}:" in stdout  # the steps made are kept (none were)
     assert not (out / "metrics.json").exists()  # not a finished run: a study does not take it for one
-    again = subprocess.run([*args[:-5], f"trainer.max_steps={saved + 2}", "trainer.max_time=null",
-                            "trainer.limit_val_batches=0", "ckpt_path=last"], env={**env, "WANDB_MODE": "disabled"},
-                           capture_output=True, text=True, timeout=300)
-    assert again.returncode == 0 and f"step {saved + 2}," in again.stdout, again.stderr[-3000:]
+    from helpers import train_in_process
+
+    again = train_in_process(out, "experiment=quick", f"data.root={data}", *SMALL_MODEL, *FAST_TRAIN,
+                             f"trainer.max_steps={saved + 2}", "trainer.max_time=null", "trainer.limit_val_batches=0",
+                             "ckpt_path=last")
+    assert again["global_step"] == saved + 2 and again["resumed_from"] == str(out / "checkpoints" / "last.ckpt")
 
 
 def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path):

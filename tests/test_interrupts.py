@@ -37,7 +37,7 @@ def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_o
             proc.kill()
     assert proc.returncode == 130, stderr[-3000:]
     assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "spread-train: interrupted (Ctrl-C)"
-    assert "stopping after this step and saving its checkpoint" in stderr
+    assert "stopping at the end of this step and saving it" in stderr
     saved = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")["global_step"]
     assert saved >= 3 and f"interrupted at step {saved}:" in stdout  # the steps made are kept (none were)
     assert not (out / "metrics.json").exists()  # not a finished run: a study does not take it for one
@@ -57,7 +57,7 @@ def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path):
     from spread.experiments.stages import StageEngine
     from spread.training.fit import train
 
-    class CtrlC(Callback):  # the user presses Ctrl-C during step 2
+    class CtrlC(Callback):  # the user presses Ctrl-C once step 2 is done: step 3 ends the run
         def on_train_batch_end(self, trainer, *args):
             if trainer.global_step == 2:
                 os.kill(os.getpid(), signal.SIGINT)
@@ -75,7 +75,20 @@ def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         engine.attempt("train/base", stage, [])
     assert engine.status == {} and engine.errors == {}  # not recorded as a failed stage
-    assert torch.load(out / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")["global_step"] == 2
+    assert torch.load(out / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")["global_step"] == 3
+
+    class Twice(Callback):  # Ctrl-C twice: stop now (Lightning's shutdown exits 1: the study must stop all the same)
+        def on_train_batch_end(self, trainer, *args):
+            if trainer.global_step == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), signal.SIGINT)
+
+    again = tmp_path / "again"
+    cfg = compose("train", "experiment=quick", f"data.root={data}", f"out_dir={again}", *SMALL_MODEL, *FAST_TRAIN,
+                  "trainer.max_steps=50", "trainer.max_time=null", "trainer.limit_val_batches=0", "logger=none")
+    with pytest.raises(KeyboardInterrupt):
+        engine.attempt("train/geometry", lambda: train(cfg, run_dir=again, extra_callbacks=[Twice()]), [])
+    assert engine.status == {} and signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_trains_every_step(tmp_path):
@@ -97,3 +110,34 @@ def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_tr
         train_in_process(out, *common, "trainer.max_steps=6", "ckpt_path=last")
     assert train_in_process(out, *common, "trainer.max_steps=6", "trainer.accumulate_grad_batches=3",
                             "ckpt_path=last")["global_step"] == 6
+
+
+def test_ctrl_c_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed_run_is_the_uninterrupted_one(
+        tmp_path):
+    """With ``accumulate_grad_batches=4`` a stop between two batches of one step saved a data position the resumed
+    run could not take up (a step of fewer batches, batches never trained): the stop waits for the step's end, and
+    the resumed run reaches step 4 with the uninterrupted run's weights, bit for bit."""
+    from lightning.pytorch.callbacks import Callback
+
+    from spread.training.fit import train
+
+    class CtrlC(Callback):  # pressed after the second batch of the first step
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            if trainer.current_epoch == 0 and batch_idx == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+
+    data = make_dataset(tmp_path / "d")
+    common = ["experiment=quick", f"data.root={data}", *SMALL_MODEL, *FAST_TRAIN, "data.batch_size=1",
+              "trainer.accumulate_grad_batches=4", "trainer.max_time=null", "trainer.limit_val_batches=0",
+              "logger=none", "trainer.max_steps=4"]
+    whole = tmp_path / "whole"
+    train(compose("train", *common, f"out_dir={whole}"), run_dir=whole)
+    parts = tmp_path / "parts"
+    with pytest.raises(KeyboardInterrupt):
+        train(compose("train", *common, f"out_dir={parts}"), run_dir=parts, extra_callbacks=[CtrlC()])
+    last = parts / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False, map_location="cpu")["global_step"] == 1  # the step's end
+    train(compose("train", *common, f"out_dir={parts}", "ckpt_path=last"), run_dir=parts)
+    a, b = (torch.load(p / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu") for p in (whole, parts))
+    assert a["global_step"] == b["global_step"] == 4
+    assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])

@@ -5,7 +5,7 @@ periodic one. ``ckpt_path``: ``null`` starts a new run; a path resumes from that
 optimizer, global step, loop state); ``last`` resumes ``<run folder>/checkpoints/last.ckpt`` when it
 exists, else the newest ``<paths.runs_dir>/train/<experiment_name>/*/checkpoints/last.ckpt``, else starts a
 new run (so a preempted job can always be relaunched with ``ckpt_path=last out_dir=<its folder>``). Ctrl-C
-stops after the step in progress and saves it as ``last.ckpt`` (:func:`stop_on_interrupt`).
+stops at the end of the step in progress and saves it as ``last.ckpt`` (:func:`stop_on_interrupt`).
 """
 
 from __future__ import annotations
@@ -94,33 +94,61 @@ def atomic_checkpoint_io():
     return AtomicCheckpointIO()
 
 
+class StopRequested(Exception):
+    """Ctrl-C: training stopped at an optimiser step's end, that step saved as ``last.ckpt`` (:class:`StopAtStep`)."""
+
+
+class StopAtStep(Callback):
+    """Stops training at the end of the first optimiser step after Ctrl-C (:func:`stop_on_interrupt` sets
+    ``asked``): saves ``last`` there and raises :class:`StopRequested`, which Lightning tears down and lets through.
+    A step, not a batch: with ``accumulate_grad_batches`` a stop inside an accumulation would save a data position
+    the resumed run cannot take up. Under DDP the ranks agree on the step (one all-reduce a step), so they stop
+    together. Not Lightning's ``should_stop``: that runs a validation pass first."""
+
+    def __init__(self, last: Path):
+        self.last = Path(last)
+        self.asked = False
+        self._step = None
+
+    def on_train_batch_start(self, trainer, *args) -> None:
+        self._step = trainer.global_step
+
+    def on_train_batch_end(self, trainer, *args) -> None:
+        if trainer.global_step == self._step:  # inside an accumulation: no step ended
+            return
+        asked = self.asked
+        if trainer.world_size > 1:
+            asked = trainer.strategy.reduce_boolean_decision(asked, all=False)
+        if asked:
+            trainer.save_checkpoint(self.last)
+            raise StopRequested(trainer.global_step)
+
+
 @contextlib.contextmanager
-def stop_on_interrupt(trainer) -> Iterator[Callable[[], bool]]:
-    """Ctrl-C while ``trainer`` fits: the first one stops training after the step in progress (``trainer.should_stop``:
-    the caller then saves that step's checkpoint, :func:`save_final_checkpoint`, and raises KeyboardInterrupt), a
-    second one stops at once. Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
+def stop_on_interrupt(stopper: StopAtStep) -> Iterator[StopAtStep]:
+    """Ctrl-C while the block runs (a fit): the first asks ``stopper`` to stop at the end of the step in progress
+    (the caller then raises KeyboardInterrupt), a second one stops at once (Lightning's own shutdown; nothing is
+    saved). Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
     ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a failed stage and went on.
-    Yields ``asked()``: whether Ctrl-C came. Only in the main thread (a signal handler is set there only)."""
+    Only in the main thread (a signal handler is set there only: a Ray Train worker's fit runs in another)."""
     import signal
     import sys
     import threading
 
-    asked: list[bool] = []
     if threading.current_thread() is not threading.main_thread():
-        yield lambda: False
+        yield stopper
         return
     previous = signal.getsignal(signal.SIGINT)
 
     def handler(signum, frame):
-        if asked:  # the second Ctrl-C: now
+        if stopper.asked:  # the second Ctrl-C: now
             raise KeyboardInterrupt
-        asked.append(True)
-        trainer.should_stop = True
-        print("spread-train: Ctrl-C: stopping after this step and saving its checkpoint (Ctrl-C again: stop now)",
+        stopper.asked = True
+        print("spread-train: Ctrl-C: stopping at the end of this step and saving it (Ctrl-C again: stop now)",
               file=sys.stderr, flush=True)
 
     signal.signal(signal.SIGINT, handler)
     try:
-        yield lambda: bool(asked)
+        yield stopper
     finally:
         signal.signal(signal.SIGINT, previous)

@@ -18,8 +18,8 @@ import hydra
 from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from spread.training.checkpoints import (CheckpointStep, atomic_checkpoint_io, resolve_ckpt_path, save_final_checkpoint,
-                                         stop_on_interrupt)
+from spread.training.checkpoints import (CheckpointStep, StopAtStep, StopRequested, atomic_checkpoint_io,
+                                         resolve_ckpt_path, save_final_checkpoint, stop_on_interrupt)
 from spread.training.determinism import ExactResume
 
 log = logging.getLogger("spread.train")
@@ -342,12 +342,13 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     if before_work is not None:
         before_work()
     newest = CheckpointStep()
+    stopper = StopAtStep(run_dir / "checkpoints" / "last.ckpt")
     overrides = dict(trainer_overrides or {})
     plugins = [atomic_checkpoint_io(), *(overrides.pop("plugins", None) or [])]
     loggers = lightning_loggers(as_logger_config(cfg.logger), run_dir, str(cfg.experiment_name),
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
-                                      callbacks=build_callbacks(cfg, run_dir) + [newest, ExactResume(int(cfg.seed)),
+                                      callbacks=build_callbacks(cfg, run_dir) + [newest, stopper, ExactResume(int(cfg.seed)),
                                                                                  *(monitors(cfg.get("renders") if takes_images(cfg) else None) if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)
@@ -356,14 +357,19 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     feed_the_device(trainer, datamodule)
     if ckpt_path is not None and trainer.is_global_zero:
         print(f"spread-train: resuming {ckpt_path}", flush=True)
-    with stop_on_interrupt(trainer) as interrupted:
-        trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
-    save_final_checkpoint(trainer, run_dir, newest)
-    if interrupted():  # the steps made are saved; no summary (the run is not finished): the caller stops too
+    try:
+        with stop_on_interrupt(stopper):
+            trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
+    except StopRequested as stop:  # Ctrl-C: the step saved; no summary (the run is not finished): the caller stops
         if trainer.is_global_zero:
-            print(f"spread-train: interrupted at step {trainer.global_step}: {run_dir / 'checkpoints' / 'last.ckpt'} "
-                  f"holds it; relaunch with ckpt_path=last to go on", flush=True)
-        raise KeyboardInterrupt
+            print(f"spread-train: interrupted at step {stop.args[0]}: {stopper.last} holds it; relaunch with "
+                  f"ckpt_path=last to go on", flush=True)
+        raise KeyboardInterrupt from None
+    except SystemExit:  # a second Ctrl-C: Lightning's shutdown exits 1; a study must stop, not go on
+        if stopper.asked:
+            raise KeyboardInterrupt from None
+        raise
+    save_final_checkpoint(trainer, run_dir, newest)
     skipped = datamodule.skipped_files() if hasattr(datamodule, "skipped_files") else {}
     summary = write_summary(trainer, run_dir, ckpt_path, skipped)
     if trainer.is_global_zero:

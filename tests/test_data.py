@@ -489,3 +489,11 @@ def test_the_resume_position_counts_an_epochs_last_partial_accumulation_as_one_s
     assert positions == [(0, 0), (0, 3), (1, 0), (1, 3), (2, 0)]
     dm.trainer = SimpleNamespace(limit_train_batches=1.0, accumulate_grad_batches=1, global_step=7)
     assert dm.train_position() == (1, 1)  # 6 batches an epoch: step 7 is the second of epoch 1
+
+
+def test_batches_per_epoch_reads_limit_train_batches_as_lightning_does():
+    """An int is a count of batches, 1 included (it was read as the whole epoch: with gradient accumulation each
+    one-batch epoch then started further on, and most rooms were never trained); a float is a fraction."""
+    from spread.data.order import batches_per_epoch
+
+    assert [batches_per_epoch(7, 1, limit) for limit in (1, 3, 20, 1.0, 0.5)] == [1, 3, 7, 7, 3]

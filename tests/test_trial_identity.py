@@ -119,7 +119,7 @@ def test_a_training_point_is_the_weights_it_starts_from_and_not_where_its_data_l
     trained again). The ablation's and comparison's training stages hold the weights' content too."""
     import shutil
 
-    from spread.experiments.stages import typed_training
+    from spread.experiments.stages import init_weights_input, typed_training
     from spread.experiments.sweep import train_point
     from spread.runtime.fingerprint import done_check
 
@@ -127,17 +127,23 @@ def test_a_training_point_is_the_weights_it_starts_from_and_not_where_its_data_l
     for split in ("train", "val"):
         (data / split).mkdir(parents=True)
         (data / split / "a.npz").write_bytes(b"room " + split.encode())
+    (data / "assets").mkdir()
+    (data / "assets" / "index.json").write_text("{}")
+    (data / "stats.json").write_text("{}")
     init = tmp_path / "init.ckpt"
     init.write_bytes(b"weights-1")
     plan = {"fixed": ["experiment=quick", f"data.root={data}", f"model.init_from={init}"], "name": "s",
             "points": str(tmp_path / "points")}
     (tmp_path / "points").mkdir()
     folder, first, _ = train_point({"model.lr": 0.001}, plan)
-    stage = typed_training({"overrides": plan["fixed"]})
+    recorded = {"overrides": plan["fixed"], **init_weights_input(plan["fixed"])}  # a stage's inputs, when planned
+    stage = typed_training(recorded)
     init.write_bytes(b"weights-2")
     _, other, _ = train_point({"model.lr": 0.001}, plan)
-    assert done_check(first, other, present=True, finished=True).reason == "changed: config.model.init_from_sha256"
-    assert typed_training({"overrides": plan["fixed"]}) != stage
+    assert done_check(first, other, present=True, finished=True).reason == "changed: init_from_sha256"
+    now = typed_training({"overrides": plan["fixed"], **init_weights_input(plan["fixed"])})
+    assert typed_training(recorded) == stage and now != stage  # the record keeps what the file held then
+    assert "init_from_sha256" not in init_weights_input(["experiment=quick", f"data.root={data}"])
     moved = tmp_path / "moved"
     shutil.copytree(data, moved)
     _, there, _ = train_point({"model.lr": 0.001}, {**plan, "fixed": [f"data.root={moved}" if o.startswith("data.root")

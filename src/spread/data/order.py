@@ -38,7 +38,7 @@ def epoch_seed(seed: int, epoch: int) -> int:
 def batches_per_epoch(items: int, batch_size: int, limit: int | float = 1.0) -> int:
     """Batches Lightning trains per epoch over ``items`` (``limit_train_batches``: a count or a fraction)."""
     full = math.ceil(items / batch_size)
-    if isinstance(limit, int) and not isinstance(limit, bool) and limit != 1:
+    if isinstance(limit, int) and not isinstance(limit, bool):  # a count, 1 included (Lightning: 1 batch; 1.0: all)
         return min(full, limit)
     return int(full * float(limit)) if float(limit) < 1.0 else full
 

@@ -273,9 +273,24 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
 UNTRAINED = ("out_dir", "paths", "logger", "experiment_name", "tags")
 
 
+def init_weights_input(overrides: list[str]) -> dict:
+    """``{"init_from_sha256": …}`` for a training stage whose overrides start from weights (``model.init_from``), taken
+    when the stage is planned: the stage's record keeps what the file held then (recomputed from the file at
+    comparison time, a replaced file would compare equal to itself). Empty without ``init_from``."""
+    from omegaconf import OmegaConf
+
+    from spread.configs import compose
+    from spread.runtime.fingerprint import init_weights_digest
+
+    weights = init_weights_digest(OmegaConf.to_container(compose("train", list(overrides)), resolve=True))
+    return {"init_from_sha256": weights} if weights else {}
+
+
 def typed_training(inputs: dict) -> dict:
     """A training stage's identity: the ``spread-train`` config its overrides compose to, less :data:`UNTRAINED`
-    and ``data.root``, with the data's content (``data_sha256``, in records made since it was kept)."""
+    and ``data.root``, with the data's content (``data_sha256``, in records made since it was kept) and the content of
+    the weights ``model.init_from`` names, as recorded when the stage was planned (``init_from_sha256``:
+    :func:`init_weights_input`)."""
     from omegaconf import OmegaConf
 
     from spread.configs import compose
@@ -285,7 +300,8 @@ def typed_training(inputs: dict) -> dict:
     for key in UNTRAINED:
         config.pop(key, None)
     (config.get("data") or {}).pop("root", None)
-    return {"config": training_config_identity(config), **({"data_sha256": inputs["data_sha256"]} if "data_sha256" in inputs else {})}
+    return {"config": training_config_identity(config), **{k: inputs[k] for k in ("data_sha256", "init_from_sha256")
+                                                             if k in inputs}}
 
 
 def typed_generation(inputs: dict) -> dict:
@@ -409,7 +425,8 @@ class StageEngine:
                                      f"out_dir={folder}"])
         from spread.runtime.fingerprint import dataset_digest
 
-        inputs = {"overrides": overrides, "data_sha256": dataset_digest(self.spec.dataset, ["train", "val"])}
+        inputs = {"overrides": overrides, "data_sha256": dataset_digest(self.spec.dataset, ["train", "val"]),
+                  **init_weights_input(overrides)}
 
         def run(resume: bool) -> None:
             extra = [f"ckpt_path={last}" if last.exists() else "ckpt_path=null"]

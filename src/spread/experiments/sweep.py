@@ -474,7 +474,8 @@ def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
     the composed config (less :data:`UNTRAINED_KEYS`), the data's content and the numbers version."""
     from spread.configs import compose
     from spread.experiments.points import point_folder
-    from spread.runtime.fingerprint import NUMBERS_VERSION, dataset_digest, normalised, short, training_config_identity
+    from spread.runtime.fingerprint import (NUMBERS_VERSION, dataset_digest, init_weights_digest, normalised, short,
+                                            training_config_identity)
 
     name = point_name(config)
     overrides = [*plan["fixed"], *trial_overrides(config), f"experiment_name={plan['name']}"]
@@ -483,8 +484,10 @@ def train_point(config: dict, plan: dict) -> tuple[Path, dict, list[str]]:
     for key in UNTRAINED_KEYS:  # where the run is written and logged changes none of its numbers
         plain.pop(key, None)
     root = OmegaConf.select(cfg, "data.root")
-    identity = normalised({"config": training_config_identity(plain), "data": dataset_digest(root, ["train", "val"]) if root else None,
-                           "numbers_version": NUMBERS_VERSION})
+    weights = init_weights_digest(plain)  # what model.init_from holds now, recorded with the point
+    identity = normalised({"config": training_config_identity(plain),
+                           "data": dataset_digest(root, ["train", "val"]) if root else None,
+                           "numbers_version": NUMBERS_VERSION, **({"init_from_sha256": weights} if weights else {})})
     return point_folder(Path(plan["points"]) / f"{name}_{short(identity)}", identity), identity, overrides
 
 

@@ -81,11 +81,13 @@ def tree_digest(folder, pattern: str = "*.npz") -> str:
 
 def dataset_digest(root, splits) -> str:
     """The content of a dataset folder as far as a run reads it: the splits' scene files, the asset index and
-    the normalisation statistics (a split or file that is not there: ``empty`` / ``missing``, wherever it is)."""
+    the normalisation statistics (a split or file that is not there names its path: ``empty:`` / ``missing:``; runs
+    recorded these digests, so they stay as they are — a checkpoint's :func:`spread.training.fit.data_digest` is
+    :func:`placeless`)."""
     root = Path(str(root))
-    parts = {f"split:{s}": placeless(tree_digest(root / s)) for s in sorted({str(s) for s in splits if s})}
-    parts["assets"] = placeless(file_digest(root / "assets" / "index.json"))
-    parts["stats"] = placeless(file_digest(root / "stats.json"))
+    parts = {f"split:{s}": tree_digest(root / s) for s in sorted({str(s) for s in splits if s})}
+    parts["assets"] = file_digest(root / "assets" / "index.json")
+    parts["stats"] = file_digest(root / "stats.json")
     return digest(parts)
 
 
@@ -267,19 +269,25 @@ TRAINING_DEFAULTS = {"data.max_objects": None}
 
 def training_config_identity(config: dict) -> dict:
     """A composed ``spread-train`` config (a plain dict) as a training identity holds it: without the
-    :data:`TRAINING_DEFAULTS` it holds at their defaults, and with the content of the weights ``model.init_from``
-    starts from (``model.init_from_sha256``: other weights at the same path are another training) (a copy;
-    ``config`` is left as it was)."""
+    :data:`TRAINING_DEFAULTS` it holds at their defaults (a copy; ``config`` is left as it was)."""
     out = dict(config)
     for dotted, default in TRAINING_DEFAULTS.items():
         section, _, key = dotted.rpartition(".")
         node = out.get(section)
         if isinstance(node, dict) and key in node and node[key] == default:
             out[section] = {k: v for k, v in node.items() if k != key}
-    model = out.get("model")
-    if isinstance(model, dict) and isinstance(model.get("init_from"), str) and model["init_from"]:
-        out["model"] = {**model, "init_from_sha256": file_digest(model["init_from"])}
     return out
+
+
+def init_weights_digest(config: dict) -> str | None:
+    """The content of the weights a composed ``spread-train`` config (a plain dict) starts from (``model.init_from``;
+    None when it names none): other weights at the same path are another training. Taken when a training is
+    planned and recorded with it (a training stage's inputs, a sweep point's identity), never recomputed from the
+    file as it is later."""
+    model = config.get("model")
+    if isinstance(model, dict) and isinstance(model.get("init_from"), str) and model["init_from"]:
+        return file_digest(model["init_from"])
+    return None
 
 
 def sampling_identity(cfg) -> dict:

@@ -575,6 +575,18 @@ def test_a_device_this_process_cannot_use_is_refused_in_one_line_before_any_samp
                                          r"one; set ray.num_gpus_per_worker=1"):  # each would see none: before Ray
         sample_in_process(f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}", "device=cuda", "workers=2")
     assert not (out / "sampling.json").exists() and not (out / "scenes").exists()
+    # a finished run's folder is left as it was (its scenes were deleted, then a traceback): another device type,
+    # GPUs for Ray's workers on a machine without one
+    (out / "scenes").mkdir(parents=True)
+    (out / "scenes" / "kept_k0.npz").write_bytes(b"a finished run's scene")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for extra, words in [(["device=mps", "workers=0"], r"device='mps': the samplers run on auto, cpu, cuda or cuda:N"),
+                         (["device=mps", "workers=2"], r"device='mps': the samplers run on auto, cpu, cuda or cuda:N"),
+                         (["device=auto", "workers=2", "ray.num_gpus_per_worker=1"],
+                          r"ray.num_gpus_per_worker=1.0 with workers=2: this machine has no GPU for the Ray")]:
+        with pytest.raises(ValueError, match=words):
+            sample_in_process(f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}", *extra)
+        assert (out / "scenes" / "kept_k0.npz").read_bytes() == b"a finished run's scene", extra
 
 
 def test_a_model_setting_refused_inside_hydras_instantiate_and_a_gpu_trainer_without_a_gpu_end_in_one_line(

@@ -328,14 +328,24 @@ def check_device(cfg: SamplingConfig) -> None:
     does not see (:func:`spread.sampling.worker.resolve_device`); on Ray's workers (each checks its own device: a GPU
     node's may differ from the driver's) ``cuda`` without ``ray.num_gpus_per_worker`` — Ray hides every GPU from a
     worker that asks for none (its ``CUDA_VISIBLE_DEVICES`` is empty), so each would fail."""
-    if cfg.workers <= 0:
-        from spread.sampling.worker import resolve_device
+    from spread.sampling.worker import resolve_device
 
+    if cfg.workers <= 0:
         resolve_device(cfg.device)
-    elif str(cfg.device).startswith("cuda") and not cfg.ray.num_gpus_per_worker > 0:
+        return
+    if str(cfg.device) not in ("auto", "cpu") and not str(cfg.device).startswith("cuda"):
+        resolve_device(cfg.device)  # mps, …: refused by name here too
+    if str(cfg.device).startswith("cuda") and not cfg.ray.num_gpus_per_worker > 0:
         raise ValueError(f"device={cfg.device} with workers={cfg.workers}: Ray gives a worker no GPU unless it asks "
                          f"for one; set ray.num_gpus_per_worker=1 (a fraction shares a GPU between workers) or "
                          f"workers=0")
+    if cfg.ray.num_gpus_per_worker > 0 and cfg.ray.starts_cluster:  # the Ray this command starts: this machine's GPUs
+        import torch
+
+        if not (torch.cuda.is_available() and torch.cuda.device_count() > 0):
+            raise ValueError(f"ray.num_gpus_per_worker={cfg.ray.num_gpus_per_worker} with workers={cfg.workers}: "
+                             f"this machine has no GPU for the Ray this command starts (ray.address unset or local); "
+                             f"set ray.num_gpus_per_worker=0, or ray.address= a cluster with GPUs")
 
 
 def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_result) -> dict:
@@ -359,7 +369,7 @@ def actor_count(cfg: SamplingConfig, batches: int) -> int:
     if gpus > 0:
         n = min(n, int(total.get("GPU", 0) // gpus))
         if n < 1:
-            raise RuntimeError(f"ray.num_gpus_per_worker={gpus} but the cluster has {total.get('GPU', 0)} GPUs")
+            raise ValueError(f"ray.num_gpus_per_worker={gpus} but the cluster has {total.get('GPU', 0)} GPUs")
     return max(1, n)
 
 

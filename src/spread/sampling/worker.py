@@ -41,6 +41,8 @@ def resolve_device(device: str) -> str:
         parsed = torch.device(device)
     except (RuntimeError, TypeError) as exc:
         raise ValueError(f"device={device!r} is not a torch device (auto, cpu, cuda, cuda:N): {exc}") from None
+    if parsed.type not in ("cpu", "cuda"):  # mps, xpu, meta, …: not a device the samplers are made for
+        raise ValueError(f"device={device!r}: the samplers run on auto, cpu, cuda or cuda:N")
     if parsed.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:

@@ -259,3 +259,14 @@ def test_spread_release_ckpt_refuses_every_spelling_of_its_checkpoint_and_each_b
 
     main([f"ckpt={release}", *sized, f"out={tmp_path / 'new' / 'r.ckpt'}"])  # the same, well set: converted
     assert (tmp_path / "new" / "r.ckpt").is_file() and digest(release) == before
+
+
+def test_spread_view_help_prints_its_usage():
+    """``spread-view --help`` answered "--help: no such file or folder"."""
+    import subprocess
+
+    from helpers import SCRIPTS
+
+    for flag in ("--help", "-h"):
+        proc = subprocess.run([str(SCRIPTS / "spread-view"), flag], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0 and proc.stdout.startswith("``spread-view PATH [assets=DIR]"), proc.stderr

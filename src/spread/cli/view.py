@@ -20,6 +20,9 @@ KEYS = {"assets": None, "port": "8080", "host": "127.0.0.1", "allow_remote": "fa
 def parse(argv: list[str]) -> tuple[str, dict]:
     """(the path, ``key=value`` options over :data:`KEYS`); refused by name when unknown or missing."""
     values, paths = dict(KEYS), []
+    if any(a in ("-h", "--help") for a in argv):  # the usage, not "--help: no such file or folder"
+        print(__doc__.strip())
+        raise SystemExit(0)
     for arg in argv:
         key, eq, value = arg.partition("=")
         if not eq:

@@ -15,6 +15,15 @@ import torch
 from helpers import FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset
 
 
+@pytest.fixture
+def ctrl_c():
+    """Ctrl-C as an interactive process takes it (pytest-xdist's workers ignore SIGINT, and a process that ignores it
+    is left to do so: ``nohup``), restored after."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_on(tmp_path):
     data = make_dataset(tmp_path / "d")
     out = tmp_path / "run"
@@ -23,7 +32,8 @@ def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_o
             "checkpoint.every_n_train_steps=100000", "trainer.limit_val_batches=0"]
     env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG")}
     proc = subprocess.Popen(args, env={**env, "WANDB_MODE": "disabled"}, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,  # as a terminal starts it: SIGINT not ignored
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 240
         while not list(out.glob("csv/version_*/metrics.csv")) or \
@@ -49,7 +59,7 @@ def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_o
     assert again["global_step"] == saved + 2 and again["resumed_from"] == str(out / "checkpoints" / "last.ckpt")
 
 
-def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path):
+def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path, ctrl_c):
     """In a study's process the training stage raises KeyboardInterrupt, which ``StageEngine.attempt`` lets through
     (a stage that raised anything else is recorded as failed and the next one starts), with the steps saved."""
     from lightning.pytorch.callbacks import Callback
@@ -86,9 +96,10 @@ def test_a_study_stops_at_a_training_stage_interrupted_by_ctrl_c(tmp_path):
     again = tmp_path / "again"
     cfg = compose("train", "experiment=quick", f"data.root={data}", f"out_dir={again}", *SMALL_MODEL, *FAST_TRAIN,
                   "trainer.max_steps=50", "trainer.max_time=null", "trainer.limit_val_batches=0", "logger=none")
+    before = signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
         engine.attempt("train/geometry", lambda: train(cfg, run_dir=again, extra_callbacks=[Twice()]), [])
-    assert engine.status == {} and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert engine.status == {} and signal.getsignal(signal.SIGINT) == before  # Lightning's SIG_IGN not left behind
 
 
 def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_trains_every_step(tmp_path):
@@ -113,7 +124,7 @@ def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_tr
 
 
 def test_ctrl_c_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed_run_is_the_uninterrupted_one(
-        tmp_path):
+        tmp_path, ctrl_c):
     """With ``accumulate_grad_batches=4`` a stop between two batches of one step saved a data position the resumed
     run could not take up (a step of fewer batches, batches never trained): the stop waits for the step's end, and
     the resumed run reaches step 4 with the uninterrupted run's weights, bit for bit."""
@@ -141,3 +152,19 @@ def test_ctrl_c_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed
     a, b = (torch.load(p / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu") for p in (whole, parts))
     assert a["global_step"] == b["global_step"] == 4
     assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
+
+
+def test_a_process_that_ignores_ctrl_c_keeps_ignoring_it_while_it_trains(tmp_path):
+    """``nohup spread-train …`` (SIGINT ignored): the platform does not make it interruptible."""
+    from spread.training.checkpoints import StopAtStep, stop_on_interrupt
+
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with stop_on_interrupt(StopAtStep(tmp_path / "last.ckpt")):
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with stop_on_interrupt(StopAtStep(tmp_path / "last.ckpt")) as stopper:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert stopper.asked  # the first Ctrl-C asks for a stop, raises nothing
+    finally:
+        signal.signal(signal.SIGINT, before)

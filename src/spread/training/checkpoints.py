@@ -130,13 +130,14 @@ def stop_on_interrupt(stopper: StopAtStep) -> Iterator[StopAtStep]:
     (the caller then raises KeyboardInterrupt), a second one stops at once (Lightning's own shutdown; nothing is
     saved). Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
     ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a failed stage and went on.
-    Only in the main thread (a signal handler is set there only: a Ray Train worker's fit runs in another)."""
+    Only in the main thread (a signal handler is set there only: a Ray Train worker's fit runs in another), and not
+    in a process that ignores SIGINT (started with ``nohup``, or in the background by a shell)."""
     import signal
     import sys
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        yield stopper
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield stopper  # another thread (a Ray Train worker's fit), or a process that ignores Ctrl-C (nohup): as is
         return
     previous = signal.getsignal(signal.SIGINT)
 

@@ -257,7 +257,6 @@ def test_a_refused_second_run_of_a_folder_writes_no_tracker_record_and_an_older_
         dataset, tmp_path):
     import subprocess
     import sys
-    from types import SimpleNamespace
 
     from spread.io import RunFolderBusy
     from spread.reporting.report import shown_key
@@ -278,8 +277,8 @@ def test_a_refused_second_run_of_a_folder_writes_no_tracker_record_and_an_older_
         holder.kill()
         holder.wait()
     (out / "mlflow_run.json").write_text(json.dumps({"run_id": "later"}))
-    assert made_the_folder(SimpleNamespace(info=SimpleNamespace(run_id="later")), out)
-    assert not made_the_folder(SimpleNamespace(info=SimpleNamespace(run_id="earlier")), out)
+    assert made_the_folder("later", out)
+    assert not made_the_folder("earlier", out)
     assert shown_key("asd") == ("asd_mm", "mm") and shown_key("grecall") == ("grecall", None)
 
 

@@ -149,17 +149,12 @@ def folder_identity(path: Path, metrics: dict) -> dict:
 
 def recorded_identity(path: Path, metrics: dict) -> dict:
     """:func:`folder_identity` as the folder's records spell it."""
-    from spread.runtime.fingerprint import config_identity
+    from spread.runtime.fingerprint import config_identity, measured_identity
 
     point = optional_json(path / "point.json")
     if isinstance(point.get("fingerprint"), dict):  # a sweep point: its record, but what metrics.json measured with
-        identity = dict(point["fingerprint"])  # wins where they differ (another command wrote into the folder)
-        if isinstance(metrics.get("sampled_with"), dict):
-            identity |= metrics["sampled_with"]
-        recorded = metrics.get("evaluated_with")
-        if isinstance(recorded, dict) and isinstance(recorded.get("protocol"), dict):
-            identity["evaluation"] = recorded
-        return identity
+        return {**point["fingerprint"], **(measured_identity(metrics) or {})}  # wins where they differ (another
+        # command wrote into the folder)
     identity: dict = {}
     hydra = path / ".hydra" / "config.yaml"
     if hydra.exists():

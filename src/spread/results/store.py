@@ -26,7 +26,7 @@ def parsed(text: str):
         return {"True": True, "False": False, "None": None}.get(text, text)
 
 
-def made_the_folder(run, folder) -> bool:
+def made_the_folder(run_id: str, folder) -> bool:
     """Whether the run folder's numbers are this MLflow run's: its ``mlflow_run.json`` names this run (a folder
     evaluated again since holds a later run's numbers and settings; this run's own logged values are its record),
     or names none (a folder written before that record)."""
@@ -40,7 +40,7 @@ def made_the_folder(run, folder) -> bool:
         named = read_json_object(path).get("run_id")
     except (OSError, ValueError):
         return False
-    return named is None or named == run.info.run_id
+    return named is None or named == run_id
 
 
 def run_record(run, experiments: dict) -> dict | None:
@@ -55,12 +55,8 @@ def run_record(run, experiments: dict) -> dict | None:
     record = None
     folder = tags.get("spread.run_folder") or params.get("out_dir")
     reused = tags.get("spread.reused") == "true"
-    made_by = run
-    if reused and tags.get("spread.made_by_run_id"):  # a relaunch's child that re-used a point: the point's run
-        from types import SimpleNamespace
-
-        made_by = SimpleNamespace(info=SimpleNamespace(run_id=tags["spread.made_by_run_id"]))
-    if folder and is_finished_run(folder) and (not reused or made_by is not run) and made_the_folder(made_by, folder):
+    made_by = tags.get("spread.made_by_run_id") if reused else run.info.run_id  # a re-used point: the point's run
+    if folder and made_by and is_finished_run(folder) and made_the_folder(made_by, folder):
         try:
             record = read_run_folder(folder)
         except RunError:
@@ -69,7 +65,7 @@ def run_record(run, experiments: dict) -> dict | None:
         measured = tracked_identity(tags.get("spread.identity"))  # what its numbers measured with (metrics.json's)
         try:
             identity = upgraded(measured) if measured is not None else \
-                config_identity({k: parsed(v) for k, v in params.items() if k != "spread_identity"})
+                config_identity({k: parsed(v) for k, v in params.items()})
         except Exception:  # a config this version cannot type (an older run): its params as they are
             identity = {}
         record = {"run": run.info.run_name, "source": folder, **identity_fields(identity)}

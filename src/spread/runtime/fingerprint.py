@@ -79,15 +79,17 @@ def tree_digest(folder, pattern: str = "*.npz") -> str:
     return digest([(f.name, file_digest(f)) for f in files])
 
 
-def dataset_digest(root, splits) -> str:
+def dataset_digest(root, splits, placeless_markers: bool = False) -> str:
     """The content of a dataset folder as far as a run reads it: the splits' scene files, the asset index and
     the normalisation statistics (a split or file that is not there names its path: ``empty:`` / ``missing:``; runs
-    recorded these digests, so they stay as they are — a checkpoint's :func:`spread.training.fit.data_digest` is
-    :func:`placeless`)."""
+    recorded these digests, so they stay as they are; ``placeless_markers``: without those paths, :func:`placeless`,
+    as a checkpoint records its training data, :func:`spread.training.fit.data_digest`)."""
     root = Path(str(root))
     parts = {f"split:{s}": tree_digest(root / s) for s in sorted({str(s) for s in splits if s})}
     parts["assets"] = file_digest(root / "assets" / "index.json")
     parts["stats"] = file_digest(root / "stats.json")
+    if placeless_markers:
+        parts = {k: placeless(v) for k, v in parts.items()}
     return digest(parts)
 
 

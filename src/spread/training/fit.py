@@ -71,18 +71,12 @@ DATA_DIGEST = "spread_data_sha256"
 
 def data_digest(datamodule) -> str | None:
     """The content of the rooms a datamodule trains and validates on, wherever they lie: the digest of its ``root``'s
-    train and val scene files, asset index and statistics (:func:`spread.runtime.fingerprint.dataset_digest`'s
-    parts, a split or file that is not there without its path); None for a datamodule without a ``root``."""
-    from spread.runtime.fingerprint import digest, file_digest, placeless, tree_digest
+    train and val scene files, asset index and statistics (:func:`spread.runtime.fingerprint.dataset_digest`, a
+    split or file that is not there without its path); None for a datamodule without a ``root``."""
+    from spread.runtime.fingerprint import dataset_digest
 
     root = getattr(datamodule, "hparams", {}).get("root") if hasattr(datamodule, "hparams") else None
-    if not root:
-        return None
-    root = Path(str(root))
-    parts = {f"split:{s}": placeless(tree_digest(root / s)) for s in ("train", "val")}
-    parts |= {"assets": placeless(file_digest(root / "assets" / "index.json")),
-              "stats": placeless(file_digest(root / "stats.json"))}
-    return digest(parts)
+    return dataset_digest(Path(str(root)), ["train", "val"], placeless_markers=True) if root else None
 
 
 class DataDigest(Callback):

@@ -161,3 +161,30 @@ def test_the_parallel_and_slurm_hydra_launchers_are_installed_and_compose():
             cfg = hydra_compose("sample", ["hydra/launcher=" + launcher, "ckpt=c", "data.root=d"],
                                 return_hydra_config=True)
             assert cfg.hydra.launcher._target_.endswith(target)
+
+
+def test_a_composed_config_is_kept_and_each_caller_gets_its_own_copy(tmp_path, monkeypatch):
+    """compose() keeps what it composed (planning a study composes each stage's config several times): the same
+    arguments give an equal config, a change to one copy is not seen by the next caller, and a config file
+    edited in this process (or another config folder) composes anew."""
+    import shutil
+
+    import spread.configs as configs
+
+    args = ["ckpt=c", "data.root=/d", "out_dir=/o"]
+    first = compose("sample", args)
+    first.seed = 123  # the caller's copy
+    again = compose("sample", args)
+    assert again.seed == 0 and again is not first and OmegaConf.is_struct(again)
+    assert OmegaConf.get_type(again) is OmegaConf.get_type(first)
+    with pytest.raises(Exception, match="colision"):  # a misspelt key is still refused, every time
+        compose("sample", [*args, "guidance.colision=1"])
+    copied = tmp_path / "conf"
+    shutil.copytree(CONF, copied)
+    monkeypatch.setenv("SPREAD_CONF_DIR", str(copied))
+    assert compose("sample", args).max_objects is None
+    text = (copied / "sample.yaml").read_text()
+    assert "\nmax_objects: null " in text, "the test edits sample.yaml's max_objects line"
+    (copied / "sample.yaml").write_text(text.replace("\nmax_objects: null ", "\nmax_objects: 7 "))
+    assert compose("sample", args).max_objects == 7  # the edited file, not the kept config
+    assert len([k for k in configs._COMPOSED if k[0] == "sample" and k[1] == tuple(args)]) == 3

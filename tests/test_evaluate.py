@@ -370,7 +370,26 @@ def test_a_scene_that_always_kills_its_worker_is_reported_alone(monkeypatch):
 
 
 def test_import_pulls_no_heavy_modules():
-    code = ("import sys, spread.evaluation, spread.cli.evaluate; "
-            "print([m for m in ('ray', 'wandb', 'pybullet', 'cleanfid') if m in sys.modules])")
+    """Nor torchmetrics (every metric module imports it, ~2.5 s): the schemas know the default metrics by name, so
+    a console script that refuses its input, or prints --help, answers in about 2 s instead of 6."""
+    code = ("import sys, spread.evaluation, spread.cli.evaluate, spread.cli.sample, spread.cli.sweep; "
+            "from spread.configs import compose; compose('evaluate', ['scenes=/s', 'reference=/r', 'out_dir=/o']); "
+            "compose('sample', ['ckpt=/c', 'data.root=/d', 'out_dir=/o']); "
+            "print([m for m in ('ray', 'wandb', 'pybullet', 'cleanfid', 'torchmetrics') if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_the_default_metrics_are_known_by_name_and_are_the_registered_defaults():
+    from spread.evaluation.protocol import EvalProtocol
+    from spread.metrics.registry import DEFAULT_METRICS, METRICS, MetricSpec, check_spec
+    from spread.registry import RegistryError
+
+    assert [name for name, spec in METRICS.items() if spec.default] == list(DEFAULT_METRICS)
+    assert METRICS.names()[:4] == list(DEFAULT_METRICS)  # the order a protocol's set is written in
+    assert EvalProtocol(metrics=["stability", "col_mesh"]).metrics == ["col_mesh", "stability"]
+    assert EvalProtocol(metrics=["oob", "grecall"]).metrics == ["grecall", "oob"]  # through the registry
+    with pytest.raises(RegistryError, match="named twice"):
+        EvalProtocol(metrics=["asd", "asd"])
+    with pytest.raises(RegistryError, match=r"metric 'mine' refused: default=True.*protocol.metrics=\[col_mesh"):
+        check_spec("mine", MetricSpec("mine", METRICS.get("asd").metric, default=True), {})

@@ -104,10 +104,15 @@ class EvalProtocol:
         if self.physics_sleep and self.physics != "mujoco":
             raise ValueError(f"protocol.physics_sleep=true needs protocol.physics=mujoco (got {self.physics!r}: "
                              "only C MuJoCo's runs have sleeping islands here)")
-        from spread.metrics.registry import METRICS, selected_metrics
+        from spread.metrics.registry import DEFAULT_METRICS, METRICS, selected_metrics
 
         # a set of metrics, in the registry's order: [grecall, col_mesh] and [col_mesh, grecall] are one protocol
-        chosen = [spec.name for spec in selected_metrics([str(m) for m in self.metrics])]
+        names = [str(m) for m in self.metrics]
+        if names and len(set(names)) == len(names) and set(names) <= set(DEFAULT_METRICS):
+            # the default four (or some): the registry's first four, ordered without importing a metric
+            self.metrics = [name for name in DEFAULT_METRICS if name in names]
+            return
+        chosen = [spec.name for spec in selected_metrics(names)]
         rank = {name: i for i, name in enumerate(METRICS.names())}
         self.metrics = sorted(chosen, key=lambda name: rank.get(name, len(rank)))  # stable: the rest as given
 

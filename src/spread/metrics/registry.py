@@ -224,6 +224,10 @@ def check_spec(name: str, spec, others: dict) -> None:
     is reserved, or another metric reports it."""
     if not isinstance(spec, MetricSpec):
         raise RegistryError(f"metric '{name}': expected a MetricSpec, got {type(spec).__name__}")
+    if spec.default and name not in DEFAULT_METRICS:
+        raise RegistryError(f"metric '{name}' refused: default=True, but the default selection is DESIGN §6's "
+                            f"{list(DEFAULT_METRICS)}; register it without default and choose it by name "
+                            f"(protocol.metrics=[{', '.join(DEFAULT_METRICS)}, {name}])")
     values, counts = own_names(spec)
     for names, count in ((values, False), (counts, True)):
         for n in sorted(names):
@@ -273,9 +277,16 @@ def all_metrics() -> list[MetricSpec]:
     return ordered(spec for _, spec in METRICS.items())
 
 
+#: The default selection (DESIGN §6: Col_mesh, GRecall, ASD, Stability), by name, so the command schemas know their
+#: ``protocol.metrics`` default without importing a metric (every metric module imports torchmetrics: ~2.5 s of a
+#: console script's start). The built-ins that say ``default=True`` are exactly these; another metric is chosen by
+#: name (``protocol.metrics=[...]``), and a plug-in that says ``default=True`` is refused (:func:`check_spec`).
+DEFAULT_METRICS = ("col_mesh", "grecall", "asd", "stability")
+
+
 def default_metric_names() -> list[str]:
-    """The default selection (today's four: Col_mesh, GRecall, ASD, Stability), in registration order."""
-    return [name for name, spec in METRICS.items() if spec.default]
+    """The default selection (:data:`DEFAULT_METRICS`), in table order; imports no metric."""
+    return list(DEFAULT_METRICS)
 
 
 def selected_metrics(names: Sequence[str] | None = None) -> list[MetricSpec]:

@@ -194,14 +194,19 @@ def test_a_relaunch_with_another_protocol_is_redone_and_records_its_own_config(d
 
 # ---- late and silent failures come early -------------------------------------------------------------------
 
-def test_training_without_a_val_split_is_refused_before_any_step(dataset, tmp_path):
+def test_training_without_a_val_or_train_split_is_refused_before_any_logger_or_step(dataset, tmp_path):
+    """Refused before a logger opens its run (FAST_TRAIN's csv logger: no ``csv/`` folder; wandb's offline run was
+    opened first, 7 s into a launch whose data.root did not exist)."""
     data = tmp_path / "data"
     shutil.copytree(dataset, data, ignore=shutil.ignore_patterns("val"))
     out = tmp_path / "run"
     with pytest.raises(ValueError, match=r"no scene files in .*val.*limit_val_batches=0"):
         train_in_process(out, "experiment=quick", f"data.root={data}", "trainer.max_steps=2", *SMALL_MODEL,
                          *FAST_TRAIN)
-    assert not (out / "checkpoints").exists()
+    assert not (out / "checkpoints").exists() and not (out / "csv").exists()
+    with pytest.raises(ValueError, match=r"data.root=.*nowhere: no scene files in .*nowhere/train to train on"):
+        train_in_process(out, "experiment=quick", f"data.root={tmp_path / 'nowhere'}", *SMALL_MODEL, *FAST_TRAIN)
+    assert not (out / "csv").exists()
 
 
 def test_generate_refuses_zero_rooms_before_the_asset_library_and_warns_about_empty_splits(tmp_path):

@@ -182,13 +182,15 @@ class SceneDataModule(L.LightningDataModule):
         trainer = self.trainer
         return trainer is None or (trainer.limit_val_batches != 0 and trainer.check_val_every_n_epoch is not None)
 
-    def check_fit(self) -> None:
+    def check_fit(self, validates: bool | None = None) -> None:
         """Before training: the train split has scenes, and so does val when the trainer validates (a run that
-        would crash at its first validation, with no checkpoint, is refused up front)."""
+        would crash at its first validation, with no checkpoint, is refused up front). ``validates``: whether the
+        trainer will (None: ask :meth:`validates`; ``spread-train`` asks its trainer config before any logger
+        starts, :func:`spread.training.fit.trainer_validates`)."""
         if not self.scene_files("train"):
             raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'train'} to train on")
         trainer = self.trainer
-        if self.validates() and not self.scene_files("val"):
+        if (self.validates() if validates is None else validates) and not self.scene_files("val"):
             raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'val'}, and the trainer "
                              f"validates every {getattr(trainer, 'check_val_every_n_epoch', 1)} epochs; give a dataset "
                              f"with a val split (spread-generate writes one from 10 rooms on) or set "

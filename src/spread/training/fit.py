@@ -304,6 +304,14 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
                                 trainer_settings_of(cfg))
 
 
+def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
+    """Whether a trainer of this config (``cfg.trainer``, ``overrides`` winning) runs validation, by Lightning's
+    rule (``limit_val_batches`` 0 or ``check_val_every_n_epoch`` null: never; Lightning's defaults 1.0 and 1), asked
+    before the trainer exists."""
+    values = {**dict(trainer_cfg or {}), **dict(overrides or {})}
+    return values.get("limit_val_batches", 1.0) != 0 and values.get("check_val_every_n_epoch", 1) is not None
+
+
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
           extra_callbacks: list | None = None, prepare: Callable | None = None,
           resume_from: Path | None = None, before_work: Callable[[], None] | None = None) -> dict:
@@ -336,6 +344,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     mark_attempt_started()
     resuming_here = ckpt_path is not None and ckpt_path.resolve().parent == (run_dir / "checkpoints").resolve()
     datamodule = hydra.utils.instantiate(cfg.data)
+    datamodule.check_fit(trainer_validates(cfg.trainer, trainer_overrides))  # before a logger opens a run
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
         check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg))

@@ -791,6 +791,7 @@ def test_a_rerun_with_some_rows_keeps_the_other_finished_rows_marked_as_carried(
         (tmp_path / "abl" / "ablation.md").read_text()
 
 
+@pytest.mark.slow  # four real rows and the console script (~33 s); the carried-rows rule is in make test with fakes
 def test_spread_ablate_rerun_with_two_of_six_rows_keeps_six_rows(tiny_ablation):
     """The tiny ablation grown to the six rows (2 guidance iterations: the guidance row is redone), then
     `spread-ablate 'variants=[base,guidance]'` on the same folder (the console script): the table keeps six

@@ -287,6 +287,7 @@ def test_fid_with_an_injected_backbone_is_zero_for_the_reference_itself(dataset,
     assert all(len(r["fid_features"]) == 6 for r in lines)
 
 
+@pytest.mark.slow  # a two-node cluster (~23 s); make test has one: test_scaleout's sampling on two nodes
 def test_two_node_cluster_runs_chunks_on_both_nodes(cli_run, dataset, tmp_path):
     import ray
     from ray.cluster_utils import Cluster

@@ -193,6 +193,7 @@ def test_torchrun_two_nodes_train_the_same_weights_and_rank_zero_writes_one_chec
     assert left == [], "checkpoint temp files (TMPDIR) are renamed into place"
 
 
+@pytest.mark.slow  # four trainings in subprocesses (~36 s on 2 cores); torchrun is in make test by its two-node run
 def test_torchrun_relaunched_with_the_same_run_id_resumes_its_newest_checkpoint(dataset, tmp_path):
     """jobs/torchrun.sh with one gloo process per node (the two-process runs are this module's other torchrun
     tests), launched twice with one RUN_ID and no ATTEMPT: the launcher counts the second attempt, which resumes the

@@ -16,6 +16,7 @@ One small generated dataset (12 rooms over 12 categories: 7 train, 2 val, 3 test
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -375,6 +376,36 @@ def test_spread_sample_refuses_guidance_for_a_method_that_samples_its_own_way(da
     with pytest.raises(ValueError, match="samples its own way"):
         sample_in_process(f"ckpt={trained['atiss']}", f"data.root={dataset}", f"out_dir={tmp_path / 's'}",
                           "guidance=refine", "logger=none")
+
+
+def test_a_setting_a_method_does_not_read_makes_no_second_identity_and_its_label_says_what_ran(dataset, trained,
+                                                                                                 tmp_path):
+    """ATISS reads no sampler, graph scale or precision, DiffuScene no graph scale: sampled again with other values
+    of these, the same folder is re-used as it is (same identity, same bytes), and ATISS's label is its own loop,
+    not a DDIM it never ran. InstructScene reads the graph scale: there it is another identity."""
+    from spread.methods.registry import method_spec
+    from spread.runtime.fingerprint import settings
+
+    base = [f"data.root={dataset}", "logger=none", "progress=false", "renders=0", "figures=0", "workers=0"]
+    for method, ignored, read in (("atiss", ["sampler=ddpm", "graph_scale=3.0", "precision=bf16"], None),
+                                  ("diffuscene", ["graph_scale=3.0"], None),
+                                  ("instructscene", [], "graph_scale=3.0")):
+        out = tmp_path / method
+        first = sample_in_process(f"ckpt={trained[method]}", f"out_dir={out}", *base, "sampler.steps=4")
+        made = {p.name: p.read_bytes() for p in first.files}
+        if ignored:
+            again = sample_in_process(f"ckpt={trained[method]}", f"out_dir={out}", *base, "sampler.steps=4", *ignored)
+            assert again.written == [] and again.manifest["fingerprint"] == first.manifest["fingerprint"], method
+            assert {p.name: p.read_bytes() for p in again.files} == made
+        if read:
+            again = sample_in_process(f"ckpt={trained[method]}", f"out_dir={out}", *base, "sampler.steps=4", read)
+            assert again.manifest["redone_because"] and "graph_scale" in again.manifest["redone_because"]
+    atiss = json.loads((tmp_path / "atiss" / "sampling.json").read_text())
+    assert atiss["sampler"] == method_spec("atiss").sampler_label == "one pass per object"
+    assert atiss["fingerprint"]["sampling"]["sampler"] == "one pass per object"
+    assert settings(atiss["fingerprint"])["sampler"] == "one pass per object"
+    diffuscene = json.loads((tmp_path / "diffuscene" / "sampling.json").read_text())
+    assert diffuscene["sampler"] == "ddim-4" and diffuscene["fingerprint"]["sampling"]["graph_scale"] == 1.0
 
 
 @pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it

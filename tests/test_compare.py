@@ -54,6 +54,7 @@ class FakeCommands:
 
     def sample(self, overrides):
         from spread.io import file_sha256
+        from spread.methods.registry import method_spec
 
         a = args(overrides)
         out = Path(a["out_dir"])
@@ -66,7 +67,8 @@ class FakeCommands:
         guidance = guidance_config(a.get("guidance"))
         (out / "sampling.json").write_text(json.dumps(
             {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "sampling": {"seed": a["seed"]}},
-             "sampler": "ddim-50", "guidance": guidance.fingerprint(), "guidance_label": guidance.label,
+             # as the sampler records it: an own sampler's label (ATISS's), else the sampler's
+             "sampler": method_spec(out.name).unread_sampling().get("sampler", "ddim-50"), "guidance": guidance.fingerprint(), "guidance_label": guidance.label,
              "seconds_per_batch": 0.5, "batches_run": 2, "written_this_run": 3}))
 
     def evaluate(self, overrides):

@@ -506,6 +506,39 @@ def test_a_graph_above_the_object_limit_is_skipped_by_name_before_any_work_and_t
     assert object_limit(dataset, None) == 2 * stats["max_objects"] and object_limit(dataset, 0) is None
 
 
+def test_a_sample_pushed_kilometres_away_is_written_as_made_named_and_the_run_goes_on(dataset, checkpoint, tmp_path,
+                                                                                      monkeypatch):
+    """One sample beyond ±1000 m (before: the writer refused it and the whole run ended, and every relaunch ended
+    the same way): the run finishes, the file is there as the model made it, sampling.json names it with why, the
+    renders skip it, and a relaunch keeps it (sampling it again gives the same) and names it again."""
+    from helpers import sample_in_process
+
+    import spread.sampling.worker as worker
+
+    made = worker.generated_scene
+    far = []
+
+    def pushed(source, translation, rotation, item, provenance, trajectory=None):
+        if not far:  # the run's first sample: five kilometres east
+            far.append(item.name)
+            translation = translation + np.array([5000.0, 0.0, 0.0])
+        return made(source, translation, rotation, item, provenance, trajectory)
+
+    monkeypatch.setattr(worker, "generated_scene", pushed)
+    out = tmp_path / "run"
+    args = (f"ckpt={checkpoint}", f"data.root={dataset}", f"out_dir={out}", "renders=3", "sampler.steps=2")
+    result = sample_in_process(*args)
+    name = far[0]
+    assert sorted(result.written) == sorted(p.stem for p in result.files) and name in result.written
+    assert list(result.manifest["implausible"]) == [name] and "beyond ±1000 m" in result.manifest["implausible"][name]
+    with pytest.raises(ImplausibleSceneError, match="beyond ±1000 m"):
+        read_scene(out / "scenes" / f"{name}.npz")  # every reader refuses it; spread-evaluate counts it apart
+    assert len(result.manifest["renders"]) == 2 and not (out / "renders" / f"{name}.png").exists()  # of 3
+    again = sample_in_process(*args)
+    assert again.written == [] and again.manifest["redone_unreadable"] == 0
+    assert list(again.manifest["implausible"]) == [name]
+
+
 # ---- 9. user errors in one line, no noise -------------------------------------------------------------------------
 
 def run_quietly(name: str, *args: str, timeout: int = 300):

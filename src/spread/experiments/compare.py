@@ -261,7 +261,7 @@ class Comparison:
         if manifest.exists():
             data = read_json(manifest)
             guidance = data.get("guidance_label") or "none"
-            out["sampler"] = "one pass per object" if method == "atiss" else str(data.get("sampler"))
+            out["sampler"] = str(data.get("sampler"))  # what ran: an own sampler's label (ATISS's), as recorded
             out["sampler"] += "" if guidance == "none" else f" + guidance {guidance}"
             per_batch, batches, written = data.get("seconds_per_batch"), data.get("batches_run"), data.get("written_this_run")
             if per_batch is not None and written:

@@ -307,4 +307,5 @@ class ATISS(BaselineModule):
 
 register_method(MethodSpec(
     "atiss", "spread.methods.atiss:ATISS", label="ATISS", note="autoregressive, no graph", sampling="own",
+    sampler_label="one pass per object",
     train=("experiment=atiss",), train_quick=("experiment=atiss_quick",), order=10))

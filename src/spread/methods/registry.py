@@ -44,6 +44,8 @@ class MethodSpec:
     trainable: bool = True
     order: int = 100
     extras: dict = field(default_factory=dict)
+    #: How an ``own`` sampler samples, in tables and run identities (it reads no ``sampler`` setting)
+    sampler_label: str = "its own loop"
 
     def __post_init__(self):
         if self.sampling not in SAMPLING:
@@ -56,6 +58,19 @@ class MethodSpec:
         if name not in recipes:
             raise RegistryError(f"method '{self.name}': recipe={name!r}, choose from {list(recipes)}")
         return recipes[name]
+
+    def unread_sampling(self) -> dict:
+        """The sampling settings this method's samples do not depend on, each with the value its runs record for it
+        (their identity, their ``sampler`` label): an ``own`` sampler (ATISS's loop) reads no ``sampler``,
+        ``graph_scale`` or ``precision``; a method that sees no relation graph (DiffuScene, PhyScene) reads no
+        ``graph_scale``. So two runs that differ only in a setting the method ignores are one identity of the same
+        samples, labelled with what ran."""
+        out: dict = {}
+        if self.sampling == "own":
+            out |= {"sampler": self.sampler_label, "precision": "32"}
+        if self.sampling == "own" or not self.graph_conditioned:
+            out["graph_scale"] = 1.0
+        return out
 
     @property
     def trained_from(self) -> str:

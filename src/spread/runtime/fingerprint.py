@@ -292,18 +292,36 @@ def init_weights_digest(config: dict) -> str | None:
     return None
 
 
+def unread_sampling(ckpt) -> dict:
+    """The sampling settings the method of checkpoint ``ckpt`` does not read, with the values its runs record
+    (:meth:`spread.methods.registry.MethodSpec.unread_sampling`); {} when the file does not load here (the run
+    refuses it in its own words) or its method reads them all. The checkpoint is read once per process
+    (:func:`spread.readonce.checkpoint`)."""
+    from spread import readonce
+    from spread.methods import checkpoint_method, method_spec
+
+    try:
+        checkpoint = readonce.checkpoint(ckpt)
+        return method_spec(checkpoint_method(checkpoint.get("hyper_parameters") or {})).unread_sampling()
+    except (OSError, ValueError, RuntimeError):
+        return {}
+
+
 def sampling_identity(cfg) -> dict:
     """What a generated scene file depends on (module docstring); ``cfg``: a typed
     :class:`~spread.sampling.SamplingConfig` (its ``sampler`` a Sampler, its ``guidance`` a GuidanceConfig).
     ``samples_per_graph`` is not part of it (more samples only add files); ``data_root`` says where the data
-    lies (``spread-view`` reads it)."""
+    lies (``spread-view`` reads it). A setting the checkpoint's method does not read holds the value its runs record
+    (:func:`unread_sampling`: ATISS's ``sampler`` is ``"one pass per object"``)."""
+    unread = unread_sampling(cfg.ckpt)
     return {"ckpt_sha256": file_digest(cfg.ckpt), "data": dataset_digest(cfg.data.root, [cfg.data.split]),
             "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
-            "sampling": {"sampler": cfg.sampler.fingerprint(), "seed": int(cfg.seed), "batch_size": int(cfg.batch_size),
-                         "use_ema": bool(cfg.use_ema), "graph_scale": float(cfg.graph_scale),
+            "sampling": {"sampler": unread.get("sampler", cfg.sampler.fingerprint()), "seed": int(cfg.seed),
+                         "batch_size": int(cfg.batch_size), "use_ema": bool(cfg.use_ema),
+                         "graph_scale": float(unread.get("graph_scale", cfg.graph_scale)),
                          "device": cfg.sampling_device() if hasattr(cfg, "sampling_device") else str(cfg.device),
                          **unspelled_defaults_dropped({
-                             "precision": str(getattr(cfg, "precision", "32")),
+                             "precision": str(unread.get("precision", getattr(cfg, "precision", "32"))),
                              "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0)),
                              "graphs_over_limit": cfg.graphs_over_limit() if hasattr(cfg, "graphs_over_limit") else []})},
             "guidance": cfg.guidance.fingerprint(), "numbers_version": NUMBERS_VERSION}
@@ -454,7 +472,8 @@ def settings(identity: dict) -> dict:
             continue
         if key == "sampling" and isinstance(value, dict):
             for k, v in {**SAMPLING_DEFAULTS, **value}.items():
-                out[k] = Sampler.from_config(v).label if k == "sampler" and isinstance(v, (dict, str)) else v
+                # a dict is a Sampler's fingerprint; a string is what an own sampler records (ATISS's label)
+                out[k] = Sampler.from_config(v).label if k == "sampler" and isinstance(v, dict) else v
         elif key == "evaluation" and isinstance(value, dict):
             for k, v in value.items():
                 if k in ("protocol", "fid") and isinstance(v, dict):

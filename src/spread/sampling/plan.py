@@ -109,11 +109,15 @@ def missing_items(batch: BatchPlan, scenes_dir: str | Path) -> list[SampleItem]:
     return [item for item in batch.items if not (scenes_dir / f"{item.name}.npz").exists()]
 
 
-def remove_unreadable(batches: list[BatchPlan], scenes_dir: str | Path) -> list[str]:
+def remove_unreadable(batches: list[BatchPlan], scenes_dir: str | Path,
+                      implausible: dict[str, str] | None = None) -> list[str]:
     """Delete the plan's existing scene files that do not read back as valid scenes (cut short or damaged by
     something other than this platform's atomic writes), so a resumed run samples them again; returns their
-    names. A file that reads back is kept as it is."""
-    from spread.scene import read_scene
+    names. A file that reads back is kept as it is, and so is one that reads back whole but physically implausible
+    (:class:`~spread.scene.ImplausibleSceneError`: a sample the model pushed kilometres away, written as made by
+    :meth:`~spread.sampling.worker.SampleWorker.run`; sampled again it would be the same): its name and why go into
+    ``implausible`` when given."""
+    from spread.scene import ImplausibleSceneError, read_scene
 
     removed = []
     for item in (item for batch in batches for item in batch.items):
@@ -122,7 +126,10 @@ def remove_unreadable(batches: list[BatchPlan], scenes_dir: str | Path) -> list[
             continue
         try:
             read_scene(path)
-        except Exception:  # any reason it does not read back: sample it again
+        except ImplausibleSceneError as exc:
+            if implausible is not None:
+                implausible[item.name] = exc.problem
+        except Exception:  # any other reason it does not read back: sample it again
             path.unlink()
             removed.append(item.name)
     return removed

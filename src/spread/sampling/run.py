@@ -409,11 +409,17 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
     return {"workers": len(actors), "mode": "ray", **cluster}
 
 
-def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: int) -> list[Path]:
-    """Ground truth | generated PNGs of the first ``count`` samples, ``out/renders/<name>.png``."""
+def drawable(batches: list[BatchPlan], count: int, skip=()) -> list:
+    """The first ``count`` planned items, those in ``skip`` (implausible samples: no reader draws them) left out."""
+    return [item for b in batches for item in b.items if item.name not in skip][:max(0, count)]
+
+
+def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: int, skip=()) -> list[Path]:
+    """Ground truth | generated PNGs of the first ``count`` samples (not those in ``skip``),
+    ``out/renders/<name>.png``."""
     from spread.render import VIEW_SETTINGS_FLOOR, TopDownRenderSettings, render_before_after, save_png
 
-    items = [item for b in batches for item in b.items][:max(0, count)]
+    items = drawable(batches, count, skip)
     if not items:
         return []
     library = readonce.asset_library(Path(data_root) / "assets")
@@ -427,11 +433,13 @@ def write_renders(out: Path, batches: list[BatchPlan], data_root: str, count: in
     return paths
 
 
-def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: int, kinds, seed: int = 0) -> list[Path]:
-    """3D figures of the first ``count`` samples (module docstring, step 5), ``out/renders/<name><suffix>.png``."""
+def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: int, kinds, seed: int = 0,
+                  skip=()) -> list[Path]:
+    """3D figures of the first ``count`` samples (module docstring, step 5; not those in ``skip``),
+    ``out/renders/<name><suffix>.png``."""
     from spread.render import before_after_figure, save_png, scene_card_figure
 
-    items = [item for b in batches for item in b.items][:max(0, count)]
+    items = drawable(batches, count, skip)
     if not items or not kinds:
         return []
     library = readonce.asset_library(Path(data_root) / "assets")
@@ -444,6 +452,13 @@ def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: in
                 else before_after_figure(generated, library, seed=seed, title=item.name)
             paths.append(save_png(image, out / "renders" / f"{item.name}{FIGURE_KINDS[kind]}.png"))
     return paths
+
+
+def sampler_label(identity: dict, cfg: SamplingConfig) -> str:
+    """What sampled, as the run's identity records it: the sampler's label, or an own sampler's (ATISS's "one pass
+    per object": it reads no ``sampler`` setting)."""
+    recorded = identity["sampling"]["sampler"]
+    return recorded if isinstance(recorded, str) else cfg.sampler.label
 
 
 def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
@@ -481,7 +496,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         print(f"{scenes_dir}: took {len(taken_back)} planned scene file(s) back from {out / ASIDE}", flush=True)
     if before_work is not None:
         before_work()
-    damaged = remove_unreadable(batches, scenes_dir)
+    implausible: dict[str, str] = {}  # name → why: the samples the model made physically implausible
+    damaged = remove_unreadable(batches, scenes_dir, implausible)
     todo = [b for b in batches if missing_items(b, scenes_dir)]
     total = sum(len(b.items) for b in batches)
     pending = sum(len(missing_items(b, scenes_dir)) for b in todo)
@@ -496,6 +512,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         if not startup:
             startup.append(time.perf_counter() - started - result["seconds"])
         written.extend(result["written"])
+        implausible.update(result.get("implausible") or {})
         repaired[0] += result["repaired_rotations"]
         for key, value in (result.get("guidance") or {}).items():
             if isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -511,8 +528,13 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     bar.close()
     # counted on disk: a worker killed after writing some files never reports them, its retry skips them
     written = [name for name in wanted if (scenes_dir / f"{name}.npz").exists()]
-    renders = write_renders(out, batches, cfg.data.root, cfg.renders)
-    figures = write_figures(out, batches, cfg.data.root, cfg.figures, cfg.figure_kinds, cfg.seed)
+    if implausible:
+        first = next(iter(implausible.items()))
+        print(f"{scenes_dir}: {len(implausible)} of {total} samples physically implausible, written as made and "
+              f"named in {out / MANIFEST} (spread-evaluate counts them apart: n_implausible), e.g. {first[0]}: "
+              f"{first[1]}", flush=True)
+    renders = write_renders(out, batches, cfg.data.root, cfg.renders, skip=implausible)
+    figures = write_figures(out, batches, cfg.data.root, cfg.figures, cfg.figure_kinds, cfg.seed, skip=implausible)
     files = [scenes_dir / f"{item.name}.npz" for b in batches for item in b.items]
     manifest = {
         "fingerprint": settings, "ckpt": str(cfg.ckpt), "samples_per_graph": int(cfg.samples_per_graph),
@@ -523,7 +545,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "batches": len(batches),
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],
-        "sampler": cfg.sampler.label, "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,
+        "implausible": dict(sorted(implausible.items())),
+        "sampler": sampler_label(settings, cfg), "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,
         "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),

@@ -211,18 +211,28 @@ class SampleWorker:
 
     def run(self, batch: BatchPlan) -> dict:
         """Sample ``batch`` and write its scene files that are missing; returns ``{"index", "written",
-        "skipped", "repaired_rotations", "seconds", "pid"}`` (nothing is sampled when no file is missing)."""
-        from spread.scene import write_scene
+        "skipped", "implausible", "repaired_rotations", "seconds", "pid"}`` (nothing is sampled when no file is
+        missing). A sample the model made physically implausible (an object beyond the
+        :class:`~spread.scene.Plausibility` bounds) is written as made, unvalidated, and named in ``implausible``
+        with why: it is a result (every reader refuses it; ``spread-evaluate`` counts it apart, ``n_implausible``),
+        not a reason to end the run, and sampling it again gives the same."""
+        from spread.scene import ImplausibleSceneError, write_scene
 
         started = time.perf_counter()
         repaired_before = self.repaired
         wanted = {item.name for item in missing_items(batch, self.scenes_dir)}
-        written = []
+        written, implausible = [], {}
         if wanted:
             for scene in self.sample(batch):
                 if scene.scene_id in wanted:
-                    write_scene(scene, self.scenes_dir / f"{scene.scene_id}.npz")
+                    path = self.scenes_dir / f"{scene.scene_id}.npz"
+                    try:
+                        write_scene(scene, path)
+                    except ImplausibleSceneError as exc:
+                        write_scene(scene, path, validate=False)
+                        implausible[scene.scene_id] = exc.problem
                     written.append(scene.scene_id)
-        return {"index": batch.index, "written": written, "skipped": [n for n in batch.names() if n not in wanted],
+        return {"index": batch.index, "written": written, "implausible": implausible,
+                "skipped": [n for n in batch.names() if n not in wanted],
                 "repaired_rotations": self.repaired - repaired_before, "seconds": time.perf_counter() - started,
                 "guidance": self.pipeline.guidance_stats if wanted else {}, "pid": os.getpid()}

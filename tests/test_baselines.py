@@ -401,11 +401,21 @@ def test_a_setting_a_method_does_not_read_makes_no_second_identity_and_its_label
             again = sample_in_process(f"ckpt={trained[method]}", f"out_dir={out}", *base, "sampler.steps=4", read)
             assert again.manifest["redone_because"] and "graph_scale" in again.manifest["redone_because"]
     atiss = json.loads((tmp_path / "atiss" / "sampling.json").read_text())
-    assert atiss["sampler"] == method_spec("atiss").sampler_label == "one pass per object"
+    assert atiss["sampler"] == method_spec("atiss").ignores["sampler"] == "one pass per object"
     assert atiss["fingerprint"]["sampling"]["sampler"] == "one pass per object"
     assert settings(atiss["fingerprint"])["sampler"] == "one pass per object"
+    assert "sampler=one pass per object " in str(read_scene(next((tmp_path / "atiss" / "scenes").glob("*.npz")))
+                                                  .extras["source"])  # the scenes' provenance says the same
     diffuscene = json.loads((tmp_path / "diffuscene" / "sampling.json").read_text())
     assert diffuscene["sampler"] == "ddim-4" and diffuscene["fingerprint"]["sampling"]["graph_scale"] == 1.0
+    # declared, never inferred: a plug-in's own loop may read the sampler it is handed
+    from spread.methods.registry import MethodSpec
+
+    assert MethodSpec("mine", object, sampling="own").unread_sampling() == {}
+    from spread.registry import RegistryError
+
+    with pytest.raises(RegistryError, match=r"ignores=\['seed'\].*'sampler', 'graph_scale', 'precision'"):
+        MethodSpec("mine", object, ignores={"seed": 0})
 
 
 @pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it

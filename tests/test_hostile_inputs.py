@@ -537,6 +537,11 @@ def test_a_sample_pushed_kilometres_away_is_written_as_made_named_and_the_run_go
     again = sample_in_process(*args)
     assert again.written == [] and again.manifest["redone_unreadable"] == 0
     assert list(again.manifest["implausible"]) == [name]
+    # a file a worker wrote but never reported (it died after writing it) is found on disk all the same
+    from spread.sampling.run import unreported_implausible
+
+    others = sorted(p.stem for p in (out / "scenes").glob("*.npz") if p.stem != name)
+    assert unreported_implausible([name, *others], out / "scenes") == {name: again.manifest["implausible"][name]}
 
 
 # ---- 9. user errors in one line, no noise -------------------------------------------------------------------------

@@ -207,6 +207,11 @@ def test_training_without_a_val_or_train_split_is_refused_before_any_logger_or_s
     with pytest.raises(ValueError, match=r"data.root=.*nowhere: no scene files in .*nowhere/train to train on"):
         train_in_process(out, "experiment=quick", f"data.root={tmp_path / 'nowhere'}", *SMALL_MODEL, *FAST_TRAIN)
     assert not (out / "csv").exists()
+    # check_val_every_n_epoch=null validates too (every val_check_interval batches, across epochs)
+    with pytest.raises(ValueError, match=r"no scene files in .*val, and the trainer validates"):
+        train_in_process(out, "experiment=quick", f"data.root={data}", "trainer.check_val_every_n_epoch=null",
+                         "+trainer.val_check_interval=2", *SMALL_MODEL, *FAST_TRAIN)
+    assert not (out / "csv").exists()
 
 
 def test_generate_refuses_zero_rooms_before_the_asset_library_and_warns_about_empty_splits(tmp_path):

@@ -175,8 +175,6 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfi
     checks, its command): the result is kept per (name, overrides, config folder and its files' sizes and times,
     the running app's config sources) and each call gets its own copy (~2 ms) to change as it likes. Overrides
     that add config sources (``hydra.searchpath``) compose every time."""
-    import copy
-
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
@@ -187,7 +185,7 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfi
     if not any(o.lstrip("+~").startswith("hydra.searchpath") for o in overrides):
         key = (name, tuple(overrides), conf_dir(), _conf_signature(conf_dir()), search)
         if key in _COMPOSED:
-            return copy.deepcopy(_COMPOSED[key])
+            return _fresh_copy(_COMPOSED[key])
     if search is not None:
         composed = hydra_compose(config_name=name, overrides=overrides)
     else:
@@ -198,7 +196,17 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfi
     if len(_COMPOSED) >= 512:
         _COMPOSED.clear()
     _COMPOSED[key] = composed
-    return copy.deepcopy(composed)
+    return _fresh_copy(composed)
+
+
+def _fresh_copy(composed: DictConfig) -> DictConfig:
+    """A caller's own copy of a kept config, without the resolver values cached while it was composed (Hydra's
+    ``${now:...}``: each copy resolves the time when it is read)."""
+    import copy
+
+    out = copy.deepcopy(composed)
+    OmegaConf.clear_cache(out)
+    return out
 
 
 def error_message(error: BaseException) -> str:

@@ -179,8 +179,8 @@ class SceneDataModule(L.LightningDataModule):
     def validates(self) -> bool:
         """Whether the trainer runs validation (no trainer yet: assumed so); a run that does not never reads the
         val split (``trainer.limit_val_batches=0``: a val split the object limit empties is no reason to refuse)."""
-        trainer = self.trainer
-        return trainer is None or (trainer.limit_val_batches != 0 and trainer.check_val_every_n_epoch is not None)
+        trainer = self.trainer  # check_val_every_n_epoch None still validates (every val_check_interval batches)
+        return trainer is None or trainer.limit_val_batches != 0
 
     def check_fit(self, validates: bool | None = None) -> None:
         """Before training: the train split has scenes, and so does val when the trainer validates (a run that
@@ -189,12 +189,10 @@ class SceneDataModule(L.LightningDataModule):
         starts, :func:`spread.training.fit.trainer_validates`)."""
         if not self.scene_files("train"):
             raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'train'} to train on")
-        trainer = self.trainer
         if (self.validates() if validates is None else validates) and not self.scene_files("val"):
             raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'val'}, and the trainer "
-                             f"validates every {getattr(trainer, 'check_val_every_n_epoch', 1)} epochs; give a dataset "
-                             f"with a val split (spread-generate writes one from 10 rooms on) or set "
-                             f"trainer.limit_val_batches=0")
+                             f"validates (trainer.limit_val_batches is not 0); give a dataset with a val split "
+                             f"(spread-generate writes one from 10 rooms on) or set trainer.limit_val_batches=0")
 
     def skipped_files(self) -> dict[str, list[dict]]:
         """split → the scene files its dataset skipped (file, error), for the splits built so far."""

@@ -241,9 +241,19 @@ class Ablation:
             geometry["paired"] = paired
 
     def figure_scene(self) -> str | None:
-        """The scene file name the figures show: the first one every sampled row has."""
-        sets = [{p.name for p in (self.engine.sample_dir(v) / "scenes").glob("*.npz")} for v in self.spec.variants
-                if self.engine.status.get(f"sample/{v}") in ("done", "skipped")]
+        """The scene file name the figures show: the first one every sampled row has, and no row's ``sampling.json``
+        names implausible (a sample written as the model made it, which no reader draws)."""
+        from spread.io import read_json
+
+        sets = []
+        for v in self.spec.variants:
+            if self.engine.status.get(f"sample/{v}") not in ("done", "skipped"):
+                continue
+            folder = self.engine.sample_dir(v)
+            manifest = read_json(folder / "sampling.json") if (folder / "sampling.json").is_file() else {}
+            implausible = manifest.get("implausible") if isinstance(manifest, dict) else None
+            absurd = {f"{n}.npz" for n in implausible} if isinstance(implausible, dict) else set()
+            sets.append({p.name for p in (folder / "scenes").glob("*.npz")} - absurd)
         common = sorted(set.intersection(*sets)) if sets else []
         return common[0] if common else None
 

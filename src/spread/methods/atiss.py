@@ -307,5 +307,5 @@ class ATISS(BaselineModule):
 
 register_method(MethodSpec(
     "atiss", "spread.methods.atiss:ATISS", label="ATISS", note="autoregressive, no graph", sampling="own",
-    sampler_label="one pass per object",
+    ignores={"sampler": "one pass per object", "graph_scale": 1.0, "precision": "32"},
     train=("experiment=atiss",), train_quick=("experiment=atiss_quick",), order=10))

@@ -332,7 +332,7 @@ class DiffuScene(BaselineModule):
 
 register_method(MethodSpec(
     "diffuscene", "spread.methods.diffuscene:DiffuScene", label="DiffuScene", note="DDPM over slots, no graph",
-    train=("experiment=diffuscene",), train_quick=("experiment=diffuscene_quick",), order=20))
+    ignores={"graph_scale": 1.0}, train=("experiment=diffuscene",), train_quick=("experiment=diffuscene_quick",), order=20))
 register_method(MethodSpec(
     "physcene", "spread.methods.diffuscene:DiffuScene", label="DiffuScene + PhyScene guidance",
-    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", sample=("guidance=physcene",), order=30))
+    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", ignores={"graph_scale": 1.0}, sample=("guidance=physcene",), order=30))

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from spread.registry import Registry, RegistryError, resolve
 
 SAMPLING = ("pipeline", "own")
+#: The sampling settings a method may declare it does not read (:attr:`MethodSpec.ignores`).
+IGNORABLE = ("sampler", "graph_scale", "precision")
 
 
 @dataclass(frozen=True)
@@ -44,12 +46,18 @@ class MethodSpec:
     trainable: bool = True
     order: int = 100
     extras: dict = field(default_factory=dict)
-    #: How an ``own`` sampler samples, in tables and run identities (it reads no ``sampler`` setting)
-    sampler_label: str = "its own loop"
+    #: The sampling settings (``SamplingConfig`` keys) this method's samples do not depend on, each with the value
+    #: its runs record instead (:meth:`unread_sampling`), declared by the method: ATISS's own loop reads no
+    #: ``sampler`` (recorded as what it runs, ``"one pass per object"``), ``graph_scale`` or ``precision``.
+    ignores: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.sampling not in SAMPLING:
             raise RegistryError(f"method '{self.name}': sampling={self.sampling!r}, choose from {SAMPLING}")
+        unknown = sorted(set(self.ignores) - set(IGNORABLE))
+        if unknown:
+            raise RegistryError(f"method '{self.name}': ignores={unknown}: a method may declare it ignores only "
+                                f"{list(IGNORABLE)}")
 
     def recipe(self, name: str = "full") -> tuple[str, ...]:
         """The ``spread-train`` overrides of a training recipe: ``full`` (:attr:`train`) or ``quick``
@@ -61,16 +69,10 @@ class MethodSpec:
 
     def unread_sampling(self) -> dict:
         """The sampling settings this method's samples do not depend on, each with the value its runs record for it
-        (their identity, their ``sampler`` label): an ``own`` sampler (ATISS's loop) reads no ``sampler``,
-        ``graph_scale`` or ``precision``; a method that sees no relation graph (DiffuScene, PhyScene) reads no
-        ``graph_scale``. So two runs that differ only in a setting the method ignores are one identity of the same
-        samples, labelled with what ran."""
-        out: dict = {}
-        if self.sampling == "own":
-            out |= {"sampler": self.sampler_label, "precision": "32"}
-        if self.sampling == "own" or not self.graph_conditioned:
-            out["graph_scale"] = 1.0
-        return out
+        (their identity, their ``sampler`` label): what the method declares (:attr:`ignores`), nothing inferred —
+        a plug-in's own loop may read the sampler it is handed. So two runs that differ only in a setting the
+        method ignores are one identity of the same samples, labelled with what ran."""
+        return dict(self.ignores)
 
     @property
     def trained_from(self) -> str:

@@ -307,6 +307,13 @@ def unread_sampling(ckpt) -> dict:
         return {}
 
 
+def sampler_label(ckpt, sampler) -> str:
+    """What samples with checkpoint ``ckpt``: the :class:`~spread.model.Sampler`'s label, or what its method's own
+    loop records instead (:func:`unread_sampling`: ATISS's ``"one pass per object"``) — the one label of the
+    run's ``sampling.json``, its scenes' provenance and its tracker tags."""
+    return str(unread_sampling(ckpt).get("sampler", sampler.label))
+
+
 def sampling_identity(cfg) -> dict:
     """What a generated scene file depends on (module docstring); ``cfg``: a typed
     :class:`~spread.sampling.SamplingConfig` (its ``sampler`` a Sampler, its ``guidance`` a GuidanceConfig).
@@ -451,6 +458,19 @@ WHERE = ("data_root",)
 WHERE_PATHS = ("config.data.root",)
 
 
+def sampler_setting(value):
+    """A recorded sampler as :func:`settings` shows it: a fingerprint (dict) or a sampler's name (an older record's
+    string) as its label; any other string as it is (what an own loop records: ATISS's ``"one pass per object"``)."""
+    from spread.model.diffusion import Sampler
+
+    if isinstance(value, (dict, str)):
+        try:
+            return Sampler.from_config(value).label
+        except (TypeError, ValueError):
+            pass
+    return value
+
+
 def settings(identity: dict) -> dict:
     """The flat, readable settings of an identity (module docstring): ``guidance.mode`` and, for every registered
     guidance term, ``guidance.<term>`` (its λ; 0 where it does not act), every other guidance setting of a guided
@@ -472,8 +492,7 @@ def settings(identity: dict) -> dict:
             continue
         if key == "sampling" and isinstance(value, dict):
             for k, v in {**SAMPLING_DEFAULTS, **value}.items():
-                # a dict is a Sampler's fingerprint; a string is what an own sampler records (ATISS's label)
-                out[k] = Sampler.from_config(v).label if k == "sampler" and isinstance(v, dict) else v
+                out[k] = sampler_setting(v) if k == "sampler" else v
         elif key == "evaluation" and isinstance(value, dict):
             for k, v in value.items():
                 if k in ("protocol", "fid") and isinstance(v, dict):

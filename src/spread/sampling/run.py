@@ -409,6 +409,22 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
     return {"workers": len(actors), "mode": "ray", **cluster}
 
 
+def unreported_implausible(names: list[str], scenes_dir: Path) -> dict[str, str]:
+    """Of scene files a worker wrote but never reported (it died after writing them; its retry skipped them), those
+    that read back physically implausible, with why (the others read back whole: atomic writes)."""
+    from spread.scene import ImplausibleSceneError, read_scene
+
+    out = {}
+    for name in names:
+        try:
+            read_scene(scenes_dir / f"{name}.npz")
+        except ImplausibleSceneError as exc:
+            out[name] = exc.problem
+        except Exception:  # noqa: BLE001 - damaged: the next launch's remove_unreadable samples it again
+            pass
+    return out
+
+
 def drawable(batches: list[BatchPlan], count: int, skip=()) -> list:
     """The first ``count`` planned items, those in ``skip`` (implausible samples: no reader draws them) left out."""
     return [item for b in batches for item in b.items if item.name not in skip][:max(0, count)]
@@ -454,13 +470,6 @@ def write_figures(out: Path, batches: list[BatchPlan], data_root: str, count: in
     return paths
 
 
-def sampler_label(identity: dict, cfg: SamplingConfig) -> str:
-    """What sampled, as the run's identity records it: the sampler's label, or an own sampler's (ATISS's "one pass
-    per object": it reads no ``sampler`` setting)."""
-    recorded = identity["sampling"]["sampler"]
-    return recorded if isinstance(recorded, str) else cfg.sampler.label
-
-
 def run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = None) -> SamplingResult:
     """Generate ``samples_per_graph`` scenes for every graph of the split (module docstring);
     ``before_work()`` runs once the checks passed (the command records its config there). The run holds
@@ -483,7 +492,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     limit = object_limit(cfg.data.root, cfg.max_objects)
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
-    from spread.runtime.fingerprint import normalised, sampling_identity
+    from spread.runtime.fingerprint import normalised, sampler_label, sampling_identity
 
     settings = normalised(sampling_identity(cfg))  # the checkpoint hashed once per process
     redone_because = check_fingerprint(out, settings, cfg.resume)
@@ -527,7 +536,9 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         runner = (run_on_ray if cfg.workers > 0 else run_in_process)(todo, cfg, scenes_dir, on_result)
     bar.close()
     # counted on disk: a worker killed after writing some files never reports them, its retry skips them
+    reported = set(written)
     written = [name for name in wanted if (scenes_dir / f"{name}.npz").exists()]
+    implausible |= unreported_implausible([n for n in written if n not in reported], scenes_dir)
     if implausible:
         first = next(iter(implausible.items()))
         print(f"{scenes_dir}: {len(implausible)} of {total} samples physically implausible, written as made and "
@@ -546,7 +557,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],
         "implausible": dict(sorted(implausible.items())),
-        "sampler": sampler_label(settings, cfg), "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,
+        "sampler": sampler_label(cfg.ckpt, cfg.sampler), "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,
         "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),

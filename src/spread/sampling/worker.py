@@ -176,9 +176,11 @@ class SampleWorker:
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
         self.scenes_dir = Path(scenes_dir)
+        from spread.runtime.fingerprint import sampler_label
+
         self.pipeline = load_pipeline(cfg)
         guided = self.pipeline.guidance
-        self.provenance = (f"ckpt={cfg.ckpt} sampler={self.pipeline.sampler.label} seed={int(cfg.seed)}"
+        self.provenance = (f"ckpt={cfg.ckpt} sampler={sampler_label(cfg.ckpt, self.pipeline.sampler)} seed={int(cfg.seed)}"
                            + (f" guidance={guided.label}" if guided else ""))
         self.repaired = 0  # degenerate rotations replaced so far (repair_rotations)
 

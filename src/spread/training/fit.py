@@ -305,11 +305,11 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
 
 
 def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
-    """Whether a trainer of this config (``cfg.trainer``, ``overrides`` winning) runs validation, by Lightning's
-    rule (``limit_val_batches`` 0 or ``check_val_every_n_epoch`` null: never; Lightning's defaults 1.0 and 1), asked
-    before the trainer exists."""
+    """Whether a trainer of this config (``cfg.trainer``, ``overrides`` winning) runs validation, asked before the
+    trainer exists: unless ``limit_val_batches`` is 0 (Lightning's default 1.0); ``check_val_every_n_epoch: null``
+    still validates, every ``val_check_interval`` batches across epochs."""
     values = {**dict(trainer_cfg or {}), **dict(overrides or {})}
-    return values.get("limit_val_batches", 1.0) != 0 and values.get("check_val_every_n_epoch", 1) is not None
+    return values.get("limit_val_batches", 1.0) != 0
 
 
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,

@@ -347,6 +347,12 @@ def test_sample_draws_3d_figures_of_the_first_samples(dataset, trained, tmp_path
     for path in expected:
         image = np.asarray(Image.open(path).convert("RGB"))
         assert image.shape[0] > 400 and image.shape[1] > 1000 and image.std() > 10
+    # on wandb each kind is a key of its own, one picture size per key (a list of mixed sizes shows wrongly)
+    from spread.tracking.sampling_wandb import image_groups
+
+    groups = image_groups(result.manifest)
+    assert groups == {"figures/3d": [str(expected[0])], "figures/physics": [str(expected[1])]}
+    assert Image.open(expected[0]).size != Image.open(expected[1]).size
     only = sample_in_process(f"ckpt={trained / 'model.ckpt'}", f"data.root={dataset}", f"out_dir={out}",
                              "renders=0", "figures=1", "figure_kinds=[card]")
     assert only.manifest["figures"] == [str(expected[0])]

@@ -23,6 +23,18 @@ def sampling_tags(ckpt: str, sampler, guidance, extra: list[str] | None = None) 
     return tags + [str(t) for t in (extra or [])]
 
 
+def image_groups(manifest: dict) -> dict[str, list[str]]:
+    """A sampling run's pictures as wandb keys, one size per key (wandb shows a list of mixed sizes wrongly, and
+    says so): ``renders`` (ground truth | generated), and each figure kind apart, ``figures/<kind>`` by the name's
+    last part (``<sample>_3d.png``, ``<sample>_physics.png``)."""
+    groups: dict[str, list[str]] = {}
+    if manifest.get("renders"):
+        groups["renders"] = [str(p) for p in manifest["renders"]]
+    for path in manifest.get("figures") or []:
+        groups.setdefault(f"figures/{Path(path).stem.rsplit('_', 1)[-1]}", []).append(str(path))
+    return groups
+
+
 def open_sampling_run(command, config: dict, group: str):
     """The wandb run of a ``spread-sample`` command, opened before the work: named after its run folder, tags
     of :func:`sampling_tags` (the guidance from the command), and ``config["lineage"]``: the training run of
@@ -61,8 +73,8 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
         if more is not None:
             more(run)
         else:
-            images = {key: [wandb.Image(str(p), caption=Path(p).stem) for p in manifest[key]]
-                      for key in ("renders", "figures") if manifest.get(key)}
+            images = {key: [wandb.Image(str(p), caption=Path(p).stem) for p in paths]
+                      for key, paths in image_groups(manifest).items()}
             if images:
                 run.log(images)
         return run_folder(run)

@@ -411,7 +411,7 @@ def test_a_setting_a_method_does_not_read_makes_no_second_identity_and_its_label
     # declared, never inferred: a plug-in's own loop may read the sampler it is handed
     from spread.methods.registry import MethodSpec
 
-    assert MethodSpec("mine", object, sampling="own").unread_sampling() == {}
+    assert MethodSpec("mine", object, sampling="own").ignores == {}
     from spread.registry import RegistryError
 
     with pytest.raises(RegistryError, match=r"ignores=\['seed'\].*'sampler', 'graph_scale', 'precision'"):

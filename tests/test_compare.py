@@ -68,7 +68,7 @@ class FakeCommands:
         (out / "sampling.json").write_text(json.dumps(
             {"samples": 3, "fingerprint": {"ckpt_sha256": file_sha256(a["ckpt"]), "sampling": {"seed": a["seed"]}},
              # as the sampler records it: an own sampler's label (ATISS's), else the sampler's
-             "sampler": method_spec(out.name).unread_sampling().get("sampler", "ddim-50"), "guidance": guidance.fingerprint(), "guidance_label": guidance.label,
+             "sampler": method_spec(out.name).ignores.get("sampler", "ddim-50"), "guidance": guidance.fingerprint(), "guidance_label": guidance.label,
              "seconds_per_batch": 0.5, "batches_run": 2, "written_this_run": 3}))
 
     def evaluate(self, overrides):

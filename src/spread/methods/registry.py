@@ -47,8 +47,10 @@ class MethodSpec:
     order: int = 100
     extras: dict = field(default_factory=dict)
     #: The sampling settings (``SamplingConfig`` keys) this method's samples do not depend on, each with the value
-    #: its runs record instead (:meth:`unread_sampling`), declared by the method: ATISS's own loop reads no
-    #: ``sampler`` (recorded as what it runs, ``"one pass per object"``), ``graph_scale`` or ``precision``.
+    #: its runs record instead (their identity, their ``sampler`` label:
+    #: :func:`spread.runtime.fingerprint.unread_sampling`), declared by the method, never inferred (a plug-in's own
+    #: loop may read the sampler it is handed): ATISS's own loop reads no ``sampler`` (recorded as what it runs,
+    #: ``"one pass per object"``), ``graph_scale`` or ``precision``. Two runs that differ only there are one identity.
     ignores: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -66,13 +68,6 @@ class MethodSpec:
         if name not in recipes:
             raise RegistryError(f"method '{self.name}': recipe={name!r}, choose from {list(recipes)}")
         return recipes[name]
-
-    def unread_sampling(self) -> dict:
-        """The sampling settings this method's samples do not depend on, each with the value its runs record for it
-        (their identity, their ``sampler`` label): what the method declares (:attr:`ignores`), nothing inferred —
-        a plug-in's own loop may read the sampler it is handed. So two runs that differ only in a setting the
-        method ignores are one identity of the same samples, labelled with what ran."""
-        return dict(self.ignores)
 
     @property
     def trained_from(self) -> str:

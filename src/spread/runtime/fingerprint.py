@@ -294,7 +294,7 @@ def init_weights_digest(config: dict) -> str | None:
 
 def unread_sampling(ckpt) -> dict:
     """The sampling settings the method of checkpoint ``ckpt`` does not read, with the values its runs record
-    (:meth:`spread.methods.registry.MethodSpec.unread_sampling`); {} when the file does not load here (the run
+    (:attr:`spread.methods.registry.MethodSpec.ignores`); {} when the file does not load here (the run
     refuses it in its own words) or its method reads them all. The checkpoint is read once per process
     (:func:`spread.readonce.checkpoint`)."""
     from spread import readonce
@@ -302,7 +302,7 @@ def unread_sampling(ckpt) -> dict:
 
     try:
         checkpoint = readonce.checkpoint(ckpt)
-        return method_spec(checkpoint_method(checkpoint.get("hyper_parameters") or {})).unread_sampling()
+        return method_spec(checkpoint_method(checkpoint.get("hyper_parameters") or {})).ignores.copy()
     except (OSError, ValueError, RuntimeError):
         return {}
 

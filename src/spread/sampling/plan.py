@@ -117,19 +117,28 @@ def remove_unreadable(batches: list[BatchPlan], scenes_dir: str | Path,
     (:class:`~spread.scene.ImplausibleSceneError`: a sample the model pushed kilometres away, written as made by
     :meth:`~spread.sampling.worker.SampleWorker.run`; sampled again it would be the same): its name and why go into
     ``implausible`` when given."""
-    from spread.scene import ImplausibleSceneError, read_scene
-
     removed = []
     for item in (item for batch in batches for item in batch.items):
         path = Path(scenes_dir) / f"{item.name}.npz"
         if not path.exists():
             continue
-        try:
-            read_scene(path)
-        except ImplausibleSceneError as exc:
-            if implausible is not None:
-                implausible[item.name] = exc.problem
-        except Exception:  # any other reason it does not read back: sample it again
+        whole, problem = read_back(path)
+        if not whole:  # any other reason it does not read back: sample it again
             path.unlink()
             removed.append(item.name)
+        elif problem is not None and implausible is not None:
+            implausible[item.name] = problem
     return removed
+
+
+def read_back(path: Path) -> tuple[bool, str | None]:
+    """(whether a written scene file reads back whole, why it is physically implausible or None)."""
+    from spread.scene import ImplausibleSceneError, read_scene
+
+    try:
+        read_scene(path)
+    except ImplausibleSceneError as exc:
+        return True, exc.problem
+    except Exception:  # noqa: BLE001 - cut short, damaged, not a scene
+        return False, None
+    return True, None

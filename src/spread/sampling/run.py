@@ -38,7 +38,7 @@ from spread.guidance import GuidanceConfig
 from spread.io import read_json, write_json_atomic
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session
-from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, remove_unreadable
+from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, read_back, remove_unreadable
 
 MANIFEST = "sampling.json"
 #: The 3D figures ``spread-sample`` can write per sample: file suffix of each.
@@ -411,17 +411,13 @@ def run_on_ray(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path, on_
 
 def unreported_implausible(names: list[str], scenes_dir: Path) -> dict[str, str]:
     """Of scene files a worker wrote but never reported (it died after writing them; its retry skipped them), those
-    that read back physically implausible, with why (the others read back whole: atomic writes)."""
-    from spread.scene import ImplausibleSceneError, read_scene
-
+    that read back physically implausible, with why (:func:`~spread.sampling.plan.read_back`; a damaged one is
+    the next launch's to sample again)."""
     out = {}
     for name in names:
-        try:
-            read_scene(scenes_dir / f"{name}.npz")
-        except ImplausibleSceneError as exc:
-            out[name] = exc.problem
-        except Exception:  # noqa: BLE001 - damaged: the next launch's remove_unreadable samples it again
-            pass
+        problem = read_back(scenes_dir / f"{name}.npz")[1]
+        if problem is not None:
+            out[name] = problem
     return out
 
 

@@ -175,9 +175,9 @@ class SampleWorker:
 
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
-        self.scenes_dir = Path(scenes_dir)
         from spread.runtime.fingerprint import sampler_label
 
+        self.scenes_dir = Path(scenes_dir)
         self.pipeline = load_pipeline(cfg)
         guided = self.pipeline.guidance
         self.provenance = (f"ckpt={cfg.ckpt} sampler={sampler_label(cfg.ckpt, self.pipeline.sampler)} seed={int(cfg.seed)}"

@@ -69,12 +69,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def user_error(name: str, *args: str, timeout: int = 300) -> tuple[str, subprocess.CompletedProcess]:
+def user_error(name: str, *args: str, timeout: int = 300, cwd: Path | None = None) -> tuple[str, subprocess.CompletedProcess]:
     """A console script run as a user runs it (no HYDRA_FULL_ERROR, wandb disabled) that must be refused: the one
     stderr line it ends with (``<name>: ...``, no traceback), and the process."""
     env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG")}
     proc = subprocess.run([str(SCRIPTS / name), *args], env={**env, "WANDB_MODE": "disabled"}, capture_output=True,
-                          text=True, timeout=timeout)
+                          text=True, timeout=timeout, cwd=cwd)
     lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert lines and lines[-1].startswith(f"{name}: "), proc.stderr[-3000:]

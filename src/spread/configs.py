@@ -29,6 +29,7 @@ spawn pool or a Ray worker can receive them.
 
 import functools
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -212,14 +213,32 @@ def _fresh_copy(composed: DictConfig) -> DictConfig:
 def error_message(error: BaseException) -> str:
     """A user error's message on one line; Hydra's composition errors with the first line of their cause (``Value
     'abc' could not be converted to Float``, ``Key 'colision' not in 'GuidanceConfig'``), which says what was
-    wrong with the override."""
+    wrong with the override, and without Hydra's list of config sources; a required setting (``???``) left
+    unset as ``<key> is required``."""
     from hydra.errors import ConfigCompositionException
+    from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
-    message = " ".join(str(error).split()) or type(error).__name__
+    if isinstance(error, (MissingMandatoryValue, InterpolationToMissingValueError)):
+        key = getattr(error, "full_key", None)
+        if isinstance(error, InterpolationToMissingValueError):  # ${out_dir} read while out_dir is ???
+            found = re.search(r"Missing mandatory value: ([\w.\[\]-]+)", str(error))
+            key = found.group(1) if found else None
+        if key:
+            return required_message([key])
+    text = str(error).split("\nConfig search path:")[0]  # a missing config group option: the options, not the paths
+    message = " ".join(text.split()) or type(error).__name__
     inner = error.__cause__
     if isinstance(error, ConfigCompositionException) and inner is not None and str(inner).strip():
         message += f" ({str(inner).strip().splitlines()[0]})"
     return message
+
+
+def required_message(keys) -> str:
+    """One line naming required settings (``???`` in the config) that the command line left unset."""
+    keys = sorted(keys)
+    given = " ".join(f"{k}=..." for k in keys)
+    return (f"required setting{'s' if len(keys) > 1 else ''} not given: {', '.join(keys)} (add {given}; the command's "
+            f"--cfg job shows every setting)")
 
 
 def to_object(cfg: DictConfig):

@@ -15,7 +15,7 @@ from spread.configs import conf_dir, register
 register()
 
 
-@command("spread-ablate")
+@command("spread-ablate", config="ablate")
 @hydra.main(config_path=conf_dir(), config_name="ablate", version_base="1.3")
 @one_line("spread-ablate")
 def main(cfg: DictConfig) -> None:

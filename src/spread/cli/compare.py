@@ -15,7 +15,7 @@ from spread.configs import conf_dir, register
 register()
 
 
-@command("spread-compare")
+@command("spread-compare", config="compare")
 @hydra.main(config_path=conf_dir(), config_name="compare", version_base="1.3")
 @one_line("spread-compare")
 def main(cfg: DictConfig) -> None:

@@ -2,7 +2,10 @@
 
 * :func:`command` wraps a script's ``main`` (the Hydra app) and checks an ``out_dir=`` given on the command
   line *before* Hydra makes the run folder: an existing file, a read-only or unwritable folder is refused in
-  one line (Hydra would stop with a traceback from deep inside itself).
+  one line (Hydra would stop with a traceback from deep inside itself); and, given the command's config name,
+  composes the command line once first (:func:`compose_problem`): an override that names no key, does not parse
+  or names no config group option, or a required setting (``???``) left unset, is refused in one line before
+  Hydra prints its own message or a traceback from resolving the run folder.
 * :func:`one_line` wraps the task function inside the Hydra app: a bad setting or input (``ValueError``,
   ``FileNotFoundError``, a refused file or folder — also when a constructor raised it inside Hydra's
   ``instantiate``) ends the command with ``<command>: <message>`` and exit status 1. ``HYDRA_FULL_ERROR=1`` (or
@@ -25,12 +28,17 @@ def user_error_types() -> tuple[type[BaseException], ...]:
     """Exceptions that report a bad setting or input (not a bug): their message is the whole story."""
     from hydra.errors import ConfigCompositionException, OverrideParseException
 
+    from omegaconf.errors import MissingMandatoryValue
+
     from spread.io import RunFolderBusy, UnsafeOutputError
 
     # Hydra's: an override that names no key of the config or does not parse (a command that composes configs
-    # itself, as spread-sweep and spread-ablate do for their points and stages)
+    # itself, as spread-sweep and spread-ablate do for their points and stages); OmegaConf's: a required setting
+    # (``???``) read while unset (a multirun, which is not composed before Hydra runs). A ``???`` read through an
+    # interpolation is a ValueError already (InterpolationToMissingValueError).
     return (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-            RunFolderBusy, UnsafeOutputError, ConfigCompositionException, OverrideParseException)
+            RunFolderBusy, UnsafeOutputError, ConfigCompositionException, OverrideParseException,
+            MissingMandatoryValue)
 
 
 def user_error(exc: BaseException) -> BaseException | None:
@@ -121,9 +129,32 @@ def launcher_problem(value: str) -> str | None:
             f"pip install -e '.[launchers]' (make demo / make test install it)")
 
 
-def command(name: str):
+def compose_problem(config: str, args: list[str]) -> str | None:
+    """What keeps the command line ``args`` from composing ``conf/<config>.yaml`` for one run, in one line, or None:
+    an override that names no key, does not parse or convert, or names no config group option, or a required
+    setting (``???``) that it leaves unset. A command line with Hydra's flags (``-m``, ``--cfg``, ``--help``, …) or
+    a ``hydra.searchpath`` is left to Hydra; other ``hydra.*`` overrides are not part of the job's config."""
+    if any(a.startswith("-") for a in args) or any(a.lstrip("+~").startswith("hydra.searchpath") for a in args):
+        return None
+    overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from spread.configs import compose, error_message, required_message
+
+    try:
+        composed = compose(config, overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        return error_message(exc)
+    missing = [key for key in OmegaConf.missing_keys(composed) if not key.startswith("hydra.")]
+    return required_message(missing) if missing else None
+
+
+def command(name: str, config: str | None = None):
     """Decorator of a console script's Hydra ``main``: refuse a bad ``out_dir=`` argument, or a Hydra launcher whose
-    plugin is not installed (:func:`launcher_problem`), before Hydra runs."""
+    plugin is not installed (:func:`launcher_problem`), before Hydra runs; with ``config`` (the app's config name)
+    also a command line that does not compose or leaves a required setting unset (:func:`compose_problem`)."""
 
     def wrap(main):
         @functools.wraps(main)
@@ -137,6 +168,10 @@ def command(name: str):
                     problem = launcher_problem(arg.split("=", 1)[1])
                     if problem:
                         raise SystemExit(f"{name}: {problem}")
+            if config is not None:
+                problem = compose_problem(config, sys.argv[1:])
+                if problem:
+                    raise SystemExit(f"{name}: {problem}")
             return main(*args, **kwargs)
 
         return entry

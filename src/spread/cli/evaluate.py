@@ -15,7 +15,7 @@ from spread.configs import conf_dir, register
 register("evaluate")
 
 
-@command("spread-evaluate")
+@command("spread-evaluate", config="evaluate")
 @hydra.main(config_path=conf_dir(), config_name="evaluate", version_base="1.3")
 @one_line("spread-evaluate")
 def main(cfg: DictConfig) -> None:

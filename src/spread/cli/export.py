@@ -12,7 +12,7 @@ from spread.configs import conf_dir, register
 register("export")
 
 
-@command("spread-export")
+@command("spread-export", config="export")
 @hydra.main(config_path=conf_dir(), config_name="export", version_base="1.3")
 @one_line("spread-export")
 def main(cfg: DictConfig) -> None:

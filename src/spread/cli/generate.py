@@ -11,7 +11,7 @@ from spread.configs import conf_dir, register
 register("generate")
 
 
-@command("spread-generate")
+@command("spread-generate", config="generate")
 @hydra.main(config_path=conf_dir(), config_name="generate", version_base="1.3")
 @one_line("spread-generate")
 def main(cfg: DictConfig) -> None:

@@ -12,7 +12,7 @@ from spread.configs import conf_dir, register
 register("import")
 
 
-@command("spread-import")
+@command("spread-import", config="import")
 @hydra.main(config_path=conf_dir(), config_name="import", version_base="1.3")
 @one_line("spread-import")
 def main(cfg: DictConfig) -> None:

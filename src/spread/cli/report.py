@@ -16,7 +16,7 @@ from spread.configs import conf_dir, register
 register("report")
 
 
-@command("spread-report")
+@command("spread-report", config="report")
 @hydra.main(config_path=conf_dir(), config_name="report", version_base="1.3")
 @one_line("spread-report")
 def main(cfg: DictConfig) -> None:

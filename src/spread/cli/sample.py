@@ -16,7 +16,7 @@ from spread.configs import conf_dir, register
 register("sample")
 
 
-@command("spread-sample")
+@command("spread-sample", config="sample")
 @hydra.main(config_path=conf_dir(), config_name="sample", version_base="1.3")
 @one_line("spread-sample")
 def main(cfg: DictConfig) -> None:

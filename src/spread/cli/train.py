@@ -12,7 +12,7 @@ from spread.configs import conf_dir, register
 register()
 
 
-@command("spread-train")
+@command("spread-train", config="train")
 @hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
 @one_line("spread-train")
 def main(cfg: DictConfig) -> None:

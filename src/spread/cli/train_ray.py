@@ -33,10 +33,9 @@ def _main(cfg: DictConfig) -> None:
           f"Ray checkpoint {None if result.checkpoint is None else result.checkpoint.path}")
 
 
-@command("spread-train-ray")
 def main() -> None:
-    sys.argv = with_default_trainer(sys.argv)
-    _main()
+    sys.argv = with_default_trainer(sys.argv)  # checked as it composes: trainer=ray unless the line names one
+    command("spread-train-ray", config="train")(_main)()
 
 
 if __name__ == "__main__":

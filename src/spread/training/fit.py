@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from spread.training.checkpoints import (CheckpointStep, StopAtStep, StopRequested, atomic_checkpoint_io,
                                          resolve_ckpt_path, save_final_checkpoint, stop_on_interrupt)
 from spread.training.determinism import ExactResume
+from spread.training.trainer_settings import check_trainer_settings
 
 log = logging.getLogger("spread.train")
 
@@ -295,8 +296,11 @@ def trainer_settings_of(cfg: DictConfig) -> dict:
 
 def check_start(cfg: DictConfig, run_dir: Path) -> None:
     """What a training launch checks before it records its config or starts any work (``spread-train-ray``'s driver,
-    before Ray starts; ``spread-train`` within :func:`train`): the folder holds one history (:func:`one_history`) and a
-    resumed checkpoint was trained with this run's settings (:func:`check_resume_checkpoint`)."""
+    before Ray starts; ``spread-train`` within :func:`train`): the ``trainer.*`` values are Trainer arguments
+    (:func:`~spread.training.trainer_settings.check_trainer_settings`), the folder holds one history
+    (:func:`one_history`) and a resumed checkpoint was trained with this run's settings
+    (:func:`check_resume_checkpoint`)."""
+    check_trainer_settings(cfg.trainer)
     ckpt_path = resolve_ckpt_path(cfg, run_dir)
     one_history(cfg, run_dir, ckpt_path)
     if ckpt_path is not None:
@@ -329,6 +333,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     from spread.tracking.loggers import as_logger_config, lightning_loggers
     from spread.training.monitors import monitors
 
+    check_trainer_settings(cfg.trainer, trainer_overrides)
     check_accelerator(cfg, (trainer_overrides or {}).get("accelerator"))
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,110 @@
+"""``trainer.*`` settings checked against Lightning's ``Trainer`` arguments before a training launch records its
+config, opens a logger run or starts Ray (docs/robustness.md).
+
+Lightning's own refusal comes only when the trainer is built, after the run's config was recorded and its wandb /
+MLflow run opened, and it names no setting (``'<' not supported between instances of 'str' and 'int'`` for
+``trainer.max_steps=abc``). :func:`trainer_setting_problem` names the key, the value and what the argument takes,
+from the ``Trainer.__init__`` annotations of the installed Lightning.
+"""
+
+from __future__ import annotations
+
+import functools
+import typing
+
+
+@functools.cache
+def _trainer_arguments() -> tuple[dict, bool]:
+    """``Trainer.__init__``'s annotations by argument name, and whether it takes ``**kwargs``."""
+    import inspect
+
+    from lightning.pytorch import Trainer
+
+    parameters = inspect.signature(Trainer.__init__).parameters
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    try:
+        hints = typing.get_type_hints(Trainer.__init__)
+    except Exception:  # noqa: BLE001 — an annotation this Python cannot evaluate: names are still checked
+        hints = {}
+    return {name: hints.get(name, typing.Any) for name in parameters if name != "self"}, takes_any
+
+
+def accepts(annotation, value) -> bool:
+    """Whether a plain config value (None, bool, int, float, str, list, dict) fits ``annotation``; a class this
+    cannot judge from a config value (an ``Accelerator``, a ``timedelta``) accepts it, and Lightning decides."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if annotation is typing.Any:
+        return True
+    if origin is typing.Union:
+        return any(accepts(a, value) for a in args)
+    if origin is typing.Literal:
+        return any(value == a and type(value) is type(a) for a in args)
+    if annotation is type(None):
+        return value is None
+    if annotation is bool:
+        return isinstance(value, bool)
+    if annotation is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if annotation is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if annotation is str:
+        return isinstance(value, str)
+    if origin is list:
+        return isinstance(value, list) and all(accepts(args[0], v) for v in value) if args else isinstance(value, list)
+    if origin is dict:
+        return isinstance(value, dict)
+    return True  # a class (Accelerator, timedelta, Path, …): a config value with ``_target_`` or one Lightning converts
+
+
+def _alternatives(annotation) -> list[str]:
+    """``annotation`` as the values or types it allows, flattened (``Optional[int]`` → ``int``, ``None``)."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is typing.Union:
+        return [alt for a in args for alt in _alternatives(a)]
+    if origin is typing.Literal:
+        return [repr(a) for a in args]
+    if annotation is type(None):
+        return ["None"]
+    if origin is not None:  # list[int]
+        return [str(annotation).replace("typing.", "")]
+    return [getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")]
+
+
+def _spelled(annotation) -> str:
+    alternatives = _alternatives(annotation)
+    return alternatives[0] if len(alternatives) == 1 else "one of " + ", ".join(alternatives)
+
+
+def trainer_setting_problem(trainer_cfg, overrides: dict | None = None) -> str | None:
+    """What is wrong with ``trainer_cfg`` (the composed ``trainer`` node) as Lightning ``Trainer`` arguments, in one
+    line, or None: an argument the Trainer does not take, or a value its annotation does not allow. Keys in
+    ``overrides`` (a launcher's own arguments, Ray Train's strategy and plugins) are not the user's and are not
+    checked; a node whose ``_target_`` is not Lightning's Trainer is not checked."""
+    from omegaconf import DictConfig, OmegaConf
+
+    values = OmegaConf.to_container(trainer_cfg, resolve=True) if isinstance(trainer_cfg, DictConfig) \
+        else dict(trainer_cfg or {})
+    target = str(values.pop("_target_", ""))
+    if target not in ("lightning.pytorch.Trainer", "lightning.Trainer", "lightning.pytorch.trainer.trainer.Trainer",
+                      "pytorch_lightning.Trainer"):
+        return None
+    arguments, takes_any = _trainer_arguments()
+    problems = []
+    for key, value in values.items():
+        if key in (overrides or {}) or key.startswith("_"):
+            continue
+        if key not in arguments:
+            if not takes_any:
+                problems.append(f"trainer.{key}: Lightning's Trainer takes no such argument")
+            continue
+        if not accepts(arguments[key], value):
+            problems.append(f"trainer.{key}={value!r}: Lightning's Trainer takes {_spelled(arguments[key])} here")
+    return "; ".join(problems) or None
+
+
+def check_trainer_settings(trainer_cfg, overrides: dict | None = None) -> None:
+    """Raise ``ValueError`` (one line, the command's refusal) for :func:`trainer_setting_problem`."""
+    problem = trainer_setting_problem(trainer_cfg, overrides)
+    if problem:
+        raise ValueError(problem)

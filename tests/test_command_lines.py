@@ -1,0 +1,132 @@
+"""A command line that cannot run is refused in one line before anything is made (docs/robustness.md, round 9).
+
+* Every Hydra console script composes its command line once before Hydra runs (``spread.cli.errors.compose_problem``):
+  required settings left unset (``???``) are all named at once, where Hydra stopped at the first with a traceback
+  from resolving the run folder; an override that names no key, no config group option, or does not parse is one
+  line without Hydra's list of config sources. Hydra's own flags (``--cfg``, ``-m``) are left to Hydra, and a
+  multirun job that reads an unset setting ends in the same one line.
+* ``trainer.*`` values are checked against Lightning's ``Trainer`` arguments before a launch records its config or
+  opens a logger run (``spread.training.trainer_settings``): a relaunch with a value Lightning refuses leaves the run
+  folder byte for byte as it was.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from helpers import FAST_TRAIN, SCRIPTS, SMALL_MODEL, compose, make_dataset, train_in_process, user_error
+from spread.cli.errors import compose_problem
+from spread.training.trainer_settings import trainer_setting_problem
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+@pytest.mark.parametrize("name, keys", [
+    ("spread-train", "data.root"), ("spread-train-ray", "data.root"), ("spread-sample", "ckpt, data.root, out_dir"),
+    ("spread-evaluate", "out_dir, reference, scenes"), ("spread-export", "out_dir, scenes"),
+    ("spread-import", "out_dir, source, src"), ("spread-report", "runs"), ("spread-generate", "out_dir")])
+def test_a_console_script_without_its_required_settings_names_them_all_in_one_line_and_makes_nothing(name, keys,
+                                                                                                    tmp_path):
+    line, _ = user_error(name, cwd=tmp_path)
+    assert f"not given: {keys} (add " in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("override, says", [
+    ("model=nosuch", ["Could not find 'model/nosuch'", "Available options in 'model': ", " paper "]),
+    ("trainer.nonexistent=3", ["Could not override 'trainer.nonexistent'", "Key 'nonexistent' is not in struct"]),
+    ("seed=1,2", ["Ambiguous value for argument 'seed=1,2'", "add --multirun"]),
+    ("data.root=[1,2", ["no viable alternative at input '[1,2'"]),
+])
+def test_an_override_that_does_not_compose_is_one_line_saying_what_is_wrong(override, says):
+    problem = compose_problem("train", ["data.root=/d", override])
+    assert problem is not None and "\n" not in problem and "Config search path" not in problem, problem
+    for part in says:
+        assert part in problem, problem
+
+
+def test_a_command_line_that_composes_passes_and_hydra_flags_and_its_own_settings_are_left_to_hydra():
+    assert compose_problem("train", ["experiment=quick", "data.root=/d", "trainer.max_steps=3"]) is None
+    assert compose_problem("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", "guidance=paper"]) is None
+    assert compose_problem("train", ["--cfg", "job"]) is None  # prints the config, ??? and all
+    assert compose_problem("train", ["-m", "seed=1,2"]) is None  # a sweep: each job is checked as it runs
+    assert compose_problem("train", ["data.root=/d", "hydra.run.dir=/x", "hydra/job_logging=disabled"]) is None
+    assert compose_problem("train", ["hydra.searchpath=[file:///nowhere]", "model=nosuch"]) is None
+
+
+def test_the_composed_config_is_still_printed_by_hydra_with_its_unset_settings(tmp_path):
+    proc = subprocess.run([str(SCRIPTS / "spread-train"), "--cfg", "job"], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "root: ???" in proc.stdout and list(tmp_path.iterdir()) == []
+
+
+def test_a_multirun_job_that_reads_an_unset_required_setting_ends_in_one_line(tmp_path):
+    line, _ = user_error("spread-train", "-m", "seed=1,2", "logger=none", cwd=tmp_path)
+    assert "required setting not given: data.root (add data.root=...;" in line, line
+
+
+TRAINER = {"_target_": "lightning.pytorch.Trainer"}
+
+
+def test_trainer_values_are_checked_against_the_arguments_lightnings_trainer_takes():
+    assert trainer_setting_problem({**TRAINER, "max_steps": 10, "max_epochs": None, "precision": "bf16-mixed",
+                                    "devices": "auto", "limit_val_batches": 0.5, "deterministic": "warn",
+                                    "max_time": "00:01:00:00", "accelerator": "cpu"}) is None
+    assert trainer_setting_problem({**TRAINER, "max_steps": "abc"}) == \
+        "trainer.max_steps='abc': Lightning's Trainer takes int here"
+    assert trainer_setting_problem({**TRAINER, "max_steps": 1000.0}) == \
+        "trainer.max_steps=1000.0: Lightning's Trainer takes int here"
+    assert trainer_setting_problem({**TRAINER, "max_steps": True}) is not None  # a bool is no count
+    assert trainer_setting_problem({**TRAINER, "max_epochs": "x"}) == \
+        "trainer.max_epochs='x': Lightning's Trainer takes one of int, None here"
+    assert trainer_setting_problem({**TRAINER, "max_stepz": 5}) == \
+        "trainer.max_stepz: Lightning's Trainer takes no such argument"
+    precision = trainer_setting_problem({**TRAINER, "precision": "bf17"})
+    assert precision.startswith("trainer.precision='bf17': Lightning's Trainer takes one of ") and \
+        "'bf16-mixed'" in precision
+    both = trainer_setting_problem({**TRAINER, "max_steps": "abc", "max_stepz": 5})
+    assert both.count("; ") == 1 and "max_steps" in both and "max_stepz" in both
+    # a launcher's own arguments (Ray Train's strategy, plugins) and another trainer class are not judged here
+    assert trainer_setting_problem({**TRAINER, "strategy": 3}, {"strategy": object()}) is None
+    assert trainer_setting_problem({"_target_": "my.Trainer", "max_steps": "abc"}) is None
+
+
+@pytest.mark.parametrize("config", [f"trainer={p.stem}" for p in sorted((CONF / "trainer").glob("*.yaml"))]
+                         + [f"experiment={p.stem}" for p in sorted((CONF / "experiment").glob("*.yaml"))])
+def test_every_trainer_config_and_experiment_composes_to_values_lightnings_trainer_takes(config):
+    assert trainer_setting_problem(compose("train", "data.root=/d", config).trainer) is None
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> tuple[Path, Path]:
+    """A dataset and a base model's run folder after 2 training steps."""
+    dataset = make_dataset(tmp_path_factory.mktemp("cl_data"))
+    out = tmp_path_factory.mktemp("cl_run") / "run"
+    train_in_process(out, "experiment=quick", "model.variant=base", f"data.root={dataset}", "trainer.max_time=null",
+                     "trainer.max_steps=2", *SMALL_MODEL, *FAST_TRAIN)
+    return dataset, out
+
+
+def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_and_leaves_the_run_folder_as_it_was(
+        run, tmp_path):
+    dataset, made = run
+    folder = tmp_path / "run"
+    shutil.copytree(made, folder)
+    before = recorded(folder)
+    line, _ = user_error("spread-train", "experiment=quick", "model.variant=base", f"data.root={dataset}",
+                         "trainer.max_time=null", *SMALL_MODEL, *FAST_TRAIN, f"out_dir={folder}", "ckpt_path=last",
+                         "trainer.max_steps=4.5")
+    assert line.startswith("spread-train: trainer.max_steps=4.5: Lightning's Trainer takes int here"), line
+    assert recorded(folder) == before
+
+
+def recorded(folder: Path) -> dict:
+    """A run folder's files with their bytes, but the folder's lock (which names the last launch) and Hydra's log of
+    the command (which Hydra opens before any check can run)."""
+    return {p: p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != ".spread.lock" and p.suffix != ".log"}

@@ -67,7 +67,7 @@ def test_the_composed_config_is_still_printed_by_hydra_with_its_unset_settings(t
 
 def test_a_multirun_job_that_reads_an_unset_required_setting_ends_in_one_line(tmp_path):
     line, _ = user_error("spread-train", "-m", "seed=1,2", "logger=none", cwd=tmp_path)
-    assert "required setting not given: data.root (add data.root=...;" in line, line
+    assert "required setting not given: data.root (add data.root=...)" in line, line
 
 
 TRAINER = {"_target_": "lightning.pytorch.Trainer"}
@@ -130,3 +130,18 @@ def recorded(folder: Path) -> dict:
     the command (which Hydra opens before any check can run)."""
     return {p: p.read_bytes() for p in sorted(folder.rglob("*"))
             if p.is_file() and p.name != ".spread.lock" and p.suffix != ".log"}
+
+
+def test_spread_sweep_names_every_unset_setting_and_refuses_a_checkpoint_or_data_that_is_not_there_before_ray(
+        tmp_path):
+    out = tmp_path / "sweep"
+    line, _ = user_error("spread-sweep", f"out_dir={out}", cwd=tmp_path)
+    assert line.startswith("spread-sweep: required settings not given: ckpt, data.root (add ckpt=... data.root=..."), line
+    line, proc = user_error("spread-sweep", f"out_dir={out}", f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={tmp_path}",
+                            cwd=tmp_path)
+    assert line == f"spread-sweep: {tmp_path / 'no.ckpt'}: no such checkpoint file", line
+    assert "Ray" not in proc.stderr + proc.stdout  # refused before Ray started: no trial, no table
+    line, _ = user_error("spread-sweep", "command=train", f"out_dir={out}", f"data.root={tmp_path / 'none'}",
+                         "seed=1,2", cwd=tmp_path)
+    assert line == f"spread-sweep: data.root={tmp_path / 'none'}: no scene files in {tmp_path / 'none' / 'train'} to train on", line
+    assert not out.exists()

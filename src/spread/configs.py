@@ -233,12 +233,13 @@ def error_message(error: BaseException) -> str:
     return message
 
 
-def required_message(keys) -> str:
-    """One line naming required settings (``???`` in the config) that the command line left unset."""
+def required_message(keys, hint: str = "") -> str:
+    """One line naming required settings (``???`` in the config) that the command line left unset; ``hint``: where
+    to read what they are."""
     keys = sorted(keys)
     given = " ".join(f"{k}=..." for k in keys)
-    return (f"required setting{'s' if len(keys) > 1 else ''} not given: {', '.join(keys)} (add {given}; the command's "
-            f"--cfg job shows every setting)")
+    return (f"required setting{'s' if len(keys) > 1 else ''} not given: {', '.join(keys)} (add {given}"
+            + (f"; {hint}" if hint else "") + ")")
 
 
 def to_object(cfg: DictConfig):

@@ -23,6 +23,9 @@ KEYS = {"tracking_uri": None, "port": "5000", "host": "127.0.0.1", "paths.runs_d
 def parse(argv: list[str]) -> dict:
     """``key=value`` arguments over :data:`KEYS`; an unknown key or a bare word is refused by name."""
     values = dict(KEYS)
+    if any(a in ("-h", "--help") for a in argv):  # the usage, as spread-view and the Hydra commands print theirs
+        print(__doc__.strip())
+        raise SystemExit(0)
     for arg in argv:
         key, eq, value = arg.partition("=")
         if not eq or key.lstrip("+") not in KEYS:

@@ -129,11 +129,12 @@ def launcher_problem(value: str) -> str | None:
             f"pip install -e '.[launchers]' (make demo / make test install it)")
 
 
-def compose_problem(config: str, args: list[str]) -> str | None:
+def compose_problem(config: str, args: list[str], name: str = "") -> str | None:
     """What keeps the command line ``args`` from composing ``conf/<config>.yaml`` for one run, in one line, or None:
     an override that names no key, does not parse or convert, or names no config group option, or a required
     setting (``???``) that it leaves unset. A command line with Hydra's flags (``-m``, ``--cfg``, ``--help``, …) or
-    a ``hydra.searchpath`` is left to Hydra; other ``hydra.*`` overrides are not part of the job's config."""
+    a ``hydra.searchpath`` is left to Hydra; other ``hydra.*`` overrides are not part of the job's config. ``name``:
+    the console script, named in the hint to print its settings."""
     if any(a.startswith("-") for a in args) or any(a.lstrip("+~").startswith("hydra.searchpath") for a in args):
         return None
     overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
@@ -148,7 +149,9 @@ def compose_problem(config: str, args: list[str]) -> str | None:
     except (HydraException, OmegaConfBaseException) as exc:
         return error_message(exc)
     missing = [key for key in OmegaConf.missing_keys(composed) if not key.startswith("hydra.")]
-    return required_message(missing) if missing else None
+    if not missing:
+        return None
+    return required_message(missing, f"`{name} --cfg job` prints every setting" if name else "")
 
 
 def command(name: str, config: str | None = None):
@@ -159,6 +162,8 @@ def command(name: str, config: str | None = None):
     def wrap(main):
         @functools.wraps(main)
         def entry(*args, **kwargs):
+            if args or kwargs:  # called with a composed config (``main(cfg)``), not from a command line
+                return main(*args, **kwargs)
             for arg in sys.argv[1:]:
                 if arg.startswith("out_dir="):
                     problem = out_dir_problem(arg.split("=", 1)[1])
@@ -169,7 +174,7 @@ def command(name: str, config: str | None = None):
                     if problem:
                         raise SystemExit(f"{name}: {problem}")
             if config is not None:
-                problem = compose_problem(config, sys.argv[1:])
+                problem = compose_problem(config, sys.argv[1:], name)
                 if problem:
                     raise SystemExit(f"{name}: {problem}")
             return main(*args, **kwargs)

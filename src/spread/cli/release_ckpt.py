@@ -21,6 +21,9 @@ import sys
 def parse(argv: list[str]) -> dict:
     """``key=value`` arguments: ``ckpt`` (required), ``use_ema`` (default true), ``out``, ``model.*`` overrides."""
     args = {"use_ema": "true", "out": None, "overrides": []}
+    if any(a in ("-h", "--help") for a in argv):  # the usage, as spread-view and the Hydra commands print theirs
+        print(__doc__.strip())
+        raise SystemExit(0)
     for arg in argv:
         key, sep, value = arg.partition("=")
         if sep and key.startswith("model."):

@@ -14,13 +14,18 @@ def sweep(args: list[str]):
     """Parse the command line's arguments into a plan and run it; returns the
     :class:`~spread.experiments.sweep.SweepResult` (``ValueError``: a bad setting, before any trial)."""
     from spread.commands.in_process import InProcessCommands
-    from spread.configs import compose
+    from omegaconf import OmegaConf
+
+    from spread.configs import compose, required_message
     from spread.experiments.sweep import parse_arguments, run_sweep
     from spread.tracking.parent import absolute_tracking_overrides, parent_run
 
     plan = parse_arguments(args)
     s = plan.settings
     cfg = compose(s.command, [*plan.fixed, "out_dir=unset"])
+    missing = sorted(k for k in OmegaConf.missing_keys(cfg) if k not in {d.key for d in plan.dimensions})
+    if missing:  # every one named at once, before any trial (a trial would stop at the first it reads)
+        raise ValueError(required_message(missing, "`spread-sweep --help` lists the sweep's own settings"))
     plan.fixed += absolute_tracking_overrides(cfg)  # a trial runs in Ray Tune's folder, not here
     config = {"sweep": asdict(s), "fixed": list(plan.fixed), "dimensions": [asdict(d) for d in plan.dimensions]}
     with parent_run(cfg.logger, "sweep", s.name, s.out_dir, s.name, config) as parent:

@@ -549,6 +549,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
               "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd(), "trial_gpus": float(s.trial_gpus or 0)}
     check_inert_dimensions(plan, shared)  # before anything is written
+    check_first_point(plan, shared)
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])
@@ -672,6 +673,30 @@ def check_inert_dimensions(plan: SweepPlan, shared: dict) -> None:
             raise ValueError(f"spread-sweep: {d.key}: its values {shown} give every point the same fingerprint (what "
                              f"a sampled and evaluated result depends on){hint}; every value would repeat the same "
                              f"run — remove the key from the sweep or sweep something that changes the result")
+
+
+def check_first_point(plan: SweepPlan, shared: dict) -> None:
+    """Before Ray starts and anything is written: the sweep's first point passes the checks its command makes of its
+    inputs (a sampling point: the device, the checkpoint and the split's graphs,
+    :func:`spread.sampling.run.check_inputs`; a training point: the ``trainer.*`` values and the dataset's splits),
+    so a checkpoint or data folder that is not there is refused in one line, not a failed trial per point with
+    Ray's tracebacks and a table of empty rows."""
+    from spread.configs import compose, to_object
+
+    config = {d.key: probe_values(d)[0] for d in plan.dimensions}
+    if plan.settings.command == "sample":
+        from spread.sampling.run import check_inputs
+
+        check_inputs(to_object(sample_point(config, shared)[1]))
+        return
+    import hydra
+
+    from spread.training.fit import trainer_validates
+    from spread.training.trainer_settings import check_trainer_settings
+
+    cfg = compose("train", [*shared["fixed"], *trial_overrides(config), "out_dir=unset"])
+    check_trainer_settings(cfg.trainer)
+    hydra.utils.instantiate(cfg.data).check_fit(trainer_validates(cfg.trainer))
 
 
 def grid_points(plan: SweepPlan) -> list[dict]:

@@ -243,6 +243,15 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
     return checkpoint
 
 
+def check_inputs(cfg: SamplingConfig) -> None:
+    """What :func:`run_sampling` checks of its inputs before it samples, without touching ``out_dir``, for a caller
+    that plans runs before any starts (a sweep's driver, before Ray): the device, the checkpoint
+    (:func:`check_checkpoint`) and the split's graphs (:func:`read_graphs`)."""
+    check_device(cfg)
+    check_checkpoint(cfg)
+    read_graphs(cfg.data.root, cfg.data.split, object_limit(cfg.data.root, cfg.max_objects))
+
+
 def check_categories(checkpoint: dict, cfg: SamplingConfig) -> None:
     """``ValueError`` when the checkpoint's model was trained on another category list than the dataset's
     (``hyper_parameters.categories`` — a baseline's one-hot columns — against ``manifest.json``'s): its samples would

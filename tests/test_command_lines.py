@@ -145,3 +145,26 @@ def test_spread_sweep_names_every_unset_setting_and_refuses_a_checkpoint_or_data
                          "seed=1,2", cwd=tmp_path)
     assert line == f"spread-sweep: data.root={tmp_path / 'none'}: no scene files in {tmp_path / 'none' / 'train'} to train on", line
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["spread-dashboard", "spread-release-ckpt"])
+def test_help_prints_the_usage_of_a_console_script_that_takes_key_value_arguments(name):
+    proc = subprocess.run([str(SCRIPTS / name), "--help"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.startswith(f"``{name} "), proc.stdout[:300] + proc.stderr[-1000:]
+
+
+@pytest.mark.parametrize("command, base, override, says", [
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "workers=-2", "workers=-2: expected a whole number ≥ 0"),
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "renders=-1", "renders=-1: expected a whole number ≥ 0"),
+    ("evaluate", ["scenes=/s", "reference=/r", "out_dir=/o"], "chunk_size=0",
+     "chunk_size=0: expected a whole number ≥ 1"),
+    ("evaluate", ["scenes=/s", "reference=/r", "out_dir=/o"], "bootstrap_resamples=-5",
+     "bootstrap_resamples=-5: expected a whole number ≥ 0"),
+])
+def test_a_count_below_its_least_is_refused_by_key_not_taken_for_another_value(command, base, override, says):
+    """``workers=-2`` sampled in this process and ``chunk_size=0`` evaluated one scene a task, each recorded as given."""
+    from spread.configs import to_object
+
+    with pytest.raises(ValueError, match=says):
+        to_object(compose(command, *base, override))
+    to_object(compose(command, *base))  # the defaults pass

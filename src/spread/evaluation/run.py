@@ -67,6 +67,12 @@ class EvaluationConfig:
     fid: FIDConfig = field(default_factory=FIDConfig)
     ray: RaySettings = field(default_factory=RaySettings)
 
+    def __post_init__(self) -> None:
+        for key in ("chunk_size", "renders", "bootstrap_resamples"):
+            value, least = getattr(self, key), 1 if key == "chunk_size" else 0
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"{key}={value!r}: expected a whole number ≥ {least}")
+
 
 @dataclass
 class EvaluationResult:

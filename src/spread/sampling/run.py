@@ -111,6 +111,10 @@ class SamplingConfig:
         from spread.sampling.pipeline import check_values
 
         check_values(self.graph_scale, self.geometry_scale, self.precision)
+        for key in ("workers", "renders", "figures"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{key}={value!r}: expected a whole number ≥ 0")
         unknown = [k for k in self.figure_kinds if k not in FIGURE_KINDS]
         if unknown:
             raise ValueError(f"figure_kinds: unknown {unknown} (choose from {list(FIGURE_KINDS)})")

@@ -93,6 +93,12 @@ def test_a_converted_checkpoint_loads_by_its_method_and_samples_through_the_samp
     assert totals["iterations"] == totals["network_calls"] == 3 * batches and totals["steps"] == 3 * batches
     for a, b in zip(result.files, guided.files):  # same seed, same sampler: guidance moved the objects
         assert not np.allclose(read_scene(a).translation, read_scene(b).translation)
+    # what the network runs for guidance=paper is guidance=release: one run, whichever way it is spelled
+    assert guided.manifest["guidance"]["mode"] == "release" and guided.manifest["guidance_label"].startswith("release(")
+    again = sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'g'}", "sampler=ddpm",
+                              "sampler.steps=3", "logger=none", "renders=0", "guidance=release", "guidance.iterations=3")
+    assert again.manifest["written_this_run"] == 0 and again.manifest["resumed"] == len(guided.files)
+    assert again.manifest["guidance"] == guided.manifest["guidance"]
     with pytest.raises(ValueError, match="cuda_graph=false"):  # its point features read the mask on the host
         sample_in_process(f"ckpt={out}", f"data.root={imported}", f"out_dir={tmp_path / 'c'}", "cuda_graph=true",
                           "logger=none", "renders=0")
@@ -155,7 +161,7 @@ def test_spread_sample_guidance_paper_runs_the_authors_pipeline_on_a_converted_c
                       "sampler.steps=3", "guidance=paper", "workers=0", "batch_size=2", "renders=0", "figures=0",
                       "progress=false", "logger=none")
     manifest = json.loads((samples / "sampling.json").read_text())
-    assert manifest["guidance"]["mode"] == "paper" and manifest["guidance"]["iterations"] == 100
+    assert manifest["guidance"]["mode"] == "release" and manifest["guidance"]["iterations"] == 100  # what ran
     totals = manifest["guidance_totals"]
     assert totals["iterations"] == totals["network_calls"] == 100 and totals["steps"] == 100  # one batch
     files = sorted((samples / "scenes").glob("*.npz"))

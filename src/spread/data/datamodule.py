@@ -93,6 +93,14 @@ def ray_cpus() -> float | None:
         return None
 
 
+def runs_validation(limit_val_batches) -> bool:
+    """Whether a Lightning trainer with this ``limit_val_batches`` (its default 1.0) validates: unless it is 0;
+    ``check_val_every_n_epoch: null`` still validates, every ``val_check_interval`` batches across epochs. The one
+    rule asked of a trainer (:meth:`SceneDataModule.validates`) and of a trainer's config before it exists
+    (:func:`spread.training.fit.trainer_validates`)."""
+    return limit_val_batches != 0
+
+
 class SceneDataModule(L.LightningDataModule):
     """Dataloaders over ``<root>/{train,val,test}`` with :func:`collate_scenes` batching."""
 
@@ -179,8 +187,8 @@ class SceneDataModule(L.LightningDataModule):
     def validates(self) -> bool:
         """Whether the trainer runs validation (no trainer yet: assumed so); a run that does not never reads the
         val split (``trainer.limit_val_batches=0``: a val split the object limit empties is no reason to refuse)."""
-        trainer = self.trainer  # check_val_every_n_epoch None still validates (every val_check_interval batches)
-        return trainer is None or trainer.limit_val_batches != 0
+        trainer = self.trainer
+        return trainer is None or runs_validation(trainer.limit_val_batches)
 
     def check_fit(self, validates: bool | None = None) -> None:
         """Before training: the train split has scenes, and so does val when the trainer validates (a run that

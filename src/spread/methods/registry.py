@@ -52,6 +52,10 @@ class MethodSpec:
     #: loop may read the sampler it is handed): ATISS's own loop reads no ``sampler`` (recorded as what it runs,
     #: ``"one pass per object"``), ``graph_scale`` or ``precision``. Two runs that differ only there are one identity.
     ignores: dict = field(default_factory=dict)
+    #: Guidance modes this method runs as another (asked → run), declared by the method: the authors' network runs
+    #: the paper's guidance as the authors' refinement (``{"paper": "release"}``). Its samples, identity, labels and
+    #: tags are those of the mode it runs (:meth:`guidance_run`), so the two spellings are one run.
+    guidance_modes: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.sampling not in SAMPLING:
@@ -60,6 +64,19 @@ class MethodSpec:
         if unknown:
             raise RegistryError(f"method '{self.name}': ignores={unknown}: a method may declare it ignores only "
                                 f"{list(IGNORABLE)}")
+        from spread.guidance.config import MODES
+
+        odd = sorted(str(m) for m in {*self.guidance_modes, *self.guidance_modes.values()} if m not in MODES)
+        if odd:
+            raise RegistryError(f"method '{self.name}': guidance_modes names {odd}, which are no guidance modes "
+                                f"({list(MODES)})")
+
+    def guidance_run(self, guidance):
+        """The :class:`~spread.guidance.GuidanceConfig` this method runs for ``guidance`` (:attr:`guidance_modes`)."""
+        import dataclasses
+
+        mode = self.guidance_modes.get(getattr(guidance, "mode", None))
+        return guidance if mode is None or not guidance.active else dataclasses.replace(guidance, mode=mode)
 
     def recipe(self, name: str = "full") -> tuple[str, ...]:
         """The ``spread-train`` overrides of a training recipe: ``full`` (:attr:`train`) or ``quick``
@@ -116,4 +133,4 @@ register_method(MethodSpec(
 register_method(MethodSpec(
     "release", "spread.methods.release:ReleaseDiffusion", label="SPREAD (authors' weights)",
     note="the release's network and checkpoint (spread-release-ckpt out=)", graph_conditioned=True,
-    trainable=False, order=60))
+    trainable=False, order=60, guidance_modes={"paper": "release"}))

@@ -39,7 +39,6 @@ authors' pipeline. The other modes (``refine``, ``sample``, ``release``) run as 
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -106,11 +105,15 @@ class ReleaseDiffusion(L.LightningModule):
         """(6,) the translation bounds [min xyz, max xyz] the release's boxes are normalised by, metres."""
         return torch.tensor(self.hparams.bounds, dtype=torch.float32, device=self.device)
 
-    @staticmethod
-    def resolve_guidance(config):
+    @classmethod
+    def resolve_guidance(cls, config):
         """The guidance this method runs for ``config`` (a GuidanceConfig): the paper's guidance is, for the authors'
-        network, the authors' refinement (mode ``release``, same weights and schedule); other modes as asked."""
-        return dataclasses.replace(config, mode="release") if config.mode == "paper" else config
+        network, the authors' refinement (mode ``release``, same weights and schedule); other modes as asked. Declared
+        once, by the method's registry entry (:attr:`~spread.methods.registry.MethodSpec.guidance_modes`), which the
+        run's identity and tags ask too."""
+        from spread.methods.registry import method_spec
+
+        return method_spec(cls.method).guidance_run(config)
 
     def setup(self, stage: str | None = None) -> None:
         if stage == "fit":

@@ -314,12 +314,30 @@ def sampler_label(ckpt, sampler) -> str:
     return str(unread_sampling(ckpt).get("sampler", sampler.label))
 
 
+def guidance_run(ckpt, guidance):
+    """The guidance that runs when checkpoint ``ckpt`` samples with ``guidance``: its method's own realisation of the
+    mode (:attr:`spread.methods.registry.MethodSpec.guidance_modes`: the authors' network runs ``paper`` as
+    ``release``), else ``guidance`` — the one guidance of the run's identity, ``sampling.json`` and tracker tags."""
+    from spread import readonce
+    from spread.methods import checkpoint_method, method_spec
+
+    if not getattr(guidance, "active", False):
+        return guidance
+    try:
+        checkpoint = readonce.checkpoint(ckpt)
+        spec = method_spec(checkpoint_method(checkpoint.get("hyper_parameters") or {}))
+    except (OSError, ValueError, RuntimeError):
+        return guidance
+    return spec.guidance_run(guidance)
+
+
 def sampling_identity(cfg) -> dict:
     """What a generated scene file depends on (module docstring); ``cfg``: a typed
     :class:`~spread.sampling.SamplingConfig` (its ``sampler`` a Sampler, its ``guidance`` a GuidanceConfig).
     ``samples_per_graph`` is not part of it (more samples only add files); ``data_root`` says where the data
     lies (``spread-view`` reads it). A setting the checkpoint's method does not read holds the value its runs record
-    (:func:`unread_sampling`: ATISS's ``sampler`` is ``"one pass per object"``)."""
+    (:func:`unread_sampling`: ATISS's ``sampler`` is ``"one pass per object"``), and the guidance is the one that
+    runs (:func:`guidance_run`: the authors' network's ``paper`` is ``release``)."""
     unread = unread_sampling(cfg.ckpt)
     return {"ckpt_sha256": file_digest(cfg.ckpt), "data": dataset_digest(cfg.data.root, [cfg.data.split]),
             "data_root": str(Path(str(cfg.data.root)).resolve()), "split": str(cfg.data.split),
@@ -331,7 +349,7 @@ def sampling_identity(cfg) -> dict:
                              "precision": str(unread.get("precision", getattr(cfg, "precision", "32"))),
                              "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0)),
                              "graphs_over_limit": cfg.graphs_over_limit() if hasattr(cfg, "graphs_over_limit") else []})},
-            "guidance": cfg.guidance.fingerprint(), "numbers_version": NUMBERS_VERSION}
+            "guidance": guidance_run(cfg.ckpt, cfg.guidance).fingerprint(), "numbers_version": NUMBERS_VERSION}
 
 
 def evaluation_identity(protocol, fid, assets) -> dict:

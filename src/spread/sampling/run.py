@@ -501,7 +501,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     limit = object_limit(cfg.data.root, cfg.max_objects)
     graphs, skipped_graphs = read_graphs(cfg.data.root, cfg.data.split, limit)
     batches = plan_batches(graphs, cfg.samples_per_graph, cfg.batch_size, cfg.seed)
-    from spread.runtime.fingerprint import normalised, sampler_label, sampling_identity
+    from spread.runtime.fingerprint import guidance_run, normalised, sampler_label, sampling_identity
 
     settings = normalised(sampling_identity(cfg))  # the checkpoint hashed once per process
     redone_because = check_fingerprint(out, settings, cfg.resume)
@@ -566,7 +566,8 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
         "batches_run": len(todo),
         "repaired_rotations": repaired[0],
         "implausible": dict(sorted(implausible.items())),
-        "sampler": sampler_label(cfg.ckpt, cfg.sampler), "guidance": settings["guidance"], "guidance_label": cfg.guidance.label,
+        "sampler": sampler_label(cfg.ckpt, cfg.sampler), "guidance": settings["guidance"],
+        "guidance_label": guidance_run(cfg.ckpt, cfg.guidance).label,
         "guidance_totals": guidance_totals or None,
         "renders": [str(p) for p in renders], "figures": [str(p) for p in figures], "device": cfg.device, "threads": cfg.threads,
         "seconds": round(time.perf_counter() - started, 3),

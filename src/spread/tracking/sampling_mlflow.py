@@ -11,11 +11,11 @@ def sampling_run_tags(command) -> dict:
     """Tags of a ``spread-sample`` command (a :class:`~spread.sampling.SamplingConfig` with its extras)."""
     from spread.tracking.mlflow_store import dataset_fingerprint, training_lineage
     from spread import readonce
-    from spread.runtime.fingerprint import sampler_label
+    from spread.runtime.fingerprint import guidance_run, sampler_label
     from spread.safe_load import checkpoint_identity
 
     held = checkpoint_identity(readonce.checkpoint(command.ckpt))
-    guidance = command.guidance
+    guidance = guidance_run(command.ckpt, command.guidance)  # what runs: the release's paper is its refinement
     tags = {"spread.variant": held["variant"], "spread.method": held["method"],
             "spread.sampler": sampler_label(command.ckpt, command.sampler), "spread.seed": command.seed,
             "spread.guidance": guidance.mode if guidance.active else "none", "spread.guidance_label": guidance.label,

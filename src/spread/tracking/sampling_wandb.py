@@ -12,10 +12,11 @@ def sampling_tags(ckpt: str, sampler, guidance, extra: list[str] | None = None) 
     """Variant (from the checkpoint's hyperparameters, read without loading its weights), the
     :class:`~spread.model.Sampler`'s label and the :class:`~spread.guidance.GuidanceConfig`'s tags, plus ``extra``."""
     from spread import readonce
-    from spread.runtime.fingerprint import sampler_label
+    from spread.runtime.fingerprint import guidance_run, sampler_label
     from spread.safe_load import checkpoint_identity
 
     held = checkpoint_identity(readonce.checkpoint(ckpt))
+    guidance = guidance_run(ckpt, guidance)  # what runs: the release's paper is its refinement
     tags = [str(held["variant"] or held["method"]), sampler_label(ckpt, sampler)]  # SPREAD variant or baseline
     if guidance.active:
         tags += ["guidance", f"guidance={guidance.mode}"] + [f"{name}={weight:g}" for name, weight

@@ -310,10 +310,11 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
 
 def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
     """Whether a trainer of this config (``cfg.trainer``, ``overrides`` winning) runs validation, asked before the
-    trainer exists: unless ``limit_val_batches`` is 0 (Lightning's default 1.0); ``check_val_every_n_epoch: null``
-    still validates, every ``val_check_interval`` batches across epochs."""
+    trainer exists (:func:`spread.data.datamodule.runs_validation`, Lightning's default ``limit_val_batches`` 1.0)."""
+    from spread.data.datamodule import runs_validation
+
     values = {**dict(trainer_cfg or {}), **dict(overrides or {})}
-    return values.get("limit_val_batches", 1.0) != 0
+    return runs_validation(values.get("limit_val_batches", 1.0))
 
 
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,

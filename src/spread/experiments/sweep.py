@@ -548,7 +548,8 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     trial = nested_trial(trial)  # its runs nest under the sweep's parent run (spread.tracking.parent)
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
               "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd(), "trial_gpus": float(s.trial_gpus or 0)}
-    check_inert_dimensions(plan, shared)  # before anything is written
+    check_inert_dimensions(plan, shared)  # before anything is written or Ray starts
+    check_started_cluster(s)
     check_first_point(plan, shared)
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
@@ -719,8 +720,6 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
     storage = out / "tune"
     if not (storage / s.folder_name).resolve().is_relative_to(out.resolve()):  # safe_name makes this impossible
         raise ValueError(f"spread-sweep: name={s.name}: Ray Tune's folder would leave out_dir={out}")
-    if settings.starts_cluster and s.num_cpus:  # a cluster this sweep starts has its num_cpus: refused before Ray
-        check_resources(s, [{"CPU": float(s.num_cpus)}], keys=("trial_cpus",))
     with ray_session(settings, owner=out):
         check_resources(s)
         if resumable(plan, out, shared):  # the same search, same inputs: its searcher and trials where they stopped
@@ -794,6 +793,14 @@ def resumable(plan: SweepPlan, out: Path, shared: dict | None = None) -> bool:
         state.rename(state.with_name(f"{state.name}.{time.strftime('%Y%m%d-%H%M%S')}"))
     write_json_atomic(record, identity)
     return False
+
+
+def check_started_cluster(s: SweepSettings) -> None:
+    """A cluster this sweep starts has its ``num_cpus``: a trial it cannot hold is refused before Ray starts."""
+    from spread.runtime.ray import RaySettings
+
+    if RaySettings(address=s.address, num_cpus=s.num_cpus).starts_cluster and s.num_cpus:
+        check_resources(s, [{"CPU": float(s.num_cpus)}], keys=("trial_cpus",))
 
 
 def check_resources(s: SweepSettings, nodes: list[dict] | None = None,

@@ -64,15 +64,10 @@ class MethodSpec:
         if unknown:
             raise RegistryError(f"method '{self.name}': ignores={unknown}: a method may declare it ignores only "
                                 f"{list(IGNORABLE)}")
-        from spread.guidance.config import MODES
-
-        odd = sorted(str(m) for m in {*self.guidance_modes, *self.guidance_modes.values()} if m not in MODES)
-        if odd:
-            raise RegistryError(f"method '{self.name}': guidance_modes names {odd}, which are no guidance modes "
-                                f"({list(MODES)})")
 
     def guidance_run(self, guidance):
-        """The :class:`~spread.guidance.GuidanceConfig` this method runs for ``guidance`` (:attr:`guidance_modes`)."""
+        """The :class:`~spread.guidance.GuidanceConfig` this method runs for ``guidance`` (:attr:`guidance_modes`; a
+        mode that is none is refused by the config, naming the modes)."""
         import dataclasses
 
         mode = self.guidance_modes.get(getattr(guidance, "mode", None))

@@ -112,16 +112,20 @@ def run(tmp_path_factory) -> tuple[Path, Path]:
     return dataset, out
 
 
+@pytest.mark.parametrize("override, says", [
+    ("trainer.max_steps=4.5", "trainer.max_steps=4.5: Lightning's Trainer takes int here"),
+    ("checkpoint.every_n_train_steps=-5", "checkpoint: MisconfigurationException: Invalid value for "
+                                          "every_n_train_steps=-5")])
 def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_and_leaves_the_run_folder_as_it_was(
-        run, tmp_path):
+        run, tmp_path, override, says):
     dataset, made = run
     folder = tmp_path / "run"
     shutil.copytree(made, folder)
     before = recorded(folder)
     line, _ = user_error("spread-train", "experiment=quick", "model.variant=base", f"data.root={dataset}",
                          "trainer.max_time=null", *SMALL_MODEL, *FAST_TRAIN, f"out_dir={folder}", "ckpt_path=last",
-                         "trainer.max_steps=4.5")
-    assert line.startswith("spread-train: trainer.max_steps=4.5: Lightning's Trainer takes int here"), line
+                         override)
+    assert line.startswith(f"spread-train: {says}"), line
     assert recorded(folder) == before
 
 
@@ -160,6 +164,12 @@ def test_help_prints_the_usage_of_a_console_script_that_takes_key_value_argument
      "chunk_size=0: expected a whole number ≥ 1"),
     ("evaluate", ["scenes=/s", "reference=/r", "out_dir=/o"], "bootstrap_resamples=-5",
      "bootstrap_resamples=-5: expected a whole number ≥ 0"),
+    # each of these sampled nothing usable after the finished folder was cleared (NaN poses; a traceback)
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "sampler.eta=nan", r"sampler.eta=nan: expected a number in \[0, 1\]"),
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", "sampler=ddim50"], "sampler.eta=2", r"sampler.eta=2.0: expected"),
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "threads=-2", "threads=-2: expected a whole number ≥ 1, or null"),
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "seed=-1", "seed=-1 .*: expected a whole number ≥ 0"),
+    ("evaluate", ["scenes=/s", "reference=/r", "out_dir=/o"], "seed=-1", "seed=-1 .*: expected a whole number ≥ 0"),
 ])
 def test_a_count_below_its_least_is_refused_by_key_not_taken_for_another_value(command, base, override, says):
     """``workers=-2`` sampled in this process and ``chunk_size=0`` evaluated one scene a task, each recorded as given."""
@@ -168,3 +178,15 @@ def test_a_count_below_its_least_is_refused_by_key_not_taken_for_another_value(c
     with pytest.raises(ValueError, match=says):
         to_object(compose(command, *base, override))
     to_object(compose(command, *base))  # the defaults pass
+
+
+@pytest.mark.parametrize("override, says", [
+    ("seed=-1", "seed=-1: expected a whole number in [0, 2**32)"),
+    ("threads=0", "threads=0: expected a whole number ≥ 1, or null for torch's default")])
+def test_a_training_seed_or_thread_count_lightning_or_torch_refuses_is_refused_by_key(override, says):
+    from spread.training.trainer_settings import check_training_settings
+
+    with pytest.raises(ValueError) as refused:
+        check_training_settings(compose("train", "data.root=/d", override))
+    assert str(refused.value) == says
+    check_training_settings(compose("train", "data.root=/d"))

@@ -96,6 +96,8 @@ def ablate(cfg: DictConfig):
     spec = ablation_spec(cfg)
     name = f"ablation/{cfg.name}"
     seeds = [int(x) for x in (OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])]
+    if any(x < 0 for x in seeds):  # a training seed is Lightning's, in [0, 2**32)
+        raise ValueError(f"seeds={seeds}: a seed is a whole number ≥ 0")
     twice = sorted({x for x in seeds if seeds.count(x) > 1})
     if twice:  # one run counted as two seeds, with no spread between them
         raise ValueError(f"seeds={seeds}: seed {twice[0]} is listed twice; give each training seed once")

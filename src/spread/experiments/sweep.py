@@ -693,10 +693,10 @@ def check_first_point(plan: SweepPlan, shared: dict) -> None:
     import hydra
 
     from spread.training.fit import trainer_validates
-    from spread.training.trainer_settings import check_trainer_settings
+    from spread.training.trainer_settings import check_training_settings
 
     cfg = compose("train", [*shared["fixed"], *trial_overrides(config), "out_dir=unset"])
-    check_trainer_settings(cfg.trainer)
+    check_training_settings(cfg)
     hydra.utils.instantiate(cfg.data).check_fit(trainer_validates(cfg.trainer))
 
 

@@ -260,9 +260,16 @@ class Sampler:
             raise ValueError(f"sampler steps must be in [1, 1000], got {self.steps}")
 
     def check_eta(self) -> None:
-        """``ValueError`` for an ``eta`` other than 0 on a sampler that does not read it (every kind but ``ddim``):
+        """``ValueError`` for an ``eta`` outside [0, 1] (beyond 1 the step's noise exceeds its variance: NaN), or other
+        than 0 on a sampler that does not read it (every kind but ``ddim``):
         its samples would be those at eta 0 under a second fingerprint and label. Checked where a run is configured
         (:class:`spread.sampling.SamplingConfig`), not where a recorded sampler is read back."""
+        import math
+
+        if isinstance(self.eta, bool) or not isinstance(self.eta, (int, float)) or not math.isfinite(self.eta) \
+                or not 0.0 <= float(self.eta) <= 1.0:
+            raise ValueError(f"sampler.eta={self.eta!r}: expected a number in [0, 1] (0: deterministic DDIM, 1: "
+                             f"DDPM-like noise)")
         if float(self.eta) != 0.0 and self.kind != "ddim":
             raise ValueError(f"sampler.eta={self.eta:g}: only the ddim sampler reads eta ({self.kind} ignores it, so "
                              f"its samples would be the same as at eta 0); leave it at 0 or use sampler=ddim")

@@ -111,10 +111,11 @@ class SamplingConfig:
         from spread.sampling.pipeline import check_values
 
         check_values(self.graph_scale, self.geometry_scale, self.precision)
-        for key in ("workers", "renders", "figures"):
+        for key in ("workers", "renders", "figures", "seed"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"{key}={value!r}: expected a whole number ≥ 0")
+        check_threads(self.threads)
         unknown = [k for k in self.figure_kinds if k not in FIGURE_KINDS]
         if unknown:
             raise ValueError(f"figure_kinds: unknown {unknown} (choose from {list(FIGURE_KINDS)})")
@@ -245,6 +246,12 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
         except Exception:  # noqa: BLE001 - a model whose checks read real tensors: its workers check them
             pass
     return checkpoint
+
+
+def check_threads(threads) -> None:
+    """``threads``: torch threads per process, a whole number ≥ 1 or None (torch's default)."""
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValueError(f"threads={threads!r}: expected a whole number ≥ 1, or null for torch's default")
 
 
 def check_inputs(cfg: SamplingConfig) -> None:

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from spread.training.checkpoints import (CheckpointStep, StopAtStep, StopRequested, atomic_checkpoint_io,
                                          resolve_ckpt_path, save_final_checkpoint, stop_on_interrupt)
 from spread.training.determinism import ExactResume
-from spread.training.trainer_settings import check_trainer_settings
+from spread.training.trainer_settings import built, check_training_settings
 
 log = logging.getLogger("spread.train")
 
@@ -61,9 +61,11 @@ def build_callbacks(cfg: DictConfig, run_dir: Path) -> list:
     (:class:`DataDigest`) plus the ``callbacks`` of the config."""
     from spread.training.clock import TrainingClock
 
-    checkpoint = hydra.utils.instantiate(cfg.checkpoint, dirpath=str(run_dir / "checkpoints"))
+    checkpoint = built(lambda: hydra.utils.instantiate(cfg.checkpoint, dirpath=str(run_dir / "checkpoints")),
+                       "checkpoint")
     return ([checkpoint, TrainingClock(run_dir), DataDigest()]
-            + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()])
+            + [built(lambda c=c: hydra.utils.instantiate(c), f"callbacks.{k}")
+               for k, c in (cfg.get("callbacks") or {}).items()])
 
 
 #: The checkpoint key of the training data's content (:class:`DataDigest`).
@@ -297,10 +299,10 @@ def trainer_settings_of(cfg: DictConfig) -> dict:
 def check_start(cfg: DictConfig, run_dir: Path) -> None:
     """What a training launch checks before it records its config or starts any work (``spread-train-ray``'s driver,
     before Ray starts; ``spread-train`` within :func:`train`): the ``trainer.*`` values are Trainer arguments
-    (:func:`~spread.training.trainer_settings.check_trainer_settings`), the folder holds one history
+    (:func:`~spread.training.trainer_settings.check_training_settings`: seed, threads, Trainer arguments), the folder holds one history
     (:func:`one_history`) and a resumed checkpoint was trained with this run's settings
     (:func:`check_resume_checkpoint`)."""
-    check_trainer_settings(cfg.trainer)
+    check_training_settings(cfg)
     ckpt_path = resolve_ckpt_path(cfg, run_dir)
     one_history(cfg, run_dir, ckpt_path)
     if ckpt_path is not None:
@@ -334,7 +336,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     from spread.tracking.loggers import as_logger_config, lightning_loggers
     from spread.training.monitors import monitors
 
-    check_trainer_settings(cfg.trainer, trainer_overrides)
+    check_training_settings(cfg, trainer_overrides)
     check_accelerator(cfg, (trainer_overrides or {}).get("accelerator"))
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -354,6 +356,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
         check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg))
+    callbacks = build_callbacks(cfg, run_dir)  # a checkpoint.* value Lightning refuses: before the record
     if before_work is not None:
         before_work()
     newest = CheckpointStep()
@@ -363,7 +366,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     loggers = lightning_loggers(as_logger_config(cfg.logger), run_dir, str(cfg.experiment_name),
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
-                                      callbacks=build_callbacks(cfg, run_dir) + [newest, stopper, ExactResume(int(cfg.seed)),
+                                      callbacks=callbacks + [newest, stopper, ExactResume(int(cfg.seed)),
                                                                                  *(monitors(cfg.get("renders") if takes_images(cfg) else None) if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)

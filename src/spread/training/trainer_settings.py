@@ -108,3 +108,28 @@ def check_trainer_settings(trainer_cfg, overrides: dict | None = None) -> None:
     problem = trainer_setting_problem(trainer_cfg, overrides)
     if problem:
         raise ValueError(problem)
+
+
+def check_training_settings(cfg, overrides: dict | None = None) -> None:
+    """Before a training launch records its config or opens a logger run: the ``trainer.*`` values
+    (:func:`check_trainer_settings`), ``seed`` (Lightning's, a whole number in [0, 2³²)) and ``threads`` (≥ 1, or null
+    for torch's default), each refused by key (``ValueError``)."""
+    seed = cfg.get("seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
+        raise ValueError(f"seed={seed!r}: expected a whole number in [0, 2**32)")
+    threads = cfg.get("threads")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValueError(f"threads={threads!r}: expected a whole number ≥ 1, or null for torch's default")
+    check_trainer_settings(cfg.trainer, overrides)
+
+
+def built(make, key: str):
+    """``make()`` (a Hydra ``instantiate`` of the config node ``key``), its constructor's refusal as ``ValueError``
+    naming the key (Lightning's ``MisconfigurationException`` is no ValueError, and Hydra wraps it in a traceback)."""
+    from hydra.errors import InstantiationException
+
+    try:
+        return make()
+    except InstantiationException as exc:
+        cause = exc.__cause__ or exc
+        raise ValueError(f"{key}: {type(cause).__name__}: {' '.join(str(cause).split())}") from exc

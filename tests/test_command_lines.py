@@ -190,3 +190,40 @@ def test_a_training_seed_or_thread_count_lightning_or_torch_refuses_is_refused_b
         check_training_settings(compose("train", "data.root=/d", override))
     assert str(refused.value) == says
     check_training_settings(compose("train", "data.root=/d"))
+
+
+def test_a_redo_removes_only_the_pictures_its_own_runs_made_in_renders(run, tmp_path):
+    """A relaunch with other settings deleted every ``.png`` of ``renders/`` (a dataset's overview, a user's picture);
+    it removes the sampling's own (named after its scenes, or listed in ``sampling.json``) and the evaluation's
+    (named after the scenes its ``per_scene.jsonl`` measured), and nothing else."""
+    from helpers import sample_in_process
+    from spread.configs import to_object
+    from spread.evaluation import run_evaluation
+
+    dataset, made = run
+    ckpt = made / "checkpoints" / "last.ckpt"
+    out = tmp_path / "s"
+    sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "logger=none", "renders=2")
+    own = sorted(p.name for p in (out / "renders").glob("*.png"))
+    assert len(own) == 2
+    (out / "renders" / "overview.png").write_bytes(b"a user's picture")
+    again = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", "logger=none", "renders=1",
+                              "seed=1")
+    assert again.manifest["redone_because"] and again.manifest["written_this_run"] > 0
+    assert (out / "renders" / "overview.png").read_bytes() == b"a user's picture"
+    assert sorted(p.name for p in (out / "renders").glob("*.png")) == sorted([own[0], "overview.png"])
+
+    evaluated = tmp_path / "e"
+
+    def evaluate(*overrides):
+        return run_evaluation(to_object(compose(
+            "evaluate", f"scenes={out / 'scenes'}", f"reference={dataset}", f"out_dir={evaluated}", "progress=false",
+            "ray.num_cpus=1", "fid.enabled=false", "protocol.stability_runs=1", "protocol.stability_steps=20",
+            "protocol.metrics=[col_mesh]", *overrides)))
+
+    evaluate("renders=2")
+    mine = sorted(p.name for p in (evaluated / "renders").glob("*.png"))
+    assert len(mine) >= 1
+    (evaluated / "renders" / "overview.png").write_bytes(b"a user's picture")
+    evaluate("renders=0", "protocol.collision_threshold=0.02")  # another protocol: redone
+    assert sorted(p.name for p in (evaluated / "renders").glob("*.png")) == ["overview.png"]

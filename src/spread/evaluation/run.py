@@ -111,7 +111,7 @@ def check_protocol(out: Path, protocol: EvalProtocol, fid: FIDConfig, resume: bo
     decision = done_check(before, fingerprint, present=(out / PER_SCENE).exists() or (out / METRICS).exists(),
                           resume=resume, unknown=f"its {PER_SCENE} has no readable {PROTOCOL}")
     if decision.fresh:
-        for old in [out / PER_SCENE, out / METRICS, *((out / "renders").glob("*.png") if own_renders else ())]:
+        for old in [*(evaluation_renders(out) if own_renders else ()), out / PER_SCENE, out / METRICS]:
             old.unlink(missing_ok=True)
     write_json_atomic(path, fingerprint)
     return decision.reason
@@ -137,6 +137,18 @@ def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: st
         fid.merge_state(part["state"])
         failed += part["failed"]
     return fid, loaded.status, failed
+
+
+def evaluation_renders(out: Path) -> list[Path]:
+    """The pictures an earlier evaluation wrote in ``out/renders`` (:func:`write_renders`: ``<scene_id>.png`` of a scene
+    its ``per_scene.jsonl`` measured) — never another file of the folder (a user's picture there stays)."""
+    try:
+        records = read_jsonl(out / PER_SCENE)
+    except (OSError, ValueError):
+        records = []
+    names = {f"{r['scene_id']}.png" for r in records if isinstance(r, dict) and isinstance(r.get("scene_id"), str)}
+    return [out / "renders" / n for n in sorted(names)
+            if "/" not in n and (out / "renders" / n).is_file() and not (out / "renders" / n).is_symlink()]
 
 
 def write_renders(out: Path, records: list[dict], assets: str, count: int) -> list[Path]:

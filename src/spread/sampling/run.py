@@ -299,11 +299,26 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
     decision = done_check(before, settings, present=present, resume=resume,
                           unknown=f"its scenes have no readable {MANIFEST} fingerprint")
     if decision.fresh:
-        for old in [*scenes.glob("*.npz"), *(out / "renders").glob("*.png"), *(out / ASIDE).glob("scenes/*.npz"),
-                    *(out / ASIDE).glob("renders/*.png")]:
-            old.unlink()
+        for old in [*scenes.glob("*.npz"), *(out / ASIDE).glob("scenes/*.npz"), *own_renders(out, path)]:
+            old.unlink(missing_ok=True)
     write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": decision.reason})
     return decision.reason
+
+
+def own_renders(out: Path, manifest: Path) -> list[Path]:
+    """The pictures an earlier sampling run wrote in ``out``'s ``renders/`` (and those set aside with its scenes):
+    those named after its scene files (``<scene>.png``, ``<scene><figure suffix>.png``) and those its ``sampling.json``
+    lists — never another file of the folder (a dataset's or a user's picture there stays)."""
+    stems = [f.stem for f in [*(out / "scenes").glob("*.npz"), *(out / ASIDE).glob("scenes/*.npz")]]
+    names = {f"{stem}{suffix}.png" for stem in stems for suffix in ("", *FIGURE_KINDS.values())}
+    found = [folder / name for folder in (out / "renders", out / ASIDE / "renders") for name in sorted(names)]
+    try:
+        record = read_json(manifest)
+        listed = [Path(str(p)) for key in ("renders", "figures") for p in (record.get(key) or [])]
+    except (OSError, ValueError, AttributeError, TypeError):
+        listed = []
+    inside = [p for p in listed if p.suffix == ".png" and p.parent.resolve() == (out / "renders").resolve()]
+    return [p for p in dict.fromkeys([*found, *inside]) if p.is_file() and not p.is_symlink()]
 
 
 #: Where a run keeps the scene files (and renders) of an earlier run of the same identity that it does not plan.

@@ -227,3 +227,22 @@ def test_a_redo_removes_only_the_pictures_its_own_runs_made_in_renders(run, tmp_
     (evaluated / "renders" / "overview.png").write_bytes(b"a user's picture")
     evaluate("renders=0", "protocol.collision_threshold=0.02")  # another protocol: redone
     assert sorted(p.name for p in (evaluated / "renders").glob("*.png")) == ["overview.png"]
+
+
+def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_interval_is_no_interval(tmp_path):
+    import json
+
+    from spread.reporting.runs import RunError, read_run_folder
+    from spread.reporting.tables import Column
+
+    for key, value, says in [("bootstrap", "x", "key 'bootstrap' is str, expected an object"),
+                             ("per_room_type", {"bedroom": 5}, "key 'per_room_type' is not an object of room types")]:
+        folder = tmp_path / key
+        folder.mkdir()
+        (folder / "metrics.json").write_text(json.dumps({"grecall": 0.5, "n_evaluated": 3, key: value}))
+        with pytest.raises(RunError, match=f"{folder / 'metrics.json'}: {says}"):
+            read_run_folder(folder)
+    column = Column("grecall", "GRecall", digits=3)
+    assert column.half_width({"grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.6}) == pytest.approx(0.1)
+    assert column.half_width({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) is None  # was "± -0.400"
+    assert column.cell({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) == "0.500"

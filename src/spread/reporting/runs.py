@@ -123,11 +123,23 @@ def read_run_folder(path: str | Path) -> dict:
     metrics = read_json_object(metrics_path, RunError)
     if not is_evaluation(metrics):
         raise RunError(f"{metrics_path}: not an evaluation metrics.json (no registered metric and no 'n_evaluated')")
+    check_shape(metrics_path, metrics)
     record = {"run": path.name, "source": str(path), "kind": "folder",
               **identity_fields(folder_identity(path, metrics))}
     record.update({k: metrics.get(k) for k in record_metrics()})
     record.update(ci_columns(row_intervals(metrics, path)))
     return record
+
+
+def check_shape(path: Path, metrics: dict) -> None:
+    """``RunError`` naming the file and key when a ``metrics.json`` holds a part the report reads in another shape
+    than the evaluation writes it (a hand edit): ``bootstrap`` an object, ``per_room_type`` an object of objects
+    (a metric's own value that is not a number is shown ``invalid (...)`` instead, :class:`~spread.reporting.tables.Column`)."""
+    if metrics.get("bootstrap") is not None and not isinstance(metrics["bootstrap"], dict):
+        raise RunError(f"{path}: key 'bootstrap' is {type(metrics['bootstrap']).__name__}, expected an object")
+    rooms = metrics.get("per_room_type")
+    if rooms is not None and not (isinstance(rooms, dict) and all(isinstance(v, dict) for v in rooms.values())):
+        raise RunError(f"{path}: key 'per_room_type' is not an object of room types to objects of metrics")
 
 
 def identity_fields(identity: dict) -> dict:

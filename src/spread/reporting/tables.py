@@ -85,6 +85,8 @@ class Column:
             return None
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in (lo, hi)):
             return None
+        if float(hi) < float(lo):  # an inverted interval (a hand edit): no interval, never a negative ±
+            return None
         return (float(hi) - float(lo)) / 2 * self.scale
 
     def cell(self, record: dict, latex: bool = False) -> str:

@@ -115,7 +115,8 @@ def run(tmp_path_factory) -> tuple[Path, Path]:
 @pytest.mark.parametrize("override, says", [
     ("trainer.max_steps=4.5", "trainer.max_steps=4.5: Lightning's Trainer takes int here"),
     ("checkpoint.every_n_train_steps=-5", "checkpoint: MisconfigurationException: Invalid value for "
-                                          "every_n_train_steps=-5")])
+                                          "every_n_train_steps=-5"),
+    ("trainer.max_steps=1", "ckpt_path=")])  # …: the checkpoint is at step 2, past trainer.max_steps=1 (it recorded 1)
 def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_and_leaves_the_run_folder_as_it_was(
         run, tmp_path, override, says):
     dataset, made = run
@@ -126,6 +127,8 @@ def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_an
                          "trainer.max_time=null", *SMALL_MODEL, *FAST_TRAIN, f"out_dir={folder}", "ckpt_path=last",
                          override)
     assert line.startswith(f"spread-train: {says}"), line
+    if override == "trainer.max_steps=1":
+        assert "the checkpoint is at step 2, past trainer.max_steps=1" in line, line
     assert recorded(folder) == before
 
 
@@ -246,3 +249,12 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.6}) == pytest.approx(0.1)
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) is None  # was "± -0.400"
     assert column.cell({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) == "0.500"
+
+
+def test_spread_ablate_and_compare_refuse_a_split_the_data_folder_does_not_have_before_any_stage(run, tmp_path):
+    dataset, _ = run
+    for name, preset in (("spread-ablate", "+preset=quick"), ("spread-compare", "+table1=quick")):
+        out = tmp_path / name
+        line, _ = user_error(name, preset, "logger=none", f"data.root={dataset}", f"out_dir={out}", "data.split=bogus")
+        assert line.startswith(f"{name}: data.root={dataset}: no 'bogus' split folder (data.split=bogus)"), line
+        assert [p.name for p in out.iterdir()] == [f"{name.removeprefix('spread-')}.log"]  # Hydra's: no record, no stage

@@ -77,7 +77,10 @@ def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
     from spread.tracking.parent import nest_under
     from spread.training.fit import set_threads
 
+    from spread.experiments.stages import check_data_split
+
     set_threads(cfg.get("threads"))
+    check_data_split(spec)  # before the folder's record: a refused relaunch leaves it as it was
     with run_lock(spec.out_dir, f"spread-{command}"):
         record_config(cfg, spec.out_dir)()
         logger = as_logger_config(cfg.logger)

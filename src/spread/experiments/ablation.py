@@ -132,6 +132,7 @@ class Ablation:
         self.engine = StageEngine(spec, commands, self, LEDGER)
         self.out = spec.out_dir
         self.check_trained_variants()
+        self.engine.check_data()
         self.engine.check_lists(list(spec.variants))
 
     def check_trained_variants(self) -> None:

@@ -144,6 +144,7 @@ class Comparison:
         self.times: dict = read_json(self.times_path) if self.times_path.exists() else {}
         # each method trained here composes that method's model (a +train.<m> list replaces its recipe)
         spec.check_trained({m: self.train_lists(m) for m in spec.trained()}, lambda m: {"method": m}, label)
+        self.engine.check_data()
         self.engine.check_lists(list(spec.methods))
 
     @property

@@ -51,6 +51,15 @@ class Commands(Protocol):
     def evaluate(self, overrides: list[str]) -> dict: ...
 
 
+def check_data_split(spec) -> None:
+    """A study's given ``data.root`` without the split its rows are sampled on (``spec``: an ablation's or comparison's
+    spec): a ``ValueError`` before its config is recorded or any stage runs (the data stage's refusal came once per
+    phase, then Ray started and a table of – was written)."""
+    root = spec.dataset
+    if spec.data_root and root.exists() and not (root / spec.split).is_dir():
+        raise ValueError(f"data.root={root}: no '{spec.split}' split folder (data.split={spec.split})")
+
+
 class StageError(RuntimeError):
     """A stage that cannot run as configured; the message names its folder."""
 
@@ -359,6 +368,9 @@ class StageEngine:
         self.slot = None  # while rows run concurrently: the stage pool's slot for exclusive stages
         self.status: dict[str, str] = {}
         self.errors: dict[str, str] = {}
+
+    def check_data(self) -> None:
+        check_data_split(self.spec)
 
     def check_lists(self, rows: list[str]) -> None:
         """Every row's ``spread-sample`` list and the ``spread-evaluate`` list compose to their commands' typed

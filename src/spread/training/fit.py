@@ -37,6 +37,8 @@ def run_folder(cfg: DictConfig) -> Path:
 
 def set_threads(threads: int | None) -> None:
     """torch intra-op threads (None: torch's default). One thread is much faster on a shared 2-core CPU."""
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValueError(f"threads={threads!r}: expected a whole number ≥ 1, or null for torch's default")
     if threads:
         import torch
 
@@ -169,12 +171,14 @@ def moved_data(before: str, now: str) -> list[str]:
     return [f"data.root: {before!r} -> {now!r} (other rooms)"]
 
 
-def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings: dict | None = None) -> None:
+def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings: dict | None = None,
+                            max_steps=None) -> None:
     """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
     another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`), or trained with other
     settings than this run's (:func:`resumed_changes`: a resumed run restores the checkpoint's optimiser, schedule and
     data order, so a changed learning rate, batch size, seed or dataset would not apply as the new checkpoint would
-    record it); a new run from its weights (``model.init_from``) takes new settings."""
+    record it), or past ``max_steps`` (its step beyond it); a new run from its weights (``model.init_from``) takes new
+    settings."""
     from spread.safe_load import checkpoint_identity, expect_checkpoint
 
     own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
@@ -185,6 +189,11 @@ def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings
         raise ValueError(f"ckpt_path={path}: trained with other settings than this run's ({shown}); resume it with "
                          f"the settings it was trained with, or start a new run from its weights with "
                          f"model.init_from={path} in another out_dir")
+    step = checkpoint.get("global_step")
+    if isinstance(max_steps, int) and max_steps >= 0 and isinstance(step, int) and step > max_steps:
+        raise ValueError(f"ckpt_path={path}: the checkpoint is at step {step}, past trainer.max_steps={max_steps}: the "
+                         f"resumed run would train nothing and record a limit that never ran; give trainer.max_steps "
+                         f"≥ {step} to train on")
 
 
 def takes_images(cfg: DictConfig) -> bool:
@@ -307,7 +316,8 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
     one_history(cfg, run_dir, ckpt_path)
     if ckpt_path is not None:
         check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), hydra.utils.instantiate(cfg.data),
-                                trainer_settings_of(cfg))
+                                trainer_settings_of(cfg),
+                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"))
 
 
 def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
@@ -355,7 +365,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     datamodule.check_fit(trainer_validates(cfg.trainer, trainer_overrides))  # before a logger opens a run
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
-        check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg))
+        check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg),
+                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"))
     callbacks = build_callbacks(cfg, run_dir)  # a checkpoint.* value Lightning refuses: before the record
     if before_work is not None:
         before_work()

@@ -258,3 +258,30 @@ def test_spread_ablate_and_compare_refuse_a_split_the_data_folder_does_not_have_
         line, _ = user_error(name, preset, "logger=none", f"data.root={dataset}", f"out_dir={out}", "data.split=bogus")
         assert line.startswith(f"{name}: data.root={dataset}: no 'bogus' split folder (data.split=bogus)"), line
         assert [p.name for p in out.iterdir()] == [f"{name.removeprefix('spread-')}.log"]  # Hydra's: no record, no stage
+
+
+def test_a_command_refuses_an_out_dir_that_holds_a_dataset_or_another_commands_run(run, tmp_path):
+    """An evaluation wrote over a training run's ``metrics.json``; a training run replaced a sampling run's recorded
+    config; a sampling run wrote its scenes into the dataset folder. The evaluation of a sampling run's own scenes in
+    its folder (``spread-sample evaluate=true``, ``spread-evaluate scenes=<run>/scenes out_dir=<run>``) stays."""
+    from helpers import sample_in_process
+    from spread.io import check_folder_kind, folder_kinds
+
+    dataset, made = run
+    assert set(folder_kinds(made)) == {"training run"} and set(folder_kinds(dataset)) == {"dataset"}
+    with pytest.raises(ValueError, match=f"out_dir={made}: holds a training run .*; spread-evaluate would write over"):
+        check_folder_kind(made, "spread-evaluate", {"evaluation"})
+    check_folder_kind(made, "spread-train", {"training run"})  # its own kind
+    check_folder_kind(tmp_path / "new", "spread-train", {"training run"})  # nothing there yet
+    ckpt = made / "checkpoints" / "last.ckpt"
+    line, _ = user_error("spread-sample", f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={dataset}",
+                         "logger=none", "workers=0")
+    assert line.startswith(f"spread-sample: out_dir={dataset}: holds a dataset ({dataset / 'assets' / 'index.json'})")
+    assert not (dataset / "scenes").exists()
+    sampled = tmp_path / "s"
+    sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={sampled}", "logger=none")
+    before = recorded(sampled)
+    line, _ = user_error("spread-train", "experiment=quick", "model.variant=base", f"data.root={dataset}",
+                         *SMALL_MODEL, *FAST_TRAIN, f"out_dir={sampled}", "trainer.max_steps=1")
+    assert line.startswith(f"spread-train: out_dir={sampled}: holds a sampling run ({sampled / 'sampling.json'})"), line
+    assert recorded(sampled) == before

@@ -218,7 +218,8 @@ def test_an_evaluation_in_the_sampling_runs_own_folder_leaves_its_renders_as_the
     assert not (run / "metrics.json").exists() and len(list((run / "renders").glob("*.png"))) == 4
     shutil.copy(cli_run[0] / "per_scene.jsonl", run / "per_scene.jsonl")  # lines of the first protocol again
     assert check_protocol(run, EvalProtocol(), FIDConfig(), True, str(dataset / "assets"))  # its own folder's: cleared
-    assert not list((run / "renders").glob("*.png"))
+    # … its own pictures (<scene_id>.png of the scenes its lines measured), never another picture of the folder
+    assert sorted(p.name for p in (run / "renders").glob("*.png")) == sorted(f"{s}_3d.png" for s in ids)
 
 
 @pytest.mark.slow  # long (≥ 40 s on 2 cores): make test-slow runs it

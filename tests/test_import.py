@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import realdata
+from helpers import user_error
 from spread.importers.base import hash_fraction
 from spread.importers.run import ImportConfig, import_dataset
 from spread.io import safe_name
@@ -422,3 +423,26 @@ def test_a_one_hot_the_stats_cannot_be_placed_on_is_refused_naming_the_widths(tm
                                            room_type="bedroom", **FAST))
     assert manifest["failed_rooms"] == 4
     assert "7 columns" in json.dumps(manifest["errors"]) and "cannot be placed by name" in json.dumps(manifest["errors"])
+
+
+def test_a_multi_hot_class_row_fails_its_room_only_and_the_other_rooms_import(tmp_path):
+    """A room whose class_labels set several classes per object was imported as its first class, and its assets
+    (asked with other categories) made every other room fail."""
+    src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
+    broken = sorted(p for p in src.iterdir() if p.is_dir())[0]
+    arrays = dict(np.load(broken / "boxes.npz"))
+    np.savez(broken / "boxes.npz", **{**arrays, "class_labels": np.ones_like(arrays["class_labels"])})
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(tmp_path / "out"), splits=str(splits),
+                                           room_type="bedroom", **FAST))
+    assert manifest["failed_rooms"] == 1 and sum(manifest["counts"].values()) == 3
+    assert "classes set; expected one-hot rows" in manifest["errors"]["rooms"][0]["error"]
+    assert manifest["errors"]["rooms"][0]["tag"] == broken.name
+
+
+def test_spread_import_of_no_room_at_all_exits_non_zero_after_its_summary(tmp_path):
+    src = realdata.release_layout(tmp_path / "src")
+    (src / "meshes" / "Mug_3_unpacked.glb").write_bytes(b"glTF but not really")  # every room has a mug
+    line, proc = user_error("spread-import", "source=spread_release", f"src={src}", f"out_dir={tmp_path / 'out'}",
+                            "progress=false", "decomposition=hull", "renders=0", "fidelity_samples=0")
+    assert line.startswith("spread-import: no room was imported (4 failed; first: "), line
+    assert "failed rooms / assets" in proc.stdout

@@ -359,6 +359,30 @@ class RunFolderBusy(RuntimeError):
 LOCK_FILE = ".spread.lock"
 
 
+#: What marks a folder as a command's: (kind, the file or folder that says so). A command refuses an ``out_dir`` that
+#: holds another kind (:func:`check_folder_kind`).
+FOLDER_MARKS = (("dataset", "assets/index.json"), ("training run", "checkpoints"), ("sampling run", "sampling.json"),
+                ("evaluation", "protocol.json"))
+
+
+def folder_kinds(folder: str | os.PathLike) -> dict[str, str]:
+    """The kinds of run or dataset ``folder`` holds (:data:`FOLDER_MARKS`), each with the path that says so."""
+    folder = Path(folder)
+    return {kind: str(folder / mark) for kind, mark in FOLDER_MARKS if (folder / mark).exists()}
+
+
+def check_folder_kind(folder: str | os.PathLike, command: str, allowed: set[str] | frozenset[str]) -> None:
+    """``ValueError`` when ``folder`` (a command's ``out_dir``) holds a dataset or another command's run than the
+    ``allowed`` kinds: an evaluation wrote over a training run's ``metrics.json``, a training run replaced a sampling
+    run's recorded config, a sampling run wrote its scenes into a dataset folder."""
+    foreign = {k: m for k, m in folder_kinds(folder).items() if k not in allowed}
+    if foreign:
+        kind, mark = next(iter(foreign.items()))
+        article = "an" if kind[0] in "aeiou" else "a"
+        raise ValueError(f"out_dir={folder}: holds {article} {kind} ({mark}); {command} would write over or beside it: "
+                         f"give another out_dir")
+
+
 @contextlib.contextmanager
 def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Iterator[Path]:
     """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``

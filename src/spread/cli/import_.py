@@ -18,7 +18,12 @@ register("import")
 def main(cfg: DictConfig) -> None:
     from spread.commands.import_data import import_data, print_import_summary
 
-    print_import_summary(import_data(cfg), cfg.out_dir)
+    manifest = import_data(cfg)
+    print_import_summary(manifest, cfg.out_dir)
+    if not sum(manifest["counts"].values()):  # the summary says why; a dataset of no room is no success
+        first = (manifest["errors"]["rooms"] or [{}])[0]
+        raise SystemExit(f"spread-import: no room was imported ({manifest['failed_rooms']} failed; first: "
+                         f"{first.get('tag')}: {first.get('error')})")
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ from spread.evaluation.resume import dedupe, load_finished
 from spread.evaluation.work import (
     evaluate_chunk, failure_record, reference_fid_state, scene_key, worker_extractor, worker_library,
 )
-from spread.io import append_jsonl, file_sha256, read_json, read_jsonl, write_json_atomic
+from spread.io import append_jsonl, check_folder_kind, file_sha256, read_json, read_jsonl, write_json_atomic
 from spread.runtime.ray import RaySettings, ray_session
 
 PER_SCENE = "per_scene.jsonl"
@@ -245,6 +245,9 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
 
     started = time.perf_counter()
     out = Path(cfg.out_dir)
+    # its own, or the sampling run whose scenes it measures (spread-evaluate scenes=<run>/scenes out_dir=<run>)
+    check_folder_kind(out, "spread-evaluate", {"evaluation", "sampling run"} if sampling_folder(out, cfg.scenes)
+                      else {"evaluation"})
     out.mkdir(parents=True, exist_ok=True)
     files = list_scene_files(cfg.scenes) if Path(cfg.scenes).is_dir() else []
     if not files:

@@ -269,6 +269,11 @@ class ThreedFront(Source):
                                                          f"{len(self.class_labels)} class_labels and "
                                                          f"{len(self.object_types)} object_types"
                                                          + (f" ({columns['error']})" if columns["error"] else ""))
+        hot = (labels > 0).sum(1)
+        if (hot > 1).any():  # a multi-hot row would be read as its first class, and its assets as another room's
+            k = int(np.argwhere(hot > 1)[0][0])
+            raise SceneFormatError(file, "class_labels", f"object {k} has {int(hot[k])} classes set; expected one-hot "
+                                                         f"rows")
         index = labels.argmax(1)
         out = []
         for k, i in enumerate(index):

@@ -35,7 +35,7 @@ from omegaconf import MISSING
 
 from spread import readonce
 from spread.guidance import GuidanceConfig
-from spread.io import read_json, write_json_atomic
+from spread.io import check_folder_kind, read_json, write_json_atomic
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, read_back, remove_unreadable
@@ -515,8 +515,11 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     from tqdm.auto import tqdm
 
     started = time.perf_counter()
-    check_device(cfg)
     out = Path(cfg.out_dir)
+    # its own runs, and the evaluation of its scenes (spread-sample evaluate=true) — not an evaluation of others
+    check_folder_kind(out, "spread-sample", {"sampling run", "evaluation"} if (out / MANIFEST).exists()
+                      else {"sampling run"})
+    check_device(cfg)
     scenes_dir = out / "scenes"
     scenes_dir.mkdir(parents=True, exist_ok=True)
     check_checkpoint(cfg)  # missing, damaged, unsafe, self-contradictory or not for these settings: before any work

@@ -18,6 +18,7 @@ import hydra
 from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from spread.io import check_folder_kind
 from spread.training.checkpoints import (CheckpointStep, StopAtStep, StopRequested, atomic_checkpoint_io,
                                          resolve_ckpt_path, save_final_checkpoint, stop_on_interrupt)
 from spread.training.determinism import ExactResume
@@ -312,6 +313,7 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
     (:func:`one_history`) and a resumed checkpoint was trained with this run's settings
     (:func:`check_resume_checkpoint`)."""
     check_training_settings(cfg)
+    check_folder_kind(run_dir, "spread-train", {"training run"})
     ckpt_path = resolve_ckpt_path(cfg, run_dir)
     one_history(cfg, run_dir, ckpt_path)
     if ckpt_path is not None:
@@ -349,6 +351,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     check_training_settings(cfg, trainer_overrides)
     check_accelerator(cfg, (trainer_overrides or {}).get("accelerator"))
     run_dir = Path(run_dir) if run_dir is not None else run_folder(cfg)
+    check_folder_kind(run_dir, "spread-train", {"training run"})
     run_dir.mkdir(parents=True, exist_ok=True)
     from spread.runtime.quiet import silence_known_noise
 

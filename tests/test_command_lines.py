@@ -56,6 +56,11 @@ def test_a_command_line_that_composes_passes_and_hydra_flags_and_its_own_setting
     assert compose_problem("train", ["-m", "seed=1,2"]) is None  # a sweep: each job is checked as it runs
     assert compose_problem("train", ["data.root=/d", "hydra.run.dir=/x", "hydra/job_logging=disabled"]) is None
     assert compose_problem("train", ["hydra.searchpath=[file:///nowhere]", "model=nosuch"]) is None
+    assert compose_problem("train", ["data.root=/d", "hydra.mode=MULTIRUN", "seed=0,1"]) is None  # a multirun too
+    # values that resolve only inside the running app are not resolved here (a ${hydra:...} raised a traceback)
+    assert compose_problem("sample", ["ckpt=/c", "data.root=/d", "out_dir=${hydra:runtime.cwd}/s"]) is None
+    assert compose_problem("sample", ["+sweep=guidance_grid", "data.root=/d"]) == \
+        "required setting not given: ckpt (add ckpt=...)"  # its out_dir interpolates the unset ckpt
 
 
 def test_the_composed_config_is_still_printed_by_hydra_with_its_unset_settings(tmp_path):
@@ -173,6 +178,9 @@ def test_help_prints_the_usage_of_a_console_script_that_takes_key_value_argument
     ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "threads=-2", "threads=-2: expected a whole number ≥ 1, or null"),
     ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o"], "seed=-1", "seed=-1 .*: expected a whole number ≥ 0"),
     ("evaluate", ["scenes=/s", "reference=/r", "out_dir=/o"], "seed=-1", "seed=-1 .*: expected a whole number ≥ 0"),
+    # refused when spread-sample starts, not after the sampling ran
+    ("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", "evaluate=true"], "evaluation.chunk_size=0",
+     "evaluation.chunk_size=0: expected a whole number ≥ 1"),
 ])
 def test_a_count_below_its_least_is_refused_by_key_not_taken_for_another_value(command, base, override, says):
     """``workers=-2`` sampled in this process and ``chunk_size=0`` evaluated one scene a task, each recorded as given."""

@@ -295,6 +295,12 @@ def sample_command():
         protocol: EvalProtocol = field(default_factory=EvalProtocol)
         fid: FIDConfig = field(default_factory=FIDConfig)
 
+        def __post_init__(self) -> None:  # refused when the command starts, not after the sampling
+            for key, least in (("chunk_size", 1), ("renders", 0)):
+                value = getattr(self, key)
+                if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                    raise ValueError(f"evaluation.{key}={value!r}: expected a whole number ≥ {least}")
+
     _public(EvaluateAfterSampling)
 
     @dataclass

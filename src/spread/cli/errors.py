@@ -135,7 +135,8 @@ def compose_problem(config: str, args: list[str], name: str = "") -> str | None:
     setting (``???``) that it leaves unset. A command line with Hydra's flags (``-m``, ``--cfg``, ``--help``, …) or
     a ``hydra.searchpath`` is left to Hydra; other ``hydra.*`` overrides are not part of the job's config. ``name``:
     the console script, named in the hint to print its settings."""
-    if any(a.startswith("-") for a in args) or any(a.lstrip("+~").startswith("hydra.searchpath") for a in args):
+    if any(a.startswith("-") for a in args) or any(a.lstrip("+~").startswith(("hydra.searchpath", "hydra.mode"))
+                                                      for a in args):  # a multirun, or other config sources
         return None
     overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     from hydra.errors import HydraException
@@ -148,10 +149,25 @@ def compose_problem(config: str, args: list[str], name: str = "") -> str | None:
         composed = compose(config, overrides)
     except (HydraException, OmegaConfBaseException) as exc:
         return error_message(exc)
-    missing = [key for key in OmegaConf.missing_keys(composed) if not key.startswith("hydra.")]
+    try:
+        missing = unset_keys(OmegaConf.to_container(composed, resolve=False, throw_on_missing=False))
+    except Exception:  # noqa: BLE001 — the check never stands in Hydra's way: Hydra says what it finds
+        return None
     if not missing:
         return None
     return required_message(missing, f"`{name} --cfg job` prints every setting" if name else "")
+
+
+def unset_keys(plain, prefix: str = "") -> list[str]:
+    """The dotted keys of a config (as plain data, interpolations unresolved: ``${hydra:...}`` or ``${point_dir:...}``
+    resolve only inside the running app) whose value is OmegaConf's ``???``."""
+    if isinstance(plain, dict):
+        items = plain.items()
+    elif isinstance(plain, list):
+        items = enumerate(plain)
+    else:
+        return [prefix] if plain == "???" else []
+    return [key for k, v in items for key in unset_keys(v, f"{prefix}.{k}" if prefix else str(k))]
 
 
 def command(name: str, config: str | None = None):

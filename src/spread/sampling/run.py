@@ -256,9 +256,9 @@ def check_threads(threads) -> None:
 
 def check_inputs(cfg: SamplingConfig) -> None:
     """What :func:`run_sampling` checks of its inputs before it samples, without touching ``out_dir``, for a caller
-    that plans runs before any starts (a sweep's driver, before Ray): the device, the checkpoint
-    (:func:`check_checkpoint`) and the split's graphs (:func:`read_graphs`)."""
-    check_device(cfg)
+    that plans runs before any starts (a sweep's driver, before Ray): the checkpoint (:func:`check_checkpoint`) and
+    the split's graphs (:func:`read_graphs`) — not the device, which the process that samples checks (a sweep's
+    trials run on GPU nodes its driver may not be)."""
     check_checkpoint(cfg)
     read_graphs(cfg.data.root, cfg.data.split, object_limit(cfg.data.root, cfg.max_objects))
 

@@ -44,6 +44,7 @@ def one_thread():
 #: handing out the long ones first keeps both workers busy to the end instead of leaving one long module alone at
 #: the tail.
 HEAVY_MODULES = ("test_hostile_round4", "test_evaluate", "test_ablate_report", "test_scaleout", "test_compare",
+                 "test_command_lines",
                  "test_dashboard", "test_gpu_paths", "test_train_sample", "test_ablate_seeds", "test_robustness",
                  "test_plugins", "test_procgen", "test_cli_defaults", "test_hostile_inputs", "test_hostile_round5",
                  "test_hostile_round6", "test_hostile_round6_view",

@@ -36,6 +36,7 @@ from omegaconf import MISSING
 from spread import readonce
 from spread.guidance import GuidanceConfig
 from spread.io import check_folder_kind, read_json, write_json_atomic
+from spread.runtime.threads import check_threads
 from spread.model.diffusion import Sampler
 from spread.runtime.ray import RaySettings, ray_session
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, read_back, remove_unreadable
@@ -246,12 +247,6 @@ def check_checkpoint(cfg: SamplingConfig) -> dict:
         except Exception:  # noqa: BLE001 - a model whose checks read real tensors: its workers check them
             pass
     return checkpoint
-
-
-def check_threads(threads) -> None:
-    """``threads``: torch threads per process, a whole number ≥ 1 or None (torch's default)."""
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise ValueError(f"threads={threads!r}: expected a whole number ≥ 1, or null for torch's default")
 
 
 def check_inputs(cfg: SamplingConfig) -> None:

@@ -38,8 +38,9 @@ def run_folder(cfg: DictConfig) -> Path:
 
 def set_threads(threads: int | None) -> None:
     """torch intra-op threads (None: torch's default). One thread is much faster on a shared 2-core CPU."""
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise ValueError(f"threads={threads!r}: expected a whole number ≥ 1, or null for torch's default")
+    from spread.runtime.threads import check_threads
+
+    check_threads(threads)
     if threads:
         import torch
 

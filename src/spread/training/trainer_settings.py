@@ -117,9 +117,9 @@ def check_training_settings(cfg, overrides: dict | None = None) -> None:
     seed = cfg.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
         raise ValueError(f"seed={seed!r}: expected a whole number in [0, 2**32)")
-    threads = cfg.get("threads")
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise ValueError(f"threads={threads!r}: expected a whole number ≥ 1, or null for torch's default")
+    from spread.runtime.threads import check_threads
+
+    check_threads(cfg.get("threads"))
     check_trainer_settings(cfg.trainer, overrides)
 
 

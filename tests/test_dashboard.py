@@ -346,3 +346,65 @@ def test_report_takes_the_training_runs_inside_a_folder_beside_its_evaluated_run
     training, rest = training_folders([str(root)])
     assert training == [train_dir] and rest == [str(root)]
     assert training_folders([str(train_dir), str(sample_dir)]) == ([train_dir], [str(sample_dir)])
+
+
+def test_a_relaunched_sample_or_evaluation_continues_its_mlflow_run_and_other_settings_open_a_new_one(
+        store, tmp_path, monkeypatch):
+    """A killed or failed launch left its run ``RUNNING``/``FAILED`` beside a new run of the relaunch that did the
+    work: one folder, two dashboard rows. The relaunch with the same settings now continues the run; other
+    settings, or ``resume=false``, open a new one (their numbers are other numbers)."""
+    from mlflow import MlflowClient
+
+    from spread.commands.evaluate import evaluate
+    from spread.commands.sample import sample
+    from spread.tracking import mlflow_store
+
+    root, _, train_dir, _ = store
+    uri = f"sqlite:///{tmp_path}/relaunch.db"  # a store of its own: the module's store keeps one run per job
+    logger = ["logger=mlflow", f"logger.tracking_uri={uri}"]
+    out, data = tmp_path / "s", root / "ds" / "data"
+
+    def launch(*more):
+        sample(compose("sample", f"ckpt={train_dir / 'checkpoints' / 'last.ckpt'}", f"data.root={data}",
+                       f"out_dir={out}", *FAST_SAMPLE, "renders=0", "samples_per_graph=2", "experiment_name=relaunch",
+                       *logger, *more))
+
+    client = MlflowClient(tracking_uri=uri)
+
+    def runs(job: str) -> list:
+        found = client.search_runs([e.experiment_id for e in client.search_experiments()],
+                                   order_by=["attributes.start_time ASC"])
+        return [r for r in found if r.data.tags["spread.job_type"] == job]
+
+    def died(*_args, **_kwargs):
+        raise RuntimeError("killed after the work")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(mlflow_store, "log_sampling", died)
+        with pytest.raises(RuntimeError, match="killed"):
+            launch()
+    (first,) = runs("sample")
+    assert first.info.status == "FAILED" and "sampling/samples" not in first.data.metrics
+    launch()  # the same settings: the run goes on and finishes
+    (again,) = runs("sample")
+    assert again.info.run_id == first.info.run_id and again.info.status == "FINISHED"
+    assert again.data.tags["spread.launches"] == "2" and again.data.metrics["sampling/written_this_run"] == 0
+    assert json.loads((out / "mlflow_run.json").read_text())["run_id"] == first.info.run_id
+    launch("seed=5")  # another seed: other scenes, a new run
+    launch("seed=5")  # ... which its relaunch continues
+    launch("seed=5", "resume=false")  # a redo from scratch: a new run again
+    found = runs("sample")
+    assert len(found) == 3 and [r.info.status for r in found] == ["FINISHED"] * 3
+    assert found[1].data.tags["spread.launches"] == "2" and "spread.launches" not in found[2].data.tags
+    assert found[1].data.params["seed"] == found[2].data.params["seed"] == "5"
+
+    evaluation = [f"scenes={out / 'scenes'}", f"reference={data}", f"out_dir={tmp_path / 'e'}", "renders=0",
+                  "protocol.stability_runs=1", "fid.enabled=false", "progress=false", "experiment_name=relaunch",
+                  *logger]
+    evaluate(compose("evaluate", *evaluation))
+    evaluate(compose("evaluate", *evaluation))
+    (evaluated,) = runs("evaluate")
+    assert evaluated.data.tags["spread.launches"] == "2" and evaluated.info.status == "FINISHED"
+    next(iter(sorted((out / "scenes").glob("*.npz")))).unlink()  # other scenes: other numbers, a new run
+    evaluate(compose("evaluate", *evaluation))
+    assert len(runs("evaluate")) == 2

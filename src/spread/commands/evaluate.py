@@ -30,21 +30,39 @@ def _evaluate(cfg: DictConfig, command, overrides: list[str] | None):
     tags = {"spread.seed": command.seed, "spread.scenes": str(command.scenes),
             "spread.dataset_fingerprint": mlflow_log.dataset_fingerprint(command.reference)}
     lineage = scenes_lineage(command.scenes)
+    again = evaluation_continuation(command)
     wandb_run = None
     if command.logger.wandb:
         from spread.tracking.loggers import init_run
 
         Path(command.out_dir).mkdir(parents=True, exist_ok=True)
         wandb_run = init_run(command.logger, "evaluate", command.out_dir, plain(cfg) | {"lineage": lineage},
-                             group=command.experiment_name, name=Path(command.out_dir).name)
+                             group=command.experiment_name, name=Path(command.out_dir).name, run_id=again.wandb_id())
     with failed_on_error(wandb_run):
         with mlflow_log.tracked(command.logger, "evaluate", command.out_dir, plain(cfg), command.experiment_name,
-                                tags=tags | lineage) as run:
-            result = run_evaluation(command, before_work=record_config(cfg, command.out_dir, overrides))
+                                tags=tags | lineage, continuation=again) as run:
+            result = run_evaluation(command, before_work=again.recorded(
+                record_config(cfg, command.out_dir, overrides), run, wandb_run))
             if run is not None:
                 mlflow_log.log_evaluation(run, result.metrics, result.out_dir, result.renders)
     log_evaluation(result, command.logger, group=command.experiment_name, config=plain(cfg), run=wandb_run)
     return result
+
+
+def evaluation_continuation(command):
+    """Whether this launch continues the folder's tracker runs (:mod:`spread.tracking.continuation`): the
+    identity of its results is what ``metrics.json`` records them measured with
+    (:func:`spread.evaluation.run.evaluated_with`) and the scenes' folder and content."""
+    from spread.evaluation.run import evaluated_with
+    from spread.runtime.fingerprint import tree_digest
+    from spread.tracking.continuation import Continuation
+
+    def identity() -> dict:
+        scenes = Path(str(command.scenes))
+        return {**evaluated_with(command, str(Path(str(command.reference)) / "assets")),
+                "scenes": str(scenes.resolve()), "scenes_sha256": tree_digest(scenes)}
+
+    return Continuation(command.out_dir, "evaluate", identity, command.resume)
 
 
 def evaluated_specs(metrics: dict) -> list:

@@ -34,6 +34,16 @@ def experiment_of(command) -> str:
     return name if not folder or folder == name else f"{name}/{folder}"
 
 
+def sampling_continuation(command):
+    """Whether this launch continues the folder's tracker runs (:mod:`spread.tracking.continuation`): the
+    identity of its results is the sweep point's (:func:`spread.runtime.fingerprint.point_identity`: the sampling
+    identity, the samples per graph and, with ``evaluate=true``, the evaluation's)."""
+    from spread.runtime.fingerprint import point_identity
+    from spread.tracking.continuation import Continuation
+
+    return Continuation(command.out_dir, "sample", lambda: point_identity(command), command.resume)
+
+
 def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None):
     """``spread-sample``: sample (then, with ``evaluate=true``, evaluate) into ``cfg.out_dir``; returns
     (:class:`~spread.sampling.SamplingResult`, :class:`~spread.evaluation.EvaluationResult` or None). A
@@ -74,11 +84,13 @@ def _sample(cfg: DictConfig, command, log: bool, overrides: list[str] | None):
             start_point(command.out_dir, point)
     started = time.perf_counter()
     experiment = experiment_of(command)
-    wandb_run = open_sampling_run(command, plain(cfg), experiment) if log and command.logger.wandb else None
+    again = sampling_continuation(command)
+    wandb_run = open_sampling_run(command, plain(cfg), experiment, again.wandb_id()) \
+        if log and command.logger.wandb else None
     with failed_on_error(wandb_run):
         with mlflow_log.tracked(command.logger if log else None, "sample", command.out_dir, plain(cfg), experiment,
-                                tags=lambda: sampling_run_tags(command)) as run:
-            result = run_sampling(command, before_work=before_work)
+                                tags=lambda: sampling_run_tags(command), continuation=again) as run:
+            result = run_sampling(command, before_work=again.recorded(before_work, run, wandb_run))
             if run is not None:
                 mlflow_log.log_sampling(run, result.manifest)
             evaluation = None

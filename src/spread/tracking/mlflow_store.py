@@ -8,7 +8,8 @@ Per run: the experiment is the command's ``experiment_name`` (the training exper
 ablation or comparison), the name ``logger.run_name`` or the command's, tags ``spread.job_type``, variant,
 method, sampler, guidance, seed, git SHA, dataset fingerprint and job id (``spread.*`` keys), the composed
 config flattened to params (``a.b.c``). :func:`open_run` starts the run *before* the work (a failed command
-leaves a ``FAILED`` run) and writes ``<run folder>/mlflow_run.json`` (store, experiment, run id), which is how
+leaves a ``FAILED`` run, which its relaunch with the same settings continues: :mod:`spread.tracking.continuation`)
+and writes ``<run folder>/mlflow_run.json`` (store, experiment, run id), which is how
 a later run finds it: a sampling or evaluation run of a checkpoint records the training run of that
 checkpoint (:func:`training_lineage`, tags ``spread.training_run_id`` and ``spread.training_run_folder``).
 A run opened while a sweep's, an ablation's or a comparison's parent run is open (in the same store) is nested
@@ -267,8 +268,10 @@ def is_number(v) -> bool:
 
 
 def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, experiment: str,
-             name: str | None = None, tags: dict | None = None) -> MlflowRun | None:
-    """Start a run (module docstring) in experiment ``experiment``; None when ``logger`` has no ``mlflow``."""
+             name: str | None = None, tags: dict | None = None, continuation=None) -> MlflowRun | None:
+    """Start a run (module docstring) in experiment ``experiment``; None when ``logger`` has no ``mlflow``.
+    ``continuation``: a :class:`~spread.tracking.continuation.Continuation`; when it names the folder's recorded
+    run in this store, that run goes on (status ``RUNNING``, params as first logged, ``spread.launches`` + 1)."""
     from spread.tracking.config import as_logger_config
 
     logger = as_logger_config(logger)
@@ -276,6 +279,10 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
         return None
     uri = resolve_tracking_uri(logger.tracking_uri)
     client = open_store(uri)
+    if continuation is not None:
+        handle = continued_run(client, uri, continuation.mlflow_run_id(uri), out_dir)
+        if handle is not None:
+            return handle
     exp = experiment_id(client, uri, experiment or "Default")
     from spread.tracking.nesting import parent_tags
 
@@ -285,6 +292,31 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
     handle.log_params(flat_params(config))
     write_run_file(out_dir, uri, exp, run.info.run_id)
     return handle
+
+
+def continued_run(client, uri: str, run_id: str | None, out_dir: str | os.PathLike) -> MlflowRun | None:
+    """Run ``run_id`` of store ``client`` set going again (:func:`open_run`) and named in ``out_dir``'s
+    :data:`RUN_FILE`, else None: no id, or the store no longer has it (deleted, or another store at the path)."""
+    if not run_id:
+        return None
+    try:
+        run = client.get_run(run_id)
+    except Exception:  # noqa: BLE001 - MlflowException (no such run) or a store error: a new run is opened
+        return None
+    if run.info.lifecycle_stage != "active":
+        return None
+    try:
+        launches = int(run.data.tags.get("spread.launches", "1"))
+    except ValueError:
+        launches = 1
+    client.update_run(run_id, status="RUNNING")
+    client.set_tag(run_id, "spread.launches", str(launches + 1))
+    from spread.tracking.nesting import parent_tags
+
+    for key, value in parent_tags(uri).items():  # a relaunched sweep's point goes under the relaunch's parent
+        client.set_tag(run_id, key, value)
+    write_run_file(out_dir, uri, run.info.experiment_id, run_id)
+    return MlflowRun(client, run_id, uri)
 
 
 def scalar_metrics(metrics: dict) -> dict:
@@ -385,11 +417,13 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
 class tracked:
     """``with tracked(logger, job_type, out_dir, config, experiment, tags=...) as run:`` — :func:`open_run`
     before the block (``run`` is None without ``mlflow``), ``FINISHED`` after it, ``FAILED`` when it raises.
-    ``tags``: a dict or a function returning one (called only when a run opens)."""
+    ``tags``: a dict or a function returning one (called only when a run opens). ``continuation``: a relaunch
+    continues the folder's run (:mod:`spread.tracking.continuation`; the caller writes its record)."""
 
     def __init__(self, logger, job_type: str, out_dir, config: dict, experiment: str, name: str | None = None,
-                 tags=None):
+                 tags=None, continuation=None):
         self.args = (logger, job_type, out_dir, config, experiment, name, tags)
+        self.continuation = continuation
         self.run = self.monitor = None
 
     def __enter__(self) -> MlflowRun | None:
@@ -398,7 +432,7 @@ class tracked:
         logger, job_type, out_dir, config, experiment, name, tags = self.args
         if as_logger_config(logger).mlflow:
             self.run = open_run(logger, job_type, out_dir, config, experiment, name,
-                                tags() if callable(tags) else tags)
+                                tags() if callable(tags) else tags, self.continuation)
             self.monitor = system_monitor(self.run)
         return self.run
 

@@ -36,17 +36,18 @@ def image_groups(manifest: dict) -> dict[str, list[str]]:
     return groups
 
 
-def open_sampling_run(command, config: dict, group: str):
+def open_sampling_run(command, config: dict, group: str, run_id: str | None = None):
     """The wandb run of a ``spread-sample`` command, opened before the work: named after its run folder, tags
     of :func:`sampling_tags` (the guidance from the command), and ``config["lineage"]``: the training run of
-    its checkpoint (:func:`spread.tracking.mlflow_store.training_lineage`: its folder, wandb and MLflow ids)."""
+    its checkpoint (:func:`spread.tracking.mlflow_store.training_lineage`: its folder, wandb and MLflow ids).
+    ``run_id``: a relaunch continues that run (:mod:`spread.tracking.continuation`)."""
     from spread.tracking.mlflow_store import training_lineage
     from spread.tracking.loggers import init_run
 
     Path(command.out_dir).mkdir(parents=True, exist_ok=True)
     tags = sampling_tags(command.ckpt, command.sampler, command.guidance, command.tags)
     return init_run(command.logger, "sample", command.out_dir, config | {"lineage": training_lineage(command.ckpt)},
-                    group=group, name=Path(command.out_dir).name, tags=tags)
+                    group=group, name=Path(command.out_dir).name, tags=tags, run_id=run_id)
 
 
 def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, group: str | None = None,

@@ -149,10 +149,12 @@ def test_spread_sweep_names_every_unset_setting_and_refuses_a_checkpoint_or_data
     out = tmp_path / "sweep"
     line, _ = user_error("spread-sweep", f"out_dir={out}", cwd=tmp_path)
     assert line.startswith("spread-sweep: required settings not given: ckpt, data.root (add ckpt=... data.root=..."), line
+    store = tmp_path / "store" / "mlflow.db"
     line, proc = user_error("spread-sweep", f"out_dir={out}", f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={tmp_path}",
-                            cwd=tmp_path)
+                            "logger=mlflow", f"logger.tracking_uri={store}", cwd=tmp_path)
     assert line == f"spread-sweep: {tmp_path / 'no.ckpt'}: no such checkpoint file", line
     assert "Ray" not in proc.stderr + proc.stdout  # refused before Ray started: no trial, no table
+    assert not store.exists()  # ... and before the sweep's parent run opened (it was left FAILED in the store)
     line, _ = user_error("spread-sweep", "command=train", f"out_dir={out}", f"data.root={tmp_path / 'none'}",
                          "seed=1,2", cwd=tmp_path)
     assert line == f"spread-sweep: data.root={tmp_path / 'none'}: no scene files in {tmp_path / 'none' / 'train'} to train on", line

@@ -17,7 +17,7 @@ def sweep(args: list[str]):
     from omegaconf import OmegaConf
 
     from spread.configs import compose, required_message
-    from spread.experiments.sweep import parse_arguments, run_sweep
+    from spread.experiments.sweep import checked_sweep, parse_arguments, run_sweep
     from spread.tracking.parent import absolute_tracking_overrides, parent_run
 
     plan = parse_arguments(args)
@@ -28,8 +28,9 @@ def sweep(args: list[str]):
         raise ValueError(required_message(missing, "`spread-sweep --help` lists the sweep's own settings"))
     plan.fixed += absolute_tracking_overrides(cfg)  # a trial runs in Ray Tune's folder, not here
     config = {"sweep": asdict(s), "fixed": list(plan.fixed), "dimensions": [asdict(d) for d in plan.dimensions]}
+    shared = checked_sweep(plan)  # a refused sweep opens no parent run
     with parent_run(cfg.logger, "sweep", s.name, s.out_dir, s.name, config) as parent:
-        result = run_sweep(plan, InProcessCommands())
+        result = run_sweep(plan, InProcessCommands(), shared)
         parent.log_reused(result.rows, Path(s.out_dir).resolve() / "points")
         parent.log_files([result.csv, result.md])
     return result

@@ -532,10 +532,25 @@ class SweepResult:
     points: list[dict] = field(default_factory=list)
 
 
-def run_sweep(plan: SweepPlan, commands) -> SweepResult:
+def checked_sweep(plan: SweepPlan) -> dict:
+    """What every trial of ``plan`` shares, once the sweep's checks passed (inert dimensions, a started
+    cluster's resources, the first point's inputs): run before anything is written, Ray starts or a tracker
+    opens (the sweep command checks before its parent run opens); ``ValueError`` naming the setting."""
+    s = plan.settings
+    out = Path(s.out_dir).resolve()
+    shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
+              "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd(), "trial_gpus": float(s.trial_gpus or 0)}
+    check_inert_dimensions(plan, shared)
+    check_started_cluster(s)
+    check_first_point(plan, shared)
+    return shared
+
+
+def run_sweep(plan: SweepPlan, commands, shared: dict | None = None) -> SweepResult:
     """Run every trial of ``plan`` on Ray Tune and write ``results.csv`` / ``results.md`` (module docstring);
     ``commands``: what a trial runs (:class:`~spread.commands.in_process.InProcessCommands`: ``sample_config``,
-    ``record_config``), handed to each trial by the sweep command."""
+    ``record_config``), handed to each trial by the sweep command; ``shared``: :func:`checked_sweep`'s answer when
+    the caller checked already."""
     from ray import tune
 
     from spread.experiments.tuning import limited, search_spec, trial_scheduler_spec
@@ -546,11 +561,7 @@ def run_sweep(plan: SweepPlan, commands) -> SweepResult:
     started = time.perf_counter()
     trial = sample_trial if s.command == "sample" else train_trial
     trial = nested_trial(trial)  # its runs nest under the sweep's parent run (spread.tracking.parent)
-    shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
-              "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd(), "trial_gpus": float(s.trial_gpus or 0)}
-    check_inert_dimensions(plan, shared)  # before anything is written or Ray starts
-    check_started_cluster(s)
-    check_first_point(plan, shared)
+    shared = checked_sweep(plan) if shared is None else shared
     (out / "points").mkdir(parents=True, exist_ok=True)
     head = {"GPU": float(s.trial_gpus)} if s.trial_gpus else {}
     resources = tune.PlacementGroupFactory([head, {"CPU": float(s.trial_cpus)}])

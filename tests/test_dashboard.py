@@ -292,6 +292,16 @@ def test_viewer_refuses_a_missing_path_by_name(tmp_path):
         collect(tmp_path / "nothing_here")
 
 
+def test_viewer_names_an_asset_library_it_was_given_that_is_not_there(store, tmp_path):
+    """It said "no asset library for <scenes> (looked beside it and in the dataset); give assets=DIR" to a user who
+    had given ``assets=``."""
+    from spread.render.viewer import collect
+
+    root, _, _, sample_dir = store
+    with pytest.raises(FileNotFoundError, match=rf"^spread-view: assets={tmp_path / 'none'}: no asset library there"):
+        collect(sample_dir, assets=str(tmp_path / "none"))
+
+
 # ---- the MLflow writer on its own ----------------------------------------------------------------------------
 
 def test_a_run_opens_before_the_work_and_a_failure_marks_it_failed(tmp_path):

@@ -314,7 +314,7 @@ def test_unset_loader_workers_are_chosen_by_the_trainers_device_and_give_the_sam
     with caplog.at_level("WARNING"):
         feed_the_device(trainer("CUDAAccelerator"), explicit)
     assert explicit.num_workers == 0 and "data.num_workers=0" in caplog.text
-    with pytest.raises(ValueError, match="data.num_workers must be >= 0.*-1"):
+    with pytest.raises(ValueError, match="^data.num_workers=-1: expected a whole number ≥ 0, or null for workers chosen"):
         SceneDataModule(root, num_workers=-1)
 
 
@@ -424,8 +424,18 @@ def test_rooms_over_the_object_limit_are_skipped_and_named_and_the_others_kept(r
 def test_an_object_limit_that_is_not_a_whole_number_of_at_least_one_is_refused_naming_data_max_objects(root, bad):
     from spread.data.datamodule import SceneDataModule
 
-    with pytest.raises(ValueError, match=r"^data\.max_objects=.*: a whole number of objects >= 1 \(or null: no limit\)"):
+    with pytest.raises(ValueError, match=r"^data\.max_objects=.*: expected a whole number ≥ 1, or null for no limit$"):
         SceneDataModule(root, max_objects=bad)
+
+
+@pytest.mark.parametrize("key, bad, least", [("batch_size", 3.274, 1), ("batch_size", 4.0, 1), ("batch_size", 0, 1),
+                                             ("num_points", True, 1), ("seed", -1, 0), ("bucket_batches", 1.5, 0)])
+def test_a_loader_count_that_is_not_a_whole_number_is_refused_by_key_never_truncated(root, key, bad, least):
+    """``int(3.274)`` made a swept ``data.batch_size=interval(2,4)`` train batches of 3 under the name 3.274."""
+    from spread.data.datamodule import SceneDataModule
+
+    with pytest.raises(ValueError, match=rf"^data\.{key}={bad!r}: expected a whole number ≥ {least}"):
+        SceneDataModule(root, **{key: bad})
 
 
 def test_the_object_limit_at_its_default_leaves_training_identities_as_they_were_and_a_set_one_is_another():

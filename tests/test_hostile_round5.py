@@ -207,6 +207,27 @@ def test_an_asset_index_pointing_outside_its_library_is_refused_by_key_and_value
         AssetLibrary.load(lib)
 
 
+def test_an_evaluation_refuses_an_index_pointing_outside_its_library_before_any_worker_or_record(dataset, tmp_path):
+    """The index was read first by the Ray workers: every scene failed there and the run ended after them."""
+    import shutil
+
+    import ray
+
+    from spread.evaluation import EvaluationConfig, run_evaluation
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    index = json.loads((data / "assets" / "index.json").read_text())
+    first = next(iter(index["assets"]))
+    index["assets"][first]["parts_file"] = "../../outside.npz"
+    (data / "assets" / "index.json").write_text(json.dumps(index))
+    out = tmp_path / "eval"
+    with pytest.raises(ValueError, match=rf"asset '{first}' has a bad record .*parts_file='../../outside.npz'"):
+        run_evaluation(EvaluationConfig(scenes=str(data / "test"), reference=str(data), out_dir=str(out),
+                                        renders=0, progress=False))
+    assert not ray.is_initialized() and not (out / "per_scene.jsonl").exists() and not (out / "metrics.json").exists()
+
+
 # ---- round 5, second review: sweeps, ablations, exports -------------------------------------------------------
 
 def test_an_object_limit_that_leaves_out_other_graphs_is_another_sampling_run_and_a_table_names_it(dataset, run,

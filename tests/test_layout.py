@@ -40,7 +40,7 @@ FLOORS = (
     ("scene",),
     ("assets",),
     ("safe_load",),  # loaders that run no code: check their files with io's bounded-read helper
-    ("io", "registry", "lazy"),  # lazy: a package's names imported on first access
+    ("io", "registry", "lazy", "checks"),  # lazy: a package's names imported on first access; checks: whole numbers
 )
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}
 

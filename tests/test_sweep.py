@@ -72,6 +72,32 @@ def test_hydra_search_syntax_becomes_tune_distributions():
         SweepSettings(out_dir="/x", scheduler="hyperband")
 
 
+def test_an_integer_interval_draws_whole_numbers_from_both_ends_and_a_real_one_for_a_count_is_refused_with_the_way(
+        tmp_path):
+    """``interval(2,4)`` draws reals: ``trainer.max_steps`` refused 2.0, ``data.batch_size=3.274`` trained batches of 3
+    under its own name. Hydra's ``int(interval(2,4))`` draws 2, 3 or 4."""
+    import random
+
+    from ray.tune.search.sample import Integer
+
+    from spread.experiments.sweep import checked_sweep
+
+    plan = parse_arguments(["command=train", f"data.root={tmp_path}", "search=random", "num_samples=2",
+                            "data.batch_size=int(interval(2,4))", "trainer.max_steps=tag(log,int(interval(1,8)))",
+                            f"out_dir={tmp_path / 'x'}"])
+    space = search_space(plan)
+    assert isinstance(space["data.batch_size"], Integer) and isinstance(space["trainer.max_steps"], Integer)
+    random.seed(0)
+    draws = {space["data.batch_size"].sample(random_state=i) for i in range(60)}
+    assert draws == {2, 3, 4} and all(type(v) is int for v in draws)
+    for key in ("data.batch_size", "trainer.max_steps"):
+        plan = parse_arguments(["command=train", f"data.root={tmp_path}", "search=random", "num_samples=2",
+                                f"{key}=interval(2,4)", f"out_dir={tmp_path / 'x'}"])
+        with pytest.raises(ValueError, match=rf"^{key}=2.0: .* write {key}='int\(interval\(2,4\)\)' to draw whole "):
+            checked_sweep(plan)
+    assert not (tmp_path / "x").exists()
+
+
 def test_searches_and_trial_schedulers_are_chosen_by_registered_name_or_target():
     """A search or a trial scheduler is a registry entry (a plugin adds one) or any Ray Tune class by
     ``module:Class``, built with the sweep's metric and mode."""

@@ -296,10 +296,10 @@ def sample_command():
         fid: FIDConfig = field(default_factory=FIDConfig)
 
         def __post_init__(self) -> None:  # refused when the command starts, not after the sampling
+            from spread.checks import whole_number
+
             for key, least in (("chunk_size", 1), ("renders", 0)):
-                value = getattr(self, key)
-                if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                    raise ValueError(f"evaluation.{key}={value!r}: expected a whole number ≥ {least}")
+                whole_number(getattr(self, key), f"evaluation.{key}", least)
 
     _public(EvaluateAfterSampling)
 

@@ -36,6 +36,7 @@ import numpy as np
 from spread.assets.library import (
     AssetRecord, RestPose, load_parts, parts_bytes, reusable_record, write_record_sidecar,
 )
+from spread.checks import whole_number
 from spread.io import file_sha256, read_bytes_checked, read_json, write_bytes_atomic, write_json_atomic
 
 #: Bump when the files written for unchanged inputs change.
@@ -67,8 +68,7 @@ class ImportSettings:
         check_decomposition(str(self.decomposition), dict(self.decomposition_settings))
         if not (isinstance(self.density, (int, float)) and math.isfinite(self.density) and self.density > 0):
             raise ValueError(f"density={self.density!r}: a finite number of kg/m³ > 0")
-        if not (isinstance(self.fidelity_samples, int) and self.fidelity_samples >= 0):
-            raise ValueError(f"fidelity_samples={self.fidelity_samples!r}: a whole number ≥ 0 (0: not measured)")
+        whole_number(self.fidelity_samples, "fidelity_samples", note="(0: not measured)")
 
     def fingerprint(self) -> dict:
         return {"decomposition": self.decomposition, "decomposition_settings": dict(self.decomposition_settings),

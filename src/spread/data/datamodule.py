@@ -110,23 +110,22 @@ class SceneDataModule(L.LightningDataModule):
                  augment: bool = False, cache: bool = True, bucket_batches: int = 0,
                  geometry_distance: str = "chamfer", max_objects: int | None = None):
         super().__init__()
+        from spread.checks import whole_number
+
         self.root = Path(root)
-        self.batch_size = int(batch_size)
+        self.batch_size = whole_number(batch_size, "data.batch_size", 1)  # never 3.274 quietly run as 3
         #: ``num_workers=None`` (the config's default, ``null``): the trainer's device decides (:meth:`use_workers`:
         #: none on a CPU trainer, a few beside a GPU); until then none
         self.auto_workers = num_workers is None
-        self.num_workers = 0 if num_workers is None else int(num_workers)
-        if self.num_workers < 0:
-            raise ValueError(f"data.num_workers must be >= 0 (or null: chosen by the trainer's device), got {num_workers}")
-        self.num_points = int(num_points)
-        self.seed = int(seed)
+        self.num_workers = whole_number(num_workers, "data.num_workers", 0,
+                                        null="workers chosen by the trainer's device") or 0
+        self.num_points = whole_number(num_points, "data.num_points", 1)
+        self.seed = whole_number(seed, "data.seed", 0)
         self.augment = bool(augment)
         self.cache = bool(cache)
-        self.bucket_batches = int(bucket_batches)
+        self.bucket_batches = whole_number(bucket_batches, "data.bucket_batches", 0, note="(0: off)")
         self.max_objects = check_max_objects(max_objects)  # rooms of more objects are skipped and named
         self.geometry_distance = str(geometry_distance)  # the model's (ModelConfig.geometry_distance): what it reads
-        if self.bucket_batches < 0:
-            raise ValueError(f"data.bucket_batches must be >= 0 (0: off), got {bucket_batches}")
         self.pin_memory = bool(pin_memory)
         self._persistent_setting = persistent_workers  # None: with the workers, when the trainer's device gives some
         self.persistent_workers = bool(persistent_workers) and self.num_workers > 0

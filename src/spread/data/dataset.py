@@ -98,11 +98,9 @@ def screen_scene_files(files: list[Path], library, reader=None, used: dict[str, 
 
 def check_max_objects(value) -> int | None:
     """``data.max_objects``: None (no limit) or a whole number ≥ 1, else a ValueError naming the value."""
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < 1:
-        raise ValueError(f"data.max_objects={value!r}: a whole number of objects >= 1 (or null: no limit)")
-    return int(value)
+    from spread.checks import whole_number
+
+    return whole_number(value, "data.max_objects", 1, null="no limit")
 
 
 class SceneDataset(torch.utils.data.Dataset):

@@ -94,8 +94,9 @@ class EvalProtocol:
     metrics: list[str] = field(default_factory=lambda: _default_metrics())
 
     def __post_init__(self) -> None:
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed={self.seed!r} (the evaluation's protocol.seed): expected a whole number ≥ 0")
+        from spread.checks import whole_number
+
+        whole_number(self.seed, "seed", where="(the evaluation's protocol.seed)")
         if self.stability_runs < 1 or self.stability_steps < 1 or self.stability_substeps < 1:
             raise ValueError("stability runs, steps and substeps must be ≥ 1, got "
                              f"{self.stability_runs}, {self.stability_steps}, {self.stability_substeps}")

@@ -68,10 +68,10 @@ class EvaluationConfig:
     ray: RaySettings = field(default_factory=RaySettings)
 
     def __post_init__(self) -> None:
+        from spread.checks import whole_number
+
         for key in ("chunk_size", "renders", "bootstrap_resamples"):
-            value, least = getattr(self, key), 1 if key == "chunk_size" else 0
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"{key}={value!r}: expected a whole number ≥ {least}")
+            whole_number(getattr(self, key), key, 1 if key == "chunk_size" else 0)
 
 
 @dataclass
@@ -258,6 +258,9 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     assets = str(Path(cfg.reference) / "assets")
     if not (Path(assets) / "index.json").exists():
         raise FileNotFoundError(f"reference={cfg.reference}: no asset library at {assets} (missing index.json)")
+    from spread import readonce
+
+    readonce.asset_library(assets)  # its index read here: a bad record is refused before any worker starts
     ref_dir = Path(cfg.reference) / cfg.reference_split
     reference_files = list_scene_files(ref_dir) if ref_dir.is_dir() else []
     per_scene = out / PER_SCENE

@@ -142,13 +142,15 @@ class SweepSettings:
 @dataclass
 class Dimension:
     """One swept key: ``key`` (as written, with a ``+`` prefix if any), ``values`` (override strings) or an
-    interval ``low``/``high`` (``log`` tag: log-uniform)."""
+    interval ``low``/``high`` (``log`` tag: log-uniform; ``integer``: Hydra's ``int(interval(a,b))``, whole numbers
+    from ``a`` to ``b`` inclusive, for settings that take one: ``trainer.max_steps``, ``batch_size``)."""
 
     key: str
     values: list[str] | None = None
     low: float | None = None
     high: float | None = None
     log: bool = False
+    integer: bool = False
 
 
 @dataclass
@@ -227,7 +229,10 @@ def dimension(override) -> Dimension:
     key = override.get_key_element()
     if override.is_interval_sweep():
         value = override.value()
-        return Dimension(key, low=float(value.start), high=float(value.end), log="log" in (value.tags or set()))
+        integer = all(isinstance(v, int) and not isinstance(v, bool) for v in (value.start, value.end))
+        return Dimension(key, low=value.start if integer else float(value.start),
+                         high=value.end if integer else float(value.end), log="log" in (value.tags or set()),
+                         integer=integer)
     from spread.runtime.fingerprint import canonical
 
     values = [str(v) for v in override.sweep_string_iterator()]
@@ -270,6 +275,8 @@ def search_space(plan: SweepPlan) -> dict:
     for d in plan.dimensions:
         if d.values is not None:
             space[d.key] = tune.grid_search(d.values) if plan.settings.grid else tune.choice(d.values)
+        elif d.integer:  # Ray Tune's upper end is exclusive, Hydra's int(interval(a,b)) holds b
+            space[d.key] = (tune.lograndint if d.log else tune.randint)(d.low, d.high + 1)
         else:
             space[d.key] = (tune.loguniform if d.log else tune.uniform)(d.low, d.high)
     return space
@@ -693,6 +700,21 @@ def check_first_point(plan: SweepPlan, shared: dict) -> None:
     :func:`spread.sampling.run.check_inputs`; a training point: the ``trainer.*`` values and the dataset's splits),
     so a checkpoint or data folder that is not there is refused in one line, not a failed trial per point with
     Ray's tracebacks and a table of empty rows."""
+    try:
+        _check_first_point(plan, shared)
+    except ValueError as exc:
+        said = str(exc)
+        drawn_floats = [d for d in plan.dimensions if d.values is None and not d.integer
+                        and f"{d.key.lstrip('+')}={format_value(float(probe_values(d)[0]))}" in said]
+        if not drawn_floats:
+            raise
+        d = drawn_floats[0]
+        raise ValueError(f"{said} (interval({d.low:g},{d.high:g}) draws real numbers: write "
+                         f"{d.key}='int(interval({math.ceil(d.low)},{math.floor(d.high)}))' to draw whole numbers)") \
+            from None
+
+
+def _check_first_point(plan: SweepPlan, shared: dict) -> None:
     from spread.configs import compose, to_object
 
     config = {d.key: probe_values(d)[0] for d in plan.dimensions}
@@ -704,11 +726,11 @@ def check_first_point(plan: SweepPlan, shared: dict) -> None:
     import hydra
 
     from spread.training.fit import trainer_validates
-    from spread.training.trainer_settings import check_training_settings
+    from spread.training.trainer_settings import built, check_training_settings
 
     cfg = compose("train", [*shared["fixed"], *trial_overrides(config), "out_dir=unset"])
     check_training_settings(cfg)
-    hydra.utils.instantiate(cfg.data).check_fit(trainer_validates(cfg.trainer))
+    built(lambda: hydra.utils.instantiate(cfg.data), "data").check_fit(trainer_validates(cfg.trainer))
 
 
 def grid_points(plan: SweepPlan) -> list[dict]:

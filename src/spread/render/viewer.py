@@ -114,6 +114,8 @@ def collect(path: str | os.PathLike, assets: str | os.PathLike | None = None,
         library = Path(assets)
     else:
         library = next((c for c in library_candidates(path, data_root) if (c / "index.json").exists()), None)
+    if assets and not (library / "index.json").exists():  # the one given is named, not "give assets="
+        raise FileNotFoundError(f"spread-view: assets={assets}: no asset library there (missing index.json)")
     if library is None or not (library / "index.json").exists():
         raise FileNotFoundError(f"spread-view: no asset library for {path} (looked beside it and in the dataset); "
                                 "give assets=DIR")

@@ -112,10 +112,10 @@ class SamplingConfig:
         from spread.sampling.pipeline import check_values
 
         check_values(self.graph_scale, self.geometry_scale, self.precision)
+        from spread.checks import whole_number
+
         for key in ("workers", "renders", "figures", "seed"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{key}={value!r}: expected a whole number ≥ 0")
+            whole_number(getattr(self, key), key)
         check_threads(self.threads)
         unknown = [k for k in self.figure_kinds if k not in FIGURE_KINDS]
         if unknown:

@@ -132,4 +132,7 @@ def built(make, key: str):
         return make()
     except InstantiationException as exc:
         cause = exc.__cause__ or exc
-        raise ValueError(f"{key}: {type(cause).__name__}: {' '.join(str(cause).split())}") from exc
+        text = " ".join(str(cause).split())
+        if isinstance(cause, ValueError) and text.startswith(f"{key}."):  # it names the key already, as is
+            raise ValueError(text) from exc
+        raise ValueError(f"{key}: {type(cause).__name__}: {text}") from exc

@@ -249,7 +249,9 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
     from spread.reporting.tables import Column
 
     for key, value, says in [("bootstrap", "x", "key 'bootstrap' is str, expected an object"),
-                             ("per_room_type", {"bedroom": 5}, "key 'per_room_type' is not an object of room types")]:
+                             ("per_room_type", {"bedroom": 5}, "key 'per_room_type' is not an object of room types"),
+                             ("n_scenes", "12", "key 'n_scenes' is '12', expected a whole number ≥ 0"),  # printed as is
+                             ("n_failed", -1.5, "key 'n_failed' is -1.5, expected a whole number ≥ 0")]:
         folder = tmp_path / key
         folder.mkdir()
         (folder / "metrics.json").write_text(json.dumps({"grecall": 0.5, "n_evaluated": 3, key: value}))

@@ -3,6 +3,7 @@ client and through ``spread-dashboard`` (the real ``mlflow server``) over HTTP o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -327,6 +328,36 @@ def test_a_run_opens_before_the_work_and_a_failure_marks_it_failed(tmp_path):
     done = client.get_run(run.run_id)
     assert done.info.status == "FINISHED" and done.data.metrics == {"base/grecall": 0.5, "base/n": 3.0}
     assert [a.path for a in client.list_artifacts(run.run_id, "table")] == ["table/t.csv"]
+
+
+def test_a_point_a_relaunched_sweep_resumes_continues_its_run_under_the_relaunchs_parent(tmp_path):
+    """A sweep killed while a point sampled: its relaunch resumes the point, whose run goes on (not a second run of
+    the folder) and is folded under the relaunch's parent run, which has every point of the finished sweep."""
+    from mlflow import MlflowClient
+
+    from spread.tracking.continuation import Continuation
+    from spread.tracking.loggers import LoggerConfig
+    from spread.tracking.mlflow_store import tracked
+    from spread.tracking.parent import parent_run
+
+    logger = LoggerConfig(name="mlflow", tracking_uri=str(tmp_path / "m.db"))
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'm.db'}")
+    point = tmp_path / "sweep" / "points" / "p1"
+    runs = []
+    for launch in range(2):
+        again = Continuation(point, "sample", lambda: {"seed": 1}, resume=True)
+        with pytest.raises(RuntimeError) if launch == 0 else contextlib.nullcontext():
+            with parent_run(logger, "sweep", "s", tmp_path / "sweep", "s") as parent:
+                with tracked(logger, "sample", point, {"seed": 1}, "s", continuation=again) as run:
+                    again.record(run)
+                    runs.append((parent.run.run_id, run.run_id))
+                    if launch == 0:
+                        raise RuntimeError("the driver was killed")
+    (first_parent, first_run), (second_parent, second_run) = runs
+    assert second_run == first_run and second_parent != first_parent
+    done = client.get_run(first_run)
+    assert done.info.status == "FINISHED" and done.data.tags["mlflow.parentRunId"] == second_parent
+    assert done.data.tags["spread.launches"] == "2"
 
 
 def test_logger_names_are_checked_and_combined():

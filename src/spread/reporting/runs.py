@@ -134,12 +134,19 @@ def read_run_folder(path: str | Path) -> dict:
 def check_shape(path: Path, metrics: dict) -> None:
     """``RunError`` naming the file and key when a ``metrics.json`` holds a part the report reads in another shape
     than the evaluation writes it (a hand edit): ``bootstrap`` an object, ``per_room_type`` an object of objects
-    (a metric's own value that is not a number is shown ``invalid (...)`` instead, :class:`~spread.reporting.tables.Column`)."""
+    and the counts ``n_scenes``, ``n_objects``, ``n_failed`` whole numbers ≥ 0 (a metric's own value that is not a
+    number is shown ``invalid (...)`` instead, :class:`~spread.reporting.tables.Column`)."""
     if metrics.get("bootstrap") is not None and not isinstance(metrics["bootstrap"], dict):
         raise RunError(f"{path}: key 'bootstrap' is {type(metrics['bootstrap']).__name__}, expected an object")
     rooms = metrics.get("per_room_type")
     if rooms is not None and not (isinstance(rooms, dict) and all(isinstance(v, dict) for v in rooms.values())):
         raise RunError(f"{path}: key 'per_room_type' is not an object of room types to objects of metrics")
+    from spread.checks import is_whole
+
+    for key in ("n_scenes", "n_objects", "n_failed"):  # counts: a table prints them as they are
+        value = metrics.get(key)
+        if value is not None and not (is_whole(value) and value >= 0):
+            raise RunError(f"{path}: key '{key}' is {value!r}, expected a whole number ≥ 0")
 
 
 def identity_fields(identity: dict) -> dict:

@@ -284,6 +284,8 @@ def test_spread_ablate_refuses_a_seed_twice_and_a_stage_list_that_does_not_compo
               "logger=none", "figures=false", f"out_dir={tmp_path / 'a'}"]
     with pytest.raises(ValueError, match=r"seeds=\[0, 0\]: seed 0 is listed twice"):
         ablate(compose("ablate", *common, "seeds=[0,0]"))
+    with pytest.raises(ValueError, match=r"seeds=\[0, 1.5\]: a seed is a whole number ≥ 0"):  # it ran seed 1
+        ablate(compose("ablate", *common, "seeds=[0,1.5]"))
     with pytest.raises(ValueError, match=r"^sample/base: its overrides .*guidance.colision"):
         ablate(compose("ablate", *common, 'sample.extra=["sampler.steps=5","guidance.colision=0.1"]'))
     with pytest.raises(ValueError, match=r"evaluate: .*protocol.stability_runs=x.*could not be converted to Integer"):

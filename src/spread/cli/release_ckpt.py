@@ -109,6 +109,7 @@ def check_model(hp: dict, overrides: list[str] = ()) -> None:
     import dataclasses
     import math
 
+    from spread.checks import is_whole
     from spread.methods.release_network import ReleaseNetworkConfig
 
     overrides = list(overrides)
@@ -128,7 +129,7 @@ def check_model(hp: dict, overrides: list[str] = ()) -> None:
         kind = "float" if key != "num_points" and fields[key].type in (float, "float") else "int"
         if kind == "int":
             least = 0 if key in MAY_BE_ZERO else 1
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            if not is_whole(value) or value < least:
                 raise ValueError(f"{shown(name, value, overrides)}: expected a whole number ≥ {least}")
         elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
                 not (0 <= value < 1 if key == "dropout" else value > 0):

@@ -36,7 +36,7 @@ from spread.evaluation.resume import dedupe, load_finished
 from spread.evaluation.work import (
     evaluate_chunk, failure_record, reference_fid_state, scene_key, worker_extractor, worker_library,
 )
-from spread.io import append_jsonl, check_folder_kind, file_sha256, read_json, read_jsonl, write_json_atomic
+from spread.io import append_jsonl, check_folder_kind, read_json, read_jsonl, write_json_atomic
 from spread.runtime.ray import RaySettings, ray_session
 
 PER_SCENE = "per_scene.jsonl"
@@ -169,12 +169,13 @@ def input_hashes(files: list[Path], keys: list[str], folder: Path) -> tuple[dict
     device, a FIFO, a link out of ``folder``, over the size limit; :func:`spread.io.check_input_file`). A
     refused file's hash is the marker ``"refused"``, which its failure record carries too: a resume keeps the
     record while the file stays refused and evaluates the scene once the file is a readable one."""
+    from spread import readonce
     from spread.io import InputFileError, check_input_file
 
     inputs, refused = {}, {}
     for f, k in zip(files, keys):
-        try:
-            inputs[k] = file_sha256(check_input_file(f, root=folder))
+        try:  # hashed once per process (a relaunch's tracker record hashed the scenes before)
+            inputs[k] = readonce.file_sha256(check_input_file(f, root=folder))
         except (InputFileError, OSError) as exc:
             inputs[k] = "refused"
             refused[k] = {"scene_id": k, "file": str(f), "node_id": None, "pid": None, "input_sha256": "refused",

@@ -69,11 +69,18 @@ class Continuation:
         refused by them leaves the record of the last one that worked)."""
         from spread.io import write_json_atomic
 
+        if wandb_run is not None and getattr(getattr(wandb_run, "settings", None), "mode", None) == "disabled":
+            wandb_run = None  # nothing written, nothing to continue
         if mlflow_run is None and wandb_run is None:
+            return
+        try:
+            identity = self.digest
+        except (OSError, ValueError):  # an input the run records as refused (a FIFO scene file): no continuation
+            (self.out_dir / RECORD).unlink(missing_ok=True)
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.out_dir / RECORD, {
-            "job_type": self.job_type, "identity": self.digest,
+            "job_type": self.job_type, "identity": identity,
             "mlflow": {"tracking_uri": mlflow_run.uri, "run_id": mlflow_run.run_id} if mlflow_run else None,
             "wandb_id": getattr(wandb_run, "id", None) if wandb_run is not None else None})
 

@@ -425,6 +425,27 @@ def test_sampling_on_a_two_node_cluster_runs_on_both_nodes(dataset, ckpt, refere
     assert_each_scene_once(result, reference)
 
 
+def test_a_redo_on_a_joined_cluster_without_the_gpus_asked_is_refused_before_the_folder_is_cleared(
+        dataset, ckpt, tmp_path):
+    """``resume=false`` deleted the finished folder's scenes, then found the cluster had no GPU for an actor."""
+    import ray
+    from ray.cluster_utils import Cluster
+
+    out = tmp_path / "run"
+    first = sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", *SAMPLE, "workers=0")
+    kept = {p.name: p.read_bytes() for p in first.files}
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "num_gpus": 0, "include_dashboard": False})
+    try:
+        with pytest.raises(ValueError, match=rf"ray.num_gpus_per_worker=1.0 but the cluster at "
+                                             rf"ray.address={cluster.address} has 0 GPUs \(nothing in"):
+            sample_in_process(f"ckpt={ckpt}", f"data.root={dataset}", f"out_dir={out}", *SAMPLE, "workers=1",
+                              "resume=false", f"ray.address={cluster.address}", "ray.num_gpus_per_worker=1")
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+    assert {p.name: p.read_bytes() for p in (out / "scenes").glob("*.npz")} == kept
+
+
 # ---- faults --------------------------------------------------------------------------------------------
 
 def busy_actor_killer(scenes: Path, title: str, stop: threading.Event, killed: dict, timeout: float = 300) -> None:

@@ -276,13 +276,15 @@ def check_categories(checkpoint: dict, cfg: SamplingConfig) -> None:
                          f"{a!r} vs {b!r}); sample it on the dataset it was trained on")
 
 
-def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
+def check_fingerprint(out: Path, settings: dict, resume: bool,
+                      before_clearing: Callable[[], None] | None = None) -> str | None:
     """Resume, or redo from scratch (module docstring, step 3; ``resume=false``: always) by the platform's
     done-check (:func:`spread.runtime.fingerprint.done_check`); returns why the folder is redone (None: a resume
     or a new folder). A redo deletes the folder's scene files and renders, and those set aside (no file of an earlier
     run stays beside the new ones); then (either way) ``sampling.json``
     is pinned to ``settings`` (``status: running``) before any file is written, so a run killed mid-way is
-    resumed only by a re-launch with the same settings."""
+    resumed only by a re-launch with the same settings. ``before_clearing()``: the last check before a redo
+    deletes anything (its refusal leaves the folder as it was)."""
     from spread.runtime.fingerprint import done_check
 
     path, scenes = out / MANIFEST, out / "scenes"
@@ -294,6 +296,8 @@ def check_fingerprint(out: Path, settings: dict, resume: bool) -> str | None:
     decision = done_check(before, settings, present=present, resume=resume,
                           unknown=f"its scenes have no readable {MANIFEST} fingerprint")
     if decision.fresh:
+        if before_clearing is not None:
+            before_clearing()
         for old in [*scenes.glob("*.npz"), *(out / ASIDE).glob("scenes/*.npz"), *own_renders(out, path)]:
             old.unlink(missing_ok=True)
     write_json_atomic(path, {"fingerprint": settings, "status": "running", "redone_because": decision.reason})
@@ -386,6 +390,21 @@ def run_in_process(todo: list[BatchPlan], cfg: SamplingConfig, scenes_dir: Path,
     for batch in todo:
         on_result(worker.run(batch))
     return {"workers": 1, "mode": "in-process"}
+
+
+def check_joined_cluster(cfg: SamplingConfig) -> None:
+    """Before a redo clears the folder: a cluster this run joins (``ray.address``) can hold one sampling actor with
+    its ``ray.num_gpus_per_worker`` GPUs (:func:`actor_count` found it only after the folder was cleared). A started
+    cluster's GPUs are this machine's, checked by :func:`check_device`; ``workers=0`` uses no Ray."""
+    if cfg.workers <= 0 or not cfg.ray.num_gpus_per_worker > 0 or cfg.ray.starts_cluster:
+        return
+    import ray
+
+    with ray_session(cfg.ray):
+        gpus = ray.cluster_resources().get("GPU", 0)
+    if gpus < cfg.ray.num_gpus_per_worker:
+        raise ValueError(f"ray.num_gpus_per_worker={cfg.ray.num_gpus_per_worker} but the cluster at "
+                         f"ray.address={cfg.ray.address} has {gpus:g} GPUs (nothing in {cfg.out_dir} was removed)")
 
 
 def actor_count(cfg: SamplingConfig, batches: int) -> int:
@@ -524,7 +543,7 @@ def _run_sampling(cfg: SamplingConfig, before_work: Callable[[], None] | None = 
     from spread.runtime.fingerprint import guidance_run, normalised, sampler_label, sampling_identity
 
     settings = normalised(sampling_identity(cfg))  # the checkpoint hashed once per process
-    redone_because = check_fingerprint(out, settings, cfg.resume)
+    redone_because = check_fingerprint(out, settings, cfg.resume, before_clearing=lambda: check_joined_cluster(cfg))
     unplanned, taken_back = set_aside_unplanned(batches, out)
     if unplanned:
         print(f"{scenes_dir}: set {len(unplanned)} scene file(s) this run does not plan aside in {out / ASIDE} "

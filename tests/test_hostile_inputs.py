@@ -402,8 +402,25 @@ def test_hydras_command_log_replaces_a_planted_link_and_leaves_its_target_untouc
     out.mkdir()
     (out / "report.log").symlink_to(target)
     run_script("spread-report", f"runs={tmp_path / 'none'}", f"out_dir={out}", ok=False)
+    assert target.read_text() == "keep me\n"  # refused before it logged a line: the log was never opened
+    import logging
+
+    from spread.io import RunLogFileHandler
+
+    handler = RunLogFileHandler(str(out / "report.log"), delay=True)  # as conf/hydra/default.yaml makes it
+    handler.emit(logging.LogRecord("spread", logging.INFO, __file__, 1, "a line", None, None))
+    handler.close()
     assert target.read_text() == "keep me\n"
-    assert (out / "report.log").is_file() and not (out / "report.log").is_symlink()
+    assert (out / "report.log").read_text() == "a line\n" and not (out / "report.log").is_symlink()
+
+
+def test_a_command_refused_by_its_checks_leaves_no_empty_log_behind(tmp_path):
+    from helpers import user_error
+
+    out = tmp_path / "out"
+    line, _ = user_error("spread-sample", f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={tmp_path}", f"out_dir={out}")
+    assert line.startswith("spread-sample: ") and "no such checkpoint file" in line
+    assert [p.name for p in out.iterdir()] == [".spread.lock"]  # Hydra's sample.log (empty) is no longer made
 
 
 def test_two_scene_files_with_one_inner_id_both_export(dataset, tmp_path):

@@ -6,18 +6,15 @@ is still written, with the failed rows empty).
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
+from spread.cli.errors import console_main
+from spread.configs import register
 
 register()
 
 
-@command("spread-compare", config="compare")
-@hydra.main(config_path=conf_dir(), config_name="compare", version_base="1.3")
-@one_line("spread-compare")
+@console_main("spread-compare", config="compare")
 def main(cfg: DictConfig) -> None:
     from spread.commands.compare import compare, print_comparison
 

@@ -198,3 +198,20 @@ def command(name: str, config: str | None = None):
         return entry
 
     return wrap
+
+
+def console_main(name: str, config: str):
+    """Decorator of a Hydra console script's task function: the app's config ``config`` named once, for the
+    pre-composed check of its command line (:func:`command`), for ``hydra.main`` and for the structured-config
+    schemas it composes with (:func:`spread.configs.register`); user errors in one line (:func:`one_line`)."""
+    import hydra
+
+    from spread.configs import conf_dir, register
+
+    register(config)
+
+    def wrap(task):
+        hydra_main = hydra.main(config_path=conf_dir(), config_name=config, version_base="1.3")(one_line(name)(task))
+        return command(name, config=config)(hydra_main)
+
+    return wrap

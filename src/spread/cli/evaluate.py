@@ -6,18 +6,12 @@ default, offline), ``OUT/wandb/``. The work is :func:`spread.commands.evaluate.e
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
-
-register("evaluate")
+from spread.cli.errors import console_main
 
 
-@command("spread-evaluate", config="evaluate")
-@hydra.main(config_path=conf_dir(), config_name="evaluate", version_base="1.3")
-@one_line("spread-evaluate")
+@console_main("spread-evaluate", config="evaluate")
 def main(cfg: DictConfig) -> None:
     from spread.commands.evaluate import evaluate, print_evaluation_summary
 

@@ -3,18 +3,12 @@
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
-
-register("export")
+from spread.cli.errors import console_main
 
 
-@command("spread-export", config="export")
-@hydra.main(config_path=conf_dir(), config_name="export", version_base="1.3")
-@one_line("spread-export")
+@console_main("spread-export", config="export")
 def main(cfg: DictConfig) -> None:
     from spread.commands.export import export, print_export_summary
 

@@ -2,18 +2,12 @@
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
-
-register("generate")
+from spread.cli.errors import console_main
 
 
-@command("spread-generate", config="generate")
-@hydra.main(config_path=conf_dir(), config_name="generate", version_base="1.3")
-@one_line("spread-generate")
+@console_main("spread-generate", config="generate")
 def main(cfg: DictConfig) -> None:
     from spread.commands.generate import generate, print_dataset_summary
 

@@ -3,18 +3,12 @@
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
-
-register("import")
+from spread.cli.errors import console_main
 
 
-@command("spread-import", config="import")
-@hydra.main(config_path=conf_dir(), config_name="import", version_base="1.3")
-@one_line("spread-import")
+@console_main("spread-import", config="import")
 def main(cfg: DictConfig) -> None:
     from spread.commands.import_data import import_data, print_import_summary
 

@@ -7,18 +7,12 @@ without ``metrics.json`` stops the command with a message naming it.
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
-
-register("report")
+from spread.cli.errors import console_main
 
 
-@command("spread-report", config="report")
-@hydra.main(config_path=conf_dir(), config_name="report", version_base="1.3")
-@one_line("spread-report")
+@console_main("spread-report", config="report")
 def main(cfg: DictConfig) -> None:
     from spread.reporting.report import print_report, run_report, runs_argument
     from spread.reporting.runs import RunError

@@ -7,18 +7,12 @@ into ``out_dir/metrics.json`` — one run folder per point of a guidance sweep. 
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
-
-register("sample")
+from spread.cli.errors import console_main
 
 
-@command("spread-sample", config="sample")
-@hydra.main(config_path=conf_dir(), config_name="sample", version_base="1.3")
-@one_line("spread-sample")
+@console_main("spread-sample", config="sample")
 def main(cfg: DictConfig) -> None:
     from spread.commands.evaluate import print_evaluation_summary
     from spread.commands.sample import print_sampling_summary, sample

@@ -3,18 +3,15 @@ the command is :func:`spread.commands.train.train`)."""
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
+from spread.cli.errors import console_main
+from spread.configs import register
 
 register()
 
 
-@command("spread-train", config="train")
-@hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
-@one_line("spread-train")
+@console_main("spread-train", config="train")
 def main(cfg: DictConfig) -> None:
     from spread.commands.train import train
 

@@ -5,18 +5,16 @@ from __future__ import annotations
 
 import sys
 
-import hydra
 from omegaconf import DictConfig
 
-from spread.cli.errors import command, one_line
-from spread.configs import conf_dir, register
+from spread.cli.errors import console_main
+from spread.configs import register
 from spread.training.ray_train import with_default_trainer
 
 register()
 
 
-@hydra.main(config_path=conf_dir(), config_name="train", version_base="1.3")
-@one_line("spread-train-ray")
+@console_main("spread-train-ray", config="train")  # its command line checked after main() rewrote it
 def _main(cfg: DictConfig) -> None:
     from spread.commands.common import record_config
     from spread.io import run_lock
@@ -35,7 +33,7 @@ def _main(cfg: DictConfig) -> None:
 
 def main() -> None:
     sys.argv = with_default_trainer(sys.argv)  # checked as it composes: trainer=ray unless the line names one
-    command("spread-train-ray", config="train")(_main)()
+    _main()
 
 
 if __name__ == "__main__":

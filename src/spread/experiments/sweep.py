@@ -8,7 +8,8 @@ command line is ``spread-sample``'s (or ``spread-train``'s) plus the keys of ``c
 * Hydra's sweep syntax makes the search space: a comma list or ``choice(a,b)`` / ``range(0,10,2)`` → a grid
   (``search=grid``, every combination) or a categorical dimension (``search=random`` / ``optuna`` / any other
   search by registered name or ``module:Class``, :mod:`spread.experiments.tuning`); ``interval(a,b)`` → a
-  uniform dimension (searches that draw only); a preset's ``hydra.sweeper.params``
+  uniform dimension (searches that draw only), ``int(interval(a,b))`` → whole numbers from a to b (for a count:
+  ``data.batch_size``, ``trainer.max_steps``), ``tag(log,…)`` → log-uniform; a preset's ``hydra.sweeper.params``
   (``+sweep=guidance_grid``) count as if written on the command line, unless the key is given there.
 
 Each trial's run folder is ``out_dir/points/<values>_<short fingerprint>`` and it is re-used only when its

@@ -104,7 +104,11 @@ def test_trainer_values_are_checked_against_the_arguments_lightnings_trainer_tak
 @pytest.mark.parametrize("config", [f"trainer={p.stem}" for p in sorted((CONF / "trainer").glob("*.yaml"))]
                          + [f"experiment={p.stem}" for p in sorted((CONF / "experiment").glob("*.yaml"))])
 def test_every_trainer_config_and_experiment_composes_to_values_lightnings_trainer_takes(config):
-    assert trainer_setting_problem(compose("train", "data.root=/d", config).trainer) is None
+    from spread.training.trainer_settings import check_training_settings
+
+    cfg = compose("train", "data.root=/d", config)
+    assert trainer_setting_problem(cfg.trainer) is None
+    check_training_settings(cfg)  # seed, threads, renders, the checkpoint's and callbacks' arguments
 
 
 @pytest.fixture(scope="module")
@@ -121,6 +125,9 @@ def run(tmp_path_factory) -> tuple[Path, Path]:
     ("trainer.max_steps=4.5", "trainer.max_steps=4.5: Lightning's Trainer takes int here"),
     ("checkpoint.every_n_train_steps=-5", "checkpoint: MisconfigurationException: Invalid value for "
                                           "every_n_train_steps=-5"),
+    # each of these trained: a checkpoint at step 3 only (3 % 1.5 == 0), one render scene for 1.5
+    ("checkpoint.every_n_train_steps=1.5", "checkpoint.every_n_train_steps=1.5: ModelCheckpoint takes one of int"),
+    ("renders.scenes=1.5", "renders.scenes=1.5: expected a whole number ≥ 1"),
     ("trainer.max_steps=1", "ckpt_path=")])  # …: the checkpoint is at step 2, past trainer.max_steps=1 (it recorded 1)
 def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_and_leaves_the_run_folder_as_it_was(
         run, tmp_path, override, says):

@@ -103,6 +103,42 @@ def trainer_setting_problem(trainer_cfg, overrides: dict | None = None) -> str |
     return "; ".join(problems) or None
 
 
+def target_setting_problem(node, key: str) -> str | None:
+    """What is wrong with a config node that builds a class (``_target_``: the ``checkpoint`` node, a
+    ``callbacks.<name>`` node) as that class's constructor arguments, in one line, or None: a value its
+    ``__init__`` annotation does not allow (``checkpoint.every_n_train_steps=1.5`` checkpointed at step 3 only).
+    A target that cannot be imported is left to the build (:func:`built`), which names it."""
+    import inspect
+
+    from hydra.utils import get_class
+    from omegaconf import DictConfig, OmegaConf
+
+    values = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node or {})
+    target = values.pop("_target_", None)
+    if not target:
+        return None
+    try:
+        cls = get_class(str(target))
+        parameters = inspect.signature(cls.__init__).parameters
+        hints = typing.get_type_hints(cls.__init__)
+    except Exception:  # noqa: BLE001 - not importable, or annotations this Python cannot evaluate: the build decides
+        return None
+    problems = [f"{key}.{name}={value!r}: {cls.__name__} takes {_spelled(hints[name])} here"
+                for name, value in values.items()
+                if not name.startswith("_") and name in parameters and name in hints and not accepts(hints[name], value)]
+    return "; ".join(problems) or None
+
+
+def check_renders(renders) -> None:
+    """The ``renders`` node (:class:`~spread.training.renders.SampleRenders`): ``every_n_epochs`` (0: off), ``scenes``
+    and ``seed`` whole numbers, refused by key (``renders.scenes=1.5`` rendered one scene)."""
+    from spread.checks import whole_number
+
+    for name, least, note in (("every_n_epochs", 0, "(0: off)"), ("scenes", 1, ""), ("seed", 0, "")):
+        if renders is not None and name in renders:
+            whole_number(renders[name], f"renders.{name}", least, note=note)
+
+
 def check_trainer_settings(trainer_cfg, overrides: dict | None = None) -> None:
     """Raise ``ValueError`` (one line, the command's refusal) for :func:`trainer_setting_problem`."""
     problem = trainer_setting_problem(trainer_cfg, overrides)
@@ -112,8 +148,9 @@ def check_trainer_settings(trainer_cfg, overrides: dict | None = None) -> None:
 
 def check_training_settings(cfg, overrides: dict | None = None) -> None:
     """Before a training launch records its config or opens a logger run: the ``trainer.*`` values
-    (:func:`check_trainer_settings`), ``seed`` (Lightning's, a whole number in [0, 2³²)) and ``threads`` (≥ 1, or null
-    for torch's default), each refused by key (``ValueError``)."""
+    (:func:`check_trainer_settings`), ``seed`` (Lightning's, a whole number in [0, 2³²)), ``threads`` (≥ 1, or null
+    for torch's default), ``renders.*`` and the ``checkpoint`` / ``callbacks.*`` constructor arguments, each refused
+    by key (``ValueError``)."""
     seed = cfg.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
         raise ValueError(f"seed={seed!r}: expected a whole number in [0, 2**32)")
@@ -121,6 +158,12 @@ def check_training_settings(cfg, overrides: dict | None = None) -> None:
 
     check_threads(cfg.get("threads"))
     check_trainer_settings(cfg.trainer, overrides)
+    check_renders(cfg.get("renders"))
+    nodes = [("checkpoint", cfg.get("checkpoint"))] + [(f"callbacks.{k}", v) for k, v in (cfg.get("callbacks") or {}).items()]
+    for key, node in nodes:
+        problem = target_setting_problem(node, key)
+        if problem:
+            raise ValueError(problem)
 
 
 def built(make, key: str):

@@ -434,18 +434,23 @@ def test_a_relaunched_sample_or_evaluation_continues_its_mlflow_run_and_other_se
     launch("seed=5")  # another seed: other scenes, a new run
     launch("seed=5")  # ... which its relaunch continues
     launch("seed=5", "resume=false")  # a redo from scratch: a new run again
+    launch("seed=5", "logger.run_name=renamed")  # the same scenes, another record (name, params): a new run
     found = runs("sample")
-    assert len(found) == 3 and [r.info.status for r in found] == ["FINISHED"] * 3
-    assert found[1].data.tags["spread.launches"] == "2" and "spread.launches" not in found[2].data.tags
+    assert len(found) == 4 and [r.info.status for r in found] == ["FINISHED"] * 4
+    assert [r.data.tags["spread.launches"] for r in found] == ["2", "2", "1", "1"]
     assert found[1].data.params["seed"] == found[2].data.params["seed"] == "5"
+    assert found[3].info.run_name == "renamed" and found[3].data.params["logger.run_name"] == "renamed"
 
-    evaluation = [f"scenes={out / 'scenes'}", f"reference={data}", f"out_dir={tmp_path / 'e'}", "renders=0",
+    # the sampling folder holds its own evaluation: each job continues its own run, launched in turns
+    evaluation = [f"scenes={out / 'scenes'}", f"reference={data}", f"out_dir={out}", "renders=0",
                   "protocol.stability_runs=1", "fid.enabled=false", "progress=false", "experiment_name=relaunch",
                   *logger]
     evaluate(compose("evaluate", *evaluation))
+    launch("seed=5", "logger.run_name=renamed")
     evaluate(compose("evaluate", *evaluation))
     (evaluated,) = runs("evaluate")
     assert evaluated.data.tags["spread.launches"] == "2" and evaluated.info.status == "FINISHED"
+    assert len(runs("sample")) == 4 and runs("sample")[3].data.tags["spread.launches"] == "2"
     next(iter(sorted((out / "scenes").glob("*.npz")))).unlink()  # other scenes: other numbers, a new run
     evaluate(compose("evaluate", *evaluation))
     assert len(runs("evaluate")) == 2

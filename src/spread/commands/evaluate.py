@@ -30,7 +30,7 @@ def _evaluate(cfg: DictConfig, command, overrides: list[str] | None):
     tags = {"spread.seed": command.seed, "spread.scenes": str(command.scenes),
             "spread.dataset_fingerprint": mlflow_log.dataset_fingerprint(command.reference)}
     lineage = scenes_lineage(command.scenes)
-    again = evaluation_continuation(command)
+    again = evaluation_continuation(command, plain(cfg))
     wandb_run = None
     if command.logger.wandb:
         from spread.tracking.loggers import init_run
@@ -49,7 +49,7 @@ def _evaluate(cfg: DictConfig, command, overrides: list[str] | None):
     return result
 
 
-def evaluation_continuation(command):
+def evaluation_continuation(command, config: dict):
     """Whether this launch continues the folder's tracker runs (:mod:`spread.tracking.continuation`): the
     identity of its results is what ``metrics.json`` records them measured with
     (:func:`spread.evaluation.run.evaluated_with`) and the scenes' folder and content."""
@@ -62,7 +62,7 @@ def evaluation_continuation(command):
         return {**evaluated_with(command, str(Path(str(command.reference)) / "assets")),
                 "scenes": str(scenes.resolve()), "scenes_sha256": tree_digest(scenes)}
 
-    return Continuation(command.out_dir, "evaluate", identity, command.resume)
+    return Continuation(command.out_dir, "evaluate", identity, command.resume, config)
 
 
 def evaluated_specs(metrics: dict) -> list:

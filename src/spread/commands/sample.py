@@ -34,14 +34,14 @@ def experiment_of(command) -> str:
     return name if not folder or folder == name else f"{name}/{folder}"
 
 
-def sampling_continuation(command):
+def sampling_continuation(command, config: dict):
     """Whether this launch continues the folder's tracker runs (:mod:`spread.tracking.continuation`): the
-    identity of its results is the sweep point's (:func:`spread.runtime.fingerprint.point_identity`: the sampling
+    identity of its results (with the command's ``config``) is the sweep point's (:func:`spread.runtime.fingerprint.point_identity`: the sampling
     identity, the samples per graph and, with ``evaluate=true``, the evaluation's)."""
     from spread.runtime.fingerprint import point_identity
     from spread.tracking.continuation import Continuation
 
-    return Continuation(command.out_dir, "sample", lambda: point_identity(command), command.resume)
+    return Continuation(command.out_dir, "sample", lambda: point_identity(command), command.resume, config)
 
 
 def sample(cfg: DictConfig, log: bool = True, overrides: list[str] | None = None):
@@ -84,7 +84,7 @@ def _sample(cfg: DictConfig, command, log: bool, overrides: list[str] | None):
             start_point(command.out_dir, point)
     started = time.perf_counter()
     experiment = experiment_of(command)
-    again = sampling_continuation(command)
+    again = sampling_continuation(command, plain(cfg))
     wandb_run = open_sampling_run(command, plain(cfg), experiment, again.wandb_id()) \
         if log and command.logger.wandb else None
     with failed_on_error(wandb_run):

@@ -287,6 +287,8 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
     from spread.tracking.nesting import parent_tags
 
     all_tags = common_tags(job_type, tags) | {f"tag.{t}": "1" for t in logger.tags} | parent_tags(uri)
+    if continuation is not None:  # a run a relaunch may continue counts its launches from the first
+        all_tags["spread.launches"] = "1"
     run = client.create_run(exp, tags=all_tags, run_name=logger.run_name or name or Path(out_dir).name)
     handle = MlflowRun(client, run.info.run_id, uri)
     handle.log_params(flat_params(config))

@@ -95,6 +95,19 @@ def test_an_integer_interval_draws_whole_numbers_from_both_ends_and_a_real_one_f
                                 f"{key}=interval(2,4)", f"out_dir={tmp_path / 'x'}"])
         with pytest.raises(ValueError, match=rf"^{key}=2.0: .* write {key}='int\(interval\(2,4\)\)' to draw whole "):
             checked_sweep(plan)
+    for interval, way in [("tag(log,interval(2,64))", r"write data.batch_size='tag\(log,int\(interval\(2,64\)\)\)'"),
+                          ("interval(2.5,3.5)", "its one whole number is 3: write data.batch_size=3"),
+                          ("interval(2.5,2.9)", "it holds no whole number")]:
+        plan = parse_arguments(["command=train", f"data.root={tmp_path}", "search=random", "num_samples=2",
+                                f"data.batch_size={interval}", f"out_dir={tmp_path / 'x'}"])
+        with pytest.raises(ValueError, match=way):
+            checked_sweep(plan)
+    with pytest.raises(ValueError, match=r"int\(interval\(1.5,3.5\)\): int\(\) of an interval with the end 1.5"):
+        parse_arguments(["command=train", "data.root=/d", "search=random", "data.batch_size=int(interval(1.5,3.5))",
+                         "out_dir=/x"])  # Hydra truncated it to 1..3
+    one = parse_arguments(["command=train", "data.root=/d", "search=random", "data.batch_size=int(interval(3,3))",
+                           "out_dir=/x"])
+    assert search_space(one)["data.batch_size"].sample() == 3
     assert not (tmp_path / "x").exists()
 
 

@@ -218,10 +218,30 @@ def check_dimensions(dims: list[Dimension]) -> None:
             raise ValueError(f"spread-sweep: {d.key}: the sweep over it has no value (e.g. range(0,0)); give at least "
                              f"one")
         if d.values is None:
-            if not (math.isfinite(d.low) and math.isfinite(d.high)) or not d.low < d.high:
-                raise ValueError(f"spread-sweep: {d.key}=interval({d.low:g},{d.high:g}): expected finite low < high")
+            ordered = d.low <= d.high if d.integer else d.low < d.high  # int(interval(3,3)): the one value 3
+            if not (math.isfinite(d.low) and math.isfinite(d.high)) or not ordered:
+                raise ValueError(f"spread-sweep: {d.key}=interval({d.low:g},{d.high:g}): expected finite low "
+                                 f"{'≤' if d.integer else '<'} high")
             if d.log and d.low <= 0:
                 raise ValueError(f"spread-sweep: {d.key}: a log interval needs low > 0, got {d.low:g}")
+
+
+def check_whole_ends(line: str, key: str) -> None:
+    """``ValueError`` for ``int(interval(a,b))`` whose ends as written are not whole: Hydra truncates them
+    (``int(interval(1.5,3.5))`` drew from 1 to 3, below what was written)."""
+    import re
+
+    found = re.search(r"interval\(\s*([^,()]+?)\s*,\s*([^,()]+?)\s*\)", line)
+    if found is None:
+        return
+    for end in found.groups():
+        try:
+            whole = float(end).is_integer()
+        except ValueError:
+            continue
+        if not whole:
+            raise ValueError(f"spread-sweep: {line}: int() of an interval with the end {end} draws from its truncated "
+                             f"ends (Hydra casts them); give whole ends, e.g. int(interval(2,4))")
 
 
 def dimension(override) -> Dimension:
@@ -231,6 +251,8 @@ def dimension(override) -> Dimension:
     if override.is_interval_sweep():
         value = override.value()
         integer = all(isinstance(v, int) and not isinstance(v, bool) for v in (value.start, value.end))
+        if integer:
+            check_whole_ends(override.input_line, key)
         return Dimension(key, low=value.start if integer else float(value.start),
                          high=value.end if integer else float(value.end), log="log" in (value.tags or set()),
                          integer=integer)
@@ -710,9 +732,18 @@ def check_first_point(plan: SweepPlan, shared: dict) -> None:
         if not drawn_floats:
             raise
         d = drawn_floats[0]
-        raise ValueError(f"{said} (interval({d.low:g},{d.high:g}) draws real numbers: write "
-                         f"{d.key}='int(interval({math.ceil(d.low)},{math.floor(d.high)}))' to draw whole numbers)") \
-            from None
+        raise ValueError(f"{said} (interval({d.low:g},{d.high:g}) draws real numbers: {whole_way(d)})") from None
+
+
+def whole_way(d: Dimension) -> str:
+    """How to sweep the whole numbers of the real interval ``d`` (the hint of :func:`check_first_point`)."""
+    low, high = math.ceil(d.low), math.floor(d.high)
+    if low > high:
+        return "it holds no whole number; give a whole value"
+    if low == high:
+        return f"its one whole number is {low}: write {d.key.lstrip('+')}={low}"
+    drawn = f"int(interval({low},{high}))"
+    return f"write {d.key}='{f'tag(log,{drawn})' if d.log else drawn}' to draw whole numbers"
 
 
 def _check_first_point(plan: SweepPlan, shared: dict) -> None:

@@ -79,6 +79,37 @@ def test_sigterm_stops_the_command_and_its_cluster_and_removes_the_record(tmp_pa
     assert not running(own, record["session_dir"]) and not (tmp_path / RECORD).exists()
 
 
+WAITER = """
+import sys, time
+from pathlib import Path
+import ray
+from spread.runtime.ray import RaySettings, ray_session
+with ray_session(RaySettings(num_cpus=1, object_store_memory=80 * 1024 * 1024), owner=Path(sys.argv[1])):
+    slow = ray.remote(lambda: time.sleep(600)).remote()
+    print("ready", flush=True)
+    ray.wait([slow], num_returns=1)  # the evaluation's and sampling's fan-out wait here
+"""
+
+
+@pytest.mark.timeout(240)
+def test_sigterm_while_the_driver_waits_on_ray_exits_as_terminated_not_as_a_failure(tmp_path):
+    """Ray's ``wait`` turned the handler's SystemExit(143) into SystemExit(1): ``spread-evaluate`` stopped by SIGTERM
+    mid-run exited 1 with no message, as if it had failed."""
+    proc = subprocess.Popen([sys.executable, "-c", WAITER, str(tmp_path)], stdout=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(1.0)  # inside ray.wait
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+        assert not (tmp_path / RECORD).exists()
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 def test_a_record_of_processes_that_are_gone_or_of_another_session_stops_nothing(tmp_path):
     sleeper = subprocess.Popen(["sleep", "60"])
     try:  # a recorded pid reused by another program (its command line names no Ray session): left alone

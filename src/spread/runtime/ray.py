@@ -189,7 +189,13 @@ def _record(owner: Path) -> None:
 TERMINATED = 128 + signal.SIGTERM
 
 
+#: The signals :func:`_terminate` received in this process (Ray's ``wait``/``get`` turn the ``SystemExit`` it raises
+#: inside them into ``SystemExit(1)``: :func:`terminated` and :func:`ray_session` still read it as SIGTERM).
+_RECEIVED: list[int] = []
+
+
 def _terminate(signum, frame):
+    _RECEIVED.append(signum)
     raise SystemExit(128 + signum)
 
 
@@ -204,7 +210,7 @@ def terminated(exc: BaseException) -> bool:
     lightning = sys.modules.get("lightning.pytorch.utilities.exceptions")
     if lightning is not None and isinstance(exc, lightning.SIGTERMException):
         return True
-    return isinstance(exc, SystemExit) and exc.code in (TERMINATED, int(signal.SIGTERM))
+    return isinstance(exc, SystemExit) and (exc.code in (TERMINATED, int(signal.SIGTERM)) or bool(_RECEIVED))
 
 
 @contextlib.contextmanager
@@ -251,6 +257,10 @@ def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Itera
             nodes = [n for n in ray.nodes() if n.get("Alive")]
             yield {"address": settings.address or "local", "nodes": len(nodes),
                    "cpus": float(sum(n.get("Resources", {}).get("CPU", 0.0) for n in nodes))}
+        except SystemExit as exc:  # SIGTERM inside ray.wait / ray.get comes out of Ray as SystemExit(1)
+            if _RECEIVED and exc.code != TERMINATED:
+                raise SystemExit(TERMINATED) from exc
+            raise
         finally:
             if owned:
                 ray.shutdown()

@@ -451,6 +451,8 @@ def test_a_relaunched_sample_or_evaluation_continues_its_mlflow_run_and_other_se
     (evaluated,) = runs("evaluate")
     assert evaluated.data.tags["spread.launches"] == "2" and evaluated.info.status == "FINISHED"
     assert len(runs("sample")) == 4 and runs("sample")[3].data.tags["spread.launches"] == "2"
+    launch("seed=5")  # the settings of a run before the renamed one: that run goes on
+    assert len(runs("sample")) == 4 and runs("sample")[2].data.tags["spread.launches"] == "2"
     next(iter(sorted((out / "scenes").glob("*.npz")))).unlink()  # other scenes: other numbers, a new run
     evaluate(compose("evaluate", *evaluation))
     assert len(runs("evaluate")) == 2

@@ -231,6 +231,18 @@ def _stop_on_signals() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _terminated_as_143() -> Iterator[None]:
+    """A SIGTERM met in the block ends it as :data:`TERMINATED`: inside ``ray.wait`` / ``ray.get`` it comes out of Ray
+    as ``SystemExit(1)``, and while ``ray.init`` starts the cluster Ray's own handler raises ``SystemExit(15)``."""
+    try:
+        yield
+    except SystemExit as exc:
+        if exc.code != TERMINATED and (_RECEIVED or exc.code == int(signal.SIGTERM)):
+            raise SystemExit(TERMINATED) from exc
+        raise
+
+
+@contextlib.contextmanager
 def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Iterator[dict]:
     """Ray initialised for the block (module docstring); yields ``{"address", "nodes", "cpus"}``. ``owner``: the
     command's output folder, where a started cluster is recorded (and a killed predecessor's stopped)."""
@@ -243,7 +255,7 @@ def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Itera
     if recorded:
         Path(owner).mkdir(parents=True, exist_ok=True)
         stop_leftover(Path(owner))
-    with _stop_on_signals():
+    with _stop_on_signals(), _terminated_as_143():
         if owned:
             with quiet_ray_start():
                 _start(settings)
@@ -257,10 +269,6 @@ def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Itera
             nodes = [n for n in ray.nodes() if n.get("Alive")]
             yield {"address": settings.address or "local", "nodes": len(nodes),
                    "cpus": float(sum(n.get("Resources", {}).get("CPU", 0.0) for n in nodes))}
-        except SystemExit as exc:  # SIGTERM inside ray.wait / ray.get comes out of Ray as SystemExit(1)
-            if _RECEIVED and exc.code != TERMINATED:
-                raise SystemExit(TERMINATED) from exc
-            raise
         finally:
             if owned:
                 ray.shutdown()

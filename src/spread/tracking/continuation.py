@@ -6,7 +6,7 @@ work, and a comparison of runs counted the folder twice. Now a launch records in
 once its checks passed, the job type, a digest of the identity of its results (what they depend on: the
 sampling identity with the samples per graph for ``spread-sample``, the evaluation identity with the scenes'
 content for ``spread-evaluate``; :mod:`spread.runtime.fingerprint`), a digest of its config and its runs' ids,
-one entry per job type (a sampling folder holds its own evaluation). A later launch into the
+one entry per job type (a sampling folder holds its own evaluation) and command config. A later launch into the
 same folder with ``resume=true``, the same job type, the same identity and the same command config (params,
 experiment, run name, tags, ``out_dir``: what the runs' record says) continues the recorded runs: the
 MLflow run when it is in the same store (status back to ``RUNNING``, its params kept, tag ``spread.launches``
@@ -22,8 +22,12 @@ import os
 from pathlib import Path
 from typing import Callable
 
-#: The file in a run folder that says which job and identity its tracker runs hold.
+#: The file in a run folder that says which job and identity its tracker runs hold: job type → command config
+#: digest → the results' identity digest and the runs' ids.
 RECORD = "tracked_with.json"
+#: Configs remembered per job type (a launch with other settings, then one with the first settings again,
+#: continues the first run).
+KEPT = 16
 
 
 class Continuation:
@@ -36,7 +40,7 @@ class Continuation:
         from spread.runtime.fingerprint import digest
 
         self.out_dir, self.job_type, self.identity, self.resume = Path(out_dir), job_type, identity, bool(resume)
-        self.config = digest(config or {})
+        self.config = digest({k: v for k, v in (config or {}).items() if k != "resume"})  # how to launch, not what
         self._digest: str | None = None
 
     @property
@@ -48,7 +52,7 @@ class Continuation:
         return self._digest
 
     def entries(self) -> dict:
-        """The folder's record: job type → that job's entry (``{}`` without one, or for a damaged one)."""
+        """The folder's record: job type → config digest → entry (``{}`` without one, or for a damaged one)."""
         from spread.io import read_json_object
 
         path = self.out_dir / RECORD
@@ -64,9 +68,11 @@ class Continuation:
         or a copied folder's other ``out_dir`` is another run, whose record the old one's params would contradict)."""
         if not self.resume:
             return {}
-        before = self.entries().get(self.job_type) or {}
+        before = (self.entries().get(self.job_type) or {}).get(self.config)
+        if not isinstance(before, dict):
+            return {}
         try:
-            same = before.get("config") == self.config and before.get("identity") == self.digest
+            same = before.get("identity") == self.digest
         except (OSError, ValueError):  # inputs the run's own checks will refuse: new runs
             return {}
         return before if same else {}
@@ -93,16 +99,17 @@ class Continuation:
         if mlflow_run is None and wandb_run is None:
             return
         entries = self.entries()
+        runs = {k: v for k, v in (entries.get(self.job_type) or {}).items() if isinstance(v, dict) and k != self.config}
         try:
             identity = self.digest
         except (OSError, ValueError):  # an input the run records as refused (a FIFO scene file): no continuation
-            entries.pop(self.job_type, None)
             identity = None
-        if identity is not None:
-            entries[self.job_type] = {
-                "identity": identity, "config": self.config,
+        if identity is not None:  # the newest last; the oldest beyond KEPT dropped
+            runs[self.config] = {
+                "identity": identity,
                 "mlflow": {"tracking_uri": mlflow_run.uri, "run_id": mlflow_run.run_id} if mlflow_run else None,
                 "wandb_id": getattr(wandb_run, "id", None) if wandb_run is not None else None}
+        entries[self.job_type] = dict(list(runs.items())[-KEPT:])
         self.out_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.out_dir / RECORD, entries)
 

@@ -36,8 +36,8 @@ def experiment_of(command) -> str:
 
 def sampling_continuation(command, config: dict):
     """Whether this launch continues the folder's tracker runs (:mod:`spread.tracking.continuation`): the
-    identity of its results (with the command's ``config``) is the sweep point's (:func:`spread.runtime.fingerprint.point_identity`: the sampling
-    identity, the samples per graph and, with ``evaluate=true``, the evaluation's)."""
+    identity of its results is the sweep point's (:func:`spread.runtime.fingerprint.point_identity`: the sampling
+    identity, the samples per graph and, with ``evaluate=true``, the evaluation's), beside the command's ``config``."""
     from spread.runtime.fingerprint import point_identity
     from spread.tracking.continuation import Continuation
 

@@ -226,7 +226,7 @@ def check_dimensions(dims: list[Dimension]) -> None:
                 raise ValueError(f"spread-sweep: {d.key}: a log interval needs low > 0, got {d.low:g}")
 
 
-def check_whole_ends(line: str, key: str) -> None:
+def check_whole_ends(line: str) -> None:
     """``ValueError`` for ``int(interval(a,b))`` whose ends as written are not whole: Hydra truncates them
     (``int(interval(1.5,3.5))`` drew from 1 to 3, below what was written)."""
     import re
@@ -252,7 +252,7 @@ def dimension(override) -> Dimension:
         value = override.value()
         integer = all(isinstance(v, int) and not isinstance(v, bool) for v in (value.start, value.end))
         if integer:
-            check_whole_ends(override.input_line, key)
+            check_whole_ends(override.input_line)
         return Dimension(key, low=value.start if integer else float(value.start),
                          high=value.end if integer else float(value.end), log="log" in (value.tags or set()),
                          integer=integer)

@@ -99,7 +99,8 @@ class Continuation:
         if mlflow_run is None and wandb_run is None:
             return
         entries = self.entries()
-        runs = {k: v for k, v in (entries.get(self.job_type) or {}).items() if isinstance(v, dict) and k != self.config}
+        runs = {k: v for k, v in (entries.get(self.job_type) or {}).items()
+                if isinstance(v, dict) and k != self.config}
         try:
             identity = self.digest
         except (OSError, ValueError):  # an input the run records as refused (a FIFO scene file): no continuation

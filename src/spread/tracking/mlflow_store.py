@@ -279,10 +279,9 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
         return None
     uri = resolve_tracking_uri(logger.tracking_uri)
     client = open_store(uri)
-    if continuation is not None:
-        handle = continued_run(client, uri, continuation.mlflow_run_id(uri), out_dir)
-        if handle is not None:
-            return handle
+    handle = continued_run(client, uri, continuation.mlflow_run_id(uri), out_dir) if continuation else None
+    if handle is not None:
+        return handle
     exp = experiment_id(client, uri, experiment or "Default")
     from spread.tracking.nesting import parent_tags
 

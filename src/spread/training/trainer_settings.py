@@ -159,7 +159,8 @@ def check_training_settings(cfg, overrides: dict | None = None) -> None:
     check_threads(cfg.get("threads"))
     check_trainer_settings(cfg.trainer, overrides)
     check_renders(cfg.get("renders"))
-    nodes = [("checkpoint", cfg.get("checkpoint"))] + [(f"callbacks.{k}", v) for k, v in (cfg.get("callbacks") or {}).items()]
+    callbacks = cfg.get("callbacks") or {}
+    nodes = [("checkpoint", cfg.get("checkpoint"))] + [(f"callbacks.{k}", v) for k, v in callbacks.items()]
     for key, node in nodes:
         problem = target_setting_problem(node, key)
         if problem:

@@ -36,6 +36,17 @@ def test_a_console_script_without_its_required_settings_names_them_all_in_one_li
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("name", ["spread-train", "spread-train-ray"])
+def test_a_training_script_given_data_without_scenes_says_so_in_one_line_before_ray_or_the_folder(name, tmp_path):
+    out, empty = tmp_path / "run", tmp_path / "rooms"
+    empty.mkdir()
+    line, proc = user_error(name, "experiment=quick", f"data.root={empty}", f"out_dir={out}", cwd=tmp_path)
+    assert line == (f"{name}: data.root={empty}: no scene files in {empty / 'train'} to train on "
+                    "(HYDRA_FULL_ERROR=1 shows the traceback)"), line
+    assert "Ray" not in proc.stdout + proc.stderr  # the driver refused it: no worker raised it 2× in a traceback
+    assert not (out / "config.yaml").exists()
+
+
 @pytest.mark.parametrize("override, says", [
     ("model=nosuch", ["Could not find 'model/nosuch'", "Available options in 'model': ", " paper "]),
     ("trainer.nonexistent=3", ["Could not override 'trainer.nonexistent'", "Key 'nonexistent' is not in struct"]),

@@ -297,6 +297,21 @@ def test_a_training_workers_bad_setting_is_found_through_rays_wrappers():
     assert worker_user_error(crash) is None  # a crash stays a traceback
 
 
+def test_a_training_workers_bad_setting_is_found_through_ray_train_v2s_wrappers():
+    from ray.train.v2._internal.exceptions import UserExceptionWithTraceback
+    from ray.train.v2.api.exceptions import ControllerError, WorkerGroupError
+
+    from spread.training.ray_train import worker_user_error
+
+    first = ValueError("data.root=/x: no scene files in /x/train to train on")
+    failures = {1: UserExceptionWithTraceback(RuntimeError("rank 1 crashed"), "Traceback ..."),
+                0: UserExceptionWithTraceback(first, "Traceback ...")}
+    assert worker_user_error(WorkerGroupError("rank 0, 1", failures)) is first
+    assert worker_user_error(ControllerError(first)) is first
+    crash = WorkerGroupError("rank 0", {0: UserExceptionWithTraceback(RuntimeError("CUDA error"), "Traceback ...")})
+    assert worker_user_error(crash) is None
+
+
 @pytest.mark.parametrize("key, value, named", [
     ("mass", float("nan"), "mass=nan: expected a finite number of kg > 0"),
     ("mass", float("inf"), "mass=inf"),

@@ -312,13 +312,16 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
     before Ray starts; ``spread-train`` within :func:`train`): the ``trainer.*`` values are Trainer arguments
     (:func:`~spread.training.trainer_settings.check_training_settings`: seed, threads, Trainer arguments), the folder holds one history
     (:func:`one_history`) and a resumed checkpoint was trained with this run's settings
-    (:func:`check_resume_checkpoint`)."""
+    (:func:`check_resume_checkpoint`) and the data has scenes to train (and validate) on (the data module's
+    ``check_fit``: else every worker would raise it)."""
     check_training_settings(cfg)
     check_folder_kind(run_dir, "spread-train", {"training run"})
     ckpt_path = resolve_ckpt_path(cfg, run_dir)
     one_history(cfg, run_dir, ckpt_path)
+    datamodule = hydra.utils.instantiate(cfg.data)
+    datamodule.check_fit(trainer_validates(cfg.trainer))
     if ckpt_path is not None:
-        check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), hydra.utils.instantiate(cfg.data),
+        check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), datamodule,
                                 trainer_settings_of(cfg),
                                 max_steps=OmegaConf.select(cfg, "trainer.max_steps"))
 

@@ -175,17 +175,29 @@ def launch_name(run_dir: Path) -> str:
 
 def worker_user_error(error: BaseException) -> BaseException | None:
     """The bad setting or input (a ``ValueError``, ``FileNotFoundError``, ``PermissionError``: what the console
-    scripts report in one line) a training worker raised, found through Ray's wrappers (``TrainingFailedError``,
-    ``RayTaskError`` — whose dual classes are skipped —: their ``cause`` or ``__cause__``); None for any other
+    scripts report in one line) a training worker raised, found through Ray's wrappers: Ray Train v1's
+    ``TrainingFailedError`` and ``RayTaskError`` (whose dual classes are skipped; their ``cause`` or ``__cause__``),
+    Ray Train v2's ``WorkerGroupError`` (``worker_failures``, lowest rank first), ``ControllerError``
+    (``controller_failure``) and ``UserExceptionWithTraceback`` (the worker's own exception); None for any other
     failure."""
     seen: set[int] = set()
-    while error is not None and id(error) not in seen:
+    waiting = [error]
+    while waiting:
+        error = waiting.pop(0)
+        if error is None or id(error) in seen:
+            continue
         seen.add(id(error))
         if isinstance(error, (ValueError, FileNotFoundError, PermissionError)) and \
                 "ray" not in type(error).__module__.split(".")[0] and "RayTaskError" not in type(error).__name__:
             return error
-        cause = getattr(error, "cause", None)  # RayTaskError's; the others chain as __cause__
-        error = cause if isinstance(cause, BaseException) else error.__cause__
+        failures = getattr(error, "worker_failures", None)
+        if isinstance(failures, dict):
+            waiting += [failures[rank] for rank in sorted(failures)]
+        for link in ("cause", "_base_exc", "controller_failure"):  # RayTaskError's, v2's; the others chain as __cause__
+            inner = getattr(error, link, None)
+            if isinstance(inner, BaseException):
+                waiting.append(inner)
+        waiting.append(error.__cause__)
     return None
 
 

@@ -316,6 +316,7 @@ def most_at_once(entries: dict[str, dict]) -> int:
                for x in entries.values())
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_training_stages_run_two_at_a_time_and_give_the_sequential_table(tmp_path):
     """3 rows × 2 seeds (4 training stages: base and geometry per seed) with ``train_concurrent=2``: the ledger's
     times show two training stages at once and never three, each recorded in its seed's ledger, and the table

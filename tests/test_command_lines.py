@@ -36,7 +36,8 @@ def test_a_console_script_without_its_required_settings_names_them_all_in_one_li
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("name", ["spread-train", "spread-train-ray"])
+@pytest.mark.parametrize("name", [pytest.param("spread-train", marks=pytest.mark.slow),  # also test_robustness's
+                                  "spread-train-ray"])
 def test_a_training_script_given_data_without_scenes_says_so_in_one_line_before_ray_or_the_folder(name, tmp_path):
     out, empty = tmp_path / "run", tmp_path / "rooms"
     empty.mkdir()
@@ -134,11 +135,12 @@ def run(tmp_path_factory) -> tuple[Path, Path]:
 
 @pytest.mark.parametrize("override, says", [
     ("trainer.max_steps=4.5", "trainer.max_steps=4.5: Lightning's Trainer takes int here"),
-    ("checkpoint.every_n_train_steps=-5", "checkpoint: MisconfigurationException: Invalid value for "
-                                          "every_n_train_steps=-5"),
+    pytest.param("checkpoint.every_n_train_steps=-5", "checkpoint: MisconfigurationException: Invalid value for "
+                 "every_n_train_steps=-5", marks=pytest.mark.slow),  # make test-slow: these three, 7 s each
     # each of these trained: a checkpoint at step 3 only (3 % 1.5 == 0), one render scene for 1.5
-    ("checkpoint.every_n_train_steps=1.5", "checkpoint.every_n_train_steps=1.5: ModelCheckpoint takes one of int"),
-    ("renders.scenes=1.5", "renders.scenes=1.5: expected a whole number ≥ 1"),
+    pytest.param("checkpoint.every_n_train_steps=1.5",
+                 "checkpoint.every_n_train_steps=1.5: ModelCheckpoint takes one of int", marks=pytest.mark.slow),
+    pytest.param("renders.scenes=1.5", "renders.scenes=1.5: expected a whole number ≥ 1", marks=pytest.mark.slow),
     ("trainer.max_steps=1", "ckpt_path=")])  # …: the checkpoint is at step 2, past trainer.max_steps=1 (it recorded 1)
 def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_and_leaves_the_run_folder_as_it_was(
         run, tmp_path, override, says):
@@ -153,6 +155,23 @@ def test_a_relaunch_with_a_trainer_value_lightning_refuses_is_refused_by_name_an
     if override == "trainer.max_steps=1":
         assert "the checkpoint is at step 2, past trainer.max_steps=1" in line, line
     assert recorded(folder) == before
+
+
+def test_checkpoint_callback_and_render_values_their_classes_refuse_are_named_by_key_in_the_library_too():
+    import hydra
+
+    from spread.training.trainer_settings import built, check_renders, target_setting_problem
+
+    cfg = compose("train", "data.root=/d", "checkpoint.every_n_train_steps=1.5")
+    assert target_setting_problem(cfg.checkpoint, "checkpoint").startswith(
+        "checkpoint.every_n_train_steps=1.5: ModelCheckpoint takes one of int")
+    assert target_setting_problem(compose("train", "data.root=/d").checkpoint, "checkpoint") is None
+    with pytest.raises(ValueError, match=r"^checkpoint: MisconfigurationException: .*every_n_train_steps=-5"):
+        built(lambda: hydra.utils.instantiate(compose("train", "data.root=/d",
+                                                      "checkpoint.every_n_train_steps=-5").checkpoint), "checkpoint")
+    with pytest.raises(ValueError, match=r"^renders.scenes=1.5: expected a whole number ≥ 1"):
+        check_renders({"every_n_epochs": 1, "scenes": 1.5, "seed": 0})
+    check_renders({"every_n_epochs": 0, "scenes": 2, "seed": 0})
 
 
 def recorded(folder: Path) -> dict:
@@ -223,6 +242,7 @@ def test_a_training_seed_or_thread_count_lightning_or_torch_refuses_is_refused_b
     check_training_settings(compose("train", "data.root=/d"))
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_a_redo_removes_only_the_pictures_its_own_runs_made_in_renders(run, tmp_path):
     """A relaunch with other settings deleted every ``.png`` of ``renders/`` (a dataset's overview, a user's picture);
     it removes the sampling's own (named after its scenes, or listed in ``sampling.json``) and the evaluation's

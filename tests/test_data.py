@@ -318,6 +318,7 @@ def test_unset_loader_workers_are_chosen_by_the_trainers_device_and_give_the_sam
         SceneDataModule(root, num_workers=-1)
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_unset_loader_workers_in_a_ray_worker_follow_the_cpus_ray_gave_it():
     """A Ray Train worker, a sweep's trial or an ablation's training task sees the whole node's CPUs: its loaders take
     what Ray reserved for it, one left to the training (the driver, not a worker, keeps its own count)."""

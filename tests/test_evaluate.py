@@ -148,6 +148,7 @@ def test_fid_and_kid_come_offline_from_the_shipped_inception_weights(cli_run):
     assert np.isfinite(metrics["kid"]) and metrics["kid_subset_size"] == ROOMS
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_clip_fid_without_local_clip_weights_is_null_with_the_reason(dataset, tmp_path):
     out = tmp_path / "run"
     run_in_process(*args(dataset / "test", dataset, out, "logger=none", "fid=clip", "metrics=[grecall]", "renders=0"))
@@ -237,7 +238,8 @@ def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_ru
     assert again["redone_because"] is None and again["run"]["evaluated_this_run"] == 0
 
 
-@pytest.mark.parametrize("max_retries", [pytest.param(3, marks=pytest.mark.slow), 0])  # 3: make test-slow
+@pytest.mark.slow  # make test-slow; make test keeps test_a_scene_that_always_kills_its_worker_is_reported_alone
+@pytest.mark.parametrize("max_retries", [3, 0])
 def test_a_worker_killed_mid_run_loses_no_scene(cli_run, dataset, scenes_dir, tmp_path, monkeypatch, max_retries):
     """A worker exits after its first scene: Ray re-runs the task (max_retries=3), or, with no retries left,
     the driver splits the failed chunk into one task per scene (max_retries=0)."""

@@ -74,6 +74,7 @@ def site(tmp_path_factory) -> Path:
 
 # ---- 1. metrics are isolated -----------------------------------------------------------------------------------
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_lying_editing_and_broken_metric_plugins_fail_alone_and_never_change_the_built_ins(dataset, site, tmp_path):
     """High: a plug-in whose compute() also returns ``grecall`` replaced GRecall everywhere (0.999 shown, true 0.195);
     a plug-in listed first that moves the objects changed Stability; medium: a ``to_dict()`` holding a numpy array
@@ -302,6 +303,7 @@ def test_spread_view_leaves_a_fifo_among_the_scenes_out_by_name_and_refuses_host
 
 # ---- 3. servers behave -----------------------------------------------------------------------------------------
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_spread_dashboard_checks_port_host_and_store_before_serving(tmp_path):
     """Medium: on a busy port spread-dashboard printed the other server's URL and hung; ``port=99999`` gave a
     traceback and hung; ``host=0.0.0.0`` was accepted silently; low: a corrupt, truncated or locked mlflow.db gave

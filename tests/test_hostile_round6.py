@@ -207,6 +207,7 @@ def evaluate_fast(scenes: Path, reference: Path, out: Path, *more: str):
                             *more))
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_an_evaluation_is_reported_by_what_it_measured_with_its_reference_and_scenes_included(dataset, tmp_path):
     from spread.evaluation.protocol import EvalProtocol, FIDConfig
     from spread.evaluation.run import check_protocol
@@ -239,6 +240,7 @@ def test_an_evaluation_is_reported_by_what_it_measured_with_its_reference_and_sc
         folder_identity(tmp_path / "v", second)
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_a_fid_backbone_that_cannot_load_is_refused_before_a_finished_evaluation_is_touched(dataset, tmp_path):
     from spread.evaluation.protocol import FIDConfig
     from spread.evaluation.run import check_fid

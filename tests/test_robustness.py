@@ -176,6 +176,7 @@ def test_a_resumed_evaluation_redoes_a_scene_whose_file_was_replaced(dataset, tm
     assert new["input_sha256"] != old["input_sha256"] and new["details"] != old["details"]
 
 
+@pytest.mark.slow  # make test-slow (kept out of make test's 15 minutes)
 def test_a_relaunch_with_another_protocol_is_redone_and_records_its_own_config(dataset, tmp_path):
     from spread.configs import compose
     from spread.commands.evaluate import evaluate

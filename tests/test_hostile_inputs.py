@@ -420,7 +420,40 @@ def test_a_command_refused_by_its_checks_leaves_no_empty_log_behind(tmp_path):
     out = tmp_path / "out"
     line, _ = user_error("spread-sample", f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={tmp_path}", f"out_dir={out}")
     assert line.startswith("spread-sample: ") and "no such checkpoint file" in line
-    assert [p.name for p in out.iterdir()] == [".spread.lock"]  # Hydra's sample.log (empty) is no longer made
+    assert not out.exists()  # Hydra made it and the run lock was taken: both gone (sample.log was never made)
+
+
+def test_a_refused_command_removes_only_the_folders_and_lock_it_made_and_nothing_it_found():
+    import tempfile
+
+    from spread.cli.errors import FolderLeftEmpty
+    from spread.io import run_lock
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        new = FolderLeftEmpty.of(["data.root=/d", f"out_dir={tmp / 'a' / 'b'}"])
+        with run_lock(tmp / "a" / "b", "spread-train"):
+            pass
+        new.remove()
+        assert list(tmp.iterdir()) == []  # b, a and the lock: all made by the refused command
+        (tmp / "kept").mkdir()
+        (tmp / "kept" / "notes.txt").write_text("mine")
+        found = FolderLeftEmpty.of([f"out_dir={tmp / 'kept'}"])
+        with run_lock(tmp / "kept", "spread-train"):
+            pass
+        found.remove()
+        assert sorted(p.name for p in (tmp / "kept").iterdir()) == [".spread.lock", "notes.txt"]  # not only its lock
+        (tmp / "empty").mkdir()
+        empty = FolderLeftEmpty.of([f"out_dir={tmp / 'empty'}"])
+        with run_lock(tmp / "empty", "spread-train"):
+            pass
+        empty.remove()
+        assert (tmp / "empty").is_dir() and list((tmp / "empty").iterdir()) == []  # there before: kept, lock gone
+        with run_lock(tmp / "empty", "spread-train"):
+            again = FolderLeftEmpty.of([f"out_dir={tmp / 'empty'}"])
+            again.remove()  # the lock was there before this command (another run holds it): left alone
+            assert [p.name for p in (tmp / "empty").iterdir()] == [".spread.lock"]
+        assert FolderLeftEmpty.of(["-m", f"out_dir={tmp / 'x'}", "seed=1,2"]).folder is None  # a multirun's own
 
 
 def test_two_scene_files_with_one_inner_id_both_export(dataset, tmp_path):
@@ -735,3 +768,26 @@ def test_generate_ablate_and_compare_refuse_a_folder_another_run_is_writing(tmp_
             with pytest.raises(RunFolderBusy, match="a test holding the folder"):
                 run(compose(name, [f"out_dir={folder}", *overrides]))
         assert sorted(p.name for p in folder.iterdir()) == [".spread.lock"]  # nothing else was written
+
+
+def test_a_run_lock_whose_file_was_removed_while_it_was_taken_locks_the_file_now_there(tmp_path, monkeypatch):
+    """A refused command removes the lock file it made (cli.errors.FolderLeftEmpty); a run that opened that file
+    just before and locks it after must not hold a lock on a file no longer there (two runs, two locks, one name)."""
+    import fcntl
+
+    import spread.io as io
+
+    real_flock, calls = fcntl.flock, []
+
+    def flock_then_removed(fd, op):  # the file is removed between this run's open and its flock
+        real_flock(fd, op)
+        if not calls:
+            calls.append(fd)
+            (tmp_path / io.LOCK_FILE).unlink()
+
+    monkeypatch.setattr(fcntl, "flock", flock_then_removed)
+    with io.run_lock(tmp_path, "spread-evaluate") as path:
+        assert path.read_text().startswith("spread-evaluate (pid") and len(calls) == 1
+        with pytest.raises(io.RunFolderBusy, match="in use by a running spread-evaluate"):
+            with io.run_lock(tmp_path, "spread-sample"):
+                pass

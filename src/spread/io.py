@@ -402,22 +402,30 @@ def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Ite
     if _HELD_LOCKS.get(held):  # this process holds it for a run that nests this one (``nest``)
         yield path
         return
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0), 0o666)
     import stat
 
-    mode = os.fstat(fd).st_mode
-    if not stat.S_ISREG(mode):
-        os.close(fd)
-        raise UnsafeOutputError(f"{path}: the run folder's lock is not a regular file (a {_kind(mode)}); remove it, "
-                                f"the platform makes its own")
-    os.set_blocking(fd, True)
-    try:
+    for _ in range(100):  # again only when the file was removed (a refused command's, cli.errors) while we locked it
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0),
+                     0o666)
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            os.close(fd)
+            raise UnsafeOutputError(f"{path}: the run folder's lock is not a regular file (a {_kind(mode)}); remove "
+                                    f"it, the platform makes its own")
+        os.set_blocking(fd, True)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+            os.close(fd)
             raise RunFolderBusy(f"{folder}: in use by a running {holder}; wait for it to finish or use another "
                                 f"out_dir") from None
+        if same_file(fd, path):
+            break
+        os.close(fd)  # locked a file no longer at the path: lock the one that is
+    else:
+        raise RunFolderBusy(f"{folder}: its run lock {path} keeps being replaced; is another process removing it?")
+    try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{command} (pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
         _HELD_LOCKS[held] = nest
@@ -427,6 +435,15 @@ def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Ite
             _HELD_LOCKS.pop(held, None)
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+def same_file(fd: int, path: Path) -> bool:
+    """Whether the open file ``fd`` is still the file at ``path`` (not removed or replaced since it was opened)."""
+    try:
+        held, there = os.fstat(fd), os.stat(path, follow_symlinks=False)
+    except FileNotFoundError:
+        return False
+    return (held.st_dev, held.st_ino) == (there.st_dev, there.st_ino)
 
 
 #: The run locks this process holds (resolved lock-file path → whether a run inside may take it again: ``nest``).

@@ -193,11 +193,72 @@ def command(name: str, config: str | None = None):
                 problem = compose_problem(config, sys.argv[1:], name)
                 if problem:
                     raise SystemExit(f"{name}: {problem}")
-            return main(*args, **kwargs)
+            left = FolderLeftEmpty.of(sys.argv[1:])
+            try:
+                return main(*args, **kwargs)
+            except BaseException as exc:
+                if not isinstance(exc, SystemExit) or exc.code not in (0, None):
+                    left.remove()
+                raise
 
         return entry
 
     return wrap
+
+
+class FolderLeftEmpty:
+    """The ``out_dir=`` of a command line, as it was before the command ran: a command that fails before it wrote
+    anything (refused by its checks, after Hydra made the run folder and the run lock was taken) leaves no empty run
+    folder, no folders made above it and no lock file it made itself behind (:meth:`remove`). A folder that holds
+    anything else, or was there before, stays as it is."""
+
+    def __init__(self, folder: Path | None):
+        from spread.io import LOCK_FILE
+
+        self.folder = folder
+        self.made: list[Path] = []  # the folders the command would make, deepest first
+        self.lock_was_there = True
+        if folder is None:
+            return
+        self.lock_was_there = (folder / LOCK_FILE).exists() or (folder / LOCK_FILE).is_symlink()
+        path = folder
+        while not (path.exists() or path.is_symlink()) and path != path.parent:
+            self.made.append(path)
+            path = path.parent
+
+    @classmethod
+    def of(cls, args: list[str]) -> "FolderLeftEmpty":
+        if any(a in ("-m", "--multirun") or a.lstrip("+").startswith("hydra.mode") for a in args):
+            return cls(None)  # a multirun's jobs write their own folders
+        given = [a.split("=", 1)[1] for a in args if a.startswith("out_dir=")]
+        return cls(Path(given[-1]).expanduser().absolute() if given and given[-1] else None)
+
+    def remove(self) -> None:
+        from spread.io import LOCK_FILE
+
+        if self.folder is None:
+            return
+        try:
+            lock = self.folder / LOCK_FILE
+            if not self.lock_was_there and [p.name for p in self.folder.iterdir()] == [LOCK_FILE] and \
+                    lock.is_file() and not lock.is_symlink():
+                unlink_unheld(lock)
+            for path in self.made:
+                path.rmdir()  # only when empty; a folder with anything in it ends the walk
+        except OSError:
+            pass
+
+
+def unlink_unheld(lock: Path) -> None:
+    """Remove the run-lock file ``lock`` while holding it, so a run that took it since is never left without it."""
+    import fcntl
+
+    fd = os.open(lock, os.O_RDWR | getattr(os, "O_NOFOLLOW", 0))
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError (an OSError) when another run holds it
+        lock.unlink()
+    finally:
+        os.close(fd)
 
 
 def console_main(name: str, config: str):

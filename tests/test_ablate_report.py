@@ -249,6 +249,33 @@ def test_report_bad_input_names_the_path(tmp_path):
     assert proc.returncode != 0 and f"{tmp_path / 'nope'}: no such folder" in proc.stderr
 
 
+
+def test_a_sampling_run_named_without_its_evaluation_is_told_apart_from_one_still_running(tmp_path):
+    """spread-report on the demo's sampling folder said "the run has not finished" of a run that had: it was sampled
+    without an evaluation. A finished sampling run is told to be evaluated (how, in place); one whose sampling.json
+    still says ``running`` is still sampling; one whose evaluation began has not finished."""
+    from spread.reporting.runs import read_run_folder, why_unfinished
+
+    done = tmp_path / "samples"
+    (done / "scenes").mkdir(parents=True)
+    (done / "sampling.json").write_text(json.dumps({"fingerprint": {}, "seconds": 3.2}))
+    proc = run_script("spread-report", f"runs=[{done}]", f"out_dir={tmp_path / 'r'}", ok=False)
+    assert proc.returncode != 0
+    assert (f"runs: {done}: no metrics.json: its scenes are sampled but not evaluated (yet, or sampled without "
+            f"evaluate=true); give its evaluation's folder, or evaluate it in place: spread-evaluate "
+            f"scenes={done / 'scenes'} reference=<the dataset> out_dir={done}") in " ".join(proc.stderr.split())
+    assert not (tmp_path / "r").exists()
+    (done / "sampling.json").write_text(json.dumps({"fingerprint": {}, "status": "running"}))
+    assert why_unfinished(done) == (f"no metrics.json: it is still sampling, or was stopped "
+                                    f"({done / 'sampling.json'}: status running)")
+    (done / "sampling.json").write_text("{")
+    assert why_unfinished(done).startswith(f"no metrics.json, and its sampling.json is unreadable: "
+                                           f"{done / 'sampling.json'}: not valid JSON")
+    (done / "protocol.json").write_text("{}")  # its evaluation began
+    assert why_unfinished(done) == "no metrics.json (the run has not finished)"
+    with pytest.raises(RunError, match="no metrics.json \\(the run has not finished\\)"):
+        read_run_folder(done)
+
 # ---- ablation stages (fake commands) ----------------------------------------------------------------------
 
 def args(overrides: list[str]) -> dict:

@@ -112,6 +112,23 @@ def is_unfinished_run(path: Path) -> bool:
     return not (path / "metrics.json").exists() and any((path / m).exists() for m in UNFINISHED_MARKERS)
 
 
+def why_unfinished(path: Path) -> str:
+    """Why the run folder ``path`` (:func:`is_unfinished_run`) has no results yet, and what gives it some: a sampling
+    run that finished without an evaluation is not a run that has not finished."""
+    sampling = path / "sampling.json"
+    if sampling.exists() and not any((path / m).exists() for m in ("per_scene.jsonl", "protocol.json")):
+        try:
+            status = read_json_object(sampling, RunError).get("status")
+        except (RunError, OSError) as exc:
+            return f"no metrics.json, and its sampling.json is unreadable: {exc}"
+        if status == "running":
+            return f"no metrics.json: it is still sampling, or was stopped ({sampling}: status running)"
+        return (f"no metrics.json: its scenes are sampled but not evaluated (yet, or sampled without evaluate=true); "
+                f"give its evaluation's folder, or evaluate it in place: spread-evaluate scenes={path / 'scenes'} "
+                f"reference=<the dataset> out_dir={path}")
+    return "no metrics.json (the run has not finished)"
+
+
 # ---- run folders ---------------------------------------------------------------------------------
 
 def read_run_folder(path: str | Path) -> dict:
@@ -119,7 +136,8 @@ def read_run_folder(path: str | Path) -> dict:
     path = Path(path)
     metrics_path = path / "metrics.json"
     if not metrics_path.exists():
-        raise RunError(f"{path}: no metrics.json (the run has not finished, or this is not a run folder)")
+        raise RunError(f"{path}: {why_unfinished(path)}" if is_unfinished_run(path) else
+                       f"{path}: no metrics.json (the run has not finished, or this is not a run folder)")
     metrics = read_json_object(metrics_path, RunError)
     if not is_evaluation(metrics):
         raise RunError(f"{metrics_path}: not an evaluation metrics.json (no registered metric and no 'n_evaluated')")
@@ -400,7 +418,7 @@ def find_runs(entries: str | Iterable[str]) -> tuple[list[tuple[str, Path]], lis
                 found.append(("folder", path))
             elif path.is_dir() and is_unfinished_run(path):
                 if not pattern:  # named explicitly: an error; matched by a glob: skipped, like in a sweep folder
-                    raise RunError(f"runs: {path}: no metrics.json (the run has not finished)")
+                    raise RunError(f"runs: {path}: {why_unfinished(path)}")
                 unfinished.append(path)
             elif path.is_dir():
                 runs, wandb_runs, open_runs = search(path)

@@ -101,17 +101,9 @@ def _sample(cfg: DictConfig, command, log: bool, overrides: list[str] | None):
                 finish_point(command.out_dir, round(time.perf_counter() - started, 3))
                 if run is not None:
                     mlflow_log.log_evaluation(run, evaluation.metrics, evaluation.out_dir, evaluation.renders)
-    more = None
-    if evaluation is not None:
-        from spread.tracking.evaluation_wandb import log_metrics
-
-        renders = list(result.manifest.get("renders") or []) + list(result.manifest.get("figures") or [])
-
-        def more(run):
-            log_metrics(run, evaluation.metrics, evaluation.records, renders)
     if wandb_run is not None:
-        log_sampling(result.manifest, command.out_dir, plain(cfg), command.logger, group=experiment, more=more,
-                     run=wandb_run)
+        log_sampling(result.manifest, command.out_dir, plain(cfg), command.logger, group=experiment,
+                     evaluation=evaluation, run=wandb_run)
     return result, evaluation
 
 

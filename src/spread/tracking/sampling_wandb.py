@@ -5,7 +5,6 @@ and the guidance (``guidance=<mode>`` and ``<term>=<weight>`` for every register
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 
 def sampling_tags(ckpt: str, sampler, guidance, extra: list[str] | None = None) -> list[str]:
@@ -51,10 +50,12 @@ def open_sampling_run(command, config: dict, group: str, run_id: str | None = No
 
 
 def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, group: str | None = None,
-                 tags: list[str] | None = None, more: Callable | None = None, run=None) -> str | None:
+                 tags: list[str] | None = None, evaluation=None, run=None) -> str | None:
     """Log a sampling run (``sampling.json``: counts, timings, guidance) with ``logger`` (a
-    :class:`~spread.tracking.loggers.LoggerConfig`); ``more(run)`` logs more into the same run (an evaluation
-    of the scenes, say); without it the renders and 3D figures are logged. ``run``: a run opened before the
+    :class:`~spread.tracking.loggers.LoggerConfig`); ``evaluation``: the scenes' evaluation in the same command
+    (``spread-sample evaluate=true``; ``metrics`` and ``records``), logged into the same run with the renders beside
+    its per-scene table; the renders and each kind of 3D figure under keys of their own, one picture size per key
+    (:func:`image_groups`). ``run``: a run opened before the
     work (:func:`open_sampling_run`), else one is opened now. The run is finished. Returns the run folder
     (None when not logged)."""
     import wandb
@@ -72,13 +73,14 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
         numbers |= {f"guidance/{k}": v for k, v in (manifest.get("guidance_totals") or {}).items()}
         run.log(numbers)
         run.summary.update(numbers)
-        if more is not None:
-            more(run)
-        else:
-            images = {key: [wandb.Image(str(p), caption=Path(p).stem) for p in paths]
-                      for key, paths in image_groups(manifest).items()}
-            if images:
-                run.log(images)
+        groups = image_groups(manifest)
+        if evaluation is not None:  # its metrics, and the renders beside its per-scene table
+            from spread.tracking.evaluation_wandb import log_metrics
+
+            log_metrics(run, evaluation.metrics, evaluation.records, groups.pop("renders", []))
+        images = {key: [wandb.Image(str(p), caption=Path(p).stem) for p in paths] for key, paths in groups.items()}
+        if images:
+            run.log(images)
         return run_folder(run)
     finally:
         run.finish()

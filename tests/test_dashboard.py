@@ -456,3 +456,34 @@ def test_a_relaunched_sample_or_evaluation_continues_its_mlflow_run_and_other_se
     next(iter(sorted((out / "scenes").glob("*.npz")))).unlink()  # other scenes: other numbers, a new run
     evaluate(compose("evaluate", *evaluation))
     assert len(runs("evaluate")) == 2
+    # the folder's evaluations left its record naming their runs; an evaluation of its scenes elsewhere is still
+    # told the sampling run that made them (it was told the folder's own evaluation's run)
+    assert json.loads((out / "mlflow_run.json").read_text())["run_id"] == runs("evaluate")[1].info.run_id
+    evaluate(compose("evaluate", *evaluation[:2], f"out_dir={tmp_path / 'elsewhere'}", *evaluation[3:]))
+    elsewhere = [r for r in runs("evaluate") if r.data.params["out_dir"] == str(tmp_path / "elsewhere")]
+    assert len(elsewhere) == 1
+    assert elsewhere[0].data.tags["spread.sampling_run_id"] == runs("sample")[2].info.run_id
+    assert elsewhere[0].data.tags["spread.training_run_id"] == runs_by_job(store[1])["train"].info.run_id
+
+
+def test_a_run_folders_record_names_each_jobs_latest_run_and_reads_an_older_record_as_its_one_run(tmp_path):
+    """``mlflow_run.json`` names the folder's latest run (whose numbers it holds) and, per job type, that job's latest
+    run; a record written before the per-job entries names its one run for any job; a damaged one names none."""
+    from spread.results.store import made_the_folder
+    from spread.tracking.mlflow_store import RUN_FILE, job_run_id, write_run_file
+
+    write_run_file(tmp_path, "sqlite:///x.db", "1", "s1", "sample")
+    write_run_file(tmp_path, "sqlite:///x.db", "2", "e1", "evaluate")
+    assert (job_run_id(tmp_path, "sample"), job_run_id(tmp_path, "evaluate"), job_run_id(tmp_path, "train")) == \
+        ("s1", "e1", None)
+    assert made_the_folder("e1", tmp_path) and not made_the_folder("s1", tmp_path)
+    write_run_file(tmp_path, "sqlite:///x.db", "1", "s2", "sample")
+    assert (job_run_id(tmp_path, "sample"), job_run_id(tmp_path, "evaluate")) == ("s2", "e1")
+    (tmp_path / RUN_FILE).write_text(json.dumps({"tracking_uri": "sqlite:///x.db", "run_id": "old"}))
+    assert job_run_id(tmp_path, "sample") == job_run_id(tmp_path, "evaluate") == "old"
+    write_run_file(tmp_path, "sqlite:///x.db", "2", "e2", "evaluate")  # the older record's job is not known
+    assert (job_run_id(tmp_path, "sample"), job_run_id(tmp_path, "evaluate")) == (None, "e2")
+    (tmp_path / RUN_FILE).write_text("{")
+    assert job_run_id(tmp_path, "sample") is None
+    write_run_file(tmp_path, "sqlite:///x.db", "1", "s3", "sample")  # a damaged record is replaced
+    assert job_run_id(tmp_path, "sample") == "s3"

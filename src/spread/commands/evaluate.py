@@ -78,12 +78,13 @@ def scenes_lineage(scenes) -> dict:
     run (its :data:`~spread.tracking.mlflow_store.RUN_FILE`) and, through its recorded checkpoint, the training run."""
     from spread.io import read_json
 
-    from spread.tracking.mlflow_store import RUN_FILE, training_lineage
+    from spread.tracking.mlflow_store import job_run_id, training_lineage
 
     folder = Path(scenes).parent
     tags = {}
-    if (folder / RUN_FILE).exists():
-        tags["spread.sampling_run_id"] = read_json(folder / RUN_FILE).get("run_id")
+    sampling_run = job_run_id(folder, "sample")  # not the folder's own evaluation's run, when it has one
+    if sampling_run:
+        tags["spread.sampling_run_id"] = sampling_run
     manifest = folder / "sampling.json"
     if manifest.exists():
         tags |= training_lineage(read_json(manifest).get("ckpt"))

@@ -216,11 +216,43 @@ def training_lineage(ckpt: str | os.PathLike | None) -> dict[str, str]:
     return {k: str(v) for k, v in tags.items() if v is not None}
 
 
-def write_run_file(out_dir: str | os.PathLike, uri: str, experiment: str, run_id: str) -> None:
-    from spread.io import write_json_atomic
+def write_run_file(out_dir: str | os.PathLike, uri: str, experiment: str, run_id: str,
+                   job_type: str | None = None) -> None:
+    """Name run ``run_id`` in ``out_dir``'s :data:`RUN_FILE`: the folder's latest run (``run_id``: whose numbers the
+    folder holds now), and under ``jobs`` the latest run of each job type, so a sampling folder evaluated in place
+    still names the sampling run that made its scenes (:func:`job_run_id`)."""
+    from spread.io import read_json_object, write_json_atomic
 
+    path = Path(out_dir) / RUN_FILE
+    entry = {"tracking_uri": uri, "experiment_id": experiment, "run_id": run_id}
+    try:
+        jobs = read_json_object(path).get("jobs") if path.is_file() else None
+    except (OSError, ValueError):
+        jobs = None
+    jobs = {k: v for k, v in jobs.items() if isinstance(v, dict)} if isinstance(jobs, dict) else {}
+    if job_type:
+        jobs[job_type] = entry
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    write_json_atomic(Path(out_dir) / RUN_FILE, {"tracking_uri": uri, "experiment_id": experiment, "run_id": run_id})
+    write_json_atomic(path, {**entry, "jobs": jobs})
+
+
+def job_run_id(folder: str | os.PathLike, job_type: str) -> str | None:
+    """The id of the latest ``job_type`` run named in ``folder``'s :data:`RUN_FILE` (:func:`write_run_file`); for a
+    record written before ``jobs`` were kept, its one run; None when there is none or the record is unreadable."""
+    from spread.io import read_json_object
+
+    path = Path(folder) / RUN_FILE
+    try:
+        info = read_json_object(path) if path.is_file() else {}
+    except (OSError, ValueError):
+        return None
+    jobs = info.get("jobs")
+    if isinstance(jobs, dict):
+        entry = jobs.get(job_type)
+        run_id = entry.get("run_id") if isinstance(entry, dict) else None
+    else:
+        run_id = info.get("run_id")
+    return str(run_id) if isinstance(run_id, str) and run_id else None
 
 
 class MlflowRun:
@@ -279,7 +311,7 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
         return None
     uri = resolve_tracking_uri(logger.tracking_uri)
     client = open_store(uri)
-    handle = continued_run(client, uri, continuation.mlflow_run_id(uri), out_dir) if continuation else None
+    handle = continued_run(client, uri, continuation.mlflow_run_id(uri), out_dir, job_type) if continuation else None
     if handle is not None:
         return handle
     exp = experiment_id(client, uri, experiment or "Default")
@@ -291,11 +323,12 @@ def open_run(logger, job_type: str, out_dir: str | os.PathLike, config: dict, ex
     run = client.create_run(exp, tags=all_tags, run_name=logger.run_name or name or Path(out_dir).name)
     handle = MlflowRun(client, run.info.run_id, uri)
     handle.log_params(flat_params(config))
-    write_run_file(out_dir, uri, exp, run.info.run_id)
+    write_run_file(out_dir, uri, exp, run.info.run_id, job_type)
     return handle
 
 
-def continued_run(client, uri: str, run_id: str | None, out_dir: str | os.PathLike) -> MlflowRun | None:
+def continued_run(client, uri: str, run_id: str | None, out_dir: str | os.PathLike,
+                  job_type: str | None = None) -> MlflowRun | None:
     """Run ``run_id`` of store ``client`` set going again (:func:`open_run`) and named in ``out_dir``'s
     :data:`RUN_FILE`, else None: no id, or the store no longer has it (deleted, or another store at the path)."""
     if not run_id:
@@ -316,7 +349,7 @@ def continued_run(client, uri: str, run_id: str | None, out_dir: str | os.PathLi
 
     for key, value in parent_tags(uri).items():  # a relaunched sweep's point goes under the relaunch's parent
         client.set_tag(run_id, key, value)
-    write_run_file(out_dir, uri, run.info.experiment_id, run_id)
+    write_run_file(out_dir, uri, run.info.experiment_id, run_id, job_type)
     return MlflowRun(client, run_id, uri)
 
 
@@ -394,7 +427,7 @@ def lightning_logger(logger, run_dir: Path, group: str, tags: list[str], config:
             self.recorded = True
             run_id = self.run_id  # creates the run
             self.experiment.set_experiment_tag(self.experiment_id, *EXPERIMENT_KIND)
-            write_run_file(run_dir, uri, self.experiment_id, run_id)
+            write_run_file(run_dir, uri, self.experiment_id, run_id, "train")
             if previous is None:
                 MlflowRun(self.experiment, run_id, uri).log_params(flat_params(config))
 

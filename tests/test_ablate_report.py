@@ -258,12 +258,17 @@ def test_a_sampling_run_named_without_its_evaluation_is_told_apart_from_one_stil
 
     done = tmp_path / "samples"
     (done / "scenes").mkdir(parents=True)
-    (done / "sampling.json").write_text(json.dumps({"fingerprint": {}, "seconds": 3.2}))
+    (done / "sampling.json").write_text(json.dumps({"fingerprint": {"data_root": "/data/rooms"}, "seconds": 3.2}))
     proc = run_script("spread-report", f"runs=[{done}]", f"out_dir={tmp_path / 'r'}", ok=False)
     assert proc.returncode != 0
     assert (f"runs: {done}: no metrics.json: its scenes are sampled but not evaluated (yet, or sampled without "
             f"evaluate=true); give its evaluation's folder, or evaluate it in place: spread-evaluate "
-            f"scenes={done / 'scenes'} reference=<the dataset> out_dir={done}") in " ".join(proc.stderr.split())
+            f"scenes={done / 'scenes'} out_dir={done} reference=/data/rooms") in " ".join(proc.stderr.split())
+    spaced = tmp_path / "my samples"  # a line to paste: quoted where the shell needs it; a record without the data
+    (spaced / "scenes").mkdir(parents=True)
+    (spaced / "sampling.json").write_text(json.dumps({"fingerprint": {}}))
+    assert why_unfinished(spaced).endswith(f"spread-evaluate 'scenes={spaced / 'scenes'}' 'out_dir={spaced}' "
+                                           f"reference=<the dataset>")
     assert not (tmp_path / "r").exists()
     (done / "sampling.json").write_text(json.dumps({"fingerprint": {}, "status": "running"}))
     assert why_unfinished(done) == (f"no metrics.json: it is still sampling, or was stopped "

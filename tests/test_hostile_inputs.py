@@ -423,6 +423,23 @@ def test_a_command_refused_by_its_checks_leaves_no_empty_log_behind(tmp_path):
     assert not out.exists()  # Hydra made it and the run lock was taken: both gone (sample.log was never made)
 
 
+def test_a_refused_command_leaves_nothing_at_its_default_folder_nor_hydras_record_of_a_dataset_command(tmp_path):
+    """The cleanup read ``out_dir=`` from the command line: a refused ``spread-train`` at its default folder
+    (``runs/train/<name>/<time>``, the README's form) left that folder and its lock, ``spread-generate`` left
+    ``logs/generate/<time>/.hydra`` in the dataset folder, and ``spread-sample`` its empty ``scenes/``."""
+    from helpers import user_error
+
+    (tmp_path / "no_scenes").mkdir()
+    line, _ = user_error("spread-train", "experiment=quick", f"data.root={tmp_path / 'no_scenes'}", cwd=tmp_path)
+    assert "no scene files in" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["no_scenes"]  # no runs/train/quick/<time>
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "notes.txt").write_text("mine")
+    line, _ = user_error("spread-generate", "rooms=0", f"out_dir={tmp_path / 'ds'}", cwd=tmp_path)
+    assert "rooms=0" in line
+    assert [p.name for p in (tmp_path / "ds").iterdir()] == ["notes.txt"]  # no logs/, no lock; its file kept
+
+
 def test_a_refused_command_removes_only_the_folders_and_lock_it_made_and_nothing_it_found():
     import tempfile
 
@@ -442,7 +459,7 @@ def test_a_refused_command_removes_only_the_folders_and_lock_it_made_and_nothing
         with run_lock(tmp / "kept", "spread-train"):
             pass
         found.remove()
-        assert sorted(p.name for p in (tmp / "kept").iterdir()) == [".spread.lock", "notes.txt"]  # not only its lock
+        assert [p.name for p in (tmp / "kept").iterdir()] == ["notes.txt"]  # kept, with what it held; the lock gone
         (tmp / "empty").mkdir()
         empty = FolderLeftEmpty.of([f"out_dir={tmp / 'empty'}"])
         with run_lock(tmp / "empty", "spread-train"):
@@ -451,9 +468,14 @@ def test_a_refused_command_removes_only_the_folders_and_lock_it_made_and_nothing
         assert (tmp / "empty").is_dir() and list((tmp / "empty").iterdir()) == []  # there before: kept, lock gone
         with run_lock(tmp / "empty", "spread-train"):
             again = FolderLeftEmpty.of([f"out_dir={tmp / 'empty'}"])
-            again.remove()  # the lock was there before this command (another run holds it): left alone
+            again.remove()  # another run holds the lock: left alone
             assert [p.name for p in (tmp / "empty").iterdir()] == [".spread.lock"]
-        assert FolderLeftEmpty.of(["-m", f"out_dir={tmp / 'x'}", "seed=1,2"]).folder is None  # a multirun's own
+        assert FolderLeftEmpty.of(["-m", f"out_dir={tmp / 'x'}", "seed=1,2"]).planned is None  # a multirun's own
+        dotted = FolderLeftEmpty.of([f"++out_dir={tmp / 'n' / '..' / 'm' / 'r'}"])  # normalised: tmp/m/r
+        with run_lock(tmp / "m" / "r", "spread-sample"):
+            (tmp / "m" / "r" / "scenes" / "part").mkdir(parents=True)  # empty folders it made inside
+        dotted.remove()
+        assert sorted(p.name for p in tmp.iterdir()) == ["empty", "kept"]  # m, r, scenes, part and the lock gone
 
 
 def test_two_scene_files_with_one_inner_id_both_export(dataset, tmp_path):
@@ -791,3 +813,68 @@ def test_a_run_lock_whose_file_was_removed_while_it_was_taken_locks_the_file_now
         with pytest.raises(io.RunFolderBusy, match="in use by a running spread-evaluate"):
             with io.run_lock(tmp_path, "spread-sample"):
                 pass
+
+
+def test_a_refused_commands_cleanup_racing_another_run_leaves_that_run_its_folder_and_its_lock(tmp_path, monkeypatch):
+    """Races a review found in the cleanup of a refused command (cli.errors.FolderLeftEmpty) against a run starting
+    on the same new folder: the refused run removed the folder between the other's open and flock (the other then
+    failed with FileNotFoundError), and a refused run that had opened the old lock file unlinked the new one a
+    running run held (a third run then took the folder too)."""
+    import fcntl
+    import os
+    import threading
+    import time
+
+    import spread.io as io
+    from spread.cli.errors import FolderLeftEmpty
+
+    folder = tmp_path / "run"
+    refused = FolderLeftEmpty.of([f"out_dir={folder}"])
+    with io.run_lock(folder, "spread-train"):  # the refused run held it, then was refused
+        pass
+    real_flock, cleaned = fcntl.flock, []
+
+    def cleanup_between_open_and_flock(fd, op):
+        if not cleaned:
+            cleaned.append(1)
+            refused.remove()  # lock and folder gone
+            assert not folder.exists()
+        return real_flock(fd, op)
+
+    monkeypatch.setattr(fcntl, "flock", cleanup_between_open_and_flock)
+    with io.run_lock(folder, "spread-sample") as path:  # made the folder and its lock again, and holds it
+        assert cleaned and path.read_text().startswith("spread-sample (pid")
+        monkeypatch.setattr(fcntl, "flock", real_flock)
+        assert not io.remove_held_lock(path) and path.exists()  # held: not removed
+    # a remover that opened the old file just before it was replaced: it must not unlink the new one
+    old_ino = path.stat().st_ino
+    real_open, swapped = os.open, []
+
+    def replaced_after_open(file, flags, *args):
+        fd = real_open(file, flags, *args)
+        if str(file) == str(path) and not swapped:
+            swapped.append(1)
+            path.unlink()
+            path.write_text("")  # another run's new lock file
+        return fd
+
+    monkeypatch.setattr(os, "open", replaced_after_open)
+    assert not io.remove_held_lock(path)
+    monkeypatch.setattr(os, "open", real_open)
+    assert swapped and path.exists() and path.stat().st_ino != old_ino
+    # a run that starts while a refused run holds its lock for the moment it takes to remove it is not refused
+    got = []
+    holder = real_open(path, os.O_RDWR)
+    real_flock(holder, fcntl.LOCK_EX)
+
+    def start():
+        with io.run_lock(folder, "spread-evaluate"):
+            got.append(True)
+
+    thread = threading.Thread(target=start)
+    thread.start()
+    time.sleep(0.08)
+    path.unlink()  # the refused run removes its lock, then lets go
+    os.close(holder)
+    thread.join(10)
+    assert got == [True]

@@ -387,11 +387,10 @@ def check_folder_kind(folder: str | os.PathLike, command: str, allowed: set[str]
 def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Iterator[Path]:
     """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``
     (released by the kernel when the process ends, so a killed run never leaves a stale lock). A second run
-    on the same folder is refused at once with :class:`RunFolderBusy` naming the holder (command, pid, start),
-    so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``).
+    on the same folder is refused within a moment (:func:`take_lock`) with :class:`RunFolderBusy` naming the holder
+    (command, pid, start), so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``).
     ``nest=True``: a run in this process that takes it again inside is part of this one (a command holds it
     before it opens its trackers, then calls the library run that takes it); any other hold is a second run."""
-    import fcntl
     import time
 
     folder = Path(folder)
@@ -402,29 +401,7 @@ def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Ite
     if _HELD_LOCKS.get(held):  # this process holds it for a run that nests this one (``nest``)
         yield path
         return
-    import stat
-
-    for _ in range(100):  # again only when the file was removed (a refused command's, cli.errors) while we locked it
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0),
-                     0o666)
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            os.close(fd)
-            raise UnsafeOutputError(f"{path}: the run folder's lock is not a regular file (a {_kind(mode)}); remove "
-                                    f"it, the platform makes its own")
-        os.set_blocking(fd, True)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
-            os.close(fd)
-            raise RunFolderBusy(f"{folder}: in use by a running {holder}; wait for it to finish or use another "
-                                f"out_dir") from None
-        if same_file(fd, path):
-            break
-        os.close(fd)  # locked a file no longer at the path: lock the one that is
-    else:
-        raise RunFolderBusy(f"{folder}: its run lock {path} keeps being replaced; is another process removing it?")
+    fd = take_lock(folder, path)
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{command} (pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')})\n".encode(), 0)
@@ -435,6 +412,78 @@ def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Ite
             _HELD_LOCKS.pop(held, None)
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+def take_lock(folder: Path, path: Path) -> int:
+    """An open descriptor holding the exclusive ``flock`` on the file now at ``path`` (:func:`run_lock`). Locked again
+    when the file it locked was removed meanwhile (a refused command removes the lock file it made while holding it,
+    :func:`remove_held_lock`, and the folder it made: both are made again); a hold that outlasts a moment (a running
+    run, not a refused one leaving) is :class:`RunFolderBusy` naming the holder."""
+    import fcntl
+    import stat
+    import time
+
+    busy = 0
+    for _ in range(100):
+        folder.mkdir(parents=True, exist_ok=True)
+        made = not os.path.lexists(path)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0),
+                         0o666)
+        except FileNotFoundError:  # the folder was removed after it was made again
+            continue
+        kept = False
+        try:
+            mode = os.fstat(fd).st_mode
+            if not stat.S_ISREG(mode):
+                raise UnsafeOutputError(f"{path}: the run folder's lock is not a regular file (a {_kind(mode)}); "
+                                        f"remove it, the platform makes its own")
+            os.set_blocking(fd, True)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+                busy += 1
+                if busy > 5:
+                    raise RunFolderBusy(f"{folder}: in use by a running {holder}; wait for it to finish or use "
+                                        f"another out_dir") from None
+                time.sleep(0.05)  # a refused run removing its own lock holds it for a moment
+                continue
+            if same_file(fd, path):
+                kept = True
+                if made:
+                    _MADE_LOCKS.add(str(path.absolute()))
+                return fd
+        finally:
+            if not kept:
+                os.close(fd)
+    raise RunFolderBusy(f"{folder}: its run lock {path} keeps being replaced; is another process removing it?")
+
+
+def remove_held_lock(path: Path) -> bool:
+    """Remove the run-lock file ``path`` while holding its lock and only while it is the file at the path, so a run
+    that holds it, or that made a new one since, is never left without its lock. Whether it was removed."""
+    import fcntl
+
+    try:
+        fd = os.open(path, os.O_RDWR | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        if not same_file(fd, path):
+            return False
+        path.unlink()
+        return True
+    except OSError:  # BlockingIOError: another run holds it
+        return False
+    finally:
+        os.close(fd)
+
+
+def made_lock(path: Path) -> bool:
+    """Whether this process made the run-lock file ``path`` when it took it (:func:`take_lock`)."""
+    return str(Path(path).absolute()) in _MADE_LOCKS
 
 
 def same_file(fd: int, path: Path) -> bool:
@@ -448,3 +497,5 @@ def same_file(fd: int, path: Path) -> bool:
 
 #: The run locks this process holds (resolved lock-file path → whether a run inside may take it again: ``nest``).
 _HELD_LOCKS: dict[str, bool] = {}
+#: The run-lock files this process made (absolute paths), which a refused command may remove (cli.errors).
+_MADE_LOCKS: set[str] = set()

@@ -135,9 +135,14 @@ def compose_problem(config: str, args: list[str], name: str = "") -> str | None:
     setting (``???``) that it leaves unset. A command line with Hydra's flags (``-m``, ``--cfg``, ``--help``, …) or
     a ``hydra.searchpath`` is left to Hydra; other ``hydra.*`` overrides are not part of the job's config. ``name``:
     the console script, named in the hint to print its settings."""
+    return composed_ahead(config, args, name)[0]
+
+
+def composed_ahead(config: str, args: list[str], name: str = ""):
+    """(:func:`compose_problem`'s answer, the composed config or None where none was composed)."""
     if any(a.startswith("-") for a in args) or any(a.lstrip("+~").startswith(("hydra.searchpath", "hydra.mode"))
                                                       for a in args):  # a multirun, or other config sources
-        return None
+        return None, None
     overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
@@ -148,14 +153,14 @@ def compose_problem(config: str, args: list[str], name: str = "") -> str | None:
     try:
         composed = compose(config, overrides)
     except (HydraException, OmegaConfBaseException) as exc:
-        return error_message(exc)
+        return error_message(exc), None
     try:
         missing = unset_keys(OmegaConf.to_container(composed, resolve=False, throw_on_missing=False))
     except Exception:  # noqa: BLE001 — the check never stands in Hydra's way: Hydra says what it finds
-        return None
+        return None, composed
     if not missing:
-        return None
-    return required_message(missing, f"`{name} --cfg job` prints every setting" if name else "")
+        return None, composed
+    return required_message(missing, f"`{name} --cfg job` prints every setting" if name else ""), composed
 
 
 def unset_keys(plain, prefix: str = "") -> list[str]:
@@ -189,11 +194,13 @@ def command(name: str, config: str | None = None):
                     problem = launcher_problem(arg.split("=", 1)[1])
                     if problem:
                         raise SystemExit(f"{name}: {problem}")
+            composed = None
             if config is not None:
-                problem = compose_problem(config, sys.argv[1:], name)
+                problem, composed = composed_ahead(config, sys.argv[1:], name)
                 if problem:
                     raise SystemExit(f"{name}: {problem}")
-            left = FolderLeftEmpty.of(sys.argv[1:])
+            left = FolderLeftEmpty.of(sys.argv[1:], composed)
+            _RUN_FOLDERS.clear()
             try:
                 return main(*args, **kwargs)
             except BaseException as exc:
@@ -207,58 +214,121 @@ def command(name: str, config: str | None = None):
 
 
 class FolderLeftEmpty:
-    """The ``out_dir=`` of a command line, as it was before the command ran: a command that fails before it wrote
-    anything (refused by its checks, after Hydra made the run folder and the run lock was taken) leaves no empty run
-    folder, no folders made above it and no lock file it made itself behind (:meth:`remove`). A folder that holds
-    anything else, or was there before, stays as it is."""
+    """A command's run folder, as it was before the command ran: a command that fails before it wrote anything
+    (refused by its checks, after Hydra made the run folder and the run lock was taken) leaves behind no empty run
+    folder, no empty folders it made in it (``scenes/``), none above it, no lock file it made (taken from it while
+    held, :func:`spread.io.remove_held_lock`) and no record Hydra made of a run that did nothing (``logs/<command>/
+    <time>/.hydra`` of a dataset command) (:meth:`remove`). The folder is the one the command ran in
+    (:func:`note_run_folders`: ``out_dir`` as composed — a default, an interpolation, ``++out_dir=`` — and Hydra's
+    run folder); whether it and the folders above it were there before comes from the command line composed ahead
+    (``planned``). A folder that was there stays (only what the command made in it goes); anything else in it
+    stays."""
 
-    def __init__(self, folder: Path | None):
-        from spread.io import LOCK_FILE
-
-        self.folder = folder
-        self.made: list[Path] = []  # the folders the command would make, deepest first
-        self.lock_was_there = True
-        if folder is None:
-            return
-        self.lock_was_there = (folder / LOCK_FILE).exists() or (folder / LOCK_FILE).is_symlink()
-        path = folder
-        while not (path.exists() or path.is_symlink()) and path != path.parent:
-            self.made.append(path)
-            path = path.parent
+    def __init__(self, planned: Path | None):
+        self.planned = planned
+        self.existed: dict[Path, bool] = {}  # the planned folder and those above it: there before the command?
+        if planned is not None:
+            for path in (planned, *planned.parents):
+                self.existed[path] = os.path.lexists(path)
 
     @classmethod
-    def of(cls, args: list[str]) -> "FolderLeftEmpty":
+    def of(cls, args: list[str], composed=None) -> "FolderLeftEmpty":
+        """From the command line ``args`` and, when given, its config composed ahead (its ``out_dir`` resolved where
+        it can be outside the app); a multirun's jobs write their own folders: nothing to keep."""
         if any(a in ("-m", "--multirun") or a.lstrip("+").startswith("hydra.mode") for a in args):
-            return cls(None)  # a multirun's jobs write their own folders
-        given = [a.split("=", 1)[1] for a in args if a.startswith("out_dir=")]
-        return cls(Path(given[-1]).expanduser().absolute() if given and given[-1] else None)
+            return cls(None)
+        value = None
+        if composed is not None:
+            try:
+                value = composed.get("out_dir")
+            except Exception:  # noqa: BLE001 - an interpolation only the running app resolves (${hydra:...})
+                value = None
+        if value is None:
+            given = [a.split("=", 1)[1] for a in args if a.lstrip("+").startswith("out_dir=")]
+            value = given[-1] if given else None
+        return cls(normal_path(value) if isinstance(value, str) and value else None)
 
     def remove(self) -> None:
-        from spread.io import LOCK_FILE
+        from spread.io import LOCK_FILE, made_lock, remove_held_lock
 
-        if self.folder is None:
+        folder = _RUN_FOLDERS.get("out_dir") or self.planned
+        if folder is None:
             return
+        fresh = not self.existed.get(folder, False)  # not planned: a folder named at run time (a time stamp): new
         try:
-            lock = self.folder / LOCK_FILE
-            if not self.lock_was_there and [p.name for p in self.folder.iterdir()] == [LOCK_FILE] and \
-                    lock.is_file() and not lock.is_symlink():
-                unlink_unheld(lock)
-            for path in self.made:
-                path.rmdir()  # only when empty; a folder with anything in it ends the walk
+            hydra = _RUN_FOLDERS.get("hydra")
+            if hydra is not None and folder in hydra.parents:
+                remove_hydra_record(hydra, folder)
+            if fresh:
+                remove_empty_folders(folder)
+            lock = folder / LOCK_FILE
+            if made_lock(lock):
+                remove_held_lock(lock)
+            if fresh:
+                folder.rmdir()  # only when empty
+                for path in folder.parents:
+                    if self.existed.get(path, True):
+                        break
+                    path.rmdir()  # a folder made on the way; one with anything in it ends the walk
         except OSError:
             pass
 
 
-def unlink_unheld(lock: Path) -> None:
-    """Remove the run-lock file ``lock`` while holding it, so a run that took it since is never left without it."""
-    import fcntl
+def normal_path(value: str) -> Path:
+    """``value`` as an absolute path without ``.`` or ``..`` parts (Hydra expands neither ``~`` nor ``..``)."""
+    return Path(os.path.normpath(os.path.abspath(value)))
 
-    fd = os.open(lock, os.O_RDWR | getattr(os, "O_NOFOLLOW", 0))
+
+def remove_empty_folders(folder: Path) -> None:
+    """Remove the empty folders inside ``folder`` (a run folder this command made), deepest first; links are not
+    followed and nothing else is touched."""
+    for root, dirs, _files in os.walk(folder, topdown=False):
+        for name in dirs:
+            path = Path(root) / name
+            if not path.is_symlink():
+                try:
+                    path.rmdir()
+                except OSError:
+                    pass
+
+
+#: Hydra's record of a run (``output_subdir: .hydra``) and its log, all a command refused at once leaves there.
+HYDRA_RECORD = {".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml"}
+
+
+def remove_hydra_record(hydra: Path, folder: Path) -> None:
+    """Remove Hydra's run folder ``hydra`` (inside ``folder``) when it holds only Hydra's record of this run and
+    empty logs, then the empty folders between it and ``folder``."""
+    files = [Path(root) / f for root, _dirs, names in os.walk(hydra) for f in names]
+    if any(f.is_symlink() or not (f.relative_to(hydra).as_posix() in HYDRA_RECORD or
+                                  (f.suffix == ".log" and f.stat().st_size == 0)) for f in files):
+        return
+    for f in files:
+        f.unlink()
+    remove_empty_folders(hydra)
+    hydra.rmdir()
+    for path in hydra.parents:
+        if path == folder:
+            break
+        path.rmdir()
+
+
+#: The folders the running command's app was given (:func:`note_run_folders`): ``out_dir`` and ``hydra``.
+_RUN_FOLDERS: dict[str, Path] = {}
+
+
+def note_run_folders(cfg) -> None:
+    """Note the run folders of the command now running (its composed ``out_dir``, Hydra's run folder) for
+    :class:`FolderLeftEmpty`; a config without them notes nothing."""
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError (an OSError) when another run holds it
-        lock.unlink()
-    finally:
-        os.close(fd)
+        from hydra.core.hydra_config import HydraConfig
+
+        out_dir = cfg.get("out_dir")
+        if isinstance(out_dir, str) and out_dir:
+            _RUN_FOLDERS["out_dir"] = normal_path(out_dir)
+        _RUN_FOLDERS["hydra"] = normal_path(HydraConfig.get().runtime.output_dir)
+    except Exception:  # noqa: BLE001 - nothing to note: nothing is removed on its account
+        pass
 
 
 def console_main(name: str, config: str):
@@ -272,7 +342,12 @@ def console_main(name: str, config: str):
     register(config)
 
     def wrap(task):
-        hydra_main = hydra.main(config_path=conf_dir(), config_name=config, version_base="1.3")(one_line(name)(task))
+        @functools.wraps(task)
+        def noted(cfg):
+            note_run_folders(cfg)
+            return task(cfg)
+
+        hydra_main = hydra.main(config_path=conf_dir(), config_name=config, version_base="1.3")(one_line(name)(noted))
         return command(name, config=config)(hydra_main)
 
     return wrap

@@ -118,14 +118,19 @@ def why_unfinished(path: Path) -> str:
     sampling = path / "sampling.json"
     if sampling.exists() and not any((path / m).exists() for m in ("per_scene.jsonl", "protocol.json")):
         try:
-            status = read_json_object(sampling, RunError).get("status")
+            record = read_json_object(sampling, RunError)
         except (RunError, OSError) as exc:
             return f"no metrics.json, and its sampling.json is unreadable: {exc}"
-        if status == "running":
+        if record.get("status") == "running":
             return f"no metrics.json: it is still sampling, or was stopped ({sampling}: status running)"
+        import shlex
+
+        fingerprint = record.get("fingerprint")
+        root = fingerprint.get("data_root") if isinstance(fingerprint, dict) else None
+        line = " ".join(shlex.quote(a) for a in (f"scenes={path / 'scenes'}", f"out_dir={path}"))
+        reference = shlex.quote(f"reference={root}") if isinstance(root, str) and root else "reference=<the dataset>"
         return (f"no metrics.json: its scenes are sampled but not evaluated (yet, or sampled without evaluate=true); "
-                f"give its evaluation's folder, or evaluate it in place: spread-evaluate scenes={path / 'scenes'} "
-                f"reference=<the dataset> out_dir={path}")
+                f"give its evaluation's folder, or evaluate it in place: spread-evaluate {line} {reference}")
     return "no metrics.json (the run has not finished)"
 
 

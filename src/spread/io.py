@@ -452,7 +452,7 @@ def take_lock(folder: Path, path: Path) -> int:
             if same_file(fd, path):
                 kept = True
                 if made:
-                    _MADE_LOCKS.add(str(path.absolute()))
+                    _MADE_LOCKS.add(os.path.normpath(os.path.abspath(path)))
                 return fd
         finally:
             if not kept:
@@ -483,7 +483,7 @@ def remove_held_lock(path: Path) -> bool:
 
 def made_lock(path: Path) -> bool:
     """Whether this process made the run-lock file ``path`` when it took it (:func:`take_lock`)."""
-    return str(Path(path).absolute()) in _MADE_LOCKS
+    return os.path.normpath(os.path.abspath(path)) in _MADE_LOCKS
 
 
 def same_file(fd: int, path: Path) -> bool:

@@ -388,7 +388,8 @@ def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Ite
     """Hold ``folder``'s run lock while a run writes it: an exclusive ``flock`` on ``folder/.spread.lock``
     (released by the kernel when the process ends, so a killed run never leaves a stale lock). A second run
     on the same folder is refused within a moment (:func:`take_lock`) with :class:`RunFolderBusy` naming the holder
-    (command, pid, start), so two runs never mix their files (two evaluations with other protocols sharing one ``metrics.json``).
+    (command, pid, start), so two runs never mix their files (two evaluations with other protocols sharing one
+    ``metrics.json``).
     ``nest=True``: a run in this process that takes it again inside is part of this one (a command holds it
     before it opens its trackers, then calls the library run that takes it); any other hold is a second run."""
     import time
@@ -452,7 +453,7 @@ def take_lock(folder: Path, path: Path) -> int:
             if same_file(fd, path):
                 kept = True
                 if made:
-                    _MADE_LOCKS.add(os.path.normpath(os.path.abspath(path)))
+                    _MADE_LOCKS.add(normal_path(path))
                 return fd
         finally:
             if not kept:
@@ -483,7 +484,13 @@ def remove_held_lock(path: Path) -> bool:
 
 def made_lock(path: Path) -> bool:
     """Whether this process made the run-lock file ``path`` when it took it (:func:`take_lock`)."""
-    return os.path.normpath(os.path.abspath(path)) in _MADE_LOCKS
+    return normal_path(path) in _MADE_LOCKS
+
+
+def normal_path(path: str | os.PathLike) -> Path:
+    """``path`` as an absolute path without ``.`` or ``..`` parts, links not resolved (Hydra expands neither ``~``
+    nor ``..``)."""
+    return Path(os.path.normpath(os.path.abspath(path)))
 
 
 def same_file(fd: int, path: Path) -> bool:
@@ -497,5 +504,5 @@ def same_file(fd: int, path: Path) -> bool:
 
 #: The run locks this process holds (resolved lock-file path → whether a run inside may take it again: ``nest``).
 _HELD_LOCKS: dict[str, bool] = {}
-#: The run-lock files this process made (absolute paths), which a refused command may remove (cli.errors).
-_MADE_LOCKS: set[str] = set()
+#: The run-lock files this process made (:func:`normal_path`), which a refused command may remove (cli.errors).
+_MADE_LOCKS: set[Path] = set()

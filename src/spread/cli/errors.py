@@ -246,6 +246,8 @@ class FolderLeftEmpty:
         if value is None:
             given = [a.split("=", 1)[1] for a in args if a.lstrip("+").startswith("out_dir=")]
             value = given[-1] if given else None
+        from spread.io import normal_path
+
         return cls(normal_path(value) if isinstance(value, str) and value else None)
 
     def remove(self) -> None:
@@ -274,11 +276,6 @@ class FolderLeftEmpty:
             pass
 
 
-def normal_path(value: str) -> Path:
-    """``value`` as an absolute path without ``.`` or ``..`` parts (Hydra expands neither ``~`` nor ``..``)."""
-    return Path(os.path.normpath(os.path.abspath(value)))
-
-
 def remove_empty_folders(folder: Path) -> None:
     """Remove the empty folders inside ``folder`` (a run folder this command made), deepest first; links are not
     followed and nothing else is touched."""
@@ -292,7 +289,7 @@ def remove_empty_folders(folder: Path) -> None:
                     pass
 
 
-#: Hydra's record of a run (``output_subdir: .hydra``) and its log, all a command refused at once leaves there.
+#: Hydra's record of a run (``output_subdir: .hydra``): with empty logs, all a command refused at once leaves there.
 HYDRA_RECORD = {".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml"}
 
 
@@ -322,6 +319,8 @@ def note_run_folders(cfg) -> None:
     :class:`FolderLeftEmpty`; a config without them notes nothing."""
     try:
         from hydra.core.hydra_config import HydraConfig
+
+        from spread.io import normal_path
 
         out_dir = cfg.get("out_dir")
         if isinstance(out_dir, str) and out_dir:

@@ -221,31 +221,33 @@ def write_run_file(out_dir: str | os.PathLike, uri: str, experiment: str, run_id
     """Name run ``run_id`` in ``out_dir``'s :data:`RUN_FILE`: the folder's latest run (``run_id``: whose numbers the
     folder holds now), and under ``jobs`` the latest run of each job type, so a sampling folder evaluated in place
     still names the sampling run that made its scenes (:func:`job_run_id`)."""
-    from spread.io import read_json_object, write_json_atomic
+    from spread.io import write_json_atomic
 
-    path = Path(out_dir) / RUN_FILE
     entry = {"tracking_uri": uri, "experiment_id": experiment, "run_id": run_id}
-    try:
-        jobs = read_json_object(path).get("jobs") if path.is_file() else None
-    except (OSError, ValueError):
-        jobs = None
+    jobs = read_run_file(out_dir).get("jobs")
     jobs = {k: v for k, v in jobs.items() if isinstance(v, dict)} if isinstance(jobs, dict) else {}
     if job_type:
         jobs[job_type] = entry
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    write_json_atomic(path, {**entry, "jobs": jobs})
+    write_json_atomic(Path(out_dir) / RUN_FILE, {**entry, "jobs": jobs})
+
+
+def read_run_file(folder: str | os.PathLike) -> dict:
+    """``folder``'s :data:`RUN_FILE` as written by :func:`write_run_file`; ``{}`` when there is none or it is
+    unreadable (damaged, not an object)."""
+    from spread.io import read_json_object
+
+    path = Path(folder) / RUN_FILE
+    try:
+        return read_json_object(path) if path.is_file() else {}
+    except (OSError, ValueError):
+        return {}
 
 
 def job_run_id(folder: str | os.PathLike, job_type: str) -> str | None:
     """The id of the latest ``job_type`` run named in ``folder``'s :data:`RUN_FILE` (:func:`write_run_file`); for a
     record written before ``jobs`` were kept, its one run; None when there is none or the record is unreadable."""
-    from spread.io import read_json_object
-
-    path = Path(folder) / RUN_FILE
-    try:
-        info = read_json_object(path) if path.is_file() else {}
-    except (OSError, ValueError):
-        return None
+    info = read_run_file(folder)
     jobs = info.get("jobs")
     if isinstance(jobs, dict):
         entry = jobs.get(job_type)

@@ -55,9 +55,8 @@ def log_sampling(manifest: dict, out_dir: str | Path, config: dict, logger, grou
     :class:`~spread.tracking.loggers.LoggerConfig`); ``evaluation``: the scenes' evaluation in the same command
     (``spread-sample evaluate=true``; ``metrics`` and ``records``), logged into the same run with the renders beside
     its per-scene table; the renders and each kind of 3D figure under keys of their own, one picture size per key
-    (:func:`image_groups`). ``run``: a run opened before the
-    work (:func:`open_sampling_run`), else one is opened now. The run is finished. Returns the run folder
-    (None when not logged)."""
+    (:func:`image_groups`). ``run``: a run opened before the work (:func:`open_sampling_run`), else one is opened
+    now. The run is finished. Returns the run folder (None when not logged)."""
     import wandb
 
     from spread.tracking.loggers import as_logger_config, init_run, run_folder

@@ -96,6 +96,7 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
 
     import spread.model.perceiver as perceiver
     from spread.model import Sampler
+    from spread.model.diffusion import reverse_process
     from spread.model.opcount import OperatorCounter
 
     perceiver.token_multiple = lambda device: perceiver.CHANNEL_MULTIPLE  # CUDA's tokens (the CPU's are unpadded)
@@ -122,7 +123,7 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
             return net(x, tt, cond)
 
         with torch.no_grad(), OperatorCounter() as c2:
-            sampler.sample(eps_fn, batch["mask"], generator=[torch.Generator().manual_seed(i) for i in range(B)])
+            reverse_process(sampler, eps_fn, batch["mask"], generator=[torch.Generator().manual_seed(i) for i in range(B)])
         out[f"ops/sampling_step/{variant}"] = round(c2.total / calls["n"], 1)
         m.train()
         timesteps = torch.linspace(50, 950, B).long()

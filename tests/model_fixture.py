@@ -62,6 +62,7 @@ def network(variant: str):
 def outputs(net, variant_record: dict | None = None) -> dict:
     """ε̂ at t = 10, 500, 990 and the DDIM-10 states (one generator per scene, seeds 0–2)."""
     from spread.model import Sampler
+    from spread.model.diffusion import reverse_process
 
     b = batch()
     cond = net.condition(b)
@@ -70,7 +71,8 @@ def outputs(net, variant_record: dict | None = None) -> dict:
         for t in (10, 500, 990):
             out[f"eps_{t}"] = net(b["x"], torch.full((3,), t), cond).tolist()
         gens = [torch.Generator().manual_seed(s) for s in range(3)]
-        out["ddim10"] = Sampler("ddim", 10).sample(lambda x, t: net(x, t, cond), b["mask"], generator=gens).tolist()
+        out["ddim10"] = reverse_process(Sampler("ddim", 10), lambda x, t: net(x, t, cond), b["mask"],
+                                        generator=gens).tolist()
     return out
 
 

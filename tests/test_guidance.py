@@ -13,6 +13,7 @@ from spread.guidance import GuidanceConfig, SceneGuidance
 from spread.guidance.collision import cone_frames, conical_field
 from spread.configs import model_config
 from spread.model import Sampler
+from spread.model.diffusion import reverse_process
 
 BOUNDS = torch.tensor([-3.0, 0.0, -3.0, 3.0, 2.5, 3.0])
 GAP, TOL = 5e-4, 2e-3
@@ -469,8 +470,8 @@ def test_guidance_none_is_bit_for_bit(lib, model_and_batch):
 
     def reference(sampler):  # what sample_states did before guidance existed
         with torch.no_grad():
-            return Sampler.from_config(sampler).sample(lambda x, t: network(x, t, cond), cond.mask,
-                                                       generator=torch.Generator().manual_seed(3))
+            return reverse_process(Sampler.from_config(sampler), lambda x, t: network(x, t, cond), cond.mask,
+                                   generator=torch.Generator().manual_seed(3))
 
     for sampler in ("ddim-4", "dpmsolver++-3"):
         ref = reference(sampler)

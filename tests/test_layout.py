@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -198,3 +199,29 @@ def test_a_packages_names_load_on_first_access_and_settings_load_without_the_hea
     code = "import spread.metrics, spread.model; print(spread.metrics.support_distance.__name__, spread.model.ema.EMA)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.split()[0] == "spread.metrics.support_distance", out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("command,args,refusal", [
+    ("train", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
+    ("sample", ["ckpt=a.ckpt", "data.root=d", "out_dir=o", "sampler.kind=nope"], "unknown sampler 'nope'"),
+    ("sample", ["ckpt=a.ckpt", "data.root=d", "out_dir=o", "sampler.eta=2"], "sampler.eta=2.0: expected a number"),
+    ("evaluate", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
+    ("ablate", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
+    ("compare", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
+])
+def test_a_command_refuses_a_bad_setting_before_torch_loads(tmp_path, command, args, refusal):
+    """The settings a command composes and checks (its schema, the sampler, the evaluation config) are torch-free
+    (:mod:`spread.model.sampler`), so a refused setting is refused in well under a second instead of after
+    torch's ~3–10 s import; the refusal names the setting, exits 1 and writes nothing."""
+    code = (f"import sys; sys.argv = ['spread-{command}', *{args!r}]\n"
+            f"from spread.cli.{command} import main\n"
+            "try:\n    main()\nexcept SystemExit as e:  # sys.exit(message): exit status 1, the message on stderr\n"
+            "    code = 1 if isinstance(e.code, str) else e.code\n"
+            "    print(e.code if isinstance(e.code, str) else '', file=sys.stderr)\n"
+            "print('EXIT', code, 'torch' in sys.modules, 'diffusers' in sys.modules)")
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}  # the one-line refusal a user sees
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         env=env)
+    assert out.stdout.strip().splitlines()[-1:] == ["EXIT 1 False False"], out.stdout + out.stderr[-2000:]
+    assert refusal in out.stderr, out.stderr[-2000:]
+    assert not any(tmp_path.iterdir())

@@ -86,7 +86,7 @@ def _generate() -> None:
 def _model() -> None:
     from spread.guidance.config import GuidanceConfig
     from spread.model.config import SceneDiffusionConfig
-    from spread.model.diffusion import Sampler
+    from spread.model.sampler import Sampler
 
     _store("model", "base", SceneDiffusionConfig)
     _store("sampler", "base", Sampler)

@@ -14,14 +14,16 @@ from __future__ import annotations
 from typing import Iterable
 
 import numpy as np
-import torch
 
 from spread.evaluation.protocol import EvalProtocol
 
 
 def merge_records(records: Iterable[dict], protocol: EvalProtocol) -> dict:
     """Aggregates (name → metric) of the protocol's metrics with every record's per-scene states merged in where
-    the record is usable for that metric (:func:`usable_for`)."""
+    the record is usable for that metric (:func:`usable_for`). torch loads here, not with the module: a command
+    that only composes an :class:`~spread.evaluation.EvaluationConfig` (a refused setting) does not pay for it."""
+    import torch
+
     metrics = protocol.build_metrics()
     for record in records:
         for name, metric in metrics.items():

@@ -194,7 +194,7 @@ class BaselineModule(L.LightningModule):
 def uniform_draws(generator, shape: tuple[int, ...], device, rows: int = 64) -> torch.Tensor:
     """U(0, 1) draws of ``shape`` = (B, N, K): one generator per scene (a list) draws a fixed (max(N, rows), K)
     block and keeps its first N rows, so a scene's draws do not depend on its batch (as
-    :meth:`spread.model.diffusion.Sampler.sample` does for noise); one generator (or None) draws the whole."""
+    :func:`spread.model.diffusion.reverse_process` does for noise); one generator (or None) draws the whole."""
     B, N, K = shape
     if isinstance(generator, (list, tuple)):
         if len(generator) != B:

@@ -10,7 +10,8 @@ from spread.lazy import lazy_names
 #: spread.model.config`` does not pay for diffusers and Lightning.
 _EXPORTS = {
     "spread.model.config": ("ModelConfig",),
-    "spread.model.diffusion": ("SAMPLER_KINDS", "Sampler", "StepContext", "training_scheduler"),
+    "spread.model.diffusion": ("StepContext",),
+    "spread.model.sampler": ("SAMPLER_KINDS", "Sampler", "TRAIN_SCHEDULER_CONFIG", "training_scheduler"),
     "spread.model.ema": ("EMA",),
     "spread.model.geometry": ("signed_chamfer_features",),
     "spread.model.network": ("VARIANTS", "Condition", "SceneDenoiser"),

@@ -9,9 +9,10 @@ Training: ``DDPMScheduler(num_train_timesteps, beta_schedule, prediction_type="e
 (:mod:`spread.model.schedulers`: ``ddpm``, by default over all 1000 steps as the release runs; ``ddim`` with
 ``eta``; ``dpmsolver++``; a plugin's) or a diffusers scheduler class as ``"module:Class"``. Each call builds a
 fresh scheduler (they are stateful). A sampler has one spelling, its :attr:`Sampler.label` (``ddim-50``,
-``ddpm-1000``, ``ddim-50-eta0.5``), which :meth:`Sampler.from_config` reads back.
+``ddpm-1000``, ``ddim-50-eta0.5``), which :meth:`Sampler.from_config` reads back. Its settings live in the
+torch-free :mod:`spread.model.sampler` (re-exported here); its loop is :func:`reverse_process`.
 
-The loop (:meth:`Sampler.sample`) works on any ``eps_fn(x_t, t) -> ε̂``; every diffusion method samples through
+The loop (:func:`reverse_process`) works on any ``eps_fn(x_t, t) -> ε̂``; every diffusion method samples through
 it by one function, :func:`denoise`, which takes a method's :class:`Denoising` (its ε-function, mask, state size,
 training schedule, pose decoder and own per-step edit) and the injected :class:`SamplingCallback` s (guidance,
 per-step edits): SPREAD's model, its validation, DiffuScene, InstructScene and
@@ -35,16 +36,13 @@ from typing import TYPE_CHECKING, Callable, Mapping
 
 import torch
 
-if TYPE_CHECKING:  # diffusers loads with the first scheduler: reading a Sampler's settings does not need it
+# the sampler's settings live in a torch-free module (a command refuses a bad setting before torch loads); they
+# are re-exported here, where the loop is
+from spread.model.sampler import SAMPLER_KINDS, TRAIN_SCHEDULER_CONFIG, Sampler, training_scheduler  # noqa: F401
+
+if TYPE_CHECKING:  # diffusers loads with the first scheduler
     from diffusers import DDPMScheduler
 
-TRAIN_SCHEDULER_CONFIG: dict = {
-    "num_train_timesteps": 1000,
-    "beta_schedule": "squaredcos_cap_v2",
-    "prediction_type": "epsilon",
-}
-#: The built-in sampler kinds (every registered one: :data:`spread.model.schedulers.SCHEDULERS`).
-SAMPLER_KINDS = ("ddpm", "ddim", "dpmsolver++")
 #: What the network predicts (diffusers' names): the noise ε, the clean state x_0, or v = √ᾱ ε − √(1−ᾱ) x_0
 #: (Salimans & Ho 2022). Samplers and guidance always receive ε (:func:`epsilon_from_prediction`).
 PREDICTIONS = ("epsilon", "sample", "v_prediction")
@@ -54,14 +52,6 @@ LOSS_WEIGHTINGS = ("none", "min_snr")
 #: Per-scene initial noise is drawn as (max(N, NOISE_ROWS), state_dim) and cut to N, so a scene's x_T does not
 #: depend on how far its batch is padded (torch's CPU normal sampler fills large tensors in another order).
 NOISE_ROWS = 64
-
-
-def training_scheduler(**overrides) -> DDPMScheduler:
-    """A DDPM training schedule: ε-prediction, by default cosine betas over T = 1000 (the paper's);
-    ``overrides`` (``beta_schedule``, ``num_train_timesteps``, ...) change it."""
-    from diffusers import DDPMScheduler
-
-    return DDPMScheduler(**{**TRAIN_SCHEDULER_CONFIG, **overrides})
 
 
 def check_prediction(prediction: str) -> str:
@@ -205,8 +195,8 @@ def denoise(problem: Denoising, sampler, generator=None, callbacks=()) -> torch.
     Returns the states (B, N, C), zero at padding, autograd off."""
     callbacks = [c for c in callbacks if c is not None]
     with torch.no_grad():
-        x = Sampler.from_config(sampler).sample(
-            problem.eps_fn, problem.mask, generator=generator,
+        x = reverse_process(
+            Sampler.from_config(sampler), problem.eps_fn, problem.mask, generator=generator,
             x0_hook=chain_hooks([problem.x0_hook, *[c.x0_hook for c in callbacks]]),
             sample_hook=chain_hooks([c.sample_hook for c in callbacks]), state_dim=problem.state_dim,
             schedule=problem.schedule)
@@ -239,146 +229,72 @@ def ddpm_step(scheduler: DDPMScheduler, eps: torch.Tensor, t: int, x: torch.Tens
     return prev
 
 
-@dataclass
-class Sampler:
-    """A reverse process over the training schedule: ``kind`` (a registered scheduler or ``"module:Class"``,
-    module docstring), ``steps`` (default: the kind's, 1000 for ``ddpm``, 50 otherwise), ``eta`` (DDIM only),
-    ``clip_x0``."""
+@torch.no_grad()
+def reverse_process(sampler: Sampler, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
+                    generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
+                    sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype | None = None,
+                    schedule: Mapping | None = None) -> torch.Tensor:
+    """``sampler``'s reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding
+    (the loop every method samples through, by :func:`denoise`); ``schedule``: the training schedule's config, as in :meth:`Sampler.scheduler`;
+    ``dtype``: the state's (float32 when None).
 
-    kind: str = "ddim"
-    steps: int | None = None
-    eta: float = 0.0
-    clip_x0: bool = True
-
-    def __post_init__(self):
-        from spread.model.schedulers import scheduler_spec
-
-        spec = scheduler_spec(str(self.kind))  # an unknown kind is an error naming the registered ones
-        if self.steps is None:
-            self.steps = spec.steps
-        if not 1 <= self.steps <= TRAIN_SCHEDULER_CONFIG["num_train_timesteps"]:
-            raise ValueError(f"sampler steps must be in [1, 1000], got {self.steps}")
-
-    def check_eta(self) -> None:
-        """``ValueError`` for an ``eta`` outside [0, 1] (beyond 1 the step's noise exceeds its variance: NaN), or other
-        than 0 on a sampler that does not read it (every kind but ``ddim``):
-        its samples would be those at eta 0 under a second fingerprint and label. Checked where a run is configured
-        (:class:`spread.sampling.SamplingConfig`), not where a recorded sampler is read back."""
-        import math
-
-        if isinstance(self.eta, bool) or not isinstance(self.eta, (int, float)) or not math.isfinite(self.eta) \
-                or not 0.0 <= float(self.eta) <= 1.0:
-            raise ValueError(f"sampler.eta={self.eta!r}: expected a number in [0, 1] (0: deterministic DDIM, 1: "
-                             f"DDPM-like noise)")
-        if float(self.eta) != 0.0 and self.kind != "ddim":
-            raise ValueError(f"sampler.eta={self.eta:g}: only the ddim sampler reads eta ({self.kind} ignores it, so "
-                             f"its samples would be the same as at eta 0); leave it at 0 or use sampler=ddim")
-
-    @classmethod
-    def from_config(cls, config: "Sampler | Mapping | str | None") -> "Sampler":
-        """A Sampler, a mapping of its fields, or its :attr:`label` ("ddpm", "ddim-50", "dpmsolver++-20",
-        "ddim-50-eta0.5", "ddim-50-noclip")."""
-        if config is None:
-            return cls()
-        if isinstance(config, Sampler):
-            return config
-        if isinstance(config, str):
-            import re
-
-            found = re.fullmatch(r"(?P<kind>.+?)(?:-(?P<steps>\d+))?(?:-eta(?P<eta>[0-9.eE+-]+))?(?P<noclip>-noclip)?",
-                                 config)
-            steps, eta = found["steps"], found["eta"]
-            return cls(kind=found["kind"], steps=int(steps) if steps else None, eta=float(eta) if eta else 0.0,
-                       clip_x0=not found["noclip"])
-        return cls(**dict(config))
-
-    @property
-    def label(self) -> str:
-        """The sampler's one spelling: ``ddim-50``, ``ddpm-1000``, ``ddim-50-eta0.5``, ``dpmsolver++-20-noclip``."""
-        return (f"{self.kind}-{self.steps}" + (f"-eta{self.eta:g}" if self.eta else "")
-                + ("" if self.clip_x0 else "-noclip"))
-
-    def fingerprint(self) -> dict:
-        """Every field (each changes the samples)."""
-        return {"kind": self.kind, "steps": int(self.steps), "eta": float(self.eta), "clip_x0": bool(self.clip_x0)}
-
-    @property
-    def num_steps(self) -> int:
-        return int(self.steps)
-
-    def scheduler(self, schedule: Mapping | None = None):
-        """A fresh diffusers scheduler for this sampler, from the config of the schedule the model was trained
-        with (``model.noise_schedule.config``, or only the keys that differ from the default training schedule,
-        e.g. ``{"beta_schedule": "linear"}``; default: the default training schedule)."""
-        from spread.model.schedulers import scheduler_spec
-
-        base = training_scheduler(**{k: v for k, v in dict(schedule or {}).items() if not k.startswith("_")}).config
-        return scheduler_spec(self.kind).build(base)
-
-    @torch.no_grad()
-    def sample(self, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
-               generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
-               sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32,
-               schedule: Mapping | None = None) -> torch.Tensor:
-        """Run the reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding;
-        ``schedule``: the training schedule's config, as in :meth:`scheduler`.
-
-        Hooks run with autograd off; a guidance hook that needs gradients enables them itself
-        (``torch.enable_grad()``).
-        """
-        mask = mask.bool()
-        device = mask.device
-        keep = mask[..., None].to(dtype)
-        scheduler = self.scheduler(schedule)
-        if self.num_steps > scheduler.config.num_train_timesteps:
-            raise ValueError(f"sampler steps {self.num_steps} > the model's {scheduler.config.num_train_timesteps} "
-                             f"training timesteps")
-        # the schedule stays on the host: a step's coefficients are host numbers, so no step reads the device
-        scheduler.set_timesteps(self.num_steps)
-        timesteps = [int(t) for t in scheduler.timesteps]
-        alphas = scheduler.alphas_cumprod.double()
-        B, N = mask.shape
-        per_scene = isinstance(generator, (list, tuple))
-        if per_scene:  # one generator per scene: a scene's noise ignores its batch
-            if len(generator) != B:
-                raise ValueError(f"Sampler.sample: {len(generator)} generators for a batch of {B}")
-            rows = max(N, NOISE_ROWS)  # a fixed-size draw: the same first rows at any padding
-            draws = [torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:N] for g in generator]
-            x = torch.stack([d.to(draws[0].device) for d in draws])  # one copy to the device, not one per scene
-            generator = list(generator)
+    Hooks run with autograd off; a guidance hook that needs gradients enables them itself
+    (``torch.enable_grad()``).
+    """
+    dtype = torch.float32 if dtype is None else dtype
+    mask = mask.bool()
+    device = mask.device
+    keep = mask[..., None].to(dtype)
+    scheduler = sampler.scheduler(schedule)
+    if sampler.num_steps > scheduler.config.num_train_timesteps:
+        raise ValueError(f"sampler steps {sampler.num_steps} > the model's {scheduler.config.num_train_timesteps} "
+                         f"training timesteps")
+    # the schedule stays on the host: a step's coefficients are host numbers, so no step reads the device
+    scheduler.set_timesteps(sampler.num_steps)
+    timesteps = [int(t) for t in scheduler.timesteps]
+    alphas = scheduler.alphas_cumprod.double()
+    B, N = mask.shape
+    per_scene = isinstance(generator, (list, tuple))
+    if per_scene:  # one generator per scene: a scene's noise ignores its batch
+        if len(generator) != B:
+            raise ValueError(f"reverse_process: {len(generator)} generators for a batch of {B}")
+        rows = max(N, NOISE_ROWS)  # a fixed-size draw: the same first rows at any padding
+        draws = [torch.randn((rows, state_dim), generator=g, device=g.device, dtype=dtype)[:N] for g in generator]
+        x = torch.stack([d.to(draws[0].device) for d in draws])  # one copy to the device, not one per scene
+        generator = list(generator)
+    else:
+        noise_device = generator.device if generator is not None else device
+        x = torch.randn((*mask.shape, state_dim), generator=generator, device=noise_device, dtype=dtype)
+    x = x.to(device) * keep
+    # ancestral samplers' per-step noise, drawn up front in the order the scheduler would draw it (per scene:
+    # after its x_T, one (1, N, C) draw per noisy step) and moved to the device once
+    ancestral = sampler.kind == "ddpm" or (sampler.kind == "ddim" and sampler.eta > 0)
+    noise = None
+    if ancestral and per_scene:
+        noisy = [i for i, t in enumerate(timesteps) if sampler.kind == "ddim" or t > 0]
+        drawn = torch.stack([torch.cat([torch.randn((1, N, state_dim), generator=g, device=g.device, dtype=dtype)
+                                        for _ in noisy]) for g in generator], 1) if noisy else None
+        noise = {} if drawn is None else dict(zip(noisy, drawn.to(device).unbind(0)))
+    for index, t in enumerate(timesteps):
+        t_batch = torch.full((B,), t, device=device, dtype=torch.long)
+        eps = eps_fn(x, t_batch).to(dtype) * keep
+        a = float(alphas[t])
+        ctx = StepContext(index, len(timesteps), t, x, eps, mask, a)
+        if sampler.clip_x0 or x0_hook is not None:
+            x0 = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
+            if sampler.clip_x0:
+                x0 = x0.clamp(-1.0, 1.0)
+            if x0_hook is not None:
+                x0 = x0_hook(x0, ctx)
+            eps = (x - a ** 0.5 * x0) / (1 - a) ** 0.5 * keep
+        if noise is not None and sampler.kind == "ddpm":
+            x = ddpm_step(scheduler, eps, t, x, noise.get(index))
+        elif noise is not None:
+            x = scheduler.step(eps, t, x, eta=sampler.eta, variance_noise=noise[index]).prev_sample
         else:
-            noise_device = generator.device if generator is not None else device
-            x = torch.randn((*mask.shape, state_dim), generator=generator, device=noise_device, dtype=dtype)
-        x = x.to(device) * keep
-        # ancestral samplers' per-step noise, drawn up front in the order the scheduler would draw it (per scene:
-        # after its x_T, one (1, N, C) draw per noisy step) and moved to the device once
-        ancestral = self.kind == "ddpm" or (self.kind == "ddim" and self.eta > 0)
-        noise = None
-        if ancestral and per_scene:
-            noisy = [i for i, t in enumerate(timesteps) if self.kind == "ddim" or t > 0]
-            drawn = torch.stack([torch.cat([torch.randn((1, N, state_dim), generator=g, device=g.device, dtype=dtype)
-                                            for _ in noisy]) for g in generator], 1) if noisy else None
-            noise = {} if drawn is None else dict(zip(noisy, drawn.to(device).unbind(0)))
-        for index, t in enumerate(timesteps):
-            t_batch = torch.full((B,), t, device=device, dtype=torch.long)
-            eps = eps_fn(x, t_batch).to(dtype) * keep
-            a = float(alphas[t])
-            ctx = StepContext(index, len(timesteps), t, x, eps, mask, a)
-            if self.clip_x0 or x0_hook is not None:
-                x0 = (x - (1 - a) ** 0.5 * eps) / a ** 0.5
-                if self.clip_x0:
-                    x0 = x0.clamp(-1.0, 1.0)
-                if x0_hook is not None:
-                    x0 = x0_hook(x0, ctx)
-                eps = (x - a ** 0.5 * x0) / (1 - a) ** 0.5 * keep
-            if noise is not None and self.kind == "ddpm":
-                x = ddpm_step(scheduler, eps, t, x, noise.get(index))
-            elif noise is not None:
-                x = scheduler.step(eps, t, x, eta=self.eta, variance_noise=noise[index]).prev_sample
-            else:
-                extra = {"eta": self.eta} if self.kind == "ddim" else {}
-                x = scheduler.step(eps, t, x, generator=generator, **extra).prev_sample
-            x = x.to(dtype) * keep
-            if sample_hook is not None:
-                x = sample_hook(x, ctx) * keep
-        return x
+            extra = {"eta": sampler.eta} if sampler.kind == "ddim" else {}
+            x = scheduler.step(eps, t, x, generator=generator, **extra).prev_sample
+        x = x.to(dtype) * keep
+        if sample_hook is not None:
+            x = sample_hook(x, ctx) * keep
+    return x

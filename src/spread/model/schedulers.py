@@ -1,4 +1,4 @@
-"""The sampler registry: the diffusers schedulers a :class:`~spread.model.diffusion.Sampler` runs, by name.
+"""The sampler registry: the diffusers schedulers a :class:`~spread.model.sampler.Sampler` runs, by name.
 
 A :class:`SchedulerSpec` is a name (``sampler.kind``), a ``build(config)`` that makes a fresh diffusers scheduler
 from the config of the model's training schedule (they are stateful: one per call), and the default number of

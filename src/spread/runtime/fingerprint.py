@@ -479,7 +479,7 @@ WHERE_PATHS = ("config.data.root",)
 def sampler_setting(value):
     """A recorded sampler as :func:`settings` shows it: a fingerprint (dict) or a sampler's name (an older record's
     string) as its label; any other string as it is (what an own loop records: ATISS's ``"one pass per object"``)."""
-    from spread.model.diffusion import Sampler
+    from spread.model.sampler import Sampler
 
     if isinstance(value, (dict, str)):
         try:
@@ -496,7 +496,7 @@ def settings(identity: dict) -> dict:
     ``assets`` and ``reference`` (12 hex digits of their sha256), ``protocol.<key>`` and ``fid.<key>``, ...; an
     identity that lacks a part (a run recorded before it) gives none of its keys."""
     from spread.guidance.terms import term_names
-    from spread.model.diffusion import Sampler
+    from spread.model.sampler import Sampler
 
     out: dict = {}
     if "guidance" in identity:
@@ -547,7 +547,7 @@ def config_identity(config: dict) -> dict:
     :class:`~spread.guidance.GuidanceConfig`'s fingerprint), ``sampling`` (the :class:`~spread.model.Sampler`'s,
     seed, ...), ``samples_per_graph``, the evaluation protocol. For runs recorded without fingerprints."""
     from spread.guidance import GuidanceConfig
-    from spread.model.diffusion import Sampler
+    from spread.model.sampler import Sampler
 
     tree = unflatten(config)
     out: dict = {}

@@ -37,7 +37,7 @@ from spread import readonce
 from spread.guidance import GuidanceConfig
 from spread.io import check_folder_kind, read_json, write_json_atomic
 from spread.runtime.threads import check_threads
-from spread.model.diffusion import Sampler
+from spread.model.sampler import Sampler
 from spread.runtime.ray import RaySettings, ray_session
 from spread.sampling.plan import BatchPlan, Graph, missing_items, plan_batches, read_back, remove_unreadable
 

@@ -423,6 +423,19 @@ def test_a_command_refused_by_its_checks_leaves_no_empty_log_behind(tmp_path):
     assert not out.exists()  # Hydra made it and the run lock was taken: both gone (sample.log was never made)
 
 
+def test_a_refused_command_removes_the_folders_its_out_dir_made_on_the_way_through_dot_dot(tmp_path):
+    """``out_dir=a/../b`` (relative, as typed): creating it as written makes ``a`` too, which the normalised folder
+    (``b``) does not name; it was left behind, empty. A folder that was there (``keep`` of ``keep/../c``) stays."""
+    from helpers import user_error
+
+    (tmp_path / "keep").mkdir()
+    for out_dir in ("a/../b", "x/y/../../z/w/../q", "keep/../c"):
+        line, _ = user_error("spread-sample", "ckpt=no.ckpt", f"data.root={tmp_path}", f"out_dir={out_dir}",
+                             cwd=tmp_path)
+        assert "no such checkpoint file" in line
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"], out_dir
+
+
 def test_a_refused_command_leaves_nothing_at_its_default_folder_nor_hydras_record_of_a_dataset_command(tmp_path):
     """The cleanup read ``out_dir=`` from the command line: a refused ``spread-train`` at its default folder
     (``runs/train/<name>/<time>``, the README's form) left that folder and its lock, ``spread-generate`` left

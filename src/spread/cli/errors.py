@@ -221,15 +221,18 @@ class FolderLeftEmpty:
     <time>/.hydra`` of a dataset command) (:meth:`remove`). The folder is the one the command ran in
     (:func:`note_run_folders`: ``out_dir`` as composed — a default, an interpolation, ``++out_dir=`` — and Hydra's
     run folder); whether it and the folders above it were there before comes from the command line composed ahead
-    (``planned``). A folder that was there stays (only what the command made in it goes); anything else in it
+    (``planned``), and the folders creating it as written made on the way (``a`` of ``out_dir=a/../b``:
+    :func:`on_the_way`). A folder that was there stays (only what the command made in it goes); anything else in it
     stays."""
 
-    def __init__(self, planned: Path | None):
+    def __init__(self, planned: Path | None, written: str | None = None):
         self.planned = planned
         self.existed: dict[Path, bool] = {}  # the planned folder and those above it: there before the command?
         if planned is not None:
             for path in (planned, *planned.parents):
                 self.existed[path] = os.path.lexists(path)
+        self.on_the_way = on_the_way(written) if written else []
+
 
     @classmethod
     def of(cls, args: list[str], composed=None) -> "FolderLeftEmpty":
@@ -248,7 +251,9 @@ class FolderLeftEmpty:
             value = given[-1] if given else None
         from spread.io import normal_path
 
-        return cls(normal_path(value) if isinstance(value, str) and value else None)
+        if not (isinstance(value, str) and value):
+            return cls(None)
+        return cls(normal_path(value), value)
 
     def remove(self) -> None:
         from spread.io import LOCK_FILE, made_lock, remove_held_lock
@@ -274,6 +279,25 @@ class FolderLeftEmpty:
                     path.rmdir()  # a folder made on the way; one with anything in it ends the walk
         except OSError:
             pass
+        for path in reversed(self.on_the_way):  # ``a`` of ``out_dir=a/../b``: made by creating the path as written
+            try:
+                path.rmdir()  # only when empty
+            except OSError:
+                pass
+
+
+def on_the_way(written: str) -> list[Path]:
+    """The folders that creating ``written`` as written (``os.makedirs``, ``Path.mkdir(parents=True)``) makes and
+    that are not there now, outermost first, normalised: ``a`` of ``a/../b`` (the normalised path names only ``b``);
+    none for a path without ``..``."""
+    from spread.io import normal_path
+
+    path = Path(written if os.path.isabs(written) else os.path.join(os.getcwd(), written))
+    if ".." not in path.parts:
+        return []
+    prefixes = [Path(*path.parts[:i]) for i in range(2, len(path.parts) + 1)]
+    made = [normal_path(p) for p in prefixes if p.name not in ("..", ".")]
+    return [p for p in dict.fromkeys(made) if not os.path.lexists(p)]
 
 
 def remove_empty_folders(folder: Path) -> None:

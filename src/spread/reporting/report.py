@@ -175,4 +175,5 @@ def print_report(result: ReportResult) -> None:
     for why in result.html.get("refused", []):
         console.print(f"not read: {why}", markup=False, soft_wrap=True)
     console.print(f"{len(result.records)} runs; table {result.tables.get('md')}, {result.tables.get('csv')}; "
-                  f"{len(result.plots)} plots in {result.tables['html'].parent / 'plots'}; page {result.tables['html']}")
+                  f"{len(result.plots)} plots in {result.tables['html'].parent / 'plots'}; page {result.tables['html']}",
+                  soft_wrap=True)  # paths are copied from here: never broken across lines

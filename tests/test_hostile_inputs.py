@@ -491,6 +491,26 @@ def test_a_refused_command_removes_only_the_folders_and_lock_it_made_and_nothing
         assert sorted(p.name for p in tmp.iterdir()) == ["empty", "kept"]  # m, r, scenes, part and the lock gone
 
 
+def test_a_console_main_called_in_process_leaves_no_noted_folder_for_a_later_cleanup(tmp_path):
+    """A console script's ``main(cfg)`` called as a library (a test, a study's in-process stage) noted its run folder
+    for the cleanup of a refused command and kept it: a later cleanup in the same process then looked at that
+    stale folder instead of its own, and left its own folders behind (found by ``make test`` when another file's
+    in-process evaluation ran before this file on the same worker)."""
+    from spread.cli.errors import FolderLeftEmpty
+    from spread.cli.sample import main
+    from spread.configs import compose
+    from spread.io import run_lock
+
+    stale = tmp_path / "stale"
+    with pytest.raises(BaseException, match="no such checkpoint file"):
+        main(compose("sample", [f"ckpt={tmp_path / 'no.ckpt'}", f"data.root={tmp_path}", f"out_dir={stale}"]))
+    new = FolderLeftEmpty.of([f"out_dir={tmp_path / 'a' / 'b'}"])
+    with run_lock(tmp_path / "a" / "b", "spread-sample"):
+        pass
+    new.remove()
+    assert not (tmp_path / "a").exists()  # its own folders and lock gone, whatever ran before it
+
+
 def test_two_scene_files_with_one_inner_id_both_export(dataset, tmp_path):
     """Before: "2 written" was reported as 1 and the second file overwrote the first."""
     from spread.export import export_folder

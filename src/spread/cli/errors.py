@@ -184,7 +184,10 @@ def command(name: str, config: str | None = None):
         @functools.wraps(main)
         def entry(*args, **kwargs):
             if args or kwargs:  # called with a composed config (``main(cfg)``), not from a command line
-                return main(*args, **kwargs)
+                try:
+                    return main(*args, **kwargs)
+                finally:
+                    _RUN_FOLDERS.clear()  # the folders noted belong to this call, not to a later command's cleanup
             for arg in sys.argv[1:]:
                 if arg.startswith("out_dir="):
                     problem = out_dir_problem(arg.split("=", 1)[1])
@@ -207,6 +210,8 @@ def command(name: str, config: str | None = None):
                 if not isinstance(exc, SystemExit) or exc.code not in (0, None):
                     left.remove()
                 raise
+            finally:
+                _RUN_FOLDERS.clear()
 
         return entry
 

@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
     if note:
         console.print(note)
     console.print(f"renders: {data / 'renders'} (rooms), {samples / 'renders'} (ground truth | generated; "
-                  f"*_3d.png: 3D view + relation matrix, *_physics.png: before | after physics)")
+                  f"*_3d.png: 3D view + relation matrix, *_physics.png: before | after physics)", soft_wrap=True)
 
 
 if __name__ == "__main__":

@@ -140,9 +140,9 @@ def print_evaluation_summary(metrics: dict, out_dir) -> None:
     note = interval_note(metrics.get("bootstrap"))
     if note:
         console.print(note.replace("± is half the width of the", "interval: the"), soft_wrap=True)
-    console.print(f"fid_status: {metrics['fid_status']}")
+    console.print(f"fid_status: {metrics['fid_status']}", markup=False, soft_wrap=True)  # a path: kept whole
     for f in metrics["failed"][:10]:
-        console.print(f"failed {f['scene_id']}: {f['error']}", markup=False)
+        console.print(f"failed {f['scene_id']}: {f['error']}", markup=False, soft_wrap=True)
     failures = {k: v for k, v in (metrics.get("metric_failures") or {}).items() if v}
     if failures:
         console.print("metric failures (those scenes are left out of that metric only): "

@@ -171,7 +171,7 @@ def print_report(result: ReportResult) -> None:
     if "md" in result.tables:
         console.print(read_text_checked(result.tables["md"]), markup=False)
     for path in result.unfinished:
-        console.print(f"[yellow]skipped (no metrics.json yet): {path}[/yellow]")
+        console.print(f"[yellow]skipped (no metrics.json yet): {path}[/yellow]", soft_wrap=True)
     for why in result.html.get("refused", []):
         console.print(f"not read: {why}", markup=False, soft_wrap=True)
     console.print(f"{len(result.records)} runs; table {result.tables.get('md')}, {result.tables.get('csv')}; "

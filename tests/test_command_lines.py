@@ -296,12 +296,6 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
         with pytest.raises(RunError, match=f"{folder / 'metrics.json'}: {says}"):
             read_run_folder(folder)
     column = Column("grecall", "GRecall", digits=3)
-    folder = tmp_path / "nan"  # an evaluation writes null for a value it did not measure; NaN is a hand edit
-    folder.mkdir()
-    (folder / "metrics.json").write_text('{"grecall": NaN, "n_evaluated": 3, "fid": null}')
-    record = read_run_folder(folder)
-    assert column.cell(record) == "invalid ('NaN')" and Column("fid", "FID", digits=2).cell(record) == "–"
-    assert column.format(float("nan")) == "–"  # a store's missing value stays missing
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.6}) == pytest.approx(0.1)
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) is None  # was "± -0.400"
     assert column.cell({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) == "0.500"

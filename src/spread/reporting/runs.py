@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import glob
 import json
-import math
 import struct
 from pathlib import Path
 from typing import Iterable
@@ -150,16 +149,10 @@ def read_run_folder(path: str | Path) -> dict:
     check_shape(metrics_path, metrics)
     record = {"run": path.name, "source": str(path), "kind": "folder",
               **identity_fields(folder_identity(path, metrics))}
-    record.update({k: written_nan(metrics.get(k)) for k in record_metrics()})
+    record.update({k: metrics.get(k) for k in record_metrics()})
     record.update(ci_columns(row_intervals(metrics, path)))
     return record
 
-
-def written_nan(value):
-    """A value read from ``metrics.json``, a ``NaN`` in the file as the text ``"NaN"``: an evaluation writes null
-    for a value it did not measure, never NaN, so a NaN there is a hand edit and prints ``invalid ('NaN')``, not
-    – (a table's missing value, which NaN means in a record read back from a store)."""
-    return "NaN" if isinstance(value, float) and math.isnan(value) else value
 
 
 def check_shape(path: Path, metrics: dict) -> None:

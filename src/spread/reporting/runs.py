@@ -154,7 +154,6 @@ def read_run_folder(path: str | Path) -> dict:
     return record
 
 
-
 def check_shape(path: Path, metrics: dict) -> None:
     """``RunError`` naming the file and key when a ``metrics.json`` holds a part the report reads in another shape
     than the evaluation writes it (a hand edit): ``bootstrap`` an object, ``per_room_type`` an object of objects

@@ -123,7 +123,8 @@ def counts(B: int, N: int, M: int, quick: bool) -> dict:
             return net(x, tt, cond)
 
         with torch.no_grad(), OperatorCounter() as c2:
-            reverse_process(sampler, eps_fn, batch["mask"], generator=[torch.Generator().manual_seed(i) for i in range(B)])
+            reverse_process(sampler, eps_fn, batch["mask"],
+                            generator=[torch.Generator().manual_seed(i) for i in range(B)])
         out[f"ops/sampling_step/{variant}"] = round(c2.total / calls["n"], 1)
         m.train()
         timesteps = torch.linspace(50, 950, B).long()

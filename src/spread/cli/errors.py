@@ -238,7 +238,6 @@ class FolderLeftEmpty:
                 self.existed[path] = os.path.lexists(path)
         self.on_the_way = on_the_way(written) if written else []
 
-
     @classmethod
     def of(cls, args: list[str], composed=None) -> "FolderLeftEmpty":
         """From the command line ``args`` and, when given, its config composed ahead (its ``out_dir`` resolved where

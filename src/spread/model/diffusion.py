@@ -232,16 +232,15 @@ def ddpm_step(scheduler: DDPMScheduler, eps: torch.Tensor, t: int, x: torch.Tens
 @torch.no_grad()
 def reverse_process(sampler: Sampler, eps_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], mask: torch.Tensor,
                     generator: torch.Generator | list[torch.Generator] | None = None, x0_hook: Hook | None = None,
-                    sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype | None = None,
+                    sample_hook: Hook | None = None, state_dim: int = 9, dtype: torch.dtype = torch.float32,
                     schedule: Mapping | None = None) -> torch.Tensor:
-    """``sampler``'s reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding
-    (the loop every method samples through, by :func:`denoise`); ``schedule``: the training schedule's config, as in :meth:`Sampler.scheduler`;
-    ``dtype``: the state's (float32 when None).
+    """``sampler``'s reverse process for scenes ``mask`` (B, N) → x̂_0 (B, N, state_dim), zero at padding (the loop
+    every method samples through, by :func:`denoise`); ``schedule``: the training schedule's config, as in
+    :meth:`Sampler.scheduler`.
 
     Hooks run with autograd off; a guidance hook that needs gradients enables them itself
     (``torch.enable_grad()``).
     """
-    dtype = torch.float32 if dtype is None else dtype
     mask = mask.bool()
     device = mask.device
     keep = mask[..., None].to(dtype)

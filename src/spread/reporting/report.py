@@ -174,6 +174,7 @@ def print_report(result: ReportResult) -> None:
         console.print(f"[yellow]skipped (no metrics.json yet): {path}[/yellow]", soft_wrap=True)
     for why in result.html.get("refused", []):
         console.print(f"not read: {why}", markup=False, soft_wrap=True)
+    html = result.tables["html"]
     console.print(f"{len(result.records)} runs; table {result.tables.get('md')}, {result.tables.get('csv')}; "
-                  f"{len(result.plots)} plots in {result.tables['html'].parent / 'plots'}; page {result.tables['html']}",
+                  f"{len(result.plots)} plots in {html.parent / 'plots'}; page {html}",
                   soft_wrap=True)  # paths are copied from here: never broken across lines

@@ -3,8 +3,9 @@
 * Every Hydra console script composes its command line once before Hydra runs (``spread.cli.errors.compose_problem``):
   required settings left unset (``???``) are all named at once, where Hydra stopped at the first with a traceback
   from resolving the run folder; an override that names no key, no config group option, or does not parse is one
-  line without Hydra's list of config sources. Hydra's own flags (``--cfg``, ``-m``) are left to Hydra, and a
-  multirun job that reads an unset setting ends in the same one line.
+  line without Hydra's list of config sources. Hydra's own flags (``--cfg``) are left to Hydra; a multirun (``-m``)
+  is expanded into its jobs as Hydra's basic sweeper expands it, each composed and its settings built, so a job that
+  cannot run is refused by its number before the first job runs (``spread.cli.multirun``, round 13).
 * ``trainer.*`` values are checked against Lightning's ``Trainer`` arguments before a launch records its config or
   opens a logger run (``spread.training.trainer_settings``): a relaunch with a value Lightning refuses leaves the run
   folder byte for byte as it was.
@@ -65,7 +66,7 @@ def test_a_command_line_that_composes_passes_and_hydra_flags_and_its_own_setting
     assert compose_problem("train", ["experiment=quick", "data.root=/d", "trainer.max_steps=3"]) is None
     assert compose_problem("sample", ["ckpt=/c", "data.root=/d", "out_dir=/o", "guidance=paper"]) is None
     assert compose_problem("train", ["--cfg", "job"]) is None  # prints the config, ??? and all
-    assert compose_problem("train", ["-m", "seed=1,2"]) is None  # a sweep: each job is checked as it runs
+    assert compose_problem("train", ["-m", "seed=1,2", "data.root=/d"]) is None  # a sweep whose jobs compose
     assert compose_problem("train", ["data.root=/d", "hydra.run.dir=/x", "hydra/job_logging=disabled"]) is None
     assert compose_problem("train", ["hydra.searchpath=[file:///nowhere]", "model=nosuch"]) is None
     assert compose_problem("train", ["data.root=/d", "hydra.mode=MULTIRUN", "seed=0,1"]) is None  # a multirun too
@@ -83,8 +84,61 @@ def test_the_composed_config_is_still_printed_by_hydra_with_its_unset_settings(t
 
 
 def test_a_multirun_job_that_reads_an_unset_required_setting_ends_in_one_line(tmp_path):
-    line, _ = user_error("spread-train", "-m", "seed=1,2", "logger=none", cwd=tmp_path)
+    line, _ = user_error("spread-train", "-m", "seed=1,2", "logger=none", cwd=tmp_path)  # refused ahead
+    assert line.startswith("spread-train: job #0 of the multirun (seed=1): required setting not given: data.root "
+                           "(add data.root=..."), line
+    line, _ = user_error("spread-train", "hydra.mode=MULTIRUN", "seed=1,2", "logger=none", cwd=tmp_path)  # by Hydra
     assert "required setting not given: data.root (add data.root=...)" in line, line
+
+
+SAMPLE = ["ckpt=/c", "data.root=/d", "out_dir=/o"]
+
+
+@pytest.mark.parametrize("sweep, says", [
+    (["sampler.kind=ddim,nope"], "job #1 of the multirun (sampler.kind=nope): unknown sampler 'nope' (known: "),
+    (["sampler.eta=0,2"], "job #1 of the multirun (sampler.eta=2): sampler.eta=2.0: expected a number in [0, 1]"),
+    (["guidance.collision=1,abc"], "job #1 of the multirun (guidance.collision=abc): Error merging override "),
+    (["sampler.kind=ddim,ddpm", "sampler.eta=0,0.5"],  # only the product's last job (ddpm at eta 0.5) is refused
+     "job #3 of the multirun (sampler.kind=ddpm sampler.eta=0.5): sampler.eta=0.5: only the ddim sampler reads eta"),
+])
+def test_a_multirun_job_whose_settings_are_refused_is_named_by_its_number_before_any_job_runs(sweep, says):
+    problem = compose_problem("sample", ["-m", *SAMPLE, *sweep])
+    assert problem is not None and problem.startswith(says), problem
+
+
+def test_a_refused_multirun_job_stops_the_command_line_before_the_first_job_starts(tmp_path):
+    # job #0 alone would fail on the missing checkpoint, after Hydra made its folders: refused ahead, nothing made
+    line, proc = user_error("spread-sample", "-m", "ckpt=a.ckpt", "data.root=d", f"out_dir={tmp_path / 'o'}",
+                            "sampler.eta=0,2", cwd=tmp_path)
+    assert line.startswith("spread-sample: job #1 of the multirun (sampler.eta=2): sampler.eta=2.0: "), line
+    assert "Launching" not in proc.stdout + proc.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_a_multirun_is_expanded_into_the_jobs_hydras_basic_sweeper_runs_in_its_order():
+    from spread.cli.multirun import sweep_jobs
+
+    jobs = sweep_jobs("sample", ["-m", "+sweep=guidance_grid", "ckpt=/c", "data.root=/d", "guidance.relation=1e-3",
+                                 "seed=0,1"])  # the config's grid, one key fixed on the command line, one swept
+    assert len(jobs) == 3 * 3 * 1 * 2
+    assert jobs[0] == ["guidance.collision=0.0", "guidance.gravity=0.0", "guidance.relation=0.001",
+                       "+sweep=guidance_grid", "ckpt=/c", "data.root=/d", "seed=0"]
+    assert jobs[1][-1] == "seed=1" and jobs[2][:2] == ["guidance.collision=0.0", "guidance.gravity=0.001"]
+    assert compose_problem("sample", ["-m", "+sweep=guidance_grid", "ckpt=/c", "data.root=/d"]) is None  # README
+    # another sweeper chooses its jobs as it runs: left to it
+    assert sweep_jobs("sample", ["-m", *SAMPLE, "seed=0,1", "hydra.sweeper._target_=my.Sweeper"]) is None
+
+
+def test_a_grid_above_the_limit_is_checked_on_jobs_holding_every_swept_value_once():
+    from spread.cli.multirun import ALL_JOBS_LIMIT, covering_jobs
+
+    grid = [[f"a={a}", f"b={b}", f"c={c}"] for a in range(5) for b in range(5) for c in range(5)]
+    cover = covering_jobs(grid)
+    assert len(cover) == 1 + 4 * 3 and all(job in grid for job in cover)
+    assert {o for job in cover for o in job} == {o for job in grid for o in job}
+    assert len(grid) > ALL_JOBS_LIMIT  # a bad value anywhere in such a grid is still refused ahead:
+    problem = compose_problem("sample", ["-m", *SAMPLE, "seed=0,1,2,3,4", "sampler.steps=1,2,3,4,5",
+                                         "guidance.collision=0,1,2,3,abc"])
+    assert problem.startswith("job #4 of the multirun (seed=0 sampler.steps=1 guidance.collision=abc): "), problem
 
 
 TRAINER = {"_target_": "lightning.pytorch.Trainer"}

@@ -19,43 +19,7 @@ import os
 import sys
 from pathlib import Path
 
-
-def verbose() -> bool:
-    return any(os.environ.get(v, "") not in ("", "0") for v in ("HYDRA_FULL_ERROR", "SPREAD_DEBUG"))
-
-
-def user_error_types() -> tuple[type[BaseException], ...]:
-    """Exceptions that report a bad setting or input (not a bug): their message is the whole story."""
-    from hydra.errors import ConfigCompositionException, OverrideParseException
-
-    from omegaconf.errors import MissingMandatoryValue
-
-    from spread.io import RunFolderBusy, UnsafeOutputError
-
-    # Hydra's: an override that names no key of the config or does not parse (a command that composes configs
-    # itself, as spread-sweep and spread-ablate do for their points and stages); OmegaConf's: a required setting
-    # (``???``) read while unset (a multirun, which is not composed before Hydra runs). A ``???`` read through an
-    # interpolation is a ValueError already (InterpolationToMissingValueError).
-    return (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-            RunFolderBusy, UnsafeOutputError, ConfigCompositionException, OverrideParseException,
-            MissingMandatoryValue)
-
-
-def user_error(exc: BaseException) -> BaseException | None:
-    """The user error ``exc`` reports (:func:`user_error_types`), or None: ``exc`` itself, or the error a setting's
-    constructor raised inside Hydra's ``instantiate`` (which wraps it, naming the target, in an
-    ``InstantiationException`` whose cause it is)."""
-    if isinstance(exc, user_error_types()):
-        return exc
-    try:
-        from hydra.errors import InstantiationException
-    except ImportError:  # pragma: no cover — Hydra is a dependency of every console script
-        return None
-    while isinstance(exc, InstantiationException) and exc.__cause__ is not None:  # nested instantiates too
-        exc = exc.__cause__
-        if isinstance(exc, user_error_types()):
-            return exc
-    return None
+from spread.cli.user_errors import user_error, user_error_types, verbose  # noqa: F401 — this module's names too
 
 
 def one_line(name: str):
@@ -139,9 +103,15 @@ def compose_problem(config: str, args: list[str], name: str = "") -> str | None:
 
 
 def composed_ahead(config: str, args: list[str], name: str = ""):
-    """(:func:`compose_problem`'s answer, the composed config or None where none was composed)."""
-    if any(a.startswith("-") for a in args) or any(a.lstrip("+~").startswith(("hydra.searchpath", "hydra.mode"))
-                                                      for a in args):  # a multirun, or other config sources
+    """(:func:`compose_problem`'s answer, the composed config or None where none was composed). A multirun
+    (``-m``) is checked job by job (:func:`spread.cli.multirun.multirun_problem`); nothing composed is returned."""
+    if any(a.lstrip("+~").startswith(("hydra.searchpath", "hydra.mode")) for a in args):  # other config sources
+        return None, None
+    from spread.cli.multirun import is_multirun, multirun_problem
+
+    if is_multirun(args):
+        return multirun_problem(config, args, name, composed_ahead), None
+    if any(a.startswith("-") for a in args):  # Hydra's other flags (--cfg, --help, …)
         return None, None
     overrides = [a for a in args if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     from hydra.errors import HydraException

@@ -208,11 +208,14 @@ def test_a_packages_names_load_on_first_access_and_settings_load_without_the_hea
     ("evaluate", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
     ("ablate", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
     ("compare", ["nosuchkey=1"], "Could not override 'nosuchkey'"),
+    ("train", ["experiment=quick", "data.root=nodata"], "data.root=nodata: no scene files in nodata/train"),
+    ("train_ray", ["experiment=quick", "data.root=nodata"], "data.root=nodata: no scene files in nodata/train"),
 ])
 def test_a_command_refuses_a_bad_setting_before_torch_loads(tmp_path, command, args, refusal):
     """The settings a command composes and checks (its schema, the sampler, the evaluation config) are torch-free
-    (:mod:`spread.model.sampler`), so a refused setting is refused in well under a second instead of after
-    torch's ~3–10 s import; the refusal names the setting, exits 1 and writes nothing."""
+    (:mod:`spread.model.sampler`), and a training command asks its data folder for scenes without torch
+    (:mod:`spread.data.splits`), so a refused setting is refused in well under a second instead of after torch's
+    ~3–10 s import; the refusal names the setting, exits 1 and writes nothing."""
     code = (f"import sys; sys.argv = ['spread-{command}', *{args!r}]\n"
             f"from spread.cli.{command} import main\n"
             "try:\n    main()\nexcept SystemExit as e:  # sys.exit(message): exit status 1, the message on stderr\n"

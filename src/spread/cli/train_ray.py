@@ -16,6 +16,9 @@ register()
 
 @console_main("spread-train-ray", config="train")  # its command line checked after main() rewrote it
 def _main(cfg: DictConfig) -> None:
+    from spread.data.splits import check_fit_config
+
+    check_fit_config(cfg)  # data without scenes: refused before torch, Lightning and Ray load
     from spread.commands.common import record_config
     from spread.io import run_lock
     from spread.training.fit import check_start, run_folder

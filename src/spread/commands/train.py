@@ -12,10 +12,15 @@ from spread.commands.common import record_config
 def train(cfg: DictConfig, run_dir: Path | None = None, overrides: list[str] | None = None) -> dict:
     """``spread-train``: fit into ``run_dir`` (default: Hydra's output folder, else ``cfg.out_dir``). The launching
     process holds the folder's run lock (:func:`spread.io.run_lock`; the other ranks of DDP, torchrun, SLURM or MPI,
-    which have a non-zero rank variable, do not take it), so a second training run into the same folder is refused."""
+    which have a non-zero rank variable, do not take it), so a second training run into the same folder is refused.
+    Data without scenes to train on is refused before torch and Lightning load
+    (:func:`spread.data.splits.check_fit_config`)."""
     import contextlib
     import os
 
+    from spread.data.splits import check_fit_config
+
+    check_fit_config(cfg)
     from spread.io import run_lock
     from spread.training.fit import run_folder
     from spread.training.fit import train as fit

@@ -1,20 +1,17 @@
 """Data: scene files → tensors (normalised poses, graphs, per-asset points), padding, Lightning module.
 
-``SceneDataModule`` is imported on first access so that ``import spread.data`` does not pay for
-Lightning (and never imports pybullet, ray or wandb).
+The public names are imported on first access (:mod:`spread.lazy`), so that ``import spread.data.splits`` (a
+training command's check of its data folder) does not pay for torch, and ``import spread.data`` not for Lightning
+(it never imports pybullet, ray or wandb).
 """
-from spread.data.collate import INDEX_PAD, PHYSICAL_PAD, SPATIAL_PAD, collate_scenes  # noqa: F401
-from spread.data.dataset import SceneDataset  # noqa: F401
-from spread.data.points import DEFAULT_NUM_POINTS, asset_points, point_indices  # noqa: F401
-from spread.data.rotation import matrix_to_rot6d, rot6d_to_matrix  # noqa: F401
-from spread.data.stats import (  # noqa: F401
-    StatsError, compute_stats, denormalize_translation, load_stats, normalize_translation, save_stats,
-)
+from spread.lazy import lazy_names
 
-
-def __getattr__(name: str):
-    if name == "SceneDataModule":
-        from spread.data.datamodule import SceneDataModule
-
-        return SceneDataModule
-    raise AttributeError(f"module 'spread.data' has no attribute '{name}'")
+__getattr__, __dir__ = lazy_names(__name__, {
+    "spread.data.collate": ("INDEX_PAD", "PHYSICAL_PAD", "SPATIAL_PAD", "collate_scenes"),
+    "spread.data.dataset": ("SceneDataset",),
+    "spread.data.points": ("DEFAULT_NUM_POINTS", "asset_points", "point_indices"),
+    "spread.data.rotation": ("matrix_to_rot6d", "rot6d_to_matrix"),
+    "spread.data.stats": ("StatsError", "compute_stats", "denormalize_translation", "load_stats",
+                          "normalize_translation", "save_stats"),
+    "spread.data.datamodule": ("SceneDataModule",),
+})

@@ -26,6 +26,7 @@ from torch.utils.data import DataLoader
 from spread.data.collate import collate_scenes
 from spread.data.dataset import SceneDataset, check_max_objects
 from spread.data.points import DEFAULT_NUM_POINTS
+from spread.data.splits import fit_problem, runs_validation, split_files
 from spread.data.stats import load_stats
 
 SPLITS = ("train", "val", "test")
@@ -91,14 +92,6 @@ def ray_cpus() -> float | None:
         return context.get_assigned_resources().get("CPU")
     except Exception:  # noqa: BLE001 — an older or newer Ray without these: the process's own CPUs
         return None
-
-
-def runs_validation(limit_val_batches) -> bool:
-    """Whether a Lightning trainer with this ``limit_val_batches`` (its default 1.0) validates: unless it is 0;
-    ``check_val_every_n_epoch: null`` still validates, every ``val_check_interval`` batches across epochs. The one
-    rule asked of a trainer (:meth:`SceneDataModule.validates`) and of a trainer's config before it exists
-    (:func:`spread.training.fit.trainer_validates`)."""
-    return limit_val_batches != 0
 
 
 class SceneDataModule(L.LightningDataModule):
@@ -194,22 +187,16 @@ class SceneDataModule(L.LightningDataModule):
         would crash at its first validation, with no checkpoint, is refused up front). ``validates``: whether the
         trainer will (None: ask :meth:`validates`; ``spread-train`` asks its trainer config before any logger
         starts, :func:`spread.training.fit.trainer_validates`)."""
-        if not self.scene_files("train"):
-            raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'train'} to train on")
-        if (self.validates() if validates is None else validates) and not self.scene_files("val"):
-            raise ValueError(f"data.root={self.root}: no scene files in {self.root / 'val'}, and the trainer "
-                             f"validates (trainer.limit_val_batches is not 0); give a dataset with a val split "
-                             f"(spread-generate writes one from 10 rooms on) or set trainer.limit_val_batches=0")
+        problem = fit_problem(self.root, self.validates() if validates is None else validates)
+        if problem:
+            raise ValueError(problem)
 
     def skipped_files(self) -> dict[str, list[dict]]:
         """split → the scene files its dataset skipped (file, error), for the splits built so far."""
         return {split: ds.skipped for split, ds in self._datasets.items() if ds.skipped}
 
     def scene_files(self, split: str) -> list:
-        from spread.scene import list_scene_files
-
-        folder = self.root / split
-        return list_scene_files(folder) if folder.is_dir() else []
+        return split_files(self.root, split)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         generator = torch.Generator().manual_seed(self.seed) if shuffle else None

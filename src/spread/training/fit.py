@@ -328,8 +328,8 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
 
 def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
     """Whether a trainer of this config (``cfg.trainer``, ``overrides`` winning) runs validation, asked before the
-    trainer exists (:func:`spread.data.datamodule.runs_validation`, Lightning's default ``limit_val_batches`` 1.0)."""
-    from spread.data.datamodule import runs_validation
+    trainer exists (:func:`spread.data.splits.runs_validation`, Lightning's default ``limit_val_batches`` 1.0)."""
+    from spread.data.splits import runs_validation
 
     values = {**dict(trainer_cfg or {}), **dict(overrides or {})}
     return runs_validation(values.get("limit_val_batches", 1.0))

@@ -211,6 +211,37 @@ def test_a_reexport_removes_the_outputs_it_no_longer_writes_and_nothing_else(dat
     assert (scenes / "a.npz").exists() and sorted(os.listdir(out)) == ["a.glb", "a.xml", "export.json", "mine.txt"]
 
 
+def test_an_export_never_replaces_what_out_dir_held_that_no_export_there_wrote(data, tmp_path):
+    import copy
+
+    root, _, scene = data
+    scenes, out = tmp_path / "scenes", tmp_path / "out"
+    for name in ("assets", "notes"):  # ids whose outputs take the names of a user's folder and file
+        one = copy.deepcopy(scene)
+        one.scene_id = name
+        write_scene(one, scenes / f"{name}.npz")
+    (out / "assets").mkdir(parents=True)
+    (out / "assets" / "mesh.obj").write_text("a user's mesh")
+    (out / "notes").write_text("a user's notes")
+    report = export_folder(scenes, root / "assets", out, "urdf")  # a folder per scene, named by its id
+    assert (out / "assets" / "mesh.obj").read_text() == "a user's mesh"  # untouched (was moved aside and deleted)
+    assert (out / "notes").read_text() == "a user's notes"
+    assert sorted(report.written) == ["assets__assets", "notes__notes"]
+    assert sorted(Path(k).name for k in report.duplicates) == ["assets.npz", "notes.npz"]
+    assert all("no export there wrote" in why for why in report.duplicates.values())
+    again = export_folder(scenes, root / "assets", out, "urdf")  # its own earlier outputs are replaced, as before
+    assert sorted(again.written) == ["assets__assets", "notes__notes"] and again.duplicates == report.duplicates
+    assert sorted(os.listdir(out)) == ["assets", "assets__assets", "export.json", "notes", "notes__notes"]
+    assert (out / "assets" / "mesh.obj").exists() and (out / "notes").read_text() == "a user's notes"
+
+
+def test_export_command_refuses_an_out_dir_holding_a_dataset_or_a_run(data, tmp_path):
+    root, _, _ = data
+    proc = export_command(f"scenes={root / 'test'}", "format=mjcf", f"out_dir={root}", "progress=false")
+    assert proc.returncode == 1 and f"out_dir={root}: holds a dataset" in proc.stderr, proc.stderr[-2000:]
+    assert sorted(os.listdir(root)) == ["assets", "test"]  # nothing written beside the dataset
+
+
 def test_a_sampling_runs_scenes_export_with_the_asset_library_of_the_dataset_they_were_sampled_from(data, tmp_path):
     from spread.export import assets_of
 

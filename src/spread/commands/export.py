@@ -24,6 +24,9 @@ def export(cfg: DictConfig):
         assets = assets_of(command.scenes, command.assets)
     except FileNotFoundError as exc:
         raise SystemExit(f"spread-export: {exc}") from exc
+    from spread.io import check_folder_kind
+
+    check_folder_kind(command.out_dir, "spread-export", {"export"})  # a dataset's or a run's folder: refused whole
     record_config(cfg, command.out_dir)()
     return export_folder(command.scenes, assets, command.out_dir, command.format, floor=command.floor,
                          progress=command.progress)

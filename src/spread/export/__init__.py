@@ -171,8 +171,9 @@ def _umask() -> int:
 @dataclass
 class ExportReport:
     """What :func:`export_folder` did: files written (by scene id) and scenes that failed (id → error). A scene
-    whose id another file of the folder already has is exported as ``<id>__<its file stem>`` and listed in
-    ``duplicates`` (no output overwrites another)."""
+    whose id another file of the folder already has, or whose output would replace something ``out_dir`` held that no
+    export there wrote, is exported as ``<id>__<its file stem>`` and listed in ``duplicates`` (no output overwrites
+    another, or what is not an export's)."""
 
     format: str
     out_dir: str
@@ -188,36 +189,47 @@ class ExportReport:
                 "duplicates": self.duplicates, "removed_stale": self.removed_stale}
 
 
-def remove_stale_exports(out_dir, written: dict[str, str]) -> list[str]:
-    """Remove the outputs the folder's previous ``export.json`` lists that this export did not write (a scene
-    removed, renamed or failing now, another format): the folder then holds what its ``export.json`` lists. Only a
-    direct child of ``out_dir`` named as the export names its scene's output (:func:`export_path`), and not one of
-    :data:`OWN_FILES`, is removed, whatever the old report says; returns the names removed."""
-    import shutil
-
+def earlier_outputs(out_dir) -> dict[str, str]:
+    """The outputs the folder's previous ``export.json`` lists (output name → its scene id): only a direct child of
+    ``out_dir`` named as the export names its scene's output (:func:`export_path`) and not one of :data:`OWN_FILES`,
+    whatever the old report says; none without a readable report."""
     from spread.io import read_json
 
     out = Path(out_dir).resolve()
     try:
         before = read_json(out / "export.json")
     except (OSError, ValueError):
-        return []
+        return {}
     listed = before.get("written") if isinstance(before, dict) else None
     fmt = before.get("format") if isinstance(before, dict) else None
     if not isinstance(listed, dict) or fmt not in FORMATS:
-        return []
+        return {}
+    outputs = {}
+    for scene_id, old in listed.items():
+        name = Path(str(old)).name
+        if Path(str(old)).parent == out and name == export_path(out, str(scene_id), fmt).name and name not in OWN_FILES:
+            outputs[name] = str(scene_id)
+    return outputs
+
+
+def remove_stale_exports(out_dir, written: dict[str, str]) -> list[str]:
+    """Remove the outputs the folder's previous ``export.json`` lists that this export did not write (a scene
+    removed, renamed or failing now, another format): the folder then holds what its ``export.json`` lists. Only
+    what :func:`earlier_outputs` names is removed; returns the names removed."""
+    import shutil
+
+    out = Path(out_dir).resolve()
     kept = {Path(p).name for p in written.values()}
     removed = []
-    for scene_id, old in listed.items():
-        path = out / Path(str(old)).name
-        if (Path(str(old)).parent != out or path.name != export_path(out, str(scene_id), fmt).name
-                or path.name in kept or path.name in OWN_FILES or not path.exists()):  # an export's output only
+    for name in earlier_outputs(out):
+        path = out / name
+        if name in kept or not os.path.lexists(path):
             continue
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
         else:
             path.unlink()
-        removed.append(path.name)
+        removed.append(name)
     return sorted(removed)
 
 
@@ -225,20 +237,26 @@ def remove_stale_exports(out_dir, written: dict[str, str]) -> list[str]:
 OWN_FILES = ("export.json", "export.log")
 
 
-def output_clash(scene_id: str, taken: dict[str, str], out_dir, fmt: str) -> str | None:
-    """Why ``scene_id``'s output cannot be written as named — its output name is one of :data:`OWN_FILES`, or in
-    ``taken`` (output name → the scene file written under it by this export) — or None."""
-    name = export_path(out_dir, scene_id, fmt).name
-    if name in OWN_FILES:
-        return f"names the export's own {name}"
-    return f"gives the output name of {taken[name]}" if name in taken else None
+def output_clash(scene_id: str, taken: dict[str, str], out_dir, fmt: str, earlier: dict | None = None) -> str | None:
+    """Why ``scene_id``'s output cannot be written as named — its output name is one of :data:`OWN_FILES`, in
+    ``taken`` (output name → the scene file written under it by this export), or (given ``earlier``, the outputs of
+    the folder's earlier exports: :func:`earlier_outputs`) a file or folder ``out_dir`` holds that no earlier export
+    there wrote (a dataset's ``assets/``, a user's file: never replaced) — or None."""
+    path = export_path(out_dir, scene_id, fmt)
+    if path.name in OWN_FILES:
+        return f"names the export's own {path.name}"
+    if path.name in taken:
+        return f"gives the output name of {taken[path.name]}"
+    if earlier is not None and path.name not in earlier and os.path.lexists(path):
+        return f"gives the output name of {path.name}, which out_dir held before and no export there wrote"
+    return None
 
 
-def free_id(wanted: str, taken: dict[str, str], out_dir, fmt: str) -> str:
+def free_id(wanted: str, taken: dict[str, str], out_dir, fmt: str, earlier: dict | None = None) -> str:
     """``wanted``, or ``wanted_2``, ``wanted_3``, ...: the first id whose output clashes with nothing
     (:func:`output_clash`)."""
     candidate, n = wanted, 1
-    while output_clash(candidate, taken, out_dir, fmt):
+    while output_clash(candidate, taken, out_dir, fmt, earlier):
         n += 1
         candidate = f"{wanted}_{n}"
     return candidate
@@ -267,12 +285,13 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
 
         iterator = tqdm(files, desc=f"export {fmt}", unit="scene")
     taken: dict[str, str] = {}  # output name → the scene file written under it (renamed ids included)
+    earlier = earlier_outputs(out_dir)  # what this command may replace: its own earlier outputs only
     for path in iterator:
         try:
             scene = read_scene(path, assets=library)
-            clash = output_clash(str(scene.scene_id), taken, out_dir, fmt)
-            if clash:  # outputs are named by id: this one would overwrite another output or the report
-                renamed = free_id(f"{scene.scene_id}__{path.stem}", taken, out_dir, fmt)
+            clash = output_clash(str(scene.scene_id), taken, out_dir, fmt, earlier)
+            if clash:  # outputs are named by id: this one would overwrite another output, the report or a stranger
+                renamed = free_id(f"{scene.scene_id}__{path.stem}", taken, out_dir, fmt, earlier)
                 report.duplicates[str(path)] = f"scene id '{scene.scene_id}' {clash}; exported as '{renamed}'"
                 scene.scene_id = renamed
             written = export_scene(scene, library, out_dir, fmt, floor=floor)

@@ -439,6 +439,43 @@ def test_a_multi_hot_class_row_fails_its_room_only_and_the_other_rooms_import(tm
     assert manifest["errors"]["rooms"][0]["tag"] == broken.name
 
 
+def test_a_non_finite_class_row_fails_its_room_naming_the_object(tmp_path):
+    """NaN is not > 0, so the one-hot checks passed it and argmax read the NaN column as the object's class."""
+    src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
+    broken = sorted(p for p in src.iterdir() if p.is_dir())[-1]
+    arrays = dict(np.load(broken / "boxes.npz"))
+    labels = arrays["class_labels"].copy()
+    labels[1, 0] = np.nan
+    np.savez(broken / "boxes.npz", **{**arrays, "class_labels": labels})
+    manifest = import_dataset(ImportConfig("threed_front", str(src), str(tmp_path / "out"), splits=str(splits),
+                                           room_type="bedroom", **FAST))
+    (err,) = manifest["errors"]["rooms"]
+    assert err["tag"] == broken.name and err["key"] == "class_labels" and sum(manifest["counts"].values()) == 3
+    assert "object 1 has a non-finite value (nan); expected one-hot rows" in err["error"], err
+
+
+def test_a_room_that_labels_a_shared_model_otherwise_fails_alone_and_the_rooms_that_agree_keep_their_files(tmp_path):
+    """The first room in order used to win an asset id asked with other inputs: one mislabelled object in it failed
+    every other room using that model and removed their scene files from an earlier import."""
+    src, splits = realdata.threed_front_layout(tmp_path / "src", tmp_path / "models")
+    out = tmp_path / "out"
+    config = ImportConfig("threed_front", str(src), str(out), splits=str(splits), room_type="bedroom",
+                          future_models=str(tmp_path / "models"), **FAST)
+    assert import_dataset(config)["failed_rooms"] == 0
+    before = sorted(p.name for p in out.glob("*/*.npz"))
+    first = sorted(p for p in src.iterdir() if p.is_dir())[0]  # the room that sorts first
+    arrays = dict(np.load(first / "boxes.npz"))
+    labels = arrays["class_labels"].copy()
+    labels[1] = labels[2]  # the mug labelled as the cube's class: the same model asked with another category
+    np.savez(first / "boxes.npz", **{**arrays, "class_labels": labels})
+    manifest = import_dataset(config)
+    (err,) = manifest["errors"]["rooms"]
+    assert err["tag"] == first.name and manifest["failed_rooms"] == 1, manifest["errors"]
+    assert "is asked for with other inputs (category: " in err["error"] and "than by 3 other rooms" in err["error"]
+    after = sorted(p.name for p in out.glob("*/*.npz"))
+    assert len(after) == 3 and set(after) < set(before)  # the three that agree kept theirs; the odd one's is gone
+
+
 def test_spread_import_of_no_room_at_all_exits_non_zero_after_its_summary(tmp_path):
     src = realdata.release_layout(tmp_path / "src")
     (src / "meshes" / "Mug_3_unpacked.glb").write_bytes(b"glTF but not really")  # every room has a mug

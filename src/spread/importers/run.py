@@ -347,6 +347,38 @@ def check_some_room_imported(room_list, failed: set[str], first: dict | None, ea
                      f"{out / 'import' / 'rooms.jsonl'}")
 
 
+def settle_asset_requests(rooms: list[RoomRef], scans: dict[str, dict]) -> dict[str, AssetRequest]:
+    """The one request each asset id is built from (``scans``: tag → a room's scan, its ``requests``). Rooms asking
+    one id with other inputs (a category or size a mislabelled row gives another room's model) are outvoted: the
+    inputs most rooms ask for win (the first room's on a tie) and each room asking otherwise fails, named, its scan
+    replaced by the error — the odd room out, never the rooms that agree (the first room in order won before)."""
+    asked: dict[str, dict[AssetRequest, list[str]]] = {}  # asset id → its requests → the rooms asking, in order
+    for ref in rooms:
+        for req in scans[ref.tag]["requests"] or []:
+            tags = asked.setdefault(req.asset_id, {}).setdefault(req, [])
+            if ref.tag not in tags:
+                tags.append(ref.tag)
+    folders = {ref.tag: ref.folder for ref in rooms}
+    wanted: dict[str, AssetRequest] = {}
+    for asset_id, variants in asked.items():
+        best, agree = max(variants.items(), key=lambda item: len(item[1]))  # the first of the most-asked on a tie
+        wanted[asset_id] = best
+        for req, tags in variants.items():
+            if req == best:
+                continue
+            differs = [f for f in ("category", "kind", "path", "size") if getattr(req, f) != getattr(best, f)]
+            for tag in tags:
+                if scans[tag]["requests"] is None:
+                    continue  # failed already (another asset outvoted it)
+                scans[tag] = {"tag": tag, "requests": None, "error": {
+                    "tag": tag, "file": folders[tag], "key": None,
+                    "error": f"asset id '{asset_id}' is asked for with other inputs ({', '.join(differs)}: "
+                             f"{', '.join(repr(getattr(req, f)) for f in differs)}) than by {len(agree)} other "
+                             f"room{'s' if len(agree) > 1 else ''} ({agree[0]}: "
+                             f"{', '.join(repr(getattr(best, f)) for f in differs)}); a mislabelled object?"}}
+    return wanted
+
+
 def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
     from spread.assets import AssetLibrary, AssetRecord
 
@@ -367,14 +399,7 @@ def _import_dataset(cfg: ImportConfig, source, room_list) -> dict:
     try:
         scans = {r["tag"]: r for r in _map(pool, _scan_job, room_list.rooms, "rooms scanned", cfg.progress)}
         t_scan = time.perf_counter() - t0
-        wanted: dict[str, AssetRequest] = {}
-        for ref in room_list.rooms:
-            for req in scans[ref.tag]["requests"] or []:
-                prev = wanted.setdefault(req.asset_id, req)
-                if prev != req:
-                    scans[ref.tag] = {"tag": ref.tag, "requests": None, "error": {
-                        "tag": ref.tag, "file": ref.folder, "key": None,
-                        "error": f"asset id '{req.asset_id}' is asked for with other inputs by another room"}}
+        wanted = settle_asset_requests(room_list.rooms, scans)
         t1 = time.perf_counter()
         asset_results = _map(pool, _asset_job, sorted(wanted.values(), key=lambda r: r.asset_id),
                              "assets imported", cfg.progress)

@@ -269,6 +269,12 @@ class ThreedFront(Source):
                                                          f"{len(self.class_labels)} class_labels and "
                                                          f"{len(self.object_types)} object_types"
                                                          + (f" ({columns['error']})" if columns["error"] else ""))
+        finite = np.isfinite(labels).all(1) if labels.dtype.kind in "fc" else np.ones(len(labels), bool)
+        if not finite.all():  # NaN is not > 0 and argmax picks it: the row was read as another class
+            k = int(np.argwhere(~finite)[0][0])
+            raise SceneFormatError(file, "class_labels", f"object {k} has a non-finite value "
+                                                         f"({labels[k][~np.isfinite(labels[k])][0]}); expected one-hot "
+                                                         f"rows")
         hot = (labels > 0).sum(1)
         if (hot > 1).any():  # a multi-hot row would be read as its first class, and its assets as another room's
             k = int(np.argwhere(hot > 1)[0][0])

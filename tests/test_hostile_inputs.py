@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from spread.io import InputFileError, check_input_file, file_sha256
-from spread.scene import ImplausibleSceneError, SceneFormatError, list_scene_files, read_scene, write_scene
+from spread.scene import (ImplausibleSceneError, SceneFormatError, list_scene_files, load_npz_arrays, read_scene,
+                          write_scene)
 
 from helpers import FAST_TRAIN, SMALL_MODEL, make_dataset, train_in_process
 
@@ -104,6 +105,29 @@ def test_a_dev_zero_link_a_fifo_and_an_oversized_file_are_refused_by_name_within
     inside = tmp_path / "inside.npz"
     inside.symlink_to(big)  # a link that stays in its folder is followed
     assert check_input_file(inside, root=tmp_path) == inside
+
+
+def test_a_compressed_npz_that_unpacks_past_the_input_limit_is_refused_before_it_is_unpacked(dataset, tmp_path,
+                                                                                              monkeypatch):
+    """np.savez_compressed packs zeros a thousandfold: a 2.9 MB file read its 3 GB in full (only the file on disk was
+    limited). The limit now holds for the arrays as the archive's headers give their sizes, in every reader of .npz
+    (scenes: sampling, training, evaluation, export, the viewer; the importers' rooms)."""
+    from spread.safe_load import UnsafeFileError, load_npz
+
+    arrays = load_npz_arrays(list_scene_files(dataset / "test")[0])
+    bomb = tmp_path / "bomb.npz"
+    np.savez_compressed(bomb, **arrays, junk=np.zeros(5 << 20, np.uint8))  # 5 MB unpacked, ~5 kB packed
+    assert bomb.stat().st_size < 1 << 20
+    monkeypatch.setenv("SPREAD_MAX_INPUT_MB", "2")
+    with pytest.raises(UnsafeFileError, match=r"bomb.npz: its arrays unpack to 5\.\d MB \(key 'junk': 5\.0 MB\), over "
+                                              r"the 2 MB limit.*SPREAD_MAX_INPUT_MB"):
+        load_npz(bomb)
+    with pytest.raises(SceneFormatError, match=r"bomb.npz.*key 'junk': 5\.0 MB\), over the 2 MB limit"):
+        read_scene(bomb)
+    with pytest.raises(SceneFormatError, match=r"bomb.npz.*over the 2 MB limit"):
+        load_npz_arrays(bomb)
+    monkeypatch.setenv("SPREAD_MAX_INPUT_MB", "8")  # under a limit that allows it, it reads as before
+    assert read_scene(bomb).num_objects == read_scene(list_scene_files(dataset / "test")[0]).num_objects
 
 
 def test_a_zip_that_is_not_an_npz_is_refused_naming_the_file(tmp_path):

@@ -38,7 +38,32 @@ def load_npz(path: str | os.PathLike):
     if not hasattr(data, "files"):
         data.close() if hasattr(data, "close") else None
         raise UnsafeFileError(f"{path}: not an .npz archive of arrays")
+    problem = unpacked_size_problem(data, path)
+    if problem:
+        data.close()
+        raise UnsafeFileError(problem)
     return _GuardedNpz(data, path)
+
+
+def unpacked_size_problem(data, path: Path) -> str | None:
+    """Why an opened ``.npz`` (``np.load``'s ``NpzFile``) is refused for its arrays' size once unpacked, or None: the
+    limit on an input file (:func:`spread.io.max_input_bytes`) holds for the arrays as read, not only for the file
+    on disk — ``np.savez_compressed`` packs 3 GB of zeros into 3 MB, which reading would unpack (a zip member's size
+    as its header gives it; a member that unpacks past its header's size is cut there by ``zipfile``)."""
+    from spread.io import MAX_INPUT_ENV, max_input_bytes
+
+    limit = max_input_bytes()
+    members = getattr(getattr(data, "zip", None), "infolist", None)
+    if not limit or members is None:
+        return None
+    sizes = {info.filename.removesuffix(".npy"): int(info.file_size) for info in members()}
+    total = sum(sizes.values())
+    if total <= limit:
+        return None
+    key, largest = max(sizes.items(), key=lambda item: item[1])
+    return (f"{path}: its arrays unpack to {total / 2 ** 20:.1f} MB (key '{key}': {largest / 2 ** 20:.1f} MB), over "
+            f"the {limit / 2 ** 20:.0f} MB limit for one input file; set {MAX_INPUT_ENV}=<megabytes> to raise it "
+            f"(0: no limit)")
 
 
 class _GuardedNpz:

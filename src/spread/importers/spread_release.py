@@ -184,7 +184,7 @@ class SpreadRelease(Source):
 def read_dataset_stats(path: Path) -> dict | None:
     """The source's ``dataset_stats.txt`` (JSON) or None when absent; errors name the file and, for a value an
     import would use, the key: ``class_labels`` / ``object_types`` lists of names, ``bounds_translations`` six
-    finite numbers [min xyz, max xyz] (metres) with min ≤ max."""
+    finite numbers [min xyz, max xyz] (metres) with min < max (the dataset's stats.json takes them as written)."""
     import math
 
     if not path.is_file():
@@ -198,9 +198,9 @@ def read_dataset_stats(path: Path) -> dict | None:
     if bounds is not None:
         numbers = isinstance(bounds, list) and len(bounds) == 6 and all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in bounds)
-        if not numbers or any(bounds[i] > bounds[i + 3] for i in range(3)):
+        if not numbers or any(bounds[i] >= bounds[i + 3] for i in range(3)):
             raise ValueError(f"{path}: key 'bounds_translations': expected six finite numbers [min x, min y, min z, "
-                             f"max x, max y, max z] with min ≤ max, got {str(bounds)[:120]}")
+                             f"max x, max y, max z] with min < max on each axis, got {str(bounds)[:120]}")
     return stats
 
 

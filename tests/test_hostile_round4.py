@@ -487,6 +487,11 @@ def test_spread_release_ckpt_refuses_non_finite_and_malformed_weights_in_one_lin
         "int_shadow": ((model, {"shadow_params": 7}), [], "'ema_states.shadow_params' holds int", "a list of tensors"),
         "int_tensor": (({k: v.to(torch.int64) for k, v in model.items()}, None), ["use_ema=false"],
                        f"weight '{keys[0]}' is torch.int64", "floating point"),
+        # a sparse weight ended in a 105-line NotImplementedError from torch.isfinite (review, stop 72)
+        "sparse_ema": ((model, {"shadow_params": [shadow[0].to_sparse(), *shadow[1:]]}), [],
+                       f"weight '{keys[0]}' is a sparse_coo tensor", "expected a dense one"),
+        "sparse_raw": (({k: (v.to_sparse() if i == 2 else v) for i, (k, v) in enumerate(model.items())}, None),
+                       ["use_ema=false"], f"weight '{keys[2]}' is a sparse_coo tensor", "expected a dense one"),
     }
     from spread.cli.release_ckpt import main
 

@@ -234,6 +234,9 @@ def check_release_weights(path: str, use_ema: bool = True) -> int:
                                              f"not a tensor")
     weights = release_state_dict(ckpt, str(path), use_ema)
     for name, tensor in weights.items():
+        if tensor.layout != torch.strided:  # a sparse or otherwise laid-out tensor: torch's ops on it raise deep down
+            raise ReleaseCheckpointError(f"{path}: weight '{name}' is a {str(tensor.layout).removeprefix('torch.')} "
+                                         f"tensor, expected a dense one")
         if not tensor.is_floating_point():
             raise ReleaseCheckpointError(f"{path}: weight '{name}' is {tensor.dtype}, expected floating point")
         bad = int((~torch.isfinite(tensor)).sum())

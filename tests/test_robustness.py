@@ -78,6 +78,20 @@ def test_a_truncated_checkpoint_gets_an_error_naming_the_file(checkpoint, tmp_pa
         load_checkpoint(cut)
 
 
+def test_a_checkpoint_in_torchs_legacy_format_loads_mapped_or_not_and_a_legacy_payload_is_refused(tmp_path):
+    """A valid non-zip checkpoint (torch < 1.6, or ``_use_new_zipfile_serialization=False``) was refused as "truncated
+    or corrupt" wherever it was memory-mapped (mmap needs the zip format): it is read whole instead."""
+    legacy = tmp_path / "legacy.pth"
+    torch.save({"model": {"a": torch.arange(3.0)}}, legacy, _use_new_zipfile_serialization=False)
+    for mmap in (False, True):
+        assert torch.equal(load_checkpoint(legacy, mmap=mmap)["model"]["a"], torch.arange(3.0))
+    marker, evil = tmp_path / "pwned", tmp_path / "evil.pth"
+    torch.save({"model": {"a": Payload(marker)}}, evil, _use_new_zipfile_serialization=False)
+    with pytest.raises(UnsafeFileError, match="evil.pth.*pickled"):
+        load_checkpoint(evil, mmap=True)
+    assert not marker.exists()
+
+
 def test_an_object_array_in_an_npz_is_refused_and_runs_nothing(dataset, tmp_path):
     marker = tmp_path / "pwned"
     source = list_scene_files(dataset / "test")[0]

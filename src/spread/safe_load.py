@@ -104,7 +104,8 @@ class _GuardedNpz:
 
 def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = False) -> dict:
     """A checkpoint's dict, loaded with ``weights_only=True`` (module docstring); ``mmap`` reads tensors
-    lazily (cheap when only the hyperparameters are wanted)."""
+    lazily (cheap when only the hyperparameters are wanted; a file in torch's legacy, non-zip format is read whole,
+    as it cannot be mapped)."""
     import torch
 
     from spread.io import InputFileError, check_input_file
@@ -116,6 +117,10 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = Fa
         check_input_file(path, max_bytes=0)  # a regular file (checkpoints may be large: no size limit)
     except InputFileError as exc:
         raise UnsafeFileError(str(exc)) from None
+    if mmap:
+        import zipfile
+
+        mmap = zipfile.is_zipfile(path)  # torch's legacy format (before 1.6, or saved without the zip) maps nothing
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:

@@ -476,6 +476,39 @@ def test_a_room_that_labels_a_shared_model_otherwise_fails_alone_and_the_rooms_t
     assert len(after) == 3 and set(after) < set(before)  # the three that agree kept theirs; the odd one's is gone
 
 
+def test_an_importer_refuses_files_that_links_lead_outside_its_folders_and_follows_links_inside(tmp_path):
+    """A boxes.npz, a room folder or a mesh linked from outside src was imported: links count only inside the
+    input's folder (as scene folders already held)."""
+    import shutil
+
+    src = realdata.release_layout(tmp_path / "src")
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    rooms = sorted(p for p in src.iterdir() if p.is_dir() and p.name != "meshes")
+    shutil.move(rooms[0] / "boxes.npz", outside / "boxes.npz")
+    (rooms[0] / "boxes.npz").symlink_to(outside / "boxes.npz")
+    shutil.move(rooms[1] / "boxes.npz", src / "spare.npz")
+    (rooms[1] / "boxes.npz").symlink_to(src / "spare.npz")  # a link inside src is followed
+    manifest = import_dataset(ImportConfig("spread_release", str(src), str(tmp_path / "out"), **FAST))
+    (err,) = manifest["errors"]["rooms"]
+    assert err["file"] == str(rooms[0] / "boxes.npz") and "outside" in err["error"] and manifest["failed_rooms"] == 1
+    shutil.move(src / "meshes" / "Mug_3_unpacked.glb", outside / "mug.glb")  # every room has the mug
+    (src / "meshes" / "Mug_3_unpacked.glb").symlink_to(outside / "mug.glb")
+    manifest = import_dataset(ImportConfig("spread_release", str(src), str(tmp_path / "out2"), **FAST))
+    mug = [e for e in manifest["errors"]["rooms"] if e["file"] == str(src / "meshes" / "Mug_3_unpacked.glb")]
+    assert manifest["failed_rooms"] == 4 and len(mug) == 3  # the fourth: its boxes.npz, as above
+    assert all(f"leads to {outside / 'mug.glb'}, outside " in e["error"] for e in mug), mug
+
+    front, splits = realdata.threed_front_layout(tmp_path / "front", tmp_path / "models")
+    linked = sorted(p for p in front.iterdir() if p.is_dir())[0]
+    shutil.move(linked, outside / linked.name)
+    linked.symlink_to(outside / linked.name, target_is_directory=True)
+    manifest = import_dataset(ImportConfig("threed_front", str(front), str(tmp_path / "out3"), splits=str(splits),
+                                           room_type="bedroom", **FAST))
+    (err,) = manifest["errors"]["rooms"]
+    assert err["tag"] == linked.name and "outside" in err["error"], err
+
+
 def test_spread_import_of_no_room_at_all_exits_non_zero_after_its_summary(tmp_path):
     src = realdata.release_layout(tmp_path / "src")
     (src / "meshes" / "Mug_3_unpacked.glb").write_bytes(b"glTF but not really")  # every room has a mug

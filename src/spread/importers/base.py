@@ -124,6 +124,18 @@ def check_tag(tag: object, src: Path, file: str, key: str) -> str:
     return tag
 
 
+def within(path: Path, root: Path, file: str | None = None, key: str | None = None) -> Path:
+    """``path`` once it lies inside ``root`` with every symbolic link along it followed (a linked room folder, a
+    linked ``boxes.npz`` or mesh); else :class:`SceneFormatError` naming it (``file``/``key``: the room file and key
+    that named it, when another file did). Links count only inside the input's folder (docs/robustness.md)."""
+    real = Path(path).resolve()
+    if not real.is_relative_to(Path(root).resolve()):
+        named = f"{path} leads" if file else "leads"  # the error names its file first
+        raise SceneFormatError(file or str(path), key, f"{named} to {real}, outside {root} through a symbolic link; "
+                                                       f"refused (copy it into the folder instead of linking it)")
+    return Path(path)
+
+
 def error_record(tag: str | None, exc: BaseException, file: str | None = None) -> dict:
     """One failure as the manifest lists it: tag, file and key (when the error names them), message."""
     return {"tag": tag, "file": getattr(exc, "source", None) or getattr(exc, "path", None) or file,

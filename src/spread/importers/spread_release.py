@@ -41,7 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-from spread.importers.base import AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record
+from spread.importers.base import (AssetRequest, RoomList, RoomRef, Source, carve_val, check_tag, error_record,
+                                   within)
 from spread.io import read_json_object, safe_name
 from spread.importers.release_boxes import reference_scene
 from spread.scene import SceneFormatError, load_npz_arrays
@@ -121,7 +122,7 @@ class SpreadRelease(Source):
         path = Path(ref.folder) / "boxes.npz"
         if not path.is_file():
             raise SceneFormatError(str(path), None, f"tag '{ref.tag}' has no boxes.npz")
-        return str(path), load_npz_arrays(path)
+        return str(path), load_npz_arrays(within(path, self.src))
 
     def mesh_path(self, name: str) -> Path | None:
         for candidate in (f"{name}_unpacked.glb", f"{name}.glb"):
@@ -129,7 +130,7 @@ class SpreadRelease(Source):
                 return None
             p = self.src / "meshes" / candidate
             if p.is_file():
-                return p
+                return within(p, self.src)
         return None
 
     def _scene(self, ref: RoomRef):

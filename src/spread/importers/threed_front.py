@@ -43,7 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from spread.importers.base import SPLITS, AssetRequest, RoomList, RoomRef, Source, carve_val, error_record
+from spread.importers.base import (SPLITS, AssetRequest, RoomList, RoomRef, Source, carve_val, error_record,
+                                   within)
 from spread.io import check_input_file, read_json_object, read_text_checked, safe_name
 from spread.safe_load import load_npz
 from spread.scene import (
@@ -171,7 +172,7 @@ class ThreedFront(Source):
         if not path.is_file():
             raise SceneFormatError(str(path), None, f"room '{ref.tag}' has no boxes.npz")
         file = str(path)
-        arrays = load_npz_arrays(path)
+        arrays = load_npz_arrays(within(path, self.src))
         for key in ("class_labels", "translations", "sizes", "angles"):
             if key not in arrays:
                 raise SceneFormatError(file, key, "missing required key of the 3D-FRONT boxes.npz layout")
@@ -221,7 +222,7 @@ class ThreedFront(Source):
         used: set[int] = set()
         for ref in self.rooms().rooms:
             try:
-                with load_npz(Path(ref.folder) / "boxes.npz") as f:
+                with load_npz(within(Path(ref.folder) / "boxes.npz", self.src)) as f:
                     labels = np.asarray(f["class_labels"])
             except Exception:  # noqa: BLE001  (the room fails on its own, naming its file, when imported)
                 continue
@@ -306,6 +307,7 @@ class ThreedFront(Source):
             path = self.future_models / jid / "raw_model.obj"
             if not jid or "/" in jid or "\\" in jid or jid in (".", "..") or not path.is_file():
                 raise SceneFormatError(file, f"jids[{k}]", f"object '{jid}' has no mesh (looked for {path})")
+            within(path, self.future_models, file, f"jids[{k}]")
             requests.append(AssetRequest(safe_name(f"{jid}-{size_mm(ext)}"), cat, "mesh", str(path), size))
         return requests
 
@@ -315,7 +317,7 @@ class ThreedFront(Source):
         if not path.is_file():
             return None
         try:
-            rel = np.load(check_input_file(path), allow_pickle=False)
+            rel = np.load(check_input_file(within(path, self.src)), allow_pickle=False)
         except ValueError as exc:
             raise SceneFormatError(str(path), None, f"unreadable or an object array (refused): {exc}") from exc
         codes = np.full((n, n), -1, np.int64)

@@ -35,6 +35,11 @@ LINES = [
     ("ablate", ["nosuchkey=1"]),
     ("compare", ["nosuchkey=1"]),
     ("report", ["nosuchkey=1"]),
+    ("train", ["experiment=quick", "data.root=nodata"]),
+    # a multirun: refused ahead now (job #1's eta); before, job #0 ran and failed on the checkpoint that is not there
+    ("sample", ["-m", "ckpt=a.ckpt", "data.root=d", "out_dir=o", "sampler.eta=0,2"]),
+    # the 27-job grid, every job fine: both sides fail in job #0 on the missing checkpoint (the check's own cost)
+    ("sample", ["-m", "+sweep=guidance_grid", "ckpt=a.ckpt", "data.root=d"]),
 ]
 
 PROBE = """import sys, atexit

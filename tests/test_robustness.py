@@ -90,6 +90,11 @@ def test_a_checkpoint_in_torchs_legacy_format_loads_mapped_or_not_and_a_legacy_p
     with pytest.raises(UnsafeFileError, match="evil.pth.*pickled"):
         load_checkpoint(evil, mmap=True)
     assert not marker.exists()
+    text = tmp_path / "text.ckpt"  # neither zip nor legacy: the legacy reader raised IndexError, named now
+    text.write_bytes(b"retrained")
+    for mmap in (False, True):
+        with pytest.raises(UnsafeFileError, match="text.ckpt: not a readable checkpoint"):
+            load_checkpoint(text, mmap=mmap)
 
 
 def test_an_object_array_in_an_npz_is_refused_and_runs_nothing(dataset, tmp_path):

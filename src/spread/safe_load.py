@@ -127,7 +127,7 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = Fa
         detail = str(exc).strip().splitlines()[-1][:300] if str(exc).strip() else type(exc).__name__
         raise UnsafeFileError(f"{path}: refused — it holds pickled Python objects beyond tensors and plain data, "
                               f"which could run code when loaded ({detail})") from None
-    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+    except Exception as exc:  # noqa: BLE001 — torch's legacy reader fails on other bytes with IndexError, KeyError, …
         raise UnsafeFileError(f"{path}: not a readable checkpoint (truncated or corrupt: "
                               f"{type(exc).__name__}: {str(exc)[:200]})") from None
     if not isinstance(checkpoint, dict):

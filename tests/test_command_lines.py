@@ -106,6 +106,13 @@ def test_a_multirun_job_whose_settings_are_refused_is_named_by_its_number_before
     assert problem is not None and problem.startswith(says), problem
 
 
+def test_a_multirun_job_whose_trainer_values_lightning_refuses_is_named_before_any_job_runs():
+    problem = compose_problem("train", ["-m", "data.root=/d", "trainer.max_steps=3,abc"])
+    assert problem == "job #1 of the multirun (trainer.max_steps=abc): trainer.max_steps='abc': Lightning's Trainer " \
+                      "takes int here", problem
+    assert compose_problem("train", ["-m", "data.root=/d", "trainer.max_steps=3,4", "seed=0,1"]) is None
+
+
 def test_a_refused_multirun_job_stops_the_command_line_before_the_first_job_starts(tmp_path):
     # job #0 alone would fail on the missing checkpoint, after Hydra made its folders: refused ahead, nothing made
     line, proc = user_error("spread-sample", "-m", "ckpt=a.ckpt", "data.root=d", f"out_dir={tmp_path / 'o'}",

@@ -84,7 +84,7 @@ def multirun_problem(config: str, args: list[str], name: str, single) -> str | N
     swept = [i for i in range(len(jobs[0])) if len({job[i] for job in jobs}) > 1]
     for number, job in numbered:
         problem, composed = single(config, job, name)
-        problem = problem or built_problem(composed)
+        problem = problem or built_problem(composed) or trainer_problem(composed, job)
         if problem:
             which = " ".join(job[i] for i in swept) or " ".join(job)
             return f"job #{number} of the multirun ({which}): {problem}"
@@ -116,4 +116,21 @@ def built_problem(composed) -> str | None:
     return None
 
 
-__all__ = ["ALL_JOBS_LIMIT", "built_problem", "covering_jobs", "is_multirun", "multirun_problem", "sweep_jobs"]
+def trainer_problem(composed, job: list[str]) -> str | None:
+    """What Lightning's ``Trainer`` refuses of a job's ``trainer.*`` values (:func:`spread.training.trainer_settings.
+    trainer_setting_problem`: ``trainer.max_steps=abc``), in one line, or None; asked only of a job whose overrides
+    set the trainer, since the check loads Lightning (a single run asks it in the app, as each job always did)."""
+    if composed is None or "trainer" not in composed:
+        return None
+    if not any(o.lstrip("+~").split("=", 1)[0].split(".", 1)[0] in ("trainer", "experiment") for o in job):
+        return None
+    from spread.training.trainer_settings import trainer_setting_problem
+
+    try:
+        return trainer_setting_problem(composed.trainer)
+    except Exception:  # noqa: BLE001 — a value only the running app resolves: the job's own check says it
+        return None
+
+
+__all__ = ["ALL_JOBS_LIMIT", "built_problem", "covering_jobs", "is_multirun", "multirun_problem", "sweep_jobs",
+           "trainer_problem"]

@@ -106,6 +106,17 @@ def test_small_box_inside_big_box_collides(library):
     assert result.pairs[0].depth >= 0.2  # the small box's distance to the big box's surface
 
 
+@pytest.mark.parametrize("shift", [0.0, 0.003, 0.008])
+def test_two_objects_of_one_shape_that_coincide_or_nearly_collide(library, shift):
+    """Their surfaces lie on each other, so surface points alone gave a depth of about the shift (0 at 0 mm: not
+    colliding, a review found); their interiors lie inside each other."""
+    for asset in ("unit", "legged"):
+        result = scene_collisions(scene_of([asset, asset], [[0, 0.5, 0], [shift, 0.5, 0]], library=library,
+                                           room=ROOM), library)
+        assert result.colliding == [True, True], (asset, shift, result.pairs)
+        assert result.pairs[0].depth > COLLISION_DEPTH_THRESHOLD
+
+
 def test_collision_rate_counts_objects(library):
     scene = scene_of(["unit", "unit", "small"], [[0, 0.5, 0], [0.98, 0.5, 0], [-1.5, 0.1, 0]], library=library,
                      room=ROOM)

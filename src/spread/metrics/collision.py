@@ -13,11 +13,12 @@ Per scene (:func:`scene_collisions`):
    We call ``fcl.collide`` per pair rather than going through ``CollisionManager``: the manager rebuilds
    each object's BVH on every ``add_object`` (≈ 20 ms for a 5k-face mesh) and identifies objects by their
    geometry, so geometry cannot be shared; here each asset's FCL geometry is built once per process.
-2. **Depth.** For a candidate pair (a, b): a's vertices and surface samples are moved into b's frame,
-   their signed distances to b's watertight mesh computed (trimesh, made positive outside), and
-   depth(a→b) = max(0, −min). The pair's depth is the deeper of the two directions. A point deep
-   inside the other mesh counts, so containment counts: a small box inside a big one has a depth at
-   least its distance to the big box's surface. (:func:`spread.metrics.geometry.min_signed_distance`
+2. **Depth.** For a candidate pair (a, b): a's vertices, surface samples and interior samples (a grid over
+   its box, the nodes inside it) are moved into b's frame, their signed distances to b's watertight mesh
+   computed (trimesh, made positive outside), and depth(a→b) = max(0, −min). The pair's depth is the
+   deeper of the two directions. A point deep inside the other mesh counts, so containment counts: a small
+   box inside a big one has a depth at least its distance to the big box's surface; and two objects of one
+   shape that coincide, or nearly, collide (their surfaces lie on each other, their interiors inside). (:func:`spread.metrics.geometry.min_signed_distance`
    gives the exact minimum over the point set and skips points that cannot be deeper.)
 3. An object **collides** when one of its pairs is deeper than :data:`COLLISION_DEPTH_THRESHOLD`.
 
@@ -35,7 +36,8 @@ import torch
 from spread.metrics.base import SceneMetric, check_scene, ratio
 from spread.metrics.constants import COLLISION_DEPTH_THRESHOLD
 from spread.metrics.registry import register_metric
-from spread.metrics.geometry import asset_geometry, fcl_geometry, min_signed_distance, to_local, to_world
+from spread.metrics.geometry import (asset_geometry, fcl_geometry, interior_points, min_signed_distance, to_local,
+                                     to_world)
 from spread.relations import scene_aabbs
 
 
@@ -113,12 +115,14 @@ def candidate_pairs(scene, library) -> list[tuple[int, int, bool, bool]]:
 
 
 def penetration_depth(scene, library, a: int, b: int) -> float:
-    """Depth (metres, ≥ 0) of object a's points inside object b's mesh: max(0, −min signed distance)."""
+    """Depth (metres, ≥ 0) of object a's points — surface and interior (:func:`~spread.metrics.geometry.
+    interior_points`) — inside object b's mesh: max(0, −min signed distance)."""
     ga = asset_geometry(library, str(scene.asset_id[a]))
     gb = asset_geometry(library, str(scene.asset_id[b]))
     Ra, ta = scene.rotation[a].astype(np.float64), scene.translation[a].astype(np.float64)
     Rb, tb = scene.rotation[b].astype(np.float64), scene.translation[b].astype(np.float64)
-    local = to_local(to_world(ga.points, Ra, ta), Rb, tb)
+    points = np.concatenate([ga.points, interior_points(library, str(scene.asset_id[a]))])
+    local = to_local(to_world(points, Ra, ta), Rb, tb)
     d, _ = min_signed_distance(gb, local, stop_at=0.0)
     return max(0.0, -d)
 

@@ -192,6 +192,37 @@ def test_resume_after_a_torn_line_counts_every_scene_once(cli_run, dataset, scen
     assert comparable(metrics) == comparable(cli_run[1])
 
 
+def test_a_rerun_after_a_scene_was_removed_drops_its_render_and_records_the_scenes_folder_absolute(
+        cli_run, dataset, scenes_dir, tmp_path, monkeypatch):
+    """A review found the removed scene's top-down left in ``renders/`` (the report showed it as this run's), and
+    ``metrics.json``'s ``scenes`` as typed (relative), which a report run from another folder could not find."""
+    out = tmp_path / "run"
+    shutil.copytree(cli_run[0], out)
+    shutil.copytree(scenes_dir, tmp_path / "scenes")
+    before = sorted(p.stem for p in (out / "renders").glob("*.png"))
+    assert len(before) == 3
+    (tmp_path / "scenes" / f"{before[0]}.npz").unlink()
+    monkeypatch.chdir(tmp_path)
+    run_in_process(*args(Path("scenes"), dataset, out, "logger=none"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["scenes"] == str(tmp_path / "scenes")
+    after = sorted(p.stem for p in (out / "renders").glob("*.png"))
+    assert before[0] not in after and len(after) == 3 and set(after) <= set(metrics["evaluated_scenes"])
+
+
+def test_scenes_that_are_the_reference_splits_own_files_get_a_warning_with_their_fid(dataset, tmp_path):
+    """FID 0.00 of a folder against itself was reported as an ordinary value (status "ok")."""
+    shutil.copytree(dataset / "test", tmp_path / "copy")
+    for scenes in (dataset / "test", tmp_path / "copy"):  # the split itself, and a copy of it
+        run_in_process(f"scenes={scenes}", f"reference={dataset}", f"out_dir={tmp_path / scenes.name}", "logger=none",
+                       "metrics=[grecall]", "progress=false", "renders=0", "ray.num_cpus=1")
+        status = json.loads((tmp_path / scenes.name / "metrics.json").read_text())["fid_status"]
+        assert "warning: scenes= holds the reference split's own files" in status, status
+    run_in_process(f"scenes={dataset / 'test'}", f"reference={dataset}", "reference_split=val", "logger=none",
+                   f"out_dir={tmp_path / 'val'}", "metrics=[grecall]", "progress=false", "renders=0", "ray.num_cpus=1")
+    assert "warning" not in json.loads((tmp_path / "val" / "metrics.json").read_text())["fid_status"]
+
+
 def test_an_evaluation_in_the_sampling_runs_own_folder_leaves_its_renders_as_they_are(cli_run, dataset, scenes_dir,
                                                                                       tmp_path):
     """``spread-sample evaluate=true`` / ``spread-evaluate out_dir=<run>``: the folder's ``renders/`` are the sampling

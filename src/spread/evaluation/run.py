@@ -139,6 +139,19 @@ def reference_fid(cfg: EvaluationConfig, reference_files: list[Path], assets: st
     return fid, loaded.status, failed
 
 
+def same_scenes(inputs: dict[str, str], reference_files: list[Path]) -> bool:
+    """Whether the evaluated scene files (``inputs``: key → SHA-256, :func:`input_hashes`) are the reference split's
+    files, by content (the same folder, or a copy of it)."""
+    from spread import readonce
+
+    if len(inputs) != len(reference_files) or not inputs:
+        return False
+    try:
+        return sorted(inputs.values()) == sorted(readonce.file_sha256(p) for p in reference_files)
+    except (OSError, ValueError):
+        return False
+
+
 def evaluation_renders(out: Path) -> list[Path]:
     """The pictures an earlier evaluation wrote in ``out/renders`` (:func:`write_renders`: ``<scene_id>.png`` of a scene
     its ``per_scene.jsonl`` measured) — never another file of the folder (a user's picture there stays)."""
@@ -292,6 +305,9 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
                       failure_record) if todo else None
         fid, fid_status, ref_failed = reference_fid(cfg, reference_files, assets)
     bar.close()
+    if fid is not None and same_scenes(inputs, reference_files):  # the status fid_values records is the metric's
+        fid.fid_status = (f"{fid.fid_status}; warning: scenes= holds the reference split's own files ({ref_dir}), so "
+                          f"FID and KID compare a set with itself (~0 by construction); give another reference_split")
 
     wanted = set(keys)
     records = [r for k, r in dedupe(read_jsonl(per_scene)).items() if k in wanted]
@@ -311,7 +327,7 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
         "failed_metrics": [{"scene_id": r["scene_id"], "metric": name, "error": error} for r in records if usable(r)
                            for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
-        "scenes": str(cfg.scenes), "sampled_with": sampled_with(cfg.scenes),
+        "scenes": str(Path(str(cfg.scenes)).absolute()), "sampled_with": sampled_with(cfg.scenes),  # read from anywhere
         "evaluated_with": evaluated_with(cfg, assets), "evaluated_scenes": [r["scene_id"] for r in records],
         "bootstrap_resamples": int(cfg.bootstrap_resamples),
         "reference": str(cfg.reference), "reference_split": cfg.reference_split,
@@ -326,4 +342,7 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     write_json_atomic(out / METRICS, metrics)
     # in the sampling run's folder its renders show these scenes already (reports find them there)
     renders = [] if in_sampling_run else write_renders(out, records, assets, cfg.renders)
+    if not in_sampling_run:  # an earlier run's picture of a scene this run does not render (removed since) goes
+        for stale in set(evaluation_renders(out)) - set(renders):
+            stale.unlink(missing_ok=True)
     return EvaluationResult(metrics, records, renders, out)

@@ -350,8 +350,18 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
     for key, value, says in [("bootstrap", "x", "key 'bootstrap' is str, expected an object"),
                              ("per_room_type", {"bedroom": 5}, "key 'per_room_type' is not an object of room types"),
                              ("n_scenes", "12", "key 'n_scenes' is '12', expected a whole number ≥ 0"),  # printed as is
-                             ("n_failed", -1.5, "key 'n_failed' is -1.5, expected a whole number ≥ 0")]:
-        folder = tmp_path / key
+                             ("n_failed", -1.5, "key 'n_failed' is -1.5, expected a whole number ≥ 0"),
+                             # the bootstrap block's fields and sampled_with: tracebacks or nameless errors before
+                             ("bootstrap", {"resamples": 100, "seed": 0}, "key 'bootstrap.level' is missing"),
+                             ("bootstrap", {"level": 0.95, "resamples": "1000"},
+                              "key 'bootstrap.resamples' is '1000', expected a whole number ≥ 0"),
+                             ("bootstrap", {"level": 0.95, "seed": [1, 2]}, r"key 'bootstrap.seed' is \[1, 2\]"),
+                             ("bootstrap", {"level": 0.95, "measured": {"asd": "3"}},
+                              "key 'bootstrap.measured' is not an object of whole counts"),
+                             ("bootstrap", {"level": 95}, "key 'bootstrap.level' is 95, expected a number in"),
+                             ("sampled_with", {"sampling": "x", "guidance": "refine"},
+                              "key 'sampled_with' is not a sampling identity")]:
+        folder = tmp_path / f"{key}{len(list(tmp_path.iterdir()))}"
         folder.mkdir()
         (folder / "metrics.json").write_text(json.dumps({"grecall": 0.5, "n_evaluated": 3, key: value}))
         with pytest.raises(RunError, match=f"{folder / 'metrics.json'}: {says}"):

@@ -161,6 +161,12 @@ def check_shape(path: Path, metrics: dict) -> None:
     number is shown ``invalid (...)`` instead, :class:`~spread.reporting.tables.Column`)."""
     if metrics.get("bootstrap") is not None and not isinstance(metrics["bootstrap"], dict):
         raise RunError(f"{path}: key 'bootstrap' is {type(metrics['bootstrap']).__name__}, expected an object")
+    check_bootstrap(path, metrics.get("bootstrap") or {})
+    sampled = metrics.get("sampled_with")
+    if sampled is not None and not (isinstance(sampled, dict) and all(
+            sampled.get(part) is None or isinstance(sampled[part], dict) for part in ("guidance", "sampling"))):
+        raise RunError(f"{path}: key 'sampled_with' is not a sampling identity (an object whose 'sampling' and "
+                       f"'guidance' are objects), as spread-evaluate writes it")
     rooms = metrics.get("per_room_type")
     if rooms is not None and not (isinstance(rooms, dict) and all(isinstance(v, dict) for v in rooms.values())):
         raise RunError(f"{path}: key 'per_room_type' is not an object of room types to objects of metrics")
@@ -170,6 +176,29 @@ def check_shape(path: Path, metrics: dict) -> None:
         value = metrics.get(key)
         if value is not None and not (is_whole(value) and value >= 0):
             raise RunError(f"{path}: key '{key}' is {value!r}, expected a whole number ≥ 0")
+
+
+def check_bootstrap(path: Path, block: dict) -> None:
+    """``RunError`` naming the file and key for a ``bootstrap`` block whose fields the report's interval note reads
+    in another shape than the evaluation writes them (:func:`spread.evaluation.bootstrap`): ``level`` a number in
+    (0, 1), ``resamples`` and ``seed`` whole numbers, ``measured`` an object of whole counts ≥ 0."""
+    import math
+
+    from spread.checks import is_whole
+
+    level = block.get("level")
+    if "level" in block and not (isinstance(level, (int, float)) and not isinstance(level, bool)
+                                 and math.isfinite(level) and 0 < level < 1):
+        raise RunError(f"{path}: key 'bootstrap.level' is {level!r}, expected a number in (0, 1)")
+    for key in ("resamples", "seed"):
+        if key in block and not (is_whole(block[key]) and block[key] >= 0):
+            raise RunError(f"{path}: key 'bootstrap.{key}' is {block[key]!r}, expected a whole number ≥ 0")
+    measured = block.get("measured")
+    if "measured" in block and not (isinstance(measured, dict) and all(
+            is_whole(v) and v >= 0 for v in measured.values())):
+        raise RunError(f"{path}: key 'bootstrap.measured' is not an object of whole counts ≥ 0 per metric")
+    if block and "level" not in block:
+        raise RunError(f"{path}: key 'bootstrap.level' is missing (the intervals' confidence level)")
 
 
 def identity_fields(identity: dict) -> dict:

@@ -13,13 +13,15 @@ Per scene (:func:`scene_collisions`):
    We call ``fcl.collide`` per pair rather than going through ``CollisionManager``: the manager rebuilds
    each object's BVH on every ``add_object`` (≈ 20 ms for a 5k-face mesh) and identifies objects by their
    geometry, so geometry cannot be shared; here each asset's FCL geometry is built once per process.
-2. **Depth.** For a candidate pair (a, b): a's vertices, surface samples and interior samples (a grid over
-   its box, the nodes inside it) are moved into b's frame, their signed distances to b's watertight mesh
-   computed (trimesh, made positive outside), and depth(a→b) = max(0, −min). The pair's depth is the
-   deeper of the two directions. A point deep inside the other mesh counts, so containment counts: a small
-   box inside a big one has a depth at least its distance to the big box's surface; and two objects of one
-   shape that coincide, or nearly, collide (their surfaces lie on each other, their interiors inside). (:func:`spread.metrics.geometry.min_signed_distance`
-   gives the exact minimum over the point set and skips points that cannot be deeper.)
+2. **Depth.** For a candidate pair (a, b): a's vertices and surface samples are moved into b's frame,
+   their signed distances to b's watertight mesh computed (trimesh, made positive outside), and
+   depth(a→b) = max(0, −min). The pair's depth is the deeper of the two directions. A point deep
+   inside the other mesh counts, so containment counts: a small box inside a big one has a depth at
+   least its distance to the big box's surface. Where the surface gives no depth above the threshold,
+   a's interior samples (its surface samples moved inward) count once deeper than it: two objects of one
+   shape that coincide, or nearly, collide (their surfaces lie on each other, their interiors inside).
+   (:func:`spread.metrics.geometry.min_signed_distance` gives the exact minimum over the point set and
+   skips points that cannot be deeper.)
 3. An object **collides** when one of its pairs is deeper than :data:`COLLISION_DEPTH_THRESHOLD`.
 
 Aggregate (:class:`MeshCollisionRate`): colliding objects / objects over all scenes (object-weighted,
@@ -114,17 +116,24 @@ def candidate_pairs(scene, library) -> list[tuple[int, int, bool, bool]]:
     return out
 
 
-def penetration_depth(scene, library, a: int, b: int) -> float:
-    """Depth (metres, ≥ 0) of object a's points — surface and interior (:func:`~spread.metrics.geometry.
-    interior_points`) — inside object b's mesh: max(0, −min signed distance)."""
+def penetration_depth(scene, library, a: int, b: int, threshold: float = COLLISION_DEPTH_THRESHOLD) -> float:
+    """Depth (metres, ≥ 0) of object a's points inside object b's mesh: max(0, −min signed distance) over a's
+    surface points; where that is not above ``threshold``, a's interior points (:func:`~spread.metrics.geometry.
+    interior_points`) count too, once deeper than it (only points more than ``threshold`` inside b's box are
+    queried: a resting pair's interior stays unqueried)."""
     ga = asset_geometry(library, str(scene.asset_id[a]))
     gb = asset_geometry(library, str(scene.asset_id[b]))
     Ra, ta = scene.rotation[a].astype(np.float64), scene.translation[a].astype(np.float64)
     Rb, tb = scene.rotation[b].astype(np.float64), scene.translation[b].astype(np.float64)
-    points = np.concatenate([ga.points, interior_points(library, str(scene.asset_id[a]))])
-    local = to_local(to_world(points, Ra, ta), Rb, tb)
+    local = to_local(to_world(ga.points, Ra, ta), Rb, tb)
     d, _ = min_signed_distance(gb, local, stop_at=0.0)
-    return max(0.0, -d)
+    depth = max(0.0, -d)
+    if depth <= threshold:  # coincident or nearly: the surface lies on b's surface, the interior inside it
+        inner = to_local(to_world(interior_points(library, str(scene.asset_id[a])), Ra, ta), Rb, tb)
+        d, _ = min_signed_distance(gb, inner, stop_at=-threshold)
+        if -d > threshold:
+            depth = -d
+    return depth
 
 
 def scene_collisions(scene, library, threshold: float = COLLISION_DEPTH_THRESHOLD) -> CollisionResult:
@@ -134,7 +143,8 @@ def scene_collisions(scene, library, threshold: float = COLLISION_DEPTH_THRESHOL
     colliding = np.zeros(n, bool)
     pairs = []
     for i, j, touching, contained in candidate_pairs(scene, library):
-        depth = max(penetration_depth(scene, library, i, j), penetration_depth(scene, library, j, i))
+        depth = max(penetration_depth(scene, library, i, j, threshold),
+                    penetration_depth(scene, library, j, i, threshold))
         pairs.append(PairDepth(i, j, depth, touching, contained))
         if depth > threshold:
             colliding[[i, j]] = True

@@ -131,6 +131,9 @@ def test_a_multirun_is_expanded_into_the_jobs_hydras_basic_sweeper_runs_in_its_o
                        "+sweep=guidance_grid", "ckpt=/c", "data.root=/d", "seed=0"]
     assert jobs[1][-1] == "seed=1" and jobs[2][:2] == ["guidance.collision=0.0", "guidance.gravity=0.001"]
     assert compose_problem("sample", ["-m", "+sweep=guidance_grid", "ckpt=/c", "data.root=/d"]) is None  # README
+    globbed = sweep_jobs("sample", ["-m", *SAMPLE, "sampler=glob(ddi*)", "seed=range(0,2)"])  # Hydra's other sweeps
+    assert [job[-2:] for job in globbed] == [["sampler=ddim100", "seed=0"], ["sampler=ddim100", "seed=1"],
+                                             ["sampler=ddim50", "seed=0"], ["sampler=ddim50", "seed=1"]], globbed
     # another sweeper chooses its jobs as it runs: left to it
     assert sweep_jobs("sample", ["-m", *SAMPLE, "seed=0,1", "hydra.sweeper._target_=my.Sweeper"]) is None
 

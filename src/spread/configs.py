@@ -200,18 +200,6 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfi
     return _fresh_copy(composed)
 
 
-def compose_with_hydra(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
-    """``conf/<name>.yaml`` composed with ``overrides`` (``hydra.*`` and ``hydra/<group>=`` ones too) outside a
-    running app, with Hydra's own node (``hydra.sweeper``, ``hydra.launcher``, …) as the app would see it; not
-    kept."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    register(name) if name in COMMANDS else register()
-    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
-        return hydra_compose(config_name=name, overrides=[str(o) for o in overrides], return_hydra_config=True)
-
-
 def _fresh_copy(composed: DictConfig) -> DictConfig:
     """A caller's own copy of a kept config, without the resolver values cached while it was composed (Hydra's
     ``${now:...}``: each copy resolves the time when it is read)."""

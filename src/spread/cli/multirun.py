@@ -30,21 +30,25 @@ def sweep_jobs(config: str, args: list[str]) -> list[list[str]] | None:
     """The task overrides of each job of the multirun ``args`` of ``conf/<config>.yaml``, in Hydra's order (job
     ``#0`` first), or None where Hydra's basic sweeper does not choose the jobs (another ``hydra/sweeper``). Raises
     Hydra's error for a command line that does not parse or a master config that does not compose."""
+    from hydra import compose, initialize_config_dir
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from spread.configs import compose_with_hydra
+    from spread.configs import COMMANDS, conf_dir, register
 
+    register(config) if config in COMMANDS else register()
     words = [a for a in args if a not in MULTIRUN_FLAGS]
-    parser = OverridesParser.create()
-    parsed = parser.parse_overrides(words)
-    master = [o.input_line for o in parsed if not o.is_sweep_override()]
-    hydra = compose_with_hydra(config, master).hydra
-    if str(hydra.sweeper.get("_target_", "")) != BASIC_SWEEPER:
-        return None
-    task = [o.input_line for o in parsed if not o.is_hydra_override()]
-    params = [f"{k}={v}" for k, v in (hydra.sweeper.get("params") or {}).items()]
-    return BasicSweeper.split_arguments(parser.parse_overrides(params + task), None)[0]
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):  # the loader lists a group (glob)
+        parser = OverridesParser.create(config_loader=GlobalHydra.instance().config_loader())
+        parsed = parser.parse_overrides(words)
+        master = [o.input_line for o in parsed if not o.is_sweep_override()]
+        hydra = compose(config_name=config, overrides=master, return_hydra_config=True).hydra
+        if str(hydra.sweeper.get("_target_", "")) != BASIC_SWEEPER:
+            return None
+        task = [o.input_line for o in parsed if not o.is_hydra_override()]
+        params = [f"{k}={v}" for k, v in (hydra.sweeper.get("params") or {}).items()]
+        return BasicSweeper.split_arguments(parser.parse_overrides(params + task), None)[0]
 
 
 def covering_jobs(jobs: list[list[str]]) -> list[list[str]]:
@@ -75,6 +79,8 @@ def multirun_problem(config: str, args: list[str], name: str, single) -> str | N
         jobs = sweep_jobs(config, args)
     except (HydraException, OmegaConfBaseException) as exc:
         return error_message(exc)
+    except Exception:  # noqa: BLE001 — a command line this expansion cannot follow is left to Hydra, which says
+        return None
     if not jobs:
         return None
     numbered = list(enumerate(jobs))

@@ -235,6 +235,39 @@ def test_an_export_never_replaces_what_out_dir_held_that_no_export_there_wrote(d
     assert (out / "assets" / "mesh.obj").exists() and (out / "notes").read_text() == "a user's notes"
 
 
+def test_a_relaunch_after_a_killed_export_replaces_what_it_wrote_under_the_same_names(data, tmp_path, monkeypatch):
+    """The outputs a killed export wrote were listed nowhere (export.json is written at the end), so the relaunch
+    took them for a stranger's and exported those scenes again as ``<id>__<stem>``: export.json now notes them as
+    they are written."""
+    import copy
+
+    import spread.export as export
+
+    root, _, scene = data
+    scenes, out = tmp_path / "scenes", tmp_path / "out"
+    for name in ("a", "b", "c"):
+        one = copy.deepcopy(scene)
+        one.scene_id = name
+        write_scene(one, scenes / f"{name}.npz")
+    real, calls = export.export_scene, []
+
+    def killed_at_the_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(export, "export_scene", killed_at_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        export_folder(scenes, root / "assets", out, "mjcf")
+    assert sorted(os.listdir(out)) == ["a.xml", "b.xml", "export.json"]
+    monkeypatch.setattr(export, "export_scene", real)
+    report = export_folder(scenes, root / "assets", out, "mjcf")
+    assert sorted(report.written) == ["a", "b", "c"] and not report.duplicates
+    assert sorted(os.listdir(out)) == ["a.xml", "b.xml", "c.xml", "export.json"]
+    assert "in_progress" not in json.loads((out / "export.json").read_text())
+
+
 def test_export_command_refuses_an_out_dir_holding_a_dataset_or_a_run(data, tmp_path):
     root, _, _ = data
     proc = export_command(f"scenes={root / 'test'}", "format=mjcf", f"out_dir={root}", "progress=false")

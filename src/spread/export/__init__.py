@@ -212,16 +212,16 @@ def earlier_outputs(out_dir) -> dict[str, str]:
     return outputs
 
 
-def remove_stale_exports(out_dir, written: dict[str, str]) -> list[str]:
-    """Remove the outputs the folder's previous ``export.json`` lists that this export did not write (a scene
-    removed, renamed or failing now, another format): the folder then holds what its ``export.json`` lists. Only
-    what :func:`earlier_outputs` names is removed; returns the names removed."""
+def remove_stale_exports(out_dir, written: dict[str, str], earlier: dict[str, str] | None = None) -> list[str]:
+    """Remove the outputs the folder's previous ``export.json`` lists (``earlier``, as :func:`earlier_outputs` read it
+    before this export began; None: read it now) that this export did not write (a scene removed, renamed or failing
+    now, another format): the folder then holds what its ``export.json`` lists. Returns the names removed."""
     import shutil
 
     out = Path(out_dir).resolve()
     kept = {Path(p).name for p in written.values()}
     removed = []
-    for name in earlier_outputs(out):
+    for name in earlier_outputs(out) if earlier is None else earlier:
         path = out / name
         if name in kept or not os.path.lexists(path):
             continue
@@ -262,6 +262,18 @@ def free_id(wanted: str, taken: dict[str, str], out_dir, fmt: str, earlier: dict
     return candidate
 
 
+def note_progress(out_dir, fmt: str, earlier: dict[str, str], written: dict[str, str]) -> None:
+    """``export.json`` while an export runs (atomic, after each scene): the earlier export's outputs of this format
+    and this one's so far, so a relaunch after a kill finds the outputs written before it as an export's own
+    (:func:`earlier_outputs`: replaced, not exported again under another name); the finished report replaces it."""
+    from spread.io import write_json_atomic
+
+    out = Path(out_dir).resolve()
+    listed = {sid: str(out / name) for name, sid in earlier.items() if export_path(out, sid, fmt).name == name}
+    write_json_atomic(out / "export.json", {"format": fmt, "out_dir": str(out), "in_progress": True,
+                                             "written": {**listed, **written}})
+
+
 def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir: str | os.PathLike, fmt: str,
                   floor: bool = True, progress: bool = False) -> ExportReport:
     """Export every scene file of ``scenes`` (asset library ``assets``) in ``fmt`` to ``out_dir``.
@@ -298,10 +310,11 @@ def export_folder(scenes: str | os.PathLike, assets: str | os.PathLike, out_dir:
             report.written[str(scene.scene_id)] = str(written)
             report.sources[str(scene.scene_id)] = str(path)
             taken[Path(written).name] = str(path)
+            note_progress(out_dir, fmt, earlier, report.written)  # a killed export's outputs stay its own
         except Exception as exc:  # one bad scene does not stop the export
             report.failed[path.stem] = f"{path}: {type(exc).__name__}: {exc}"
             if os.environ.get("SPREAD_DEBUG"):
                 traceback.print_exc()
-    report.removed_stale = remove_stale_exports(out_dir, report.written)
+    report.removed_stale = remove_stale_exports(out_dir, report.written, earlier)
     write_json_atomic(Path(out_dir) / "export.json", report.to_dict())
     return report

@@ -188,15 +188,20 @@ def test_bad_scene_is_reported_and_the_others_exported(data, tmp_path):
         export_path(tmp_path, "x", "sdf")
 
 
-def test_a_reexport_removes_the_outputs_it_no_longer_writes_and_nothing_else(data, tmp_path):
+def write_copies(scene, folder: Path, names=("a", "b", "c")) -> None:
+    """``folder/<name>.npz``: ``scene`` under each scene id of ``names``."""
     import copy
 
-    root, _, scene = data
-    scenes, out = tmp_path / "scenes", tmp_path / "out"
-    for name in ("a", "b", "c"):
+    for name in names:
         one = copy.deepcopy(scene)
         one.scene_id = name
-        write_scene(one, scenes / f"{name}.npz")
+        write_scene(one, folder / f"{name}.npz")
+
+
+def test_a_reexport_removes_the_outputs_it_no_longer_writes_and_nothing_else(data, tmp_path):
+    root, _, scene = data
+    scenes, out = tmp_path / "scenes", tmp_path / "out"
+    write_copies(scene, scenes)
     assert len(export_folder(scenes, root / "assets", out, "mjcf").written) == 3
     (out / "mine.txt").write_text("a user's own file")
     (scenes / "b.npz").unlink()
@@ -212,14 +217,9 @@ def test_a_reexport_removes_the_outputs_it_no_longer_writes_and_nothing_else(dat
 
 
 def test_an_export_never_replaces_what_out_dir_held_that_no_export_there_wrote(data, tmp_path):
-    import copy
-
     root, _, scene = data
     scenes, out = tmp_path / "scenes", tmp_path / "out"
-    for name in ("assets", "notes"):  # ids whose outputs take the names of a user's folder and file
-        one = copy.deepcopy(scene)
-        one.scene_id = name
-        write_scene(one, scenes / f"{name}.npz")
+    write_copies(scene, scenes, ("assets", "notes"))  # ids whose outputs take the names of a user's folder and file
     (out / "assets").mkdir(parents=True)
     (out / "assets" / "mesh.obj").write_text("a user's mesh")
     (out / "notes").write_text("a user's notes")
@@ -239,16 +239,11 @@ def test_a_relaunch_after_a_killed_export_replaces_what_it_wrote_under_the_same_
     """The outputs a killed export wrote were listed nowhere (export.json is written at the end), so the relaunch
     took them for a stranger's and exported those scenes again as ``<id>__<stem>``: export.json now notes them as
     they are written."""
-    import copy
-
     import spread.export as export
 
     root, _, scene = data
     scenes, out = tmp_path / "scenes", tmp_path / "out"
-    for name in ("a", "b", "c"):
-        one = copy.deepcopy(scene)
-        one.scene_id = name
-        write_scene(one, scenes / f"{name}.npz")
+    write_copies(scene, scenes)
     real, calls = export.export_scene, []
 
     def killed_at_the_third(*args, **kwargs):

@@ -363,12 +363,19 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
                               "key 'bootstrap.measured' is not an object of whole counts"),
                              ("bootstrap", {"level": 95}, "key 'bootstrap.level' is 95, expected a number in"),
                              ("sampled_with", {"sampling": "x", "guidance": "refine"},
-                              "key 'sampled_with' is not a sampling identity")]:
+                              "key 'sampled_with' is not a sampling identity"),
+                             # a NaN showed as –, the missing value, in every table
+                             ("col_mesh", float("nan"), "key 'col_mesh' is NaN, a value spread-evaluate never writes"),
+                             ("asd_hi", float("nan"), "key 'asd_hi' is NaN"),
+                             ("per_room_type", {"bedroom": {"stability": float("nan")}},
+                              "key 'per_room_type.bedroom.stability' is NaN")]:
         folder = tmp_path / f"{key}{len(list(tmp_path.iterdir()))}"
         folder.mkdir()
         (folder / "metrics.json").write_text(json.dumps({"grecall": 0.5, "n_evaluated": 3, key: value}))
         with pytest.raises(RunError, match=f"{folder / 'metrics.json'}: {says}"):
             read_run_folder(folder)
+    line, _ = user_error("spread-report", f"runs=[{folder}]", f"out_dir={tmp_path / 'report'}")
+    assert line.startswith(f"spread-report: {folder / 'metrics.json'}: key 'per_room_type.bedroom.stability' is NaN"), line
     column = Column("grecall", "GRecall", digits=3)
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.6}) == pytest.approx(0.1)
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) is None  # was "± -0.400"

@@ -268,6 +268,69 @@ def test_a_relaunch_with_another_protocol_redoes_every_scene_and_says_why(cli_ru
     assert again["redone_because"] is None and again["run"]["evaluated_this_run"] == 0
 
 
+def test_scenes_over_the_object_limit_are_left_out_by_name_and_a_relaunch_without_it_counts_them_again(
+        cli_run, dataset, scenes_dir, tmp_path):
+    """A 130-object room took 88 s a Stability run: ``max_objects`` leaves larger scenes out before any work, named
+    with their counts in ``metrics.json`` and in its identity (the numbers average over fewer scenes), and the
+    aggregates are those of the other scenes' lines; at the default (twice the reference's largest) the dataset's
+    own rooms are all in, and the same folder relaunched without a limit reports the first run again."""
+    assert cli_run[1]["scenes_over_limit"] == [] and "scenes_over_limit" not in cli_run[1]["evaluated_with"]
+    sizes = {p.stem: read_scene(p).num_objects for p in list_scene_files(dataset / "test")}
+    limit = sorted(sizes.values())[len(sizes) // 2]
+    big = {k: n for k, n in sizes.items() if n > limit}
+    assert big and len(big) < len(sizes)
+    out = tmp_path / "run"
+    shutil.copytree(cli_run[0], out)
+    run_in_process(*args(scenes_dir, dataset, out, "logger=none", f"max_objects={limit}"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {r["scene_id"]: r["objects"] for r in metrics["scenes_over_limit"]} == big
+    assert metrics["evaluated_with"]["scenes_over_limit"] == sorted(big)
+    assert not set(big) & set(metrics["evaluated_scenes"])
+    assert metrics["n_scenes"] == cli_run[1]["n_scenes"] - len(big) and metrics["run"]["evaluated_this_run"] == 0
+    from spread.evaluation.aggregate import summary_values
+    from spread.evaluation.protocol import EvalProtocol
+
+    kept = [r for r in read_jsonl(out / "per_scene.jsonl") if r["scene_id"] not in big]
+    expected = summary_values(kept, EvalProtocol(stability_runs=2))
+    assert {k: metrics[k] for k in ("col_mesh", "grecall", "asd", "stability")} == \
+        {k: expected[k] for k in ("col_mesh", "grecall", "asd", "stability")}
+    assert metrics["n_objects"] == cli_run[1]["n_objects"] - sum(big.values())
+    run_in_process(*args(scenes_dir, dataset, out, "logger=none", "max_objects=0"))  # no limit: every line again
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["scenes_over_limit"] == [] and again["run"]["evaluated_this_run"] == 0
+    assert comparable(again) == comparable(cli_run[1])
+
+
+def test_an_evaluation_whose_every_scene_is_over_the_object_limit_is_refused_in_one_line(dataset, tmp_path):
+    from helpers import user_error
+
+    largest = max(read_scene(p).num_objects for p in list_scene_files(dataset / "test"))
+    line, _ = user_error("spread-evaluate", *args(dataset / "test", dataset, tmp_path / "run", "logger=none",
+                                                  "max_objects=1"))
+    assert line.startswith(f"spread-evaluate: scenes={dataset / 'test'}: every scene is over the object limit 1 (the "
+                           f"largest holds {largest} objects; set max_objects=<n> to raise it, 0: no limit)"), line
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_object_count_is_read_from_a_scene_file_alone_and_a_file_that_is_no_scene_has_none(dataset, tmp_path):
+    from spread.data.limit import object_count, scenes_over
+
+    files = list_scene_files(dataset / "test")
+    assert [object_count(f) for f in files] == [read_scene(f).num_objects for f in files]
+    (tmp_path / "text.npz").write_text("not a zip")
+    np.savez(tmp_path / "nokey.npz", translation=np.zeros((3, 3)))
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "raw.npz", "w") as z:  # members that are not .npy arrays: read as bytes
+        z.writestr("asset_id", b"abc")
+    os.mkfifo(tmp_path / "fifo.npz")
+    assert [object_count(tmp_path / n) for n in ("text.npz", "nokey.npz", "raw.npz", "fifo.npz", "gone.npz")] == \
+        [None] * 5
+    counts = {f: read_scene(f).num_objects for f in files}
+    assert scenes_over(files, None) == {} and scenes_over(files, min(counts.values()) - 1) == counts
+    assert scenes_over([*files, tmp_path / "text.npz"], 0) == counts
+
+
 @pytest.mark.slow  # make test-slow; make test keeps test_a_scene_that_always_kills_its_worker_is_reported_alone
 @pytest.mark.parametrize("max_retries", [3, 0])
 def test_a_worker_killed_mid_run_loses_no_scene(cli_run, dataset, scenes_dir, tmp_path, monkeypatch, max_retries):

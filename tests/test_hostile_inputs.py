@@ -460,6 +460,29 @@ def test_a_refused_command_removes_the_folders_its_out_dir_made_on_the_way_throu
         assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"], out_dir
 
 
+def test_a_refused_command_removes_its_folder_where_a_link_followed_by_dot_dot_leads(tmp_path):
+    """``out_dir=link/../b`` with ``link`` → ``elsewhere/target``: the system makes ``b`` beside the link's target
+    (``elsewhere/b``: ``..`` goes up from where the link leads), while the cleanup looked for ``./b`` by the text and
+    left ``elsewhere/b``, with the run's lock in it."""
+    from helpers import user_error
+
+    from spread.io import normal_path
+
+    (tmp_path / "elsewhere" / "target").mkdir(parents=True)
+    (tmp_path / "here").mkdir()
+    (tmp_path / "here" / "link").symlink_to(tmp_path / "elsewhere" / "target")
+    assert normal_path(tmp_path / "here" / "link" / ".." / "b") == tmp_path / "elsewhere" / "b"
+    assert normal_path(tmp_path / "here" / "link" / "x" / ".." / "..") == tmp_path / "elsewhere"
+    assert normal_path(tmp_path / "here" / "a" / ".." / "b") == tmp_path / "here" / "b"
+    for out_dir in ("link/../b", "link/../c/d", "link/x/../../e"):
+        line, _ = user_error("spread-sample", "ckpt=no.ckpt", f"data.root={tmp_path}", f"out_dir={out_dir}",
+                             cwd=tmp_path / "here")
+        assert "no such checkpoint file" in line
+        assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == ["target"], out_dir
+        assert list((tmp_path / "elsewhere" / "target").iterdir()) == [] and \
+            [p.name for p in (tmp_path / "here").iterdir()] == ["link"], out_dir
+
+
 def test_a_refused_command_leaves_nothing_at_its_default_folder_nor_hydras_record_of_a_dataset_command(tmp_path):
     """The cleanup read ``out_dir=`` from the command line: a refused ``spread-train`` at its default folder
     (``runs/train/<name>/<time>``, the README's form) left that folder and its lock, ``spread-generate`` left

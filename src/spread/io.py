@@ -488,9 +488,20 @@ def made_lock(path: Path) -> bool:
 
 
 def normal_path(path: str | os.PathLike) -> Path:
-    """``path`` as an absolute path without ``.`` or ``..`` parts, links not resolved (Hydra expands neither ``~``
-    nor ``..``)."""
-    return Path(os.path.normpath(os.path.abspath(path)))
+    """``path`` as an absolute path without ``.`` or ``..`` parts, naming the folder the system means by it: a ``..``
+    goes up from where the parts before it lead, links followed there (``link/../b`` is ``b`` beside the link's
+    target, as ``mkdir`` makes it), other links not resolved (Hydra expands neither ``~`` nor ``..``)."""
+    text = os.fspath(path)
+    parts = Path(text if os.path.isabs(text) else os.path.join(os.getcwd(), text)).parts
+    if ".." not in parts:
+        return Path(os.path.normpath(os.path.join(*parts)))
+    out = Path(parts[0])
+    for part in parts[1:]:
+        if part == "..":
+            out = Path(os.path.realpath(out) if os.path.islink(out) else out).parent  # a missing ``a``: ``a/..`` is ``.``
+        elif part != ".":
+            out = out / part
+    return out
 
 
 def same_file(fd: int, path: Path) -> bool:

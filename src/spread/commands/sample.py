@@ -14,7 +14,8 @@ from spread.configs import to_object
 
 def evaluation_after_sampling(command):
     """The :class:`~spread.evaluation.EvaluationConfig` of ``spread-sample evaluate=true``: the run's scenes
-    against the dataset's ``evaluation.reference_split``, results beside them in ``out_dir``."""
+    against the dataset's ``evaluation.reference_split``, results beside them in ``out_dir``, under the object limit
+    the sampling applied to its graphs (so the evaluation leaves out no scene the sampling made)."""
     from spread.evaluation import EvaluationConfig
 
     ev = command.evaluation
@@ -22,7 +23,7 @@ def evaluation_after_sampling(command):
         scenes=str(Path(command.out_dir) / "scenes"), reference=command.data.root, out_dir=command.out_dir,
         reference_split=ev.reference_split, chunk_size=ev.chunk_size, resume=command.resume,
         retry_failed=ev.retry_failed, renders=ev.renders, progress=command.progress, protocol=ev.protocol,
-        fid=ev.fid, ray=command.ray)
+        fid=ev.fid, ray=command.ray, max_objects=command.max_objects)  # the sampling's own limit: none left out
 
 
 def experiment_of(command) -> str:

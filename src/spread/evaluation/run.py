@@ -50,7 +50,10 @@ class EvaluationConfig:
     out_dir: run folder; chunk_size: scenes per Ray task; resume: keep ``per_scene.jsonl`` lines;
     retry_failed: on resume, evaluate scenes whose line has an error again; renders: top-down PNGs of
     the first evaluated scenes; progress: tqdm bar; bootstrap_resamples: resamples of the confidence intervals
-    (0: none); protocol / fid: what is measured and how (DESIGN §6); ray: where. The ``spread-evaluate``
+    (0: none); max_objects: largest scene evaluated (None: twice the reference dataset's largest, its
+    ``stats.json``'s ``max_objects``, as sampling's default; 0: no limit) — a larger one is left out by name before
+    any work (``scenes_over_limit`` in ``metrics.json``); protocol / fid: what is measured and how (DESIGN §6);
+    ray: where. The ``spread-evaluate``
     config (``conf/evaluate.yaml``) is this record plus the command's logger (:mod:`spread.configs`)."""
 
     scenes: str = MISSING
@@ -63,6 +66,7 @@ class EvaluationConfig:
     renders: int = 8
     progress: bool = True
     bootstrap_resamples: int = RESAMPLES
+    max_objects: int | None = None
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     fid: FIDConfig = field(default_factory=FIDConfig)
     ray: RaySettings = field(default_factory=RaySettings)
@@ -72,6 +76,8 @@ class EvaluationConfig:
 
         for key in ("chunk_size", "renders", "bootstrap_resamples"):
             whole_number(getattr(self, key), key, 1 if key == "chunk_size" else 0)
+        self.max_objects = whole_number(self.max_objects, "max_objects", 0, null="twice the reference's largest "
+                                        "scene")
 
 
 @dataclass
@@ -232,15 +238,31 @@ def check_fid(fid: FIDConfig) -> None:
         raise ValueError(f"{what}: cannot be loaded ({type(exc).__name__}: {exc})") from None
 
 
-def evaluated_with(cfg: EvaluationConfig, assets: str) -> dict:
+def scenes_over_limit(cfg: EvaluationConfig) -> dict[str, int]:
+    """Scene key → object count of each scene file of ``cfg.scenes`` over the run's object limit
+    (:func:`spread.data.limit.object_limit` of ``cfg.max_objects`` against the reference dataset); a file that does
+    not read as a scene is not counted here (its evaluation names why)."""
+    from spread.data.limit import object_limit, scenes_over
+    from spread.scene import list_scene_files
+
+    files = list_scene_files(cfg.scenes) if Path(str(cfg.scenes)).is_dir() else []
+    over = scenes_over(files, object_limit(cfg.reference, cfg.max_objects))
+    return {scene_key(f): n for f, n in sorted(over.items())}
+
+
+def evaluated_with(cfg: EvaluationConfig, assets: str, over: dict[str, int] | None = None) -> dict:
     """What ``metrics.json``'s numbers were measured with (``spread-report`` asks it, not ``protocol.json`` as it
     is when the report runs): the evaluation identity (:func:`spread.runtime.fingerprint.evaluation_identity`), the
-    reference split and its content (FID/KID's real set), in the shape a sweep point records them."""
+    reference split and its content (FID/KID's real set), in the shape a sweep point records them; and the scenes
+    the object limit left out (``over``: :func:`scenes_over_limit`, asked when None), where it left out any — they
+    change what the numbers average over, as sampling's ``graphs_over_limit`` does."""
     from spread.runtime.fingerprint import evaluation_identity, normalised, tree_digest
 
+    over = scenes_over_limit(cfg) if over is None else over
     return normalised({**evaluation_identity(cfg.protocol, cfg.fid, assets),
                        "reference_split": str(cfg.reference_split),
-                       "reference": tree_digest(Path(cfg.reference) / cfg.reference_split)})
+                       "reference": tree_digest(Path(cfg.reference) / cfg.reference_split),
+                       **({"scenes_over_limit": sorted(over)} if over else {})})
 
 
 def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:
@@ -272,6 +294,20 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     assets = str(Path(cfg.reference) / "assets")
     if not (Path(assets) / "index.json").exists():
         raise FileNotFoundError(f"reference={cfg.reference}: no asset library at {assets} (missing index.json)")
+    over = scenes_over_limit(cfg)  # left out by name before any work, the run goes on with the others
+    if over:
+        from spread.data.limit import object_limit
+
+        limit = object_limit(cfg.reference, cfg.max_objects)
+        if len(over) == len(files):
+            raise ValueError(f"scenes={cfg.scenes}: every scene is over the object limit {limit} (the largest holds "
+                             f"{max(over.values())} objects; set max_objects=<n> to raise it, 0: no limit)")
+        import logging
+
+        logging.getLogger("spread.evaluate").warning(
+            "left out %d of %d scenes over the object limit %d (max_objects): %s", len(over), len(files), limit,
+            ", ".join(f"{k} ({n} objects)" for k, n in list(over.items())[:3]))
+        files, keys = [f for f, k in zip(files, keys) if k not in over], [k for k in keys if k not in over]
     from spread import readonce
 
     readonce.asset_library(assets)  # its index read here: a bad record is refused before any worker starts
@@ -328,7 +364,8 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
                            for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
         "scenes": str(Path(str(cfg.scenes)).absolute()), "sampled_with": sampled_with(cfg.scenes),  # read from anywhere
-        "evaluated_with": evaluated_with(cfg, assets), "evaluated_scenes": [r["scene_id"] for r in records],
+        "evaluated_with": evaluated_with(cfg, assets, over), "evaluated_scenes": [r["scene_id"] for r in records],
+        "scenes_over_limit": [{"scene_id": k, "objects": n} for k, n in over.items()],
         "bootstrap_resamples": int(cfg.bootstrap_resamples),
         "reference": str(cfg.reference), "reference_split": cfg.reference_split,
         "protocol": cfg.protocol.to_dict(cfg.fid), "versions": versions(), "redone_because": redone_because,

@@ -157,8 +157,10 @@ def read_run_folder(path: str | Path) -> dict:
 def check_shape(path: Path, metrics: dict) -> None:
     """``RunError`` naming the file and key when a ``metrics.json`` holds a part the report reads in another shape
     than the evaluation writes it (a hand edit): ``bootstrap`` an object, ``per_room_type`` an object of objects
-    and the counts ``n_scenes``, ``n_objects``, ``n_failed`` whole numbers ≥ 0 (a metric's own value that is not a
-    number is shown ``invalid (...)`` instead, :class:`~spread.reporting.tables.Column`)."""
+    and the counts ``n_scenes``, ``n_objects``, ``n_failed`` whole numbers ≥ 0; no value, interval bound or room
+    type's value a ``NaN`` (the evaluation writes null where a metric has no value: a table would show a NaN as that
+    missing value, –, hiding the edit). A metric's own value that is not a number, or ±inf, is shown
+    ``invalid (...)`` instead, :class:`~spread.reporting.tables.Column`)."""
     if metrics.get("bootstrap") is not None and not isinstance(metrics["bootstrap"], dict):
         raise RunError(f"{path}: key 'bootstrap' is {type(metrics['bootstrap']).__name__}, expected an object")
     check_bootstrap(path, metrics.get("bootstrap") or {})
@@ -176,6 +178,13 @@ def check_shape(path: Path, metrics: dict) -> None:
         value = metrics.get(key)
         if value is not None and not (is_whole(value) and value >= 0):
             raise RunError(f"{path}: key '{key}' is {value!r}, expected a whole number ≥ 0")
+    for where, block in [("", metrics), *[(f"per_room_type.{t}.", v) for t, v in (rooms or {}).items()]]:
+        for key in record_metrics():
+            for name in (key, f"{key}_lo", f"{key}_hi"):
+                value = block.get(name)
+                if isinstance(value, float) and value != value:
+                    raise RunError(f"{path}: key '{where}{name}' is NaN, a value spread-evaluate never writes (null "
+                                   f"where a metric has no value); restore the file or evaluate the run again")
 
 
 def check_bootstrap(path: Path, block: dict) -> None:

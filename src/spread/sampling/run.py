@@ -34,6 +34,7 @@ from typing import Callable
 from omegaconf import MISSING
 
 from spread import readonce
+from spread.data.limit import object_limit  # noqa: F401 - the run's limit (re-exported: tests, commands)
 from spread.guidance import GuidanceConfig
 from spread.io import check_folder_kind, read_json, write_json_atomic
 from spread.runtime.threads import check_threads
@@ -155,20 +156,6 @@ class SamplingResult:
 def list_graphs(data_root: str | Path, split: str) -> list[Graph]:
     """The split's scene files as conditioning graphs (each read and validated against the library)."""
     return read_graphs(data_root, split)[0]
-
-
-def object_limit(data_root: str | Path, max_objects: int | None) -> int | None:
-    """The largest graph a run samples (:class:`SamplingConfig` ``max_objects``): the setting, or twice the
-    largest scene of the dataset's ``stats.json`` (None when it does not say); 0 or less: no limit."""
-    if max_objects is not None:
-        return int(max_objects) if int(max_objects) > 0 else None
-    stats = Path(data_root) / "stats.json"
-    if not stats.is_file():
-        return None
-    from spread.io import read_json_object
-
-    largest = read_json_object(stats).get("max_objects")
-    return 2 * int(largest) if isinstance(largest, int) and largest > 0 else None
 
 
 def graphs_over(data_root: str | Path, split: str, limit: int | None) -> list[str]:

@@ -113,6 +113,19 @@ def test_metrics_nobody_measured_have_no_interval_and_bad_input_is_named():
         interval_note(bootstrap_intervals(rows)["bootstrap"])
 
 
+def test_finite_states_whose_sums_overflow_give_no_interval_never_a_nan():
+    """A line whose ASD sum is 1.7e308 (finite, so usable): the resampled sums overflow to inf and ``np.quantile``
+    made the bounds NaN, written into metrics.json (which spread-report then refuses): none now, other metrics kept."""
+    import math
+
+    rows = [record(k, 0, 3, 6, 6, asd_sum=1.7e308, support=1) for k in "abc"]
+    out = bootstrap_intervals(rows, resamples=50)
+    assert out["asd_lo"] is None and out["asd_hi"] is None
+    assert out["grecall_lo"] == out["grecall_hi"] == 1.0
+    assert all(v is None or math.isfinite(v) for k, v in out.items() if k != "bootstrap")
+    json.dumps(out, allow_nan=False)
+
+
 def random_rooms(n, seed):
     """n rooms of 2-30 objects with random collisions, relations, support gaps and physics outcomes."""
     rng = np.random.default_rng(seed)

@@ -460,27 +460,38 @@ def test_a_refused_command_removes_the_folders_its_out_dir_made_on_the_way_throu
         assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"], out_dir
 
 
-def test_a_refused_command_removes_its_folder_where_a_link_followed_by_dot_dot_leads(tmp_path):
+def test_an_out_dir_with_dot_dot_after_a_link_or_through_a_looping_or_dangling_link_is_refused_in_one_line(tmp_path):
     """``out_dir=link/../b`` with ``link`` → ``elsewhere/target``: the system makes ``b`` beside the link's target
-    (``elsewhere/b``: ``..`` goes up from where the link leads), while the cleanup looked for ``./b`` by the text and
-    left ``elsewhere/b``, with the run's lock in it."""
+    (``elsewhere/b``), while atomic writes' temporary files and Hydra's run folder go by the text (``./b``): a
+    refused run left ``elsewhere/b`` with its lock, an evaluation failed on a missing ``./b`` or, where ``./b`` was
+    another run's folder, wrote its log there. A link that loops or leads nowhere gave a traceback."""
     from helpers import user_error
 
     from spread.io import normal_path
 
     (tmp_path / "elsewhere" / "target").mkdir(parents=True)
-    (tmp_path / "here").mkdir()
-    (tmp_path / "here" / "link").symlink_to(tmp_path / "elsewhere" / "target")
-    assert normal_path(tmp_path / "here" / "link" / ".." / "b") == tmp_path / "elsewhere" / "b"
-    assert normal_path(tmp_path / "here" / "link" / "x" / ".." / "..") == tmp_path / "elsewhere"
-    assert normal_path(tmp_path / "here" / "a" / ".." / "b") == tmp_path / "here" / "b"
-    for out_dir in ("link/../b", "link/../c/d", "link/x/../../e"):
-        line, _ = user_error("spread-sample", "ckpt=no.ckpt", f"data.root={tmp_path}", f"out_dir={out_dir}",
-                             cwd=tmp_path / "here")
-        assert "no such checkpoint file" in line
-        assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == ["target"], out_dir
-        assert list((tmp_path / "elsewhere" / "target").iterdir()) == [] and \
-            [p.name for p in (tmp_path / "here").iterdir()] == ["link"], out_dir
+    here = tmp_path / "here"
+    here.mkdir()
+    (here / "link").symlink_to(tmp_path / "elsewhere" / "target")
+    (here / "loop").symlink_to("loop")
+    (here / "dangling").symlink_to(tmp_path / "nowhere" / "x")
+    assert normal_path(here / "link" / ".." / "b") == tmp_path / "elsewhere" / "b"
+    assert normal_path(here / "link" / "x" / ".." / "..") == tmp_path / "elsewhere"
+    assert normal_path(here / "a" / ".." / "b") == here / "b"
+    for out_dir, says in [("link/../b", f"a '..' follows a symbolic link, so the system means {tmp_path}/elsewhere/b "
+                                        f"while the text reads {here}/b; give the folder without '..' "
+                                        f"(out_dir={tmp_path}/elsewhere/b)"),
+                          ("link/x/../../e", f"the system means {tmp_path}/elsewhere/e"),
+                          ("loop/b", "loop is a symbolic link that leads nowhere"),
+                          ("dangling/b", f"dangling is a symbolic link that leads nowhere ({tmp_path}/nowhere/x)"),
+                          ("dangling/../b", f"the system means {tmp_path}/nowhere/b")]:
+        for name in ("spread-sample", "spread-generate"):
+            extra = ["ckpt=no.ckpt", f"data.root={tmp_path}"] if name == "spread-sample" else ["rooms=0"]
+            line, _ = user_error(name, *extra, f"out_dir={out_dir}", cwd=here)
+            assert line.startswith(f"{name}: out_dir={out_dir}: ") and says in line, line
+            assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == ["target"], out_dir
+            assert list((tmp_path / "elsewhere" / "target").iterdir()) == [], out_dir
+            assert sorted(p.name for p in here.iterdir()) == ["dangling", "link", "loop"], out_dir
 
 
 def test_a_refused_command_leaves_nothing_at_its_default_folder_nor_hydras_record_of_a_dataset_command(tmp_path):

@@ -465,3 +465,61 @@ def test_a_resume_with_the_checkpoints_own_settings_is_never_refused_whatever_th
     assert resumed_changes(checkpoint, model, datamodule) == []
     other = {**checkpoint, "hyper_parameters": {**held, "lr": float(held["lr"]) * 10}}
     assert [c.split(":")[0] for c in resumed_changes(other, model, datamodule)] == ["model.lr"]
+
+
+def test_an_evaluate_stage_under_another_object_limit_is_not_the_stage_recorded(dataset, tmp_path):
+    """An ablation's or comparison's ``evaluate: [max_objects=3]`` left scenes out; relaunched with
+    ``max_objects=0`` its stage inputs were the same, so the stage was skipped and the table kept the numbers
+    without those scenes. The default (null) is left out of the inputs: stages recorded before keep theirs."""
+    from spread.experiments.stages import Ledger, Stage, StageEngine, StagesSpec, run_stage
+    from spread.runtime.fingerprint import normalised
+
+    samples = tmp_path / "study" / "samples" / "v"  # the row's sampling stage, finished
+    samples.mkdir(parents=True)
+    (samples / "sampling.json").write_text('{"fingerprint": {"sampling": {}, "guidance": null}, "samples": 2}')
+
+    def stage(evaluate: list[str]) -> Stage:
+        spec = StagesSpec(out_dir=tmp_path / "study", data_root=dataset, split="test", evaluate=evaluate)
+        return StageEngine(spec, commands=None, study=None, ledger_name="ablation.json").evaluate_stage("v")
+
+    limited, unlimited, default = stage(["max_objects=3"]), stage(["max_objects=0"]), stage([])
+    assert limited.inputs["max_objects"] == 3 and unlimited.inputs["max_objects"] == 0
+    assert "max_objects" not in default.inputs and stage(["max_objects=null"]).inputs == default.inputs
+    folder = Path(limited.folder)
+    folder.mkdir(parents=True)
+    (folder / "metrics.json").write_text('{"n_evaluated": 2}')
+    ledger = Ledger(tmp_path / "study" / "ablation.json")
+    ledger.record(limited.name, normalised(limited.inputs), 1.0)
+    ran = []
+    limited.run = unlimited.run = lambda resume: ran.append(resume)
+    assert run_stage(limited, ledger) == "skipped" and ran == []
+    assert run_stage(unlimited, ledger) == "done" and ran == [False]  # redone from scratch (resume=false)
+    assert ledger.inputs(unlimited.name)["max_objects"] == 0
+
+
+def test_spread_sample_evaluate_true_evaluates_under_its_own_object_limit_a_negative_one_as_none(tmp_path):
+    """``max_objects=-1`` (sampling: no limit) was handed on as -1, which the evaluation refuses: after the whole
+    sampling had run, the evaluation failed and the sweep point stayed 'running'."""
+    from spread.commands.sample import evaluation_after_sampling
+    from spread.configs import compose, to_object
+
+    def limit(value: str):
+        command = to_object(compose("sample", ["ckpt=a.ckpt", f"data.root={tmp_path}", f"out_dir={tmp_path / 'o'}",
+                                               "evaluate=true", f"max_objects={value}"]))
+        return evaluation_after_sampling(command).max_objects
+
+    assert [limit(v) for v in ("-1", "0", "5", "null")] == [0, 0, 5, None]
+
+
+def test_what_an_object_limit_leaves_out_is_listed_up_to_sixteen_names_and_above_by_count_and_digest():
+    """800 scenes over the limit made the evaluation's identity a 22,205-character tag, which MLflow cut to invalid
+    JSON (the report of the store then lost the evaluation's identity)."""
+    from spread.runtime.fingerprint import NAMES_LISTED, left_out, settings
+
+    few = [f"scene-{i:03d}" for i in range(NAMES_LISTED)]
+    assert left_out(reversed(few)) == few
+    many = [f"livingroom-big-scene-{i:03d}" for i in range(800)]
+    spelled = left_out(many)
+    assert isinstance(spelled, str) and spelled.startswith("800 names, sha256 ") and len(spelled) < 40
+    assert left_out(reversed(many)) == spelled and left_out(many[:-1]) != spelled
+    assert settings({"evaluation": {"scenes_over_limit": spelled}})["scenes_over_limit"] == spelled

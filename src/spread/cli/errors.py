@@ -52,7 +52,29 @@ def one_line(name: str):
 
 
 def out_dir_problem(value: str) -> str | None:
-    """Why ``out_dir=value`` cannot be a run folder (an existing file, not writable), or None."""
+    """Why ``out_dir=value`` cannot be a run folder (an existing file, not writable, a link that loops or leads
+    nowhere, a ``..`` after a link: :func:`link_then_up`), or None."""
+    try:
+        return link_then_up(value) or _out_dir_problem(value)
+    except OSError as exc:  # a link that loops (ELOOP), a name too long, ...
+        return f"out_dir={value}: not a usable path ({exc.strerror or type(exc).__name__}); give another out_dir"
+
+
+def link_then_up(value: str) -> str | None:
+    """Why ``out_dir=value`` with a ``..`` right after a symbolic link is refused, or None: the system goes up from
+    where the link leads (``link/../b`` is ``b`` beside the link's target), but the temporary files of atomic writes
+    and Hydra's run folder go by the text (``./b``), so the run's files would land in two folders."""
+    from spread.io import normal_path
+
+    text = Path(os.path.normpath(os.path.abspath(os.path.expanduser(value))))
+    meant = normal_path(os.path.expanduser(value))
+    if ".." not in Path(value).parts or meant == text:
+        return None
+    return (f"out_dir={value}: a '..' follows a symbolic link, so the system means {meant} while the text reads "
+            f"{text}; give the folder without '..' (out_dir={meant})")
+
+
+def _out_dir_problem(value: str) -> str | None:
     path = Path(value).expanduser()
     if path.exists() or path.is_symlink():
         if not path.is_dir():
@@ -62,6 +84,8 @@ def out_dir_problem(value: str) -> str | None:
         return None
     parent = path.parent
     while not parent.exists() and parent != parent.parent:
+        if parent.is_symlink():  # dangling (a loop raises ELOOP above)
+            return f"out_dir={value}: {parent} is a symbolic link that leads nowhere ({os.readlink(parent)})"
         parent = parent.parent
     if not parent.is_dir():
         return f"out_dir={value}: {parent} is not a folder, so the run folder cannot be made there"

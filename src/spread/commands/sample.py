@@ -23,7 +23,8 @@ def evaluation_after_sampling(command):
         scenes=str(Path(command.out_dir) / "scenes"), reference=command.data.root, out_dir=command.out_dir,
         reference_split=ev.reference_split, chunk_size=ev.chunk_size, resume=command.resume,
         retry_failed=ev.retry_failed, renders=ev.renders, progress=command.progress, protocol=ev.protocol,
-        fid=ev.fid, ray=command.ray, max_objects=command.max_objects)  # the sampling's own limit: none left out
+        fid=ev.fid, ray=command.ray,  # the sampling's own limit (≤ 0: none): the evaluation leaves out no scene
+        max_objects=None if command.max_objects is None else max(0, int(command.max_objects)))
 
 
 def experiment_of(command) -> str:

@@ -59,8 +59,9 @@ def scene_sums(records: Iterable[dict], metrics: dict) -> dict[str, tuple[np.nda
 
 def pooled(num: np.ndarray, den: np.ndarray) -> float:
     """Σ num / Σ den, NaN when Σ den is 0."""
-    total = float(den.sum())
-    return float(num.sum()) / total if total > 0 else float("nan")
+    with np.errstate(over="ignore"):  # an overflowing sum is inf: the caller asks for a finite value
+        total, part = float(den.sum()), float(num.sum())
+    return part / total if total > 0 else float("nan")
 
 
 def resample_indices(n: int, resamples: int, seed: int) -> np.ndarray:
@@ -87,7 +88,8 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
                         seed: int = 0, metrics: dict | None = None) -> dict:
     """``{"<value>_lo": ..., "<value>_hi": ..., "bootstrap": {...}}`` for every pooled-ratio value of ``metrics``
     (name → metric, e.g. ``protocol.build_metrics()``; default: the registered metrics whose states the records
-    carry) over ``records`` (``per_scene.jsonl`` lines); None where a metric has no value. ``bootstrap`` records the
+    carry) over ``records`` (``per_scene.jsonl`` lines); None where a metric has no value or its resampled sums are
+    not finite (finite states whose sums overflow: never written as NaN). ``bootstrap`` records the
     method, resamples, level, seed, the number of scenes and, per metric, how many of them measured it
     (``measured``: a non-zero denominator, e.g. ASD only counts rooms with support pairs — an interval
     resting on a handful of such rooms is too narrow to trust)."""
@@ -109,14 +111,17 @@ def bootstrap_intervals(records: Iterable[dict], resamples: int = RESAMPLES, lev
     for metric, (num, den) in sums.items():
         lo = hi = None
         m = len(num)  # scenes this metric was measured on (fewer than n where it failed on some)
-        if m and not math.isnan(pooled(num, den)):
+        if m and math.isfinite(pooled(num, den)):  # sums that overflow (a hand-edited line's 1e308) give none
             if m not in indices:
                 indices[m] = resample_indices(m, resamples, seed)
             index = indices[m]
-            nb, db = num[index].sum(axis=1), den[index].sum(axis=1)
+            with np.errstate(over="ignore", invalid="ignore"):  # overflowing sums: no interval, below
+                nb, db = num[index].sum(axis=1), den[index].sum(axis=1)
             ok = db > 0
             if ok.any():
-                lo, hi = (float(q) for q in np.quantile(nb[ok] / db[ok], quantiles))
+                with np.errstate(over="ignore", invalid="ignore"):
+                    lo, hi = (float(q) for q in np.quantile(nb[ok] / db[ok], quantiles))
+                lo, hi = (lo, hi) if math.isfinite(lo) and math.isfinite(hi) else (None, None)
         out[f"{metric}_lo"], out[f"{metric}_hi"] = lo, hi
     out["bootstrap"] = meta
     return out

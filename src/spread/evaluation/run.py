@@ -256,13 +256,13 @@ def evaluated_with(cfg: EvaluationConfig, assets: str, over: dict[str, int] | No
     reference split and its content (FID/KID's real set), in the shape a sweep point records them; and the scenes
     the object limit left out (``over``: :func:`scenes_over_limit`, asked when None), where it left out any — they
     change what the numbers average over, as sampling's ``graphs_over_limit`` does."""
-    from spread.runtime.fingerprint import evaluation_identity, normalised, tree_digest
+    from spread.runtime.fingerprint import evaluation_identity, left_out, normalised, tree_digest
 
     over = scenes_over_limit(cfg) if over is None else over
     return normalised({**evaluation_identity(cfg.protocol, cfg.fid, assets),
                        "reference_split": str(cfg.reference_split),
                        "reference": tree_digest(Path(cfg.reference) / cfg.reference_split),
-                       **({"scenes_over_limit": sorted(over)} if over else {})})
+                       **({"scenes_over_limit": left_out(over)} if over else {})})  # bounded: a tracker's tag
 
 
 def run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | None = None) -> EvaluationResult:

@@ -483,7 +483,8 @@ class StageEngine:
 
         inputs = {"evaluation": evaluation_identity(command.protocol, command.fid, Path(command.reference) / "assets"),
                   "reference_split": command.reference_split, "samples": sampling_inputs(samples),
-                  **self.data_inputs()}
+                  **self.data_inputs(),  # an object limit set leaves scenes out of the numbers (the default: none)
+                  **({"max_objects": command.max_objects} if command.max_objects is not None else {})}
         return Stage(f"evaluate/{variant}", folder, [folder / "metrics.json"], inputs, run)
 
     def data_inputs(self) -> dict:

@@ -348,8 +348,23 @@ def sampling_identity(cfg) -> dict:
                          **unspelled_defaults_dropped({
                              "precision": str(unread.get("precision", getattr(cfg, "precision", "32"))),
                              "geometry_scale": float(getattr(cfg, "geometry_scale", 1.0)),
-                             "graphs_over_limit": cfg.graphs_over_limit() if hasattr(cfg, "graphs_over_limit") else []})},
+                             "graphs_over_limit": left_out(cfg.graphs_over_limit() if hasattr(cfg, "graphs_over_limit")
+                                                           else [])})},
             "guidance": guidance_run(cfg.ckpt, cfg.guidance).fingerprint(), "numbers_version": NUMBERS_VERSION}
+
+
+#: Most names an identity lists of what a run leaves out; more are spelled by count and digest (an identity travels as
+#: a tracker's tag: MLflow cuts a tag at 8,000 characters, and 800 scene ids made it invalid JSON).
+NAMES_LISTED = 16
+
+
+def left_out(names) -> list[str] | str:
+    """The sorted ``names`` a run leaves out (graphs, scenes over its object limit), as an identity spells them: the
+    list, or above :data:`NAMES_LISTED` ``"<n> names, sha256 <16 hex>"`` (the same set, the same text)."""
+    names = sorted(str(n) for n in names)
+    if len(names) <= NAMES_LISTED:
+        return names
+    return f"{len(names)} names, sha256 {hashlib.sha256(json.dumps(names).encode()).hexdigest()[:16]}"
 
 
 def evaluation_identity(protocol, fid, assets) -> dict:

@@ -464,7 +464,8 @@ def test_an_out_dir_with_dot_dot_after_a_link_or_through_a_looping_or_dangling_l
     """``out_dir=link/../b`` with ``link`` → ``elsewhere/target``: the system makes ``b`` beside the link's target
     (``elsewhere/b``), while atomic writes' temporary files and Hydra's run folder go by the text (``./b``): a
     refused run left ``elsewhere/b`` with its lock, an evaluation failed on a missing ``./b`` or, where ``./b`` was
-    another run's folder, wrote its log there. A link that loops or leads nowhere gave a traceback."""
+    another run's folder, wrote its log there. A link that loops or leads nowhere gave a traceback. ``++out_dir=``
+    is checked as composed."""
     from helpers import user_error
 
     from spread.io import normal_path
@@ -485,13 +486,16 @@ def test_an_out_dir_with_dot_dot_after_a_link_or_through_a_looping_or_dangling_l
                           ("loop/b", "loop is a symbolic link that leads nowhere"),
                           ("dangling/b", f"dangling is a symbolic link that leads nowhere ({tmp_path}/nowhere/x)"),
                           ("dangling/../b", f"the system means {tmp_path}/nowhere/b")]:
-        for name in ("spread-sample", "spread-generate"):
+        for name in ("spread-sample", "spread-generate") if out_dir == "link/../b" else ("spread-sample",):
             extra = ["ckpt=no.ckpt", f"data.root={tmp_path}"] if name == "spread-sample" else ["rooms=0"]
             line, _ = user_error(name, *extra, f"out_dir={out_dir}", cwd=here)
             assert line.startswith(f"{name}: out_dir={out_dir}: ") and says in line, line
             assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == ["target"], out_dir
             assert list((tmp_path / "elsewhere" / "target").iterdir()) == [], out_dir
             assert sorted(p.name for p in here.iterdir()) == ["dangling", "link", "loop"], out_dir
+    line, _ = user_error("spread-sample", "ckpt=no.ckpt", f"data.root={tmp_path}", "++out_dir=link/../f", cwd=here)
+    assert line.startswith(f"spread-sample: out_dir=link/../f: a '..' follows a symbolic link"), line  # as composed
+    assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == ["target"]
 
 
 def test_a_refused_command_leaves_nothing_at_its_default_folder_nor_hydras_record_of_a_dataset_command(tmp_path):

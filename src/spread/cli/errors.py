@@ -157,6 +157,14 @@ def composed_ahead(config: str, args: list[str], name: str = ""):
     return required_message(missing, f"`{name} --cfg job` prints every setting" if name else ""), composed
 
 
+def composed_value(composed, key: str):
+    """``composed``'s ``key`` resolved, or None where it cannot be outside the running app (``${hydra:...}``)."""
+    try:
+        return composed.get(key)
+    except Exception:  # noqa: BLE001 - an interpolation only the running app resolves
+        return None
+
+
 def unset_keys(plain, prefix: str = "") -> list[str]:
     """The dotted keys of a config (as plain data, interpolations unresolved: ``${hydra:...}`` or ``${point_dir:...}``
     resolve only inside the running app) whose value is OmegaConf's ``???``."""
@@ -195,6 +203,11 @@ def command(name: str, config: str | None = None):
             if config is not None:
                 problem, composed = composed_ahead(config, sys.argv[1:], name)
                 if problem:
+                    raise SystemExit(f"{name}: {problem}")
+                typed = any(a.startswith("out_dir=") for a in sys.argv[1:])  # checked above, as typed
+                value = None if composed is None or typed else composed_value(composed, "out_dir")
+                problem = out_dir_problem(value) if isinstance(value, str) and value else None
+                if problem:  # ``++out_dir=``, a default, an interpolation
                     raise SystemExit(f"{name}: {problem}")
             left = FolderLeftEmpty.of(sys.argv[1:], composed)
             _RUN_FOLDERS.clear()
@@ -238,12 +251,7 @@ class FolderLeftEmpty:
         it can be outside the app); a multirun's jobs write their own folders: nothing to keep."""
         if any(a in ("-m", "--multirun") or a.lstrip("+").startswith("hydra.mode") for a in args):
             return cls(None)
-        value = None
-        if composed is not None:
-            try:
-                value = composed.get("out_dir")
-            except Exception:  # noqa: BLE001 - an interpolation only the running app resolves (${hydra:...})
-                value = None
+        value = None if composed is None else composed_value(composed, "out_dir")
         if value is None:
             given = [a.split("=", 1)[1] for a in args if a.lstrip("+").startswith("out_dir=")]
             value = given[-1] if given else None

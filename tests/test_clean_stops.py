@@ -110,6 +110,59 @@ def test_sigterm_while_the_driver_waits_on_ray_exits_as_terminated_not_as_a_fail
             pass
 
 
+STARTER = """
+from spread.runtime.ray import RaySettings, ray_session
+with ray_session(RaySettings(num_cpus=1)):
+    pass
+"""
+
+
+def _state(pid: int) -> str | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return None
+
+
+def _gcs_child(pid: int) -> bool:
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                parent = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                if parent == pid and b"gcs_server" in f.read():
+                    return True
+        except (OSError, ValueError, IndexError):
+            continue
+    return False
+
+
+@pytest.mark.timeout(240)
+def test_sigterm_to_the_process_group_while_ray_starts_its_cluster_ends_the_command_at_once_and_leaves_no_process():
+    """The group's SIGTERM killed the GCS before it published its port, and the driver waited for that port inside
+    Ray's code (holding the interpreter: no Python handler runs) for 30 s before it stopped."""
+    proc = subprocess.Popen([sys.executable, "-c", STARTER], start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not _gcs_child(proc.pid) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.005)
+        assert proc.poll() is None, "the cluster started before the test saw its GCS"
+        os.killpg(proc.pid, signal.SIGTERM)
+        stopped = time.monotonic()
+        assert proc.wait(timeout=60) in (-signal.SIGTERM, 128 + signal.SIGTERM)
+        assert time.monotonic() - stopped < 10  # it was 30 s: Ray's wait for the GCS port
+        time.sleep(1.0)
+        session = subprocess.run(["pgrep", "-s", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        left = [p for p in session if _state(int(p)) not in ("Z", None)]  # a zombie no init here reaps is no process
+        assert left == [], left
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 def test_a_record_of_processes_that_are_gone_or_of_another_session_stops_nothing(tmp_path):
     sleeper = subprocess.Popen(["sleep", "60"])
     try:  # a recorded pid reused by another program (its command line names no Ray session): left alone

@@ -243,6 +243,35 @@ def _terminated_as_143() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _sigterm_ends_the_start() -> Iterator[None]:
+    """While ``ray.init`` starts a cluster, SIGTERM has its default action: the process ends at once (status 143 in a
+    shell), and the processes Ray started end with it (Ray starts them sharing its fate: ``PR_SET_PDEATHSIG``). The
+    main thread then waits inside Ray's code for the GCS to publish its port (``Node.start_gcs_server``) holding the
+    interpreter, so no Python handler runs: a SIGTERM to the command's process group, which also killed that GCS,
+    took the wait's 30 s to end the command. The handler the starting node installs (it drains, stops its processes and
+    exits 1) is not installed for the start; the session sets its own after it (:func:`ray_session`). Nothing of the
+    run needs a ``finally`` then: its lock is an ``flock``, and the run folder resumes as after any stop. Main thread
+    only (where a cluster is started)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    import ray._private.utils as ray_utils
+
+    install = getattr(ray_utils, "set_sigterm_handler", None)
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if install is not None:  # the handler the starting node installs (``Node._register_shutdown_hooks``) is left out
+        ray_utils.set_sigterm_handler = lambda handler: None
+    try:
+        yield
+    finally:
+        if install is not None:
+            ray_utils.set_sigterm_handler = install
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
 def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Iterator[dict]:
     """Ray initialised for the block (module docstring); yields ``{"address", "nodes", "cpus"}``. ``owner``: the
     command's output folder, where a started cluster is recorded (and a killed predecessor's stopped)."""
@@ -257,7 +286,7 @@ def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Itera
         stop_leftover(Path(owner))
     with _stop_on_signals(), _terminated_as_143():
         if owned:
-            with quiet_ray_start():
+            with quiet_ray_start(), _sigterm_ends_the_start():
                 _start(settings)
             if recorded:
                 _record(Path(owner))

@@ -129,6 +129,12 @@ def test_resuming_a_checkpoint_with_other_training_settings_is_refused_by_name(d
                                          r"model.init_from="):
         train_in_process(folder, *common, "trainer.max_steps=4", "model.lr=0.01", "seed=3", "data.batch_size=2")
     assert (folder / "checkpoints" / "last.ckpt").read_bytes() == held
+    # the clipping changes every update: it was resumed, and the run's recorded config rewritten
+    for clip, says in (("trainer.gradient_clip_val=0.0", "trainer.gradient_clip_val: 1.0 -> None"),
+                       ("+trainer.gradient_clip_algorithm=value", "trainer.gradient_clip_algorithm: 'norm' -> 'value'")):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            train_in_process(folder, *common, "trainer.max_steps=4", clip)
+    assert (folder / "checkpoints" / "last.ckpt").read_bytes() == held
     # what changes none of the trained numbers resumes: more steps, loader processes, validation sampling
     summary = train_in_process(folder, *common, "trainer.max_steps=3", "data.num_workers=1",
                                "model.sample_every_n_epochs=0")
@@ -523,3 +529,25 @@ def test_what_an_object_limit_leaves_out_is_listed_up_to_sixteen_names_and_above
     assert isinstance(spelled, str) and spelled.startswith("800 names, sha256 ") and len(spelled) < 40
     assert left_out(reversed(many)) == spelled and left_out(many[:-1]) != spelled
     assert settings({"evaluation": {"scenes_over_limit": spelled}})["scenes_over_limit"] == spelled
+
+
+def test_spread_generate_refuses_an_out_dir_inside_the_library_it_copies_or_holding_another_commands_run(tmp_path):
+    """``out_dir`` inside ``assets.copy_from`` copied the library into itself level upon level (270 levels, then
+    Python's recursion limit); into a training run's folder it wrote a dataset beside the checkpoints, and the
+    run could no longer be resumed. Both are refused in one line before anything is made."""
+    from helpers import user_error
+
+    lib = tmp_path / "lib"
+    (lib / "meshes").mkdir(parents=True)
+    (lib / "index.json").write_text("{}")
+    line, _ = user_error("spread-generate", f"out_dir={lib / 'out'}", "rooms=2", "processes=1", "renders=0",
+                         f"assets.copy_from={lib}")
+    assert line.startswith(f"spread-generate: assets.copy_from={lib}: out_dir={lib / 'out'} lies inside it, so the "
+                           f"copy would hold itself; give an out_dir outside the library"), line
+    assert sorted(p.name for p in lib.iterdir()) == ["index.json", "meshes"]
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    line, _ = user_error("spread-generate", f"out_dir={run}", "rooms=2", "processes=1", "renders=0",
+                         f"assets.copy_from={lib}")
+    assert line.startswith(f"spread-generate: out_dir={run}: holds a training run ({run / 'checkpoints'})"), line
+    assert [p.name for p in run.iterdir()] == ["checkpoints"]

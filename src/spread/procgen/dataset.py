@@ -230,6 +230,20 @@ def read_back(path: Path, library):
         return None
 
 
+def check_places(out: Path, config: DatasetConfig) -> None:
+    """``ValueError`` before anything is made when ``out`` holds another command's run (a training run's folder got
+    a dataset beside its checkpoints, and could no longer be resumed) or lies inside ``assets.copy_from`` (the copy
+    copied itself, level upon level, until Python's recursion limit)."""
+    from spread.io import check_folder_kind
+
+    check_folder_kind(out, "spread-generate", {"dataset"})
+    if config.assets.copy_from and not (out / "assets" / "index.json").exists():  # a copy to make
+        src, target = Path(config.assets.copy_from).resolve(), (out / "assets").resolve()
+        if target == src or src in target.parents:
+            raise ValueError(f"assets.copy_from={config.assets.copy_from}: out_dir={out} lies inside it, so the copy "
+                             f"would hold itself; give an out_dir outside the library")
+
+
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or complete) the dataset folder; returns the manifest written."""
     import logging
@@ -238,10 +252,11 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
 
     from spread.assets.build import build_library
 
+    out = Path(out_dir)
+    check_places(out, config)
     warnings = check_config(config)
     for message in warnings:
         logging.getLogger("spread.generate").warning(message)
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     check_folder(out, config)
     t0 = time.perf_counter()

@@ -100,13 +100,25 @@ class DataDigest(Callback):
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         if self.digest is not None:
             checkpoint[DATA_DIGEST] = self.digest
-        checkpoint[TRAINER_SETTINGS] = {k: getattr(trainer, k, None) for k in TRAINER_KEYS}
+        checkpoint[TRAINER_SETTINGS] = {k: trainer_value(k, getattr(trainer, k, None)) for k in TRAINER_KEYS}
 
 
 #: Trainer settings a resumed run must keep, recorded in every checkpoint (under :data:`TRAINER_SETTINGS`, by
-#: :class:`DataDigest`): how many batches a step takes decides where in the data a resumed run stands.
-TRAINER_KEYS = ("accumulate_grad_batches",)
+#: :class:`DataDigest`): how many batches a step takes decides where in the data a resumed run stands; the gradient
+#: clipping changes every step's update (a resume with another was accepted, and its config rewritten). Keys a
+#: checkpoint does not hold (written before they were recorded) are not compared.
+TRAINER_KEYS = ("accumulate_grad_batches", "gradient_clip_val", "gradient_clip_algorithm")
 TRAINER_SETTINGS = "spread_trainer"
+
+
+def trainer_value(key: str, value):
+    """A :data:`TRAINER_KEYS` value as recorded and compared: no clipping (None or 0: Lightning clips only at a
+    value) is None; the clipping algorithm by name, ``norm`` where it is not set (Lightning's default)."""
+    if key == "gradient_clip_val":
+        return float(value) if value else None
+    if key == "gradient_clip_algorithm":
+        return str(getattr(value, "value", value) or "norm").lower()
+    return value
 
 #: Hyperparameters a resumed run may change, as they change none of the trained numbers: the model's validation-time
 #: sampling, its compilation (the same loss) and its start weights (read by a new run only); the loaders' processes
@@ -304,7 +316,7 @@ def check_accelerator(cfg: DictConfig, override: str | None = None) -> None:
 def trainer_settings_of(cfg: DictConfig) -> dict:
     """The :data:`TRAINER_KEYS` settings a run's trainer will hold (Lightning's defaults where the config is silent)."""
     defaults = {"accumulate_grad_batches": 1}
-    return {k: OmegaConf.select(cfg, f"trainer.{k}", default=defaults.get(k)) for k in TRAINER_KEYS}
+    return {k: trainer_value(k, OmegaConf.select(cfg, f"trainer.{k}", default=defaults.get(k))) for k in TRAINER_KEYS}
 
 
 def check_start(cfg: DictConfig, run_dir: Path) -> None:

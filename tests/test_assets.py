@@ -364,6 +364,42 @@ def test_rebuild_resumes_without_rewriting(tmp_path):
     assert AssetLibrary.load(tmp_path).records.keys() == lib.records.keys()
 
 
+def test_a_damaged_geometry_cache_is_rebuilt_from_the_mesh_never_read(tmp_path):
+    """A cache with NaN points trained silently (loss NaN, 306 of 309 weights non-finite, exit 0); points of shape
+    (N, 2) failed mid-epoch with a traceback naming no file; one point per asset trained silently."""
+    spec = make_spec("box", 0, seed=0)
+    rec = write_asset(tmp_path, spec)
+    lib = AssetLibrary(tmp_path, {rec.asset_id: rec})
+    good = lib.geometry(rec.asset_id)
+    path = lib.cache_path(rec.asset_id)
+    damaged_points = {"nan": np.full_like(good.surface_points, np.nan), "shape2": good.surface_points[:, :2],
+                      "few": good.surface_points[:1], "text": np.full(good.surface_points.shape, "x")}
+    for name, points in damaged_points.items():
+        normals = good.surface_normals[:1] if name == "few" else good.surface_normals
+        np.savez(path, surface_points=points, surface_normals=normals, xz_hull=good.xz_hull)
+        again = AssetLibrary(tmp_path, {rec.asset_id: rec}).geometry(rec.asset_id)
+        assert np.array_equal(again.surface_points, good.surface_points), name
+        assert np.array_equal(again.xz_hull, good.xz_hull), name
+        with np.load(path) as d:  # the file was written anew
+            assert np.array_equal(d["surface_points"], good.surface_points), name
+    np.savez(path, surface_points=good.surface_points, surface_normals=good.surface_normals,
+             xz_hull=np.array([[0.0, 0.0], [np.inf, 1.0], [1.0, 0.0]]))
+    assert np.array_equal(AssetLibrary(tmp_path, {rec.asset_id: rec}).geometry(rec.asset_id).xz_hull, good.xz_hull)
+
+
+def test_a_mesh_file_that_does_not_read_is_named_with_its_asset_as_a_bad_input(tmp_path):
+    """A truncated mesh stopped spread-train with trimesh's "buffer size must be a multiple of element size",
+    naming neither the asset nor the file; as an AssetError alone (a KeyError) it was a traceback."""
+    from spread.assets.library import AssetError
+
+    rec = write_asset(tmp_path, make_spec("box", 0, seed=0))
+    mesh = tmp_path / rec.mesh_file
+    mesh.write_bytes(mesh.read_bytes()[:-7])
+    with pytest.raises(AssetError, match=rf"{mesh}: mesh file of asset '{rec.asset_id}' does not read as a mesh") as got:
+        AssetLibrary(tmp_path, {rec.asset_id: rec}).mesh(rec.asset_id)
+    assert isinstance(got.value, ValueError) and not str(got.value).startswith("'")
+
+
 def test_geometry_caches_are_built_once_and_keyed_by_content(library, tmp_path):
     aid = library.ids_of("mug")[0]
     geo = library.geometry(aid)

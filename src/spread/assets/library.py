@@ -43,6 +43,10 @@ class AssetError(KeyError):
         return str(self.args[0]) if self.args else ""
 
 
+class AssetFileError(AssetError, ValueError):
+    """An asset's file does not read (a truncated or foreign mesh): a bad input, named in one line by a command."""
+
+
 @dataclass
 class SupportSurface:
     """A horizontal surface objects can rest on, in the asset's canonical frame (metres, y-up).
@@ -359,8 +363,15 @@ class AssetLibrary:
                     raise AssetError(f"{path}: mesh file of asset '{asset_id}' is missing")
                 from spread.io import check_input_file
 
-                m = trimesh.load(check_input_file(path, root=self.root), force="mesh", process=False)
-                self._meshes[asset_id] = trimesh.Trimesh(m.vertices, m.faces, process=False)
+                try:
+                    m = trimesh.load(check_input_file(path, root=self.root), force="mesh", process=False)
+                    mesh = trimesh.Trimesh(m.vertices, m.faces, process=False)
+                except AssetError:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: trimesh's errors name neither
+                    raise AssetFileError(f"{path}: mesh file of asset '{asset_id}' does not read as a mesh "
+                                     f"({type(exc).__name__}: {exc})") from None
+                self._meshes[asset_id] = mesh
             return self._meshes[asset_id]
 
     def convex_parts(self, asset_id: str) -> list:
@@ -398,6 +409,11 @@ class AssetLibrary:
                     cache = AssetGeometryCache(d["surface_points"], d["surface_normals"], d["xz_hull"])
             except Exception:
                 cache = None  # torn or stale cache: rebuild
+            if cache is not None and cache_problem(cache) is not None:
+                import logging
+
+                logging.getLogger("spread.assets").warning("%s: %s; rebuilt from the mesh", path, cache_problem(cache))
+                cache = None  # a damaged cache (NaN points, other shapes or counts): rebuilt, never trained on
         if cache is None:
             cache = build_geometry_cache(self.mesh(asset_id), seed=_stable_seed(asset_id))
             with atomic_path(path) as tmp, open(tmp, "wb") as fh:
@@ -419,6 +435,22 @@ class AssetLibrary:
                 built += 1
             self.geometry(aid)
         return built
+
+
+def cache_problem(cache: AssetGeometryCache) -> str | None:
+    """What makes a geometry cache read from disk other than :func:`build_geometry_cache` writes it (None: sound):
+    points and normals (CACHE_SURFACE_POINTS, 3) of finite numbers, a hull (K ≥ 3, 2) of finite numbers."""
+    for key, value, shape in (("surface_points", cache.surface_points, (CACHE_SURFACE_POINTS, 3)),
+                              ("surface_normals", cache.surface_normals, (CACHE_SURFACE_POINTS, 3))):
+        if not isinstance(value, np.ndarray) or value.shape != shape or value.dtype.kind != "f":
+            return f"key '{key}' is not ({shape[0]}, 3) numbers"
+        if not np.isfinite(value).all():
+            return f"key '{key}' holds non-finite numbers"
+    hull = cache.xz_hull
+    if not (isinstance(hull, np.ndarray) and hull.ndim == 2 and hull.shape[0] >= 3 and hull.shape[1] == 2
+            and hull.dtype.kind == "f" and np.isfinite(hull).all()):
+        return "key 'xz_hull' is not (K ≥ 3, 2) finite numbers"
+    return None
 
 
 def build_geometry_cache(mesh, n_points: int = CACHE_SURFACE_POINTS, seed: int = 0) -> AssetGeometryCache:

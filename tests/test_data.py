@@ -508,3 +508,31 @@ def test_batches_per_epoch_reads_limit_train_batches_as_lightning_does():
     from spread.data.order import batches_per_epoch
 
     assert [batches_per_epoch(7, 1, limit) for limit in (1, 3, 20, 1.0, 0.5)] == [1, 3, 7, 7, 3]
+
+
+def test_stats_bounds_that_do_not_hold_the_training_rooms_are_named_with_the_room_and_axis(tmp_path, caplog):
+    """A hand-edited ``bounds_translations`` of 5 cm trained silently on translations clipped to it (98.8 % of the
+    coordinates); the statistics come from the training rooms, so theirs always fit and say nothing."""
+    import logging
+
+    from helpers import make_dataset
+
+    from spread.data.dataset import SceneDataset
+
+    data = make_dataset(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="spread.data"):
+        SceneDataset(data, "train")
+    assert "bounds_translations" not in caplog.text
+    stats = json.loads((data / "stats.json").read_text())
+    lo, hi = stats["bounds_translations"][:3], stats["bounds_translations"][3:]
+    stats["bounds_translations"] = [*lo, hi[0] - 0.5, *hi[1:]]  # x's max half a metre short
+    (data / "stats.json").write_text(json.dumps(stats))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="spread.data"):
+        SceneDataset(data, "train")
+        SceneDataset(data, "val")  # other splits are not what the bounds were computed from
+    messages = [r.getMessage() for r in caplog.records if "bounds_translations" in r.getMessage()]
+    assert len(messages) == 1, messages
+    assert messages[0].startswith(f"{data / 'stats.json'}: key 'bounds_translations' does not hold the training rooms "
+                                  f"(x = ") and f"outside its max {hi[0] - 0.5:g}): their translations are clipped" \
+        in messages[0] and f"{data / 'train'}/" in messages[0]

@@ -64,13 +64,15 @@ def load_manifest_categories(path: Path) -> list[str] | None:
 
 
 def screen_scene_files(files: list[Path], library, reader=None, used: dict[str, str] | None = None,
-                       max_objects: int | None = None) -> tuple[list[Path], list[dict]]:
+                       max_objects: int | None = None, span: dict | None = None) -> tuple[list[Path], list[dict]]:
     """(the files that read back as valid, plausible scenes of ``library``; one ``{"file", "error"}`` per
     other one): a damaged, hostile or absurd file is skipped, counted and named in a warning instead of
     stopping a run mid-epoch (every file is read once here; reading is a few ms per scene). ``reader(path,
     library)``: how a file is read (default :func:`~spread.scene.read_scene`); ``used``: filled with each category
     the good files use → the first file using it; ``max_objects``: a scene of more objects is skipped and named too
-    (``data.max_objects``: a room too large to train on fails its batch on memory, mid-epoch, otherwise)."""
+    (``data.max_objects``: a room too large to train on fails its batch on memory, mid-epoch, otherwise); ``span``:
+    filled with the good files' translation extremes per axis (``lo``, ``hi``: metres) and the files holding them
+    (``lo_file``, ``hi_file``)."""
     good, skipped = [], []
     for path in files:
         try:
@@ -84,6 +86,8 @@ def screen_scene_files(files: list[Path], library, reader=None, used: dict[str, 
                                                            f"object limit {int(max_objects)} (data.max_objects)"})
                 continue
             good.append(path)
+            if span is not None and len(getattr(scene, "translation", ())):
+                note_span(span, np.asarray(scene.translation, np.float64), path)
             if used is not None:
                 for category in getattr(scene, "category", ()):
                     used.setdefault(str(category), str(path))
@@ -101,6 +105,39 @@ def check_max_objects(value) -> int | None:
     from spread.checks import whole_number
 
     return whole_number(value, "data.max_objects", 1, null="no limit")
+
+
+def note_span(span: dict, translation: np.ndarray, path: Path) -> None:
+    """Widen ``span`` (:func:`screen_scene_files`) by one scene's (N, 3) translations."""
+    lo, hi = translation.min(axis=0), translation.max(axis=0)
+    if "lo" not in span:
+        span.update(lo=lo, hi=hi, lo_file=[str(path)] * 3, hi_file=[str(path)] * 3)
+        return
+    for axis in range(3):
+        if lo[axis] < span["lo"][axis]:
+            span["lo"][axis], span["lo_file"][axis] = lo[axis], str(path)
+        if hi[axis] > span["hi"][axis]:
+            span["hi"][axis], span["hi_file"][axis] = hi[axis], str(path)
+
+
+def bounds_problem(stats_path: Path, stats: dict, span: dict, tolerance: float = 1e-4) -> str | None:
+    """Why ``stats.json``'s ``bounds_translations`` do not hold the training rooms' translations (``span``), or None:
+    a translation outside them is clipped to them when normalised, so a hand-edited bound trains on other poses than
+    the rooms'. The statistics are computed from the training rooms, so theirs always fit (``tolerance``: metres)."""
+    if "lo" not in span:
+        return None
+    lo, hi = translation_bounds(stats, source=str(stats_path))
+    for axis, name in enumerate("xyz"):
+        if span["lo"][axis] < lo[axis] - tolerance:
+            where, value, bound = span["lo_file"][axis], span["lo"][axis], f"min {lo[axis]:g}"
+        elif span["hi"][axis] > hi[axis] + tolerance:
+            where, value, bound = span["hi_file"][axis], span["hi"][axis], f"max {hi[axis]:g}"
+        else:
+            continue
+        return (f"{stats_path}: key 'bounds_translations' does not hold the training rooms ({name} = {value:.4g} m in "
+                f"{where}, outside its {bound}): their translations are clipped to it; write the statistics anew from "
+                f"the training rooms (spread.data.compute_stats) or restore the file")
+    return None
 
 
 class SceneDataset(torch.utils.data.Dataset):
@@ -133,7 +170,14 @@ class SceneDataset(torch.utils.data.Dataset):
         self.reader = reader  # (path, library) → Scene; None: read_scene (spread.readonce.scene: once per process)
         used: dict[str, str] = {}
         self.max_objects = check_max_objects(max_objects)
-        self.files, self.skipped = screen_scene_files(self.files, self._library, reader, used, self.max_objects)
+        span: dict = {}
+        self.files, self.skipped = screen_scene_files(self.files, self._library, reader, used, self.max_objects, span)
+        if split == "train" and bounds is None:  # the bounds were computed from these rooms
+            problem = bounds_problem(self.root / "stats.json", self.stats, span)
+            if problem:
+                import logging
+
+                logging.getLogger("spread.data").warning(problem)
         if not self.files:
             raise ValueError(f"{self.root / split}: none of its {len(self.skipped)} scene files is usable "
                              f"(first: {self.skipped[0]['error']})")

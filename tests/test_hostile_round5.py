@@ -551,3 +551,18 @@ def test_spread_generate_refuses_an_out_dir_inside_the_library_it_copies_or_hold
                          f"assets.copy_from={lib}")
     assert line.startswith(f"spread-generate: out_dir={run}: holds a training run ({run / 'checkpoints'})"), line
     assert [p.name for p in run.iterdir()] == ["checkpoints"]
+
+
+def test_a_partial_generation_record_beside_an_intact_manifest_does_not_let_other_settings_mix_in(tmp_path):
+    """``generation.json`` cut to ``{"fingerprint": {}}`` (or to one key): the intact manifest was never asked, so a
+    relaunch with ``room.max_objects=4`` added its rooms to rooms of up to 8 objects, under a manifest saying 4."""
+    data = make_dataset(tmp_path)  # 12 rooms, seed 7, at most 8 objects
+    base = ["renders=0", "processes=1", "rooms=14", "seed=7", "val_fraction=0.2", "test_fraction=0.3"]
+    rooms = sorted(p.relative_to(data) for p in data.rglob("*.npz"))
+    generator = json.loads((data / "generation.json").read_text())["fingerprint"].get("generator")
+    for record, says in [({"fingerprint": {}}, "key 'fingerprint' records no setting"),
+                         ({"fingerprint": {"generator": generator}}, "changed: room.max_objects: 8 -> 4")]:
+        (data / "generation.json").write_text(json.dumps(record))
+        line, _ = user_error("spread-generate", f"out_dir={data}", *base, "room.max_objects=4")
+        assert says in line, line
+        assert sorted(p.relative_to(data) for p in data.rglob("*.npz")) == rooms

@@ -155,7 +155,7 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
     present = sorted(p for s in SPLITS if (out / s).is_dir() for p in (out / s).glob("*.npz"))
     planned = {(split_of(i, config), f"{scene_id_of(i, config.seed)}.npz") for i in range(config.rooms)}
     extra = [p for p in present if (p.parent.name, p.name) not in planned]
-    before = None
+    records = []  # every record there is: a pin damaged to fewer keys must not hide what the manifest says
     for path, key in ((out / PIN, "fingerprint"), (out / "manifest.json", "config")):
         if present and path.exists():
             try:
@@ -163,9 +163,12 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
             except (OSError, ValueError, AttributeError):
                 raise ValueError(f"{path}: not a readable record of the rooms' settings; generate into another "
                                  f"out_dir, or delete {out} to start over") from None
+            if isinstance(record, dict) and not record:
+                raise ValueError(f"{path}: key '{key}' records no setting; generate into another out_dir, or delete "
+                                 f"{out} to start over")
             if isinstance(record, dict):
-                before = record if key == "fingerprint" else normalised(fingerprint_of(record))
-                break
+                records.append(record if key == "fingerprint" else normalised(fingerprint_of(record)))
+    before = records[0] if records else None
     if present and before is None:
         if extra:
             raise ValueError(f"out_dir={out} holds {len(present)} room file(s) ({extra[0].name}, ...) without a "
@@ -175,7 +178,7 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
             "%s: %d room file(s) without a record of their settings (a run stopped before its manifest); continuing "
             "them as rooms of these settings (seed %d)", out, len(present), config.seed)
     if before is not None:
-        changed = described_changes(before, now, held_only=True)
+        changed = list(dict.fromkeys(c for record in records for c in described_changes(record, now, held_only=True)))
         if changed:
             shown = "; ".join(changed[:4])
             raise ValueError(f"out_dir={out} holds rooms generated with other settings (changed: {shown}"

@@ -566,3 +566,23 @@ def test_a_partial_generation_record_beside_an_intact_manifest_does_not_let_othe
         line, _ = user_error("spread-generate", f"out_dir={data}", *base, "room.max_objects=4")
         assert says in line, line
         assert sorted(p.relative_to(data) for p in data.rglob("*.npz")) == rooms
+
+
+@pytest.mark.parametrize("setting, says", [
+    ("seed=-1", "seed=-1: expected a whole number ≥ 0"), ("max_attempts=0", "max_attempts=0: expected a whole number ≥ 1"),
+    ("settle.rounds=0", "settle.rounds=0: expected a whole number ≥ 1"),
+    ("assets.variants=0", "assets.variants=0: expected a whole number ≥ 1"),
+    ("settle.max_steps=-5", "settle.max_steps=-5: expected a whole number ≥ 1"),
+    ("room.object_density=nan", "room.object_density=nan: expected a finite number ≥ 0"),
+    ("settle.verify_dt=nan", "settle.verify_dt=nan: expected a finite number in (0, 1]"),
+    ("room.stack_probability=1.5", "room.stack_probability=1.5: expected a finite number in [0, 1]")])
+def test_spread_generate_refuses_a_count_or_measure_out_of_its_range_by_key_before_any_work(tmp_path, setting, says):
+    """Each failed after the asset library was built, naming no key ("expected non-negative integer", "compute_stats:
+    no scenes given", "lam < 0 or lam is NaN"), or was taken silently (``settle.max_steps=-5``)."""
+    from spread.procgen.dataset import DatasetConfig, check_config
+    from spread.configs import compose, to_object
+
+    config = to_object(compose("generate", [f"out_dir={tmp_path / 'd'}", "rooms=2", setting]))
+    assert isinstance(config, DatasetConfig)
+    with pytest.raises(ValueError, match=re.escape(says)):
+        check_config(config)

@@ -13,6 +13,7 @@ made otherwise.
 from __future__ import annotations
 
 import multiprocessing as mp
+import math
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field, fields
@@ -191,11 +192,52 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
     write_json_atomic(out / PIN, {"fingerprint": now, "status": "running"})
 
 
+#: Whole-number settings of ``spread-generate`` and their least value (key as typed on the command line; the objects
+#: of a room are whole here, their range is checked with each other).
+WHOLE = {"seed": 0, "max_attempts": 1, "assets.seed": 0, "assets.variants": 1, "room.min_objects": 0,
+         "room.max_objects": 0, "room.max_stack": 1, "settle.max_steps": 1, "settle.verify_steps": 1, "settle.rounds": 1}
+#: Real-number settings: (least, most, whether the least is allowed).
+REAL = {"room.object_density": (0.0, math.inf, True), "room.stack_probability": (0.0, 1.0, True),
+        "room.on_object_probability": (0.0, 1.0, True), "room.wall_gap": (0.0, math.inf, True),
+        "room.furniture_gap": (0.0, math.inf, True), "room.object_gap": (0.0, math.inf, True),
+        "room.drop_height": (0.0, math.inf, True), "settle.rest_linear_speed": (0.0, math.inf, False),
+        "settle.rest_angular_speed": (0.0, math.inf, False), "settle.max_slide": (0.0, math.inf, False),
+        "settle.max_tilt": (0.0, math.inf, False), "settle.max_penetration": (0.0, math.inf, False),
+        "settle.furniture_max_motion": (0.0, math.inf, False), "settle.verify_dt": (0.0, 1.0, False),
+        "settle.verify_motion": (0.0, math.inf, False)}
+
+
+def check_numbers(config: DatasetConfig) -> None:
+    """``ValueError`` naming the key and value of a count that is not a whole number at least its least (:data:`WHOLE`:
+    ``seed=-1``, ``max_attempts=0``, ``settle.rounds=0`` failed after the library was built, naming no key) or a
+    measure that is not a finite number in its range (:data:`REAL`: ``room.object_density=nan`` failed inside numpy,
+    ``settle.verify_dt=nan`` converting to an integer)."""
+    from spread.checks import whole_number
+
+    def value(key: str):
+        node = config
+        for part in key.split("."):
+            node = getattr(node, part)
+        return node
+
+    for key, least in WHOLE.items():
+        whole_number(value(key), key, least)
+    for key, (least, most, closed) in REAL.items():
+        x = value(key)
+        ok = isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x <= most and (
+            x >= least if closed else x > least)
+        if not ok:
+            span = f"{'[' if closed else '('}{least:g}, {most:g}]" if math.isfinite(most) else \
+                (f"≥ {least:g}" if closed else f"> {least:g}")
+            raise ValueError(f"{key}={x!r}: expected a finite number {'in ' if math.isfinite(most) else ''}{span}")
+
+
 def check_config(config: DatasetConfig) -> list[str]:
     """Refuse settings that cannot make a dataset (before any work); return warnings for ones that make an
     unusual one (a split that gets no rooms), which the manifest records and the command prints."""
     if config.rooms < 1:
         raise ValueError(f"rooms={config.rooms}: a dataset needs at least 1 room")
+    check_numbers(config)
     for key in ("val_fraction", "test_fraction"):
         value = getattr(config, key)
         if not 0.0 <= value <= 1.0:

@@ -270,3 +270,49 @@ def test_spread_view_help_prints_its_usage():
     for flag in ("--help", "-h"):
         proc = subprocess.run([str(SCRIPTS / "spread-view"), flag], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0 and proc.stdout.startswith("``spread-view PATH [assets=DIR]"), proc.stderr
+
+
+def test_spread_view_leaves_out_names_and_meshes_it_cannot_show_and_a_timeline_that_is_no_timeline(library, tmp_path):
+    """Found by a review: a text-typed trajectory ended the viewer at start-up, one over fewer objects failed its
+    slider (and took the scene off the view); a truncated mesh and a damaged ground-truth file ended it in a
+    traceback; a file name or category that is not valid UTF-8 closed every browser connection or ended it."""
+    import shutil
+
+    from spread.render.viewer import collect, scene_timeline
+    from spread.safe_load import load_npz
+    from spread.scene import SceneFormatError, read_scene
+
+    run = write_run(tmp_path, library, {"data_root": str(tmp_path / "data"), "split": "test"})
+    scenes = run / "scenes"
+    with load_npz(scenes / "g_k0.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    k, n = 3, len(arrays["asset_id"])
+    moves = np.repeat(arrays["translation"][None], k, axis=0)
+    turns = np.repeat(arrays["rotation"][None], k, axis=0)
+    np.savez(scenes / "t_good.npz", **arrays, trajectory_translation=moves, trajectory_rotation=turns)
+    np.savez(scenes / "t_text.npz", **arrays, trajectory_translation=np.full(moves.shape, "x"),
+             trajectory_rotation=turns)
+    np.savez(scenes / "t_fewer.npz", **arrays, trajectory_translation=moves[:, :1], trajectory_rotation=turns[:, :1])
+    np.savez(scenes / "c_surrogate.npz", **{**arrays, "category": np.array(["mug\udcff"] * n)})
+    shutil.copy(scenes / "g_k0.npz", scenes / "bad\udcff.npz")
+    assert [len(scene_timeline(read_scene(scenes / f"t_{x}.npz"))) for x in ("good", "text", "fewer")] == [k, 0, 0]
+    with pytest.raises(SceneFormatError, match="category.*not valid text"):
+        read_scene(scenes / "c_surrogate.npz")
+    refused: list[str] = []
+    items, _ = collect(run, library, refused)
+    assert sorted(i.name for i in items) == ["g_k0", "t_fewer", "t_good", "t_text"]
+    assert len(refused) == 2, refused
+    assert any("c_surrogate.npz" in r and "not valid text" in r for r in refused), refused
+    assert any("bad" in r and "its name is not valid text (UTF-8)" in r for r in refused), refused
+    assert next(i for i in items if i.name == "g_k0").ground_truth == tmp_path / "data" / "test" / "g.npz"
+    (tmp_path / "data" / "test" / "g.npz").write_bytes(b"PK\x03\x04 damaged")  # the ground truth
+    items, _ = collect(run, library, [])
+    assert next(i for i in items if i.name == "g_k0").ground_truth is None  # shown as not known
+    copy = tmp_path / "lib2"
+    shutil.copytree(library, copy)
+    mesh = next((copy / "meshes").glob("mug*"))
+    mesh.write_bytes(mesh.read_bytes()[:-7])
+    refused = []
+    with pytest.raises(FileNotFoundError, match="no scene here reads as a valid scene"):
+        collect(run, copy, refused)  # every scene shows the mug: each named, none shown
+    assert sum(f"mesh file of asset 'mug" in r and "does not read as a mesh" in r for r in refused) == 4, refused

@@ -386,6 +386,11 @@ def scene_from_arrays(arrays: Mapping[str, np.ndarray], source: str = "<arrays>"
     for key in ("asset_id", "category", "scene_id"):
         if arrays[key].dtype.kind not in "US":
             _fail(source, key, f"expected strings, got dtype {arrays[key].dtype}")
+        if arrays[key].dtype.kind == "U":
+            try:  # a lone surrogate ('chair\udcff') is no text: every writer of JSON, HTML or a picture fails on it
+                "".join(arrays[key].reshape(-1).tolist()).encode("utf-8")
+            except UnicodeEncodeError as exc:
+                _fail(source, key, f"holds a string that is not valid text ({exc.reason} at {exc.start})")
     for key in ("translation", "rotation") + (("room",) if "room" in arrays else ()):
         if arrays[key].dtype.kind not in "fiu":
             _fail(source, key, f"expected numbers, got dtype {arrays[key].dtype}")

@@ -149,14 +149,27 @@ def readable(items: list[ViewItem], library: Path, refused: list | None) -> list
     from spread import readonce
     from spread.scene import read_scene
 
-    known = set(readonce.asset_library(library))
+    assets = readonce.asset_library(library)
+    known = set(assets)
     kept = []
     for item in items:
         try:  # as the viewer shows it: the file read and checked, each asset's mesh from the library
-            unknown = sorted({str(a) for a in read_scene(item.path).asset_id} - known)
+            item.name.encode("utf-8")  # a file name that is not text: the browser's connection fails on it
+            scene = read_scene(item.path)
+            unknown = sorted({str(a) for a in scene.asset_id} - known)
             if unknown:
                 raise ValueError(f"{item.path}: asset(s) {', '.join(map(repr, unknown[:3]))} not in the library "
                                  f"{library}")
+            for asset in sorted({str(a) for a in scene.asset_id}):
+                assets.mesh(asset)  # a mesh that does not read: named here, not a traceback when shown
+            if item.ground_truth is not None and not truth_readable(item.ground_truth, assets):
+                item.ground_truth = None  # shown as "not known", not a traceback when the scene is picked
+        except UnicodeEncodeError:
+            exc = ValueError(f"{str(item.path)!r}: its name is not valid text (UTF-8)")
+            if refused is None:
+                raise ValueError(f"spread-view: {exc}") from None
+            refused.append(str(exc))
+            continue
         except Exception as exc:  # noqa: BLE001 - any unreadable or invalid scene: named, never shown half
             if refused is None:
                 raise ValueError(f"spread-view: {exc}") from None
@@ -167,6 +180,18 @@ def readable(items: list[ViewItem], library: Path, refused: list | None) -> list
         raise FileNotFoundError(f"spread-view: no scene here reads as a valid scene ({len(items)} refused: "
                                 f"{refused[0] if refused else ''})")
     return kept
+
+
+def truth_readable(path: Path, assets) -> bool:
+    """Whether a ground-truth scene file reads as a scene of ``assets`` whose meshes read."""
+    from spread.scene import read_scene
+
+    try:
+        for asset in {str(a) for a in read_scene(path, assets).asset_id}:
+            assets.mesh(asset)
+    except Exception:  # noqa: BLE001 - any reason: the scene is shown without it
+        return False
+    return True
 
 
 def ground_truth_source(manifest_path: Path) -> tuple[Path | None, str | None]:
@@ -355,6 +380,16 @@ def scene_timeline(scene) -> list[tuple[np.ndarray, np.ndarray]]:
     """The guidance timeline a sample file carries (``spread-sample guidance.record_every=k``): (translation (N, 3)
     metres, rotation (N, 3, 3)) per recorded iteration, first to last; [] without one."""
     t, R = scene.extras.get("trajectory_translation"), scene.extras.get("trajectory_rotation")
-    if t is None or R is None or len(t) != len(R):
+    n = scene.num_objects
+    if t is None or R is None or not timeline_shapes(t, R, n):  # another shape or text: no timeline, the scene shown
         return []
     return [(np.asarray(t[k], np.float64), np.asarray(R[k], np.float64)) for k in range(len(t))]
+
+
+def timeline_shapes(t, R, n: int) -> bool:
+    """Whether ``t`` (K, n, 3) and ``R`` (K, n, 3, 3) are one timeline of finite numbers for the scene's ``n`` objects
+    (a timeline of text, or over other objects, ended the viewer or failed its slider)."""
+    t, R = np.asarray(t), np.asarray(R)
+    return (t.dtype.kind in "fiu" and R.dtype.kind in "fiu" and t.ndim == 3 and R.ndim == 4 and len(t) == len(R)
+            and t.shape[1:] == (n, 3) and R.shape[1:] == (n, 3, 3) and bool(np.isfinite(t).all())
+            and bool(np.isfinite(R).all()))

@@ -157,6 +157,7 @@ def test_clip_fid_without_local_clip_weights_is_null_with_the_reason(dataset, tm
     assert metrics["fid_status"].startswith("unavailable") and "clip" in metrics["fid_status"].lower()
 
 
+@pytest.mark.slow  # make test-slow (~15-30 s): MuJoCo's sleep is checked in test_mujoco, the Ray fan-out by cli_run
 def test_ground_truth_is_stable_in_sleeping_mujoco_through_the_ray_fanout(dataset, tmp_path):
     out = tmp_path / "run"
     run_in_process(*args(dataset / "test", dataset, out, "logger=none", "fid.enabled=false", "renders=0",

@@ -178,13 +178,13 @@ def check_shape(path: Path, metrics: dict) -> None:
         value = metrics.get(key)
         if value is not None and not (is_whole(value) and value >= 0):
             raise RunError(f"{path}: key '{key}' is {value!r}, expected a whole number ≥ 0")
+    names = [n for key in record_metrics() for n in (key, f"{key}_lo", f"{key}_hi")]
     for where, block in [("", metrics), *[(f"per_room_type.{t}.", v) for t, v in (rooms or {}).items()]]:
-        for key in record_metrics():
-            for name in (key, f"{key}_lo", f"{key}_hi"):
-                value = block.get(name)
-                if isinstance(value, float) and value != value:
-                    raise RunError(f"{path}: key '{where}{name}' is NaN, a value spread-evaluate never writes (null "
-                                   f"where a metric has no value); restore the file or evaluate the run again")
+        for name in names:
+            value = block.get(name)
+            if isinstance(value, float) and value != value:
+                raise RunError(f"{path}: key '{where}{name}' is NaN, a value spread-evaluate never writes (null "
+                               f"where a metric has no value); restore the file or evaluate the run again")
 
 
 def check_bootstrap(path: Path, block: dict) -> None:

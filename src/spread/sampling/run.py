@@ -34,7 +34,7 @@ from typing import Callable
 from omegaconf import MISSING
 
 from spread import readonce
-from spread.data.limit import object_limit  # noqa: F401 - the run's limit (re-exported: tests, commands)
+from spread.data.limit import object_limit
 from spread.guidance import GuidanceConfig
 from spread.io import check_folder_kind, read_json, write_json_atomic
 from spread.runtime.threads import check_threads

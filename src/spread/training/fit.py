@@ -120,6 +120,7 @@ def trainer_value(key: str, value):
         return str(getattr(value, "value", value) or "norm").lower()
     return value
 
+
 #: Hyperparameters a resumed run may change, as they change none of the trained numbers: the model's validation-time
 #: sampling, its compilation (the same loss) and its start weights (read by a new run only); the loaders' processes
 #: and memory.

@@ -575,7 +575,8 @@ def test_a_partial_generation_record_beside_an_intact_manifest_does_not_let_othe
     ("settle.max_steps=-5", "settle.max_steps=-5: expected a whole number ≥ 1"),
     ("room.object_density=nan", "room.object_density=nan: expected a finite number ≥ 0"),
     ("settle.verify_dt=nan", "settle.verify_dt=nan: expected a finite number in (0, 1]"),
-    ("room.stack_probability=1.5", "room.stack_probability=1.5: expected a finite number in [0, 1]")])
+    ("room.stack_probability=1.5", "room.stack_probability=1.5: expected a finite number in [0, 1]"),
+    ("room.max_objects=100000", "room.max_objects=100000: at most 512")])
 def test_spread_generate_refuses_a_count_or_measure_out_of_its_range_by_key_before_any_work(tmp_path, setting, says):
     """Each failed after the asset library was built, naming no key ("expected non-negative integer", "compute_stats:
     no scenes given", "lam < 0 or lam is NaN"), or was taken silently (``settle.max_steps=-5``)."""
@@ -586,3 +587,19 @@ def test_spread_generate_refuses_a_count_or_measure_out_of_its_range_by_key_befo
     assert isinstance(config, DatasetConfig)
     with pytest.raises(ValueError, match=re.escape(says)):
         check_config(config)
+
+
+def test_a_dataset_whose_every_room_failed_says_why_and_writes_no_statistics(tmp_path):
+    """``room.min_objects=400`` ran 116 s, then ended in "compute_stats: no scenes given": every room kept fewer
+    objects than asked. Now the line names the setting, the attempts and what settling removed."""
+    from spread.configs import compose, to_object
+    from spread.procgen.dataset import write_dataset_files
+
+    config = to_object(compose("generate", [f"out_dir={tmp_path}", "rooms=2", "room.min_objects=400",
+                                            "room.max_objects=400", "max_attempts=3"]))
+    failed = [{"index": i, "ok": False, "attempts": 3, "removed": {"slid": 2 + i}} for i in range(2)]
+    with pytest.raises(ValueError, match=re.escape("no room was made: each of the 2 room(s) kept fewer than "
+                                                   "room.min_objects=400 objects in max_attempts=3 attempts "
+                                                   "(objects removed in settling: {'slid': 5})")):
+        write_dataset_files(tmp_path, config, None, failed, 1.0, 1.0)
+    assert not (tmp_path / "stats.json").exists()

@@ -196,6 +196,11 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
 #: of a room are whole here, their range is checked with each other).
 WHOLE = {"seed": 0, "max_attempts": 1, "assets.seed": 0, "assets.variants": 1, "room.min_objects": 0,
          "room.max_objects": 0, "room.max_stack": 1, "settle.max_steps": 1, "settle.verify_steps": 1, "settle.rounds": 1}
+#: The most objects a room may be asked to hold (``room.max_objects``, and so ``room.min_objects``). The generator's
+#: fullest rooms hold about 260: five rooms at ``room.object_density=1000 room.max_objects=1000`` kept 77–264
+#: objects (24 s a room); a room asked for more fills its surfaces and then tries, attempt after attempt, to place
+#: what cannot fit (``room.min_objects=400``: 116 s a room, then no room; ``=100000``: minutes a room, unbounded).
+MAX_ROOM_OBJECTS = 512
 #: Real-number settings: (least, most, whether the least is allowed).
 REAL = {"room.object_density": (0.0, math.inf, True), "room.stack_probability": (0.0, 1.0, True),
         "room.on_object_probability": (0.0, 1.0, True), "room.wall_gap": (0.0, math.inf, True),
@@ -248,6 +253,10 @@ def check_config(config: DatasetConfig) -> list[str]:
     if room.min_objects < 1 or room.max_objects < max(room.min_objects, 2):
         raise ValueError(f"room.min_objects={room.min_objects}, room.max_objects={room.max_objects}: a room holds "
                          f"between min_objects (≥ 1) and max_objects (≥ min_objects and ≥ 2) objects")
+    if room.max_objects > MAX_ROOM_OBJECTS:
+        raise ValueError(f"room.max_objects={room.max_objects}: at most {MAX_ROOM_OBJECTS} (the generator's fullest "
+                         f"rooms hold about 260 objects; a room asked for more tries for minutes to place what "
+                         f"cannot fit)")
     from spread.procgen.room_types import ROOM_TYPES
 
     if not any(w > 0 and t in ROOM_TYPES for t, w in room.room_types.items()):
@@ -390,12 +399,17 @@ def write_dataset_files(out: Path, config: DatasetConfig, library, results: list
     scenes = {s: [read[p] if p in read else read_scene(p, assets=library) for p in files]
               for s, files in splits.items()}
     train = scenes["train"] or [sc for v in scenes.values() for sc in v]
-    save_stats(out / "stats.json", compute_stats(train))
-    all_scenes = [sc for v in scenes.values() for sc in v]
     removed = Counter()
     for r in results:
         removed.update(r.get("removed", {}))
     failed = [r["index"] for r in results if not r["ok"]]
+    if not train:  # every room failed: say why, not "compute_stats: no scenes given"
+        raise ValueError(f"no room was made: each of the {len(failed)} room(s) kept fewer than room.min_objects="
+                         f"{config.room.min_objects} objects in max_attempts={config.max_attempts} attempts (objects "
+                         f"removed in settling: {dict(removed) or 'none'}); lower room.min_objects or raise "
+                         f"max_attempts")
+    save_stats(out / "stats.json", compute_stats(train))
+    all_scenes = [sc for v in scenes.values() for sc in v]
     from spread.runtime.fingerprint import normalised
 
     cfg = asdict(config)

@@ -338,6 +338,23 @@ def refuse_links(*paths: str | os.PathLike) -> None:
                                     f"files only as plain files inside the run folder: remove the link")
 
 
+def planted_link(folder: str | os.PathLike) -> str | None:
+    """Why a run folder cannot be written, for a symbolic link among its entries (the first by name), or None. The
+    platform makes none there; a link planted at ``scenes``, ``renders``, ``checkpoints``, ``logs`` or ``.hydra``
+    sent a run's writes, and its removal of stale results, to the link's target (``spread-sample`` deleted the
+    files of the folder ``scenes`` led to and wrote its own there). Link the run folder itself instead."""
+    try:
+        entries = sorted(os.scandir(folder), key=lambda e: e.name)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    for entry in entries:
+        if entry.is_symlink():
+            return (f"{Path(folder) / entry.name}: a symbolic link (to {os.readlink(entry.path)}) inside the run "
+                    f"folder; the run would write and delete its files through it: remove the link (a run folder "
+                    f"may itself be a link, its entries not)")
+    return None
+
+
 class RunLogFileHandler(logging.FileHandler):
     """Hydra's ``<command>.log`` handler (``conf/hydra/default.yaml``): a symbolic link planted at the log's
     path is replaced by a plain file (its target is never opened), and the file is opened with ``O_NOFOLLOW``."""
@@ -398,6 +415,9 @@ def run_lock(folder: str | os.PathLike, command: str, nest: bool = False) -> Ite
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_FILE
     refuse_links(path)
+    problem = planted_link(folder)
+    if problem:
+        raise UnsafeOutputError(problem)
     held = str(path.resolve())
     if _HELD_LOCKS.get(held):  # this process holds it for a run that nests this one (``nest``)
         yield path

@@ -81,7 +81,10 @@ def _out_dir_problem(value: str) -> str | None:
             return f"out_dir={value}: exists and is not a folder; give a folder path"
         if not os.access(path, os.W_OK | os.X_OK):
             return f"out_dir={value}: the folder is not writable (read-only or another user's); give another out_dir"
-        return None
+        from spread.io import planted_link
+
+        problem = planted_link(path)
+        return f"out_dir={value}: {problem}" if problem else None
     parent = path.parent
     while not parent.exists() and parent != parent.parent:
         if parent.is_symlink():  # dangling (a loop raises ELOOP above)

@@ -233,7 +233,12 @@ def check_release_weights(path: str, use_ema: bool = True) -> int:
                 raise ReleaseCheckpointError(f"{path}: 'ema_states.shadow_params[{i}]' holds {type(tensor).__name__}, "
                                              f"not a tensor")
     weights = release_state_dict(ckpt, str(path), use_ema)
+    from spread.methods.loading import storage_problem
+
     for name, tensor in weights.items():
+        problem = tensor.layout == torch.strided and storage_problem(name, tensor)
+        if problem:  # before any op reads it: a meta tensor has no values, an expanded one allocates its full size
+            raise ReleaseCheckpointError(f"{path}: {problem}")
         if tensor.layout != torch.strided:  # a sparse or otherwise laid-out tensor: torch's ops on it raise deep down
             raise ReleaseCheckpointError(f"{path}: weight '{name}' is a {str(tensor.layout).removeprefix('torch.')} "
                                          f"tensor, expected a dense one")

@@ -48,7 +48,38 @@ def usable(record: dict, metrics=None) -> bool:
     if any(n not in state and n not in declared for n in names):
         return False
     measured = {n: state[n] for n in names if n in state and n not in declared}
-    return bool(measured) and nonfinite_state(measured) is None
+    if not measured or nonfinite_state(measured) is not None:
+        return False
+    if isinstance(metrics, dict):  # the metric objects: each state as the metric keeps it
+        return all(state_problem(measured[n], metrics[n]) is None for n in measured if n in metrics)
+    return True
+
+
+def state_problem(state: dict, metric) -> str | None:
+    """Why a record's ``state`` of ``metric`` cannot be merged into the metric's sums, or None: a state the metric
+    keeps is missing, not of the shape it keeps (a list where a number is summed), or not a number its dtype holds —
+    an integer state is a count, a whole number ≥ 0 below 2⁵³ (a hand-edited ``-1000`` made every pooled ratio null,
+    ``1e300`` overflowed int64). States kept as lists (FID's features) are not records' states."""
+    import torch
+
+    for key in metric.metric_state:
+        kept = getattr(metric, key)
+        if not isinstance(kept, torch.Tensor):
+            continue
+        if key not in state:
+            return f"{key}: missing"
+        try:
+            values = np.asarray(state[key], dtype=np.float64)
+        except (TypeError, ValueError):
+            return f"{key}: not a number"
+        if values.shape != tuple(kept.shape):
+            return f"{key}: of shape {values.shape}, the metric keeps {tuple(kept.shape)}"
+        if not np.isfinite(values).all():
+            return f"{key}: not finite"
+        if not kept.is_floating_point() and not (
+                (values == np.round(values)).all() and (values >= 0).all() and (values < 2 ** 53).all()):
+            return f"{key}: not a count (a whole number ≥ 0)"
+    return None
 
 
 def usable_for(record: dict, name: str, metrics=None) -> bool:

@@ -12,6 +12,7 @@ per-scene states on the workers (:meth:`EvalProtocol.metrics`), so both sides ag
 from __future__ import annotations
 
 import importlib.metadata
+import math
 import platform
 import sys
 from dataclasses import asdict, dataclass, field
@@ -100,6 +101,10 @@ class EvalProtocol:
         if self.stability_runs < 1 or self.stability_steps < 1 or self.stability_substeps < 1:
             raise ValueError("stability runs, steps and substeps must be ≥ 1, got "
                              f"{self.stability_runs}, {self.stability_steps}, {self.stability_substeps}")
+        for key in ("stability_dt", "stability_jitter", "collision_threshold"):  # inf: every scene failed its runs
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"protocol.{key}={value!r}: expected a finite number")
         if not self.stability_dt > 0 or self.stability_jitter < 0 or not self.collision_threshold > 0:
             raise ValueError("stability_dt and collision_threshold must be > 0 and stability_jitter ≥ 0")
         if self.physics not in physics_engines():

@@ -23,6 +23,8 @@ def dedupe(records: Iterable[dict]) -> dict[str, dict]:
     """First record of each ``scene_id``, in file order (records of one scene are identical by seed)."""
     out: dict[str, dict] = {}
     for r in records:
+        if not isinstance(r, dict):  # a hand-edited line that is JSON but no record: dropped, as a torn one
+            continue
         sid = r.get("scene_id")
         if isinstance(sid, str) and sid not in out:
             out[sid] = r

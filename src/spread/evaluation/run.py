@@ -170,15 +170,17 @@ def evaluation_renders(out: Path) -> list[Path]:
             if "/" not in n and (out / "renders" / n).is_file() and not (out / "renders" / n).is_symlink()]
 
 
-def write_renders(out: Path, records: list[dict], assets: str, count: int) -> list[Path]:
-    """Top-down PNGs of the first ``count`` evaluated scenes, ``out/renders/<scene_id>.png``."""
+def write_renders(out: Path, records: list[dict], assets: str, count: int, files: dict[str, Path]) -> list[Path]:
+    """Top-down PNGs of the first ``count`` evaluated scenes, ``out/renders/<scene_id>.png``, each drawn from its file
+    in ``scenes=`` (``files``: scene id → file), never from the path a record names (a hand-edited ``file`` drew a
+    training room under a sample's name, or opened a file outside the run)."""
     from spread.render import render_topdown, save_png
     from spread.scene import read_scene
 
     library = worker_library(assets)
     paths = []
     for r in [r for r in records if not r.get("error")][:max(0, count)]:
-        paths.append(save_png(render_topdown(read_scene(r["file"], assets=library), library),
+        paths.append(save_png(render_topdown(read_scene(files[r["scene_id"]], assets=library), library),
                               out / "renders" / f"{r['scene_id']}.png"))
     return paths
 
@@ -357,11 +359,12 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
                                            metrics=cfg.protocol.build_metrics()))
     metrics.update(fid_values(fid, records, fid_status, len(reference_files) - len(ref_failed),
                               cfg.fid.feature_model))
+    kept = cfg.protocol.build_metrics()  # what each record's states must be to enter the sums
     metrics.update({
-        "failed": [{"scene_id": r["scene_id"], "error": r.get("error") or "unusable record (a non-finite or missing "
-                    "metric state)"} for r in records if not usable(r)],
-        "failed_metrics": [{"scene_id": r["scene_id"], "metric": name, "error": error} for r in records if usable(r)
-                           for name, error in (r.get("metric_errors") or {}).items()],
+        "failed": [{"scene_id": r["scene_id"], "error": r.get("error") or "unusable record (a non-finite, missing "
+                    "or malformed metric state)"} for r in records if not usable(r, kept)],
+        "failed_metrics": [{"scene_id": r["scene_id"], "metric": name, "error": error} for r in records
+                           if usable(r, kept) for name, error in (r.get("metric_errors") or {}).items()],
         "fid_reference_failed": ref_failed,
         "scenes": str(Path(str(cfg.scenes)).absolute()), "sampled_with": sampled_with(cfg.scenes),  # read from anywhere
         "evaluated_with": evaluated_with(cfg, assets, over), "evaluated_scenes": [r["scene_id"] for r in records],
@@ -378,7 +381,7 @@ def _run_evaluation(cfg: EvaluationConfig, before_work: Callable[[], None] | Non
     })
     write_json_atomic(out / METRICS, metrics)
     # in the sampling run's folder its renders show these scenes already (reports find them there)
-    renders = [] if in_sampling_run else write_renders(out, records, assets, cfg.renders)
+    renders = [] if in_sampling_run else write_renders(out, records, assets, cfg.renders, dict(zip(keys, files)))
     if not in_sampling_run:  # an earlier run's picture of a scene this run does not render (removed since) goes
         for stale in set(evaluation_renders(out)) - set(renders):
             stale.unlink(missing_ok=True)

@@ -102,6 +102,8 @@ def nonfinite_state(states) -> str | None:
     """The first ``metric.state`` of a record's ``state`` that is missing, not a number or not finite
     (NaN, ±inf, or None after :func:`finite_or_none`), or None when every value is a finite number."""
     for name, state in (states or {}).items():
+        if state is not None and not isinstance(state, dict):  # a number or list where a metric's states go
+            return name
         for key, value in (state or {}).items():
             values = np.asarray(value if value is not None else np.nan, dtype=object).reshape(-1)
             for v in values:

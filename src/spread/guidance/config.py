@@ -42,6 +42,18 @@ MODES = ("none", "paper", "refine", "sample", "release")
 DETECT = ("auto", "host", "device")
 #: Field metadata of a weight key: the field is the weight of the registered term of its name.
 TERM = {"term": True}
+#: Settings read by some modes only (:class:`~spread.guidance.SceneGuidance`: ``refine`` and ``release`` run its
+#: refinement loop, ``paper`` and ``sample`` its per-step hook); under another mode they change nothing, so they
+#: are no part of its identity (:meth:`GuidanceConfig.settings`).
+READ_BY = {"iterations": ("refine", "release"), "denoise_every": ("refine", "release"), "clip": ("refine", "release"),
+           "start": ("paper", "sample"), "last_steps": ("paper", "sample"), "inner_steps": ("paper", "sample")}
+
+
+def without_unread(settings: dict) -> dict:
+    """A guidance identity's settings (flat, with its ``mode``) without those its mode does not read (:data:`READ_BY`);
+    an identity recorded before they were left out reads the same (:func:`spread.runtime.fingerprint.upgraded`)."""
+    mode = settings.get("mode")
+    return {k: v for k, v in settings.items() if k not in READ_BY or mode in READ_BY[k]}
 
 
 @dataclass
@@ -161,9 +173,10 @@ class GuidanceConfig:
         return {k: v for k, v in out.items() if v > 0} if nonzero else out
 
     def settings(self) -> dict:
-        """Every setting other than the weights (mode, schedule, geometry constants, ...)."""
+        """Every setting other than the weights (mode, schedule, geometry constants, ...) that the mode reads
+        (:data:`READ_BY`: ``iterations`` set under ``paper`` resampled every scene to the same bytes)."""
         own = self.weight_keys()
-        return {k: v for k, v in self.to_dict().items() if k not in own and k != "terms"}
+        return without_unread({k: v for k, v in self.to_dict().items() if k not in own and k != "terms"})
 
     @property
     def active(self) -> bool:
@@ -183,7 +196,7 @@ class GuidanceConfig:
         ``refine(collision=0.0075,gravity=0.001,relation=0.001)``, ``sample(box_iou=0.15,last_steps=10,grad_clip=0.1)``."""
         if not self.active:
             return "none"
-        default = GuidanceConfig().settings()
+        default = GuidanceConfig(mode=self.mode).settings()
         parts = [f"{k}={v:g}" for k, v in self.weights(nonzero=True).items()]
         parts += [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in self.settings().items()
                   if k != "mode" and v != default.get(k)]

@@ -25,15 +25,18 @@ def checkpoint_method(hparams: dict) -> str:
     return checkpoint_identity({"hyper_parameters": hparams})["method"]
 
 
-def meta_module(cls, checkpoint: dict):
+def meta_module(cls, checkpoint: dict, source: str = "checkpoint"):
     """The module a checkpoint's hyperparameters build, on PyTorch's ``meta`` device (no memory, no weights loaded),
     or None when the class cannot be built there (as saved first; then without bounds: the platform's set_bounds
-    reads values, which meta tensors lack). A :class:`spread.safe_load.CheckpointMismatchError` is raised as is."""
+    reads values, which meta tensors lack). A :class:`spread.safe_load.CheckpointMismatchError` is raised as is, and
+    so is the class's refusal of a hyperparameter (a ``ValueError`` both ways: ``nearest: bogus``, ``prediction:
+    bogus``), naming ``source``: the module would refuse it as well, after the command had started its work."""
     import torch
 
     from spread.safe_load import CheckpointMismatchError
 
     hp = dict(checkpoint.get("hyper_parameters") or {})
+    refused = None
     for attempt in (hp, {**hp, "bounds": None} if "bounds" in hp else None):
         if attempt is None:
             continue
@@ -42,8 +45,41 @@ def meta_module(cls, checkpoint: dict):
                 return cls(**attempt)
         except CheckpointMismatchError:
             raise
+        except ValueError as exc:
+            refused = exc
         except Exception:  # noqa: BLE001 - not buildable on meta this way
+            refused = None
             continue
+    if refused is not None:
+        raise CheckpointMismatchError(f"{source}: its hyperparameters do not build the '{checkpoint_method(hp)}' "
+                                      f"network: {refused}") from None
+    return None
+
+
+def weight_problem(name: str, value) -> str | None:
+    """Why a checkpoint's tensor ``name`` cannot be a trained weight, or None: it has no values (PyTorch's ``meta``
+    device), it is a view larger than the storage it reads (a stride-0 ``expand``: a 1.6 kB file asked for 40 TB
+    when read in full), or it holds NaN or infinity (a diverged run's weights sample NaN poses)."""
+    import torch
+
+    if not isinstance(value, torch.Tensor):
+        return None
+    problem = storage_problem(name, value)
+    if problem:
+        return problem
+    if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value).all()):
+        return f"weight '{name}' holds non-finite values (NaN or infinity)"
+    return None
+
+
+def storage_problem(name: str, value) -> str | None:
+    """Why tensor ``name`` holds no values of its own to read, or None: on PyTorch's ``meta`` device, or a view that
+    reads more bytes than its storage has (a stride-0 ``expand``: any op over it allocates its full size)."""
+    if value.is_meta:
+        return f"weight '{name}' is on PyTorch's meta device: it holds no values"
+    if value.numel() and value.untyped_storage().nbytes() < value.numel() * value.element_size():
+        return (f"weight '{name}' of shape {tuple(value.shape)} reads {value.numel() * value.element_size():,} bytes "
+                f"from a storage of {value.untyped_storage().nbytes():,} (an expanded or overlapping view)")
     return None
 
 
@@ -58,7 +94,7 @@ def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint"):
     from spread.safe_load import CheckpointMismatchError
 
     hp = dict(checkpoint.get("hyper_parameters") or {})
-    module = meta_module(cls, checkpoint)
+    module = meta_module(cls, checkpoint, source)
     if module is None:  # not buildable on meta: leave it to load_state_dict
         return None
     shapes = {k: tuple(v.shape) for k, v in module.state_dict().items()}
@@ -69,6 +105,11 @@ def check_weight_shapes(cls, checkpoint: dict, source: str = "checkpoint"):
             raise CheckpointMismatchError(
                 f"{source}: its hyperparameters build weight '{name}' of shape {shape}, the file holds {held[name]} "
                 f"(config {hp.get('config', {})}); hyperparameters and weights disagree, refused before allocating")
+    parameters = {name for name, _ in module.named_parameters()}  # not buffers: bounds not yet set are infinite
+    for name in sorted(parameters & set(weights)):
+        problem = weight_problem(name, weights[name])
+        if problem:
+            raise CheckpointMismatchError(f"{source}: {problem}; refused before any work")
     if shapes and not set(shapes) & set(held):
         raise CheckpointMismatchError(
             f"{source}: none of its {len(held)} weights belongs to the '{checkpoint_method(hp)}' network its "

@@ -380,6 +380,11 @@ def release_state_dict(ckpt: dict, source: str = "ckpt.pth", use_ema: bool = Tru
                                      f"{{model, optimizer, ema_states}}), got {type(ckpt).__name__}"
                                      + (f" with keys {sorted(ckpt)[:6]}" if isinstance(ckpt, dict) else ""))
     model = {(k[len(COMPILED_PREFIX):] if k.startswith(COMPILED_PREFIX) else k): v for k, v in ckpt["model"].items()}
+    if len(model) < len(ckpt["model"]):  # 'x' and '_orig_mod.x' both: one of them would be dropped unseen
+        twice = sorted(k for k in ckpt["model"] if isinstance(k, str) and k.startswith(COMPILED_PREFIX)
+                       and k[len(COMPILED_PREFIX):] in ckpt["model"])
+        raise ReleaseCheckpointError(f"{source}: 'model' holds weight '{twice[0][len(COMPILED_PREFIX):]}' twice, "
+                                     f"as '{twice[0]}' too ({len(twice)} such); keep one spelling")
     if use_ema:
         ema = ckpt.get("ema_states")
         shadow = ema.get("shadow_params") if isinstance(ema, dict) else None

@@ -45,6 +45,7 @@ from spread.model.config import ModelConfig, SceneDiffusionConfig
 from spread.model.diffusion import (Denoising, Hook, Sampler, SamplingCallback, check_prediction, denoise,
                                     epsilon_from_prediction, loss_weights, prediction_target, training_scheduler,
                                     x0_from_prediction)
+from spread.model.sampler import check_schedule
 from spread.model.ema import EMA
 from spread.model.layers import round_up
 from spread.model.network import SceneDenoiser, sharing_geometry, upgrade_state_dict
@@ -156,6 +157,7 @@ class SceneDiffusion(L.LightningModule):
                           stacklevel=2)
         cfg = ModelConfig.from_any(config)
         sampler = Sampler.from_config(val_sampler)
+        check_schedule(beta_schedule, diffusion_steps)  # before anything is made of them
         check_prediction(prediction)
         loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
         for key, value in (("penetration_weight", penetration_weight), ("support_weight", support_weight),

@@ -24,12 +24,33 @@ TRAIN_SCHEDULER_CONFIG: dict = {
 SAMPLER_KINDS = ("ddpm", "ddim", "dpmsolver++")
 
 
+#: The beta schedules diffusers' DDPMScheduler makes by name.
+BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2", "laplace", "sigmoid")
+#: The most training timesteps a schedule may have: diffusers makes the cosine schedule in a Python loop over them
+#: (a checkpoint saying ``diffusion_steps: 1e12`` held the command in it, its memory growing, with no end).
+MAX_DIFFUSION_STEPS = 100_000
+
+
+def check_schedule(beta_schedule, steps) -> None:
+    """``ValueError`` naming the hyperparameter when a training schedule cannot be made: an unknown
+    ``beta_schedule`` (diffusers raised ``NotImplementedError: bogus is not implemented``), or ``diffusion_steps``
+    not a whole number in [1, :data:`MAX_DIFFUSION_STEPS`]."""
+    if beta_schedule not in BETA_SCHEDULES:
+        raise ValueError(f"beta_schedule={beta_schedule!r}: not a beta schedule (known: {', '.join(BETA_SCHEDULES)})")
+    whole = isinstance(steps, int) and not isinstance(steps, bool) or isinstance(steps, float) and steps.is_integer()
+    if not whole or not 1 <= steps <= MAX_DIFFUSION_STEPS:
+        raise ValueError(f"diffusion_steps={steps!r}: expected a whole number in [1, {MAX_DIFFUSION_STEPS:,}]")
+
+
 def training_scheduler(**overrides) -> DDPMScheduler:
     """A DDPM training schedule: ε-prediction, by default cosine betas over T = 1000 (the paper's);
-    ``overrides`` (``beta_schedule``, ``num_train_timesteps``, ...) change it."""
+    ``overrides`` (``beta_schedule``, ``num_train_timesteps``, ...) change it (checked: :func:`check_schedule`)."""
     from diffusers import DDPMScheduler
 
-    return DDPMScheduler(**{**TRAIN_SCHEDULER_CONFIG, **overrides})
+    config = {**TRAIN_SCHEDULER_CONFIG, **overrides}
+    if config.get("trained_betas") is None:
+        check_schedule(config["beta_schedule"], config["num_train_timesteps"])
+    return DDPMScheduler(**config)
 
 
 @dataclass

@@ -203,9 +203,10 @@ def auto_as_now(before, now):
 def upgraded(record: dict) -> dict:
     """An identity recorded by an earlier version in today's spelling, normalised, so that what it recorded is
     compared, not how, wherever the part sits (a stage's inputs nest identities): a disabled FID's other settings,
-    which change nothing, dropped; a ``protocol.metrics`` list as a set in the registry's order; a sampling
-    ``device`` recorded as asked — ``cuda:N`` as ``cuda``; ``auto`` is kept as written (where such a run sampled is
-    not known: the done-check lets it match this run's, :func:`identity_changes`)."""
+    which change nothing, dropped; guidance settings its mode does not read dropped; a ``protocol.metrics`` list as
+    a set in the registry's order; a sampling ``device`` recorded as asked — ``cuda:N`` as ``cuda``; ``auto`` is kept
+    as written (where such a run sampled is not known: the done-check lets it match this run's,
+    :func:`identity_changes`)."""
     def walk(node):
         if not isinstance(node, dict):
             return node
@@ -218,6 +219,10 @@ def upgraded(record: dict) -> dict:
             elif key == "sampling" and isinstance(value, dict) and isinstance(value.get("device"), str):
                 device = value["device"]
                 value = {**value, "device": "cuda" if device.startswith("cuda:") else device}
+            elif key == "guidance" and isinstance(value, dict) and isinstance(value.get("mode"), str):
+                from spread.guidance.config import without_unread
+
+                value = without_unread(value)  # recorded before the settings a mode does not read were left out
             out[key] = walk(value)
         return out
 

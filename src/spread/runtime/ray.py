@@ -52,6 +52,13 @@ class RaySettings:
     object_store_memory: int | None = 256 * 1024 * 1024  # bytes, for a started cluster
     num_gpus_per_worker: float = 0.0  # GPUs each sampling actor reserves (evaluation tasks use none)
 
+    def __post_init__(self):
+        from spread.checks import whole_number
+
+        # ``num_cpus=0`` started a cluster on which no task or actor could ever run: the command waited for ever
+        whole_number(self.num_cpus, "ray.num_cpus", 1, null="all of this machine's")
+        whole_number(self.max_retries, "ray.max_retries", 0)
+
     @property
     def starts_cluster(self) -> bool:
         return self.address in (None, "", "local")

@@ -117,6 +117,8 @@ class SamplingConfig:
 
         for key in ("workers", "renders", "figures", "seed"):
             whole_number(getattr(self, key), key)
+        for key in ("samples_per_graph", "batch_size"):  # refused at once, not after the checkpoint is read
+            whole_number(getattr(self, key), key, 1)
         check_threads(self.threads)
         unknown = [k for k in self.figure_kinds if k not in FIGURE_KINDS]
         if unknown:

@@ -86,7 +86,7 @@ class FakeCommands:
                                        "grecall": {"matches": 9, "pairs": 10},
                                        "asd": {"abs_distance_sum": 0.01, "pairs": 1},
                                        "stability": {"unchanged_pairs": 8, "pairs": 10, "still_objects": n,
-                                                     "objects": n}}})
+                                                     "objects": n, "displacement_ok": n, "rotation_ok": n}}})
                  for g, (c, n) in colliding.items()]
         (out / "per_scene.jsonl").write_text("\n".join(lines) + "\n")
         self.calls.append(("evaluate", out.name, a["resume"]))

@@ -266,3 +266,109 @@ def test_a_release_file_whose_weights_hold_no_values_or_a_weight_twice_is_refuse
         assert path.stat().st_size < 10_000
         with pytest.raises(ReleaseCheckpointError, match=re.escape(says)):
             check_release_weights(str(path), use_ema=False)
+
+
+def test_a_refused_ablation_relaunch_leaves_the_folders_record_and_a_run_folder_is_no_ablation(dataset, run, tmp_path):
+    """The stage lists were checked after ``.hydra/config.yaml`` was rewritten: the folder then named settings its
+    results were never made with. A training run's folder as ``out_dir`` had its record replaced, and the stages
+    written beside its checkpoints."""
+    from spread.commands.ablate import ablate
+
+    from helpers import compose
+
+    out = tmp_path / "a"
+    (out / ".hydra").mkdir(parents=True)
+    (out / ".hydra" / "config.yaml").write_text("before: true\n")
+    (out / "ablation.json").write_text('{"stages": {}}')
+    common = ["variants=[base]", f"train.ckpt.base={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}",
+              "logger=none", "figures=false"]
+    with pytest.raises(ValueError, match=r"^sample/base: its overrides .*unknown sampler 'nope'"):
+        ablate(compose("ablate", *common, f"out_dir={out}", 'sample.extra=["sampler.kind=nope"]'))
+    assert (out / ".hydra" / "config.yaml").read_text() == "before: true\n"
+    before = folder_state(run)
+    with pytest.raises(ValueError, match=re.escape(f"out_dir={run}: holds a training run")):
+        ablate(compose("ablate", *common, f"out_dir={run}"))
+    assert folder_state(run) == before
+
+
+def test_spread_sweep_refuses_a_metric_no_point_reports_and_a_folder_of_another_kind_before_any_trial(
+        dataset, run, tmp_path):
+    from spread.commands.sweep import sweep
+
+    common = [f"ckpt={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}", "+sweep=guidance_grid",
+              "guidance.collision=0.0,0.0075", "logger=none"]
+    with pytest.raises(ValueError, match=r"metric=grecal: no point reports it \(a sampling sweep's points report "
+                                         r"grecall, col_mesh"):
+        sweep([*common, f"out_dir={tmp_path / 'w'}", "metric=grecal"])
+    with pytest.raises(ValueError, match=re.escape(f"out_dir={dataset}: holds a dataset")):
+        sweep([*common, f"out_dir={dataset}"])
+    assert not (tmp_path / "w").exists() and not (dataset / "points").exists()
+
+
+def test_ctrl_c_ends_spread_sweep_as_interrupted_with_no_table(monkeypatch, capsys):
+    """Ray Tune's own SIGINT handler made ``tuner.fit()`` return, and the sweep wrote the points finished so far as
+    its table, exit 0. Now Ctrl-C is a KeyboardInterrupt out of the trials (next test) and ends the command."""
+    import spread.commands.sweep
+    from spread.cli.sweep import main
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(spread.commands.sweep, "sweep", interrupted)
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    monkeypatch.delenv("SPREAD_DEBUG", raising=False)
+    with pytest.raises(SystemExit) as stop:
+        main(["out_dir=x"])
+    assert stop.value.code == 130
+    assert capsys.readouterr().err.strip() == ("spread-sweep: interrupted (Ctrl-C); a relaunch goes on from the points "
+                                               "recorded")
+
+
+TUNE_CTRL_C = """
+import os, signal, sys, threading, time
+from ray import tune
+from spread.experiments.sweep import tune_leaves_ctrl_c
+from spread.runtime.ray import RaySettings, ray_session
+
+def trainable(config):
+    time.sleep(120)
+    tune.report({"x": 1})
+
+with ray_session(RaySettings(num_cpus=1, object_store_memory=80 * 1024 * 1024), owner=None):
+    threading.Timer(6.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+    try:
+        with tune_leaves_ctrl_c():
+            tune.Tuner(trainable, tune_config=tune.TuneConfig(num_samples=1),
+                       run_config=tune.RunConfig(storage_path=sys.argv[1], name="t", verbose=0)).fit()
+        print("fit returned", flush=True)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+print("handler restored:", os.environ.get("TUNE_DISABLE_SIGINT_HANDLER") is None, flush=True)
+"""
+
+
+@pytest.mark.timeout(180)
+def test_ray_tune_leaves_ctrl_c_to_the_sweep_while_its_trials_run(tmp_path):
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "TUNE_DISABLE_SIGINT_HANDLER"}
+    proc = subprocess.run([sys.executable, "-c", TUNE_CTRL_C, str(tmp_path / "tune")], capture_output=True, text=True,
+                          timeout=170, env=env)
+    assert "interrupted" in proc.stdout.splitlines(), proc.stdout[-2000:] + proc.stderr[-3000:]
+    assert "handler restored: True" in proc.stdout
+
+
+@pytest.mark.parametrize("uri, says", [
+    ("file:///{tmp}/fs", "a file store, which MLflow keeps in maintenance mode"),
+    ("mysql://u@127.0.0.1:1/db", "its database driver is not installed (no module named 'MySQLdb')"),
+    ("http://127.0.0.1:1", "an MLflow server already"),
+])
+def test_spread_dashboard_names_a_store_its_server_cannot_serve_before_it_prints_a_url(uri, says, tmp_path):
+    """Each printed ``open http://…`` and then MLflow's traceback (26–47 lines)."""
+    from helpers import free_port
+
+    uri = uri.format(tmp=tmp_path)
+    line, proc = user_error("spread-dashboard", f"tracking_uri={uri}", f"port={free_port()}", timeout=60)
+    assert line.startswith(f"spread-dashboard: tracking_uri={uri}: {says}"), line
+    assert "open http" not in proc.stdout

@@ -379,7 +379,8 @@ LOCK_FILE = ".spread.lock"
 #: What marks a folder as a command's: (kind, the file or folder that says so). A command refuses an ``out_dir`` that
 #: holds another kind (:func:`check_folder_kind`).
 FOLDER_MARKS = (("dataset", "assets/index.json"), ("training run", "checkpoints"), ("sampling run", "sampling.json"),
-                ("evaluation", "protocol.json"), ("export", "export.json"))
+                ("evaluation", "protocol.json"), ("export", "export.json"), ("ablation", "ablation.json"),
+                ("comparison", "compare.json"), ("sweep", "points"))
 
 
 def folder_kinds(folder: str | os.PathLike) -> dict[str, str]:

@@ -36,6 +36,26 @@ def parse(argv: list[str]) -> dict:
     return values
 
 
+def other_store_problem(uri: str) -> str | None:
+    """Why ``mlflow server`` cannot serve a store that is not SQLite, or None (a database whose driver is
+    installed: the server names what it cannot reach). Each of these printed the dashboard's URL, then a traceback."""
+    scheme = uri.split(":", 1)[0].lower()
+    if scheme in ("file", "") or "://" not in uri:
+        return ("a file store, which MLflow keeps in maintenance mode and its server refuses; the platform's stores "
+                "are SQLite (tracking_uri=sqlite:///<path>/mlflow.db)")
+    if scheme in ("http", "https", "databricks"):
+        return "an MLflow server already: open it in the browser, it needs no dashboard"
+    try:
+        import sqlalchemy
+
+        sqlalchemy.create_engine(uri)  # imports the database's driver; connects to nothing yet
+    except ModuleNotFoundError as exc:
+        return f"its database driver is not installed (no module named '{exc.name}'); pip install it, or use SQLite"
+    except Exception as exc:  # noqa: BLE001 - an URI SQLAlchemy cannot read
+        return f"not a database URI ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
+    return None
+
+
 def server_command(values: dict) -> tuple[list[str], str]:
     """(the ``mlflow server`` command line, the store URI); creates the store when it does not exist yet; a store
     that cannot be opened is one line naming it."""
@@ -45,6 +65,10 @@ def server_command(values: dict) -> tuple[list[str], str]:
         uri = resolve_tracking_uri(values["tracking_uri"] or f"sqlite:///{values['paths.runs_dir']}/mlflow.db")
         if uri.startswith("sqlite:///"):
             open_store(uri)  # creates the tables of a new store; names a corrupt, truncated or locked one
+        else:
+            problem = other_store_problem(uri)
+            if problem:
+                raise SystemExit(f"spread-dashboard: tracking_uri={uri}: {problem}")
     except (StoreError, OSError) as exc:
         raise SystemExit(f"spread-dashboard: {' '.join(str(exc).split())}") from None
     command = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", uri, "--host", values["host"],

@@ -27,6 +27,14 @@ def main(argv: list[str] | None = None) -> None:
     logger.setLevel(logging.INFO)
     try:
         result = sweep(args)
+    except KeyboardInterrupt:  # Ctrl-C: no table of the points finished so far; a relaunch goes on from them
+        from spread.cli.errors import verbose
+
+        if verbose():
+            raise
+        print("spread-sweep: interrupted (Ctrl-C); a relaunch goes on from the points recorded", file=sys.stderr,
+              flush=True)
+        raise SystemExit(130) from None
     except Exception as exc:  # noqa: BLE001 - a bad setting, refused before any trial: one line
         from spread.cli.errors import user_error
         from spread.configs import error_message

@@ -65,11 +65,13 @@ def ablation_spec(cfg: DictConfig):
                         guidance=guidance + strings(cfg.sample.guidance), figures=bool(cfg.get("figures", True)))
 
 
-def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
+def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body, prepare=None):
     """The frame of ``spread-ablate`` and ``spread-compare``: torch threads, ``out_dir``'s lock (a second run
-    on the folder is refused, never mixed), the config recorded, the MLflow run (``name``: the parent run of
-    every stage's MLflow run, :func:`spread.tracking.parent.nest_under`); then
-    ``body(commands, logger, config, run)`` (``commands``: :func:`launcher_commands`) gives the result."""
+    on the folder is refused, never mixed), ``prepare(commands)`` (the study built: its checks of the stage lists
+    and the ledger), the config recorded — after those checks, so a refused relaunch leaves the folder's record as
+    it was —, the MLflow run (``name``: the parent run of every stage's MLflow run,
+    :func:`spread.tracking.parent.nest_under`); then ``body(commands, logger, config, run)`` (``commands``:
+    :func:`launcher_commands`) gives the result."""
     from spread.commands.common import record_config
     from spread.io import run_lock
     from spread.tracking import mlflow_store as mlflow_log
@@ -81,19 +83,24 @@ def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body):
 
     set_threads(cfg.get("threads"))
     check_data_split(spec)  # before the folder's record: a refused relaunch leaves it as it was
+    from spread.io import check_folder_kind
+
+    check_folder_kind(spec.out_dir, f"spread-{command}", {"ablation" if command == "ablate" else "comparison"})
     with run_lock(spec.out_dir, f"spread-{command}"):
+        commands = launcher_commands(cfg)
+        if prepare is not None:
+            prepare(commands)
         record_config(cfg, spec.out_dir)()
         logger = as_logger_config(cfg.logger)
         config = OmegaConf.to_container(cfg, resolve=True)
         kind = {"ablate": "ablation"}.get(command, command)
         with mlflow_log.tracked(logger, kind, spec.out_dir, config, spec.group, name=name) as run:
             with nest_under(run, {"ablate": "ablation"}.get(command, "comparison"), str(cfg.name), spec.out_dir):
-                return body(launcher_commands(cfg), logger, config, run)  # the stages' runs: nested under `run`
+                return body(commands, logger, config, run)  # the stages' runs: nested under `run`
 
 
 def ablate(cfg: DictConfig):
     """The ablation of ``cfg``; returns the :class:`~spread.experiments.AblationResult`."""
-    from spread.experiments.ablation import run_ablation
     from spread.tracking import mlflow_store as mlflow_log
 
     spec = ablation_spec(cfg)
@@ -121,10 +128,21 @@ def ablate(cfg: DictConfig):
         if seeds:
             from spread.experiments.ablation_seeds import run_seeded_ablation
 
-            return run_seeded_ablation(spec, commands, seeds, logged)
-        return run_ablation(spec, commands, logged)
+            return run_seeded_ablation(spec, commands, seeds, logged, ablations=prepared["ablations"])
+        return prepared["ablation"].run(logged)
 
-    return run_stages_command(cfg, spec, "ablate", name, body)
+    prepared = {}
+
+    def prepare(commands):  # every check of the stage lists and the ledger, before the folder's record
+        from spread.experiments.ablation import Ablation
+        from spread.experiments.ablation_seeds import seed_spec
+
+        if seeds:
+            prepared["ablations"] = {seed: Ablation(seed_spec(spec, seed), commands) for seed in seeds}
+        else:
+            prepared["ablation"] = Ablation(spec, commands)
+
+    return run_stages_command(cfg, spec, "ablate", name, body, prepare)
 
 
 def launcher_commands(cfg: DictConfig):

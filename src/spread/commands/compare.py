@@ -32,7 +32,7 @@ def compare_spec(cfg: DictConfig):
 def compare(cfg: DictConfig):
     """The comparison of ``cfg``; returns the :class:`~spread.experiments.compare.CompareResult`. Training
     stages run through ``train.launcher`` (``local``, ``torchrun``, ``srun``: their own processes, DDP)."""
-    from spread.experiments.compare import log_table1, run_comparison
+    from spread.experiments.compare import log_table1
     from spread.tracking import mlflow_store as mlflow_log
 
     spec = compare_spec(cfg)
@@ -45,9 +45,16 @@ def compare(cfg: DictConfig):
             if run is not None:
                 mlflow_log.log_table(run, records, "method_key", sorted(Path(spec.out_dir).glob("table1*.*")))
 
-        return run_comparison(spec, commands, log_table if logger.wandb or run is not None else None)
+        return prepared["comparison"].run(log_table if logger.wandb or run is not None else None)
 
-    return run_stages_command(cfg, spec, "compare", name, body)
+    prepared = {}
+
+    def prepare(commands):  # every check of the stage lists and the ledger, before the folder's record
+        from spread.experiments.compare import Comparison
+
+        prepared["comparison"] = Comparison(spec, commands)
+
+    return run_stages_command(cfg, spec, "compare", name, body, prepare)
 
 
 def print_comparison(result) -> None:

@@ -121,13 +121,14 @@ def write_seed_table(rows: list[dict], stem: Path, seeds: list[int], title: str 
     return {**paths, "png": stem.with_suffix(".png")}
 
 
-def run_seeded_ablation(spec: AblationSpec, commands: Commands, seeds: list[int], log_table=None) -> AblationResult:
+def run_seeded_ablation(spec: AblationSpec, commands: Commands, seeds: list[int], log_table=None,
+                        ablations: dict | None = None) -> AblationResult:
     """Every seed's ablation (their stages pooled, module docstring), then the table across seeds in
-    ``spec.out_dir``."""
+    ``spec.out_dir``; ``ablations``: seed → its :class:`Ablation`, built (checked) already."""
     from spread.experiments.stage_pool import run_jobs
 
     started = time.perf_counter()
-    ablations = {seed: Ablation(seed_spec(spec, seed), commands) for seed in seeds}
+    ablations = ablations or {seed: Ablation(seed_spec(spec, seed), commands) for seed in seeds}
     for ablation in ablations.values():  # the first seed generates the shared data, the others find it
         ablation.out.mkdir(parents=True, exist_ok=True)
         ablation.engine.attempt("data", ablation.engine.data_stage, [])

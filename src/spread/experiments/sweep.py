@@ -34,6 +34,7 @@ validation to Tune and the scheduler stops the worst trials early.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -570,6 +571,14 @@ def checked_sweep(plan: SweepPlan) -> dict:
     out = Path(s.out_dir).resolve()
     shared = {"fixed": plan.fixed, "points": str(out / "points"), "name": s.name, "metric": s.metric,
               "scheduler": s.scheduler, "seeds": s.seeds, "cwd": os.getcwd(), "trial_gpus": float(s.trial_gpus or 0)}
+    from spread.io import check_folder_kind
+    from spread.reporting.runs import record_metrics
+
+    check_folder_kind(out, "spread-sweep", {"sweep"})  # a dataset's or another command's folder: refused
+    known = [n for n in record_metrics() if not n.startswith("n_") and n != "fid_status"]
+    if s.command == "sample" and s.metric not in known:  # a typo marked no point best, or failed Optuna's trials
+        raise ValueError(f"spread-sweep: metric={s.metric}: no point reports it (a sampling sweep's points report "
+                         f"{', '.join(known)})")
     check_inert_dimensions(plan, shared)
     check_started_cluster(s)
     check_first_point(plan, shared)
@@ -798,7 +807,26 @@ def tune_rows(s: SweepSettings, trainable, space, searcher, scheduler, samples: 
                                             search_alg=searcher, scheduler=scheduler, reuse_actors=True),
                 run_config=tune.RunConfig(storage_path=str(storage), name=s.folder_name, verbose=0,
                                           failure_config=tune.FailureConfig(max_failures=1)))
-        return [row for r in tuner.fit() for row in result_rows(r, plan, out)]
+        with tune_leaves_ctrl_c():
+            grid = tuner.fit()
+        return [row for r in grid for row in result_rows(r, plan, out)]
+
+
+@contextlib.contextmanager
+def tune_leaves_ctrl_c():
+    """Ray Tune without its own SIGINT handler while it runs the trials: with it, Ctrl-C ended ``tuner.fit()``
+    normally, and the sweep wrote a table of the points finished so far as if it were whole (exit 0). Without it,
+    Ctrl-C is a ``KeyboardInterrupt`` as in every other command (``interrupted (Ctrl-C)``, exit 130, no table); a
+    relaunch goes on from the points recorded."""
+    before = os.environ.get("TUNE_DISABLE_SIGINT_HANDLER")
+    os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = "1"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("TUNE_DISABLE_SIGINT_HANDLER", None)
+        else:
+            os.environ["TUNE_DISABLE_SIGINT_HANDLER"] = before
 
 
 #: the search a sweep folder's Ray Tune state belongs to (:func:`resumable`)

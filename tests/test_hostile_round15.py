@@ -282,6 +282,11 @@ def test_a_refused_ablation_relaunch_leaves_the_folders_record_and_a_run_folder_
     (out / "ablation.json").write_text('{"stages": {}}')
     common = ["variants=[base]", f"train.ckpt.base={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}",
               "logger=none", "figures=false"]
+    for setting, says in [("stages.max_concurrent=0", "stages.max_concurrent=0: expected a whole number ≥ 1"),
+                          ("stages.train_concurrent=1.5", "stages.train_concurrent=1.5: expected a whole number ≥ 1"),
+                          ("figures=maybe", "figures='maybe': expected true or false")]:  # each was taken silently
+        with pytest.raises(ValueError, match=re.escape(says)):
+            ablate(compose("ablate", *common, f"out_dir={out}", setting))
     with pytest.raises(ValueError, match=r"^sample/base: its overrides .*unknown sampler 'nope'"):
         ablate(compose("ablate", *common, f"out_dir={out}", 'sample.extra=["sampler.kind=nope"]'))
     assert (out / ".hydra" / "config.yaml").read_text() == "before: true\n"
@@ -302,6 +307,8 @@ def test_spread_sweep_refuses_a_metric_no_point_reports_and_a_folder_of_another_
         sweep([*common, f"out_dir={tmp_path / 'w'}", "metric=grecal"])
     with pytest.raises(ValueError, match=re.escape(f"out_dir={dataset}: holds a dataset")):
         sweep([*common, f"out_dir={dataset}"])
+    with pytest.raises(ValueError, match=re.escape("seed is swept and seeds=2: a point samples the seeds from its")):
+        sweep([*common, "seed=0,1", "seeds=2", f"out_dir={tmp_path / 'w'}"])
     assert not (tmp_path / "w").exists() and not (dataset / "points").exists()
 
 
@@ -372,3 +379,17 @@ def test_spread_dashboard_names_a_store_its_server_cannot_serve_before_it_prints
     line, proc = user_error("spread-dashboard", f"tracking_uri={uri}", f"port={free_port()}", timeout=60)
     assert line.startswith(f"spread-dashboard: tracking_uri={uri}: {says}"), line
     assert "open http" not in proc.stdout
+
+
+def test_a_sweep_point_whose_metrics_json_was_hand_damaged_is_not_reused(tmp_path):
+    """A NaN GRecall and a count of text: the sweep re-used the point (shown ok, GRecall –, the star moved) where
+    spread-report refuses the file; the point is resumed now, and its evaluation writes the file again."""
+    from spread.experiments.points import damaged_metrics
+
+    path = tmp_path / "metrics.json"
+    path.write_text(json.dumps({"grecall": 0.5, "n_scenes": 3, "n_failed": 0}))
+    assert damaged_metrics(tmp_path) is None
+    path.write_text(json.dumps({"grecall": float("nan"), "n_scenes": 3}))
+    assert "its metrics.json is damaged" in damaged_metrics(tmp_path) and "'grecall'" in damaged_metrics(tmp_path)
+    path.write_text(json.dumps({"grecall": 0.5, "n_scenes": "x"}))
+    assert "key 'n_scenes' is 'x'" in damaged_metrics(tmp_path)

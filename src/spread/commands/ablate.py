@@ -32,6 +32,7 @@ def spec_fields(cfg: DictConfig, kind: str) -> dict:
     ``conf/compare.yaml`` (``kind``: ``ablate`` or ``compare``, the wandb group's prefix); ``stages``:
     ``max_concurrent``, ``train_concurrent`` with each training stage's ``train_cpus`` / ``train_gpus``, and
     where their Ray tasks run (``address``, ``num_cpus``)."""
+    from spread.checks import whole_number
     from spread.runtime.ray import RaySettings
 
     root = cfg.data.root
@@ -44,8 +45,8 @@ def spec_fields(cfg: DictConfig, kind: str) -> dict:
         sample=strings(cfg.sample.overrides) + strings(cfg.sample.get("extra")),
         evaluate=strings(cfg.evaluate.overrides) + strings(cfg.evaluate.get("extra")),
         title=str(cfg.get("title") or ""), group=f"{kind}_{cfg.name}",
-        max_concurrent=int(stages.get("max_concurrent") or 1),
-        train_concurrent=int(stages.get("train_concurrent") or 1),
+        max_concurrent=whole_number(stages.get("max_concurrent"), "stages.max_concurrent", 1, null="1") or 1,
+        train_concurrent=whole_number(stages.get("train_concurrent"), "stages.train_concurrent", 1, null="1") or 1,
         train_cpus=float(1 if stages.get("train_cpus") is None else stages.get("train_cpus")),
         train_gpus=float(stages.get("train_gpus") or 0),
         ray=RaySettings(address=stages.get("address"), num_cpus=stages.get("num_cpus")))
@@ -62,7 +63,15 @@ def ablation_spec(cfg: DictConfig):
                         variants=tuple(str(v) for v in cfg.variants),
                         train_variant={v: strings(cfg.train.get(v)) for v in ("base", "geometry")},
                         sample_variant={v: strings(cfg.sample.get(v)) for v in ("base", "geometry") if cfg.sample.get(v)},
-                        guidance=guidance + strings(cfg.sample.guidance), figures=bool(cfg.get("figures", True)))
+                        guidance=guidance + strings(cfg.sample.guidance), figures=truth(cfg.get("figures", True)))
+
+
+def truth(value, key: str = "figures") -> bool:
+    """``value`` when it is true or false; ``ValueError`` naming ``key`` otherwise (``figures=maybe`` was read as
+    true)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{key}={value!r}: expected true or false")
+    return value
 
 
 def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body, prepare=None):

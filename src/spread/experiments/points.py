@@ -66,9 +66,26 @@ def check_point(cfg, out_dir, resume: bool = True) -> PointDecision:
         other = made_otherwise(out_dir, fingerprint)
         if other:  # another command sampled or evaluated into the folder since: its record no longer says
             return PointDecision(False, True, other, fingerprint)
+        damaged = damaged_metrics(out_dir)
+        if damaged:  # a hand edit (a NaN, a count of text): resumed, so the evaluation writes it again from its lines
+            return PointDecision(False, False, damaged, fingerprint)
         if record.get("status") != "finished":
             finish_point(out_dir)
     return PointDecision(decision.reuse, decision.fresh, decision.reason, fingerprint)
+
+
+def damaged_metrics(out_dir) -> str | None:
+    """Why a finished point's ``metrics.json`` cannot be read as the evaluation writes it (``spread-report`` refuses
+    it: :func:`spread.reporting.runs.check_shape`), or None. A sweep re-used such a point, NaN shown as –."""
+    from spread.io import read_json_object
+    from spread.reporting.runs import RunError, check_shape
+
+    path = Path(out_dir) / "metrics.json"
+    try:
+        check_shape(path, read_json_object(path))
+    except (RunError, ValueError, OSError) as exc:
+        return f"its metrics.json is damaged ({' '.join(str(exc).split())[:300]})"
+    return None
 
 
 def made_otherwise(out_dir, fingerprint: dict) -> str | None:

@@ -575,6 +575,10 @@ def checked_sweep(plan: SweepPlan) -> dict:
     from spread.reporting.runs import record_metrics
 
     check_folder_kind(out, "spread-sweep", {"sweep"})  # a dataset's or another command's folder: refused
+    if s.seeds > 1 and any(d.key == "seed" for d in plan.dimensions):  # the points' seeds overlapped: a wrong table
+        raise ValueError(f"spread-sweep: seed is swept and seeds={s.seeds}: a point samples the seeds from its seed "
+                         f"on, so points of neighbouring seeds share runs; sweep seed with seeds=1, or give seeds="
+                         f"{s.seeds} alone")
     known = [n for n in record_metrics() if not n.startswith("n_") and n != "fid_status"]
     if s.command == "sample" and s.metric not in known:  # a typo marked no point best, or failed Optuna's trials
         raise ValueError(f"spread-sweep: metric={s.metric}: no point reports it (a sampling sweep's points report "

@@ -341,9 +341,10 @@ def trainable(config):
     time.sleep(120)
     tune.report({"x": 1})
 
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a terminal (a test worker's children ignore it)
 with ray_session(RaySettings(num_cpus=1, object_store_memory=80 * 1024 * 1024), owner=None):
-    threading.Timer(6.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
     try:
+        threading.Timer(6.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
         with tune_leaves_ctrl_c():
             tune.Tuner(trainable, tune_config=tune.TuneConfig(num_samples=1),
                        run_config=tune.RunConfig(storage_path=sys.argv[1], name="t", verbose=0)).fit()

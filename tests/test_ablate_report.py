@@ -19,6 +19,7 @@ import re
 import signal
 import subprocess
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -380,17 +381,24 @@ def test_ablation_resumes_stage_by_stage(tmp_path):
     assert commands.calls == [("sample", "geometry", "false"), ("sample", "guidance", "false"),
                               ("evaluate", "geometry", "false"), ("evaluate", "guidance", "false")]
 
-    with pytest.raises(StageError, match=f"{out / 'train' / 'base'}: made with other settings"):
-        from spread.experiments.ablation import Ablation
-        from spread.experiments.stages import run_stage
+    from spread.experiments.ablation import Ablation
+    from spread.experiments.stages import run_stage
 
-        ablation = Ablation(spec(tmp_path, train=["seed=1"]), commands)
-        run_stage(ablation.engine.train_stage("base"), ablation.engine.ledger)
-    changed = run_ablation(spec(tmp_path, train=["seed=1"]), commands)  # the command reports it per stage
-    assert changed.stages["train/base"] == "failed" and "made with other settings" in changed.errors["train/base"]
+    ablation = Ablation(spec(tmp_path), commands)  # a training stage found changed mid-run: refused by its folder
+    with pytest.raises(StageError, match=f"{out / 'train' / 'base'}: made with other settings"):
+        run_stage(replace(ablation.engine.train_stage("base"), inputs={"overrides": ["seed=1"]}), ablation.engine.ledger)
+    # a relaunch with other training settings: refused before any stage runs, the published table as it was
+    table = {p.name: p.read_bytes() for p in out.glob("ablation.*")}
+    ledger = (out / "ablation.json").read_bytes()
+    commands.calls.clear()
+    with pytest.raises(ValueError, match=f"train/base: {out / 'train' / 'base'}: made with other settings"):
+        run_ablation(spec(tmp_path, train=["seed=1"]), commands)
+    assert commands.calls == [] and (out / "ablation.json").read_bytes() == ledger
+    assert {p.name: p.read_bytes() for p in out.glob("ablation.*")} == table
     import shutil  # doing what the error says — deleting that folder — lets the stage train anew
 
     shutil.rmtree(out / "train" / "base")
+    shutil.rmtree(out / "train" / "geometry")
     commands.calls.clear()
     changed = run_ablation(spec(tmp_path, train=["seed=1"]), commands)
     assert changed.stages["train/base"] == "done" and ("train", "base", "null") in commands.calls

@@ -78,7 +78,9 @@ class FakeCommands:
         index = METHODS.index(out.name)
         (out / "metrics.json").write_text(json.dumps(
             {"col_mesh": 0.5 - 0.1 * index, "grecall": 0.9, "asd": 0.01, "stability": 0.8, "fid": None,
-             "n_scenes": 3}))
+             "n_scenes": 3,  # what it measured with, as the real command records it (one setting of it here)
+             "evaluated_with": {"protocol": {"collision_threshold": float(a.get("protocol.collision_threshold",
+                                                                                 0.01))}}}))
         # g0 (bedroom): 1 of 4 objects colliding; g1 (bedroom): index of 4; g2 (livingroom): 2 of 5
         colliding = {"g0": (1, 4), "g1": (index, 4), "g2": (2, 5)}
         lines = [json.dumps({"scene_id": f"{g}_k0", "error": None,
@@ -153,6 +155,14 @@ def test_comparison_runs_every_method_and_resumes_stage_by_stage(tmp_path):
     assert commands.calls == [("sample", "diffuscene", "false"), ("sample", "physcene", "false"),
                               ("evaluate", "diffuscene", "false"), ("evaluate", "physcene", "false")]
 
+    # relaunched with another training recipe for one method: refused before any stage, Table 1 as it was
+    table = (out / "table1.csv").read_bytes()
+    commands.calls.clear()
+    other = {**spec(tmp_path).train_method, "atiss": ["experiment=atiss", "trainer.max_steps=3"]}
+    with pytest.raises(ValueError, match=f"train/atiss: {out / 'train' / 'atiss'}: made with other settings"):
+        run_comparison(spec(tmp_path, train_method=other), commands)
+    assert commands.calls == [] and (out / "table1.csv").read_bytes() == table
+
 
 def test_a_rerun_with_some_methods_keeps_the_other_finished_rows_of_table1(tmp_path):
     """Every method, then ``methods=[atiss]`` alone: Table 1 keeps the other four rows (marked carried over, a
@@ -168,6 +178,16 @@ def test_a_rerun_with_some_methods_keeps_the_other_finished_rows_of_table1(tmp_p
     assert [r["col_mesh"] for r in rows] == [r["col_mesh"] for r in before]
     md = (tmp_path / "cmp" / "table1.md").read_text()
     assert "Rows carried over from an earlier run of this folder" in md and "InstructScene" in md
+    assert "not measured alike" not in md
+    # ATISS re-evaluated under another protocol beside rows carried from the first: named under the table, not
+    # only in the CSV
+    again = run_comparison(spec(tmp_path, methods=("atiss",), evaluate=["seed=0", "protocol.collision_threshold=0.02"]),
+                           commands)
+    assert again.ok and commands.calls == [("evaluate", "atiss", "false")]
+    md, tex = ((tmp_path / "cmp" / f"table1.{s}").read_text() for s in ("md", "tex"))
+    line = ("The rows were not measured alike: they differ in protocol.collision_threshold (ATISS: "
+            "protocol.collision_threshold=0.02; DiffuScene: protocol.collision_threshold=0.01;")
+    assert line in md and "protocol.collision\\_threshold" in tex, md
 
 
 def test_a_failing_method_blocks_only_its_row(tmp_path):

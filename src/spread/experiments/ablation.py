@@ -112,6 +112,9 @@ class AblationSpec(StagesSpec):
         if unknown or not self.variants:
             raise ValueError(f"variants: unknown or none {unknown or list(self.variants)} "
                              f"(choose from {list(VARIANTS)})")
+        twice = sorted({v for v in self.variants if list(self.variants).count(v) > 1})
+        if twice:  # one row, shown once: the list asked for something the table does not hold
+            raise ValueError(f"variants: {twice[0]!r} is listed twice in {list(self.variants)}; give each row once")
         self.variants = tuple(v for v in VARIANTS if v in self.variants)
         self.check_given(["base", "geometry"], lambda v: {"method": "spread", "variant": v})
         wrong = [k for k in self.sample_variant if k not in ("base", "geometry")]
@@ -134,6 +137,7 @@ class Ablation:
         self.check_trained_variants()
         self.engine.check_data()
         self.engine.check_lists(list(spec.variants))
+        self.engine.check_relaunch(self.trained())
 
     def check_trained_variants(self) -> None:
         """Each row this ablation trains composes to that row's model (:meth:`StagesSpec.check_trained`):

@@ -108,6 +108,9 @@ class CompareSpec(StagesSpec):
         unknown = [m for m in self.methods if m not in known]
         if unknown or not self.methods:
             raise ValueError(f"methods: unknown or none {unknown or list(self.methods)} (choose from {known})")
+        twice = sorted({m for m in self.methods if list(self.methods).count(m) > 1})
+        if twice:  # one row, shown once: the list asked for something the table does not hold
+            raise ValueError(f"methods: {twice[0]!r} is listed twice in {list(self.methods)}; give each row once")
         self.methods = tuple(m for m in known if m in self.methods)
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout: {self.layout!r}, choose from {LAYOUTS}")
@@ -146,6 +149,7 @@ class Comparison:
         spec.check_trained({m: self.train_lists(m) for m in spec.trained()}, lambda m: {"method": m}, label)
         self.engine.check_data()
         self.engine.check_lists(list(spec.methods))
+        self.engine.check_relaunch(spec.trained())
 
     @property
     def checkpoint_of(self) -> dict[str, str]:
@@ -312,7 +316,7 @@ class Comparison:
             keys += sorted({k for r in records for k in r if k.startswith("col_mesh/")})
             keys += ["train_steps", "model_size", "sampler", "train_cpu_s", "sample_cpu_s", "n_scenes", "n_objects",
                      "fid_status", "status", "identity", "carried_from"]
-            note = " ".join(n for n in (table_note(rows), carried_note(rows)) if n)
+            note = " ".join(n for n in (measured_otherwise(rows, differ), table_note(rows), carried_note(rows)) if n)
             write_tables(rows, columns, stem, caption=self.caption(rows), label="tab:table1", csv_keys=keys,
                          note=note)
             if log_table is not None:
@@ -335,6 +339,23 @@ class Comparison:
             log_table(rows, self.columns(self.layout(), rows))
         done = self.engine.result(records, {s: stem.with_suffix(f".{s}") for s in ("md", "csv", "tex")}, started)
         return CompareResult(**vars(done), layout=self.layout())
+
+
+#: Settings in which Table 1's rows differ by design (each method's own weights, sampler and guidance, which the
+#: caption names); any other that differs (the evaluation protocol, FID's settings, the reference, the seed, …)
+#: measured one row otherwise than another, and is named under the table.
+METHOD_OWN = ("ckpt", "sampler", "guidance.")
+
+
+def measured_otherwise(rows: list[dict], differ: list[str]) -> str:
+    """The line under Table 1 naming, row by row, the settings other than :data:`METHOD_OWN` in which its rows
+    differ (``differ``: :func:`spread.reporting.runs.name_differences`, whose values the rows hold), or ""; e.g. a
+    row carried over from a run under another evaluation protocol."""
+    keys = [k for k in differ if not k.startswith(METHOD_OWN)]
+    if not keys:
+        return ""
+    per_row = "; ".join(f"{r.get('method')}: " + ", ".join(f"{k}={r.get(k)}" for k in keys) for r in rows)
+    return f"The rows were not measured alike: they differ in {', '.join(keys)} ({per_row})."
 
 
 def run_comparison(spec: CompareSpec, commands: Commands, log_table=None) -> CompareResult:

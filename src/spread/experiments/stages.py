@@ -237,16 +237,15 @@ def typed_inputs(stage: Stage, before: dict, now: dict) -> tuple[dict, dict]:
     return held, {k: v for k, v in wanted.items() if k in held}
 
 
-def run_stage(stage: Stage, ledger: Ledger) -> str:
-    """Skip, continue, redo or refuse the stage (module docstring, *Resume*) by the platform's done-check
-    (:func:`spread.runtime.fingerprint.done_check`); returns "skipped" or "done"."""
+def decide(stage: Stage, ledger: Ledger):
+    """The done-check's :class:`~spread.runtime.fingerprint.Decision` for ``stage`` against the ledger (module
+    docstring, *Resume*), and the refusal when it must be redone but is not derived (None: it may run)."""
     from spread.runtime.fingerprint import done_check, normalised
 
     inputs = normalised(stage.inputs)
     # a stage begun and not recorded (its driver stopped): what is on disk was begun with those inputs, not the
     # finished record's — the same inputs now continue it, other ones redo it
-    begun = ledger.begun(stage.name)
-    before = begun or ledger.inputs(stage.name)
+    before = ledger.begun(stage.name) or ledger.inputs(stage.name)
     finished = stage.finished()
     # a stage folder deleted since the ledger recorded it (what the refusal below asks for) is simply made anew
     present = stage.derived or Path(stage.folder).exists()
@@ -254,14 +253,28 @@ def run_stage(stage: Stage, ledger: Ledger) -> str:
         decision = done_check(inputs, inputs, present=present, finished=finished and not stage.derived)
     else:
         decision = done_check(*typed_inputs(stage, before, inputs), present=present, finished=finished)
+    refusal = None
+    if decision.fresh and not stage.derived:
+        refusal = (f"{stage.folder}: made with other settings ({decision.reason}); "
+                   f"delete that folder or use another out_dir")
+    return decision, refusal
+
+
+def run_stage(stage: Stage, ledger: Ledger) -> str:
+    """Skip, continue, redo or refuse the stage (module docstring, *Resume*) by the platform's done-check
+    (:func:`spread.runtime.fingerprint.done_check`); returns "skipped" or "done"."""
+    from spread.runtime.fingerprint import normalised
+
+    inputs = normalised(stage.inputs)
+    begun = ledger.begun(stage.name)
+    decision, refusal = decide(stage, ledger)
     if decision.reuse:
-        if before is None:
+        if begun is None and ledger.inputs(stage.name) is None:
             ledger.record(stage.name, inputs, None)
         log.info("✓ %s: finished earlier (%s), skipped", stage.name, stage.folder)
         return "skipped"
-    if decision.fresh and not stage.derived:
-        raise StageError(f"{stage.folder}: made with other settings ({decision.reason}); "
-                         f"delete that folder or use another out_dir")
+    if refusal:
+        raise StageError(refusal)
     if decision.fresh:
         log.info("▶ %s: %s, redoing it from scratch", stage.name, decision.reason)
     elif begun is not None:
@@ -371,6 +384,28 @@ class StageEngine:
 
     def check_data(self) -> None:
         check_data_split(self.spec)
+
+    def check_relaunch(self, trained: list[str]) -> None:
+        """Refuse a relaunch whose data or training stage was made with other settings (:func:`decide`) before any
+        stage runs or anything is written: found mid-run, the refusal failed that row and the folder's table was
+        rewritten with the row blank. Training stages are asked only when the data stays as it is (a dataset that
+        is still to be made has no content to compare); a stage that cannot be built yet is left to its run."""
+        if not self.ledger.path.exists():
+            return
+        names = [("data", self.data_stage)]
+        names += [(f"train/{t}", lambda t=t: self.train_stage(t)) for t in trained if not self.spec.ckpt.get(t)]
+        for name, build in names:
+            try:
+                stage = build()
+            except Exception:  # noqa: BLE001 - the stage's run reports it, where a failed stage is reported
+                continue
+            if stage is None:
+                continue
+            decision, refusal = decide(stage, self.ledger)
+            if refusal:  # a user's error (the folder and the settings disagree): one line, nothing written
+                raise ValueError(f"{name}: {refusal}")
+            if name == "data" and not decision.reuse:
+                return
 
     def check_lists(self, rows: list[str]) -> None:
         """Every row's ``spread-sample`` list and the ``spread-evaluate`` list compose to their commands' typed

@@ -121,6 +121,24 @@ def test_a_refused_multirun_job_stops_the_command_line_before_the_first_job_star
     assert "Launching" not in proc.stdout + proc.stderr and list(tmp_path.iterdir()) == []
 
 
+def test_a_multirun_whose_jobs_share_one_out_dir_is_refused_before_the_first_job(tmp_path):
+    """Jobs writing to one folder: the later one redid (deleting), refused or mixed with what the earlier wrote."""
+    shared = compose_problem("sample", ["-m", *SAMPLE, "seed=0,1"])
+    assert shared == ("jobs #0 and #1 of the multirun write to one out_dir=/o: the later job would redo, refuse or "
+                      "delete what the earlier one wrote; give each job its own out_dir, one that names the swept keys "
+                      "(e.g. 'out_dir=/o/${seed}')"), shared
+    assert compose_problem("sample", ["-m", "ckpt=/c", "data.root=/d", "out_dir=/o/${seed}", "seed=0,1"]) is None
+    assert compose_problem("sample", ["-m", "ckpt=/c", "data.root=/d", "out_dir=/o/${sampler.kind}", "seed=0,1",
+                                      "sampler.kind=ddim,ddpm"]).endswith("(e.g. 'out_dir=/o/ddim/${seed}')")
+    assert compose_problem("sample", ["-m", *SAMPLE, "seed=0,0"]) == \
+        "job #1 of the multirun repeats job #0 (both write to out_dir=/o): give each setting once"
+    assert compose_problem("train", ["-m", "data.root=/d", "seed=0,1"]) is None  # ${now:...}: each job's own time
+    line, proc = user_error("spread-evaluate", "-m", "scenes=s", "reference=r", f"out_dir={tmp_path / 'e'}",
+                            "seed=3,4", cwd=tmp_path)
+    assert line.startswith(f"spread-evaluate: jobs #0 and #1 of the multirun write to one out_dir={tmp_path / 'e'}"), line
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_multirun_is_expanded_into_the_jobs_hydras_basic_sweeper_runs_in_its_order():
     from spread.cli.multirun import sweep_jobs
 

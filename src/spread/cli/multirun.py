@@ -88,13 +88,43 @@ def multirun_problem(config: str, args: list[str], name: str, single) -> str | N
         index = {tuple(job): n for n, job in numbered}
         numbered = [(index[tuple(job)], job) for job in covering_jobs(jobs)]  # each is a job of the grid
     swept = [i for i in range(len(jobs[0])) if len({job[i] for job in jobs}) > 1]
+    folders: dict[str, list[int]] = {}
     for number, job in numbered:
         problem, composed = single(config, job, name)
         problem = problem or built_problem(composed) or trainer_problem(composed, job)
         if problem:
             which = " ".join(job[i] for i in swept) or " ".join(job)
             return f"job #{number} of the multirun ({which}): {problem}"
-    return None
+        folders.setdefault(job_folder(composed), []).append(number)
+    shared = {folder: numbers for folder, numbers in folders.items() if folder is not None and len(numbers) > 1}
+    if not shared:
+        return None
+    folder, (a, b) = next((f, n[:2]) for f, n in shared.items())  # the later would redo, refuse or delete the earlier
+    keys = [o.lstrip("+~").split("=", 1)[0] for o, p in zip(jobs[a], jobs[b]) if o != p]
+    if not keys:
+        return f"job #{b} of the multirun repeats job #{a} (both write to out_dir={folder}): give each setting once"
+    return (f"jobs #{a} and #{b} of the multirun write to one out_dir={folder}: the later job would redo, refuse or "
+            f"delete what the earlier one wrote; give each job its own out_dir, one that names the swept keys "
+            f"(e.g. 'out_dir={folder}/{'_'.join('${' + k + '}' for k in keys)}')")
+
+
+def job_folder(composed) -> str | None:
+    """A composed job's ``out_dir`` as an absolute path, or None: no ``out_dir``, one only the running app resolves
+    (``${hydra:...}``), or one that holds the time (``${now:...}``: each job resolves it when it starts)."""
+    import os
+
+    from omegaconf import OmegaConf
+
+    if composed is None or "out_dir" not in composed:
+        return None
+    try:
+        raw = OmegaConf.to_container(composed, resolve=False).get("out_dir")
+        value = composed.get("out_dir")
+    except Exception:  # noqa: BLE001 - an interpolation only the running app resolves
+        return None
+    if not isinstance(value, str) or not value or "now:" in str(raw):
+        return None
+    return os.path.abspath(os.path.expanduser(value))
 
 
 def built_problem(composed) -> str | None:
@@ -138,5 +168,5 @@ def trainer_problem(composed, job: list[str]) -> str | None:
         return None
 
 
-__all__ = ["ALL_JOBS_LIMIT", "built_problem", "covering_jobs", "is_multirun", "multirun_problem", "sweep_jobs",
-           "trainer_problem"]
+__all__ = ["ALL_JOBS_LIMIT", "built_problem", "covering_jobs", "is_multirun", "job_folder", "multirun_problem",
+           "sweep_jobs", "trainer_problem"]

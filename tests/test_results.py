@@ -227,6 +227,20 @@ def test_spread_report_on_a_sweep_folder_adds_the_analysis_section(tmp_path):
     assert "analysis" in (out / "report.html").read_text().lower()
 
 
+def test_spread_report_refuses_compare_of_a_point_with_itself_before_writing_anything(tmp_path):
+    """A − B of a point against itself (or of patterns sharing a run) is 0 ± 0: no comparison; refused in one line."""
+    from helpers import user_error
+
+    sweep = write_sweep(tmp_path / "S", [(c, 2, s, {"grecall": 0.5, "col_mesh": 0.3}) for c in (0.0, 0.01)
+                                         for s in (0, 1)])
+    out = tmp_path / "R"
+    line, _ = user_error("spread-report", f"runs={sweep}", f"out_dir={out}", "compare=[collision0.0_01,collision0.0_01]")
+    assert line == ("spread-report: compare: 'collision0.0_01' and 'collision0.0_01' both name collision0.0_01; name "
+                    "two points that share no run"), line
+    line, _ = user_error("spread-report", f"runs={sweep}", f"out_dir={out}", "compare=[collision0.0_*,*_00]")
+    assert "both name collision0.0_00;" in line and not out.exists(), line
+
+
 def test_an_mlflow_store_loads_as_runs_with_their_folders_settings_parent_and_reuse(tmp_path):
     """A store as a sweep logs it (spread.tracking.parent): a parent run (not a row), a trial run of each point
     (its out_dir param names the point folder: settings from the folder), a re-used point's child run."""

@@ -583,10 +583,25 @@ def checked_sweep(plan: SweepPlan) -> dict:
     if s.command == "sample" and s.metric not in known:  # a typo marked no point best, or failed Optuna's trials
         raise ValueError(f"spread-sweep: metric={s.metric}: no point reports it (a sampling sweep's points report "
                          f"{', '.join(known)})")
+    check_point_records(out / "points")
     check_inert_dimensions(plan, shared)
     check_started_cluster(s)
     check_first_point(plan, shared)
     return shared
+
+
+def check_point_records(points: Path) -> None:
+    """Every record a point folder holds (``point.json``, ``metrics.json``, ``sampling.json``) is a file, else a
+    ``ValueError`` naming it before any trial: a folder there (a hand edit) failed its trial in Ray's tracebacks
+    when the point was cleared for a redo. A record that is a file but does not read is the point's own business
+    (it is redone)."""
+    if not points.is_dir():
+        return
+    for record in ("point.json", "metrics.json", "sampling.json"):
+        for path in sorted(points.glob(f"*/{record}")):
+            if not path.is_file() and not path.is_symlink():
+                raise ValueError(f"spread-sweep: {path}: not a file (a point's record); remove it, and the point is "
+                                 f"made again")
 
 
 def run_sweep(plan: SweepPlan, commands, shared: dict | None = None) -> SweepResult:

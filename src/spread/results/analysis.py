@@ -106,8 +106,7 @@ def analysis_section(sweep: str | Path, out_dir: str | Path, compare: Sequence[s
         add("stopped", f"Trials stopped early ({len(stopped)})", records(stopped),
             [Column("trial", "trial"), Column("step", "stopped at step"), *[Column(c, c) for c in given[:6]]])
     if compare:
-        if len(compare) != 2:
-            raise ValueError(f"compare: expected two points [A,B], got {list(compare)}")
+        check_compare(sweep, compare)
         a, b = (point_folders(sweep / "points", str(n)) for n in compare)
         rows = []
         for m in metrics:
@@ -141,4 +140,18 @@ def report_analysis(entries: Sequence[str], compare: Sequence[str] | None = None
         if compare:
             raise ValueError(f"compare: needs runs= to name one sweep folder (results.csv + points/), got {list(entries)}")
         return None
+    if compare:  # said before the report writes anything
+        check_compare(sweeps[0], compare)
     return lambda out_dir: analysis_section(sweeps[0], out_dir, compare)
+
+
+def check_compare(sweep: Path, compare: Sequence[str]) -> None:
+    """``compare`` names two points of ``sweep`` that share no run (A − B of a point against itself is 0 with an
+    interval of width 0: no comparison), else a ``ValueError`` naming them."""
+    if len(compare) != 2:
+        raise ValueError(f"compare: expected two points [A,B], got {list(compare)}")
+    a, b = (point_folders(Path(sweep) / "points", str(n)) for n in compare)
+    both = sorted(set(a) & set(b))
+    if both:
+        raise ValueError(f"compare: {compare[0]!r} and {compare[1]!r} both name {', '.join(p.name for p in both)}; "
+                         f"name two points that share no run")

@@ -1,0 +1,47 @@
+"""Hostile inputs, round 16 (docs/robustness.md): a study's row asked twice is refused, never collapsed; a sweep
+point's record that is a folder is named before any trial."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from helpers import compose, user_error
+
+
+@pytest.mark.parametrize("rows, says", [
+    ("variants=[base,geometry,base]", "variants: 'base' is listed twice in ['base', 'geometry', 'base']; give each row once"),
+])
+def test_an_ablation_row_asked_twice_is_refused_by_key(rows, says, tmp_path):
+    """``variants=[base,base]`` made a table of one row: the list asked for something the table did not hold."""
+    from spread.commands.ablate import ablation_spec
+
+    with pytest.raises(ValueError, match=f"^{re.escape(says)}$"):
+        ablation_spec(compose("ablate", rows, "data.root=/d", f"out_dir={tmp_path / 'a'}"))
+    line, _ = user_error("spread-ablate", rows, f"out_dir={tmp_path / 'a'}", "logger=none", cwd=tmp_path)
+    assert line == f"spread-ablate: {says} (HYDRA_FULL_ERROR=1 shows the traceback)", line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_comparison_row_asked_twice_is_refused_by_key(tmp_path):
+    from spread.commands.compare import compare_spec
+
+    with pytest.raises(ValueError, match=r"^methods: 'atiss' is listed twice in \['atiss', 'spread', 'atiss'\]; "
+                                         r"give each row once$"):
+        compare_spec(compose("compare", "methods=[atiss,spread,atiss]", "data.root=/d", f"out_dir={tmp_path / 'c'}"))
+
+
+@pytest.mark.parametrize("record", ["point.json", "metrics.json"])
+def test_a_sweep_points_record_that_is_a_folder_is_named_before_any_trial(record, tmp_path):
+    """A ``point.json`` replaced by a folder failed its trial in Ray's tracebacks (the redo could not clear it)."""
+    from spread.commands.sweep import sweep
+
+    (tmp_path / "d" / "test").mkdir(parents=True)
+    (tmp_path / "c.ckpt").write_bytes(b"never read")
+    bad = tmp_path / "w" / "points" / "p" / record
+    bad.mkdir(parents=True)
+    with pytest.raises(ValueError, match=f"^spread-sweep: {bad}: not a file \\(a point's record\\); remove it"):
+        sweep([f"ckpt={tmp_path / 'c.ckpt'}", f"data.root={tmp_path / 'd'}", "+sweep=guidance_grid",
+               "guidance.collision=0.0,0.0075", "logger=none", f"out_dir={tmp_path / 'w'}"])
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["points"]

@@ -1,4 +1,5 @@
-"""One check of a whole-number setting for every command (on the lowest floor: any module may ask it).
+"""One check of a whole-number setting, and one of a true-or-false setting, for every command (on the lowest floor:
+any module may ask them).
 
 A count, a size or a seed is a whole number: an ``int`` (numpy's too), never a ``bool`` (``True`` is 1 to Python)
 and never a float — not even ``3.0``: a sweep's ``interval(2,4)`` draws ``3.274``, which ``int()`` quietly made 3,
@@ -27,3 +28,11 @@ def whole_number(value, key: str, least: int = 0, *, null: str | None = None, wh
         tail = (f", or null for {null}" if null is not None else "") + (f" {note}" if note else "")
         raise ValueError(f"{said}: expected a whole number ≥ {least}{tail}")
     return int(value)
+
+
+def true_or_false(value, key: str) -> bool:
+    """``value`` when it is a bool; else ``ValueError``: ``<key>=<value>: expected true or false`` (``figures=maybe``
+    was read as true: a non-empty string is truthy)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{key}={value!r}: expected true or false")
+    return value

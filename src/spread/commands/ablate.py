@@ -55,6 +55,7 @@ def spec_fields(cfg: DictConfig, kind: str) -> dict:
 def ablation_spec(cfg: DictConfig):
     """The :class:`~spread.experiments.AblationSpec` of a composed ``conf/ablate.yaml``; with ``recipe``, the
     rows' sampler and the guidance row's guidance come from that training experiment's ``sampling`` block."""
+    from spread.checks import true_or_false
     from spread.experiments.ablation import AblationSpec
 
     sampler, guidance = recipe_sampling(str(cfg.recipe)) if cfg.get("recipe") else ([], [])
@@ -63,15 +64,8 @@ def ablation_spec(cfg: DictConfig):
                         variants=tuple(str(v) for v in cfg.variants),
                         train_variant={v: strings(cfg.train.get(v)) for v in ("base", "geometry")},
                         sample_variant={v: strings(cfg.sample.get(v)) for v in ("base", "geometry") if cfg.sample.get(v)},
-                        guidance=guidance + strings(cfg.sample.guidance), figures=truth(cfg.get("figures", True)))
-
-
-def truth(value, key: str = "figures") -> bool:
-    """``value`` when it is true or false; ``ValueError`` naming ``key`` otherwise (``figures=maybe`` was read as
-    true)."""
-    if not isinstance(value, bool):
-        raise ValueError(f"{key}={value!r}: expected true or false")
-    return value
+                        guidance=guidance + strings(cfg.sample.guidance),
+                        figures=true_or_false(cfg.get("figures", True), "figures"))
 
 
 def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body, prepare=None):

@@ -112,6 +112,23 @@ def test_over_seeds_counts_a_run_drawn_twice_once_and_reads_an_evaluation_seed_t
     assert sorted(over_seeds(failed, "grecall")["grecall"].tolist()) == [0.1, 0.2]
 
 
+def test_a_run_that_lacks_a_setting_the_others_have_is_a_point_of_its_own_never_another_seed():
+    """A ground-truth evaluation (no checkpoint, sampler or seed; its evaluation seed 0) beside two sampled seeds of
+    one checkpoint: it was pooled with seed 0 as one point of two "seeds" (GRecall 0.58 between 1.0 and 0.17)."""
+    from spread.results.frame import frame, swept_settings
+
+    def record(run, settings, grecall):
+        return {"run": run, "settings": settings, "grecall": grecall}
+
+    sampled = [record(f"s{k}", {"ckpt": "4a35", "sampler": "ddim-4", "seed": k, "protocol.seed": k}, g)
+               for k, g in ((0, 0.2), (1, 0.4))]
+    df = frame([*sampled, record("gt", {"protocol.seed": 0}, 1.0)])
+    out = over_seeds(df, "grecall").sort_values("grecall")
+    assert out["n_seeds"].tolist() == [2, 1] and out["grecall"].tolist() == pytest.approx([0.3, 1.0])
+    assert out["seeds"].tolist() == [[0, 1], []]
+    assert swept_settings(df) == ["ckpt", "sampler"]  # the evaluation seed still follows the seed where there is one
+
+
 def test_paired_difference_matches_scenes_and_gives_a_seeded_bootstrap_interval(tmp_path):
     a_vals = {f"g{i}_k0": 0.5 + 0.1 * (i % 3) for i in range(8)}
     b_vals = {f"g{i}_k0": 0.4 + 0.05 * (i % 2) for i in range(2, 10)}  # g2..g9: shares g2..g7 with A

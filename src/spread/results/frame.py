@@ -68,16 +68,26 @@ SEED_FOLLOWERS = ("protocol.seed",)
 
 
 def seed_columns(df: pd.DataFrame, seed: str = "seed") -> list[str]:
-    """``seed`` and the settings that follow it (:data:`SEED_FOLLOWERS` equal to it in every row): the seed, not
-    settings (a mean over seeds pools them; a ranking of settings leaves them out)."""
-    follows = [k for k in SEED_FOLLOWERS if k in df.columns and seed in df.columns and
-               (pd.to_numeric(df[k], errors="coerce") == pd.to_numeric(df[seed], errors="coerce")).all()]
+    """``seed`` and the settings that follow it (:data:`SEED_FOLLOWERS` equal to it in every row that has a seed):
+    the seed, not settings (a mean over seeds pools them; a ranking of settings leaves them out)."""
+    def same(a, b) -> bool:  # equal in every row that has a seed (a ground-truth evaluation has none)
+        a, b = pd.to_numeric(a, errors="coerce"), pd.to_numeric(b, errors="coerce")
+        return bool(b.notna().any() and ((a == b) | b.isna()).all())
+
+    follows = [k for k in SEED_FOLLOWERS if k in df.columns and seed in df.columns and same(df[k], df[seed])]
     return [seed, *follows]
 
 
 def swept_settings(df: pd.DataFrame, seed: str = "seed") -> list[str]:
-    """The settings of ``df`` that take more than one value, the seed and those following it left out."""
-    return [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if df[k].astype(str).nunique() > 1]
+    """The settings of ``df`` that take more than one value (:func:`levels`), the seed and those following it left
+    out."""
+    return [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if levels(df[k]) > 1]
+
+
+def levels(column: pd.Series) -> int:
+    """How many values a setting takes over the rows, missing (a row that lacks the setting: a ground-truth
+    evaluation has no checkpoint, sampler or seed) counted as one of them."""
+    return int(column.nunique(dropna=False))
 
 
 def settings_of(df: pd.DataFrame, exclude=("seed",)) -> list[str]:

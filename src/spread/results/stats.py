@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from spread.results.frame import seed_columns, settings_of
+from spread.results.frame import levels, seed_columns, settings_of
 
 
 def t_interval(values, level: float = 0.95) -> tuple[float, float, float, float]:
@@ -57,7 +57,9 @@ def over_seeds(df: pd.DataFrame, metric: str, level: float = 0.95, seed: str = "
         named = df[where].notna()  # rows of no folder (a failed trial) are not one run
         df = pd.concat([df[named].drop_duplicates(subset=same, keep="last"), df[~named]]).sort_index()
         df.attrs = dict(attrs)
-    keys = [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if df[k].nunique(dropna=True) > 1]
+    # a setting some rows lack is a level of its own (a ground-truth evaluation has no checkpoint, sampler or seed:
+    # it was pooled with a sampled run as a second seed)
+    keys = [k for k in settings_of(df, exclude=tuple(seed_columns(df, seed))) if levels(df[k]) > 1]
     rows = []
     groups = df.groupby(keys, dropna=False, sort=True) if keys else [((), df)]
     for values, group in groups:

@@ -258,6 +258,34 @@ def test_spread_report_refuses_compare_of_a_point_with_itself_before_writing_any
     assert "both name collision0.0_00;" in line and not out.exists(), line
 
 
+def test_a_report_rewritten_in_its_folder_keeps_none_of_the_earlier_reports_outputs_and_a_run_folder_is_refused(
+        tmp_path):
+    """A second report into one ``out_dir`` left the first one's plots (of other runs) beside a ``report.json`` that
+    listed none; a report into a run's folder rewrote its ``.hydra/config.yaml`` and wrote beside its results."""
+    from helpers import run_script, user_error
+
+    sweep = write_sweep(tmp_path / "S", [(0.0, 2, 0, {"grecall": 0.5, "col_mesh": 0.3}),
+                                         (0.01, 4, 0, {"grecall": 0.4, "col_mesh": 0.1})])
+    out = tmp_path / "R"
+    run_script("spread-report", f"runs={sweep}", f"out_dir={out}")
+    plots = sorted((out / "plots").glob("*.png"))
+    assert plots and (out / "report.csv").exists()
+    kept = tmp_path / "mine.png"  # a hand-edited record naming a file outside the folder: never removed
+    kept.write_bytes(b"x")
+    record = json.loads((out / "report.json").read_text())
+    record["plots"].append({"png": str(kept)})
+    (out / "report.json").write_text(json.dumps(record))
+    one = sweep / "points" / "collision0.0_00"
+    run_script("spread-report", f"runs={one}", f"out_dir={out}")
+    assert list((out / "plots").glob("*.png")) == [] and json.loads((out / "report.json").read_text())["plots"] == []
+    assert kept.exists() and (out / "report.csv").exists() and "0.5" in (out / "report.csv").read_text()
+    (one / "sampling.json").write_text("{}")  # a sampling run's folder, as spread-sample leaves one
+    before = {p.name: p.read_bytes() for p in one.iterdir() if p.is_file()}
+    line, _ = user_error("spread-report", f"runs={sweep}", f"out_dir={one}")
+    assert line.startswith(f"spread-report: out_dir={one}: holds a sampling run"), line
+    assert {p.name: p.read_bytes() for p in one.iterdir() if p.is_file()} == before
+
+
 def test_an_mlflow_store_loads_as_runs_with_their_folders_settings_parent_and_reuse(tmp_path):
     """A store as a sweep logs it (spread.tracking.parent): a parent run (not a row), a trial run of each point
     (its out_dir param names the point folder: settings from the folder), a re-used point's child run."""

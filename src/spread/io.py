@@ -380,7 +380,7 @@ LOCK_FILE = ".spread.lock"
 #: holds another kind (:func:`check_folder_kind`).
 FOLDER_MARKS = (("dataset", "assets/index.json"), ("training run", "checkpoints"), ("sampling run", "sampling.json"),
                 ("evaluation", "protocol.json"), ("export", "export.json"), ("ablation", "ablation.json"),
-                ("comparison", "compare.json"), ("sweep", "points"))
+                ("comparison", "compare.json"), ("sweep", "points"), ("report", "report.json"))
 
 
 def folder_kinds(folder: str | os.PathLike) -> dict[str, str]:

@@ -18,18 +18,21 @@ def main(cfg: DictConfig) -> None:
     from spread.reporting.runs import RunError
     from spread.commands.common import record_config
 
+    from spread.io import check_folder_kind, run_lock
     from spread.results.analysis import report_analysis
 
     try:
+        check_folder_kind(cfg.out_dir, "spread-report", {"report"})  # a run's folder: its record and files kept
         weights = None if cfg.get("weights") is None else [str(w) for w in cfg.weights]
         compare = None if cfg.get("compare") is None else [str(p) for p in cfg.compare]
         analysis = report_analysis(runs_argument(cfg.runs), compare)  # a sweep folder's section (spread.results)
-        result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=weights,
-                            metrics=None if cfg.metrics is None else [str(m) for m in cfg.metrics],
-                            title=str(cfg.title or ""), analysis=analysis)
+        with run_lock(cfg.out_dir, "spread-report"):
+            result = run_report(runs_argument(cfg.runs), cfg.out_dir, weights=weights,
+                                metrics=None if cfg.metrics is None else [str(m) for m in cfg.metrics],
+                                title=str(cfg.title or ""), analysis=analysis)
+            record_config(cfg, cfg.out_dir)()
     except (RunError, ValueError) as exc:
         raise SystemExit(f"spread-report: {exc}") from exc
-    record_config(cfg, cfg.out_dir)()
     print_report(result)
 
 

@@ -100,6 +100,7 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, 
     from spread.reporting.runs import name_differences
 
     out = Path(out_dir)
+    earlier = earlier_outputs(out)
     training, runs = training_folders([str(runs)] if isinstance(runs, (str, Path)) else [str(r) for r in runs])
     records, unfinished = read_runs(runs) if runs or not training else ([], [])
     differ = name_differences(records)  # every differing setting named per run
@@ -144,7 +145,40 @@ def run_report(runs, out_dir: str | Path, weights: Sequence[str] | None = None, 
         "plots": [{"metric": shown_key(m)[0], "unit": shown_key(m)[1], "setting": w, "png": str(p), "points": pts}
                   for (m, w), (p, pts) in result.plots.items()],  # points in the plot's (display) unit, keyed so
     })
+    written = {*result.tables.values(), *(p for p, _ in result.plots.values()), out / "report.json"}
+    remove_stale(out, earlier - {Path(p) for p in written})
     return result
+
+
+def earlier_outputs(out: Path) -> set[Path]:
+    """The files an earlier report in ``out`` recorded writing (its ``report.json``'s tables and plots; none when
+    it does not read)."""
+    from spread.io import read_json_object
+
+    try:
+        record = read_json_object(out / "report.json") if (out / "report.json").is_file() else {}
+    except (OSError, ValueError):
+        return set()
+    tables = record.get("tables") if isinstance(record.get("tables"), dict) else {}
+    plots = record.get("plots") if isinstance(record.get("plots"), list) else []
+    named = [*tables.values(), *(p.get("png") for p in plots if isinstance(p, dict))]
+    return {Path(p) for p in named if isinstance(p, str)}
+
+
+def remove_stale(out: Path, paths: set[Path]) -> None:
+    """Remove what an earlier report in ``out`` wrote and this one did not (its plots of other runs, a table this
+    report has no rows for), so the folder shows this report alone: only files directly in ``out`` or its
+    ``plots/``, named as a report names them, never through a link (a hand-edited ``report.json`` names nothing
+    else)."""
+    root = out.resolve()
+    for path in paths:
+        if path.is_symlink() or not path.is_file():
+            continue
+        place = path.resolve()
+        ours = (place.parent == root and place.name.startswith(("report", "analysis"))) or \
+            (place.parent == root / "plots" and place.suffix == ".png")
+        if ours:
+            place.unlink()
 
 
 def shown_key(key: str) -> tuple[str, str | None]:
@@ -175,6 +209,7 @@ def print_report(result: ReportResult) -> None:
     for why in result.html.get("refused", []):
         console.print(f"not read: {why}", markup=False, soft_wrap=True)
     html = result.tables["html"]
-    console.print(f"{len(result.records)} runs; table {result.tables.get('md')}, {result.tables.get('csv')}; "
+    tables = ", ".join(str(result.tables[k]) for k in ("md", "csv", "training_csv") if result.tables.get(k))
+    console.print(f"{len(result.records)} runs; table {tables}; "
                   f"{len(result.plots)} plots in {html.parent / 'plots'}; page {html}",
                   soft_wrap=True)  # paths are copied from here: never broken across lines

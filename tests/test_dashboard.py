@@ -387,6 +387,9 @@ def test_report_takes_the_training_runs_inside_a_folder_beside_its_evaluated_run
     training, rest = training_folders([str(root)])
     assert training == [train_dir] and rest == [str(root)]
     assert training_folders([str(train_dir), str(sample_dir)]) == ([train_dir], [str(sample_dir)])
+    # a training run named twice, or under another spelling of its path, once (its row took another run's steps)
+    twice = [str(train_dir), str(sample_dir), f"{train_dir}/../{train_dir.name}", str(root)]
+    assert training_folders(twice) == ([train_dir], [str(sample_dir), str(root)])
 
 
 def test_a_relaunched_sample_or_evaluation_continues_its_mlflow_run_and_other_settings_open_a_new_one(

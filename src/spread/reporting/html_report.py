@@ -52,16 +52,23 @@ def is_training_run(path: Path) -> bool:
 def training_folders(entries: Sequence[str]) -> tuple[list[Path], list[str]]:
     """(training run folders, the other entries): an entry (a path or glob) that is a training run folder goes to
     the first list; a folder with training runs under it (an ablation's, a comparison's) adds them to the first
-    list and stays in the second when it also holds evaluated runs."""
+    list and stays in the second when it also holds evaluated runs. A training run named twice (by two entries, or
+    by another spelling of its path) is listed once: its rows were zipped with the wrong runs' curves."""
     training, rest = [], []
+
+    def add(run: Path) -> None:
+        if run.resolve() not in {t.resolve() for t in training}:
+            training.append(run)
+
     for entry in entries:
         paths = [Path(p) for p in sorted(glob.glob(entry))] if glob.has_magic(entry) else [Path(entry)]
         for path in paths:
             if is_training_run(path):
-                training.append(path)
+                add(path)
                 continue
             nested = sorted({m.parents[2] for m in path.rglob("csv/version_*/metrics.csv")}) if path.is_dir() else []
-            training += [t for t in nested if t not in training]
+            for run in nested:
+                add(run)
             if not nested or any(has_evaluation(m) for m in path.rglob("metrics.json")):
                 rest.append(str(path) if glob.has_magic(entry) else entry)
     return training, rest

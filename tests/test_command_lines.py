@@ -370,8 +370,10 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
 
     for key, value, says in [("bootstrap", "x", "key 'bootstrap' is str, expected an object"),
                              ("per_room_type", {"bedroom": 5}, "key 'per_room_type' is not an object of room types"),
-                             ("n_scenes", "12", "key 'n_scenes' is '12', expected a whole number ≥ 0"),  # printed as is
-                             ("n_failed", -1.5, "key 'n_failed' is -1.5, expected a whole number ≥ 0"),
+                             ("n_scenes", "12", r"key 'n_scenes' is '12', expected a whole number in \[0, 2\^53\)"),
+                             ("n_failed", -1.5, "key 'n_failed' is -1.5, expected a whole number in"),  # printed as is
+                             ("n_scenes", 10 ** 400, "key 'n_scenes' is 1000000000000000000000000000000000000000, "
+                                                     "expected a whole number in"),  # a traceback from float()
                              # the bootstrap block's fields and sampled_with: tracebacks or nameless errors before
                              ("bootstrap", {"resamples": 100, "seed": 0}, "key 'bootstrap.level' is missing"),
                              ("bootstrap", {"level": 0.95, "resamples": "1000"},
@@ -394,6 +396,13 @@ def test_a_hand_damaged_metrics_json_is_refused_by_file_and_key_and_an_inverted_
             read_run_folder(folder)
     line, _ = user_error("spread-report", f"runs=[{folder}]", f"out_dir={tmp_path / 'report'}")
     assert line.startswith(f"spread-report: {folder / 'metrics.json'}: key 'per_room_type.bedroom.stability' is NaN"), line
+    deep = tmp_path / "deep"
+    deep.mkdir()
+    (deep / "metrics.json").write_text("[" * 100_000 + "]" * 100_000)  # past Python's parser: a RecursionError
+    with pytest.raises(RunError, match=f"{deep / 'metrics.json'}: not valid JSON \\(nested deeper than"):
+        read_run_folder(deep)
+    asd = Column("asd", "ASD (mm)", digits=1, scale=1000.0)  # 1e307 m is finite; in mm it is not: never "inf"
+    assert asd.valid(1e307) is None and asd.format(1e307) == "invalid (1e+307)" and asd.format(0.0146) == "14.6"
     column = Column("grecall", "GRecall", digits=3)
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.4, "grecall_hi": 0.6}) == pytest.approx(0.1)
     assert column.half_width({"grecall": 0.5, "grecall_lo": 0.9, "grecall_hi": 0.1}) is None  # was "± -0.400"

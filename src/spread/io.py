@@ -74,6 +74,8 @@ def read_json_object(path: str | os.PathLike, error: type[Exception] = ValueErro
         raise error(f"{path}: not valid JSON ({exc})") from exc
     except NotUtf8 as exc:
         raise error(str(exc)) from None
+    except RecursionError:  # 100,000 nested brackets: Python's parser gives up (a traceback)
+        raise error(f"{path}: not valid JSON (nested deeper than Python's parser reads)") from None
     if not isinstance(data, dict):
         raise error(f"{path}: expected a JSON object, got {type(data).__name__}")
     return data
@@ -136,7 +138,7 @@ def read_jsonl(path: str | os.PathLike) -> list[dict]:
                 continue
             try:
                 out.append(json.loads(line))
-            except json.JSONDecodeError:
+            except (json.JSONDecodeError, RecursionError):  # a torn line, or one nested past the parser: skipped
                 continue
     return out
 
@@ -265,6 +267,8 @@ def read_json(path: str | os.PathLike, root: str | os.PathLike | None = None):
         return json.loads(read_text_checked(path, root))
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:  # 100,000 nested brackets: Python's parser gives up (a traceback)
+        raise ValueError(f"{path}: not valid JSON (nested deeper than Python's parser reads)") from None
 
 
 #: Characters a :func:`safe_name` keeps as they are (portable file-name characters).

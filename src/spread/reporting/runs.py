@@ -176,8 +176,8 @@ def check_shape(path: Path, metrics: dict) -> None:
 
     for key in ("n_scenes", "n_objects", "n_failed"):  # counts: a table prints them as they are
         value = metrics.get(key)
-        if value is not None and not (is_whole(value) and value >= 0):
-            raise RunError(f"{path}: key '{key}' is {value!r}, expected a whole number ≥ 0")
+        if value is not None and not (is_whole(value) and 0 <= value < 2 ** 53):
+            raise RunError(f"{path}: key '{key}' is {value!r:.40}, expected a whole number in [0, 2^53)")
     names = [n for key in record_metrics() for n in (key, f"{key}_lo", f"{key}_hi")]
     for where, block in [("", metrics), *[(f"per_room_type.{t}.", v) for t, v in (rooms or {}).items()]]:
         for name in names:

@@ -63,11 +63,18 @@ class Column:
         return {"max": " ↑", "min": " ↓"}.get(self.better or "", "")
 
     def valid(self, value) -> float | None:
-        """``value`` as a float when it is a finite number inside :attr:`bounds`, else None."""
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+        """``value`` as a float when it is a finite number inside :attr:`bounds`, finite in display units too, else
+        None."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return None
+        try:
+            number = float(value)  # an integer of 400 digits does not convert
+        except OverflowError:
+            return None
+        if not math.isfinite(number) or not math.isfinite(number * self.scale):  # 1e307 m shown in mm is inf
             return None
         lo, hi = self.bounds if self.bounds is not None else (-math.inf, math.inf)
-        return float(value) if lo <= float(value) <= hi else None
+        return number if lo <= number <= hi else None
 
     def format(self, value) -> str:
         if value is None or (isinstance(value, float) and math.isnan(value)):

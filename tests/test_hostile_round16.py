@@ -45,3 +45,25 @@ def test_a_sweep_points_record_that_is_a_folder_is_named_before_any_trial(record
         sweep([f"ckpt={tmp_path / 'c.ckpt'}", f"data.root={tmp_path / 'd'}", "+sweep=guidance_grid",
                "guidance.collision=0.0,0.0075", "logger=none", f"out_dir={tmp_path / 'w'}"])
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["points"]
+
+
+@pytest.mark.parametrize("setting, says", [
+    ("ray_train.num_workers=0", "ray_train.num_workers=0: expected a whole number ≥ 1"),
+    ("ray_train.cpus_per_worker=0", "ray_train.cpus_per_worker=0: expected a number > 0"),
+    ("ray_train.num_to_keep=0", "ray_train.num_to_keep=0: expected a whole number ≥ 1, or null for every checkpoint"),
+    ("ray_train.max_failures=-2", "ray_train.max_failures=-2: expected a whole number ≥ -1"),
+    ("ray_train.use_gpu=maybe", "ray_train.use_gpu='maybe': expected true or false"),
+    ("+ray_train.bogus=1", "ray_train.bogus: not a Ray Train setting (known: address, num_cpus, num_workers"),
+])
+def test_spread_train_ray_refuses_a_ray_train_setting_by_key_before_its_record(setting, says, tmp_path):
+    """``num_workers=0`` trained in the driver outside Ray Train's store; ``cpus_per_worker=0`` failed inside Ray
+    after it started; an unknown key was a TypeError; each after the run's ``.hydra/config.yaml`` was rewritten."""
+    from spread.training.ray_train import ray_train_settings
+
+    with pytest.raises(ValueError, match=f"^{re.escape(says)}"):
+        ray_train_settings(compose("train", "trainer=ray", "data.root=/d", setting))
+    if setting.startswith("ray_train.num_workers"):  # the command line: one line, nothing made, Ray never started
+        line, _ = user_error("spread-train-ray", "data.root=/nowhere", f"out_dir={tmp_path / 'run'}", setting,
+                             cwd=tmp_path)
+        assert line == f"spread-train-ray: {says} (HYDRA_FULL_ERROR=1 shows the traceback)", line
+        assert list(tmp_path.iterdir()) == []

@@ -50,15 +50,51 @@ class RayTrainSettings:
     num_to_keep: int | None = 2
     log_to_driver: bool = True
 
+    def __post_init__(self) -> None:
+        """Each setting by key (``ray_train.<key>=<value>: expected …``): ``num_workers=0`` trained in the driver
+        outside Ray Train's store, ``cpus_per_worker=0`` failed inside Ray after it started, ``num_to_keep=0``
+        kept no checkpoint."""
+        import math
+
+        from spread.checks import true_or_false, whole_number
+
+        whole_number(self.num_workers, f"{BLOCK}.num_workers", 1)
+        whole_number(self.num_cpus, f"{BLOCK}.num_cpus", 1, null="all of this machine's")
+        whole_number(self.max_failures, f"{BLOCK}.max_failures", -1, note="(-1: restart without end)")
+        whole_number(self.num_to_keep, f"{BLOCK}.num_to_keep", 1, null="every checkpoint")
+        cpus = self.cpus_per_worker
+        if isinstance(cpus, bool) or not isinstance(cpus, (int, float)) or not math.isfinite(cpus) or cpus <= 0:
+            raise ValueError(f"{BLOCK}.cpus_per_worker={cpus!r}: expected a number > 0 (CPUs each worker reserves)")
+        true_or_false(self.use_gpu, f"{BLOCK}.use_gpu")
+        true_or_false(self.log_to_driver, f"{BLOCK}.log_to_driver")
+        for key in ("address", "storage_path"):
+            value = getattr(self, key)
+            if value is not None and not (isinstance(value, str) and value):
+                raise ValueError(f"{BLOCK}.{key}={value!r}: expected a text or null")
+
+
+def ray_train_settings(cfg: DictConfig) -> RayTrainSettings:
+    """The ``ray_train`` block of a composed config as :class:`RayTrainSettings`, each key checked
+    (:meth:`RayTrainSettings.__post_init__`); a key it does not know is named with the known ones. Asked on the driver
+    before the config is recorded or Ray starts."""
+    import dataclasses
+
+    if BLOCK not in cfg:
+        raise SystemExit("spread ray_train: the config has no ray_train block; use trainer=ray")
+    values = OmegaConf.to_container(cfg[BLOCK], resolve=True)
+    known = [f.name for f in dataclasses.fields(RayTrainSettings)]
+    unknown = [k for k in values if k not in known]
+    if unknown:
+        raise ValueError(f"{BLOCK}.{unknown[0]}: not a Ray Train setting (known: {', '.join(known)})")
+    return RayTrainSettings(**values)
+
 
 def split_config(cfg: DictConfig, run_dir: Path) -> tuple[dict, RayTrainSettings]:
     """(the train config as a resolved plain dict, without the ``ray_train`` block and with ``out_dir`` =
     ``run_dir``; the settings). Resolved here, once, so that every worker sees the same values
     (``${now:...}`` in particular)."""
-    if BLOCK not in cfg:
-        raise SystemExit("spread ray_train: the config has no ray_train block; use trainer=ray")
+    settings = ray_train_settings(cfg)
     container = OmegaConf.to_container(cfg, resolve=False)
-    settings = RayTrainSettings(**OmegaConf.to_container(cfg[BLOCK], resolve=True))
     container.pop(BLOCK)
     container["out_dir"] = str(run_dir)
     resolved = OmegaConf.to_container(OmegaConf.create(container), resolve=True)

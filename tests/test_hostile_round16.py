@@ -67,3 +67,45 @@ def test_spread_train_ray_refuses_a_ray_train_setting_by_key_before_its_record(s
                              cwd=tmp_path)
         assert line == f"spread-train-ray: {says} (HYDRA_FULL_ERROR=1 shows the traceback)", line
         assert list(tmp_path.iterdir()) == []
+
+
+def test_a_cluster_address_where_nothing_answers_is_refused_in_seconds_before_any_record(tmp_path):
+    """``ray_train.address=127.0.0.1:1`` retried the GCS for minutes (past 300 s), after the run's record was
+    rewritten; every command that joins a cluster (``ray.address``) asks the address first."""
+    from helpers import free_port
+
+    from spread.runtime.ray import RaySettings, address_problem, ray_session
+
+    port = free_port()  # nothing listens there
+    with pytest.raises(ValueError, match=f"^ray.address=127.0.0.1:{port}: nothing answers there \\("):
+        with ray_session(RaySettings(address=f"127.0.0.1:{port}")):
+            pass
+    line, _ = user_error("spread-train-ray", "data.root=/nowhere", f"out_dir={tmp_path / 'run'}",
+                         f"ray_train.address=127.0.0.1:{port}", cwd=tmp_path)
+    assert line.startswith(f"spread-train-ray: ray_train.address=127.0.0.1:{port}: nothing answers there ("), line
+    assert list(tmp_path.iterdir()) == []
+    assert address_problem("auto") is None and address_problem("local") is None  # Ray's own to find
+
+
+def test_a_reports_renders_are_of_the_scenes_its_numbers_measured(tmp_path):
+    """A folder sampled again (seed 5) after its evaluation (seed 0): the page showed the new scenes' pictures beside
+    the old scenes' numbers. Such renders are left out, named; renders of the measured sampling are shown."""
+    import json
+
+    from PIL import Image
+
+    from spread.reporting.html_report import renders_of
+
+    run = tmp_path / "s"
+    (run / "renders").mkdir(parents=True)
+    Image.new("RGB", (4, 4)).save(run / "renders" / "g0_k0.png")
+    made = {"ckpt_sha256": "ab", "guidance": {"mode": "none"}, "sampling": {"seed": 0}}
+    (run / "metrics.json").write_text(json.dumps({"grecall": 0.5, "sampled_with": {**made, "samples_per_graph": 1}}))
+    (run / "sampling.json").write_text(json.dumps({"fingerprint": made}))
+    record = {"source": str(run), "kind": "folder"}
+    assert list(renders_of(record)) == ["g0_k0"]
+    (run / "sampling.json").write_text(json.dumps({"fingerprint": {**made, "sampling": {"seed": 5}}}))
+    refused = []
+    assert renders_of(record, refused) == {}
+    assert refused == [f"{run / 'renders'}: not shown: sampled again since the evaluation, with other settings "
+                       f"(sampling.seed)"]

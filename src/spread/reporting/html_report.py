@@ -271,9 +271,14 @@ def renders_of(record: dict, refused: list | None = None) -> dict[str, Path]:
     folder = Path(record.get("source", ""))
     metrics = metrics_of(record)
     found = {}
-    for run in (folder, Path(str(metrics.get("scenes") or folder / "x")).parent):
+    for run in dict.fromkeys((folder, Path(str(metrics.get("scenes") or folder / "x")).parent)):  # each once
         renders = run / "renders"
         if not renders.is_dir():
+            continue
+        stale = resampled_since(run, metrics)
+        if stale:
+            if refused is not None:
+                refused.append(f"{renders}: not shown: {stale}")
             continue
         for p in sorted(renders.glob("*.png")):
             if p.stem in found:
@@ -284,6 +289,27 @@ def renders_of(record: dict, refused: list | None = None) -> dict[str, Path]:
             elif refused is not None:
                 refused.append(why)
     return found
+
+
+def resampled_since(run: Path, metrics: dict) -> str | None:
+    """Why the renders of sampling folder ``run`` are not of the scenes ``metrics`` measured: its ``sampling.json``
+    records other sampling settings than the evaluation's ``sampled_with`` (the folder was sampled again since, with
+    its renders); None when they agree or either record is missing (an older run: shown as before)."""
+    from spread.io import read_json_object
+    from spread.runtime.fingerprint import identity_changes
+
+    made = metrics.get("sampled_with")
+    if not isinstance(made, dict) or not (run / "sampling.json").is_file():
+        return None
+    try:
+        pinned = read_json_object(run / "sampling.json").get("fingerprint")
+    except (OSError, ValueError):
+        return None
+    if not isinstance(pinned, dict):
+        return None
+    changed = identity_changes({k: v for k, v in made.items() if k not in ("samples_per_graph", "evaluation")},
+                               pinned)
+    return f"sampled again since the evaluation, with other settings ({', '.join(changed[:4])})" if changed else None
 
 
 def render_grid(records: Sequence[dict], refused: list | None = None) -> tuple[str | None, dict[str, Path]]:

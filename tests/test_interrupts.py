@@ -117,9 +117,23 @@ def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_tr
     assert summary["global_step"] == 5  # 2 batches an epoch at batch 4 (6 rooms): one step an epoch
     last = out / "checkpoints" / "last.ckpt"
     assert torch.load(last, weights_only=False, map_location="cpu")[TRAINER_SETTINGS] == {
-        "accumulate_grad_batches": 3, "gradient_clip_val": 1.0, "gradient_clip_algorithm": "norm"}  # the cpu trainer's
+        "accumulate_grad_batches": 3, "gradient_clip_val": 1.0, "gradient_clip_algorithm": "norm",  # the cpu trainer's
+        "world_size": 1, "distributed_sampler": False}
     with pytest.raises(ValueError, match=r"trainer\.accumulate_grad_batches: 3 -> 1"):
         train_in_process(out, *common, "trainer.max_steps=6", "ckpt_path=last")
+    # another number of processes: each takes a batch a step (a one-process checkpoint resumed by Ray Train's two
+    # workers failed inside them, after the driver's checks); refused on the driver, before Ray starts
+    from spread.training.fit import check_start
+
+    from helpers import compose
+
+    again = [*common, "trainer.max_steps=6", "trainer.accumulate_grad_batches=3", "ckpt_path=last", f"out_dir={out}"]
+    with pytest.raises(ValueError, match=r"trainer\.world_size: 1 -> 2"):
+        check_start(compose("train", *again, "trainer=ray", "ray_train.num_workers=2"), out)
+    with pytest.raises(ValueError, match=r"trainer\.world_size: 1 -> 2"):
+        train_in_process(out, *again[:-1], "trainer.devices=2", "trainer.strategy=ddp")
+    with pytest.raises(ValueError, match=r"trainer\.distributed_sampler: False -> True"):  # one Ray worker too: a
+        check_start(compose("train", *again, "trainer=ray", "ray_train.num_workers=1"), out)  # distributed loader
     assert train_in_process(out, *common, "trainer.max_steps=6", "trainer.accumulate_grad_batches=3",
                             "ckpt_path=last")["global_step"] == 6
 

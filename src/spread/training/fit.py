@@ -100,7 +100,11 @@ class DataDigest(Callback):
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
         if self.digest is not None:
             checkpoint[DATA_DIGEST] = self.digest
-        checkpoint[TRAINER_SETTINGS] = {k: trainer_value(k, getattr(trainer, k, None)) for k in TRAINER_KEYS}
+        from spread.data.datamodule import wraps_sampler
+
+        checkpoint[TRAINER_SETTINGS] = {**{k: trainer_value(k, getattr(trainer, k, None)) for k in TRAINER_KEYS},
+                                        WORLD_SIZE: int(trainer.world_size),
+                                        DISTRIBUTED: bool(wraps_sampler(trainer))}
 
 
 #: Trainer settings a resumed run must keep, recorded in every checkpoint (under :data:`TRAINER_SETTINGS`, by
@@ -109,6 +113,14 @@ class DataDigest(Callback):
 #: checkpoint does not hold (written before they were recorded) are not compared.
 TRAINER_KEYS = ("accumulate_grad_batches", "gradient_clip_val", "gradient_clip_algorithm")
 TRAINER_SETTINGS = "spread_trainer"
+#: Recorded beside :data:`TRAINER_KEYS`: how many processes trained (each a batch per step: the batch of a step and
+#: the data order change with it; a one-process checkpoint resumed by Ray Train's two workers failed inside them).
+#: Compared where a launch knows it ahead (:func:`planned_world_size`).
+WORLD_SIZE = "world_size"
+#: Recorded too: whether the training loader was a distributed sampler's (any distributed strategy, one process
+#: included) or the resumable single-process order (:mod:`spread.data.order`): the data position one saves, the
+#: other cannot take up (a ``spread-train`` checkpoint resumed by one Ray Train worker failed inside it).
+DISTRIBUTED = "distributed_sampler"
 
 
 def trainer_value(key: str, value):
@@ -168,7 +180,12 @@ def resumed_changes(checkpoint: dict, model, datamodule=None, trainer_settings: 
         out += [f"{prefix}.{change}" for change in described_changes(held, now, held_only=True)]
     held = checkpoint.get(TRAINER_SETTINGS)  # a checkpoint written before this record: not compared
     if isinstance(held, dict) and trainer_settings is not None:
-        out += [f"trainer.{change}" for change in described_changes(normalised(held), normalised(trainer_settings),
+        held, now = dict(held), dict(trainer_settings)
+        for key in (WORLD_SIZE, DISTRIBUTED):
+            if now.get(key) is None:  # a launch that does not know it ahead (devices: auto)
+                held.pop(key, None)
+                now.pop(key, None)
+        out += [f"trainer.{change}" for change in described_changes(normalised(held), normalised(now),
                                                                      held_only=True)]
     return out
 
@@ -314,10 +331,58 @@ def check_accelerator(cfg: DictConfig, override: str | None = None) -> None:
                              f"(torch.cuda.is_available() is False); use trainer=cpu")
 
 
-def trainer_settings_of(cfg: DictConfig) -> dict:
-    """The :data:`TRAINER_KEYS` settings a run's trainer will hold (Lightning's defaults where the config is silent)."""
+def trainer_settings_of(cfg: DictConfig, overrides: dict | None = None) -> dict:
+    """The :data:`TRAINER_KEYS` settings a run's trainer will hold (Lightning's defaults where the config is silent),
+    and its :data:`WORLD_SIZE` (:func:`planned_world_size`; ``overrides``: a launcher's Trainer arguments)."""
     defaults = {"accumulate_grad_batches": 1}
-    return {k: trainer_value(k, OmegaConf.select(cfg, f"trainer.{k}", default=defaults.get(k))) for k in TRAINER_KEYS}
+    return {**{k: trainer_value(k, OmegaConf.select(cfg, f"trainer.{k}", default=defaults.get(k))) for k in TRAINER_KEYS},
+            WORLD_SIZE: planned_world_size(cfg, overrides), DISTRIBUTED: planned_distributed(cfg, overrides)}
+
+
+def planned_distributed(cfg: DictConfig, overrides: dict | None = None) -> bool | None:
+    """Whether a launch of ``cfg`` trains under a distributed sampler (:data:`DISTRIBUTED`), where the config says
+    it ahead: Ray Train's driver always; a ``ddp``/``fsdp``/``deepspeed`` strategy (unless
+    ``use_distributed_sampler`` is off); ``auto`` with more than one process; None where it cannot be told
+    (``devices: auto``; a launcher's worker, ``overrides``)."""
+    if OmegaConf.select(cfg, "ray_train") is not None:
+        return True
+    if overrides:
+        return None
+    if OmegaConf.select(cfg, "trainer.use_distributed_sampler", default=True) is False:
+        return False
+    strategy = str(OmegaConf.select(cfg, "trainer.strategy", default="auto") or "auto").lower()
+    if strategy.startswith(("ddp", "fsdp", "deepspeed")):
+        return True
+    world = planned_world_size(cfg)
+    if strategy not in ("auto", "single_device") or world is None:
+        return None
+    return world > 1
+
+
+def planned_world_size(cfg: DictConfig, overrides: dict | None = None) -> int | None:
+    """How many processes a launch of ``cfg`` trains in, where the config says it ahead: Ray Train's
+    ``ray_train.num_workers`` (its driver); else ``trainer.devices`` (a count or a list) × ``trainer.num_nodes``;
+    None where a launcher or Lightning decides (``devices: auto``, ``-1``; a launcher's own ``devices`` in
+    ``overrides``: a Ray Train worker)."""
+    from spread.checks import is_whole
+
+    workers = OmegaConf.select(cfg, "ray_train.num_workers")
+    if workers is not None:
+        return int(workers) if is_whole(workers) else None
+    if overrides and "devices" in overrides:
+        return None
+    devices = OmegaConf.select(cfg, "trainer.devices", default=1)
+    nodes = OmegaConf.select(cfg, "trainer.num_nodes", default=1)
+    if isinstance(devices, str) and devices.strip().isdigit():
+        devices = int(devices)
+    elif not isinstance(devices, (int, str)) and devices is not None:
+        try:
+            devices = len(devices)  # a list of device indices
+        except TypeError:
+            return None
+    if not (is_whole(devices) and is_whole(nodes)) or devices < 1 or nodes < 1:
+        return None
+    return int(devices) * int(nodes)
 
 
 def check_start(cfg: DictConfig, run_dir: Path) -> None:
@@ -385,7 +450,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     datamodule.check_fit(trainer_validates(cfg.trainer, trainer_overrides))  # before a logger opens a run
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
-        check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg),
+        check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg, trainer_overrides),
                                 max_steps=OmegaConf.select(cfg, "trainer.max_steps"))
     callbacks = build_callbacks(cfg, run_dir)  # a checkpoint.* value Lightning refuses: before the record
     if before_work is not None:

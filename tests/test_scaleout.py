@@ -323,6 +323,34 @@ def test_ray_train_two_cpu_workers_report_a_checkpoint(dataset, tmp_path):
     assert len(reported) == 2, "num_to_keep=2 Ray checkpoints, one per epoch"
     newest = torch.load(reported[-1], map_location="cpu", weights_only=False)
     assert newest["global_step"] == 3 and same_tensors(newest["state_dict"], last["state_dict"])
+    # each worker's epoch checkpoint is written under the run folder and removed at its end: Ray's callback wrote it
+    # to the system's temporary folder and left a folder there per rank and launch
+    import tempfile
+
+    launch = reported[-1].parent.parent.name
+    assert not list(Path(tempfile.gettempdir()).glob(f"lightning_checkpoints-*name={launch}-world_rank=*"))
+    assert not (out / "ray_train" / ".epoch_checkpoints").exists()
+
+
+@pytest.mark.slow  # one launch of Ray Train (~60 s on 2 cores): make test-slow runs it
+def test_ctrl_c_ends_spread_train_ray_as_interrupted_and_leaves_no_scratch(dataset, tmp_path):
+    """Ray Train's own SIGINT handler aborted the run and the command ended with status 1 and no word; the workers'
+    epoch checkpoints were left in the system's temporary folder."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "spread.cli.train_ray", *TRAIN, f"data.root={dataset}",
+                             f"out_dir={out}", "trainer.max_steps=100000", "ray_train.num_workers=2",
+                             "ray_train.cpus_per_worker=0.5", "ray_train.num_cpus=2", "ray_train.log_to_driver=false"],
+                            env=script_env(HYDRA_FULL_ERROR="0"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)  # as a user runs it: the one line, not the traceback
+    deadline = time.monotonic() + 300
+    while not list((out / "ray_train").glob("*/checkpoint_*")) and time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(1)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and stderr.strip().endswith("spread-train-ray: interrupted (Ctrl-C)"), \
+        stdout[-2000:] + stderr[-3000:]
+    assert not (out / "ray_train" / ".epoch_checkpoints").exists()
 
 
 @pytest.mark.slow  # three launches of Ray Train (~50 s each on 2 cores): make test-slow runs it

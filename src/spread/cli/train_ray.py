@@ -17,9 +17,12 @@ register()
 @console_main("spread-train-ray", config="train")  # its command line checked after main() rewrote it
 def _main(cfg: DictConfig) -> None:
     from spread.data.splits import check_fit_config
+    from spread.runtime.ray import address_problem
     from spread.training.ray_train import ray_train_settings
 
-    ray_train_settings(cfg)  # each ray_train.* key, before the folder's lock, record and Ray
+    problem = address_problem(ray_train_settings(cfg).address, "ray_train.address")  # each key, the cluster's
+    if problem:  # address: before the folder's lock, record and Ray (a join retried for minutes)
+        raise ValueError(problem)
     check_fit_config(cfg)  # data without scenes: refused before torch, Lightning and Ray load
     from spread.commands.common import record_config
     from spread.io import run_lock

@@ -64,6 +64,31 @@ class RaySettings:
         return self.address in (None, "", "local")
 
 
+#: Seconds a cluster's address has to answer before a join is refused (Ray itself retried for minutes).
+CONNECT_TIMEOUT_S = 10.0
+
+
+def address_problem(address, key: str = "ray.address") -> str | None:
+    """Why the cluster at ``address`` (``HOST:PORT`` or ``ray://HOST:PORT``) cannot be joined: nothing accepts a
+    connection there within :data:`CONNECT_TIMEOUT_S` (``ray.init`` retried the GCS for minutes, then
+    longer: ``127.0.0.1:1`` held a command past 300 s); None where it answers, or for an address this cannot read
+    (``auto``, ``local``: Ray says what it makes of it)."""
+    import socket
+
+    if not isinstance(address, str) or address in ("", "auto", "local"):
+        return None
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return None
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S):
+            return None
+    except OSError as exc:
+        why = exc.strerror or type(exc).__name__
+        return (f"{key}={address}: nothing answers there ({why}); start the cluster's head first (ray start --head) "
+                f"and give its address")
+
+
 def _start(settings: RaySettings) -> None:
     import ray
 
@@ -73,6 +98,9 @@ def _start(settings: RaySettings) -> None:
         ray.init(address="local", num_cpus=settings.num_cpus, include_dashboard=False,
                  log_to_driver=settings.log_to_driver, object_store_memory=settings.object_store_memory)
     else:
+        problem = address_problem(settings.address)
+        if problem:
+            raise ValueError(problem)
         ray.init(address=settings.address, log_to_driver=settings.log_to_driver)
 
 

@@ -23,6 +23,7 @@ Ray and Lightning are imported inside the functions.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,22 +102,43 @@ def split_config(cfg: DictConfig, run_dir: Path) -> tuple[dict, RayTrainSettings
     return resolved, settings
 
 
-def report_callback():
+#: Where, under the run folder, a worker writes its epoch-end checkpoint before Ray copies it to its store (Ray's
+#: callback wrote it to the system's temporary folder, outside the run, and left a folder there per rank and launch:
+#: after a Ctrl-C holding a whole checkpoint); removed when the worker's training ends.
+SCRATCH = ".epoch_checkpoints"
+
+
+def report_callback(run_dir: Path | None = None):
     """``RayTrainReportCallback`` that leaves :class:`~spread.training.checkpoints.CheckpointStep` as it was: its
     epoch-end checkpoint goes to Ray's store, not to ``checkpoints/last.ckpt``, so it must not make the final
     save (:func:`~spread.training.checkpoints.save_final_checkpoint`) believe ``last.ckpt`` already holds the
-    final state."""
+    final state. ``run_dir``: its scratch folder goes under ``<run_dir>/ray_train/`` (:data:`SCRATCH`)."""
+    import shutil
+
+    import ray.train
     from ray.train.lightning import RayTrainReportCallback
 
     from spread.training.checkpoints import CheckpointStep
 
     class ReportCallback(RayTrainReportCallback):
+        def __init__(self):
+            super().__init__()
+            if run_dir is not None:
+                rank = ray.train.get_context().get_world_rank()
+                self.tmpdir_prefix = str(Path(run_dir) / "ray_train" / SCRATCH / f"rank{rank}")
+
         def on_train_epoch_end(self, trainer, pl_module) -> None:
             steps = [c for c in trainer.callbacks if isinstance(c, CheckpointStep)]
             before = [c.step for c in steps]
             super().on_train_epoch_end(trainer, pl_module)
             for c, step in zip(steps, before):
                 c.step = step
+
+        def teardown(self, trainer, pl_module, stage: str) -> None:
+            shutil.rmtree(self.tmpdir_prefix, ignore_errors=True)
+            if run_dir is not None:  # the last rank out removes the scratch folder itself
+                with contextlib.suppress(OSError):
+                    (Path(run_dir) / "ray_train" / SCRATCH).rmdir()
 
     return ReportCallback()
 
@@ -135,7 +157,7 @@ def train_worker(config: dict) -> dict:
     def run(resume_from: Path | None) -> dict:
         overrides = {"strategy": RayDDPStrategy(), "plugins": [RayLightningEnvironment()], "devices": "auto",
                      "num_nodes": 1, "accelerator": "gpu" if config["use_gpu"] else "cpu"}
-        summary = train(cfg, run_dir, trainer_overrides=overrides, extra_callbacks=[report_callback()],
+        summary = train(cfg, run_dir, trainer_overrides=overrides, extra_callbacks=[report_callback(run_dir)],
                         prepare=prepare_trainer, resume_from=resume_from)
         return {**summary, "world_size": ray.train.get_context().get_world_size()}
 
@@ -168,8 +190,11 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     """Train ``cfg`` (a composed ``conf/train.yaml`` with ``trainer=ray``) on Ray Train into ``run_dir``;
     returns Ray Train's ``Result`` (``return_value``: rank 0's summary; ``checkpoint``: the newest Ray
     checkpoint, a folder with ``checkpoint.ckpt``)."""
+    import shutil
+    import signal
+    import threading
+
     from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
-    from ray.train.torch import TorchTrainer
 
     from spread.runtime.ray import RaySettings, ray_session
 
@@ -180,7 +205,7 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     if settings.use_gpu:
         resources["GPU"] = 1.0
     storage = Path(settings.storage_path or run_dir / "ray_train").resolve()
-    trainer = (TorchTrainer if settings.address else private_cluster_trainer())(
+    trainer = (interruptible_trainer() if settings.address else private_cluster_trainer())(
         train_worker,
         train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu)},
         scaling_config=ScalingConfig(num_workers=int(settings.num_workers), use_gpu=bool(settings.use_gpu),
@@ -191,8 +216,20 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     )
     ray_settings = RaySettings(address=settings.address, num_cpus=settings.num_cpus,
                                log_to_driver=settings.log_to_driver)
-    with ray_session(ray_settings, owner=run_dir):
-        result = trainer.fit()
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        with ray_session(ray_settings, owner=run_dir):
+            result = trainer.fit()
+    except SystemExit:  # Ray's handler exits from inside fit on a Ctrl-C it could not pass on
+        if trainer.interrupted:
+            raise KeyboardInterrupt from None
+        raise
+    finally:
+        if threading.current_thread() is threading.main_thread():  # Ray's handler outlived its run
+            signal.signal(signal.SIGINT, previous)
+        shutil.rmtree(run_dir / "ray_train" / SCRATCH, ignore_errors=True)  # left by workers an abort stopped
+    if trainer.interrupted:
+        raise KeyboardInterrupt
     if result.error is not None:
         raise worker_user_error(result.error) or result.error
     return result
@@ -242,15 +279,39 @@ def private_cluster_trainer():
     its placement groups with it: without Ray Train's detached ``PlacementGroupCleaner`` actor, which exists to
     free them after a controller dies on a *shared* cluster, and which, on a Ray started without its dashboard,
     polls a State API that is not there and prints an alarming ``ConnectionError`` traceback (often when other
-    Ray instances run on the host). On a cluster (``address`` set) the plain ``TorchTrainer`` keeps it."""
-    from ray.train.torch import TorchTrainer
-
-    class PrivateClusterTorchTrainer(TorchTrainer):
+    Ray instances run on the host). On a cluster (``address`` set) the plain ``TorchTrainer`` keeps it
+    (:func:`interruptible_trainer` both)."""
+    class PrivateClusterTorchTrainer(interruptible_trainer()):
         def _create_default_callbacks(self):
             return [c for c in super()._create_default_callbacks()
                     if type(c).__name__ != "PlacementGroupCleanerCallback"]
 
     return PrivateClusterTorchTrainer
+
+
+def interruptible_trainer():
+    """``TorchTrainer`` that notes a Ctrl-C (``interrupted``): Ray Train's own SIGINT handler aborts the run and
+    makes ``fit`` end as if nothing happened, or exit 0 or 1 from inside, so the command ended with status 1 and
+    no word; noted, :func:`run_ray_train` ends it as every command ends on Ctrl-C (status 130, one line)."""
+    import signal
+
+    from ray.train.torch import TorchTrainer
+
+    class InterruptibleTorchTrainer(TorchTrainer):
+        interrupted = False
+
+        def _register_sigint_handler(self, controller):
+            super()._register_sigint_handler(controller)
+            ray_handler = signal.getsignal(signal.SIGINT)
+
+            def noted(signum, frame):
+                self.interrupted = True
+                if callable(ray_handler):
+                    ray_handler(signum, frame)
+
+            signal.signal(signal.SIGINT, noted)
+
+    return InterruptibleTorchTrainer
 
 
 def with_default_trainer(argv: list[str]) -> list[str]:

@@ -177,6 +177,23 @@ def test_hand_damaged_evaluation_records_are_failed_scenes_and_renders_come_from
     """Each damage gave a traceback on every relaunch (a JSON array line, a state missing its keys, a number or lists
     where states go, ``1e300``), or wiped the dataset's GRecall (counts of -1000); a record's ``file`` drew another
     file under the scene's name."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    for path in sorted(dataset.glob("*/*.npz")):
+        shutil.copy(path, scenes / path.name)
+    out = tmp_path / "e"
+    overrides = [f"scenes={scenes}", f"reference={dataset}", f"out_dir={out}", "metrics=[grecall]",
+                 "fid.enabled=false", "logger=none", "progress=false", "renders=0"]
+    import ray
+
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)  # one Ray for the three
+    try:  # evaluations (spread.runtime.ray uses a caller's Ray as it is)
+        evaluate_damaged(dataset, scenes, out, overrides)
+    finally:
+        ray.shutdown()
+
+
+def evaluate_damaged(dataset, scenes, out, overrides):
     import numpy as np
     from PIL import Image
 
@@ -187,13 +204,6 @@ def test_hand_damaged_evaluation_records_are_failed_scenes_and_renders_come_from
     from spread.render import render_topdown
     from spread.scene import read_scene
 
-    scenes = tmp_path / "scenes"
-    scenes.mkdir()
-    for path in sorted(dataset.glob("*/*.npz")):
-        shutil.copy(path, scenes / path.name)
-    out = tmp_path / "e"
-    overrides = [f"scenes={scenes}", f"reference={dataset}", f"out_dir={out}", "metrics=[grecall]",
-                 "fid.enabled=false", "logger=none", "progress=false", "renders=0", "ray.num_cpus=1"]
     first = run_evaluation(to_object(compose("evaluate", overrides))).metrics
     assert first["n_failed"] == 0
     lines = read_jsonl(out / "per_scene.jsonl")

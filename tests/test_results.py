@@ -262,12 +262,14 @@ def test_a_report_rewritten_in_its_folder_keeps_none_of_the_earlier_reports_outp
         tmp_path):
     """A second report into one ``out_dir`` left the first one's plots (of other runs) beside a ``report.json`` that
     listed none; a report into a run's folder rewrote its ``.hydra/config.yaml`` and wrote beside its results."""
-    from helpers import run_script, user_error
+    from helpers import user_error
+
+    from spread.reporting.report import run_report
 
     sweep = write_sweep(tmp_path / "S", [(0.0, 2, 0, {"grecall": 0.5, "col_mesh": 0.3}),
                                          (0.01, 4, 0, {"grecall": 0.4, "col_mesh": 0.1})])
     out = tmp_path / "R"
-    run_script("spread-report", f"runs={sweep}", f"out_dir={out}")
+    run_report([str(sweep)], out)
     plots = sorted((out / "plots").glob("*.png"))
     assert plots and (out / "report.csv").exists()
     kept = tmp_path / "mine.png"  # a hand-edited record naming a file outside the folder: never removed
@@ -276,7 +278,7 @@ def test_a_report_rewritten_in_its_folder_keeps_none_of_the_earlier_reports_outp
     record["plots"].append({"png": str(kept)})
     (out / "report.json").write_text(json.dumps(record))
     one = sweep / "points" / "collision0.0_00"
-    run_script("spread-report", f"runs={one}", f"out_dir={out}")
+    run_report([str(one)], out)
     assert list((out / "plots").glob("*.png")) == [] and json.loads((out / "report.json").read_text())["plots"] == []
     assert kept.exists() and (out / "report.csv").exists() and "0.5" in (out / "report.csv").read_text()
     (one / "sampling.json").write_text("{}")  # a sampling run's folder, as spread-sample leaves one

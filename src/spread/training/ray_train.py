@@ -205,12 +205,13 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     if settings.use_gpu:
         resources["GPU"] = 1.0
     storage = Path(settings.storage_path or run_dir / "ray_train").resolve()
+    name = launch_name(run_dir)
     trainer = (interruptible_trainer() if settings.address else private_cluster_trainer())(
         train_worker,
         train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu)},
         scaling_config=ScalingConfig(num_workers=int(settings.num_workers), use_gpu=bool(settings.use_gpu),
                                      resources_per_worker=resources),
-        run_config=RunConfig(name=launch_name(run_dir), storage_path=str(storage),
+        run_config=RunConfig(name=name, storage_path=str(storage),
                              failure_config=FailureConfig(max_failures=int(settings.max_failures)),
                              checkpoint_config=CheckpointConfig(num_to_keep=settings.num_to_keep)),
     )
@@ -222,6 +223,7 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
             result = trainer.fit()
     except SystemExit:  # Ray's handler exits from inside fit on a Ctrl-C it could not pass on
         if trainer.interrupted:
+            keep_newest_reported(run_dir, storage / name)
             raise KeyboardInterrupt from None
         raise
     finally:
@@ -229,10 +231,33 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
             signal.signal(signal.SIGINT, previous)
         shutil.rmtree(run_dir / "ray_train" / SCRATCH, ignore_errors=True)  # left by workers an abort stopped
     if trainer.interrupted:
+        keep_newest_reported(run_dir, storage / name)
         raise KeyboardInterrupt
     if result.error is not None:
         raise worker_user_error(result.error) or result.error
     return result
+
+
+def keep_newest_reported(run_dir: Path, launch: Path) -> Path | None:
+    """After a Ctrl-C aborted the workers: this launch's newest epoch-end checkpoint in Ray's store becomes the run
+    folder's ``checkpoints/last.ckpt`` when it is further on (written atomically), so ``ckpt_path=last`` goes on from
+    it (the workers write ``last.ckpt`` every ``checkpoint.every_n_train_steps`` and at the end only, and a relaunch
+    reads ``last.ckpt`` alone: an early Ctrl-C left none). Returns the checkpoint kept (None: none newer)."""
+    import logging
+    import shutil
+
+    from spread.io import atomic_path
+
+    last = run_dir / "checkpoints" / "last.ckpt"
+    reported = sorted(Path(launch).glob("checkpoint_*/checkpoint.ckpt"))
+    newest = newest_checkpoint([last, *reported]) if reported else last
+    if newest == last or not newest.is_file():
+        return None
+    with atomic_path(last) as tmp:
+        shutil.copyfile(newest, tmp)
+    logging.getLogger("spread.train").warning("interrupted: %s (Ray's newest epoch-end checkpoint) is now %s; "
+                                              "ckpt_path=last goes on from it", newest, last)
+    return newest
 
 
 def launch_name(run_dir: Path) -> str:

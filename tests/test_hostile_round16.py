@@ -109,3 +109,40 @@ def test_a_reports_renders_are_of_the_scenes_its_numbers_measured(tmp_path):
     assert renders_of(record, refused) == {}
     assert refused == [f"{run / 'renders'}: not shown: sampled again since the evaluation, with other settings "
                        f"(sampling.seed)"]
+
+
+def test_a_tracker_run_is_never_given_the_numbers_of_a_redo_it_did_not_log(tmp_path):
+    """A redo without MLflow (``seed=8 logger=none``) left ``mlflow_run.json`` naming the seed-7 run, and a load of
+    the store gave that run seed 8's numbers; a relaunch continuing a wandb run wrote it offline into a second folder
+    of the same id, read as two runs (its seed counted twice in a mean over seeds)."""
+    import json
+    from types import SimpleNamespace
+
+    from spread.reporting.runs import latest_wandb_folders
+    from spread.results.store import made_the_folder, run_record
+    from spread.runtime.fingerprint import canonical
+
+    run = tmp_path / "s"
+    (run / "scenes").mkdir(parents=True)
+    measured = {"ckpt_sha256": "ab", "guidance": {"mode": "none"}, "sampling": {"seed": 7}, "samples_per_graph": 1}
+    (run / "mlflow_run.json").write_text(json.dumps({"run_id": "r7"}))
+    (run / "metrics.json").write_text(json.dumps({"grecall": 0.18, "n_scenes": 3, "n_evaluated": 3,
+                                                  "sampled_with": {**measured, "sampling": {"seed": 8}}}))
+    assert not made_the_folder("r7", run, canonical(measured))  # the folder holds seed 8's numbers now
+    assert made_the_folder("r7", run, canonical({**measured, "sampling": {"seed": 8}}))
+    assert made_the_folder("r7", run) and not made_the_folder("r6", run)  # no tag: the run file decides, as before
+    tags = {"spread.identity": canonical(measured), "spread.run_folder": str(run)}
+    mlflow_run = SimpleNamespace(data=SimpleNamespace(tags=tags, metrics={"grecall": 0.24}, params={"seed": "7"}),
+                                 info=SimpleNamespace(run_id="r7", run_name="s7", experiment_id="0", status="FINISHED"))
+    record = run_record(mlflow_run, {"0": "e"})
+    assert record["grecall"] == 0.24 and record["settings"]["seed"] == 7  # its own numbers, never the redo's
+
+    wandb = [("wandb", tmp_path / "w" / f"offline-run-20261203_{t}-{i}")
+             for t, i in (("142957", "a1"), ("143026", "b2"), ("143052", "a1"))]
+    assert latest_wandb_folders([("folder", run), *wandb]) == [("folder", run), wandb[1], wandb[2]]
+    for _, folder in wandb:  # as find_runs meets them in a folder of runs
+        (folder / "files").mkdir(parents=True)
+        (folder / "files" / "wandb-summary.json").write_text(json.dumps({"grecall": 0.5}))
+    from spread.reporting.runs import find_runs
+
+    assert find_runs([str(tmp_path / "w")])[0] == [wandb[1], wandb[2]]

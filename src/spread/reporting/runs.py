@@ -476,7 +476,21 @@ def find_runs(entries: str | Iterable[str]) -> tuple[list[tuple[str, Path]], lis
         if path.resolve() not in seen:
             seen.add(path.resolve())
             unique.append((kind, path))
-    return unique, unfinished
+    return latest_wandb_folders(unique), unfinished
+
+
+def latest_wandb_folders(found: list[tuple[str, Path]]) -> list[tuple[str, Path]]:
+    """``found`` with one folder per wandb run id, its latest (``offline-run-<time>-<id>``): a relaunch that
+    continues a run (:mod:`spread.tracking.continuation`) writes it offline into a second folder of the same id, and
+    the run was read as two runs (a mean over seeds counted its seed twice)."""
+    def run_id(path: Path) -> str:
+        return path.name.rsplit("-", 1)[-1]
+
+    latest: dict[str, Path] = {}
+    for kind, path in found:
+        if kind == "wandb" and (run_id(path) not in latest or path.name > latest[run_id(path)].name):
+            latest[run_id(path)] = path
+    return [(kind, path) for kind, path in found if kind != "wandb" or latest[run_id(path)] == path]
 
 
 def read_runs(entries) -> tuple[list[dict], list[Path]]:

@@ -26,21 +26,26 @@ def parsed(text: str):
         return {"True": True, "False": False, "None": None}.get(text, text)
 
 
-def made_the_folder(run_id: str, folder) -> bool:
+def made_the_folder(run_id: str, folder, tagged: str | None = None) -> bool:
     """Whether the run folder's numbers are this MLflow run's: its ``mlflow_run.json`` names this run (a folder
     evaluated again since holds a later run's numbers and settings; this run's own logged values are its record),
-    or names none (a folder written before that record)."""
+    or names none (a folder written before that record); and what its ``metrics.json`` measured with is what the run
+    recorded (``tagged``: its ``spread.identity`` tag): a redo without MLflow (``logger=none``, another seed or
+    protocol) leaves ``mlflow_run.json`` naming the run whose numbers it replaced."""
     from spread.io import read_json_object
+    from spread.runtime.fingerprint import identity_changes, measured_identity, tracked_identity
     from spread.tracking.mlflow_store import RUN_FILE
 
     path = Path(str(folder)) / RUN_FILE
-    if not path.is_file():
-        return True
     try:
-        named = read_json_object(path).get("run_id")
+        named = read_json_object(path).get("run_id") if path.is_file() else None
+        measured = tracked_identity(tagged) if tagged else None
+        now = measured_identity(read_json_object(Path(str(folder)) / "metrics.json")) if measured else None
     except (OSError, ValueError):
         return False
-    return named is None or named == run_id
+    if named is not None and named != run_id:
+        return False
+    return measured is None or now is None or not identity_changes(measured, now)
 
 
 def run_record(run, experiments: dict) -> dict | None:
@@ -56,7 +61,7 @@ def run_record(run, experiments: dict) -> dict | None:
     folder = tags.get("spread.run_folder") or params.get("out_dir")
     reused = tags.get("spread.reused") == "true"
     made_by = tags.get("spread.made_by_run_id") if reused else run.info.run_id  # a re-used point: the point's run
-    if folder and made_by and is_finished_run(folder) and made_the_folder(made_by, folder):
+    if folder and made_by and is_finished_run(folder) and made_the_folder(made_by, folder, tags.get("spread.identity")):
         try:
             record = read_run_folder(folder)
         except RunError:

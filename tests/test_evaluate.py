@@ -22,7 +22,7 @@ from spread.scene import Scene, list_scene_files, read_scene, write_scene
 
 from helpers import asset_library
 
-ROOMS = 6
+ROOMS = 4
 FAST = ["protocol.stability_runs=2", "ray.num_cpus=2", "progress=false", "renders=3"]
 BAD = {"bad_missing_asset": "unknown asset 'no_such_asset_00'", "bad_nan": "non-finite",
        "bad_empty": "no objects"}

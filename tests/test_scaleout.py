@@ -309,10 +309,11 @@ def test_ray_train_two_cpu_workers_report_a_checkpoint(dataset, tmp_path):
     RayLightningEnvironment, prepare_trainer and RayTrainReportCallback, 2 workers of 0.5 CPU on a private
     2-CPU Ray, 3 steps: spread-train's run folder plus Ray's checkpoint of the last epoch (~50 s)."""
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "spread.cli.train_ray", *TRAIN, f"data.root={dataset}",
+    proc = subprocess.run([sys.executable, "-m", "spread.cli.train_ray", *TRAIN, f"data.root={dataset.name}",
                            f"out_dir={out}", "trainer.max_steps=3", "ray_train.num_workers=2",
                            "ray_train.cpus_per_worker=0.5", "ray_train.num_cpus=2", "ray_train.log_to_driver=false"],
-                          env=script_env(), capture_output=True, text=True, timeout=500)
+                          env=script_env(), capture_output=True, text=True, timeout=500,
+                          cwd=dataset.parent)  # a data.root relative to where the command runs: the workers see it too
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     assert "step 3, epoch" in proc.stdout and "2 Ray Train workers" in proc.stdout
     assert "PlacementGroupCleaner" not in proc.stdout + proc.stderr  # no cleaner polling a State API not there

@@ -24,6 +24,7 @@ Ray and Lightning are imported inside the functions.
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -151,6 +152,9 @@ def train_worker(config: dict) -> dict:
 
     from spread.training.fit import train
 
+    cwd = config.get("cwd")
+    if cwd and Path(cwd).is_dir():  # the driver's: a relative data.root, ckpt_path or init_from means the same
+        os.chdir(cwd)  # there (a Ray worker starts in its session's folder: "no scene files in demo_out/data/train")
     cfg = OmegaConf.create(config["cfg"])
     run_dir = Path(config["run_dir"])
 
@@ -208,7 +212,8 @@ def run_ray_train(cfg: DictConfig, run_dir: Path):
     name = launch_name(run_dir)
     trainer = (interruptible_trainer() if settings.address else private_cluster_trainer())(
         train_worker,
-        train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu)},
+        train_loop_config={"cfg": container, "run_dir": str(run_dir), "use_gpu": bool(settings.use_gpu),
+                           "cwd": os.getcwd()},
         scaling_config=ScalingConfig(num_workers=int(settings.num_workers), use_gpu=bool(settings.use_gpu),
                                      resources_per_worker=resources),
         run_config=RunConfig(name=name, storage_path=str(storage),

@@ -288,7 +288,7 @@ def test_spread_ablate_refuses_a_seed_twice_and_a_stage_list_that_does_not_compo
 
     common = ["variants=[base]", f"train.ckpt.base={run / 'checkpoints' / 'last.ckpt'}", f"data.root={dataset}",
               "logger=none", "figures=false", f"out_dir={tmp_path / 'a'}"]
-    with pytest.raises(ValueError, match=r"seeds=\[0, 0\]: seed 0 is listed twice"):
+    with pytest.raises(ValueError, match=r"^seeds=\[0, 0\]: 0 is listed twice in \[0, 0\]; give each training seed once$"):
         ablate(compose("ablate", *common, "seeds=[0,0]"))
     with pytest.raises(ValueError, match=r"seeds=\[0, 1.5\]: a seed is a whole number ≥ 0"):  # it ran seed 1
         ablate(compose("ablate", *common, "seeds=[0,1.5]"))

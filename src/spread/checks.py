@@ -1,5 +1,5 @@
-"""One check of a whole-number setting, and one of a true-or-false setting, for every command (on the lowest floor:
-any module may ask them).
+"""One check of a whole-number setting, one of a true-or-false setting and one of a list that names each thing once,
+for every command (on the lowest floor: any module may ask them).
 
 A count, a size or a seed is a whole number: an ``int`` (numpy's too), never a ``bool`` (``True`` is 1 to Python)
 and never a float — not even ``3.0``: a sweep's ``interval(2,4)`` draws ``3.274``, which ``int()`` quietly made 3,
@@ -36,3 +36,14 @@ def true_or_false(value, key: str) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"{key}={value!r}: expected true or false")
     return value
+
+
+def listed_once(values, key: str, each: str = "row") -> list:
+    """``values`` as a list when none is listed twice; else ``ValueError``: ``<key>: <first repeat> is listed twice
+    in <values>; give each <each> once``. A row or a seed asked twice is one thing counted as two: a table holds one
+    row of it, a mean over seeds one run twice with no spread between them."""
+    values = list(values)
+    twice = [v for v in values if values.count(v) > 1]
+    if twice:
+        raise ValueError(f"{key}: {twice[0]!r} is listed twice in {values}; give each {each} once")
+    return values

@@ -108,15 +108,13 @@ def ablate(cfg: DictConfig):
 
     spec = ablation_spec(cfg)
     name = f"ablation/{cfg.name}"
-    from spread.checks import is_whole
+    from spread.checks import is_whole, listed_once
 
     seeds = list(OmegaConf.to_container(cfg.seeds, resolve=True) if cfg.get("seeds") else [])
     if not all(is_whole(x) and x >= 0 for x in seeds):  # a training seed is Lightning's, in [0, 2**32); never 1.5 as 1
         raise ValueError(f"seeds={seeds}: a seed is a whole number ≥ 0")
     seeds = [int(x) for x in seeds]
-    twice = sorted({x for x in seeds if seeds.count(x) > 1})
-    if twice:  # one run counted as two seeds, with no spread between them
-        raise ValueError(f"seeds={seeds}: seed {twice[0]} is listed twice; give each training seed once")
+    listed_once(seeds, f"seeds={seeds}", each="training seed")
 
     def body(commands, logger, config, run):
         def log_table(records, png):

@@ -65,6 +65,7 @@ from spread.experiments.stages import (
     Commands, Stage, StageEngine, StageError, StagesResult, StagesSpec, carried_note, sampling_inputs, with_carried)
 from spread.reporting.tables import Column, columns_of, write_tables
 from spread.guidance.config import GuidanceConfig
+from spread.checks import listed_once
 from spread.io import read_json
 
 #: What a study returns (:class:`~spread.experiments.stages.StagesResult`).
@@ -112,9 +113,7 @@ class AblationSpec(StagesSpec):
         if unknown or not self.variants:
             raise ValueError(f"variants: unknown or none {unknown or list(self.variants)} "
                              f"(choose from {list(VARIANTS)})")
-        twice = sorted({v for v in self.variants if list(self.variants).count(v) > 1})
-        if twice:  # one row, shown once: the list asked for something the table does not hold
-            raise ValueError(f"variants: {twice[0]!r} is listed twice in {list(self.variants)}; give each row once")
+        listed_once(self.variants, "variants")  # one row, shown once: the list asked for what the table does not hold
         self.variants = tuple(v for v in VARIANTS if v in self.variants)
         self.check_given(["base", "geometry"], lambda v: {"method": "spread", "variant": v})
         wrong = [k for k in self.sample_variant if k not in ("base", "geometry")]

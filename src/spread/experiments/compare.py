@@ -46,6 +46,7 @@ from spread.reporting.intervals import (
 from spread.experiments.stages import (
     Commands, Stage, StageEngine, StagesResult, StagesSpec, carried_note, with_carried)
 from spread.reporting.tables import Column, columns_of, display_rows, set_columns, value_column, write_tables
+from spread.checks import listed_once
 from spread.io import read_json, read_text_checked, write_json_atomic
 
 log = logging.getLogger("spread.compare")
@@ -108,9 +109,7 @@ class CompareSpec(StagesSpec):
         unknown = [m for m in self.methods if m not in known]
         if unknown or not self.methods:
             raise ValueError(f"methods: unknown or none {unknown or list(self.methods)} (choose from {known})")
-        twice = sorted({m for m in self.methods if list(self.methods).count(m) > 1})
-        if twice:  # one row, shown once: the list asked for something the table does not hold
-            raise ValueError(f"methods: {twice[0]!r} is listed twice in {list(self.methods)}; give each row once")
+        listed_once(self.methods, "methods")  # one row, shown once: the list asked for what the table does not hold
         self.methods = tuple(m for m in known if m in self.methods)
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout: {self.layout!r}, choose from {LAYOUTS}")

@@ -69,7 +69,7 @@ def test_spread_train_ray_refuses_a_ray_train_setting_by_key_before_its_record(s
         assert list(tmp_path.iterdir()) == []
 
 
-def test_a_cluster_address_where_nothing_answers_is_refused_in_seconds_before_any_record(tmp_path):
+def test_a_cluster_address_where_nothing_answers_is_refused_by_a_probe_before_any_record(tmp_path):
     """``ray_train.address=127.0.0.1:1`` retried the GCS for minutes (past 300 s), after the run's record was
     rewritten; every command that joins a cluster (``ray.address``) asks the address first."""
     from helpers import free_port

@@ -183,3 +183,24 @@ def test_a_process_that_ignores_ctrl_c_keeps_ignoring_it_while_it_trains(tmp_pat
             assert stopper.asked  # the first Ctrl-C asks for a stop, raises nothing
     finally:
         signal.signal(signal.SIGINT, before)
+
+
+def test_every_private_ray_train_method_the_platform_overrides_is_in_the_installed_ray_with_its_signature():
+    """``interruptible_trainer`` (Ctrl-C ends ``spread-train-ray`` with status 130) and ``private_cluster_trainer``
+    (no placement-group cleaner on the command's own cluster) override private ``TorchTrainer`` methods. A Ray whose
+    trainer renamed one would call the override never, silently: the command would end with status 1 and no word.
+    Only the slow Ray Train tests would see that; this one sees it in ``make test``."""
+    import inspect
+
+    from ray.train.torch import TorchTrainer
+
+    from spread.training.ray_train import interruptible_trainer, private_cluster_trainer
+
+    overridden = {name: (cls, value) for cls in (interruptible_trainer(), private_cluster_trainer())
+                  for name, value in vars(cls).items() if name.startswith("_") and not name.startswith("__")
+                  and callable(value)}
+    assert set(overridden) == {"_register_sigint_handler", "_create_default_callbacks"}
+    for name, (cls, value) in overridden.items():
+        assert callable(getattr(TorchTrainer, name, None)), f"{cls.__name__}.{name}: not a method of Ray's trainer"
+        ours, rays = (list(inspect.signature(f).parameters) for f in (value, getattr(TorchTrainer, name)))
+        assert ours == rays, f"{cls.__name__}.{name}{ours}: Ray's takes {rays}"

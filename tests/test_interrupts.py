@@ -24,7 +24,11 @@ def ctrl_c():
     signal.signal(signal.SIGINT, before)
 
 
-def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_on(tmp_path):
+@pytest.mark.parametrize("sig, status, said", [(signal.SIGINT, 130, "Ctrl-C"), (signal.SIGTERM, 143, "SIGTERM")])
+def test_ctrl_c_or_sigterm_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_on(tmp_path, sig, status,
+                                                                                            said):
+    """SIGTERM (a scheduler's preemption) is stopped like Ctrl-C; it ended the run with status 0, a finished job to
+    the scheduler, with no word and nothing saved since the last periodic checkpoint."""
     data = make_dataset(tmp_path / "d")
     out = tmp_path / "run"
     args = [str(SCRIPTS / "spread-train"), "experiment=quick", f"data.root={data}", f"out_dir={out}", *SMALL_MODEL,
@@ -40,16 +44,18 @@ def test_ctrl_c_stops_spread_train_after_its_step_saves_it_and_a_relaunch_goes_o
                 len(next(out.glob("csv/version_*/metrics.csv")).read_text().splitlines()) < 4:
             assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[1][-3000:]
             time.sleep(0.2)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=240)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130, stderr[-3000:]
-    assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "spread-train: interrupted (Ctrl-C)"
-    assert "stopping at the end of this step and saving it" in stderr
+    assert proc.returncode == status, stderr[-3000:]
+    assert "Traceback" not in stderr
+    if sig == signal.SIGINT:
+        assert stderr.strip().splitlines()[-1] == "spread-train: interrupted (Ctrl-C)"
+    assert f"spread-train: {said}: stopping at the end of this step and saving it" in stderr
     saved = torch.load(out / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")["global_step"]
-    assert saved >= 3 and f"interrupted at step {saved}:" in stdout  # the steps made are kept (none were)
+    assert saved >= 3 and f"interrupted ({said}) at step {saved}:" in stdout  # the steps made are kept (none were)
     assert not (out / "metrics.json").exists()  # not a finished run: a study does not take it for one
     from helpers import train_in_process
 
@@ -138,11 +144,13 @@ def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_tr
                             "ckpt_path=last")["global_step"] == 6
 
 
-def test_ctrl_c_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed_run_is_the_uninterrupted_one(
-        tmp_path, ctrl_c):
+@pytest.mark.parametrize("sig, raised", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, SystemExit)])
+def test_ctrl_c_or_sigterm_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed_run_is_the_uninterrupted_one(
+        tmp_path, ctrl_c, sig, raised):
     """With ``accumulate_grad_batches=4`` a stop between two batches of one step saved a data position the resumed
     run could not take up (a step of fewer batches, batches never trained): the stop waits for the step's end, and
-    the resumed run reaches step 4 with the uninterrupted run's weights, bit for bit."""
+    the resumed run reaches step 4 with the uninterrupted run's weights, bit for bit. SIGTERM too, though Lightning's
+    fit puts in its own handler, which stopped at the batch's end and saved nothing."""
     from lightning.pytorch.callbacks import Callback
 
     from spread.training.fit import train
@@ -150,7 +158,7 @@ def test_ctrl_c_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed
     class CtrlC(Callback):  # pressed after the second batch of the first step
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
             if trainer.current_epoch == 0 and batch_idx == 1:
-                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), sig)
 
     data = make_dataset(tmp_path / "d")
     common = ["experiment=quick", f"data.root={data}", *SMALL_MODEL, *FAST_TRAIN, "data.batch_size=1",
@@ -159,8 +167,9 @@ def test_ctrl_c_inside_a_gradient_accumulation_stops_at_its_step_and_the_resumed
     whole = tmp_path / "whole"
     train(compose("train", *common, f"out_dir={whole}"), run_dir=whole)
     parts = tmp_path / "parts"
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(raised) as stop:
         train(compose("train", *common, f"out_dir={parts}"), run_dir=parts, extra_callbacks=[CtrlC()])
+    assert raised is KeyboardInterrupt or stop.value.code == 143
     last = parts / "checkpoints" / "last.ckpt"
     assert torch.load(last, weights_only=False, map_location="cpu")["global_step"] == 1  # the step's end
     train(compose("train", *common, f"out_dir={parts}", "ckpt_path=last"), run_dir=parts)

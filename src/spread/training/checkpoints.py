@@ -4,8 +4,9 @@ The run folder's ``checkpoints/`` holds ``last.ckpt`` (what ``ckpt_path=last`` r
 periodic one. ``ckpt_path``: ``null`` starts a new run; a path resumes from that checkpoint (weights, EMA,
 optimizer, global step, loop state); ``last`` resumes ``<run folder>/checkpoints/last.ckpt`` when it
 exists, else the newest ``<paths.runs_dir>/train/<experiment_name>/*/checkpoints/last.ckpt``, else starts a
-new run (so a preempted job can always be relaunched with ``ckpt_path=last out_dir=<its folder>``). Ctrl-C
-stops at the end of the step in progress and saves it as ``last.ckpt`` (:func:`stop_on_interrupt`).
+new run (so a preempted job can always be relaunched with ``ckpt_path=last out_dir=<its folder>``). Ctrl-C and
+SIGTERM (a scheduler's preemption) stop at the end of the step in progress and save it as ``last.ckpt``
+(:func:`stop_on_interrupt`).
 """
 
 from __future__ import annotations
@@ -95,7 +96,8 @@ def atomic_checkpoint_io():
 
 
 class StopRequested(Exception):
-    """Ctrl-C: training stopped at an optimiser step's end, that step saved as ``last.ckpt`` (:class:`StopAtStep`)."""
+    """Ctrl-C or SIGTERM: training stopped at an optimiser step's end, that step saved as ``last.ckpt``
+    (:class:`StopAtStep`)."""
 
 
 class StopAtStep(Callback):
@@ -107,8 +109,18 @@ class StopAtStep(Callback):
 
     def __init__(self, last: Path):
         self.last = Path(last)
-        self.asked = False
+        self.asked: str | bool = False  # the signal's name once one came ("Ctrl-C", "SIGTERM")
+        self.sigterm = None  # the SIGTERM handler of :func:`stop_on_interrupt`, while it is in force
         self._step = None
+
+    def on_train_start(self, trainer, *args) -> None:
+        """Lightning's fit put its own SIGTERM handler in (it raises ``SIGTERMException`` at the end of the batch,
+        mid-accumulation too, and nothing is saved): ours again, so SIGTERM stops at a step's end like Ctrl-C.
+        Lightning's teardown restores the handler it found (ours)."""
+        import signal
+
+        if self.sigterm is not None:
+            signal.signal(signal.SIGTERM, self.sigterm)
 
     def on_train_batch_start(self, trainer, *args) -> None:
         self._step = trainer.global_step
@@ -126,30 +138,40 @@ class StopAtStep(Callback):
 
 @contextlib.contextmanager
 def stop_on_interrupt(stopper: StopAtStep) -> Iterator[StopAtStep]:
-    """Ctrl-C while the block runs (a fit): the first asks ``stopper`` to stop at the end of the step in progress
-    (the caller then raises KeyboardInterrupt), a second one stops at once (Lightning's own shutdown; nothing is
-    saved). Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
-    ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a failed stage and went on.
-    Only in the main thread (a signal handler is set there only: a Ray Train worker's fit runs in another), and not
-    in a process that ignores SIGINT (started with ``nohup``, or in the background by a shell)."""
+    """Ctrl-C or SIGTERM while the block runs (a fit): the first asks ``stopper`` to stop at the end of the step in
+    progress (the caller then raises KeyboardInterrupt, or ``SystemExit(143)`` for SIGTERM), a second one stops at
+    once (Lightning's own shutdown; nothing is saved). Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
+    ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a failed stage and went on;
+    SIGTERM (a scheduler's preemption) saved nothing and exited 0, a finished run to the scheduler, with no word.
+    Only in the main thread (a signal handler is set there only: a Ray Train worker's fit runs in another); a signal
+    the process ignores (SIGINT under ``nohup`` or in a shell's background job) stays ignored."""
     import signal
     import sys
     import threading
 
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        yield stopper  # another thread (a Ray Train worker's fit), or a process that ignores Ctrl-C (nohup): as is
+    if threading.current_thread() is not threading.main_thread():
+        yield stopper  # another thread (a Ray Train worker's fit): as is
         return
-    previous = signal.getsignal(signal.SIGINT)
+    from spread.runtime.ray import TERMINATED
 
     def handler(signum, frame):
-        if stopper.asked:  # the second Ctrl-C: now
-            raise KeyboardInterrupt
-        stopper.asked = True
-        print("spread-train: Ctrl-C: stopping at the end of this step and saving it (Ctrl-C again: stop now)",
+        name = "Ctrl-C" if signum == signal.SIGINT else "SIGTERM"
+        if stopper.asked:  # the second signal: now
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            raise SystemExit(TERMINATED)
+        stopper.asked = name
+        print(f"spread-train: {name}: stopping at the end of this step and saving it ({name} again: stop now)",
               file=sys.stderr, flush=True)
 
-    signal.signal(signal.SIGINT, handler)
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig, was in previous.items():  # a process that ignores it (nohup, a shell's background job): as is
+        if was is not signal.SIG_IGN:
+            signal.signal(sig, handler)
+    stopper.sigterm = handler if previous[signal.SIGTERM] is not signal.SIG_IGN else None
     try:
         yield stopper
     finally:
-        signal.signal(signal.SIGINT, previous)
+        stopper.sigterm = None
+        for sig, was in previous.items():
+            signal.signal(sig, was)

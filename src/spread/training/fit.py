@@ -413,6 +413,14 @@ def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
     return runs_validation(values.get("limit_val_batches", 1.0))
 
 
+def stopped(stopper: StopAtStep) -> BaseException:
+    """What a run stopped by a signal raises: KeyboardInterrupt for Ctrl-C (the command exits 130), ``SystemExit(143)``
+    for SIGTERM (128 + 15, what a scheduler reads as terminated; :func:`spread.runtime.ray.terminated`)."""
+    from spread.runtime.ray import TERMINATED
+
+    return SystemExit(TERMINATED) if stopper.asked == "SIGTERM" else KeyboardInterrupt()
+
+
 def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: dict | None = None,
           extra_callbacks: list | None = None, prepare: Callable | None = None,
           resume_from: Path | None = None, before_work: Callable[[], None] | None = None) -> dict:
@@ -474,14 +482,14 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     try:
         with stop_on_interrupt(stopper):
             trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))
-    except StopRequested as stop:  # Ctrl-C: the step saved; no summary (the run is not finished): the caller stops
+    except StopRequested as stop:  # Ctrl-C / SIGTERM: the step saved; no summary (the run is not finished)
         if trainer.is_global_zero:
-            print(f"spread-train: interrupted at step {stop.args[0]}: {stopper.last} holds it; relaunch with "
-                  f"ckpt_path=last to go on", flush=True)
-        raise KeyboardInterrupt from None
-    except SystemExit:  # a second Ctrl-C: Lightning's shutdown exits 1; a study must stop, not go on
+            print(f"spread-train: interrupted ({stopper.asked}) at step {stop.args[0]}: {stopper.last} holds it; "
+                  f"relaunch with ckpt_path=last to go on", flush=True)
+        raise stopped(stopper) from None
+    except SystemExit:  # a second signal: Lightning's shutdown exits 1; a study must stop, not go on
         if stopper.asked:
-            raise KeyboardInterrupt from None
+            raise stopped(stopper) from None
         raise
     save_final_checkpoint(trainer, run_dir, newest)
     skipped = datamodule.skipped_files() if hasattr(datamodule, "skipped_files") else {}

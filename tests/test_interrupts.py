@@ -124,7 +124,7 @@ def test_a_resume_with_another_accumulation_is_refused_and_an_accumulated_run_tr
     last = out / "checkpoints" / "last.ckpt"
     assert torch.load(last, weights_only=False, map_location="cpu")[TRAINER_SETTINGS] == {
         "accumulate_grad_batches": 3, "gradient_clip_val": 1.0, "gradient_clip_algorithm": "norm",  # the cpu trainer's
-        "world_size": 1, "distributed_sampler": False}
+        "precision": "32-true", "limit_train_batches": "all", "world_size": 1, "distributed_sampler": False}
     with pytest.raises(ValueError, match=r"trainer\.accumulate_grad_batches: 3 -> 1"):
         train_in_process(out, *common, "trainer.max_steps=6", "ckpt_path=last")
     # another number of processes: each takes a batch a step (a one-process checkpoint resumed by Ray Train's two

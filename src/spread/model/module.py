@@ -34,6 +34,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from typing import NamedTuple, Sequence
 
@@ -131,6 +132,25 @@ def compiled_step(fn, mode: str):
     return torch.compile(fn, mode=mode, fullgraph=True, dynamic=False)
 
 
+def check_optimisation(lr, weight_decay, graph_dropout, lr_warmup_steps, lr_final_ratio) -> None:
+    """The optimiser's and the schedule's hyperparameters, refused by key (``ValueError``) outside their range:
+    ``model.lr=inf`` (or ``weight_decay=inf``) trained to NaN weights and exited 0, ``graph_dropout=1.5`` and
+    ``lr_warmup_steps=-3`` were taken, ``lr=nan`` was refused by torch naming no key."""
+    from spread.checks import whole_number
+
+    def number(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+    for key, value, ok, expected in (
+            ("lr", lr, lambda v: v > 0, "a finite number > 0"),
+            ("weight_decay", weight_decay, lambda v: v >= 0, "a finite number >= 0"),
+            ("graph_dropout", graph_dropout, lambda v: 0 <= v <= 1, "a share in [0, 1]"),
+            ("lr_final_ratio", lr_final_ratio, lambda v: 0 <= v <= 1, "a share of model.lr in [0, 1]")):
+        if not (number(value) and ok(value)):
+            raise ValueError(f"model.{key}={value!r}: expected {expected}")
+    whole_number(lr_warmup_steps, "model.lr_warmup_steps", 0)
+
+
 class SceneDiffusion(L.LightningModule):
     """Trains, validates and samples one variant (module docstring); arguments: :class:`SceneDiffusionConfig`
     (``config`` None: the paper's network)."""
@@ -160,10 +180,11 @@ class SceneDiffusion(L.LightningModule):
         check_schedule(beta_schedule, diffusion_steps)  # before anything is made of them
         check_prediction(prediction)
         loss_weights(loss_weighting, prediction, torch.tensor([0.5]), min_snr_gamma)  # validates the name
+        check_optimisation(lr, weight_decay, graph_dropout, lr_warmup_steps, lr_final_ratio)
         for key, value in (("penetration_weight", penetration_weight), ("support_weight", support_weight),
                            ("spatial_weight", spatial_weight), ("parts_weight", parts_weight)):
-            if not value >= 0:
-                raise ValueError(f"model.{key} must be >= 0, got {value}")
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"model.{key} must be a finite number >= 0, got {value}")
         if not 0 < support_quantile < 1:
             raise ValueError(f"model.support_quantile must be in (0, 1), got {support_quantile}")
         if compile_mode not in COMPILE_MODES:

@@ -11,6 +11,7 @@ The run folder (``out_dir``, by default ``<paths.runs_dir>/train/<experiment>/<t
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Callable
 
@@ -22,7 +23,7 @@ from spread.io import check_folder_kind
 from spread.training.checkpoints import (CheckpointStep, StopAtStep, StopRequested, atomic_checkpoint_io,
                                          resolve_ckpt_path, save_final_checkpoint, stop_on_interrupt)
 from spread.training.determinism import ExactResume
-from spread.training.trainer_settings import built, check_training_settings
+from spread.training.trainer_settings import built, check_training_settings, max_time_seconds
 
 log = logging.getLogger("spread.train")
 
@@ -108,10 +109,12 @@ class DataDigest(Callback):
 
 
 #: Trainer settings a resumed run must keep, recorded in every checkpoint (under :data:`TRAINER_SETTINGS`, by
-#: :class:`DataDigest`): how many batches a step takes decides where in the data a resumed run stands; the gradient
-#: clipping changes every step's update (a resume with another was accepted, and its config rewritten). Keys a
-#: checkpoint does not hold (written before they were recorded) are not compared.
-TRAINER_KEYS = ("accumulate_grad_batches", "gradient_clip_val", "gradient_clip_algorithm")
+#: :class:`DataDigest`): how many batches a step takes decides where in the data a resumed run stands, and so do the
+#: batches an epoch takes (``limit_train_batches``); the gradient clipping and the precision change every step's
+#: update (a resume with another was accepted, and its config rewritten: steps 1–4 in 32-true recorded as
+#: bf16-mixed). Keys a checkpoint does not hold (written before they were recorded) are not compared.
+TRAINER_KEYS = ("accumulate_grad_batches", "gradient_clip_val", "gradient_clip_algorithm", "precision",
+                "limit_train_batches")
 TRAINER_SETTINGS = "spread_trainer"
 #: Recorded beside :data:`TRAINER_KEYS`: how many processes trained (each a batch per step: the batch of a step and
 #: the data order change with it; a one-process checkpoint resumed by Ray Train's two workers failed inside them).
@@ -125,11 +128,21 @@ DISTRIBUTED = "distributed_sampler"
 
 def trainer_value(key: str, value):
     """A :data:`TRAINER_KEYS` value as recorded and compared: no clipping (None or 0: Lightning clips only at a
-    value) is None; the clipping algorithm by name, ``norm`` where it is not set (Lightning's default)."""
+    value) is None; the clipping algorithm by name, ``norm`` where it is not set (Lightning's default); the precision
+    in Lightning's full spelling (``32-true``); the batches an epoch takes as words (``all``, ``2 batches``, ``0.5 of
+    each epoch's batches``)."""
     if key == "gradient_clip_val":
         return float(value) if value else None
     if key == "gradient_clip_algorithm":
         return str(getattr(value, "value", value) or "norm").lower()
+    if key == "precision":  # Lightning's short spellings as its trainer names them; none: its default
+        text = "32" if value is None else str(value)
+        return {"32": "32-true", "64": "64-true", "16": "16-mixed", "bf16": "bf16-mixed"}.get(text, text)
+    if key == "limit_train_batches":  # a float is a share, an int a count: 1 and 1.0 differ (JSON would equal them)
+        if value is None or (isinstance(value, float) and value == 1.0):
+            return "all"
+        return f"{value:g} of each epoch's batches" if isinstance(value, float) else \
+            f"{int(value)} batch{'es' if int(value) != 1 else ''}"
     return value
 
 
@@ -204,13 +217,14 @@ def moved_data(before: str, now: str) -> list[str]:
 
 
 def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings: dict | None = None,
-                            max_steps=None) -> None:
+                            max_steps=None, max_time: float | None = None) -> None:
     """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
     another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`), or trained with other
     settings than this run's (:func:`resumed_changes`: a resumed run restores the checkpoint's optimiser, schedule and
     data order, so a changed learning rate, batch size, seed or dataset would not apply as the new checkpoint would
-    record it), or past ``max_steps`` (its step beyond it); a new run from its weights (``model.init_from``) takes new
-    settings."""
+    record it), or past ``max_steps`` (its step beyond it), or past ``max_time`` (seconds: Lightning's ``Timer``
+    counts the training time of every launch of the run, so a run stopped by its time limit resumed to train nothing
+    and reported success); a new run from its weights (``model.init_from``) takes new settings."""
     from spread.safe_load import checkpoint_identity, expect_checkpoint
 
     own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
@@ -226,6 +240,23 @@ def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings
         raise ValueError(f"ckpt_path={path}: the checkpoint is at step {step}, past trainer.max_steps={max_steps}: the "
                          f"resumed run would train nothing and record a limit that never ran; give trainer.max_steps "
                          f"≥ {step} to train on")
+    elapsed = timer_elapsed(checkpoint)
+    if max_time is not None and elapsed is not None and elapsed >= max_time:
+        raise ValueError(f"ckpt_path={path}: the run has trained for {elapsed:.0f} s, its trainer.max_time of "
+                         f"{max_time:.0f} s (Lightning counts the time of every launch of a run): the resumed run "
+                         f"would train nothing; give a longer trainer.max_time, or null, to train on")
+
+
+def timer_elapsed(checkpoint: dict) -> float | None:
+    """Seconds of training the checkpoint's Lightning ``Timer`` counted (over every launch), or None without one."""
+    import math
+
+    for key, state in (checkpoint.get("callbacks") or {}).items():
+        if str(key).split("{")[0] == "Timer" and isinstance(state, dict):
+            value = (state.get("time_elapsed") or {}).get("train")
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+                return float(value)
+    return None
 
 
 def takes_images(cfg: DictConfig) -> bool:
@@ -247,7 +278,8 @@ def write_summary(trainer, run_dir: Path, resumed_from: Path | None, skipped: di
         "global_step": int(trainer.global_step), "epoch": int(trainer.current_epoch),
         "last_checkpoint": str(last) if last.exists() else None,
         "resumed_from": None if resumed_from is None else str(resumed_from),
-        "metrics": {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1},
+        "metrics": {k: (float(v) if math.isfinite(float(v)) else None)  # JSON has no NaN: null, as the evaluation
+                    for k, v in trainer.callback_metrics.items() if v.numel() == 1},  # writes a missing value
         "skipped_scene_files": skipped or {},
         "run": {**run_tags(), "world_size": int(trainer.world_size)},  # job id, nodes, git SHA (runtime.fingerprint)
     }
@@ -274,6 +306,9 @@ def one_history(cfg: DictConfig, run_dir: Path, ckpt_path: Path | None) -> None:
         return
     here = {(run_dir / "checkpoints").resolve(), run_dir.resolve()}
     if ckpt_path is not None and ckpt_path.resolve().parent in here:
+        if cfg.get("fresh", False):  # it resumed, with no word of fresh
+            raise ValueError(f"fresh=true with ckpt_path={cfg.get('ckpt_path')}: fresh starts {run_dir} over (its run "
+                             f"moved to previous/<time>), ckpt_path resumes that run; give one of the two")
         return
     if not cfg.get("fresh", False):
         raise SystemExit(f"spread-train: {run_dir} holds a training run already ({held[-1].name}): resume it with "
@@ -401,7 +436,8 @@ def check_start(cfg: DictConfig, run_dir: Path) -> None:
     if ckpt_path is not None:
         check_resume_checkpoint(ckpt_path, hydra.utils.instantiate(cfg.model), datamodule,
                                 trainer_settings_of(cfg),
-                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"))
+                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"),
+                                max_time=max_time_seconds(OmegaConf.select(cfg, "trainer.max_time")))
 
 
 def trainer_validates(trainer_cfg, overrides: dict | None = None) -> bool:
@@ -459,7 +495,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     model = hydra.utils.instantiate(cfg.model)
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
         check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg, trainer_overrides),
-                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"))
+                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"),
+                                max_time=max_time_seconds(OmegaConf.select(cfg, "trainer.max_time")))
     callbacks = build_callbacks(cfg, run_dir)  # a checkpoint.* value Lightning refuses: before the record
     if before_work is not None:
         before_work()

@@ -10,6 +10,7 @@ from the ``Trainer.__init__`` annotations of the installed Lightning.
 from __future__ import annotations
 
 import functools
+import re
 import typing
 
 
@@ -139,9 +140,112 @@ def check_renders(renders) -> None:
             whole_number(renders[name], f"renders.{name}", least, note=note)
 
 
+#: ``trainer.max_time`` as Lightning's ``Timer`` reads a text: days, then hours, minutes and seconds of two digits.
+MAX_TIME = re.compile(r"(\d+):(\d\d):(\d\d):(\d\d)")
+
+
+def max_time_seconds(value, key: str = "trainer.max_time") -> float | None:
+    """``trainer.max_time`` in seconds (None: no limit): a ``DD:HH:MM:SS`` text or an object of ``timedelta``'s
+    arguments (``{minutes: 4}``), as Lightning's ``Timer`` takes them; else ``ValueError`` by key."""
+    import datetime
+    import math
+
+    if value is None:
+        return None
+    if isinstance(value, str):
+        match = MAX_TIME.fullmatch(value.strip())
+        if match:
+            days, hours, minutes, seconds = map(int, match.groups())
+            return float(((days * 24 + hours) * 60 + minutes) * 60 + seconds)
+    elif isinstance(value, dict) and value and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                   and math.isfinite(v) and v >= 0 for v in value.values()):
+        try:
+            return datetime.timedelta(**value).total_seconds()
+        except (TypeError, OverflowError):
+            pass
+    raise ValueError(f"{key}={value!r}: expected DD:HH:MM:SS (days, then hours, minutes and seconds of two digits: "
+                     f"00:00:04:00), an object such as {{minutes: 4}}, or null for no limit")
+
+
+def _whole(least: int, *also) -> typing.Callable:
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and (v >= least or v in also)
+
+
+def _fraction_or_count(v) -> bool:  # a float is a share of the batches, an int a count
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0 or isinstance(v, float) and 0.0 <= v <= 1.0
+
+
+def _finite_at_least_0(v) -> bool:
+    import math
+
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+
+
+#: The range each ``Trainer`` argument's value must fall in, beyond its type (:func:`trainer_setting_problem`): a
+#: value outside failed only when Lightning built the trainer — after the run's config was recorded — or mid-fit
+#: (``accumulate_grad_batches=0``: ZeroDivisionError) or at the first step (``gradient_clip_val=nan``). None is
+#: checked by the type (where the argument takes it).
+TRAINER_RANGES = {
+    "max_steps": (_whole(-1), "a whole number ≥ -1 (-1: no limit)"),
+    "max_epochs": (_whole(-1), "a whole number ≥ -1 (-1: no limit), or null"),
+    "min_steps": (_whole(0), "a whole number ≥ 0, or null"),
+    "min_epochs": (_whole(0), "a whole number ≥ 0, or null"),
+    "accumulate_grad_batches": (_whole(1), "a whole number ≥ 1"),
+    "check_val_every_n_epoch": (_whole(1), "a whole number ≥ 1, or null"),
+    "log_every_n_steps": (_whole(1), "a whole number ≥ 1"),
+    "num_sanity_val_steps": (_whole(-1), "a whole number ≥ -1 (-1: every batch)"),
+    "devices": (lambda v: not isinstance(v, int) or isinstance(v, bool) or v >= 1 or v == -1,
+                "a whole number ≥ 1 or -1 (every device), a list of device indices, or 'auto'"),
+    "num_nodes": (_whole(1), "a whole number ≥ 1"),
+    "gradient_clip_val": (_finite_at_least_0, "a finite number ≥ 0 (0 or null: no clipping)"),
+    **{f"limit_{stage}_batches": (_fraction_or_count, "a share of the batches in [0.0, 1.0] or a whole count ≥ 0")
+       for stage in ("train", "val", "test", "predict")},
+    "val_check_interval": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1
+                           or isinstance(v, float) and 0.0 < v <= 1.0,
+                           "a share of an epoch in (0.0, 1.0] or a whole number of batches ≥ 1, or null"),
+}
+
+
+def trainer_range_problem(trainer_cfg, overrides: dict | None = None) -> str | None:
+    """What of ``trainer_cfg`` falls outside its argument's range (:data:`TRAINER_RANGES`, ``max_time``:
+    :func:`max_time_seconds`), in one line, or None; keys in ``overrides`` (a launcher's own) are not checked."""
+    from omegaconf import DictConfig, OmegaConf
+
+    values = OmegaConf.to_container(trainer_cfg, resolve=True) if isinstance(trainer_cfg, DictConfig) \
+        else dict(trainer_cfg or {})
+    problems = []
+    for key, value in values.items():
+        if key in (overrides or {}) or value is None:
+            continue
+        if key == "max_time":
+            try:
+                max_time_seconds(value)
+            except ValueError as exc:
+                problems.append(str(exc))
+        elif key in TRAINER_RANGES and not TRAINER_RANGES[key][0](value):
+            problems.append(f"trainer.{key}={value!r}: expected {TRAINER_RANGES[key][1]}")
+    return "; ".join(problems) or None
+
+
+def check_checkpoint_filename(node) -> None:
+    """``checkpoint.filename`` names a file in the run's ``checkpoints/`` folder: a path that leaves it (``..``, or
+    absolute: ``"../../esc/s{step}"`` wrote checkpoints outside the run) is refused by key (``ValueError``)."""
+    from pathlib import PurePosixPath, PureWindowsPath
+
+    name = None if node is None else node.get("filename")
+    if name is None:
+        return
+    text = str(name)
+    parts = PurePosixPath(text.replace("\\", "/")).parts
+    if not text.strip() or PurePosixPath(text).is_absolute() or PureWindowsPath(text).is_absolute() or ".." in parts:
+        raise ValueError(f"checkpoint.filename={text!r}: a checkpoint's name within the run's checkpoints/ folder "
+                         f"(no '..', not absolute), such as step{{step:07d}}")
+
+
 def check_trainer_settings(trainer_cfg, overrides: dict | None = None) -> None:
-    """Raise ``ValueError`` (one line, the command's refusal) for :func:`trainer_setting_problem`."""
-    problem = trainer_setting_problem(trainer_cfg, overrides)
+    """Raise ``ValueError`` (one line, the command's refusal) for :func:`trainer_setting_problem`, then for
+    :func:`trainer_range_problem`."""
+    problem = trainer_setting_problem(trainer_cfg, overrides) or trainer_range_problem(trainer_cfg, overrides)
     if problem:
         raise ValueError(problem)
 
@@ -154,6 +258,10 @@ def check_training_settings(cfg, overrides: dict | None = None) -> None:
     seed = cfg.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
         raise ValueError(f"seed={seed!r}: expected a whole number in [0, 2**32)")
+    from spread.checks import true_or_false
+
+    true_or_false(cfg.get("fresh", False), "fresh")  # fresh=no moved the run aside: a non-empty text is true
+    check_checkpoint_filename(cfg.get("checkpoint"))
     from spread.runtime.threads import check_threads
 
     check_threads(cfg.get("threads"))

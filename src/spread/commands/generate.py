@@ -13,10 +13,11 @@ def generate(cfg: DictConfig) -> dict:
     from pathlib import Path
 
     from spread.io import run_lock
-    from spread.procgen.dataset import check_places, generate_dataset
+    from spread.procgen.dataset import check_config, check_places, generate_dataset
 
     command = to_object(cfg)
     check_places(Path(command.out_dir), command)  # before the log and the lock: a refusal leaves nothing
+    check_config(command)  # settings too (``processes=0``, ``room.room_types.kitchen=inf``); its warnings come later
     with run_lock(command.out_dir, "spread-generate"):  # a second run on the folder is refused, never mixed
         record_in_log_folder(cfg)
         return generate_dataset(command.out_dir, command, progress=command.progress)

@@ -12,8 +12,11 @@ made otherwise.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import math
+import os
+import signal
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field, fields
@@ -26,6 +29,7 @@ from spread.io import read_json, write_json_atomic
 from spread.procgen.room import HullCache, generate_room
 from spread.procgen.room_types import RoomConfig
 from spread.procgen.settle import SettleConfig
+from spread.runtime.ray import TERMINATED
 from spread.scene import PHYSICAL_SUPPORT, read_scene, write_scene
 
 GENERATOR_VERSION = "spread-procgen-1"
@@ -47,7 +51,8 @@ class AssetSource:
 @dataclass
 class DatasetConfig:
     """``spread-generate``'s settings (``conf/generate.yaml`` overrides these defaults). rooms: how many;
-    seed: the rooms' seed; processes: worker processes (the output does not depend on it); val_fraction /
+    seed: the rooms' seed; processes: worker processes, at least 1 (never more than the rooms left to make nor
+    than this machine's CPUs: :func:`pool_size`; the output does not depend on it); val_fraction /
     test_fraction: shares of val and test rooms, by room index (the rest is train); max_attempts: a room whose
     objects all fail settling is redrawn with the next sub-seed; renders: top-down PNGs of the first test rooms."""
 
@@ -194,8 +199,9 @@ def check_folder(out: Path, config: DatasetConfig) -> None:
 
 #: Whole-number settings of ``spread-generate`` and their least value (key as typed on the command line; the objects
 #: of a room are whole here, their range is checked with each other).
-WHOLE = {"seed": 0, "max_attempts": 1, "assets.seed": 0, "assets.variants": 1, "room.min_objects": 0,
-         "room.max_objects": 0, "room.max_stack": 1, "settle.max_steps": 1, "settle.verify_steps": 1, "settle.rounds": 1}
+WHOLE = {"seed": 0, "processes": 1, "max_attempts": 1, "assets.seed": 0, "assets.variants": 1,
+         "room.min_objects": 0, "room.max_objects": 0, "room.max_stack": 1, "settle.max_steps": 1,
+         "settle.verify_steps": 1, "settle.rounds": 1}
 #: The most objects a room may be asked to hold (``room.max_objects``, and so ``room.min_objects``). The generator's
 #: fullest rooms hold about 260: five rooms at ``room.object_density=1000 room.max_objects=1000`` kept 77–264
 #: objects (24 s a room); a room asked for more fills its surfaces and then tries, attempt after attempt, to place
@@ -216,7 +222,9 @@ def check_numbers(config: DatasetConfig) -> None:
     """``ValueError`` naming the key and value of a count that is not a whole number at least its least (:data:`WHOLE`:
     ``seed=-1``, ``max_attempts=0``, ``settle.rounds=0`` failed after the library was built, naming no key) or a
     measure that is not a finite number in its range (:data:`REAL`: ``room.object_density=nan`` failed inside numpy,
-    ``settle.verify_dt=nan`` converting to an integer)."""
+    ``settle.verify_dt=nan`` converting to an integer), or a room type's weight that is not a finite number ≥ 0
+    (``room.room_types.kitchen=inf`` failed after the library was built with "Probabilities contain NaN", ``=nan``
+    and ``=-1`` were taken as 0 and NaN written into generation.json and manifest.json)."""
     from spread.checks import whole_number
 
     def value(key: str):
@@ -235,6 +243,10 @@ def check_numbers(config: DatasetConfig) -> None:
             span = f"{'[' if closed else '('}{least:g}, {most:g}]" if math.isfinite(most) else \
                 (f"≥ {least:g}" if closed else f"> {least:g}")
             raise ValueError(f"{key}={x!r}: expected a finite number {'in ' if math.isfinite(most) else ''}{span}")
+    for name, weight in config.room.room_types.items():
+        if not (isinstance(weight, (int, float)) and not isinstance(weight, bool) and math.isfinite(weight)
+                and weight >= 0):
+            raise ValueError(f"room.room_types.{name}={weight!r}: expected a finite number ≥ 0")
 
 
 def check_config(config: DatasetConfig) -> list[str]:
@@ -298,19 +310,58 @@ def check_places(out: Path, config: DatasetConfig) -> None:
                              f"would hold itself; give an out_dir outside the library")
 
 
+def pool_size(processes: int, jobs: int | None = None) -> int:
+    """How many worker processes make ``jobs`` pieces of work (None: any number) when ``processes`` are asked: never
+    more than the work (``rooms=7 processes=12`` with one room left to make started 12 workers for it), nor than this
+    machine's CPUs."""
+    return max(1, min(processes, os.cpu_count() or 1, processes if jobs is None else jobs))
+
+
+def _stop(signum, frame):
+    raise SystemExit(TERMINATED)
+
+
+@contextlib.contextmanager
+def sigterm_stops_the_run():
+    """SIGTERM raises ``SystemExit(143)`` (:data:`spread.runtime.ray.TERMINATED`, the project's other commands'
+    status) in the main thread for the block, so a pool's ``with`` block terminates its workers (multiprocessing's
+    exit handler any other it started), and the command ends as Ctrl-C ends it: the rooms written stay,
+    a relaunch makes the others. Before, SIGTERM ended the main process alone: its workers, re-parented to PID 1,
+    finished their rooms, then printed BrokenPipeError tracebacks and a leaked-semaphore warning. Main thread only
+    (where a handler can be set); the handler in force before is set again after the block."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
-    """Generate (or complete) the dataset folder; returns the manifest written."""
+    """Generate (or complete) the dataset folder; returns the manifest written. SIGTERM stops it and its workers
+    (:func:`sigterm_stops_the_run`)."""
     import logging
-
-    from tqdm.auto import tqdm
-
-    from spread.assets.build import build_library
 
     out = Path(out_dir)
     check_places(out, config)
     warnings = check_config(config)
     for message in warnings:
         logging.getLogger("spread.generate").warning(message)
+    with sigterm_stops_the_run():
+        return _generate_dataset(out, config, progress)
+
+
+def _generate_dataset(out: Path, config: DatasetConfig, progress: bool) -> dict:
+    import logging
+
+    from tqdm.auto import tqdm
+
+    from spread.assets.build import build_library
+
     out.mkdir(parents=True, exist_ok=True)
     check_folder(out, config)
     t0 = time.perf_counter()
@@ -322,7 +373,8 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
             raise FileNotFoundError(f"assets.copy_from={src}: no asset library there (missing index.json)")
         shutil.copytree(src, out / "assets", dirs_exist_ok=True)
     library = build_library(out / "assets", variants=config.assets.variants, seed=config.assets.seed,
-                            categories=config.assets.categories, processes=config.processes, progress=progress)
+                            categories=config.assets.categories, processes=pool_size(config.processes),
+                            progress=progress)
     t_assets = time.perf_counter() - t0
     todo, damaged, kept = [], [], {}
     for index in range(config.rooms):
@@ -342,9 +394,10 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
     results = []
     t1 = time.perf_counter()
     if todo:
-        if config.processes > 1:
+        workers = pool_size(config.processes, len(todo))
+        if workers > 1:
             ctx = mp.get_context("spawn")
-            with ctx.Pool(config.processes, initializer=_init_worker, initargs=(str(out / "assets"),)) as pool:
+            with ctx.Pool(workers, initializer=_init_worker, initargs=(str(out / "assets"),)) as pool:
                 for r in tqdm(pool.imap_unordered(_make_room, todo), total=len(todo), disable=not progress,
                               desc="rooms", unit="room"):
                     results.append(r)

@@ -136,3 +136,45 @@ def test_a_training_summary_writes_null_for_a_value_that_is_not_finite_never_inv
     text = (tmp_path / "metrics.json").read_text()
     assert json.loads(text, parse_constant=lambda c: pytest.fail(f"metrics.json holds {c}"))["metrics"] == {
         "train/loss": None, "lr-AdamW": None, "val/loss": 0.5}
+
+
+@pytest.mark.parametrize("command", ["spread-generate", "spread-train"])
+def test_an_empty_out_dir_is_refused_before_anything_is_written(tmp_path, command):
+    """``out_dir=`` wrote the run into the working folder and Hydra's record of it to ``/logs/<command>/<time>``, at
+    the top of the file system."""
+    import os
+
+    before = os.path.exists("/logs")
+    line, _ = user_error(command, "out_dir=", "rooms=2" if command == "spread-generate" else "experiment=quick",
+                         cwd=tmp_path)
+    assert line == f"{command}: out_dir= is empty; give a folder (out_dir=. for the working folder)"
+    assert list(tmp_path.iterdir()) == [] and os.path.exists("/logs") == before
+
+
+def test_an_unknown_render_sampler_is_refused_before_training_not_at_the_first_render_epoch(data):
+    """``renders.sampler=bogus-7`` failed after ``renders.every_n_epochs`` epochs of training (its MLflow run FAILED,
+    the steps since the last checkpoint lost)."""
+    from spread.training.trainer_settings import check_training_settings
+
+    from helpers import compose
+
+    with pytest.raises(ValueError, match=r"^renders\.sampler='bogus-7': unknown sampler 'bogus'"):
+        check_training_settings(compose("train", f"data.root={data}", *COMMON, "renders.sampler=bogus-7"))
+    check_training_settings(compose("train", f"data.root={data}", *COMMON, "renders.sampler=ddim-5"))
+
+
+@pytest.mark.parametrize("missing", ["stats.json", "assets/index.json"])
+def test_a_dataset_without_its_statistics_or_asset_index_is_refused_before_the_run_is_recorded(data, tmp_path,
+                                                                                                missing):
+    """Each failed when the data was set up, after the run's config and log were written."""
+    import shutil
+
+    from spread.data.splits import fit_problem
+
+    copy = tmp_path / "d"
+    shutil.copytree(data, copy)
+    assert fit_problem(copy, True) is None
+    (copy / missing).unlink()
+    assert fit_problem(copy, True) == (f"data.root={copy}: no {missing} ("
+                                       f"{'the normalisation bounds' if missing == 'stats.json' else 'the asset library'}"
+                                       f", which spread-generate and spread-import write); give a whole dataset folder")

@@ -52,8 +52,10 @@ def one_line(name: str):
 
 
 def out_dir_problem(value: str) -> str | None:
-    """Why ``out_dir=value`` cannot be a run folder (an existing file, not writable, a link that loops or leads
-    nowhere, a ``..`` after a link: :func:`link_then_up`), or None."""
+    """Why ``out_dir=value`` cannot be a run folder (empty, an existing file, not writable, a link that loops or
+    leads nowhere, a ``..`` after a link: :func:`link_then_up`), or None."""
+    if not value.strip():  # the run went to the working folder, and Hydra's record of it to /logs/...
+        return "out_dir= is empty; give a folder (out_dir=. for the working folder)"
     try:
         return link_then_up(value) or _out_dir_problem(value)
     except OSError as exc:  # a link that loops (ELOOP), a name too long, ...
@@ -209,7 +211,7 @@ def command(name: str, config: str | None = None):
                     raise SystemExit(f"{name}: {problem}")
                 typed = any(a.startswith("out_dir=") for a in sys.argv[1:])  # checked above, as typed
                 value = None if composed is None or typed else composed_value(composed, "out_dir")
-                problem = out_dir_problem(value) if isinstance(value, str) and value else None
+                problem = out_dir_problem(value) if isinstance(value, str) else None
                 if problem:  # ``++out_dir=``, a default, an interpolation
                     raise SystemExit(f"{name}: {problem}")
             left = FolderLeftEmpty.of(sys.argv[1:], composed)

@@ -31,11 +31,15 @@ def split_files(root: str | os.PathLike, split: str) -> list[Path]:
 
 def fit_problem(root: str | os.PathLike, validates: bool) -> str | None:
     """Why the dataset folder ``root`` cannot be trained on, in one line, or None: the train split has no scenes,
-    or the trainer validates (``validates``) and the val split has none (a run that would crash at its first
+    its ``stats.json`` or asset index is not there, or the trainer validates (``validates``) and the val split has none (a run that would crash at its first
     validation, with no checkpoint)."""
     root = Path(root)
     if not split_files(root, "train"):
         return f"data.root={root}: no scene files in {root / 'train'} to train on"
+    for need, what in (("stats.json", "the normalisation bounds"), ("assets/index.json", "the asset library")):
+        if not (root / need).is_file():  # failed when the data was set up, after the run's config was recorded
+            return (f"data.root={root}: no {need} ({what}, which spread-generate and spread-import write); "
+                    f"give a whole dataset folder")
     if validates and not split_files(root, "val"):
         return (f"data.root={root}: no scene files in {root / 'val'}, and the trainer validates "
                 f"(trainer.limit_val_batches is not 0); give a dataset with a val split (spread-generate writes one "

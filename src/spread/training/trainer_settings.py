@@ -132,12 +132,23 @@ def target_setting_problem(node, key: str) -> str | None:
 
 def check_renders(renders) -> None:
     """The ``renders`` node (:class:`~spread.training.renders.SampleRenders`): ``every_n_epochs`` (0: off), ``scenes``
-    and ``seed`` whole numbers, refused by key (``renders.scenes=1.5`` rendered one scene)."""
+    and ``seed`` whole numbers, ``sampler`` one the platform knows, refused by key (``renders.scenes=1.5`` rendered
+    one scene; ``renders.sampler=bogus-7`` failed at the first render epoch, after that training)."""
     from spread.checks import whole_number
 
     for name, least, note in (("every_n_epochs", 0, "(0: off)"), ("scenes", 1, ""), ("seed", 0, "")):
         if renders is not None and name in renders:
             whole_number(renders[name], f"renders.{name}", least, note=note)
+    if renders is not None and renders.get("sampler") is not None:  # an unknown one failed at the first render
+        from omegaconf import DictConfig, OmegaConf
+
+        from spread.model.sampler import Sampler
+
+        sampler = renders["sampler"]
+        try:
+            Sampler.from_config(OmegaConf.to_container(sampler) if isinstance(sampler, DictConfig) else sampler)
+        except Exception as exc:  # noqa: BLE001 - the registry's or the sampler's own refusal, named by key
+            raise ValueError(f"renders.sampler={sampler!r}: {exc}") from None
 
 
 #: ``trainer.max_time`` as Lightning's ``Timer`` reads a text: days, then hours, minutes and seconds of two digits.

@@ -178,3 +178,13 @@ def test_a_dataset_without_its_statistics_or_asset_index_is_refused_before_the_r
     assert fit_problem(copy, True) == (f"data.root={copy}: no {missing} ("
                                        f"{'the normalisation bounds' if missing == 'stats.json' else 'the asset library'}"
                                        f", which spread-generate and spread-import write); give a whole dataset folder")
+
+
+def test_hydra_run_dir_on_the_command_line_is_refused_as_out_dir_is_the_run_folder(tmp_path):
+    """``out_dir=A hydra.run.dir=B`` trained into B, whose record said ``out_dir: A``: a relaunch with ``out_dir=A
+    ckpt_path=last`` found no run, and refusals named out_dir for what B held."""
+    line, _ = user_error("spread-train", f"out_dir={tmp_path / 'A'}", f"hydra.run.dir={tmp_path / 'B'}",
+                         "experiment=quick", cwd=tmp_path)
+    assert line == (f"spread-train: hydra.run.dir={tmp_path / 'B'}: Hydra's run folder follows out_dir (conf/hydra); "
+                    f"give out_dir=<folder> instead")
+    assert list(tmp_path.iterdir()) == []

@@ -200,6 +200,9 @@ def command(name: str, config: str | None = None):
                     problem = out_dir_problem(arg.split("=", 1)[1])
                     if problem:
                         raise SystemExit(f"{name}: {problem}")
+                if arg.lstrip("+").startswith("hydra.run.dir="):  # the run went there, its record named out_dir's
+                    raise SystemExit(f"{name}: {arg.lstrip('+')}: Hydra's run folder follows out_dir (conf/hydra); "
+                                     f"give out_dir=<folder> instead")
                 if arg.lstrip("+").startswith("hydra/launcher="):
                     problem = launcher_problem(arg.split("=", 1)[1])
                     if problem:

@@ -175,9 +175,9 @@ def test_a_dataset_without_its_statistics_or_asset_index_is_refused_before_the_r
     shutil.copytree(data, copy)
     assert fit_problem(copy, True) is None
     (copy / missing).unlink()
-    assert fit_problem(copy, True) == (f"data.root={copy}: no {missing} ("
-                                       f"{'the normalisation bounds' if missing == 'stats.json' else 'the asset library'}"
-                                       f", which spread-generate and spread-import write); give a whole dataset folder")
+    what = "the normalisation bounds" if missing == "stats.json" else "the asset library"
+    assert fit_problem(copy, True) == (f"data.root={copy}: no {missing} ({what}, which spread-generate and "
+                                       f"spread-import write); give a whole dataset folder")
 
 
 def test_hydra_run_dir_on_the_command_line_is_refused_as_out_dir_is_the_run_folder(tmp_path):
@@ -188,3 +188,27 @@ def test_hydra_run_dir_on_the_command_line_is_refused_as_out_dir_is_the_run_fold
     assert line == (f"spread-train: hydra.run.dir={tmp_path / 'B'}: Hydra's run folder follows out_dir (conf/hydra); "
                     f"give out_dir=<folder> instead")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_file_that_is_no_checkpoint_or_npz_is_named_for_what_it_is_not_called_pickled_code(tmp_path):
+    """``ckpt_path=<a dataset's stats.json>`` was refused as holding "pickled Python objects … which could run code",
+    and a scene file of other bytes as "pickled (object) data": numpy and torch read any bytes that are not a zip as a
+    pickle. A real pickle is still refused as one."""
+    import pickle
+
+    from spread.safe_load import UnsafeFileError, load_checkpoint, load_npz
+
+    text, empty, code = tmp_path / "stats.json", tmp_path / "e.ckpt", tmp_path / "p.ckpt"
+    text.write_text('{"bounds_translations": [0, 1]}')
+    empty.write_bytes(b"")
+    code.write_bytes(pickle.dumps({"a": pytest.raises}))  # a function: beyond plain data
+    with pytest.raises(UnsafeFileError, match=r"stats\.json: not a readable checkpoint \(neither torch's zip format "
+                                              r"nor its legacy one\): a text file starting with '\{\"bounds_transla'$"):
+        load_checkpoint(text)
+    with pytest.raises(UnsafeFileError, match=r"e\.ckpt: not a readable checkpoint .*: an empty file$"):
+        load_checkpoint(empty)
+    with pytest.raises(UnsafeFileError, match=r"stats\.json: not a readable \.npz archive \(a zip of \.npy arrays\): "
+                                              r"a text file starting with"):
+        load_npz(text)
+    with pytest.raises(UnsafeFileError, match=r"p\.ckpt: refused — it holds pickled Python objects"):
+        load_checkpoint(code)

@@ -22,6 +22,26 @@ class UnsafeFileError(ValueError):
     """A data file or checkpoint that cannot be loaded safely: it needs unpickling, or it is damaged."""
 
 
+def file_kind(path: Path) -> str:
+    """``zip`` for a zip archive, whole or torn (an ``.npz``, torch's checkpoint format); ``pickle`` for bytes that open as a pickle
+    of protocol 2 or later (torch's legacy checkpoints; a ``.npy`` of objects); else what the file starts with, in
+    words, for an error message (``a text file starting with '{"bounds'``, ``an empty file``)."""
+    import zipfile
+
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head[:2] == b"PK" or zipfile.is_zipfile(path):  # a torn zip too: its reader names what is wrong
+        return "zip"
+    if head[:1] == b"\x80":
+        return "pickle"
+    if not head:
+        return "an empty file"
+    try:
+        return f"a text file starting with {head.decode('utf-8')!r}"
+    except UnicodeDecodeError:
+        return f"a file starting with bytes {head[:8]!r}"
+
+
 def load_npz(path: str | os.PathLike):
     """``np.load(path, allow_pickle=False)`` (an ``NpzFile``; use it as a context manager). Reading an object
     array from it raises :class:`UnsafeFileError` naming the file and the key."""
@@ -34,6 +54,9 @@ def load_npz(path: str | os.PathLike):
         check_input_file(path)  # a regular file of plausible size: never a device or FIFO
     except InputFileError as exc:
         raise UnsafeFileError(str(exc)) from None
+    kind = file_kind(path)
+    if kind != "zip":  # numpy reads any other bytes as a pickle and calls the file "pickled (object) data"
+        raise UnsafeFileError(f"{path}: not a readable .npz archive (a zip of .npy arrays): {kind}")
     data = np.load(path, allow_pickle=False)
     if not hasattr(data, "files"):
         data.close() if hasattr(data, "close") else None
@@ -121,6 +144,10 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", mmap: bool = Fa
         import zipfile
 
         mmap = zipfile.is_zipfile(path)  # torch's legacy format (before 1.6, or saved without the zip) maps nothing
+    kind = file_kind(path)
+    if kind not in ("zip", "pickle"):  # torch read it as a pickle and it was called "pickled Python objects"
+        raise UnsafeFileError(f"{path}: not a readable checkpoint (neither torch's zip format nor its legacy one): "
+                              f"{kind}")
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as exc:

@@ -393,16 +393,91 @@ def folder_kinds(folder: str | os.PathLike) -> dict[str, str]:
     return {kind: str(folder / mark) for kind, mark in FOLDER_MARKS if (folder / mark).exists()}
 
 
+#: What confirms, for a folder ABOVE an ``out_dir``, the kinds :func:`enclosing_folder` refuses: the
+#: :data:`FOLDER_MARKS` mark and one of these records the platform writes there (a home folder holding an unrelated
+#: ``checkpoints/`` or ``assets/index.json`` is no run or dataset, and whatever lies under it stays accepted).
+ENCLOSING_MARKS = {"dataset": ("stats.json", "manifest.json", "generation.json"),
+                   "training run": ("clock.jsonl", "metrics.json", ".hydra/config.yaml")}
+
+#: A dataset's own parts (asset library, split folders, its renders and Hydra logs): never an export's ``out_dir``.
+DATASET_PARTS = frozenset({"assets", "train", "val", "test", "renders", "logs"})
+
+#: How many folders above an ``out_dir`` :func:`enclosing_folder` looks at (the filesystem root comes first).
+ENCLOSING_DEPTH = 64
+
+
+def _kind_here(folder: Path, kind: str) -> str | None:
+    """``folder``'s mark of ``kind`` (:data:`FOLDER_MARKS`) when one of its records (:data:`ENCLOSING_MARKS`) confirms
+    it, else None."""
+    mark = folder / dict(FOLDER_MARKS)[kind]
+    if not mark.exists() or not any((folder / record).exists() for record in ENCLOSING_MARKS[kind]):
+        return None
+    return str(mark)
+
+
+def _dataset_part(dataset: Path, out: Path) -> bool:
+    """Whether ``out`` (inside ``dataset``) lies in one of the dataset's own parts: :data:`DATASET_PARTS`, or a folder
+    directly in it that holds scene files (a split of another name)."""
+    first = dataset / out.relative_to(dataset).parts[0]
+    if first.name in DATASET_PARTS:
+        return True
+    try:
+        with os.scandir(first) as entries:
+            return any(e.name.endswith(".npz") for e in entries)
+    except OSError:  # not there yet, or no folder
+        return False
+
+
+def enclosing_folder(folder: str | os.PathLike, command: str) -> tuple[Path, str, str] | None:
+    """The folder above ``folder`` (a command's ``out_dir``, resolved: links followed) that the command must not write
+    inside, as (folder, kind, the mark that says so); None when there is none. The rule:
+
+    * a **dataset** (``assets/index.json`` with ``stats.json``, ``manifest.json`` or ``generation.json``): no
+      ``out_dir`` strictly inside it, at any depth (a training run in ``<dataset>/train`` put its checkpoints among
+      the scene files the next training reads; a run in ``<dataset>/assets`` sat in the asset library). The one
+      nesting the platform documents: ``spread-export`` into a folder of its own in the dataset
+      (``conf/export.yaml``: ``scenes=/tmp/rooms/test out_dir=/tmp/rooms/export_mjcf``), never inside the
+      dataset's parts (:data:`DATASET_PARTS`, or a folder holding scene files);
+    * a **training run** (``checkpoints/`` with ``clock.jsonl``, ``metrics.json`` or ``.hydra/config.yaml``): no
+      ``out_dir`` strictly inside it (a dataset in a run's ``checkpoints/``; ``fresh=true`` moves the run's history
+      to ``previous/<time>`` and leaves other commands' folders beside the new one), but for training's own layout:
+      ``spread-train`` in ``<run>/previous/<name>`` (an earlier history ``fresh=true`` set aside);
+    * every other kind of :data:`FOLDER_MARKS` takes runs inside it, as the platform lays them out: an evaluation or an
+      export in a sampling run (``spread-evaluate scenes=<run>/scenes out_dir=<run>/eval``, ``spread-sample
+      evaluate=true``), the runs and dataset of an ablation, comparison or sweep in its folder (``train/<variant>``,
+      ``samples/<variant>``, ``points/<point>``, ``data/``), the runs under ``paths.runs_dir``.
+
+    The walk stops at the filesystem root (at most :data:`ENCLOSING_DEPTH` folders) and costs a stat or two a folder.
+    """
+    out = Path(folder).resolve()
+    for above in list(out.parents)[:ENCLOSING_DEPTH]:
+        mark = _kind_here(above, "dataset")
+        if mark is not None and not (command == "spread-export" and not _dataset_part(above, out)):
+            return above, "dataset", mark
+        mark = _kind_here(above, "training run")
+        if mark is not None and not (command == "spread-train" and out.parent == above / "previous"):
+            return above, "training run", mark
+    return None
+
+
 def check_folder_kind(folder: str | os.PathLike, command: str, allowed: set[str] | frozenset[str]) -> None:
     """``ValueError`` when ``folder`` (a command's ``out_dir``) holds a dataset or another command's run than the
     ``allowed`` kinds: an evaluation wrote over a training run's ``metrics.json``, a training run replaced a sampling
-    run's recorded config, a sampling run wrote its scenes into a dataset folder."""
+    run's recorded config, a sampling run wrote its scenes into a dataset folder. Also when ``folder`` lies inside a
+    dataset or a training run (:func:`enclosing_folder`, which states the rule and the nestings the platform makes):
+    a training run in ``<dataset>/train`` among the scene files, a dataset in ``<run>/checkpoints``."""
     foreign = {k: m for k, m in folder_kinds(folder).items() if k not in allowed}
     if foreign:
         kind, mark = next(iter(foreign.items()))
         article = "an" if kind[0] in "aeiou" else "a"
         raise ValueError(f"out_dir={folder}: holds {article} {kind} ({mark}); {command} would write over or beside it: "
                          f"give another out_dir")
+    enclosing = enclosing_folder(folder, command)
+    if enclosing:
+        above, kind, mark = enclosing
+        article = "an" if kind[0] in "aeiou" else "a"
+        raise ValueError(f"out_dir={folder}: lies inside {article} {kind}, {above} ({mark}); {command} would write its "
+                         f"files into it: give an out_dir outside {above}")
 
 
 @contextlib.contextmanager

@@ -200,3 +200,24 @@ def test_sigterm_ends_spread_generate_and_its_worker_processes_and_a_relaunch_co
 
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["counts"]["train"] == 4 and manifest["this_run"]["rooms_generated"] == 4 - made
+
+
+def test_spread_generate_refuses_asset_categories_it_does_not_know_or_none_by_key_before_any_work():
+    """``assets.categories=[nosuch]`` was a KeyError traceback once the library was built, after the log was written;
+    ``[]`` was blamed on ``room.min_objects``."""
+    from spread.procgen.dataset import DatasetConfig, check_config
+
+    config = DatasetConfig(rooms=2)
+    for asked, said in ((["chair", "nosuch"], r"unknown \['nosuch'\]"), ([], "none")):
+        config.assets.categories = asked
+        with pytest.raises(ValueError, match=rf"^assets\.categories={re.escape(str(asked))}: {said} \(known: .*chair"):
+            check_config(config)
+    config.assets.categories = ["chair", "bed", "dining_table"]
+    check_config(config)
+
+
+def test_spread_view_prints_an_ipv6_host_in_brackets_so_the_address_opens():
+    from spread.cli.view import browser_url
+
+    assert browser_url("::1", 8080) == "http://[::1]:8080/"
+    assert browser_url("127.0.0.1", 8080) == "http://127.0.0.1:8080/"

@@ -54,13 +54,19 @@ def main(argv: list[str] | None = None) -> None:
     for why in refused:
         print(f"spread-view: not shown: {why}", file=sys.stderr, flush=True)
     viewer = SceneViewer(items, library, host=values["host"], port=port)
-    print(f"spread-view: {len(items)} scene(s) from {path}; open http://{values['host']}:{viewer.server.get_port()}/ "
+    url = browser_url(values["host"], viewer.server.get_port())
+    print(f"spread-view: {len(items)} scene(s) from {path}; open {url} "
           f"(Ctrl-C stops it)", flush=True)
     try:
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
         viewer.server.stop()
+
+
+def browser_url(host: str, port: int) -> str:
+    """The address to open: an IPv6 host in brackets (``http://[::1]:8080/``; ``http://::1:8080/`` opens nothing)."""
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}/"
 
 
 if __name__ == "__main__":

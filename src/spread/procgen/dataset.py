@@ -269,8 +269,15 @@ def check_config(config: DatasetConfig) -> list[str]:
         raise ValueError(f"room.max_objects={room.max_objects}: at most {MAX_ROOM_OBJECTS} (the generator's fullest "
                          f"rooms hold about 260 objects; a room asked for more tries for minutes to place what "
                          f"cannot fit)")
+    from spread.assets.catalog import CATALOG, default_categories
     from spread.procgen.room_types import ROOM_TYPES
 
+    asked = config.assets.categories
+    if asked is not None:  # else refused when the library was built, a KeyError traceback after the pin was written
+        unknown = [c for c in asked if c not in CATALOG]
+        if unknown or not asked:
+            raise ValueError(f"assets.categories={list(asked)}: {'unknown ' + str(unknown) if unknown else 'none'} "
+                             f"(known: {', '.join(default_categories())})")
     if not any(w > 0 and t in ROOM_TYPES for t, w in room.room_types.items()):
         raise ValueError(f"room.room_types={dict(room.room_types)}: no known room type with a positive weight "
                          f"(known: {sorted(ROOM_TYPES)})")

@@ -217,14 +217,15 @@ def moved_data(before: str, now: str) -> list[str]:
 
 
 def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings: dict | None = None,
-                            max_steps=None, max_time: float | None = None) -> None:
+                            max_steps=None, max_time: float | None = None) -> str | None:
     """Refuse in one line a ``ckpt_path`` that cannot resume ``model``: unreadable or unsafe (named), or of
     another method, variant or network size (:func:`spread.safe_load.expect_checkpoint`), or trained with other
     settings than this run's (:func:`resumed_changes`: a resumed run restores the checkpoint's optimiser, schedule and
     data order, so a changed learning rate, batch size, seed or dataset would not apply as the new checkpoint would
-    record it), or past ``max_steps`` (its step beyond it), or past ``max_time`` (seconds: Lightning's ``Timer``
-    counts the training time of every launch of the run, so a run stopped by its time limit resumed to train nothing
-    and reported success); a new run from its weights (``model.init_from``) takes new settings."""
+    record it), or past ``max_steps`` (its step beyond it); a new run from its weights (``model.init_from``) takes new
+    settings. Returns the line to print when the run has used its ``max_time`` (seconds) already: Lightning's
+    ``Timer`` counts the training time of every launch, so the resume trains nothing — done, as a run at its
+    ``max_steps`` is, but said (it printed only success), with the way on."""
     from spread.safe_load import checkpoint_identity, expect_checkpoint
 
     own = checkpoint_identity({"hyper_parameters": dict(getattr(model, "hparams", {}) or {})})
@@ -242,9 +243,10 @@ def check_resume_checkpoint(path: Path, model, datamodule=None, trainer_settings
                          f"≥ {step} to train on")
     elapsed = timer_elapsed(checkpoint)
     if max_time is not None and elapsed is not None and elapsed >= max_time:
-        raise ValueError(f"ckpt_path={path}: the run has trained for {elapsed:.0f} s, its trainer.max_time of "
-                         f"{max_time:.0f} s (Lightning counts the time of every launch of a run): the resumed run "
-                         f"would train nothing; give a longer trainer.max_time, or null, to train on")
+        return (f"spread-train: {path} has trained for {elapsed:.0f} s, its trainer.max_time of {max_time:.0f} s "
+                f"(Lightning counts the time of every launch of a run): nothing to train; give a longer "
+                f"trainer.max_time, or null, to train on")
+    return None
 
 
 def timer_elapsed(checkpoint: dict) -> float | None:
@@ -493,10 +495,11 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.check_fit(trainer_validates(cfg.trainer, trainer_overrides))  # before a logger opens a run
     model = hydra.utils.instantiate(cfg.model)
+    used_up = None  # the line saying a resumed run has used its max_time already
     if ckpt_path is not None:  # the file is read safely and must be this run's kind of model, before fit
-        check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg, trainer_overrides),
-                                max_steps=OmegaConf.select(cfg, "trainer.max_steps"),
-                                max_time=max_time_seconds(OmegaConf.select(cfg, "trainer.max_time")))
+        used_up = check_resume_checkpoint(ckpt_path, model, datamodule, trainer_settings_of(cfg, trainer_overrides),
+                                          max_steps=OmegaConf.select(cfg, "trainer.max_steps"),
+                                          max_time=max_time_seconds(OmegaConf.select(cfg, "trainer.max_time")))
     callbacks = build_callbacks(cfg, run_dir)  # a checkpoint.* value Lightning refuses: before the record
     if before_work is not None:
         before_work()
@@ -516,6 +519,8 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     feed_the_device(trainer, datamodule)
     if ckpt_path is not None and trainer.is_global_zero:
         print(f"spread-train: resuming {ckpt_path}", flush=True)
+        if used_up:
+            print(used_up, flush=True)
     try:
         with stop_on_interrupt(stopper):
             trainer.fit(model, datamodule=datamodule, ckpt_path=None if ckpt_path is None else str(ckpt_path))

@@ -51,6 +51,12 @@ def one_line(name: str):
     return wrap
 
 
+def ddp_child() -> bool:
+    """Whether this process is a child Lightning's DDP launcher started (``LOCAL_RANK`` ≥ 1): it runs the command line
+    again with ``hydra.run.dir=<the parent's run folder>`` added, so that every process writes into one folder."""
+    return os.environ.get("LOCAL_RANK", "0") not in ("", "0")
+
+
 def out_dir_problem(value: str) -> str | None:
     """Why ``out_dir=value`` cannot be a run folder (empty, an existing file, not writable, a link that loops or
     leads nowhere, a ``..`` after a link: :func:`link_then_up`), or None."""
@@ -200,7 +206,8 @@ def command(name: str, config: str | None = None):
                     problem = out_dir_problem(arg.split("=", 1)[1])
                     if problem:
                         raise SystemExit(f"{name}: {problem}")
-                if arg.lstrip("+").startswith("hydra.run.dir="):  # the run went there, its record named out_dir's
+                # the run went to hydra.run.dir while its record named out_dir's folder
+                if arg.lstrip("+").startswith("hydra.run.dir=") and not ddp_child():
                     raise SystemExit(f"{name}: {arg.lstrip('+')}: Hydra's run folder follows out_dir (conf/hydra); "
                                      f"give out_dir=<folder> instead")
                 if arg.lstrip("+").startswith("hydra/launcher="):

@@ -140,8 +140,9 @@ class StopAtStep(Callback):
 def stop_on_interrupt(stopper: StopAtStep) -> Iterator[StopAtStep]:
     """Ctrl-C or SIGTERM while the block runs (a fit): the first asks ``stopper`` to stop at the end of the step in
     progress (the caller then raises KeyboardInterrupt, or ``SystemExit(143)`` for SIGTERM), a second one stops at
-    once (Lightning's own shutdown; nothing is saved). Before, Lightning turned Ctrl-C into a "graceful shutdown" that saved nothing (up to
-    ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a failed stage and went on;
+    once (Lightning's own shutdown; nothing is saved). Before, Lightning turned Ctrl-C into a "graceful shutdown"
+    that saved nothing (up to ``checkpoint.every_n_train_steps`` steps lost) and exited 1, which a study took for a
+    failed stage and went on;
     SIGTERM (a scheduler's preemption) saved nothing and exited 0, a finished run to the scheduler, with no word.
     Only in the main thread (a signal handler is set there only: a Ray Train worker's fit runs in another); a signal
     the process ignores (SIGINT under ``nohup`` or in a shell's background job) stays ignored."""
@@ -173,5 +174,5 @@ def stop_on_interrupt(stopper: StopAtStep) -> Iterator[StopAtStep]:
         yield stopper
     finally:
         stopper.sigterm = None
-        for sig, was in previous.items():
-            signal.signal(sig, was)
+        for sig, was in previous.items():  # None: a handler set outside Python, which cannot be set again
+            signal.signal(sig, was if was is not None else signal.SIG_DFL)

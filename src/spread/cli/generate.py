@@ -1,7 +1,7 @@
 """``spread-generate out_dir=DIR rooms=N seed=S``: procedural rooms → dataset folder (:mod:`spread.procgen`).
 
 SIGTERM ends the command and its worker processes with status 143 and one line (Ctrl-C: 130); the rooms written
-stay, and a relaunch makes the others (:func:`spread.procgen.dataset.sigterm_stops_the_run`)."""
+stay, and a relaunch makes the others (:func:`spread.runtime.ray.sigterm_exits`)."""
 
 from __future__ import annotations
 

@@ -12,11 +12,9 @@ made otherwise.
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing as mp
 import math
 import os
-import signal
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field, fields
@@ -29,7 +27,7 @@ from spread.io import read_json, write_json_atomic
 from spread.procgen.room import HullCache, generate_room
 from spread.procgen.room_types import RoomConfig
 from spread.procgen.settle import SettleConfig
-from spread.runtime.ray import TERMINATED
+from spread.runtime.ray import sigterm_exits
 from spread.scene import PHYSICAL_SUPPORT, read_scene, write_scene
 
 GENERATOR_VERSION = "spread-procgen-1"
@@ -324,33 +322,9 @@ def pool_size(processes: int, jobs: int | None = None) -> int:
     return max(1, min(processes, os.cpu_count() or 1, processes if jobs is None else jobs))
 
 
-def _stop(signum, frame):
-    raise SystemExit(TERMINATED)
-
-
-@contextlib.contextmanager
-def sigterm_stops_the_run():
-    """SIGTERM raises ``SystemExit(143)`` (:data:`spread.runtime.ray.TERMINATED`, the project's other commands'
-    status) in the main thread for the block, so a pool's ``with`` block terminates its workers (multiprocessing's
-    exit handler any other it started), and the command ends as Ctrl-C ends it: the rooms written stay,
-    a relaunch makes the others. Before, SIGTERM ended the main process alone: its workers, re-parented to PID 1,
-    finished their rooms, then printed BrokenPipeError tracebacks and a leaked-semaphore warning. Main thread only
-    (where a handler can be set); the handler in force before is set again after the block."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, _stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
-
-
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool = True) -> dict:
     """Generate (or complete) the dataset folder; returns the manifest written. SIGTERM stops it and its workers
-    (:func:`sigterm_stops_the_run`)."""
+    (:func:`spread.runtime.ray.sigterm_exits`): the rooms written stay, a relaunch makes the others."""
     import logging
 
     out = Path(out_dir)
@@ -358,7 +332,7 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, progress: bool 
     warnings = check_config(config)
     for message in warnings:
         logging.getLogger("spread.generate").warning(message)
-    with sigterm_stops_the_run():
+    with sigterm_exits():
         return _generate_dataset(out, config, progress)
 
 

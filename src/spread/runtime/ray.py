@@ -249,10 +249,12 @@ def terminated(exc: BaseException) -> bool:
 
 
 @contextlib.contextmanager
-def _stop_on_signals() -> Iterator[None]:
-    """SIGTERM raises SystemExit(143) in the main thread for the block (SIGINT already raises KeyboardInterrupt),
-    so a terminated command runs its ``finally`` blocks and stops its cluster (set again after ``ray.init``, which
-    installs its own)."""
+def sigterm_exits() -> Iterator[None]:
+    """SIGTERM raises ``SystemExit(143)`` (:data:`TERMINATED`) in the main thread for the block (SIGINT already raises
+    KeyboardInterrupt), so a terminated command runs its ``finally`` blocks: a session stops its cluster (set again
+    after ``ray.init``, which installs its own), a process pool's ``with`` block terminates its workers. Main thread
+    only (where a handler can be set); the handler in force before is set again after the block (the default action
+    where it was set outside Python)."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
@@ -262,7 +264,7 @@ def _stop_on_signals() -> Iterator[None]:
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 @contextlib.contextmanager
@@ -319,7 +321,7 @@ def ray_session(settings: RaySettings, owner: Path | str | None = None) -> Itera
     if recorded:
         Path(owner).mkdir(parents=True, exist_ok=True)
         stop_leftover(Path(owner))
-    with _stop_on_signals(), _terminated_as_143():
+    with sigterm_exits(), _terminated_as_143():
         if owned:
             with quiet_ray_start(), _sigterm_ends_the_start():
                 _start(settings)

@@ -181,6 +181,8 @@ def test_bad_files_are_counted_and_listed_with_their_errors(cli_run):
 
 # ---- resume, worker death, cluster ---------------------------------------------------------------
 
+@pytest.mark.slow  # long (≈ 30 s on 2 cores): make test-slow runs it; the fast guard is
+# test_load_finished_drops_duplicates_and_a_torn_line
 def test_resume_after_a_torn_line_counts_every_scene_once(cli_run, dataset, scenes_dir, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(cli_run[0], out)

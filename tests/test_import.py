@@ -516,3 +516,22 @@ def test_spread_import_of_no_room_at_all_exits_non_zero_after_its_summary(tmp_pa
                             "progress=false", "decomposition=hull", "renders=0", "fidelity_samples=0")
     assert line.startswith("spread-import: no room was imported (4 failed; first: "), line
     assert "failed rooms / assets" in proc.stdout
+
+
+def test_spread_import_refuses_an_out_dir_inside_a_dataset_or_holding_a_training_run(release, tmp_path):
+    """Round 18 (docs/robustness.md): ``spread-import`` was the one command writing a dataset that did not ask
+    :func:`spread.io.check_folder_kind` — an import into ``<dataset>/train/more`` put a second asset library and
+    manifest among the first one's scene files, one into a training run's folder sat beside its checkpoints."""
+    root, _ = release
+    src, dataset = root / "src", root / "out"
+    inside = dataset / "train" / "more"
+    line, _ = user_error("spread-import", "source=spread_release", f"src={src}", f"out_dir={inside}",
+                         "progress=false", "renders=0")
+    assert line.startswith(f"spread-import: out_dir={inside}: lies inside a dataset, {dataset} "), line
+    assert not inside.exists()
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    line, _ = user_error("spread-import", "source=spread_release", f"src={src}", f"out_dir={run}", "progress=false",
+                         "renders=0")
+    assert line.startswith(f"spread-import: out_dir={run}: holds a training run ({run / 'checkpoints'})"), line
+    assert sorted(p.name for p in run.iterdir()) == ["checkpoints"]

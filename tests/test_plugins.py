@@ -112,6 +112,8 @@ def scene_files(folder: Path) -> dict:
     return {p.name: read_scene(p) for p in list_scene_files(folder)}
 
 
+@pytest.mark.slow  # long (≈ 35 s on 2 cores: two spread-sample processes): make test-slow runs it; the fast guard
+# is test_every_entry_point_group_finds_the_example_and_its_term_is_one_more_setting
 def test_a_plugin_guidance_term_is_switched_on_by_name_in_spread_sample(plugin_site, dataset, checkpoint, tmp_path):
     common = [f"ckpt={checkpoint}", f"data.root={dataset}", *FAST_SAMPLE, "seed=1"]
     run_with_plugins(plugin_site, "spread-sample", *common, f"out_dir={tmp_path / 'plain'}")

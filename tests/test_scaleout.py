@@ -505,6 +505,8 @@ def busy_actor_killer(scenes: Path, title: str, stop: threading.Event, killed: d
         time.sleep(0.01)
 
 
+@pytest.mark.slow  # long (≈ 50 s on 2 cores: Ray restarts the actor): make test-slow runs it; the fast guard of a
+# batch re-run that writes only the missing files is test_train_sample.py's test_resume_skips_done_graphs_...
 def test_a_sampling_actor_killed_mid_batch_loses_and_repeats_no_scene(dataset, ckpt, reference, tmp_path,
                                                                      monkeypatch):
     """Ray restarts the actor (``ray.max_retries``) and re-runs its batch, which writes only the files the

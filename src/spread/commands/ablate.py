@@ -80,7 +80,7 @@ def run_stages_command(cfg: DictConfig, spec, command: str, name: str, body, pre
     from spread.tracking import mlflow_store as mlflow_log
     from spread.tracking.loggers import as_logger_config
     from spread.tracking.parent import nest_under
-    from spread.training.fit import set_threads
+    from spread.runtime.threads import set_threads
 
     from spread.experiments.stages import check_data_split
 

@@ -303,9 +303,11 @@ def import_dataset(cfg: ImportConfig) -> dict:
 def check_not_another_kind(out: Path) -> None:
     """``ValueError`` when ``out`` holds a dataset an import did not make (``spread-generate``'s rooms: its
     ``generation.json``, or a ``manifest.json`` of another generator): an import would replace its asset index,
-    statistics and manifest and leave its rooms pointing at assets the index no longer has."""
-    from spread.io import read_json
+    statistics and manifest and leave its rooms pointing at assets the index no longer has. Also when ``out`` holds
+    another command's run, or lies inside a dataset or a training run (:func:`spread.io.check_folder_kind`)."""
+    from spread.io import check_folder_kind, read_json
 
+    check_folder_kind(out, "spread-import", {"dataset"})  # another command's run, or inside a dataset or a run
     try:
         manifest = read_json(out / "manifest.json") if (out / "manifest.json").is_file() else {}
     except (OSError, ValueError):

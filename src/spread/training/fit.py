@@ -20,9 +20,11 @@ from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from spread.io import check_folder_kind
+from spread.runtime.threads import set_threads
 from spread.training.checkpoints import (CheckpointStep, StopAtStep, StopRequested, atomic_checkpoint_io,
                                          resolve_ckpt_path, save_final_checkpoint, stop_on_interrupt)
 from spread.training.determinism import ExactResume
+from spread.training.finite import StopOnNonFiniteLoss
 from spread.training.trainer_settings import built, check_training_settings, max_time_seconds
 
 log = logging.getLogger("spread.train")
@@ -35,17 +37,6 @@ def run_folder(cfg: DictConfig) -> Path:
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
     return Path(str(cfg.out_dir))
-
-
-def set_threads(threads: int | None) -> None:
-    """torch intra-op threads (None: torch's default). One thread is much faster on a shared 2-core CPU."""
-    from spread.runtime.threads import check_threads
-
-    check_threads(threads)
-    if threads:
-        import torch
-
-        torch.set_num_threads(int(threads))
 
 
 def route_lightning_logs() -> None:
@@ -510,7 +501,7 @@ def train(cfg: DictConfig, run_dir: Path | None = None, *, trainer_overrides: di
     loggers = lightning_loggers(as_logger_config(cfg.logger), run_dir, str(cfg.experiment_name),
                                 [str(t) for t in cfg.tags], OmegaConf.to_container(cfg, resolve=True), resuming_here)
     trainer = hydra.utils.instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers or False,
-                                      callbacks=callbacks + [newest, stopper, ExactResume(int(cfg.seed)),
+                                      callbacks=callbacks + [newest, stopper, ExactResume(int(cfg.seed)), StopOnNonFiniteLoss(),
                                                                                  *(monitors(cfg.get("renders") if takes_images(cfg) else None) if loggers else []),
                                                                                  *(extra_callbacks or [])],
                                       plugins=plugins, **overrides)

@@ -178,8 +178,8 @@ def max_time_seconds(value, key: str = "trainer.max_time") -> float | None:
                      f"00:00:04:00), an object such as {{minutes: 4}}, or null for no limit")
 
 
-def _whole(least: int, *also) -> typing.Callable:
-    return lambda v: isinstance(v, int) and not isinstance(v, bool) and (v >= least or v in also)
+def _whole(least: int) -> typing.Callable:
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= least
 
 
 def _fraction_or_count(v) -> bool:  # a float is a share of the batches, an int a count

@@ -392,6 +392,8 @@ def test_report_takes_the_training_runs_inside_a_folder_beside_its_evaluated_run
     assert training_folders(twice) == ([train_dir], [str(sample_dir), str(root)])
 
 
+@pytest.mark.slow  # long (≈ 50 s on 2 cores: eight launches): make test-slow runs it; the fast guards are
+# test_a_run_folders_record_names_each_jobs_latest_run_... and test_a_point_a_relaunched_sweep_resumes_...
 def test_a_relaunched_sample_or_evaluation_continues_its_mlflow_run_and_other_settings_open_a_new_one(
         store, tmp_path, monkeypatch):
     """A killed or failed launch left its run ``RUNNING``/``FAILED`` beside a new run of the relaunch that did the

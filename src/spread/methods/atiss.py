@@ -37,7 +37,6 @@ from torch import nn
 from spread.methods import dmll
 from spread.methods.base import BaselineConfig, BaselineModule, uniform_draws
 from spread.methods.boxes import Objects, normalize_size, objects_of, poses
-from spread.methods.registry import MethodSpec, register_method
 
 #: The floor raster covers normalised xz coordinates in [−FLOOR_WINDOW, FLOOR_WINDOW] (rooms reach a little
 #: beyond the outermost object centres, which span [−1, 1]).
@@ -303,9 +302,3 @@ class ATISS(BaselineModule):
             return poses(translation, angle * math.pi, obj.tilt, obj.mask, self.bounds)
         finally:
             network.train(was)
-
-
-register_method(MethodSpec(
-    "atiss", "spread.methods.atiss:ATISS", label="ATISS", note="autoregressive, no graph", sampling="own",
-    ignores={"sampler": "one pass per object", "graph_scale": 1.0, "precision": "32"},
-    train=("experiment=atiss",), train_quick=("experiment=atiss_quick",), order=10))

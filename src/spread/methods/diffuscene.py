@@ -46,7 +46,6 @@ from spread.methods.boxes import denormalize_size, normalize_size, objects_of, p
 from spread.model.diffusion import NOISE_ROWS, Denoising, denoise, training_scheduler
 from spread.model.encodings import sinusoidal_embedding
 from spread.model.poses import denormalize
-from spread.methods.registry import MethodSpec, register_method
 
 #: The noise schedule of DiffuScene and InstructScene (DDPM, T = 1000, linear β 1e-4 … 0.02, ε-prediction).
 LINEAR_SCHEDULE = {"beta_schedule": "linear", "beta_start": 1e-4, "beta_end": 0.02}
@@ -328,11 +327,3 @@ class DiffuScene(BaselineModule):
             return problem.decode(denoise(problem, sampler, generator, callbacks))
         finally:
             network.train(was)
-
-
-register_method(MethodSpec(
-    "diffuscene", "spread.methods.diffuscene:DiffuScene", label="DiffuScene", note="DDPM over slots, no graph",
-    ignores={"graph_scale": 1.0}, train=("experiment=diffuscene",), train_quick=("experiment=diffuscene_quick",), order=20))
-register_method(MethodSpec(
-    "physcene", "spread.methods.diffuscene:DiffuScene", label="DiffuScene + PhyScene guidance",
-    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", ignores={"graph_scale": 1.0}, sample=("guidance=physcene",), order=30))

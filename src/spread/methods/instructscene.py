@@ -41,7 +41,6 @@ from spread.methods.predicates import PAD, VOCAB, drop_edges, instruct_predicate
 from spread.model.diffusion import NOISE_ROWS, Denoising, denoise, training_scheduler
 from spread.model.encodings import TimestepEmbedding, sinusoidal_embedding
 from spread.model.poses import denormalize
-from spread.methods.registry import MethodSpec, register_method
 
 
 @dataclass(frozen=True)
@@ -260,9 +259,3 @@ class InstructScene(BaselineModule):
             return problem.decode(denoise(problem, sampler, generator, callbacks))
         finally:
             network.train(was)
-
-
-register_method(MethodSpec(
-    "instructscene", "spread.methods.instructscene:InstructScene", label="InstructScene (graph-to-layout)",
-    note="SPREAD's graph denoiser without shape tokens, geometry or the physical graph", graph_conditioned=True,
-    train=("experiment=instructscene",), train_quick=("experiment=instructscene_quick",), order=40))

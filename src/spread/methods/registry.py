@@ -12,8 +12,8 @@ experiment's overrides, ``train_quick``: the CPU one) — the one place they liv
 method's recipe from here (``recipe=full`` or ``quick``, :meth:`MethodSpec.recipe`) unless its config names a
 list for that method. ``spread-compare``, ``spread-sample`` and checkpoint loading iterate :data:`METHODS`.
 
-A baseline module registers itself (``METHODS.register`` at its end); another package adds a method through the
-entry-point group ``spread.methods`` naming a :class:`MethodSpec` (or a LightningModule class, which becomes a
+The built-ins are registered at this module's end, each by its ``"module:Class"`` (a study plans and refuses without
+importing Lightning, ~7 s of CPU); another package adds a method through the entry-point group ``spread.methods`` naming a :class:`MethodSpec` (or a LightningModule class, which becomes a
 ``pipeline`` or ``own`` method by whether it has ``denoising``).
 """
 
@@ -105,7 +105,7 @@ def _adapt(name: str, obj) -> MethodSpec:
     raise RegistryError(f"method entry point '{name}': expected a MethodSpec or a LightningModule class, got {obj!r}")
 
 
-METHODS: Registry[MethodSpec] = Registry("method", "spread.methods", packages=("spread.methods",), adapt=_adapt)
+METHODS: Registry[MethodSpec] = Registry("method", "spread.methods", adapt=_adapt)  # the built-ins: below
 
 
 def register_method(spec: MethodSpec) -> MethodSpec:
@@ -121,6 +121,22 @@ def method_names() -> list[str]:
     return [s.name for s in sorted((s for _, s in METHODS.items()), key=lambda s: s.order)]
 
 
+# The built-ins, each module imported when its class is first asked for (``module_class``): listing them here, not
+# in their modules, keeps a study's planning and its refusals free of Lightning's import (~7 s of CPU).
+register_method(MethodSpec(
+    "atiss", "spread.methods.atiss:ATISS", label="ATISS", note="autoregressive, no graph", sampling="own",
+    ignores={"sampler": "one pass per object", "graph_scale": 1.0, "precision": "32"},
+    train=("experiment=atiss",), train_quick=("experiment=atiss_quick",), order=10))
+register_method(MethodSpec(
+    "diffuscene", "spread.methods.diffuscene:DiffuScene", label="DiffuScene", note="DDPM over slots, no graph",
+    ignores={"graph_scale": 1.0}, train=("experiment=diffuscene",), train_quick=("experiment=diffuscene_quick",), order=20))
+register_method(MethodSpec(
+    "physcene", "spread.methods.diffuscene:DiffuScene", label="DiffuScene + PhyScene guidance",
+    note="DiffuScene + oriented box-IoU guidance", checkpoint="diffuscene", ignores={"graph_scale": 1.0}, sample=("guidance=physcene",), order=30))
+register_method(MethodSpec(
+    "instructscene", "spread.methods.instructscene:InstructScene", label="InstructScene (graph-to-layout)",
+    note="SPREAD's graph denoiser without shape tokens, geometry or the physical graph", graph_conditioned=True,
+    train=("experiment=instructscene",), train_quick=("experiment=instructscene_quick",), order=40))
 register_method(MethodSpec(
     "spread", "spread.model.module:SceneDiffusion", label="SPREAD (ours)", note="the platform's SceneDiffusion",
     graph_conditioned=True, train=("experiment=paper_geometry",), train_quick=("experiment=quick", "model.variant=geometry"),
